@@ -1,0 +1,21 @@
+# The two commands of the README. Both create .venv when it is missing and
+# install the project into it; they need only python3 and pip.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+INSTALLED := $(VENV)/.installed
+
+.PHONY: train test
+
+$(INSTALLED): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(INSTALLED)
+
+# A budget that finishes in a few minutes on a 2-core laptop; drop --epochs for the paper's 1000.
+train: $(INSTALLED)
+	$(BIN)/python scripts/train.py --task repulsion --epochs 20
+
+test: $(INSTALLED)
+	$(BIN)/python -m pytest -q

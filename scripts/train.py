@@ -1,0 +1,134 @@
+#!/usr/bin/env python3
+"""Train a controller by backpropagation through time with gradient flow R, M, S or C.
+
+    python scripts/train.py --poles 3                  # cart-pole with 3 poles (MJX)
+    python scripts/train.py --model my_robot.xml       # any MJCF
+    python scripts/train.py --task repulsion --rc 0.01 --mode C --seeds 5
+    python scripts/train.py --resume runs/cartpole-20261122-101500
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import dataclasses  # noqa: E402
+import platform  # noqa: E402
+
+from stablebptt.cli import Parser, add_options, build, fail, option_name  # noqa: E402
+from stablebptt.errors import InputError  # noqa: E402
+from stablebptt.training import TrainConfig  # noqa: E402
+import tasks  # noqa: E402
+
+RUNS_ROOT = Path("runs")
+RESUMABLE = {"epochs"}  # what --resume may change: extending a finished run
+
+
+def parse(argv: list[str]):
+    parser = Parser(description=__doc__, formatter_class=lambda prog: __import__("argparse").RawDescriptionHelpFormatter(prog, max_help_position=32))
+    parser.add_argument("--task", choices=sorted(tasks.TASK_MODULES), default=None,
+                        help=f"which task (default: {tasks.DEFAULT_TASK}, or the task whose options are given)")
+    parser.add_argument("--out", type=Path, default=None, help="run directory to create (default: runs/TASK-TIME); never overwritten")
+    parser.add_argument("--resume", type=Path, default=None, help="continue the run in this directory from its checkpoint")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs and CI)")
+    owners = {name: "train" for name in add_options(parser, TrainConfig, "training")}
+    for task_name in sorted(tasks.TASK_MODULES):
+        for name in add_options(parser, tasks.load(task_name).Config, f"task {task_name}"):
+            owners[name] = task_name
+    return parser.parse_args(argv), owners
+
+
+def choose_task(args, owners) -> str:
+    given_tasks = {owners[name] for name in vars(args) if owners.get(name, "train") != "train"}
+    if args.task is None and len(given_tasks) == 1:
+        return given_tasks.pop()
+    task_name = args.task or tasks.DEFAULT_TASK
+    foreign = sorted(name for name in vars(args) if owners.get(name) not in (None, "train", task_name))
+    if foreign:
+        fail(f"{option_name(foreign[0])} is an option of --task {owners[foreign[0]]}, not of --task {task_name}")
+    return task_name
+
+
+def configure(args, owners):
+    """(task name, task config, train config, run dir, resuming) from the command line or a run directory."""
+    given = {name: value for name, value in vars(args).items() if name in owners}
+    if args.resume is not None:
+        changed = sorted(set(given) - RESUMABLE)
+        if changed or args.out is not None or args.task is not None:
+            fail(f"--resume continues a run with its saved configuration; only --epochs may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
+        from stablebptt.runs import CONFIG_FILE, read_json
+        saved = read_json(args.resume / CONFIG_FILE)
+        task_name = saved["task"]
+        task_config = build(tasks.load(task_name).Config, saved["task_config"])
+        train_config = build(TrainConfig, {**saved["train"], **given})
+        return task_name, task_config, train_config, args.resume, True
+    task_name = choose_task(args, owners)
+    module = tasks.load(task_name)
+    task_config = build(module.Config, given)
+    train_config = build(TrainConfig, {"epochs": module.DEFAULT_EPOCHS, **given})
+    return task_name, task_config, train_config, args.out, False
+
+
+def main(argv: list[str]) -> int:
+    args, owners = parse(argv)
+    try:
+        task_name, task_config, train_config, run_dir, resuming = configure(args, owners)
+    except InputError as error:
+        fail(str(error))
+
+    import jax  # after parsing: --x64 must be set before any array exists
+    jax.config.update("jax_enable_x64", train_config.x64)
+    import numpy as np
+    from stablebptt import runs
+    from stablebptt.training import make_trainer, seed_array
+
+    try:
+        task = tasks.load(task_name).make(task_config)
+        if resuming:
+            if not (run_dir / runs.CHECKPOINT_FILE).exists():
+                raise InputError(f"{run_dir} has no checkpoint yet: start the run again")
+        else:
+            run_dir = runs.claim_run_dir(run_dir or runs.default_run_dir(RUNS_ROOT, task_name))
+    except InputError as error:
+        fail(str(error))
+
+    trainer = make_trainer(task, train_config)
+    seeds = np.asarray(seed_array(train_config))
+    state = trainer.init(seed_array(train_config))
+    if resuming:
+        start_epoch, state, rows = runs.load_checkpoint(run_dir, state)
+    else:
+        start_epoch, rows = 0, runs.empty_rows()
+    runs.write_json(run_dir / runs.CONFIG_FILE, {
+        "task": task_name,
+        "task_config": dataclasses.asdict(task_config),
+        "train": dataclasses.asdict(train_config),
+        "flows_computed": list(trainer.flows),
+        "environment": {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])},
+    })
+
+    from tqdm import tqdm
+    bar = tqdm(total=train_config.epochs, initial=start_epoch, unit="epoch", disable=args.no_progress,
+               desc=f"{task_name} {train_config.mode}", dynamic_ncols=True)
+
+    def on_epoch(epoch, metrics):
+        bar.update(1)
+        bar.set_postfix(test_loss=f"{float(np.mean(metrics['test_loss'])):.4g}")
+
+    outcome = runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds, on_epoch)
+    bar.close()
+    if outcome.status == "diverged":
+        print(f"error: {outcome.message}", file=sys.stderr)
+        return 1
+    if outcome.status == "interrupted":
+        print(outcome.message, file=sys.stderr)
+        return 130
+    mean, std = runs.summarize(outcome.rows)
+    spread = f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
+    print(f"done: {task_name}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

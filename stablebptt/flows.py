@@ -1,0 +1,225 @@
+"""The gradient flows of backpropagation through time and their combination.
+
+A controller ``policy(params, state) -> control`` drives a simulator
+``step(state, control) -> state`` for ``horizon`` steps and a loss is taken on
+the visited states and controls. The flows differ only in where the backward
+pass is cut, never in the forward values (Schnell & Thuerey, ICLR 2024):
+
+====  ==========================  ===========================  ======================
+flow  policy sees                 simulator sees               gradient
+====  ==========================  ===========================  ======================
+R     x_t                         x_t                          regular BPTT
+M     stop_gradient(x_t)          x_t                          physics path only
+S     stop_gradient(x_t)          stop_gradient(x_t)           one-step only
+====  ==========================  ===========================  ======================
+
+The combined update C keeps g_M where it agrees in sign with g_R, else 0.
+
+All flows a training step needs come from ONE forward rollout: every step is a
+``custom_vjp`` that stores the simulator's and the policy's pullbacks once and,
+in the reverse pass, pulls back one cotangent per flow through them together.
+``reference_rollout`` is the literal stop_gradient transcription of the table,
+kept as the definition the fast path is tested against.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+PyTree = Any
+FLOWS = ("R", "M", "S")
+MODES = ("R", "M", "S", "C")
+
+# Which parts of the pulled-back state cotangent each flow keeps:
+# (through the simulator, through the policy's input).
+_KEEPS = {"R": (True, True), "M": (True, False), "S": (False, False)}
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    """What BPTT differentiates: a policy, a simulator step and a trajectory loss.
+
+    Attributes:
+      step: ``step(state, control) -> state``; a pytree of float arrays.
+      policy: ``policy(params, state) -> control``; observation included.
+      loss: ``loss(states, controls) -> scalar`` for ONE trajectory, where
+        ``states`` stacks x_1..x_T and ``controls`` stacks u_0..u_{T-1}.
+      horizon: number of steps T.
+    """
+
+    step: Callable[[PyTree, PyTree], PyTree]
+    policy: Callable[[PyTree, PyTree], PyTree]
+    loss: Callable[[PyTree, PyTree], jax.Array]
+    horizon: int
+
+
+def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:
+    """The flows a mode's update needs, in canonical order (R, M, S).
+
+    C needs M and R; any mode also computes M and R when the cosine of the two
+    is logged, which is cheap because the forward pass is shared.
+    """
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}: choose one of {', '.join(MODES)}")
+    needed = {"C": {"M", "R"}}.get(mode, {mode})
+    if with_cosine:
+        needed |= {"M", "R"}
+    return tuple(f for f in FLOWS if f in needed)
+
+
+def _stack(tree: PyTree, copies: int) -> PyTree:
+    return jax.tree.map(lambda a: jnp.broadcast_to(a, (copies,) + jnp.shape(a)), tree)
+
+
+def _first(tree: PyTree) -> PyTree:
+    return jax.tree.map(lambda a: a[0], tree)
+
+
+def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
+    """One simulator step whose reverse pass carries one adjoint per flow.
+
+    Inputs and outputs hold ``len(flows)`` identical copies along a leading
+    axis; only the cotangents differ. The forward pass computes the step once.
+    """
+    copies = len(flows)
+    # NumPy, not jnp: constants created under a trace would be tracers closed
+    # over by the custom_vjp.
+    keep_sim = np.array([_KEEPS[f][0] for f in flows])
+    keep_net = np.array([_KEEPS[f][1] for f in flows])
+
+    def select(mask, a):
+        # where, not multiply: a cut path must not turn inf into NaN.
+        return jnp.where(mask.reshape((copies,) + (1,) * (a.ndim - 1)), a, jnp.zeros_like(a))
+
+    def forward(params, state):
+        control, policy_pullback = jax.vjp(dynamics.policy, params, state)
+        next_state, step_pullback = jax.vjp(dynamics.step, state, control)
+        return next_state, control, (policy_pullback, step_pullback)
+
+    @jax.custom_vjp
+    def step(params_copies, state_copies):
+        next_state, control, _ = forward(_first(params_copies), _first(state_copies))
+        return _stack(next_state, copies), _stack(control, copies)
+
+    def step_fwd(params_copies, state_copies):
+        next_state, control, pullbacks = forward(_first(params_copies), _first(state_copies))
+        return (_stack(next_state, copies), _stack(control, copies)), pullbacks
+
+    def step_bwd(pullbacks, cotangents):
+        policy_pullback, step_pullback = pullbacks
+        next_state_ct, control_ct = cotangents
+        state_ct_sim, control_ct_sim = jax.vmap(step_pullback)(next_state_ct)
+        control_ct = jax.tree.map(jnp.add, control_ct, control_ct_sim)
+        params_ct, state_ct_net = jax.vmap(policy_pullback)(control_ct)
+        state_ct = jax.tree.map(
+            lambda sim, net: select(keep_sim, sim) + select(keep_net, net), state_ct_sim, state_ct_net
+        )
+        return params_ct, state_ct
+
+    step.defvjp(step_fwd, step_bwd)
+    return step
+
+
+def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params_copies: PyTree, initial_state: PyTree):
+    """Loss of one trajectory, once per flow copy (identical values, distinct gradients)."""
+    step = _multi_adjoint_step(dynamics, flows)
+
+    def body(state_copies, _):
+        next_copies, control_copies = step(params_copies, state_copies)
+        return next_copies, (next_copies, control_copies)
+
+    _, (states, controls) = jax.lax.scan(body, _stack(initial_state, len(flows)), None, length=dynamics.horizon)
+    # scan stacks time first: [T, copies, ...]; the loss wants one copy's [T, ...].
+    return jax.vmap(dynamics.loss, in_axes=(1, 1))(states, controls)
+
+
+def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree):
+    """Mean batch loss and the gradient of every flow from one forward rollout.
+
+    Args:
+      dynamics: the system to differentiate.
+      flows: names from ``FLOWS``, e.g. ``("R", "M")``.
+      params: policy parameters.
+      initial_states: a batch of initial states (leading axis = batch).
+
+    Returns:
+      ``(loss, grads)`` where each leaf of ``grads`` has a leading axis of
+      length ``len(flows)`` in the order of ``flows``.
+    """
+    def total(params_copies):
+        per_flow = jax.vmap(lambda x0: flow_losses(dynamics, flows, params_copies, x0))(initial_states).mean(0)
+        return per_flow.sum(), per_flow[0]
+
+    grads, loss = jax.grad(total, has_aux=True)(_stack(params, len(flows)))
+    return loss, grads
+
+
+class Trajectory(NamedTuple):
+    states: PyTree  # x_1..x_T
+    controls: PyTree  # u_0..u_{T-1}
+
+
+def reference_rollout(dynamics: Dynamics, params: PyTree, initial_state: PyTree, flow: str = "R") -> Trajectory:
+    """The rollout with stop_gradient placed literally as in the table above."""
+    cut_sim = not _KEEPS[flow][0]
+    cut_net = not _KEEPS[flow][1]
+
+    def body(state, _):
+        control = dynamics.policy(params, jax.lax.stop_gradient(state) if cut_net else state)
+        next_state = dynamics.step(jax.lax.stop_gradient(state) if cut_sim else state, control)
+        return next_state, (next_state, control)
+
+    _, (states, controls) = jax.lax.scan(body, initial_state, None, length=dynamics.horizon)
+    return Trajectory(states, controls)
+
+
+def reference_loss(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R") -> jax.Array:
+    """Mean loss over a batch of initial states; differentiate it for the flow's gradient."""
+    def one(x0):
+        trajectory = reference_rollout(dynamics, params, x0, flow)
+        return dynamics.loss(trajectory.states, trajectory.controls)
+
+    return jax.vmap(one)(initial_states).mean()
+
+
+def sign_agreement(grad_m: PyTree, grad_r: PyTree) -> PyTree:
+    """The combined update C: g_M where sign(g_M) == sign(g_R), else 0, element-wise."""
+    return jax.tree.map(lambda m, r: jnp.where(jnp.sign(m) == jnp.sign(r), m, jnp.zeros_like(m)), grad_m, grad_r)
+
+
+def tree_cosine(a: PyTree, b: PyTree) -> jax.Array:
+    """Cosine similarity of two pytrees seen as flat vectors (0 if either is 0)."""
+    dot = sum(jnp.vdot(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+    norms = optax.global_norm(a) * optax.global_norm(b)
+    return jnp.where(norms > 0, dot / jnp.where(norms > 0, norms, 1.0), 0.0)
+
+
+def select_flow(mode: str, flows: tuple[str, ...]) -> optax.GradientTransformation:
+    """An optax transform turning stacked flow gradients into the update of ``mode``.
+
+    Its input is the output of ``flow_gradients`` (a leading flow axis); its
+    output is a plain gradient pytree, so it heads an ordinary chain::
+
+        optimizer = optax.chain(select_flow("C", ("R", "M")),
+                                optax.clip(1.0), optax.adam(1e-3))
+    """
+    needed = flows_needed(mode, with_cosine=False)
+    missing = [f for f in needed if f not in flows]
+    if missing:
+        raise ValueError(f"mode {mode} needs flows {needed}, but only {flows} are computed")
+
+    def row(updates, flow):
+        return jax.tree.map(lambda a: a[flows.index(flow)], updates)
+
+    def update(updates, state, params=None):
+        del params
+        if mode == "C":
+            return sign_agreement(row(updates, "M"), row(updates, "R")), state
+        return row(updates, mode), state
+
+    return optax.GradientTransformation(lambda params: optax.EmptyState(), update)

@@ -1,0 +1,40 @@
+"""Small controller networks as plain pytrees: a list of (weights, bias) pairs."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+
+
+def glorot_uniform(key: jax.Array, fan_in: int, fan_out: int, shape: tuple[int, ...] | None = None) -> jax.Array:
+    """Glorot/Xavier uniform initialisation, the Keras default the original uses."""
+    limit = jnp.sqrt(6.0 / (fan_in + fan_out))
+    return jax.random.uniform(key, shape or (fan_in, fan_out), jnp.result_type(float), -limit, limit)
+
+
+def mlp_init(key: jax.Array, sizes: Sequence[int], zero_output: bool = True) -> list[tuple[jax.Array, jax.Array]]:
+    """Dense layers ``sizes[0] -> ... -> sizes[-1]``: Glorot weights, zero biases.
+
+    Args:
+      key: PRNG key.
+      sizes: layer widths including input and output, e.g. ``(6, 100, 100, 1)``.
+      zero_output: start the output layer's weights at zero, so the initial
+        policy outputs exactly zero, as the paper's public run scripts do.
+    """
+    keys = jax.random.split(key, len(sizes) - 1)
+    layers = []
+    for index, (k, fan_in, fan_out) in enumerate(zip(keys, sizes[:-1], sizes[1:])):
+        is_output = index == len(sizes) - 2
+        weights = jnp.zeros((fan_in, fan_out)) if (is_output and zero_output) else glorot_uniform(k, fan_in, fan_out)
+        layers.append((weights, jnp.zeros((fan_out,))))
+    return layers
+
+
+def mlp_apply(layers: list[tuple[jax.Array, jax.Array]], inputs: jax.Array) -> jax.Array:
+    """tanh hidden layers, linear output."""
+    hidden = inputs
+    for weights, bias in layers[:-1]:
+        hidden = jnp.tanh(hidden @ weights + bias)
+    weights, bias = layers[-1]
+    return hidden @ weights + bias
