@@ -32,21 +32,22 @@ def parse(argv: list[str]):
     parser.add_argument("--out", type=Path, default=None, help="run directory to create (default: runs/TASK-TIME); never overwritten")
     parser.add_argument("--resume", type=Path, default=None, help="continue the run in this directory from its checkpoint")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs and CI)")
-    owners = {name: "train" for name in add_options(parser, TrainConfig, "training")}
+    # owners: option -> the configs that have it ("train" or task names)
+    owners = {name: {"train"} for name in add_options(parser, TrainConfig, "training")}
     for task_name in sorted(tasks.TASK_MODULES):
-        for name in add_options(parser, tasks.load(task_name).Config, f"task {task_name}"):
-            owners[name] = task_name
+        for name in add_options(parser, tasks.load(task_name).Config, f"task {task_name}", set(owners)):
+            owners.setdefault(name, set()).add(task_name)
     return parser.parse_args(argv), owners
 
 
 def choose_task(args, owners) -> str:
-    given_tasks = {owners[name] for name in vars(args) if owners.get(name, "train") != "train"}
-    if args.task is None and len(given_tasks) == 1:
-        return given_tasks.pop()
-    task_name = args.task or tasks.DEFAULT_TASK
-    foreign = sorted(name for name in vars(args) if owners.get(name) not in (None, "train", task_name))
+    """--task, else the only task whose options are all given, else the default."""
+    task_options = [owners[name] for name in vars(args) if name in owners and "train" not in owners[name]]
+    candidates = set.intersection(*task_options) if task_options else set()
+    task_name = args.task or (candidates.pop() if len(candidates) == 1 else tasks.DEFAULT_TASK)
+    foreign = sorted(name for name in vars(args) if name in owners and not owners[name] & {"train", task_name})
     if foreign:
-        fail(f"{option_name(foreign[0])} is an option of --task {owners[foreign[0]]}, not of --task {task_name}")
+        fail(f"{option_name(foreign[0])} is an option of --task {'/'.join(sorted(owners[foreign[0]]))}, not of --task {task_name}")
     return task_name
 
 
@@ -93,6 +94,8 @@ def main(argv: list[str]) -> int:
     except InputError as error:
         fail(str(error))
 
+    if task.summary:
+        print(task.summary)
     trainer = make_trainer(task, train_config)
     seeds = np.asarray(seed_array(train_config))
     state = trainer.init(seed_array(train_config))

@@ -31,11 +31,18 @@ def option_name(field_name: str) -> str:
     return "--" + field_name.replace("_", "-")
 
 
-def add_options(parser: argparse.ArgumentParser, config_class: type, title: str) -> list[str]:
-    """Add one option per dataclass field; unset options stay absent from the namespace."""
+def add_options(parser: argparse.ArgumentParser, config_class: type, title: str, present: set[str] = frozenset()) -> list[str]:
+    """Add one option per dataclass field; unset options stay absent from the namespace.
+
+    Fields named in ``present`` already have an option (another config shares
+    the name): they are listed in the result but not added twice.
+    """
     group = parser.add_argument_group(title)
     names = []
     for field in dataclasses.fields(config_class):
+        if field.name in present:
+            names.append(field.name)
+            continue
         kind = _TYPES[field.type if isinstance(field.type, str) else field.type.__name__]
         help_text = f"{field.metadata.get('help', '')} (default: {field.default})"
         common = dict(dest=field.name, help=help_text, default=argparse.SUPPRESS)

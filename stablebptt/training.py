@@ -31,12 +31,14 @@ class Task:
       dynamics: policy, simulator step, trajectory loss and horizon.
       init_params: ``init_params(key, zero_output) -> params``.
       sample_initial_states: ``sample_initial_states(key, n) -> batch`` (leading axis n).
+      summary: one line on the set-up (what is simulated), printed by scripts.
     """
 
     name: str
     dynamics: Dynamics
     init_params: Callable[[jax.Array, bool], PyTree]
     sample_initial_states: Callable[[jax.Array, int], PyTree]
+    summary: str = ""
 
 
 @dataclass(frozen=True)
@@ -122,7 +124,7 @@ def make_trainer(task: Task, config: TrainConfig) -> Trainer:
     train_states = task.sample_initial_states(train_key, config.train_size)
     test_states = task.sample_initial_states(test_key, config.test_size)
     # Fixed order, no shuffling: minibatch i is always the same states.
-    batches = jax.tree.map(lambda a: a.reshape((-1, config.batch) + a.shape[1:]), train_states)
+    batches = jax.tree.map(lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), train_states)
 
     def init(seed):
         params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)

@@ -5,9 +5,10 @@ import importlib
 from types import ModuleType
 
 TASK_MODULES = {
+    "cartpole": "tasks.cartpole",
     "repulsion": "tasks.repulsion",
 }
-DEFAULT_TASK = "repulsion"
+DEFAULT_TASK = "cartpole"
 
 
 def load(name: str) -> ModuleType:

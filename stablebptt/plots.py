@@ -1,0 +1,404 @@
+"""Learning curves drawn from run directories: they read ``config.json`` and ``metrics.csv``, never train.
+
+    from stablebptt.plots import learning_curves, plot_run
+    plot_run("runs/repulsion-20261122-101500")            # -> .../learning_curves.png
+    learning_curves(["runs/r", "runs/c"], "compare.png", smooth=30)
+
+One figure, three panels sharing the epoch axis: test loss (log scale),
+update norm (log scale) and the cosine of the gradients g_M and g_R. Each run
+is one line (the mean over its seeds) with a band (min-max or +-std over its
+seeds). Colour says the gradient flow, line style the clipping.
+"""
+from __future__ import annotations
+
+import io
+import warnings
+from collections import Counter
+from pathlib import Path
+from typing import Iterable, NamedTuple, Sequence
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import to_rgb
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.ticker import LogFormatter, MaxNLocator
+
+from stablebptt.errors import InputError
+from stablebptt.runs import CONFIG_FILE, METRICS_FILE, atomic_write, read_json, read_metrics
+
+FIGURE_FILE = "learning_curves.png"
+PAPER_SMOOTH = 30  # the paper smooths its curves over 30 epochs
+BANDS = ("minmax", "std")
+FORMATS = (".png", ".pdf", ".svg")
+
+# The paper's order and one fixed colour per flow (Okabe-Ito: distinguishable with colour blindness).
+MODE_ORDER = ("R", "M", "C", "S")
+MODE_COLORS = {"R": "#0072B2", "M": "#E69F00", "C": "#009E73", "S": "#CC79A7"}
+CLIP_STYLES = {"value": "-", "norm": "--", "none": ":"}
+REQUIRED_COLUMNS = ("epoch", "seed", "test_loss", "update_norm")
+
+# Train options that do not change what a curve means (or show on the axes anyway): never in a label.
+_UNLABELLED_TRAIN_KEYS = {"mode", "clip", "epochs", "seeds", "seed", "checkpoint_every", "seed_batching", "cosine"}
+
+# (metrics.csv column, panel title, y label, log scale)
+PANELS = (
+    ("test_loss", "Test loss", "test loss", True),
+    ("update_norm", "Update norm", r"$\|\Delta\theta\|_2$ per update", True),
+    ("cosine", r"Cosine similarity of $g_M$ and $g_R$", r"$\cos(g_M, g_R)$", False),
+)
+
+
+class Run(NamedTuple):
+    """One run directory, its metrics pivoted to (epoch, seed) tables.
+
+    Attributes:
+      path: the run directory.
+      config: the parsed ``config.json``.
+      epochs: sorted epoch numbers, shape (E,).
+      seeds: sorted seeds, shape (N,).
+      metrics: column name -> array (E, N); NaN where a value was not logged.
+    """
+
+    path: Path
+    config: dict
+    epochs: np.ndarray
+    seeds: np.ndarray
+    metrics: dict
+
+    @property
+    def mode(self) -> str:
+        return str(self.config.get("train", {}).get("mode", "?"))
+
+    @property
+    def clip(self) -> str:
+        return str(self.config.get("train", {}).get("clip", "?"))
+
+
+def load_run(run_dir: str | Path) -> Run:
+    """Read one run directory.
+
+    Args:
+      run_dir: a directory written by ``scripts/train.py``.
+
+    Returns:
+      The ``Run``.
+
+    Raises:
+      InputError: the directory, its config or its metrics are missing or unreadable.
+    """
+    path = Path(run_dir)
+    if not path.exists():
+        raise InputError(f"{path} does not exist: give a run directory written by scripts/train.py")
+    if not path.is_dir():
+        raise InputError(f"{path} is not a directory: give a run directory written by scripts/train.py")
+    metrics_path = path / METRICS_FILE
+    if not metrics_path.is_file():
+        raise InputError(f"{path} has no {METRICS_FILE}: not a run directory, or its run has not finished an epoch yet")
+    config = read_json(path / CONFIG_FILE)
+    if not isinstance(config, dict) or not isinstance(config.get("train", {}), dict):
+        raise InputError(f"{path / CONFIG_FILE} is not a run configuration (expected an object with a 'train' object)")
+    try:
+        rows = read_metrics(metrics_path)
+    except OSError as error:
+        raise InputError(f"cannot read {metrics_path}: {error.strerror}") from None
+    except (ValueError, TypeError):
+        # float() of an empty, missing or non-numeric cell; a resume rewrites the file from the checkpoint.
+        raise InputError(f"{metrics_path} has a missing or non-numeric value: regenerate it with "
+                         f"scripts/train.py --resume {path}") from None
+    if not rows:
+        raise InputError(f"{metrics_path} has no rows: the run has not finished an epoch yet")
+    missing = [column for column in REQUIRED_COLUMNS if column not in rows[0]]
+    if missing:
+        raise InputError(f"{metrics_path} lacks the column {missing[0]!r}: is it a metrics.csv of scripts/train.py?")
+    return Run(path, config, *_pivot(rows, metrics_path))
+
+
+def _pivot(rows: list[dict[str, float]], source: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(epochs, seeds, column -> (E, N) table) from tidy rows; a repeated (epoch, seed) keeps its last row."""
+    epoch_column = np.array([row["epoch"] for row in rows])
+    seed_column = np.array([row["seed"] for row in rows])
+    if not (np.all(np.isfinite(epoch_column)) and np.all(np.isfinite(seed_column))):
+        raise InputError(f"{source} has a non-numeric epoch or seed")
+    epochs, epoch_index = np.unique(epoch_column.astype(int), return_inverse=True)
+    seeds, seed_index = np.unique(seed_column.astype(int), return_inverse=True)
+    metrics = {}
+    for column in rows[0]:
+        if column in ("epoch", "seed"):
+            continue
+        table = np.full((len(epochs), len(seeds)), np.nan)
+        table[epoch_index, seed_index] = [row[column] for row in rows]
+        metrics[column] = table
+    return epochs, seeds, metrics
+
+
+def moving_average(values: np.ndarray, window: int) -> np.ndarray:
+    """Centred moving average along axis 0 over about ``window`` epochs, ignoring NaN and inf.
+
+    Each point averages itself and ``window // 2`` epochs on either side. Near
+    either end, and in runs shorter than the window, the window shrinks
+    symmetrically to the epochs that exist: curves keep their length and lag,
+    and a linear trend passes unchanged (the end points stay raw).
+
+    Args:
+      values: shape (E,) or (E, N); smoothed along the first axis.
+      window: epochs to average over; 0 or 1 = no smoothing.
+
+    Returns:
+      An array of the shape of ``values``; NaN where a window has no finite value.
+
+    Example:
+      >>> moving_average(np.array([0., 3., 0., 3., 0.]), 2)
+      array([0., 1., 2., 1., 0.])
+    """
+    values = np.asarray(values, dtype=float)
+    if window < 0:
+        raise InputError(f"the smoothing window must be zero or positive, got {window}")
+    half, n = window // 2, values.shape[0]
+    if half == 0 or n == 0:
+        return values.copy()
+    valid = np.isfinite(values)
+    zero = np.zeros((1,) + values.shape[1:])
+    sums = np.concatenate([zero, np.cumsum(np.where(valid, values, 0.0), axis=0)])
+    counts = np.concatenate([zero, np.cumsum(valid, axis=0)])
+    index = np.arange(n)
+    reach = np.minimum(half, np.minimum(index, n - 1 - index))  # symmetric, so trends do not lag
+    low, high = index - reach, index + reach + 1
+    total, count = sums[high] - sums[low], counts[high] - counts[low]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def aggregate(values: np.ndarray, band: str = "minmax") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean over seeds and the band around it, per epoch, ignoring NaN.
+
+    Args:
+      values: shape (E, N): epochs by seeds.
+      band: ``"minmax"`` (the band spans every seed) or ``"std"`` (mean +- standard deviation).
+
+    Returns:
+      ``(mean, low, high)``, each of shape (E,); NaN at epochs with no value.
+    """
+    if band not in BANDS:
+        raise InputError(f"unknown band {band!r}: choose one of {', '.join(BANDS)}")
+    values = np.asarray(values, dtype=float)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN epochs give NaN, which is what we want
+        mean = np.nanmean(values, axis=1)
+        if band == "minmax":
+            return mean, np.nanmin(values, axis=1), np.nanmax(values, axis=1)
+        spread = np.nanstd(values, axis=1)
+    return mean, mean - spread, mean + spread
+
+
+def default_smooth(epochs: int) -> int:
+    """The paper's 30-epoch smoothing for runs of at least 90 epochs; none for shorter runs."""
+    return PAPER_SMOOTH if epochs >= 3 * PAPER_SMOOTH else 0
+
+
+def run_labels(runs: Sequence[Run]) -> list[str]:
+    """Legend labels: flow and clipping, plus whatever else differs between the runs.
+
+    Args:
+      runs: the runs of one figure.
+
+    Returns:
+      One label per run, e.g. ``"C, clip value, rc=0.01"``; the directory name is
+      appended where two labels would otherwise be equal.
+    """
+    labels = [f"{run.mode}, " + ("no clip" if run.clip == "none" else f"clip {run.clip}") for run in runs]
+    extras = [[] for _ in runs]
+    if len({run.config.get("task") for run in runs}) > 1:
+        for extra, run in zip(extras, runs):
+            extra.insert(0, str(run.config.get("task", "?")))
+    for section, skip in (("task_config", set()), ("train", _UNLABELLED_TRAIN_KEYS)):
+        settings = [run.config.get(section) or {} for run in runs]
+        keys = sorted(set().union(*settings) - skip)
+        for key in keys:
+            values = [setting.get(key) for setting in settings]
+            if any(value != values[0] for value in values):
+                for extra, value in zip(extras, values):
+                    extra.append(f"{key}={_short(value)}")
+    labels = [", ".join([label] + extra) for label, extra in zip(labels, extras)]
+    repeated = Counter(labels)
+    return [f"{label} ({run.path.name})" if repeated[label] > 1 else label for label, run in zip(labels, runs)]
+
+
+def _short(value) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _common_settings(runs: Sequence[Run]) -> str:
+    """The task and its options when all runs share them, for the figure title."""
+    tasks = {run.config.get("task") for run in runs}
+    if len(tasks) != 1 or None in tasks:
+        return ""
+    settings = [run.config.get("task_config") or {} for run in runs]
+    shared = [f"{key}={_short(value)}" for key, value in sorted(settings[0].items())
+              if all(setting.get(key) == value for setting in settings)]
+    return f"{tasks.pop()}" + (f" ({', '.join(shared)})" if shared else "")
+
+
+def _styles(runs: Sequence[Run]) -> list[tuple[tuple, str]]:
+    """(colour, line style) per run: colour = flow, style = clipping; runs sharing both get darker or lighter shades."""
+    seen = Counter()
+    styles = []
+    for run in runs:
+        key = (run.mode, run.clip)
+        variant = seen[key]
+        seen[key] += 1
+        base = np.array(to_rgb(MODE_COLORS.get(run.mode, "#555555")))
+        # 0: base colour; then alternately darker and lighter, so variants stay within the flow's hue.
+        amount = 0.35 * ((variant + 1) // 2)
+        target = np.zeros(3) if variant % 2 else np.ones(3)
+        colour = tuple(base + (target - base) * min(amount, 0.7))
+        styles.append((colour, CLIP_STYLES.get(run.clip, "-.")))
+    return styles
+
+
+def _sort_key(run: Run) -> tuple:
+    mode = MODE_ORDER.index(run.mode) if run.mode in MODE_ORDER else len(MODE_ORDER)
+    clip = list(CLIP_STYLES).index(run.clip) if run.clip in CLIP_STYLES else len(CLIP_STYLES)
+    return mode, clip
+
+
+class _PlainLogFormatter(LogFormatter):
+    """Log-axis labels where matplotlib would put them, written 0.05 rather than 5e-02."""
+
+    def __call__(self, x, pos=None):
+        return f"{x:g}" if super().__call__(x, pos) else ""
+
+
+def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str | None = None) -> Figure:
+    """The learning-curve figure of some runs (not yet saved).
+
+    Args:
+      runs: loaded runs; drawn in the paper's order of flows R, M, C, S.
+      smooth: moving-average window in epochs (``moving_average``); 0 = raw curves.
+      band: ``"minmax"`` or ``"std"`` over seeds (``aggregate``).
+      title: the figure title; by default the task, the shared options and what line and band show.
+
+    Returns:
+      A matplotlib ``Figure`` on the Agg canvas (no display needed).
+    """
+    if smooth < 0:
+        raise InputError(f"--smooth must be zero or positive, got {smooth}")
+    if band not in BANDS:
+        raise InputError(f"unknown band {band!r}: choose one of {', '.join(BANDS)}")
+    runs = sorted(runs, key=_sort_key)  # stable: runs of one flow and clip keep the caller's order
+    labels, styles = run_labels(runs), _styles(runs)
+    figure = Figure(figsize=(15, 4.8), layout="constrained")
+    FigureCanvasAgg(figure)  # explicit headless canvas: never touches pyplot or a display
+    axes = figure.subplots(1, len(PANELS), sharex=True)
+    few_epochs = max(len(run.epochs) for run in runs) <= 15  # markers make short curves readable
+    for ax, (column, panel_title, ylabel, log) in zip(axes, PANELS):
+        absent, drawn = [], 0
+        for run, label, (colour, linestyle) in zip(runs, labels, styles):
+            values = run.metrics.get(column, np.full((len(run.epochs), len(run.seeds)), np.nan))
+            if log:
+                values = np.where(values > 0, values, np.nan)  # a log axis cannot show 0 (e.g. S at a zero gradient)
+            if not np.any(np.isfinite(values)):
+                absent.append(run.mode)
+                continue
+            drawn += 1
+            mean, low, high = aggregate(moving_average(values, smooth), band)
+            ax.plot(run.epochs, mean, color=colour, linestyle=linestyle, linewidth=1.8, label=label,
+                    marker="o" if few_epochs else None, markersize=3.5)
+            if len(run.seeds) > 1:
+                ax.fill_between(run.epochs, low, high, color=colour, alpha=0.18, linewidth=0)
+        if log and drawn:
+            ax.set_yscale("log")
+            # Plain numbers (0.03, 2) read better than 3x10^-2; minor ticks get labels on short axes.
+            ax.yaxis.set_major_formatter(_PlainLogFormatter())
+            ax.yaxis.set_minor_formatter(_PlainLogFormatter(labelOnlyBase=False))
+        if column == "cosine" and drawn:
+            ax.axhline(0.0, color="0.6", linewidth=0.8, zorder=0)
+            ax.set_ylim(-1.05, 1.05)
+        ax.set_title(panel_title)
+        ax.set_ylabel(ylabel)
+        ax.set_xlabel("epoch")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.grid(True, which="major", alpha=0.3)
+        if absent:
+            reason = "not logged (trained with --no-cosine)" if column == "cosine" else "zero throughout: no log scale"
+            if drawn:  # say who is missing under the axis, where it cannot hide a curve
+                ax.annotate(f"not shown: {', '.join(dict.fromkeys(absent))}, {reason}", xy=(0.5, 0), xycoords="axes fraction",
+                            xytext=(0, -34), textcoords="offset points", ha="center", va="top", fontsize=9, color="0.35")
+            else:
+                ax.text(0.5, 0.5, reason, transform=ax.transAxes, ha="center", va="center", fontsize=10, color="0.35")
+                ax.set_yticks([])
+    handles = [Line2D([], [], color=colour, linestyle=linestyle, linewidth=2.2, label=label)
+               for label, (colour, linestyle) in zip(labels, styles)]
+    figure.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), frameon=False)
+    figure.suptitle(title if title is not None else _default_title(runs, smooth, band), fontsize=12)
+    return figure
+
+
+def _default_title(runs: Sequence[Run], smooth: int, band: str) -> str:
+    seed_counts = sorted({len(run.seeds) for run in runs})
+    seeds = f"{seed_counts[0]} seeds" if len(seed_counts) == 1 else "seeds"
+    shown = f"line: mean over {seeds}"
+    if max(seed_counts) > 1:
+        shown += ", band: " + ("min to max over seeds" if band == "minmax" else "mean \u00b1 1 std over seeds")
+    if smooth // 2:
+        shown += f"; centred moving average over {2 * (smooth // 2) + 1} epochs"
+    setting = _common_settings(runs)
+    return f"{setting}\n{shown}" if setting else shown
+
+
+def render(figure: Figure, out_path: Path, dpi: int = 150) -> Path:
+    """Save ``figure`` atomically (rendered into memory first); the format follows the suffix."""
+    if out_path.suffix.lower() not in FORMATS:
+        raise InputError(f"{out_path}: give a file name ending in {', '.join(FORMATS)}")
+    if not out_path.parent.is_dir():
+        raise InputError(f"cannot write {out_path}: the directory {out_path.parent} does not exist")
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format=out_path.suffix.lower()[1:], dpi=dpi)
+    try:
+        atomic_write(out_path, buffer.getvalue())
+    except OSError as error:
+        raise InputError(f"cannot write {out_path}: {error.strerror}") from None
+    return out_path
+
+
+def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth: int | None = 0, band: str = "minmax",
+                    title: str | None = None, dpi: int = 150) -> Path:
+    """Draw the learning curves of some run directories into one figure file.
+
+    Args:
+      run_dirs: run directories written by ``scripts/train.py`` (repeats are drawn once).
+      out_path: the figure file (.png, .pdf or .svg); replaced atomically.
+      smooth: moving-average window in epochs; 0 = raw curves (the paper uses 30);
+        None = ``default_smooth`` of the longest run.
+      band: ``"minmax"`` (band spans all seeds) or ``"std"`` (mean +- one standard deviation).
+      title: figure title; by default the shared task settings and what line and band show.
+      dpi: resolution of a PNG.
+
+    Returns:
+      The path written.
+
+    Raises:
+      InputError: a run directory is missing or unreadable, or an argument is out of range.
+    """
+    unique = {}
+    for run_dir in map(Path, run_dirs):
+        unique.setdefault(run_dir.resolve(), run_dir)  # keep the caller's spelling for messages
+    if not unique:
+        raise InputError("no run directory given")
+    runs = [load_run(run_dir) for run_dir in unique.values()]
+    if smooth is None:
+        smooth = default_smooth(max(len(run.epochs) for run in runs))
+    figure = draw(runs, smooth=smooth, band=band, title=title)
+    return render(figure, Path(out_path), dpi=dpi)
+
+
+def plot_run(run_dir: str | Path) -> Path:
+    """Write ``learning_curves.png`` into a run directory, smoothed as ``default_smooth`` chooses.
+
+    Args:
+      run_dir: a run directory with at least one finished epoch.
+
+    Returns:
+      The path of the PNG.
+    """
+    return learning_curves([run_dir], Path(run_dir) / FIGURE_FILE, smooth=None)

@@ -1,0 +1,210 @@
+"""Simulate only what a scene calls for: scene analysis and a lean, differentiable MJX step.
+
+``analyze(model)`` reads an ``mujoco.MjModel`` and finds which effects it can
+need at all; ``lean_model`` switches the others off through MuJoCo's disable
+flags (on a copy: the user's file and model are untouched) and picks solver
+settings MJX can reverse-differentiate; ``make_step`` builds a step over the
+minimal state (qpos, qvel, act) that runs only the pipeline stages the scene
+needs, skipping those no flag reaches (camera and light poses, sensors,
+tendons, collision and constraint assembly).
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from mujoco import mjx
+# Internal MJX stages: pinned with mujoco-mjx in pyproject.toml.
+from mujoco.mjx._src import collision_driver, constraint, passive, smooth, solver
+from mujoco.mjx._src import forward as mjx_forward
+
+_DISABLE = mujoco.mjtDisableBit
+INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,
+               "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
+
+
+@dataclass(frozen=True)
+class SceneEffects:
+    """Which optional effects a scene can produce. False means: provably never."""
+
+    contacts: bool
+    joint_limits: bool
+    tendon_limits: bool
+    equality: bool
+    friction_loss: bool
+    springs: bool
+    dampers: bool
+    gravity_compensation: bool
+    fluid: bool
+    control_clamp: bool
+    activation: bool
+    tendons: bool
+    sensors: bool
+
+    @property
+    def constraints(self) -> bool:
+        """Whether the constraint solver can ever have rows."""
+        return self.contacts or self.joint_limits or self.tendon_limits or self.equality or self.friction_loss
+
+    @property
+    def passive(self) -> bool:
+        return self.springs or self.dampers or self.gravity_compensation or self.fluid
+
+
+# (SceneEffects field, MuJoCo disable flag switched on when the effect is absent)
+_FLAGS = (
+    ("contacts", _DISABLE.mjDSBL_CONTACT),
+    ("joint_limits", None),  # LIMIT covers joints and tendons: set below when both are absent
+    ("equality", _DISABLE.mjDSBL_EQUALITY),
+    ("friction_loss", _DISABLE.mjDSBL_FRICTIONLOSS),
+    ("springs", _DISABLE.mjDSBL_SPRING),
+    ("dampers", _DISABLE.mjDSBL_DAMPER),
+    ("control_clamp", _DISABLE.mjDSBL_CLAMPCTRL),
+    ("sensors", _DISABLE.mjDSBL_SENSOR),
+)
+_LABELS = {
+    "contacts": "contacts", "joint_limits": "joint limits", "tendon_limits": "tendon limits",
+    "equality": "equality constraints", "friction_loss": "friction loss", "springs": "springs",
+    "dampers": "dampers", "gravity_compensation": "gravity compensation", "fluid": "fluid forces",
+    "control_clamp": "control clamping", "activation": "actuator activation", "tendons": "tendons",
+    "sensors": "sensors",
+}
+
+
+def analyze(model: mujoco.MjModel) -> SceneEffects:
+    """Find the effects ``model`` can produce, from its structure and parameters alone."""
+    disabled = lambda bit: bool(model.opt.disableflags & bit)
+    enabled = lambda bit: bool(model.opt.enableflags & bit)
+    contacts = not disabled(_DISABLE.mjDSBL_CONTACT) and not disabled(_DISABLE.mjDSBL_CONSTRAINT) and (
+        next(iter(collision_driver.geom_pairs(model)), None) is not None)
+    constraints_on = not disabled(_DISABLE.mjDSBL_CONSTRAINT)
+    return SceneEffects(
+        contacts=contacts,
+        joint_limits=constraints_on and bool(np.any(model.jnt_limited)),
+        tendon_limits=constraints_on and bool(model.ntendon and np.any(model.tendon_limited)),
+        equality=constraints_on and bool(model.neq and np.any(model.eq_active0)),
+        friction_loss=constraints_on and bool(np.any(model.dof_frictionloss > 0)
+                                              or (model.ntendon and np.any(model.tendon_frictionloss > 0))),
+        springs=bool(np.any(model.jnt_stiffness != 0) or (model.ntendon and np.any(model.tendon_stiffness != 0))),
+        dampers=bool(np.any(model.dof_damping != 0) or (model.ntendon and np.any(model.tendon_damping != 0))),
+        gravity_compensation=bool(np.any(model.body_gravcomp != 0)),
+        fluid=bool(model.opt.density > 0 or model.opt.viscosity > 0),
+        control_clamp=bool(model.nu and np.any(model.actuator_ctrllimited)),
+        activation=bool(model.na),
+        tendons=bool(model.ntendon),
+        sensors=bool(model.nsensor),
+    )
+
+
+def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | None = None,
+               timestep: float | None = None) -> mujoco.MjModel:
+    """A copy of ``model`` with every absent effect switched off and differentiable solver settings."""
+    lean = copy.copy(model)
+    for name, bit in _FLAGS:
+        if bit is not None and not getattr(effects, name):
+            lean.opt.disableflags |= bit
+    if not (effects.joint_limits or effects.tendon_limits):
+        lean.opt.disableflags |= _DISABLE.mjDSBL_LIMIT
+    if not effects.constraints:
+        lean.opt.disableflags |= _DISABLE.mjDSBL_CONSTRAINT
+    else:
+        # MJX reverse-differentiates its solver only without a while loop: one
+        # Newton iteration with a bounded line search (a scan).
+        lean.opt.iterations = 1
+        lean.opt.ls_iterations = min(int(lean.opt.ls_iterations), 8)
+        lean.opt.solver = mujoco.mjtSolver.mjSOL_NEWTON
+    if not effects.dampers:
+        # Euler's implicit damping refactors the mass matrix: pointless without damping.
+        lean.opt.disableflags |= _DISABLE.mjDSBL_EULERDAMP
+    if integrator is not None:
+        lean.opt.integrator = INTEGRATORS[integrator]
+    if timestep is not None:
+        lean.opt.timestep = timestep
+    return lean
+
+
+def describe(effects: SceneEffects, model: mujoco.MjModel) -> str:
+    """One line: what is simulated, what is skipped, and any solver setting chosen for gradients."""
+    simulated = [label for name, label in _LABELS.items() if getattr(effects, name)]
+    skipped = [label for name, label in _LABELS.items() if not getattr(effects, name)]
+    integrator = {v: k for k, v in INTEGRATORS.items()}.get(int(model.opt.integrator), str(model.opt.integrator))
+    line = (f"scene: {model.nq} qpos, {model.nv} dof, {model.nu} actuators, {integrator} at dt {model.opt.timestep:g}; "
+            f"simulated: rigid-body dynamics{''.join(', ' + s for s in simulated)}; skipped: {', '.join(skipped) or 'nothing'}")
+    if effects.constraints:
+        line += "; constraint solver: 1 Newton iteration (differentiable, no while loop)"
+    return line
+
+
+class State(NamedTuple):
+    """The minimal MJX state a rollout carries."""
+
+    qpos: jax.Array
+    qvel: jax.Array
+    act: jax.Array
+
+
+def _lean_forward(model: mjx.Model, data: mjx.Data, effects: SceneEffects) -> mjx.Data:
+    """mjx.forward without the stages the scene cannot need."""
+    data = smooth.kinematics(model, data)
+    data = smooth.com_pos(model, data)
+    if effects.tendons:
+        data = smooth.tendon(model, data)
+    data = smooth.crb(model, data)
+    if effects.tendons:
+        data = smooth.tendon_armature(model, data)
+    data = smooth.factor_m(model, data)
+    if effects.constraints:
+        data = collision_driver.collision(model, data)
+        data = constraint.make_constraint(model, data)
+    data = smooth.transmission(model, data)
+    replace = {"_impl.actuator_velocity": data._impl.actuator_moment @ data.qvel}
+    if effects.tendons:
+        replace["_impl.ten_velocity"] = data._impl.ten_J @ data.qvel
+    data = data.tree_replace(replace)
+    data = smooth.com_vel(model, data)
+    if effects.passive:
+        data = passive.passive(model, data)
+    data = smooth.rne(model, data)
+    if effects.tendons:
+        data = smooth.tendon_bias(model, data)
+    data = mjx_forward.fwd_actuation(model, data)
+    data = mjx_forward.fwd_acceleration(model, data)
+    if effects.constraints and data._impl.efc_J.size:
+        return solver.solve(model, data)
+    return data.replace(qacc=data.qacc_smooth)
+
+
+def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str = "lean") -> Callable[[State, jax.Array], State]:
+    """``step(state, ctrl) -> state`` through MJX's JAX implementation.
+
+    Args:
+      model: the (lean or original) MuJoCo model.
+      effects: the scene analysis; required for ``pipeline="lean"``.
+      pipeline: ``"lean"`` runs only the needed stages (Euler integrator);
+        ``"mjx"`` calls ``mjx.step`` unchanged (any integrator).
+    """
+    mjx_model = mjx.put_model(model, impl="jax")
+    template = mjx.make_data(mjx_model)
+    is_euler = int(model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_EULER)
+    if pipeline == "lean" and not is_euler:
+        pipeline = "mjx"  # RK4 and implicitfast call mjx.forward inside: flags still apply
+
+    def step(state: State, ctrl: jax.Array) -> State:
+        data = template.replace(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=ctrl)
+        if pipeline == "lean":
+            data = mjx_forward.euler(mjx_model, _lean_forward(mjx_model, data, effects))
+        else:
+            data = mjx.step(mjx_model, data)
+        return State(data.qpos, data.qvel, data.act)
+
+    return step
+
+
+def initial_state(model: mujoco.MjModel) -> State:
+    return State(jnp.asarray(model.qpos0), jnp.zeros(model.nv), jnp.zeros(model.na))

@@ -1,0 +1,231 @@
+"""Cart-pole with 1-4 poles through MuJoCo MJX, and any MJCF in its place.
+
+The task is read from the MJCF itself (models/README.md documents the
+convention): initial states from keyframe ``init`` plus a spread, the target
+from keyframe ``target`` (else the reference pose), per-joint loss weights,
+final or averaged loss and the horizon from ``<custom>`` fields. The cart-poles
+use the same convention, so nothing here knows about carts, slides or poles:
+joints and actuators are found by type.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from stablebptt import scene
+from stablebptt.errors import InputError
+from stablebptt.flows import Dynamics
+from stablebptt.networks import mlp_apply, mlp_init
+from stablebptt.scene import State
+from stablebptt.training import Task
+
+MODELS = Path(__file__).resolve().parent.parent / "models"
+DEFAULT_EPOCHS = 1000
+DEFAULT_HORIZON = 100
+DEFAULT_SPREAD = 0.1  # per-dof half-width of the initial-state noise when the MJCF declares none
+# Joint types as plain ints: MuJoCo's enums do not compare equal to NumPy integers.
+FREE, BALL, SLIDE, HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL,
+                                            mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE))
+
+
+@dataclass(frozen=True)
+class Config:
+    """Options of the cart-pole / MJCF task."""
+
+    poles: int = field(default=1, metadata={"help": "number of poles, 1-4 (models/cartpole_N.xml)"})
+    model: str = field(default="", metadata={"help": "any MJCF file to control instead of a cart-pole (see models/README.md)"})
+    spread: float = field(default=1.0, metadata={"help": "scales the initial-state spread the MJCF declares"})
+    integrator: str = field(default="", metadata={"help": "override the MJCF's integrator: euler, rk4 or implicitfast", "choices": ("", "euler", "rk4", "implicitfast")})
+    dt: float = field(default=0.0, metadata={"help": "override the MJCF's time step; the simulated time stays the same unless --steps is given"})
+    steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the MJCF's bptt_horizon, else 100)"})
+    pipeline: str = field(default="lean", metadata={"help": "lean: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "mjx")})
+
+    def __post_init__(self):
+        if not self.model and not 1 <= self.poles <= 4:
+            raise InputError(f"--poles must be 1, 2, 3 or 4, got {self.poles}; for other systems pass --model FILE.xml")
+        if self.spread < 0:
+            raise InputError(f"--spread must be zero or positive, got {self.spread}")
+        if self.dt < 0 or self.steps < 0:
+            raise InputError("--dt and --steps must be positive (or 0 for the MJCF's own)")
+
+    @property
+    def model_path(self) -> Path:
+        return Path(self.model) if self.model else MODELS / f"cartpole_{self.poles}.xml"
+
+
+def load_model(path: Path) -> mujoco.MjModel:
+    """Load an MJCF; any failure becomes one clear InputError line."""
+    if not path.is_file():
+        raise InputError(f"model file {path} does not exist")
+    try:
+        return mujoco.MjModel.from_xml_path(str(path))
+    except ValueError as error:
+        detail = " ".join(str(error).split())
+        raise InputError(f"cannot load {path}: {detail}") from None
+
+
+def _numeric(model: mujoco.MjModel, name: str, size: int | None, default):
+    index = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, name)
+    if index < 0:
+        return default
+    start, length = model.numeric_adr[index], model.numeric_size[index]
+    values = np.array(model.numeric_data[start:start + length], dtype=float)
+    if size is not None and len(values) != size:
+        raise InputError(f"<numeric name=\"{name}\"> has {len(values)} values, the model needs {size}")
+    return values
+
+
+def _text(model: mujoco.MjModel, name: str, default: str) -> str:
+    index = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, name)
+    if index < 0:
+        return default
+    start, length = model.text_adr[index], model.text_size[index]
+    return bytes(model.text_data[start:start + length]).decode().rstrip("\x00").strip()
+
+
+def _keyframe(model: mujoco.MjModel, name: str):
+    index = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, name)
+    return None if index < 0 else model.key(index)
+
+
+@dataclass(frozen=True)
+class Spec:
+    """The task an MJCF declares, after defaults."""
+
+    horizon: int
+    loss: str  # "final" or "mean"
+    joint_weight: np.ndarray  # [njnt]
+    init: State
+    qpos_spread: np.ndarray  # [nv], tangent space
+    qvel_spread: np.ndarray  # [nv]
+    target_qpos: np.ndarray  # [nq]
+
+
+def read_spec(model: mujoco.MjModel, spread_scale: float = 1.0) -> Spec:
+    """Read the task convention of models/README.md from ``model``."""
+    if model.nu == 0:
+        raise InputError("the model has no actuators: add an <actuator> so the controller can act")
+    horizon = _numeric(model, "bptt_horizon", 1, np.array([DEFAULT_HORIZON]))
+    loss = _text(model, "bptt_loss", "final")
+    if loss not in ("final", "mean"):
+        raise InputError(f'<text name="bptt_loss"> must be "final" or "mean", got "{loss}"')
+    weights = _numeric(model, "bptt_joint_weight", model.njnt, np.ones(model.njnt))
+    if not np.any(weights > 0) or np.any(weights < 0):
+        raise InputError("bptt_joint_weight needs non-negative weights, at least one positive")
+    init_key, target_key = _keyframe(model, "init"), _keyframe(model, "target")
+    init = State(
+        jnp.asarray(init_key.qpos if init_key is not None else model.qpos0),
+        jnp.asarray(init_key.qvel if init_key is not None else np.zeros(model.nv)),
+        jnp.asarray(init_key.act if init_key is not None else np.zeros(model.na)),
+    )
+    return Spec(
+        horizon=int(horizon[0]),
+        loss=loss,
+        joint_weight=weights,
+        init=init,
+        qpos_spread=spread_scale * _numeric(model, "bptt_qpos_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
+        qvel_spread=spread_scale * _numeric(model, "bptt_qvel_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
+        target_qpos=np.array(target_key.qpos if target_key is not None else model.qpos0),
+    )
+
+
+def _quat_multiply(a, b):
+    w1, v1, w2, v2 = a[0], a[1:], b[0], b[1:]
+    return jnp.concatenate([jnp.array([w1 * w2 - v1 @ v2]), w1 * v2 + w2 * v1 + jnp.cross(v1, v2)])
+
+
+def _quat_exp(rotation):
+    """Unit quaternion of a rotation vector; smooth at zero."""
+    angle_sq = rotation @ rotation
+    angle = jnp.sqrt(jnp.where(angle_sq > 0, angle_sq, 1.0))
+    half_sinc = jnp.where(angle_sq > 0, jnp.sin(angle / 2) / angle, 0.5)
+    return jnp.concatenate([jnp.array([jnp.cos(jnp.where(angle_sq > 0, angle, 0.0) / 2)]), half_sinc * rotation])
+
+
+def perturb_qpos(model: mujoco.MjModel, qpos: jax.Array, dq: jax.Array) -> jax.Array:
+    """Move ``qpos`` by the tangent vector ``dq`` (rotations compose as quaternions)."""
+    parts = []
+    for joint in range(model.njnt):
+        kind, q, v = int(model.jnt_type[joint]), model.jnt_qposadr[joint], model.jnt_dofadr[joint]
+        if kind in (HINGE, SLIDE):
+            parts.append(qpos[q:q + 1] + dq[v:v + 1])
+        elif kind == BALL:
+            parts.append(_quat_multiply(qpos[q:q + 4], _quat_exp(dq[v:v + 3])))
+        else:  # free joint: position, then orientation
+            parts += [qpos[q:q + 3] + dq[v:v + 3], _quat_multiply(qpos[q + 3:q + 7], _quat_exp(dq[v + 3:v + 6]))]
+    return jnp.concatenate(parts) if parts else qpos
+
+
+def joint_errors(model: mujoco.MjModel, qpos: jax.Array, target: np.ndarray) -> jax.Array:
+    """Per-joint distance to the target: 1 - cos of the angle for hinges and rotations, squares for positions."""
+    errors = []
+    for joint in range(model.njnt):
+        kind, q = int(model.jnt_type[joint]), model.jnt_qposadr[joint]
+        if kind == HINGE:
+            errors.append(1.0 - jnp.cos(qpos[q] - target[q]))
+        elif kind == SLIDE:
+            errors.append((qpos[q] - target[q]) ** 2)
+        else:
+            rot = q + (3 if kind == FREE else 0)
+            # 1 - cos(rotation angle) = 2 (1 - <q, q*>^2): sign-free, as quaternions double-cover.
+            error = 2.0 * (1.0 - (qpos[rot:rot + 4] @ target[rot:rot + 4]) ** 2)
+            if kind == FREE:
+                error += jnp.sum((qpos[q:q + 3] - target[q:q + 3]) ** 2)
+            errors.append(error)
+    return jnp.stack(errors)
+
+
+def make(config: Config) -> Task:
+    path = config.model_path
+    model = load_model(path)
+    if model.njnt == 0:
+        raise InputError(f"{path} has no joints: nothing to control")
+    spec = read_spec(model, config.spread)
+    effects = scene.analyze(model)
+    lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None)
+    if config.pipeline == "mjx":
+        lean = copy_with_overrides(model, config)
+    horizon = config.steps or max(1, round(spec.horizon * model.opt.timestep / lean.opt.timestep))
+    step = scene.make_step(lean, effects, config.pipeline)
+    weights = jnp.asarray(spec.joint_weight / spec.joint_weight.sum())
+    target = spec.target_qpos
+    sizes = (model.nq + model.nv + model.na, 100, 100, model.nu)
+
+    def policy(params, state: State):
+        return mlp_apply(params, jnp.concatenate([state.qpos, state.qvel, state.act]))
+
+    def loss(states: State, controls):
+        per_step = jax.vmap(lambda qpos: weights @ joint_errors(model, qpos, target))(states.qpos)
+        return per_step[-1] if spec.loss == "final" else per_step.mean()
+
+    def sample_initial_states(key, count):
+        k_pos, k_vel = jax.random.split(key)
+        dq = jax.random.uniform(k_pos, (count, model.nv), minval=-1.0, maxval=1.0) * spec.qpos_spread
+        dv = jax.random.uniform(k_vel, (count, model.nv), minval=-1.0, maxval=1.0) * spec.qvel_spread
+        qpos = jax.vmap(lambda d: perturb_qpos(model, spec.init.qpos, d))(dq)
+        return State(qpos, spec.init.qvel + dv, jnp.broadcast_to(spec.init.act, (count, model.na)))
+
+    summary = scene.describe(effects, lean) + (f"; pipeline: {config.pipeline}" if config.pipeline != "lean" else "")
+    return Task(
+        name="cartpole",
+        dynamics=Dynamics(step=step, policy=policy, loss=loss, horizon=horizon),
+        init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
+        sample_initial_states=sample_initial_states,
+        summary=f"{path.name}: {summary}; horizon {horizon} steps, {spec.loss}-state loss",
+    )
+
+
+def copy_with_overrides(model: mujoco.MjModel, config: Config) -> mujoco.MjModel:
+    """MuJoCo's default flags, with only the integrator and time step overridden (the baseline)."""
+    import copy
+    baseline = copy.copy(model)
+    if config.integrator:
+        baseline.opt.integrator = scene.INTEGRATORS[config.integrator]
+    if config.dt:
+        baseline.opt.timestep = config.dt
+    return baseline
