@@ -127,6 +127,8 @@ def main(argv: list[str]) -> int:
     if outcome.status == "interrupted":
         print(outcome.message, file=sys.stderr)
         return 130
+    from stablebptt.plots import plot_run
+    plot_run(run_dir)
     mean, std = runs.summarize(outcome.rows)
     spread = f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
     print(f"done: {task_name}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")

@@ -195,7 +195,7 @@ def sign_agreement(grad_m: PyTree, grad_r: PyTree) -> PyTree:
 def tree_cosine(a: PyTree, b: PyTree) -> jax.Array:
     """Cosine similarity of two pytrees seen as flat vectors (0 if either is 0)."""
     dot = sum(jnp.vdot(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
-    norms = optax.global_norm(a) * optax.global_norm(b)
+    norms = optax.tree.norm(a) * optax.tree.norm(b)
     return jnp.where(norms > 0, dot / jnp.where(norms > 0, norms, 1.0), 0.0)
 
 

@@ -96,8 +96,8 @@ def load_run(run_dir: str | Path) -> Run:
     if not metrics_path.is_file():
         raise InputError(f"{path} has no {METRICS_FILE}: not a run directory, or its run has not finished an epoch yet")
     config = read_json(path / CONFIG_FILE)
-    if not isinstance(config, dict) or not isinstance(config.get("train", {}), dict):
-        raise InputError(f"{path / CONFIG_FILE} is not a run configuration (expected an object with a 'train' object)")
+    if not (isinstance(config, dict) and all(isinstance(config.get(key, {}), dict) for key in ("train", "task_config"))):
+        raise InputError(f"{path / CONFIG_FILE} is not a run configuration (expected 'train' and 'task_config' objects)")
     try:
         rows = read_metrics(metrics_path)
     except OSError as error:
@@ -133,12 +133,15 @@ def _pivot(rows: list[dict[str, float]], source: Path) -> tuple[np.ndarray, np.n
 
 
 def moving_average(values: np.ndarray, window: int) -> np.ndarray:
-    """Centred moving average along axis 0 over about ``window`` epochs, ignoring NaN and inf.
+    """Centred moving average along axis 0 over ``window`` epochs, ignoring NaN and inf.
 
     Each point averages itself and ``window // 2`` epochs on either side. Near
-    either end, and in runs shorter than the window, the window shrinks
-    symmetrically to the epochs that exist: curves keep their length and lag,
-    and a linear trend passes unchanged (the end points stay raw).
+    either end, where no centred window fits, a straight line is fitted to the
+    ``2 * (window // 2) + 1`` epochs nearest the end and read off at the point:
+    the ends are as smooth as the middle, and no trend lags or flattens there
+    (inside, the centred mean is that same line fit). Constant and linear
+    series pass unchanged. A window longer than the series fits one line to
+    all of it; ``effective_window`` keeps short runs from that.
 
     Args:
       values: shape (E,) or (E, N); smoothed along the first axis.
@@ -148,25 +151,47 @@ def moving_average(values: np.ndarray, window: int) -> np.ndarray:
       An array of the shape of ``values``; NaN where a window has no finite value.
 
     Example:
-      >>> moving_average(np.array([0., 3., 0., 3., 0.]), 2)
-      array([0., 1., 2., 1., 0.])
+      >>> moving_average(np.array([0., 3., 0., 3., 0., 3.]), 2)
+      array([1., 1., 2., 1., 2., 2.])
     """
     values = np.asarray(values, dtype=float)
     if window < 0:
         raise InputError(f"the smoothing window must be zero or positive, got {window}")
     half, n = window // 2, values.shape[0]
-    if half == 0 or n == 0:
+    if half == 0 or n < 2:
         return values.copy()
-    valid = np.isfinite(values)
-    zero = np.zeros((1,) + values.shape[1:])
-    sums = np.concatenate([zero, np.cumsum(np.where(valid, values, 0.0), axis=0)])
-    counts = np.concatenate([zero, np.cumsum(valid, axis=0)])
+    size = min(2 * half + 1, n)
     index = np.arange(n)
-    reach = np.minimum(half, np.minimum(index, n - 1 - index))  # symmetric, so trends do not lag
-    low, high = index - reach, index + reach + 1
-    total, count = sums[high] - sums[low], counts[high] - counts[low]
+    low = np.clip(index - half, 0, n - size)  # centred where it fits, else flush with the nearer end
+    high = low + size
+    # A weighted least-squares line per window from running sums; weight 0 drops NaN and inf.
+    x = (index / n).reshape((n,) + (1,) * (values.ndim - 1))  # scaled so that the sums stay well conditioned
+    weight = np.isfinite(values).astype(float)
+    y = np.where(weight > 0, values, 0.0)
+
+    def window_sum(a: np.ndarray) -> np.ndarray:
+        running = np.concatenate([np.zeros((1,) + a.shape[1:]), np.cumsum(a, axis=0)])
+        return running[high] - running[low]
+
+    s0, s1, s2 = window_sum(weight), window_sum(weight * x), window_sum(weight * x * x)
+    t0, t1 = window_sum(y), window_sum(x * y)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+        mean_x, mean_y = s1 / s0, t0 / s0
+        spread = s0 * s2 - s1 * s1  # s0^2 times the variance of x in the window
+        # One finite point (or none) defines no slope: fall back to the mean. Two points 1/n apart give 0.25/n^2.
+        sloped = spread > 0.01 * (s0 / n) ** 2
+        slope = np.where(sloped, (s0 * t1 - s1 * t0) / np.where(sloped, spread, 1.0), 0.0)
+        smoothed = mean_y + slope * (x - mean_x)
+    return np.where(s0 > 0, smoothed, np.nan)
+
+
+def effective_window(window: int, epochs: int) -> int:
+    """The smoothing window for a run of ``epochs`` epochs: at most a third of the run.
+
+    A window of 30 averages away the shape of a 40-epoch curve; capping it at a
+    third keeps at least three windows per run, as ``default_smooth`` does.
+    """
+    return min(window, epochs // 3)
 
 
 def aggregate(values: np.ndarray, band: str = "minmax") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -208,20 +233,27 @@ def run_labels(runs: Sequence[Run]) -> list[str]:
     """
     labels = [f"{run.mode}, " + ("no clip" if run.clip == "none" else f"clip {run.clip}") for run in runs]
     extras = [[] for _ in runs]
-    if len({run.config.get("task") for run in runs}) > 1:
-        for extra, run in zip(extras, runs):
-            extra.insert(0, str(run.config.get("task", "?")))
-    for section, skip in (("task_config", set()), ("train", _UNLABELLED_TRAIN_KEYS)):
-        settings = [run.config.get(section) or {} for run in runs]
-        keys = sorted(set().union(*settings) - skip)
-        for key in keys:
-            values = [setting.get(key) for setting in settings]
-            if any(value != values[0] for value in values):
-                for extra, value in zip(extras, values):
-                    extra.append(f"{key}={_short(value)}")
+    task_names = [str(run.config.get("task", "?")) for run in runs]
+    if len(set(task_names)) > 1:
+        for extra, task_name in zip(extras, task_names):
+            extra.append(task_name)
+    # Task options are compared within each task only: another task's options say nothing here.
+    for task_name in dict.fromkeys(task_names):
+        members = [i for i, name in enumerate(task_names) if name == task_name]
+        _append_differences(extras, members, [runs[i].config.get("task_config") or {} for i in members], set())
+    _append_differences(extras, range(len(runs)), [run.config.get("train") or {} for run in runs], _UNLABELLED_TRAIN_KEYS)
     labels = [", ".join([label] + extra) for label, extra in zip(labels, extras)]
     repeated = Counter(labels)
     return [f"{label} ({run.path.name})" if repeated[label] > 1 else label for label, run in zip(labels, runs)]
+
+
+def _append_differences(extras: list[list[str]], members: Sequence[int], settings: list[dict], skip: set) -> None:
+    """Append ``key=value`` to the labels of ``members`` for every key whose value is not the same for all."""
+    for key in sorted(set().union(*settings) - skip):
+        values = [setting.get(key) for setting in settings]
+        if any(value != values[0] for value in values):
+            for member, value in zip(members, values):
+                extras[member].append(f"{key}={_short(value)}")
 
 
 def _short(value) -> str:
@@ -235,7 +267,7 @@ def _common_settings(runs: Sequence[Run]) -> str:
         return ""
     settings = [run.config.get("task_config") or {} for run in runs]
     shared = [f"{key}={_short(value)}" for key, value in sorted(settings[0].items())
-              if all(setting.get(key) == value for setting in settings)]
+              if value not in ("", None) and all(setting.get(key) == value for setting in settings)]  # "" = unset
     return f"{tasks.pop()}" + (f" ({', '.join(shared)})" if shared else "")
 
 
@@ -281,6 +313,8 @@ def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str 
     Returns:
       A matplotlib ``Figure`` on the Agg canvas (no display needed).
     """
+    if not runs:
+        raise InputError("no run to draw: give at least one run directory")
     if smooth < 0:
         raise InputError(f"--smooth must be zero or positive, got {smooth}")
     if band not in BANDS:
@@ -301,7 +335,13 @@ def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str 
                 absent.append(run.mode)
                 continue
             drawn += 1
-            mean, low, high = aggregate(moving_average(values, smooth), band)
+            window = effective_window(smooth, len(run.epochs))
+            if log:  # smooth log values: stays positive, and an exponential decay passes unchanged
+                with np.errstate(invalid="ignore"):
+                    smoothed = np.exp(moving_average(np.log(values), window))
+            else:
+                smoothed = moving_average(values, window)
+            mean, low, high = aggregate(smoothed, band)
             ax.plot(run.epochs, mean, color=colour, linestyle=linestyle, linewidth=1.8, label=label,
                     marker="o" if few_epochs else None, markersize=3.5)
             if len(run.seeds) > 1:
@@ -317,7 +357,7 @@ def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str 
         ax.set_title(panel_title)
         ax.set_ylabel(ylabel)
         ax.set_xlabel("epoch")
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True, steps=[1, 2, 2.5, 5, 10]))
         ax.grid(True, which="major", alpha=0.3)
         if absent:
             reason = "not logged (trained with --no-cosine)" if column == "cosine" else "zero throughout: no log scale"
@@ -329,7 +369,8 @@ def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str 
                 ax.set_yticks([])
     handles = [Line2D([], [], color=colour, linestyle=linestyle, linewidth=2.2, label=label)
                for label, (colour, linestyle) in zip(labels, styles)]
-    figure.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), frameon=False)
+    columns = max(1, min(len(handles), 150 // max(len(label) + 8 for label in labels)))  # one row if it fits the width
+    figure.legend(handles=handles, loc="outside lower center", ncol=columns, frameon=False)
     figure.suptitle(title if title is not None else _default_title(runs, smooth, band), fontsize=12)
     return figure
 
@@ -341,7 +382,9 @@ def _default_title(runs: Sequence[Run], smooth: int, band: str) -> str:
     if max(seed_counts) > 1:
         shown += ", band: " + ("min to max over seeds" if band == "minmax" else "mean \u00b1 1 std over seeds")
     if smooth // 2:
-        shown += f"; centred moving average over {2 * (smooth // 2) + 1} epochs"
+        shown += f"; moving average over {2 * (smooth // 2) + 1} epochs"
+        if any(effective_window(smooth, len(run.epochs)) < smooth for run in runs):
+            shown += f" (a third of the run for runs under {3 * smooth} epochs)"
     setting = _common_settings(runs)
     return f"{setting}\n{shown}" if setting else shown
 

@@ -180,7 +180,7 @@ def train_epochs(
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
     epoch_fn = trainer.epoch.lower(state, *arguments).compile()  # compile before timing epochs
-    saved_epoch = start_epoch
+    saved_epoch = start_epoch if (run_dir / CHECKPOINT_FILE).exists() else -1
 
     def save(epoch, state, rows):
         save_checkpoint(run_dir, epoch, state, rows)

@@ -142,12 +142,14 @@ def make_trainer(task: Task, config: TrainConfig) -> Trainer:
             cosine = tree_cosine(row("M"), row("R"))
         else:
             cosine = jnp.nan
-        return TrainState(params, opt_state), (loss, optax.global_norm(updates), cosine)
+        return TrainState(params, opt_state), (loss, optax.tree.norm(updates), cosine)
 
     def epoch(state, batches, train_states, test_states):
         state, (losses, update_norms, cosines) = jax.lax.scan(update, state, batches)
         finite = jnp.isfinite(losses).all() & jnp.isfinite(update_norms).all()
-        finite &= jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in jax.tree.leaves(state.params)]))
+        # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
+        finite &= jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in jax.tree.leaves(state)
+                                     if jnp.issubdtype(leaf.dtype, jnp.inexact)]))
         metrics = {
             "batch_loss": losses.mean(),
             "train_loss": evaluate(state.params, train_states),

@@ -1,0 +1,107 @@
+"""The gradient flows R, M, S and the combination C: closed forms, definitions, invariants."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from stablebptt.flows import (Dynamics, flow_gradients, flows_needed, reference_loss, reference_rollout,
+                              select_flow, sign_agreement, tree_cosine)
+
+A, B, T = 0.9, 0.5, 6  # x_{t+1} = A x_t + B u_t, u_t = theta x_t, loss x_T^2 / 2
+
+
+def linear_dynamics(horizon=T):
+    return Dynamics(
+        step=lambda x, u: A * x + B * u,
+        policy=lambda theta, x: theta * x,
+        loss=lambda states, controls: 0.5 * states[-1] ** 2,
+        horizon=horizon,
+    )
+
+
+def closed_forms(theta, x0):
+    """Hand-derived gradients of the three flows for the scalar linear system."""
+    c = A + B * theta
+    xs = x0 * c ** np.arange(T + 1)
+    regular = xs[T] * T * c ** (T - 1) * B * x0  # d(x_T)/d(theta) through every path
+    physics = xs[T] * B * sum(A ** (T - 1 - t) * xs[t] for t in range(T))  # adjoint only via A
+    one_step = xs[T] * B * xs[T - 1]  # only the last control reaches the final-state loss
+    return {"R": regular, "M": physics, "S": one_step}
+
+
+@pytest.mark.parametrize("theta", [-0.7, 0.3])
+def test_flows_match_closed_forms(x64, theta):
+    x0 = jnp.array([1.3])
+    expected = closed_forms(theta, 1.3)
+    loss, grads = flow_gradients(linear_dynamics(), ("R", "M", "S"), jnp.array(theta), x0)
+    assert np.isclose(loss, 0.5 * (1.3 * (A + B * theta) ** T) ** 2, rtol=1e-12)
+    for index, flow in enumerate(("R", "M", "S")):
+        assert np.isclose(grads[index], expected[flow], rtol=1e-12), flow
+        # The literal stop_gradient transcription agrees with the closed form too.
+        assert np.isclose(jax.grad(reference_loss, argnums=1)(linear_dynamics(), jnp.array(theta), x0, flow),
+                          expected[flow], rtol=1e-12), flow
+
+
+def test_modes_differ_only_in_the_backward_pass():
+    dynamics = linear_dynamics()
+    trajectories = [reference_rollout(dynamics, 0.4, jnp.array(1.1), flow) for flow in ("R", "M", "S")]
+    for trajectory in trajectories[1:]:
+        np.testing.assert_array_equal(trajectory.states, trajectories[0].states)
+        np.testing.assert_array_equal(trajectory.controls, trajectories[0].controls)
+    losses = [flow_gradients(dynamics, flows, jnp.array(0.4), jnp.array([1.1]))[0] for flows in (("R",), ("M",), ("R", "M", "S"))]
+    assert losses[0] == losses[1] == losses[2]
+
+
+def test_combination_follows_the_sign_rule():
+    g_m = {"w": jnp.array([1.0, -2.0, 3.0, 0.0, -1.0])}
+    g_r = {"w": jnp.array([4.0, 5.0, -6.0, 0.0, -0.5])}
+    np.testing.assert_array_equal(sign_agreement(g_m, g_r)["w"], [1.0, 0.0, 0.0, 0.0, -1.0])
+
+
+def test_combination_invariants():
+    g = {"a": jax.random.normal(jax.random.PRNGKey(0), (7, 3)), "b": jax.random.normal(jax.random.PRNGKey(1), (5,))}
+    same = sign_agreement(g, g)
+    opposite = sign_agreement(g, jax.tree.map(jnp.negative, g))
+    for leaf, kept, cancelled in zip(jax.tree.leaves(g), jax.tree.leaves(same), jax.tree.leaves(opposite)):
+        np.testing.assert_array_equal(kept, leaf)
+        np.testing.assert_array_equal(cancelled, jnp.zeros_like(leaf))
+    assert np.isclose(tree_cosine(g, g), 1.0) and np.isclose(tree_cosine(g, jax.tree.map(jnp.negative, g)), -1.0)
+
+
+def test_select_flow_heads_one_optax_chain():
+    flows = ("R", "M")
+    stacked = {"w": jnp.array([[1.0, -2.0, 0.5], [3.0, 1.0, 0.25]])}  # rows: R, M
+    params = {"w": jnp.zeros(3)}
+    for mode, expected in (("R", [1.0, -2.0, 0.5]), ("M", [3.0, 1.0, 0.25]), ("C", [3.0, 0.0, 0.25])):
+        chain = optax.chain(select_flow(mode, flows), optax.clip(0.5), optax.sgd(1.0))
+        updates, _ = chain.update(stacked, chain.init(params), params)
+        np.testing.assert_allclose(updates["w"], -np.clip(expected, -0.5, 0.5))
+    with pytest.raises(ValueError, match="needs flows"):
+        select_flow("S", flows)
+
+
+def test_flows_needed():
+    assert flows_needed("C", with_cosine=False) == ("R", "M")
+    assert flows_needed("S", with_cosine=True) == ("R", "M", "S")
+    assert flows_needed("R", with_cosine=False) == ("R",)
+    with pytest.raises(ValueError):
+        flows_needed("X")
+
+
+def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64):
+    """Nonlinear step, MLP-like policy, a loss on every state and on the controls."""
+    dynamics = Dynamics(
+        step=lambda x, u: x + 0.1 * jnp.sin(x[::-1]) + 0.2 * u,
+        policy=lambda p, x: jnp.tanh(x @ p["w"]) @ p["v"],
+        loss=lambda states, controls: jnp.mean(states**2) + 0.3 * jnp.mean(controls**2),
+        horizon=12,
+    )
+    key_w, key_v, key_x = jax.random.split(jax.random.PRNGKey(3), 3)
+    params = {"w": jax.random.normal(key_w, (2, 5)), "v": jax.random.normal(key_v, (5, 2))}
+    x0 = jax.random.normal(key_x, (4, 2))
+    _, grads = flow_gradients(dynamics, ("R", "M", "S"), params, x0)
+    for index, flow in enumerate(("R", "M", "S")):
+        expected = jax.grad(reference_loss, argnums=1)(dynamics, params, x0, flow)
+        for fast, slow in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
+            np.testing.assert_allclose(fast[index], slow, rtol=1e-10, atol=1e-12)

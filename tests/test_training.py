@@ -1,0 +1,199 @@
+"""The training engine and scripts/train.py: learning, seeds, resume, divergence, bad input."""
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from stablebptt import runs
+from stablebptt.flows import Dynamics
+from stablebptt.training import Task, TrainConfig, make_trainer, seed_array
+from tasks import repulsion
+
+SMALL = TrainConfig(epochs=3, train_size=32, test_size=32, batch=8, mode="C")
+TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
+SMALL_CLI = ["--task", "repulsion", "--train-size", "32", "--test-size", "32", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def task():
+    return repulsion.make(repulsion.Config(rc=0.01))
+
+
+def run_epochs(trainer, config, epochs):
+    state = trainer.init(seed_array(config))
+    history = []
+    for _ in range(epochs):
+        state, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+        history.append(jax.device_get(metrics))
+    return state, history
+
+
+@pytest.fixture(scope="module")
+def three_seeds(task):
+    config = replace(SMALL, seeds=3, seed=7)
+    return run_epochs(make_trainer(task, config), config, 3)
+
+
+def test_training_lowers_the_test_loss(three_seeds):
+    _, history = three_seeds
+    assert np.all(history[-1]["test_loss"] < history[0]["test_loss"])
+    assert np.all([h["finite"] for h in history])
+    assert np.all(np.abs(history[-1]["cosine"]) <= 1.0)
+
+
+def test_mapped_seeds_equal_the_same_seeds_trained_alone(task, three_seeds):
+    state, history = three_seeds
+    config = replace(SMALL, seeds=1, seed=8)  # the middle seed of 7, 8, 9
+    alone_state, alone_history = run_epochs(make_trainer(task, config), config, 3)
+    for together, alone in zip(history, alone_history):
+        for name in ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine"):
+            assert together[name][1] == alone[name][0], name
+    for together, alone in zip(jax.tree.leaves(state.params), jax.tree.leaves(alone_state.params)):
+        np.testing.assert_array_equal(together[1], alone[0])
+
+
+def test_vmapped_seeds_agree_with_mapped_seeds_to_rounding(task, three_seeds):
+    _, history = three_seeds
+    config = replace(SMALL, seeds=3, seed=7, seed_batching="vmap")
+    _, vmapped = run_epochs(make_trainer(task, config), config, 1)
+    np.testing.assert_allclose(vmapped[0]["test_loss"], history[0]["test_loss"], rtol=1e-5)
+
+
+def test_runs_are_bit_reproducible(task, three_seeds):
+    config = replace(SMALL, seeds=3, seed=7)
+    _, again = run_epochs(make_trainer(task, config), config, 3)
+    for first, second in zip(three_seeds[1], again):
+        for name in ("test_loss", "update_norm"):
+            np.testing.assert_array_equal(first[name], second[name])
+
+
+def exploding_task():
+    """x_{t+1} = x + u, linear policy, a loss unbounded below: Adam walks p up by ~lr per update
+    and its squared gradient, ~p^14, overflows float32 after a few epochs."""
+    return Task(
+        name="exploding",
+        dynamics=Dynamics(step=lambda x, u: x + u, policy=lambda p, x: p * x,
+                          loss=lambda states, controls: -jnp.sum(states[-1] ** 2), horizon=4),
+        init_params=lambda key, zero_output: jnp.array([0.5]),
+        sample_initial_states=lambda key, n: jax.random.uniform(key, (n, 1), minval=0.5, maxval=1.0),
+    )
+
+
+def test_divergence_stops_with_the_epoch_and_keeps_the_last_good_checkpoint(tmp_path):
+    config = TrainConfig(epochs=50, train_size=16, test_size=8, batch=8, lr=100.0, clip="none", mode="R")
+    trainer = make_trainer(exploding_task(), config)
+    state = trainer.init(seed_array(config))
+    outcome = runs.train_epochs(trainer, config, tmp_path, state, 0, runs.empty_rows(), np.asarray(seed_array(config)))
+    assert outcome.status == "diverged"
+    bad_epoch = outcome.epoch + 1
+    assert f"epoch {bad_epoch}" in outcome.message
+    epoch, saved, rows = runs.load_checkpoint(tmp_path, state)
+    assert epoch == outcome.epoch and bad_epoch > 1
+    assert np.all(np.isfinite(rows[:, 2:7])) and rows[:, 0].max() == epoch
+    assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(saved))
+
+
+def train_cli(*args, **kwargs):
+    return subprocess.run(TRAIN + list(args), capture_output=True, text=True, cwd=kwargs.pop("cwd", ROOT), **kwargs)
+
+
+def metrics_without_time(run_dir):
+    return [{k: v for k, v in row.items() if k != "seconds"} for row in runs.read_metrics(run_dir / runs.METRICS_FILE)]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("runs") / "whole"
+    result = train_cli(*SMALL_CLI, "--epochs", "4", "--out", str(run_dir))
+    assert result.returncode == 0, result.stderr
+    return run_dir
+
+
+def test_a_run_directory_holds_config_metrics_params_and_checkpoint(uninterrupted):
+    for name in (runs.CONFIG_FILE, runs.METRICS_FILE, runs.PARAMS_FILE, runs.CHECKPOINT_FILE):
+        assert (uninterrupted / name).is_file(), name
+    rows = runs.read_metrics(uninterrupted / runs.METRICS_FILE)
+    assert [row["epoch"] for row in rows] == [1, 2, 3, 4]
+    assert set(runs.COLUMNS) <= set(rows[0])
+    assert runs.read_json(uninterrupted / runs.CONFIG_FILE)["train"]["epochs"] == 4
+
+
+def test_resume_after_sigkill_ends_with_the_uninterrupted_metrics(uninterrupted, tmp_path):
+    run_dir = tmp_path / "killed"
+    process = subprocess.Popen(TRAIN + SMALL_CLI + ["--epochs", "4", "--out", str(run_dir)], cwd=ROOT,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not (run_dir / runs.CHECKPOINT_FILE).exists() and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert (run_dir / runs.CHECKPOINT_FILE).exists()
+    result = train_cli("--resume", str(run_dir), "--no-progress")
+    assert result.returncode == 0, result.stderr
+    assert metrics_without_time(run_dir) == metrics_without_time(uninterrupted)
+
+
+def test_resume_extends_a_finished_run_exactly(uninterrupted, tmp_path):
+    run_dir = tmp_path / "extended"
+    assert train_cli(*SMALL_CLI, "--epochs", "2", "--out", str(run_dir)).returncode == 0
+    result = train_cli("--resume", str(run_dir), "--epochs", "4", "--no-progress")
+    assert result.returncode == 0, result.stderr
+    assert metrics_without_time(run_dir) == metrics_without_time(uninterrupted)
+
+
+def test_sigint_stops_cleanly_after_saving(tmp_path):
+    run_dir = tmp_path / "interrupted"
+    process = subprocess.Popen(TRAIN + SMALL_CLI + ["--epochs", "500", "--out", str(run_dir)], cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (run_dir / runs.CHECKPOINT_FILE).exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130 and "--resume" in stderr and "Traceback" not in stderr
+    epoch, _, rows = runs.load_checkpoint(run_dir, make_trainer(repulsion.make(repulsion.Config()), replace(
+        SMALL, train_size=32, test_size=32)).init(seed_array(SMALL)))
+    assert 1 <= epoch < 500 and rows[:, 0].max() == epoch
+
+
+BAD_INPUT = [
+    ["--task", "pendulum"],
+    ["--mode", "X"],
+    ["--clip", "maybe"],
+    ["--task", "repulsion", "--epochs", "0"],
+    ["--task", "repulsion", "--seeds", "-1"],
+    ["--task", "repulsion", "--lr", "0"],
+    ["--task", "repulsion", "--lr", "-1e-3"],
+    ["--task", "repulsion", "--batch", "0"],
+    ["--task", "repulsion", "--batch", "7"],
+    ["--task", "repulsion", "--poles", "3"],
+    ["--epochs", "many"],
+    ["--resume", "/nonexistent/run"],
+]
+
+
+@pytest.mark.parametrize("arguments", BAD_INPUT, ids=[" ".join(a) for a in BAD_INPUT])
+def test_bad_input_gets_one_line_and_exit_code_2(arguments):
+    result = train_cli(*arguments)
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in result.stderr, result.stderr
+
+
+def test_an_existing_or_unwritable_out_is_refused_and_left_untouched(uninterrupted, tmp_path):
+    before = {p.name: p.stat().st_mtime_ns for p in uninterrupted.iterdir()}
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory")
+    for out in (uninterrupted, blocker / "run"):
+        result = train_cli(*SMALL_CLI, "--epochs", "1", "--out", str(out))
+        assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert {p.name: p.stat().st_mtime_ns for p in uninterrupted.iterdir()} == before
