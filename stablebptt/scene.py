@@ -10,7 +10,9 @@ tendons, collision and constraint assembly).
 """
 from __future__ import annotations
 
+import contextlib
 import copy
+import io
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
@@ -19,10 +21,13 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from mujoco import mjx
+# MJX prints "Failed to import warp" on stdout when the (gradient-free) Warp
+# backend is absent, which it always is here: keep that out of users' output.
+with contextlib.redirect_stdout(io.StringIO()):
+    from mujoco import mjx
 # Internal MJX stages: pinned with mujoco-mjx in pyproject.toml.
-from mujoco.mjx._src import collision_driver, constraint, passive, smooth, solver
-from mujoco.mjx._src import forward as mjx_forward
+from mujoco.mjx._src import collision_driver, constraint, passive, smooth, solver  # noqa: E402
+from mujoco.mjx._src import forward as mjx_forward  # noqa: E402
 
 _DISABLE = mujoco.mjtDisableBit
 INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,

@@ -1,0 +1,217 @@
+"""Cart-pole through MJX and any MJCF: physics against closed forms, scene analysis, training, bad input."""
+import subprocess
+import sys
+import textwrap
+from dataclasses import replace
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from conftest import ROOT, float64
+from stablebptt import scene
+from stablebptt.flows import flow_gradients
+from stablebptt.training import TrainConfig, make_trainer, seed_array
+from tasks import cartpole, cartpole_equations
+
+TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
+
+
+def mjx_against_equations(poles, accelerations, dtype_x64):
+    """Max deviation of MJX from the closed-form equations over 100 steps under random forces."""
+    context = float64() if dtype_x64 else _nothing()
+    with context:
+        task = cartpole.make(cartpole.Config(poles=poles))
+        reference = cartpole_equations.make_step(0.01, accelerations)
+        start = jax.tree.map(lambda a: a[0], task.sample_initial_states(jax.random.PRNGKey(poles), 1))
+        forces = 5.0 * jax.random.normal(jax.random.PRNGKey(10 + poles), (100, 1))
+
+        def both(carry, force):
+            mjx_state, closed_state = carry
+            mjx_state, closed_state = task.dynamics.step(mjx_state, force), reference(closed_state, force)
+            deviation = jnp.maximum(jnp.max(jnp.abs(mjx_state.qpos - closed_state.qpos)),
+                                    jnp.max(jnp.abs(mjx_state.qvel - closed_state.qvel)))
+            return (mjx_state, closed_state), deviation
+
+        _, deviations = jax.jit(lambda s, f: jax.lax.scan(both, (s, s), f))(start, forces)
+        return float(deviations.max())
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_one_pole_reproduces_the_classic_equations_in_float64():
+    assert mjx_against_equations(1, cartpole_equations.classic_accelerations, True) <= 1e-10
+
+
+def test_one_pole_reproduces_the_classic_equations_in_float32():
+    assert mjx_against_equations(1, cartpole_equations.classic_accelerations, False) <= 1e-5
+
+
+@pytest.mark.parametrize("poles", [2, 4])
+def test_parallel_poles_match_the_exact_rigid_body_equations(poles):
+    assert mjx_against_equations(poles, cartpole_equations.exact_accelerations, True) <= 1e-10
+
+
+def test_the_models_declare_the_paper_set_up():
+    for poles in range(1, 5):
+        model = cartpole.load_model(cartpole.MODELS / f"cartpole_{poles}.xml")
+        spec = cartpole.read_spec(model)
+        assert (model.nq, model.nu, spec.horizon, spec.loss) == (poles + 1, 1, 100, "final")
+        assert model.opt.timestep == 0.01 and model.opt.gravity[2] == -9.8
+        np.testing.assert_allclose(model.body_mass[1:], [1.0] + [0.1] * poles)
+        # Exact uniform rod: m L^2 / 12 about the centre, so m (2l)^2 / 3 about the pivot.
+        np.testing.assert_allclose(model.body_inertia[2:, 1] + 0.1 * 0.5**2, 0.1 * 1.0**2 / 3)
+        np.testing.assert_allclose(np.asarray(spec.init.qpos), [0.0] + [np.pi] * poles)
+
+
+@pytest.fixture(scope="module")
+def three_pole_task():
+    return cartpole.make(cartpole.Config(poles=3))
+
+
+def test_initial_states_and_loss_follow_the_paper(three_pole_task):
+    states = three_pole_task.sample_initial_states(jax.random.PRNGKey(0), 256)
+    angles = np.asarray(states.qpos[:, 1:])
+    assert np.all(np.abs(angles - np.pi) <= np.pi / 6) and np.all(np.abs(states.qpos[:, 0]) <= 1)
+    assert np.all(np.abs(states.qvel) <= 1)
+    # Final-state loss 1 - mean(cos(angles)): hanging straight down gives 2, upright 0.
+    upright = jax.tree.map(lambda a: a[:1], states)._replace(qpos=jnp.zeros((1, 4)))
+    down = upright._replace(qpos=jnp.array([[0.3, np.pi, np.pi, np.pi]]))
+    assert np.isclose(three_pole_task.dynamics.loss(upright, None), 0.0)
+    assert np.isclose(three_pole_task.dynamics.loss(down, None), 2.0)
+
+
+@pytest.mark.parametrize("poles", [1, 2, 3, 4])
+def test_all_flows_give_finite_gradients(poles):
+    task = cartpole.make(cartpole.Config(poles=poles, steps=30))
+    params = task.init_params(jax.random.PRNGKey(0), False)
+    batch = task.sample_initial_states(jax.random.PRNGKey(1), 2)
+    loss, grads = jax.jit(lambda p, x: flow_gradients(task.dynamics, ("R", "M", "S"), p, x))(params, batch)
+    assert np.isfinite(loss)
+    assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(grads))
+
+
+def test_a_short_training_lowers_the_test_loss(three_pole_task):
+    config = TrainConfig(mode="C", train_size=16, test_size=16, batch=8, lr=3e-3)
+    trainer = make_trainer(three_pole_task, config)
+    state = trainer.init(seed_array(config))
+    losses = []
+    for _ in range(3):
+        state, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+        losses.append(float(metrics["test_loss"][0]))
+    assert losses[-1] < losses[0]
+
+
+SCENE = """<mujoco>
+  <option timestep="0.01"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1" {floor}/>
+    <body pos="0 0 1">
+      <joint name="a" type="hinge" axis="0 1 0" {joint}/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" {geom}/>
+    </body>
+  </worldbody>
+  <actuator><motor joint="a" {motor}/></actuator>
+</mujoco>"""
+
+
+def analyze(floor="", joint="", geom="", motor=""):
+    return scene.analyze(mujoco.MjModel.from_xml_string(SCENE.format(floor=floor, joint=joint, geom=geom, motor=motor)))
+
+
+def test_scene_analysis_finds_what_a_scene_can_do():
+    bare = analyze(floor='contype="0" conaffinity="0"')
+    assert not any([bare.contacts, bare.joint_limits, bare.dampers, bare.springs, bare.control_clamp, bare.constraints])
+    assert analyze().contacts  # a capsule above a plane can touch it
+    limited = analyze(floor='contype="0" conaffinity="0"', joint='limited="true" range="-1 1"')
+    assert limited.joint_limits and limited.constraints and not limited.contacts
+    damped = analyze(floor='contype="0" conaffinity="0"', joint='damping="0.5" stiffness="2"', motor='ctrlrange="-1 1"')
+    assert damped.dampers and damped.springs and damped.control_clamp and damped.passive
+
+
+def test_lean_model_keeps_what_the_scene_has_and_differentiates_constraints():
+    model = mujoco.MjModel.from_xml_string(SCENE.format(floor="", joint='damping="0.5" limited="true" range="-1 1"',
+                                                        geom="", motor='ctrlrange="-1 1"'))
+    effects = scene.analyze(model)
+    lean = scene.lean_model(model, effects)
+    flags = int(lean.opt.disableflags)
+    for kept in ("mjDSBL_CONTACT", "mjDSBL_LIMIT", "mjDSBL_DAMPER", "mjDSBL_CLAMPCTRL", "mjDSBL_EULERDAMP"):
+        assert not flags & int(getattr(mujoco.mjtDisableBit, kept)), kept
+    assert flags & int(mujoco.mjtDisableBit.mjDSBL_SPRING)  # no stiffness anywhere
+    assert lean.opt.iterations == 1 and model.opt.iterations != 1  # the user's model is untouched
+    assert "1 Newton iteration" in scene.describe(effects, lean)
+    # And the constrained, damped, clamped scene differentiates end to end.
+    step = scene.make_step(lean, effects)
+    start = scene.State(jnp.array([0.9]), jnp.array([2.0]), jnp.zeros(0))
+
+    def final_angle(force):
+        state = start
+        for _ in range(20):
+            state = step(state, force)
+        return state.qpos[0]
+
+    value, gradient = jax.value_and_grad(lambda f: final_angle(f))(jnp.array([0.5]))
+    assert np.isfinite(value) and np.all(np.isfinite(gradient))
+    assert value <= 1.0 + 0.05  # the limit holds the hinge near its range
+
+
+ARM = """<mujoco model="two-link arm">
+  <option timestep="0.01"/>
+  <default><geom contype="0" conaffinity="0"/></default>
+  <worldbody>
+    <body name="upper"><joint name="shoulder" type="hinge" axis="0 0 1" damping="0.05"/>
+      <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.04"/>
+      <body name="lower" pos="0.5 0 0"><joint name="elbow" type="hinge" axis="0 0 1" damping="0.05"/>
+        <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.03"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="shoulder" ctrlrange="-2 2"/><motor joint="elbow" ctrlrange="-2 2"/></actuator>
+  {custom}
+</mujoco>"""
+
+
+def test_an_unannotated_arm_with_two_actuators_trains_with_no_code_change(tmp_path):
+    model_file = tmp_path / "arm.xml"
+    model_file.write_text(ARM.format(custom=textwrap.dedent("""
+        <custom><numeric name="bptt_horizon" data="40"/></custom>
+        <keyframe><key name="target" qpos="1.2 -0.8"/></keyframe>""")))
+    result = subprocess.run(TRAIN + ["--model", str(model_file), "--epochs", "3", "--train-size", "16",
+                                     "--test-size", "16", "--lr", "1e-2", "--out", str(tmp_path / "run"),
+                                     "--no-progress"], capture_output=True, text=True, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    assert "dampers" in result.stdout.split("skipped")[0] and "control clamping" in result.stdout.split("skipped")[0]
+    import csv
+    rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))
+    assert float(rows[-1]["test_loss"]) < float(rows[0]["test_loss"])
+
+
+BAD = [
+    (["--poles", "5"], None),
+    (["--poles", "0"], None),
+    (["--model", "missing.xml"], None),
+    (["--model", "{dir}/broken.xml"], "<mujoco><worldbody><body></mujoco>"),
+    (["--model", "{dir}/no_actuator.xml"], "<mujoco><worldbody><body><joint type='hinge'/><geom size='.1'/></body></worldbody></mujoco>"),
+    (["--model", "{dir}/bad_key.xml"], "<mujoco><worldbody><body><joint type='hinge'/><geom size='.1'/></body></worldbody>"
+                                       "<actuator><motor joint='0'/></actuator><keyframe><key name='init' qpos='1 2 3'/></keyframe></mujoco>"),
+    (["--model", "{dir}/bad_spread.xml"], "<mujoco><worldbody><body><joint name='j' type='hinge'/><geom size='.1'/></body></worldbody>"
+                                          "<actuator><motor joint='j'/></actuator><custom><numeric name='bptt_qpos_spread' data='1 2'/></custom></mujoco>"),
+]
+
+
+@pytest.mark.parametrize("arguments,content", BAD, ids=[b[0][-1].split("/")[-1] for b in BAD])
+def test_bad_models_get_one_line_and_exit_code_2(tmp_path, arguments, content):
+    arguments = [a.format(dir=tmp_path) for a in arguments]
+    if content is not None:
+        (tmp_path / arguments[-1].split("/")[-1]).write_text(content)
+    result = subprocess.run(TRAIN + arguments + ["--out", str(tmp_path / "run")], capture_output=True, text=True, cwd=ROOT)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), result.stderr
