@@ -15,7 +15,7 @@ $(INSTALLED): pyproject.toml
 
 # A budget that finishes in a few minutes on a 2-core laptop; drop --epochs for the paper's 1000.
 train: $(INSTALLED)
-	$(BIN)/python scripts/train.py --task repulsion --epochs 20
+	$(BIN)/python scripts/train.py --poles 3 --epochs 60
 
 test: $(INSTALLED)
 	$(BIN)/python -m pytest -q

@@ -81,34 +81,40 @@ def _first(tree: PyTree) -> PyTree:
 
 
 def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
-    """One simulator step whose reverse pass carries one adjoint per flow.
+    """One simulator step of a whole batch whose reverse pass carries one adjoint per flow.
 
-    Inputs and outputs hold ``len(flows)`` identical copies along a leading
-    axis; only the cotangents differ. The forward pass computes the step once.
+    States hold ``len(flows)`` identical copies along a leading axis, then the
+    batch; only the cotangents of the copies differ. The forward pass computes
+    the step once. The batch lives inside the custom_vjp on purpose: vmapping a
+    custom_vjp over examples makes its backward return one weight cotangent per
+    example and sum them afterwards, where one batched pullback contracts over
+    the batch in a single matrix product.
     """
     copies = len(flows)
     # NumPy, not jnp: constants created under a trace would be tracers closed
     # over by the custom_vjp.
     keep_sim = np.array([_KEEPS[f][0] for f in flows])
     keep_net = np.array([_KEEPS[f][1] for f in flows])
+    batch_policy = jax.vmap(dynamics.policy, in_axes=(None, 0))
+    batch_step = jax.vmap(dynamics.step)
 
     def select(mask, a):
         # where, not multiply: a cut path must not turn inf into NaN.
         return jnp.where(mask.reshape((copies,) + (1,) * (a.ndim - 1)), a, jnp.zeros_like(a))
 
-    def forward(params, state):
-        control, policy_pullback = jax.vjp(dynamics.policy, params, state)
-        next_state, step_pullback = jax.vjp(dynamics.step, state, control)
-        return next_state, control, (policy_pullback, step_pullback)
+    def forward(params, states):
+        controls, policy_pullback = jax.vjp(batch_policy, params, states)
+        next_states, step_pullback = jax.vjp(batch_step, states, controls)
+        return next_states, controls, (policy_pullback, step_pullback)
 
     @jax.custom_vjp
     def step(params_copies, state_copies):
-        next_state, control, _ = forward(_first(params_copies), _first(state_copies))
-        return _stack(next_state, copies), _stack(control, copies)
+        next_states, controls, _ = forward(_first(params_copies), _first(state_copies))
+        return _stack(next_states, copies), _stack(controls, copies)
 
     def step_fwd(params_copies, state_copies):
-        next_state, control, pullbacks = forward(_first(params_copies), _first(state_copies))
-        return (_stack(next_state, copies), _stack(control, copies)), pullbacks
+        next_states, controls, pullbacks = forward(_first(params_copies), _first(state_copies))
+        return (_stack(next_states, copies), _stack(controls, copies)), pullbacks
 
     def step_bwd(pullbacks, cotangents):
         policy_pullback, step_pullback = pullbacks
@@ -125,17 +131,18 @@ def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
     return step
 
 
-def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params_copies: PyTree, initial_state: PyTree):
-    """Loss of one trajectory, once per flow copy (identical values, distinct gradients)."""
+def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params_copies: PyTree, initial_states: PyTree):
+    """Mean batch loss once per flow copy (identical values, distinct gradients)."""
     step = _multi_adjoint_step(dynamics, flows)
 
     def body(state_copies, _):
         next_copies, control_copies = step(params_copies, state_copies)
         return next_copies, (next_copies, control_copies)
 
-    _, (states, controls) = jax.lax.scan(body, _stack(initial_state, len(flows)), None, length=dynamics.horizon)
-    # scan stacks time first: [T, copies, ...]; the loss wants one copy's [T, ...].
-    return jax.vmap(dynamics.loss, in_axes=(1, 1))(states, controls)
+    _, (states, controls) = jax.lax.scan(body, _stack(initial_states, len(flows)), None, length=dynamics.horizon)
+    # scan stacks time first, [T, copies, batch, ...]; the loss wants one trajectory's [T, ...].
+    per_trajectory = jax.vmap(jax.vmap(dynamics.loss, in_axes=(1, 1)), in_axes=(1, 1))(states, controls)
+    return per_trajectory.mean(axis=1)
 
 
 def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree):
@@ -152,7 +159,7 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
       length ``len(flows)`` in the order of ``flows``.
     """
     def total(params_copies):
-        per_flow = jax.vmap(lambda x0: flow_losses(dynamics, flows, params_copies, x0))(initial_states).mean(0)
+        per_flow = flow_losses(dynamics, flows, params_copies, initial_states)
         return per_flow.sum(), per_flow[0]
 
     grads, loss = jax.grad(total, has_aux=True)(_stack(params, len(flows)))

@@ -1,0 +1,163 @@
+#!/usr/bin/env python3
+"""Measure update times, in one run, and print them as Markdown tables.
+
+    python scripts/bench.py                          # every task, poles 1 and 3
+    python scripts/bench.py --tasks cartpole --poles 1,2,3,4 --out results/bench_cpu.md
+
+Per task, one update (gradient of a batch-8 rollout, then clip and Adam) per mode:
+R, M, S and C through the one-pass flows, and "R plain": jax.grad of the plain
+rollout with no flow machinery, the baseline the ratios divide by. For the
+cart-pole, also the MJX pipelines: the lean step (scene analysis), mjx.step with
+MuJoCo's default flags, and closed-form cart-pole equations as the floor.
+Variants are timed round-robin, so drift of the machine hits all of them alike.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import dataclasses  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+
+from stablebptt.cli import Parser, fail  # noqa: E402
+
+MODE_FLOWS = {"R": ("R",), "M": ("M",), "S": ("S",), "C": ("R", "M")}
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    tasks: str = field(default="repulsion,cartpole,quantum", metadata={"help": "comma-separated tasks"})
+    poles: str = field(default="1,3", metadata={"help": "comma-separated pole counts for the cart-pole"})
+    batch: int = field(default=8, metadata={"help": "initial states per update"})
+    rounds: int = field(default=20, metadata={"help": "timed rounds per variant (median reported)"})
+    out: str = field(default="", metadata={"help": "also write the tables to this Markdown file"})
+
+
+def make_update(task, flows, batch_size, plain=False):
+    """A jitted update: gradient (one-pass flows, or plain jax.grad), clip, Adam."""
+    import jax
+    import optax
+    from stablebptt.flows import flow_gradients, reference_loss
+    from stablebptt.training import TrainConfig, make_optimizer
+
+    mode = "C" if flows == ("R", "M") else flows[0]
+    optimizer = make_optimizer(TrainConfig(mode=mode), flows)
+
+    def update(params, opt_state, batch):
+        if plain:
+            loss, grad = jax.value_and_grad(reference_loss, argnums=1)(task.dynamics, params, batch)
+            grads = jax.tree.map(lambda g: g[None], grad)
+        else:
+            loss, grads = flow_gradients(task.dynamics, flows, params, batch)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    def setup():
+        import jax.random as random
+        params = task.init_params(random.PRNGKey(0), False)
+        batch = task.sample_initial_states(random.PRNGKey(1), batch_size)
+        return params, optimizer.init(params), batch
+
+    return jax.jit(update), setup
+
+
+def time_variants(variants: dict, rounds: int) -> dict[str, tuple[float, float]]:
+    """Median milliseconds per call and compile seconds, timed round-robin."""
+    import jax
+    import numpy as np
+    prepared, compile_seconds = {}, {}
+    for name, (update, setup) in variants.items():
+        arguments = setup()
+        started = time.perf_counter()
+        jax.block_until_ready(update(*arguments))
+        compile_seconds[name] = time.perf_counter() - started
+        prepared[name] = (update, arguments)
+    samples = {name: [] for name in variants}
+    for _ in range(rounds):
+        for name, (update, arguments) in prepared.items():
+            started = time.perf_counter()
+            jax.block_until_ready(update(*arguments))
+            samples[name].append(time.perf_counter() - started)
+    return {name: (1e3 * float(np.median(samples[name])), compile_seconds[name]) for name in variants}
+
+
+def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
+    variants = {"R plain": make_update(task, ("R",), batch, plain=True)}
+    variants.update({mode: make_update(task, flows, batch) for mode, flows in MODE_FLOWS.items()})
+    variants["R + cosine"] = make_update(task, ("R", "M"), batch)
+    times = time_variants(variants, rounds)
+    base = times["R plain"][0]
+    lines = [f"### {title}", "", "| update | ms (median) | / R plain | compile s |", "|---|---:|---:|---:|"]
+    for name, (ms, compile_s) in times.items():
+        lines.append(f"| {name} | {ms:.2f} | {ms / base:.2f} | {compile_s:.1f} |")
+    lines.append(f"\nC / R = {times['C'][0] / base:.2f} (C computes g_M and g_R in one forward and one reverse pass).\n")
+    return lines
+
+
+def pipeline_table(poles: int, batch: int, rounds: int) -> list[str]:
+    from tasks import cartpole, cartpole_equations
+    lean = cartpole.make(cartpole.Config(poles=poles))
+    default = cartpole.make(cartpole.Config(poles=poles, pipeline="mjx"))
+    closed = dataclasses.replace(lean, dynamics=dataclasses.replace(lean.dynamics, step=cartpole_equations.make_step(0.01)))
+    variants = {name: make_update(task, ("R",), batch) for name, task in
+                (("MJX lean step (scene analysis)", lean), ("mjx.step, MuJoCo default flags", default), ("closed-form equations (floor)", closed))}
+    for name, task in (("MJX lean step (scene analysis)", lean), ("closed-form equations (floor)", closed)):
+        variants[name + ", C"] = make_update(task, ("R", "M"), batch)
+    times = time_variants(variants, rounds)
+    base = times["mjx.step, MuJoCo default flags"][0]
+    lines = [f"### Cart-pole, {poles} pole{'s' if poles > 1 else ''}: where the time goes", "",
+             "| simulator | mode | ms (median) | / mjx.step default | compile s |", "|---|---|---:|---:|---:|"]
+    for name, (ms, compile_s) in times.items():
+        label, _, mode = name.partition(", C")
+        lines.append(f"| {label} | {'C' if _ else 'R'} | {ms:.2f} | {ms / base:.2f} | {compile_s:.1f} |")
+    return lines + [""]
+
+
+def main(argv: list[str]) -> int:
+    from stablebptt.cli import add_options, build
+    parser = Parser(description=__doc__, formatter_class=__import__("argparse").RawDescriptionHelpFormatter)
+    add_options(parser, BenchConfig, "benchmark")
+    args = parser.parse_args(argv)
+    config = build(BenchConfig, vars(args))
+    import tasks
+    names = [t for t in config.tasks.split(",") if t]
+    unknown = [t for t in names if t not in tasks.TASK_MODULES]
+    if unknown:
+        fail(f"unknown task {unknown[0]!r}: choose from {', '.join(sorted(tasks.TASK_MODULES))}")
+    try:
+        poles = [int(p) for p in config.poles.split(",") if p]
+    except ValueError:
+        fail(f"--poles takes comma-separated integers, got {config.poles!r}")
+    if config.rounds <= 0 or config.batch <= 0:
+        fail("--rounds and --batch must be positive")
+    import jax
+    header = [f"Measured by `python scripts/bench.py {' '.join(argv)}`".replace(" `", " `", 1).rstrip()
+              + f" on {platform.machine()} ({jax.devices()[0].platform}, {jax.device_count()} device), "
+              f"jax {jax.__version__}, batch {config.batch}, median of {config.rounds} rounds.", ""]
+    print("\n".join(header), flush=True)
+    report = list(header)
+    for name in names:
+        module = tasks.load(name)
+        if name == "cartpole":
+            section = []
+            for count in poles:
+                task = module.make(module.Config(poles=count))
+                section += mode_table(f"Cart-pole (MJX), {count} pole{'s' if count > 1 else ''}", task, config.batch, config.rounds)
+                section += pipeline_table(count, config.batch, config.rounds)
+        else:
+            section = mode_table(name.capitalize(), module.make(module.Config()), config.batch, config.rounds)
+        print("\n".join(section), flush=True)
+        report += section
+        if config.out:  # after every task, so a long benchmark keeps what it measured
+            from stablebptt.runs import atomic_write
+            Path(config.out).parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(Path(config.out), ("\n".join(report) + "\n").encode())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
