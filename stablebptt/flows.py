@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 
 PyTree = Any
 FLOWS = ("R", "M", "S")
@@ -50,12 +51,20 @@ class Dynamics:
       loss: ``loss(states, controls) -> scalar`` for ONE trajectory, where
         ``states`` stacks x_1..x_T and ``controls`` stacks u_0..u_{T-1}.
       horizon: number of steps T.
+      step_derivative: how the reverse pass differentiates ``step``:
+        ``"reverse"`` pulls cotangents back through it (best for large states);
+        ``"forward"`` builds its full Jacobian with one forward-mode pass over
+        all state and control tangents at once and stores it, so the reverse
+        pass is a small matrix product per step. For small states simulated
+        by many tiny operations (MJX) the batched forward pass is far cheaper
+        than reverse mode through every operation.
     """
 
     step: Callable[[PyTree, PyTree], PyTree]
     policy: Callable[[PyTree, PyTree], PyTree]
     loss: Callable[[PyTree, PyTree], jax.Array]
     horizon: int
+    step_derivative: str = "reverse"
 
 
 def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:
@@ -104,7 +113,10 @@ def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
 
     def forward(params, states):
         controls, policy_pullback = jax.vjp(batch_policy, params, states)
-        next_states, step_pullback = jax.vjp(batch_step, states, controls)
+        if dynamics.step_derivative == "forward":
+            next_states, step_pullback = _jacobian_pullback(dynamics.step, states, controls)
+        else:
+            next_states, step_pullback = jax.vjp(batch_step, states, controls)
         return next_states, controls, (policy_pullback, step_pullback)
 
     @jax.custom_vjp
@@ -129,6 +141,44 @@ def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
 
     step.defvjp(step_fwd, step_bwd)
     return step
+
+
+class _JacobianPullback(NamedTuple):
+    """The pullback of a batched step from its stored Jacobians (a pytree, so it can be a residual)."""
+
+    state_jacobian: jax.Array  # [batch, out, state]
+    control_jacobian: jax.Array  # [batch, out, control]
+    state_example: PyTree  # one example of each, to unflatten cotangents
+    control_example: PyTree
+
+    def __call__(self, next_state_ct):
+        flat_ct = jax.vmap(lambda ct: ravel_pytree(ct)[0])(next_state_ct)
+        unravel_state = ravel_pytree(self.state_example)[1]
+        unravel_control = ravel_pytree(self.control_example)[1]
+        state_ct = jnp.einsum("bo,bos->bs", flat_ct, self.state_jacobian)
+        control_ct = jnp.einsum("bo,boc->bc", flat_ct, self.control_jacobian)
+        return jax.vmap(unravel_state)(state_ct), jax.vmap(unravel_control)(control_ct)
+
+
+def _jacobian_pullback(step, states, controls):
+    """Next states and a pullback built from full step Jacobians (forward mode, all tangents at once)."""
+    state_example, control_example = _first(states), _first(controls)
+    unravel_state = ravel_pytree(state_example)[1]
+    unravel_control = ravel_pytree(control_example)[1]
+
+    def flat_step(flat_state, flat_control):
+        next_flat = ravel_pytree(step(unravel_state(flat_state), unravel_control(flat_control)))[0]
+        return next_flat, next_flat  # the value rides along as aux: no second forward pass
+
+    def one(state, control):
+        (state_jacobian, control_jacobian), next_flat = jax.jacfwd(flat_step, argnums=(0, 1), has_aux=True)(
+            ravel_pytree(state)[0], ravel_pytree(control)[0])
+        return next_flat, state_jacobian, control_jacobian
+
+    next_flat, state_jacobian, control_jacobian = jax.vmap(one)(states, controls)
+    next_states = jax.vmap(unravel_state)(next_flat)
+    pullback = _JacobianPullback(state_jacobian, control_jacobian, state_example, control_example)
+    return next_states, pullback
 
 
 def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params_copies: PyTree, initial_states: PyTree):

@@ -127,6 +127,11 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
     if not effects.dampers:
         # Euler's implicit damping refactors the mass matrix: pointless without damping.
         lean.opt.disableflags |= _DISABLE.mjDSBL_EULERDAMP
+    if jax.default_backend() == "cpu":
+        # On a CPU, the dense mass matrix means a LAPACK call per example and
+        # step (and more in its derivatives); MJX's sparse path is plain fused
+        # arithmetic: about 1.8x faster for the cart-pole's forward pass.
+        lean.opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
     if integrator is not None:
         lean.opt.integrator = INTEGRATORS[integrator]
     if timestep is not None:

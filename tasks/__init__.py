@@ -7,6 +7,7 @@ from types import ModuleType
 TASK_MODULES = {
     "cartpole": "tasks.cartpole",
     "repulsion": "tasks.repulsion",
+    "quantum": "tasks.quantum",
 }
 DEFAULT_TASK = "cartpole"
 

@@ -28,6 +28,7 @@ MODELS = Path(__file__).resolve().parent.parent / "models"
 DEFAULT_EPOCHS = 1000
 DEFAULT_HORIZON = 100
 DEFAULT_SPREAD = 0.1  # per-dof half-width of the initial-state noise when the MJCF declares none
+FORWARD_MODE_MAX_STATE = 64  # numbers in (qpos, qvel, act) up to which step Jacobians are built forward
 # Joint types as plain ints: MuJoCo's enums do not compare equal to NumPy integers.
 FREE, BALL, SLIDE, HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL,
                                             mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE))
@@ -44,6 +45,7 @@ class Config:
     dt: float = field(default=0.0, metadata={"help": "override the MJCF's time step; the simulated time stays the same unless --steps is given"})
     steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the MJCF's bptt_horizon, else 100)"})
     pipeline: str = field(default="lean", metadata={"help": "lean: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "mjx")})
+    step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (full step Jacobian by forward mode), reverse, or auto (forward for states of at most 64 numbers)", "choices": ("auto", "forward", "reverse")})
 
     def __post_init__(self):
         if not self.model and not 1 <= self.poles <= 4:
@@ -210,10 +212,17 @@ def make(config: Config) -> Task:
         qpos = jax.vmap(lambda d: perturb_qpos(model, spec.init.qpos, d))(dq)
         return State(qpos, spec.init.qvel + dv, jnp.broadcast_to(spec.init.act, (count, model.na)))
 
+    state_size = 2 * model.nv + model.na + (model.nq - model.nv)
+    derivative = config.step_derivative
+    if derivative == "auto":
+        # Forward mode costs one batched pass per state number; reverse mode one
+        # pass through every tiny MJX operation: small states favour forward.
+        derivative = "forward" if state_size <= FORWARD_MODE_MAX_STATE else "reverse"
     summary = scene.describe(effects, lean) + (f"; pipeline: {config.pipeline}" if config.pipeline != "lean" else "")
+    summary += f"; step gradients: {derivative} mode"
     return Task(
         name="cartpole",
-        dynamics=Dynamics(step=step, policy=policy, loss=loss, horizon=horizon),
+        dynamics=Dynamics(step=step, policy=policy, loss=loss, horizon=horizon, step_derivative=derivative),
         init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
         sample_initial_states=sample_initial_states,
         summary=f"{path.name}: {summary}; horizon {horizon} steps, {spec.loss}-state loss",

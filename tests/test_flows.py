@@ -89,17 +89,19 @@ def test_flows_needed():
         flows_needed("X")
 
 
-def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64):
-    """Nonlinear step, MLP-like policy, a loss on every state and on the controls."""
+@pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
+def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, step_derivative):
+    """Nonlinear step on a pytree state, MLP-like policy, a loss on every state and on the controls."""
     dynamics = Dynamics(
-        step=lambda x, u: x + 0.1 * jnp.sin(x[::-1]) + 0.2 * u,
-        policy=lambda p, x: jnp.tanh(x @ p["w"]) @ p["v"],
-        loss=lambda states, controls: jnp.mean(states**2) + 0.3 * jnp.mean(controls**2),
+        step=lambda s, u: (s[0] + 0.1 * jnp.sin(s[1][::-1]) + 0.2 * u, s[1] + 0.1 * s[0] * jnp.cos(u.sum())),
+        policy=lambda p, s: jnp.tanh(jnp.concatenate(s) @ p["w"]) @ p["v"],
+        loss=lambda states, controls: jnp.mean(states[0] ** 2) + jnp.mean(states[1][-1] ** 2) + 0.3 * jnp.mean(controls**2),
         horizon=12,
+        step_derivative=step_derivative,
     )
     key_w, key_v, key_x = jax.random.split(jax.random.PRNGKey(3), 3)
-    params = {"w": jax.random.normal(key_w, (2, 5)), "v": jax.random.normal(key_v, (5, 2))}
-    x0 = jax.random.normal(key_x, (4, 2))
+    params = {"w": jax.random.normal(key_w, (4, 5)), "v": jax.random.normal(key_v, (5, 2))}
+    x0 = tuple(jax.random.normal(key_x, (2, 4, 2)))
     _, grads = flow_gradients(dynamics, ("R", "M", "S"), params, x0)
     for index, flow in enumerate(("R", "M", "S")):
         expected = jax.grad(reference_loss, argnums=1)(dynamics, params, x0, flow)
