@@ -102,6 +102,39 @@ def make_optimizer(config: TrainConfig, flows: tuple[str, ...]) -> optax.Gradien
     return optax.inject_hyperparams(chain)(learning_rate=config.lr, clip_threshold=config.clip_threshold)
 
 
+def make_grid_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+    """The chain of ``make_optimizer`` with the mode and clip mode as numbers in the optimizer state.
+
+    Used by sweeps: every cell computes the flows R, M and S, and its mode
+    (index into ``MODES``) and clip mode (index into ``CLIP_MODES``) select
+    the update with ``jnp.select``, so cells of different modes and clip
+    modes vmap into one program. Set the per-cell values in
+    ``opt_state.hyperparams`` after ``init``.
+    """
+    flows = ("R", "M", "S")
+
+    def chain(learning_rate, clip_threshold, mode_index, clip_index):
+        def select(updates, state, params=None):
+            rows = [jax.tree.map(lambda a, i=i: a[i], updates) for i in range(len(flows))]
+            candidates = rows + [select_flow("C", flows).update(updates, None)[0]]  # order of MODES
+            return jax.tree.map(lambda *c: jnp.select([mode_index == i for i in range(len(MODES))], c), *candidates), state
+
+        def clip(updates, state, params=None):
+            value = jax.tree.map(lambda g: jnp.clip(g, -clip_threshold, clip_threshold), updates)
+            norm = optax.tree.norm(updates)
+            # The arithmetic of optax.clip_by_global_norm, so grid cells match single runs.
+            scaled = jax.tree.map(lambda g: jnp.where(norm < clip_threshold, g, (g / norm) * clip_threshold), updates)
+            return jax.tree.map(lambda v, n, g: jnp.select([clip_index == 0, clip_index == 1], [v, n], g),
+                                value, scaled, updates), state
+
+        empty = lambda params: optax.EmptyState()
+        return optax.chain(optax.GradientTransformation(empty, select), optax.GradientTransformation(empty, clip),
+                           optax.adam(learning_rate))
+
+    return optax.inject_hyperparams(chain)(learning_rate=config.lr, clip_threshold=config.clip_threshold,
+                                           mode_index=MODES.index(config.mode), clip_index=CLIP_MODES.index(config.clip))
+
+
 class Trainer(NamedTuple):
     """Compiled pieces of a run. Every function maps over a leading seed axis."""
 
@@ -114,11 +147,15 @@ class Trainer(NamedTuple):
     batches: PyTree
 
 
-def make_trainer(task: Task, config: TrainConfig) -> Trainer:
-    """Static set-up of a run: data, flows, optimizer; returns jitted pure functions."""
+def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer:
+    """Static set-up of a run: data, flows, optimizer; returns jitted pure functions.
+
+    With ``grid=True`` every seed slot is a sweep cell: all flows are computed
+    and the optimizer of ``make_grid_optimizer`` selects each cell's update.
+    """
     dynamics = task.dynamics
-    flows = flows_needed(config.mode, config.cosine)
-    optimizer = make_optimizer(config, flows)
+    flows = ("R", "M", "S") if grid else flows_needed(config.mode, config.cosine)
+    optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
     train_key, test_key = jax.random.split(jax.random.PRNGKey(config.data_seed))
     train_states = task.sample_initial_states(train_key, config.train_size)

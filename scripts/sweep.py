@@ -1,0 +1,247 @@
+#!/usr/bin/env python3
+"""Run a grid (task x complexity x mode x clip mode x seeds), one compiled program per complexity.
+
+    python scripts/sweep.py --preset cartpole                 # 1-4 poles x R/M/C/S x value/norm/none x 5 seeds
+    python scripts/sweep.py --preset repulsion --epochs 200
+    python scripts/sweep.py --preset quantum --time-limit 540 # stop and checkpoint before 9 minutes; rerun resumes
+
+Everything that does not change the compiled program is vmapped into one
+program per complexity: seeds, mode (each cell computes R, M and S and its mode
+selects), clip mode and threshold, learning rate. The cell axis is sharded
+over every visible device (jax.sharding), so two GPUs halve the time; with
+--distributed, jax.distributed spans several hosts. Results land in
+OUT/PRESET/: one run directory per (complexity, mode, clip) with the seeds as
+rows (scripts/plot.py reads them), summary.csv with the final test loss per
+cell, learning-curve figures, and sweep.json with wall times and devices.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import dataclasses  # noqa: E402
+import itertools  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+
+from stablebptt.cli import Parser, add_options, build, fail  # noqa: E402
+from stablebptt.errors import InputError  # noqa: E402
+
+# preset -> (task, the option that sets the complexity, its values)
+PRESETS = {
+    "cartpole": ("cartpole", "poles", (1, 2, 3, 4)),
+    "repulsion": ("repulsion", "rc", (1.0, 0.1, 0.01, 0.001)),
+    "quantum": ("quantum", "target", (3, 4, 5)),
+    "tiny": ("repulsion", "rc", (0.1,)),  # the CPU test of the machinery
+}
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    preset: str = field(default="cartpole", metadata={"help": "which grid", "choices": tuple(PRESETS)})
+    complexity: str = field(default="", metadata={"help": "comma-separated subset of the preset's complexities (poles, rc or target)"})
+    modes: str = field(default="R,M,C,S", metadata={"help": "comma-separated gradient flows"})
+    clips: str = field(default="value,norm,none", metadata={"help": "comma-separated clip modes"})
+    seeds: int = field(default=5, metadata={"help": "seeds per cell (the same seeds in every cell)"})
+    epochs: int = field(default=1000, metadata={"help": "epochs per cell"})
+    train_size: int = field(default=256, metadata={"help": "training initial states"})
+    test_size: int = field(default=256, metadata={"help": "test initial states"})
+    task_steps: int = field(default=0, metadata={"help": "override the task's horizon in steps (0: its own; for quick tests)"})
+    checkpoint_every: int = field(default=10, metadata={"help": "epochs between checkpoints"})
+    time_limit: float = field(default=0.0, metadata={"help": "seconds after which to checkpoint and stop (0: none); rerun to resume"})
+    out: str = field(default="results", metadata={"help": "results root; the sweep writes OUT/PRESET/"})
+    distributed: bool = field(default=False, metadata={"help": "call jax.distributed.initialize() (several hosts)"})
+
+
+@dataclass
+class Program:
+    """One compiled program: one complexity of the grid, all its cells vmapped."""
+
+    complexity: object
+    cells: list  # (mode, clip, seed) per cell
+    directory: Path
+
+
+def parse_list(text: str, allowed, name: str, kind=str) -> list:
+    try:
+        values = [kind(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        fail(f"--{name} takes comma-separated values, got {text!r}")
+    bad = [v for v in values if v not in allowed]
+    if bad or not values:
+        fail(f"--{name}: {bad[0] if bad else 'nothing'} is not one of {', '.join(map(str, allowed))}")
+    return values
+
+
+def cell_name(task_name, option, value, mode, clip) -> str:
+    return f"{task_name}-{option}{value}-{mode}-{clip}"
+
+
+def run_program(program: Program, task_name: str, option: str, config: SweepConfig, log) -> dict:
+    """Train every cell of one program to config.epochs, resuming from its checkpoint."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+    import tasks
+    from stablebptt import runs
+    from stablebptt.training import CLIP_MODES, MODES, TrainConfig, make_trainer
+
+    module = tasks.load(task_name)
+    task_options = {option: program.complexity}
+    if config.task_steps:
+        task_options["steps"] = config.task_steps
+    task = module.make(build(module.Config, task_options))
+    devices = jax.devices()
+    cells = list(program.cells)
+    cells += [cells[-1]] * (-len(cells) % len(devices))  # pad to a multiple of the devices; dropped later
+    train_config = TrainConfig(epochs=config.epochs, seeds=len(cells), train_size=config.train_size,
+                               test_size=config.test_size, seed_batching="vmap", checkpoint_every=config.checkpoint_every)
+    trainer = make_trainer(task, train_config, grid=True)
+    sharding = NamedSharding(Mesh(np.array(devices), ("cells",)), PartitionSpec("cells"))
+    shard = lambda tree: jax.device_put(tree, sharding)
+
+    seeds = jnp.array([seed for _, _, seed in cells], dtype=jnp.uint32)
+    state = trainer.init(seeds)
+    hyper = dict(state.opt_state.hyperparams)
+    hyper["mode_index"] = jnp.array([MODES.index(mode) for mode, _, _ in cells], dtype=hyper["mode_index"].dtype)
+    hyper["clip_index"] = jnp.array([CLIP_MODES.index(clip) for _, clip, _ in cells], dtype=hyper["clip_index"].dtype)
+    state = state._replace(opt_state=state.opt_state._replace(hyperparams=hyper))
+    program.directory.mkdir(parents=True, exist_ok=True)
+    identity = {"cells": [list(c) for c in cells], "task": task_name, option: program.complexity,
+                "train_size": config.train_size, "test_size": config.test_size, "task_steps": config.task_steps}
+    identity_file = program.directory / "cells.json"
+    if identity_file.exists() and runs.read_json(identity_file) != identity:
+        raise InputError(f"{program.directory} holds a checkpoint of a different grid: choose another --out or remove it")
+    runs.write_json(identity_file, identity)
+    if (program.directory / runs.CHECKPOINT_FILE).exists():
+        start, state, rows = runs.load_checkpoint(program.directory, state)
+    else:
+        start, rows = 0, runs.empty_rows()
+    state = shard(state)
+    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
+    started = time.perf_counter()
+    epoch_fn = trainer.epoch.lower(state, *arguments).compile()
+    compile_seconds = time.perf_counter() - started
+    cell_index = np.arange(len(cells))
+    epoch, deadline = start, (time.monotonic() + config.time_limit) if config.time_limit else None
+    for epoch in range(start + 1, config.epochs + 1):
+        tick = time.perf_counter()
+        state, metrics = epoch_fn(state, *arguments)
+        metrics = jax.device_get(metrics)
+        # A diverged cell keeps its NaNs in the table; vmapped cells cannot affect each other.
+        rows = np.concatenate([rows, runs.epoch_rows(epoch, cell_index, metrics, time.perf_counter() - tick)])
+        if epoch % config.checkpoint_every == 0 or epoch == config.epochs or (deadline and time.monotonic() > deadline):
+            runs.save_checkpoint(program.directory, epoch, state, rows)
+            log(f"{task_name} {option}={program.complexity}: epoch {epoch}/{config.epochs}")
+            if deadline and time.monotonic() > deadline:
+                break
+    return {"complexity": program.complexity, "epochs_done": int(epoch), "cells": len(program.cells),
+            "padded_cells": len(cells), "compile_seconds": compile_seconds,
+            "train_seconds": time.perf_counter() - started - compile_seconds, "rows": rows}
+
+
+def write_cells(program: Program, rows, task_name: str, option: str, config: SweepConfig, root: Path) -> list[Path]:
+    """Split a program's rows into one run directory per (mode, clip), seeds as rows."""
+    import numpy as np
+    from stablebptt import runs
+    directories = []
+    groups = {}
+    for index, (mode, clip, seed) in enumerate(program.cells):
+        groups.setdefault((mode, clip), []).append((index, seed))
+    for (mode, clip), members in groups.items():
+        directory = root / cell_name(task_name, option, program.complexity, mode, clip)
+        directory.mkdir(parents=True, exist_ok=True)
+        selected = []
+        for index, seed in members:
+            part = rows[rows[:, 1] == index].copy()
+            part[:, 1] = seed
+            selected.append(part)
+        table = np.concatenate(selected)
+        table = table[np.lexsort((table[:, 1], table[:, 0]))]
+        runs.write_json(directory / runs.CONFIG_FILE, {
+            "task": task_name, "task_config": {option: program.complexity},
+            "train": {"mode": mode, "clip": clip, "seeds": len(members), "seed": members[0][1], "epochs": config.epochs,
+                      "train_size": config.train_size, "test_size": config.test_size},
+            "sweep": config.preset})
+        runs.write_metrics(directory / runs.METRICS_FILE, table)
+        directories.append(directory)
+    return directories
+
+
+def summarize(root: Path, directories: list[Path]) -> list[str]:
+    """summary.csv and a Markdown table: final test loss, mean +- std over seeds, per cell."""
+    import numpy as np
+    from stablebptt import runs
+    lines = ["| cell | epochs | final test loss (mean +- std over seeds) | diverged seeds |", "|---|---:|---:|---:|"]
+    csv_lines = ["cell,epochs,test_loss_mean,test_loss_std,diverged_seeds"]
+    for directory in sorted(directories):
+        rows = runs.read_metrics(directory / runs.METRICS_FILE)
+        last = max(row["epoch"] for row in rows)
+        final = np.array([row["test_loss"] for row in rows if row["epoch"] == last])
+        diverged = int(np.sum(~np.isfinite(final)))
+        mean, std = np.nanmean(final) if np.isfinite(final).any() else np.nan, np.nanstd(final) if np.isfinite(final).any() else np.nan
+        lines.append(f"| {directory.name} | {int(last)} | {mean:.4g} +- {std:.2g} | {diverged} |")
+        csv_lines.append(f"{directory.name},{int(last)},{mean!r},{std!r},{diverged}")
+    runs.atomic_write(root / "summary.csv", ("\n".join(csv_lines) + "\n").encode())
+    return lines
+
+
+def main(argv: list[str]) -> int:
+    parser = Parser(description=__doc__, formatter_class=__import__("argparse").RawDescriptionHelpFormatter)
+    add_options(parser, SweepConfig, "sweep")
+    try:
+        config = build(SweepConfig, vars(parser.parse_args(argv)))
+    except InputError as error:
+        fail(str(error))
+    task_name, option, complexities = PRESETS[config.preset]
+    if config.complexity:
+        complexities = parse_list(config.complexity, complexities, "complexity", type(complexities[0]))
+    from stablebptt.training import CLIP_MODES, MODES
+    modes = parse_list(config.modes, MODES, "modes")
+    clips = parse_list(config.clips, CLIP_MODES, "clips")
+    for name in ("seeds", "epochs", "train_size", "test_size", "checkpoint_every"):
+        if getattr(config, name) <= 0:
+            fail(f"--{name.replace('_', '-')} must be a positive integer")
+
+    import jax
+    if config.distributed:
+        jax.distributed.initialize()
+    from tqdm import tqdm
+    from stablebptt import runs
+    root = Path(config.out) / config.preset
+    root.mkdir(parents=True, exist_ok=True)
+    seeds = [42 + s for s in range(config.seeds)]
+    programs = [Program(value, [(m, c, s) for m, c, s in itertools.product(modes, clips, seeds)],
+                        root / "_programs" / f"{option}{value}") for value in complexities]
+    wall = time.perf_counter()
+    report, directories = [], []
+    for program in programs:
+        try:
+            outcome = run_program(program, task_name, option, config, lambda message: tqdm.write(message, file=sys.stderr))
+        except InputError as error:
+            fail(str(error))
+        rows = outcome.pop("rows")
+        rows = rows[rows[:, 1] < len(program.cells)]  # drop the device padding
+        directories += write_cells(program, rows, task_name, option, config, root)
+        report.append(outcome)
+    finished = all(r["epochs_done"] == config.epochs for r in report)
+    table = summarize(root, directories)
+    runs.write_json(root / "sweep.json", {
+        "preset": config.preset, "config": dataclasses.asdict(config), "finished": finished,
+        "devices": [str(d) for d in jax.devices()], "device_kind": jax.devices()[0].device_kind,
+        "wall_seconds_this_call": time.perf_counter() - wall, "programs": report})
+    if finished:
+        from stablebptt.plots import learning_curves
+        for value in complexities:
+            members = [d for d in directories if d.name.startswith(f"{task_name}-{option}{value}-")]
+            learning_curves(members, root / f"{task_name}-{option}{value}.png", smooth=None)
+    print("\n".join(table))
+    print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: {root}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,90 @@
+"""The sweep machinery on a tiny grid: the grid optimizer, outputs, a vmapped cell against the cell alone, resume."""
+import json
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from stablebptt import runs
+from stablebptt.training import CLIP_MODES, MODES, TrainConfig, make_grid_optimizer, make_optimizer
+
+TINY = ["--preset", "tiny", "--modes", "C,R", "--clips", "value", "--seeds", "2", "--train-size", "16",
+        "--test-size", "16", "--task-steps", "20", "--checkpoint-every", "1"]
+
+
+def sweep(*args):
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / "sweep.py"), *args], capture_output=True, text=True, cwd=ROOT)
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("clip", CLIP_MODES)
+def test_the_grid_optimizer_selects_exactly_what_the_single_run_chain_computes(mode, clip):
+    """Traced mode and clip indices give the same updates as the static chain of a single run."""
+    stacked = {"w": 3.0 * jax.random.normal(jax.random.PRNGKey(0), (3, 4, 5))}  # flows R, M, S
+    params = {"w": jnp.zeros((4, 5))}
+    config = TrainConfig(mode=mode, clip=clip, clip_threshold=0.5)
+    grid, single = make_grid_optimizer(config), make_optimizer(config, ("R", "M", "S"))
+    grid_state, single_state = grid.init(params), single.init(params)
+    for _ in range(3):
+        grid_update, grid_state = grid.update(stacked, grid_state, params)
+        single_update, single_state = single.update(stacked, single_state, params)
+        np.testing.assert_array_equal(grid_update["w"], single_update["w"])
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sweeps")
+    result = sweep(*TINY, "--epochs", "2", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    return out / "tiny"
+
+
+def test_a_tiny_grid_writes_tidy_results(tiny):
+    cells = sorted(p.name for p in tiny.iterdir() if p.is_dir() and not p.name.startswith("_"))
+    assert cells == ["repulsion-rc0.1-C-value", "repulsion-rc0.1-R-value"]
+    for cell in cells:
+        rows = runs.read_metrics(tiny / cell / runs.METRICS_FILE)
+        assert sorted({(r["epoch"], r["seed"]) for r in rows}) == [(1, 42), (1, 43), (2, 42), (2, 43)]
+        assert all(np.isfinite(r["test_loss"]) for r in rows)
+    summary = (tiny / "summary.csv").read_text().splitlines()
+    assert len(summary) == 3 and summary[0].startswith("cell,")
+    report = json.loads((tiny / "sweep.json").read_text())
+    assert report["finished"] and report["programs"][0]["cells"] == 4
+    assert (tiny / "repulsion-rc0.1.png").stat().st_size > 10_000
+
+
+def test_a_vmapped_cell_equals_the_same_cell_run_alone(tiny, tmp_path):
+    """Equal to float32 rounding: XLA fuses batched cells differently, which moves the last bits
+    (a single run with --seed-batching map is bit-exact against itself; see README)."""
+    alone = tmp_path / "alone"
+    result = subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), "--task", "repulsion", "--rc", "0.1",
+                             "--steps", "20", "--mode", "C", "--clip", "value", "--epochs", "2", "--train-size", "16",
+                             "--test-size", "16", "--seed", "43", "--out", str(alone), "--no-progress"],
+                            capture_output=True, text=True, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    single = [r for r in runs.read_metrics(alone / runs.METRICS_FILE)]
+    cell = [r for r in runs.read_metrics(tiny / "repulsion-rc0.1-C-value" / runs.METRICS_FILE) if r["seed"] == 43]
+    for a, b in zip(single, cell):
+        for name in ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine"):
+            assert np.isclose(a[name], b[name], rtol=1e-5, atol=0), name
+
+
+def test_a_sweep_resumes_from_its_checkpoints(tiny, tmp_path):
+    assert sweep(*TINY, "--epochs", "1", "--out", str(tmp_path)).returncode == 0
+    assert sweep(*TINY, "--epochs", "2", "--out", str(tmp_path)).returncode == 0
+    for cell in ("repulsion-rc0.1-C-value", "repulsion-rc0.1-R-value"):
+        resumed = runs.read_metrics(tmp_path / "tiny" / cell / runs.METRICS_FILE)
+        whole = runs.read_metrics(tiny / cell / runs.METRICS_FILE)
+        strip = lambda rows: [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
+        assert strip(resumed) == strip(whole)
+
+
+def test_bad_sweep_input_gets_one_line_and_exit_code_2():
+    for arguments in (["--preset", "pendulum"], ["--modes", "X"], ["--seeds", "0"], ["--complexity", "7"]):
+        result = sweep(*arguments)
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, result.stderr)
