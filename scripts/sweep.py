@@ -79,7 +79,7 @@ def cell_name(task_name, option, value, mode, clip) -> str:
     return f"{task_name}-{option}{value}-{mode}-{clip}"
 
 
-def run_program(program: Program, task_name: str, option: str, config: SweepConfig, log) -> dict:
+def run_program(program: Program, task_name: str, option: str, config: SweepConfig, log, deadline: float | None) -> dict:
     """Train every cell of one program to config.epochs, resuming from its checkpoint."""
     import jax
     import jax.numpy as jnp
@@ -126,8 +126,11 @@ def run_program(program: Program, task_name: str, option: str, config: SweepConf
     epoch_fn = trainer.epoch.lower(state, *arguments).compile()
     compile_seconds = time.perf_counter() - started
     cell_index = np.arange(len(cells))
-    epoch, deadline = start, (time.monotonic() + config.time_limit) if config.time_limit else None
+    epoch = start
     for epoch in range(start + 1, config.epochs + 1):
+        if deadline and time.monotonic() > deadline:
+            epoch -= 1
+            break
         tick = time.perf_counter()
         state, metrics = epoch_fn(state, *arguments)
         metrics = jax.device_get(metrics)
@@ -135,7 +138,8 @@ def run_program(program: Program, task_name: str, option: str, config: SweepConf
         rows = np.concatenate([rows, runs.epoch_rows(epoch, cell_index, metrics, time.perf_counter() - tick)])
         if epoch % config.checkpoint_every == 0 or epoch == config.epochs or (deadline and time.monotonic() > deadline):
             runs.save_checkpoint(program.directory, epoch, state, rows)
-            log(f"{task_name} {option}={program.complexity}: epoch {epoch}/{config.epochs}")
+            log(f"{task_name} {option}={program.complexity}: epoch {epoch}/{config.epochs}, "
+                f"{(time.perf_counter() - started - compile_seconds) / max(epoch - start, 1):.2f} s/epoch for {len(cells)} cells")
             if deadline and time.monotonic() > deadline:
                 break
     return {"complexity": program.complexity, "epochs_done": int(epoch), "cells": len(program.cells),
@@ -217,15 +221,17 @@ def main(argv: list[str]) -> int:
     programs = [Program(value, [(m, c, s) for m, c, s in itertools.product(modes, clips, seeds)],
                         root / "_programs" / f"{option}{value}") for value in complexities]
     wall = time.perf_counter()
+    deadline = time.monotonic() + config.time_limit if config.time_limit else None
     report, directories = [], []
     for program in programs:
         try:
-            outcome = run_program(program, task_name, option, config, lambda message: tqdm.write(message, file=sys.stderr))
+            outcome = run_program(program, task_name, option, config, lambda message: tqdm.write(message, file=sys.stderr), deadline)
         except InputError as error:
             fail(str(error))
         rows = outcome.pop("rows")
         rows = rows[rows[:, 1] < len(program.cells)]  # drop the device padding
-        directories += write_cells(program, rows, task_name, option, config, root)
+        if len(rows):
+            directories += write_cells(program, rows, task_name, option, config, root)
         report.append(outcome)
     finished = all(r["epochs_done"] == config.epochs for r in report)
     table = summarize(root, directories)
