@@ -1,0 +1,306 @@
+#!/usr/bin/env python3
+"""Render rollouts headless: a trained controller from a run directory, or any MJCF under a zero policy.
+
+    python scripts/render.py runs/cartpole-20261122-101500    # rollout.mp4 and rollout-strip.png in the run
+    python scripts/render.py runs/repulsion-20261122-101500 --gif   # rollout.gif and rollout-paths.png
+    python scripts/render.py runs/quantum-20261122-101500     # rollout.mp4 and rollout-density.png
+    python scripts/render.py --model models/cartpole_3.xml    # renders/cartpole_3-<time>.mp4 and -strip.png
+
+The controller is rolled out from the run's first test initial states (the
+same states its test loss is measured on), one video frame per simulation
+step, the rollouts side by side. MuJoCo scenes are drawn with the offscreen
+renderer through EGL, or OSMesa when EGL does not work, by a camera that
+keeps the whole rollout in view; the frame strip overlays states of the first
+rollout, earlier ones fainter, at twice the panel size. Existing files are
+never overwritten: the default names get a suffix -2, -3, ...; an existing
+--out is refused.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from datetime import datetime  # noqa: E402
+
+from stablebptt.cli import Parser, add_options, build, fail  # noqa: E402
+from stablebptt.errors import InputError  # noqa: E402
+
+RENDERS_ROOT = Path("renders")
+STEM = "rollout"  # default name of the files written into a run directory
+PICTURES = {"cartpole": "strip", "repulsion": "paths", "quantum": "density"}  # task -> suffix of its picture
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Options of scripts/render.py."""
+
+    rollouts: int = field(default=3, metadata={"help": "rollouts to show, from the first test initial states (at most the run's test size)"})
+    seed_index: int = field(default=0, metadata={"help": "which of the run's seeds to roll out (0: the first)"})
+    steps: int = field(default=0, metadata={"help": "with --model: simulation steps (0: the MJCF's bptt_horizon, else 100)"})
+    width: int = field(default=400, metadata={"help": "width in pixels of one rollout's video panel"})
+    height: int = field(default=300, metadata={"help": "height in pixels of one rollout's video panel"})
+    fps: float = field(default=30.0, metadata={"help": "video frames per second (one frame per simulation step)"})
+    gif: bool = field(default=False, metadata={"help": "write a GIF instead of an MP4"})
+    video: bool = field(default=True, metadata={"help": "write the video (--no-video: only the pictures)"})
+    strip_states: int = field(default=8, metadata={"help": "MuJoCo scenes: states overlaid in the frame strip"})
+
+    def __post_init__(self):
+        for name in ("rollouts", "width", "height", "strip_states"):
+            if getattr(self, name) <= 0:
+                raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
+        if self.seed_index < 0 or self.steps < 0:
+            raise InputError("--seed-index and --steps must be zero or positive")
+        if not self.fps > 0:
+            raise InputError(f"--fps must be a positive number, got {self.fps}")
+        if self.width < 16 or self.height < 16:
+            raise InputError(f"--width and --height must be at least 16 pixels, got {self.width}x{self.height}")
+
+
+def parse(argv: list[str]) -> tuple[argparse.Namespace, RenderConfig]:
+    parser = Parser(description=__doc__, formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32))
+    parser.add_argument("run_dir", type=Path, nargs="?", default=None, help="a run directory written by scripts/train.py")
+    parser.add_argument("--model", type=Path, default=None, help="render this MJCF under a zero policy instead of a run")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="the video to write (.mp4 or .gif); the pictures are named after it "
+                             "(default: RUN_DIR/rollout.mp4, or renders/MODEL-TIME.mp4 with --model)")
+    add_options(parser, RenderConfig, "rendering")
+    args = parser.parse_args(argv)
+    if (args.run_dir is None) == (args.model is None):
+        fail("give a run directory or --model FILE.xml (one of the two)")
+    names = {f.name for f in dataclasses.fields(RenderConfig)}
+    try:
+        config = build(RenderConfig, {k: v for k, v in vars(args).items() if k in names})
+    except InputError as error:
+        fail(str(error))
+    if args.model is not None and "seed_index" in vars(args):
+        fail("--seed-index chooses a seed of a run: it needs a run directory, not --model")
+    if args.run_dir is not None and config.steps:
+        fail("--steps applies to --model only: a run is rolled out over the horizon it was trained on")
+    return args, config
+
+
+def _named(stem: Path, ending: str) -> Path:
+    """``stem`` with ``ending`` appended (not ``with_suffix``, which would eat a dot inside a model's name)."""
+    return stem.with_name(stem.name + ending)
+
+
+def output_paths(args, config: RenderConfig, picture: str) -> tuple[Path, Path]:
+    """(video, picture) paths that do not exist yet; an existing --out is an error."""
+    suffix = ".gif" if config.gif else ".mp4"
+    if args.out is not None:
+        if args.out.suffix.lower() not in (".mp4", ".gif"):
+            raise InputError(f"--out {args.out}: give a video file name ending in .mp4 or .gif")
+        if config.gif and args.out.suffix.lower() != ".gif":
+            raise InputError(f"--gif writes a GIF, but --out {args.out} ends in {args.out.suffix}: drop one of the two")
+        if not args.out.parent.is_dir():
+            raise InputError(f"cannot write {args.out}: the directory {args.out.parent} does not exist")
+        video, picture_path = args.out, _named(args.out.with_suffix(""), f"-{picture}.png")
+        for path in (video, picture_path) if config.video else (picture_path,):
+            if path.exists():
+                raise InputError(f"{path} already exists: choose another --out (render.py never overwrites)")
+        return video, picture_path
+    if args.run_dir is not None:
+        stem = args.run_dir / STEM
+    else:
+        stem = RENDERS_ROOT / f"{args.model.stem}-{datetime.now():%Y%m%d-%H%M%S}"
+    candidate, number = stem, 1
+    while (config.video and _named(candidate, suffix).exists()) or _named(candidate, f"-{picture}.png").exists():
+        number += 1
+        candidate = _named(stem, f"-{number}")
+    return _named(candidate, suffix), _named(candidate, f"-{picture}.png")
+
+
+def read_run(run_dir: Path) -> dict:
+    """The run's config.json, checked for what rendering needs."""
+    if not run_dir.exists():
+        raise InputError(f"{run_dir} does not exist: give a run directory written by scripts/train.py")
+    if not run_dir.is_dir():
+        raise InputError(f"{run_dir} is not a directory: give a run directory written by scripts/train.py")
+    from stablebptt.runs import CONFIG_FILE, PARAMS_FILE, read_json  # imports JAX: only once there is a run to read
+    import tasks
+    saved = read_json(run_dir / CONFIG_FILE)
+    if not (isinstance(saved, dict) and isinstance(saved.get("task_config"), dict) and isinstance(saved.get("train"), dict)):
+        raise InputError(f"{run_dir / CONFIG_FILE} is not a run configuration (expected 'task', 'task_config' and 'train')")
+    if saved.get("task") not in tasks.TASK_MODULES:
+        raise InputError(f"{run_dir / CONFIG_FILE} names the task {saved.get('task')!r}, which is none of "
+                         f"{', '.join(sorted(tasks.TASK_MODULES))}")
+    if not (run_dir / PARAMS_FILE).is_file():
+        raise InputError(f"{run_dir} has no {PARAMS_FILE}: the run has not finished an epoch yet")
+    return saved
+
+
+def load_controller(run_dir: Path, task, train, seed_index: int):
+    """The parameters of one seed of the run."""
+    import zipfile
+
+    import jax
+    import numpy as np
+    from stablebptt.runs import PARAMS_FILE, load_params
+
+    if seed_index >= train.seeds:
+        raise InputError(f"--seed-index {seed_index}: the run has {train.seeds} seed(s), 0 to {train.seeds - 1}")
+    keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)
+    template = jax.vmap(lambda key: task.init_params(key, train.zero_output))(keys)
+    try:
+        params = load_params(run_dir / PARAMS_FILE, template)
+    except InputError:
+        raise
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # a truncated or foreign file
+        raise InputError(f"cannot read {run_dir / PARAMS_FILE}: {' '.join(str(error).split())}") from None
+    return jax.tree.map(lambda leaf: np.asarray(leaf)[seed_index], params)
+
+
+def roll_out(task, train, params, count: int):
+    """States [N, T+1, ...] (the initial state first), controls [N, T, ...] and losses [N] from the run's test states."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from stablebptt.flows import reference_rollout
+
+    # The test states exactly as make_trainer draws them: the same split of the data seed.
+    _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))
+    initial = jax.tree.map(lambda a: a[:count], task.sample_initial_states(test_key, train.test_size))
+
+    @jax.jit
+    def run(params, initial):
+        trajectory = jax.vmap(lambda x0: reference_rollout(task.dynamics, params, x0))(initial)
+        losses = jax.vmap(task.dynamics.loss)(trajectory.states, trajectory.controls)
+        states = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[:, None], xs], axis=1), initial, trajectory.states)
+        return states, trajectory.controls, losses
+
+    states, controls, losses = jax.device_get(run(params, initial))
+    return states, controls, np.asarray(losses)
+
+
+def render_mujoco(model_path: Path, qpos, config: RenderConfig, video: Path | None, strip: Path) -> list[Path]:
+    """The MuJoCo scene: a video of the rollouts side by side and the frame strip of the first."""
+    from stablebptt import rendering
+
+    strip_size = (2 * config.width, 2 * config.height)  # a picture for print: twice the video panel
+    model = rendering.render_model(model_path, framebuffer=(rendering.SUPERSAMPLE * strip_size[0],
+                                                            rendering.SUPERSAMPLE * strip_size[1]))
+    written = []
+    cameras = [rendering.frame_camera(model, *rendering.rollout_extent(model, q), config.width, config.height) for q in qpos]
+    if video is not None:
+        panels = [rendering.render_frames(model, q, camera, config.width, config.height)[0] for q, camera in zip(qpos, cameras)]
+        written.append(rendering.write_video(video, rendering.tile(panels), config.fps))
+    picks = rendering.strip_indices(len(qpos[0]), config.strip_states)
+    frames, masks = rendering.render_frames(model, qpos[0][picks], cameras[0], *strip_size,
+                                            supersample=rendering.SUPERSAMPLE, with_masks=True)
+    written.append(rendering.write_png(strip, rendering.frame_strip(frames, masks)))
+    return written
+
+
+def render_figures(task_name: str, task_config, states, controls, titles, label, config: RenderConfig,
+                   video: Path | None, picture: Path) -> list[Path]:
+    """Repulsion and quantum: matplotlib pictures and animations (tasks/figures.py)."""
+    from stablebptt import rendering
+    from tasks import figures
+
+    written = []
+    panel = (config.width, config.height)
+    if task_name == "repulsion":
+        from tasks.repulsion import Physics
+        positions = states.position
+        if video is not None:
+            frames = figures.repulsion_frames(positions, Physics().duration, panel, titles)
+            written.append(rendering.write_video(video, frames, config.fps))
+        written.append(figures.repulsion_paths(positions, picture, titles, title=label))
+    else:
+        if video is not None:
+            frames = figures.quantum_frames(states, controls, task_config.dt, task_config.target, panel, titles)
+            written.append(rendering.write_video(video, frames, config.fps))
+        written.append(figures.quantum_density(states, controls, task_config.dt, task_config.target, picture, titles,
+                                               title=label))
+    return written
+
+
+def build_controller(args, config: RenderConfig, saved: dict | None):
+    """(task name, task config, train config, task, parameters of one seed, label) of the run or the --model."""
+    import jax
+    import tasks
+    from stablebptt.runs import METRICS_FILE, read_metrics
+    from stablebptt.training import TrainConfig
+
+    if saved is None:
+        module = tasks.load("cartpole")
+        task_config = module.Config(model=str(args.model), steps=config.steps)
+        task = module.make(task_config)
+        params = task.init_params(jax.random.PRNGKey(0), True)  # a zero output layer: the policy outputs 0
+        return "cartpole", task_config, TrainConfig(), task, params, f"{args.model.name}, zero policy"
+    task_name = saved["task"]
+    module = tasks.load(task_name)
+    train = build(TrainConfig, saved["train"])
+    jax.config.update("jax_enable_x64", train.x64)  # before any array, as the run was trained
+    task_config = build(module.Config, saved["task_config"])
+    task = module.make(task_config)
+    params = load_controller(args.run_dir, task, train, config.seed_index)
+    setting = {"cartpole": lambda c: c.model_path.name, "repulsion": lambda c: f"repulsion, rc={c.rc:g}",
+               "quantum": lambda c: f"quantum, target state {c.target}"}[task_name](task_config)
+    try:  # the epochs params.npz holds: fewer than configured when the run was stopped early
+        epochs = f", {int(max(row['epoch'] for row in read_metrics(args.run_dir / METRICS_FILE)))} epochs"
+    except (OSError, ValueError, KeyError, TypeError):
+        epochs = ""
+    label = f"{setting}, mode {train.mode}{epochs}, seed {train.seed + config.seed_index}"
+    return task_name, task_config, train, task, params, label
+
+
+def main(argv: list[str]) -> int:
+    args, config = parse(argv)
+    try:
+        if args.run_dir is not None:
+            saved = read_run(args.run_dir)
+            task_name = saved["task"]
+        else:
+            if not args.model.is_file():
+                raise InputError(f"model file {args.model} does not exist")
+            saved, task_name = None, "cartpole"
+        video, picture = output_paths(args, config, PICTURES[task_name])
+        if task_name == "cartpole":
+            # Before mujoco is imported: it reads MUJOCO_GL once.
+            from stablebptt.rendering import select_gl_backend
+            select_gl_backend()
+    except InputError as error:
+        fail(str(error))
+
+    import jax
+    import numpy as np
+
+    try:
+        task_name, task_config, train, task, params, label = build_controller(args, config, saved)
+    except (InputError, TypeError) as error:  # TypeError: a config.json value of the wrong type
+        fail(str(error))
+
+    states, controls, losses = roll_out(task, train, params, config.rollouts)
+    # [N, T+1]: whether every number of the state is finite; a diverged rollout has nothing to draw.
+    finite = np.stack([np.isfinite(np.reshape(a, a.shape[:2] + (-1,))).all(axis=-1) for a in jax.tree.leaves(states)]).all(axis=0)
+    for index, steps_finite in enumerate(finite):
+        if not steps_finite.all():
+            fail(f"the rollout from test state {index + 1} is not finite from step {int(np.argmin(steps_finite))} on "
+                 "(the controller or the simulation diverged): nothing to draw", code=1)
+    titles = [f"test state {i + 1}: loss {loss:.3g}" for i, loss in enumerate(losses)]
+    rollouts = f"{len(losses)} rollout{'s' if len(losses) != 1 else ''}"
+    print(f"{label}: {rollouts} of {controls.shape[1]} steps, losses {', '.join(f'{loss:.4g}' for loss in losses)}")
+    video = video if config.video else None
+    picture.parent.mkdir(parents=True, exist_ok=True)  # renders/ for --model
+    try:
+        if task_name == "cartpole":
+            written = render_mujoco(task_config.model_path, states.qpos, config, video, picture)
+        else:
+            written = render_figures(task_name, task_config, states, controls, titles, label, config, video, picture)
+    except InputError as error:
+        fail(str(error))
+    except OSError as error:  # a full disk, a directory without write permission
+        fail(f"cannot write next to {picture}: {error.strerror or error}")
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
