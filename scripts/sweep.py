@@ -53,6 +53,7 @@ class SweepConfig:
     time_limit: float = field(default=0.0, metadata={"help": "seconds after which to checkpoint and stop (0: none); rerun to resume"})
     out: str = field(default="results", metadata={"help": "results root; the sweep writes OUT/PRESET/"})
     distributed: bool = field(default=False, metadata={"help": "call jax.distributed.initialize() (several hosts)"})
+    report: bool = field(default=False, metadata={"help": "train nothing: rebuild summary.csv, table.md and figures from the run directories in OUT/PRESET"})
 
 
 @dataclass
@@ -186,11 +187,48 @@ def summarize(root: Path, directories: list[Path]) -> list[str]:
         last = max(row["epoch"] for row in rows)
         final = np.array([row["test_loss"] for row in rows if row["epoch"] == last])
         diverged = int(np.sum(~np.isfinite(final)))
-        mean, std = np.nanmean(final) if np.isfinite(final).any() else np.nan, np.nanstd(final) if np.isfinite(final).any() else np.nan
+        finite = final[np.isfinite(final)]
+        mean, std = (float(finite.mean()), float(finite.std())) if len(finite) else (float("nan"), float("nan"))
         lines.append(f"| {directory.name} | {int(last)} | {mean:.4g} +- {std:.2g} | {diverged} |")
         csv_lines.append(f"{directory.name},{int(last)},{mean!r},{std!r},{diverged}")
     runs.atomic_write(root / "summary.csv", ("\n".join(csv_lines) + "\n").encode())
     return lines
+
+
+def mode_table(directories: list[Path], task_name: str, option: str, complexities, modes, clips) -> list[str]:
+    """Final test loss, mean +- std over seeds: one row per complexity and clip mode, one column per mode."""
+    import numpy as np
+    from stablebptt import runs
+    lines = [f"| {option} | clip | epochs | " + " | ".join(modes) + " |", "|---|---|---:|" + "---:|" * len(modes)]
+    for value in complexities:
+        for clip in clips:
+            cells, epochs = [], ""
+            for mode in modes:
+                directory = next((d for d in directories if d.name == cell_name(task_name, option, value, mode, clip)), None)
+                if directory is None:
+                    cells.append("-")
+                    continue
+                rows = runs.read_metrics(directory / runs.METRICS_FILE)
+                last = max(r["epoch"] for r in rows)
+                final = np.array([r["test_loss"] for r in rows if r["epoch"] == last])
+                epochs = str(int(last))
+                cells.append(f"{np.nanmean(final):.3g} +- {np.nanstd(final):.2g}" if np.isfinite(final).any() else "diverged")
+            lines.append(f"| {value} | {clip} | {epochs} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def write_report(root: Path, directories: list[Path], task_name, option, complexities, modes, clips) -> None:
+    """summary.csv, table.md and one learning-curve figure per complexity, from the run directories."""
+    from stablebptt.plots import learning_curves
+    from stablebptt.runs import atomic_write
+    summarize(root, directories)
+    table = mode_table(directories, task_name, option, complexities, modes, clips)
+    atomic_write(root / "table.md", ("\n".join(table) + "\n").encode())
+    for value in complexities:
+        members = [d for d in directories if d.name.startswith(f"{task_name}-{option}{value}-")]
+        if members:
+            learning_curves(members, root / f"{task_name}-{option}{value}.png", smooth=None)
+    print("\n".join(table))
 
 
 def main(argv: list[str]) -> int:
@@ -209,6 +247,14 @@ def main(argv: list[str]) -> int:
     for name in ("seeds", "epochs", "train_size", "test_size", "checkpoint_every"):
         if getattr(config, name) <= 0:
             fail(f"--{name.replace('_', '-')} must be a positive integer")
+
+    if config.report:
+        root = Path(config.out) / config.preset
+        directories = sorted(d for d in root.glob(f"{task_name}-{option}*") if (d / "metrics.csv").exists())
+        if not directories:
+            fail(f"no run directories of preset {config.preset} in {root}")
+        write_report(root, directories, task_name, option, complexities, modes, clips)
+        return 0
 
     import jax
     if config.distributed:
@@ -234,17 +280,11 @@ def main(argv: list[str]) -> int:
             directories += write_cells(program, rows, task_name, option, config, root)
         report.append(outcome)
     finished = all(r["epochs_done"] == config.epochs for r in report)
-    table = summarize(root, directories)
     runs.write_json(root / "sweep.json", {
         "preset": config.preset, "config": dataclasses.asdict(config), "finished": finished,
         "devices": [str(d) for d in jax.devices()], "device_kind": jax.devices()[0].device_kind,
         "wall_seconds_this_call": time.perf_counter() - wall, "programs": report})
-    if finished:
-        from stablebptt.plots import learning_curves
-        for value in complexities:
-            members = [d for d in directories if d.name.startswith(f"{task_name}-{option}{value}-")]
-            learning_curves(members, root / f"{task_name}-{option}{value}.png", smooth=None)
-    print("\n".join(table))
+    write_report(root, directories, task_name, option, complexities, modes, clips)
     print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: {root}")
     return 0
 
