@@ -107,3 +107,13 @@ def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, 
         expected = jax.grad(reference_loss, argnums=1)(dynamics, params, x0, flow)
         for fast, slow in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
             np.testing.assert_allclose(fast[index], slow, rtol=1e-10, atol=1e-12)
+
+
+def test_the_combination_never_points_uphill():
+    """Every kept component of C agrees in sign with g_R, so <C, g_R> >= 0: C is a descent direction
+    even where M rotates away from it (the mechanism behind scripts/toy.py)."""
+    g_m = jax.random.normal(jax.random.PRNGKey(5), (1000, 6))
+    g_r = jax.random.normal(jax.random.PRNGKey(6), (1000, 6))
+    combined = sign_agreement(g_m, g_r)
+    assert np.all(np.sum(combined * g_r, axis=1) >= 0)
+    assert np.all((combined == 0) | (combined == g_m))
