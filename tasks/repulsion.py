@@ -13,6 +13,7 @@ import jax.numpy as jnp
 
 from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics
+from stablebptt.integrators import INTEGRATORS
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.training import Task
 
@@ -101,19 +102,7 @@ def make_step(physics: Physics, dt: float, integrator: str = "euler"):
     def derivative(state, control):
         return State(state.velocity, accelerations(physics, state, control.reshape(physics.drivers, 2)))
 
-    def euler(state, control):
-        rate = derivative(state, control)
-        return jax.tree.map(lambda x, r: x + dt * r, state, rate)
-
-    def rk4(state, control):
-        shifted = lambda k, h: jax.tree.map(lambda x, r: x + h * r, state, k)
-        k1 = derivative(state, control)
-        k2 = derivative(shifted(k1, dt / 2), control)
-        k3 = derivative(shifted(k2, dt / 2), control)
-        k4 = derivative(shifted(k3, dt), control)
-        return jax.tree.map(lambda x, a, b, c, e: x + dt / 6 * (a + 2 * b + 2 * c + e), state, k1, k2, k3, k4)
-
-    return {"euler": euler, "rk4": rk4}[integrator]
+    return INTEGRATORS[integrator](derivative, dt)
 
 
 def observe(state: State) -> jax.Array:
