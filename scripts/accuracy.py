@@ -38,7 +38,7 @@ import time  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from typing import Any, Callable, NamedTuple  # noqa: E402
 
-from stablebptt.cli import Parser, add_options, build, fail  # noqa: E402
+from stablebptt.cli import fail, parse_config  # noqa: E402
 
 STUDIES = ("trajectory", "gradients", "training")
 TASKS = ("cartpole", "repulsion", "quantum")
@@ -792,9 +792,7 @@ def training_table(rows: list[dict]) -> list[str]:
 # ----------------------------------------------------------------------------- main
 
 def parse(argv: list[str]) -> AccuracyConfig:
-    parser = Parser(description=__doc__, formatter_class=__import__("argparse").RawDescriptionHelpFormatter)
-    add_options(parser, AccuracyConfig, "accuracy study")
-    config = build(AccuracyConfig, vars(parser.parse_args(argv)))
+    config = parse_config(AccuracyConfig, argv, __doc__, "accuracy study")
     for name in config.task_list:
         if name not in TASKS:
             fail(f"unknown task {name!r} in --tasks: choose from {', '.join(TASKS)}")

@@ -23,7 +23,7 @@ import platform  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 
-from stablebptt.cli import Parser, fail  # noqa: E402
+from stablebptt.cli import fail, parse_config  # noqa: E402
 
 MODE_FLOWS = {"R": ("R",), "M": ("M",), "S": ("S",), "C": ("R", "M")}
 
@@ -118,11 +118,7 @@ def pipeline_table(poles: int, batch: int, rounds: int) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    from stablebptt.cli import add_options, build
-    parser = Parser(description=__doc__, formatter_class=__import__("argparse").RawDescriptionHelpFormatter)
-    add_options(parser, BenchConfig, "benchmark")
-    args = parser.parse_args(argv)
-    config = build(BenchConfig, vars(args))
+    config = parse_config(BenchConfig, argv, __doc__, "benchmark")
     import tasks
     names = [t for t in config.tasks.split(",") if t]
     unknown = [t for t in names if t not in tasks.TASK_MODULES]
@@ -135,7 +131,7 @@ def main(argv: list[str]) -> int:
     if config.rounds <= 0 or config.batch <= 0:
         fail("--rounds and --batch must be positive")
     import jax
-    header = [f"Measured by `python scripts/bench.py {' '.join(argv)}`".replace(" `", " `", 1).rstrip()
+    header = [f"Measured by `python scripts/bench.py {' '.join(argv)}`".rstrip()
               + f" on {platform.machine()} ({jax.devices()[0].platform}, {jax.device_count()} device), "
               f"jax {jax.__version__}, batch {config.batch}, median of {config.rounds} rounds.", ""]
     print("\n".join(header), flush=True)

@@ -26,7 +26,7 @@ import itertools  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 
-from stablebptt.cli import Parser, add_options, build, fail  # noqa: E402
+from stablebptt.cli import build, fail, parse_config  # noqa: E402
 from stablebptt.errors import InputError  # noqa: E402
 
 # preset -> (task, the option that sets the complexity, its values)
@@ -232,12 +232,7 @@ def write_report(root: Path, directories: list[Path], task_name, option, complex
 
 
 def main(argv: list[str]) -> int:
-    parser = Parser(description=__doc__, formatter_class=__import__("argparse").RawDescriptionHelpFormatter)
-    add_options(parser, SweepConfig, "sweep")
-    try:
-        config = build(SweepConfig, vars(parser.parse_args(argv)))
-    except InputError as error:
-        fail(str(error))
+    config = parse_config(SweepConfig, argv, __doc__, "sweep")
     task_name, option, complexities = PRESETS[config.preset]
     if config.complexity:
         complexities = parse_list(config.complexity, complexities, "complexity", type(complexities[0]))

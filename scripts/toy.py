@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from dataclasses import dataclass, field  # noqa: E402
 
-from stablebptt.cli import Parser, add_options, build, fail  # noqa: E402
+from stablebptt.cli import parse_config  # noqa: E402
 from stablebptt.errors import InputError  # noqa: E402
 
 
@@ -38,12 +38,7 @@ class ToyConfig:
 
 
 def main(argv: list[str]) -> int:
-    parser = Parser(description=__doc__, formatter_class=__import__("argparse").RawDescriptionHelpFormatter)
-    add_options(parser, ToyConfig, "toy")
-    try:
-        config = build(ToyConfig, vars(parser.parse_args(argv)))
-    except InputError as error:
-        fail(str(error))
+    config = parse_config(ToyConfig, argv, __doc__, "toy")
     import jax
     import jax.numpy as jnp
     import numpy as np

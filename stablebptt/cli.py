@@ -55,6 +55,21 @@ def add_options(parser: argparse.ArgumentParser, config_class: type, title: str,
     return names
 
 
+def parse_config(config_class: type, argv: list[str], description: str, title: str):
+    """Parse ``argv`` into ``config_class`` for a script whose options are that one dataclass.
+
+    Unknown options, bad types and the dataclass's own validation errors all
+    end as one line on stderr with exit code 2.
+    """
+    from stablebptt.errors import InputError
+    parser = Parser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_options(parser, config_class, title)
+    try:
+        return build(config_class, vars(parser.parse_args(argv)))
+    except InputError as error:
+        fail(str(error))
+
+
 def build(config_class: type, values: dict[str, Any]):
     """The dataclass from the given values (unknown keys ignored); validation errors propagate."""
     known = {f.name for f in dataclasses.fields(config_class)}

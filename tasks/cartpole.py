@@ -189,9 +189,10 @@ def make(config: Config) -> Task:
         raise InputError(f"{path} has no joints: nothing to control")
     spec = read_spec(model, config.spread)
     effects = scene.analyze(model)
-    lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None)
-    if config.pipeline == "mjx":
-        lean = copy_with_overrides(model, config)
+    if config.pipeline == "mjx":  # the baseline: MuJoCo's default flags, only integrator and dt overridden
+        lean = scene.with_options(model, config.integrator or None, config.dt or None)
+    else:
+        lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None)
     horizon = config.steps or max(1, round(spec.horizon * model.opt.timestep / lean.opt.timestep))
     step = scene.make_step(lean, effects, config.pipeline)
     weights = jnp.asarray(spec.joint_weight / spec.joint_weight.sum())
@@ -227,14 +228,3 @@ def make(config: Config) -> Task:
         sample_initial_states=sample_initial_states,
         summary=f"{path.name}: {summary}; horizon {horizon} steps, {spec.loss}-state loss",
     )
-
-
-def copy_with_overrides(model: mujoco.MjModel, config: Config) -> mujoco.MjModel:
-    """MuJoCo's default flags, with only the integrator and time step overridden (the baseline)."""
-    import copy
-    baseline = copy.copy(model)
-    if config.integrator:
-        baseline.opt.integrator = scene.INTEGRATORS[config.integrator]
-    if config.dt:
-        baseline.opt.timestep = config.dt
-    return baseline
