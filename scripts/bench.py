@@ -7,8 +7,10 @@
 Per task, one update (gradient of a batch-8 rollout, then clip and Adam) per mode:
 R, M, S and C through the one-pass flows, and "R plain": jax.grad of the plain
 rollout with no flow machinery, the baseline the ratios divide by. For the
-cart-pole, also the MJX pipelines: the lean step (scene analysis), mjx.step with
-MuJoCo's default flags, and closed-form cart-pole equations as the floor.
+cart-pole, also the MJX pipelines: the lean step (scene analysis; differentiated
+through inverse dynamics), the same step differentiated by plain autodiff through
+the mass matrix and its solve, mjx.step with MuJoCo's default flags, and
+closed-form cart-pole equations as the floor.
 Variants are timed round-robin, so drift of the machine hits all of them alike.
 """
 from __future__ import annotations
@@ -99,12 +101,18 @@ def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
 
 
 def pipeline_table(poles: int, batch: int, rounds: int) -> list[str]:
+    from stablebptt import scene
     from tasks import cartpole, cartpole_equations
     lean = cartpole.make(cartpole.Config(poles=poles))
     default = cartpole.make(cartpole.Config(poles=poles, pipeline="mjx"))
-    closed = dataclasses.replace(lean, dynamics=dataclasses.replace(lean.dynamics, step=cartpole_equations.make_step(0.01)))
+    with_step = lambda step: dataclasses.replace(lean, dynamics=dataclasses.replace(lean.dynamics, step=step))
+    closed = with_step(cartpole_equations.make_step(0.01))
+    model = cartpole.load_model(cartpole.Config(poles=poles).model_path)
+    effects = scene.analyze(model)
+    autodiff = with_step(scene.make_step(scene.lean_model(model, effects), effects, implicit=False))
     variants = {name: make_update(task, ("R",), batch) for name, task in
-                (("MJX lean step (scene analysis)", lean), ("mjx.step, MuJoCo default flags", default), ("closed-form equations (floor)", closed))}
+                (("MJX lean step (scene analysis)", lean), ("MJX lean step, autodiff through M and its solve", autodiff),
+                 ("mjx.step, MuJoCo default flags", default), ("closed-form equations (floor)", closed))}
     for name, task in (("MJX lean step (scene analysis)", lean), ("closed-form equations (floor)", closed)):
         variants[name + ", C"] = make_update(task, ("R", "M"), batch)
     times = time_variants(variants, rounds)

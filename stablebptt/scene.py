@@ -164,16 +164,23 @@ class State(NamedTuple):
     act: jax.Array
 
 
-def _lean_forward(model: mjx.Model, data: mjx.Data, effects: SceneEffects) -> mjx.Data:
-    """mjx.forward without the stages the scene cannot need."""
+def _lean_forward(model: mjx.Model, data: mjx.Data, effects: SceneEffects, mass: bool = True) -> mjx.Data:
+    """mjx.forward without the stages the scene cannot need.
+
+    With ``mass=False`` it stops before the mass matrix and the solve and
+    computes inverse dynamics instead: ``qfrc_bias`` becomes
+    M(qpos) qacc + c(qpos, qvel) for the ``qacc`` that ``data`` carries
+    (armature excluded: constant, it has no derivative).
+    """
     data = smooth.kinematics(model, data)
     data = smooth.com_pos(model, data)
     if effects.tendons:
         data = smooth.tendon(model, data)
-    data = smooth.crb(model, data)
-    if effects.tendons:
-        data = smooth.tendon_armature(model, data)
-    data = smooth.factor_m(model, data)
+    if mass:
+        data = smooth.crb(model, data)
+        if effects.tendons:
+            data = smooth.tendon_armature(model, data)
+        data = smooth.factor_m(model, data)
     if effects.constraints:
         data = collision_driver.collision(model, data)
         data = constraint.make_constraint(model, data)
@@ -185,24 +192,44 @@ def _lean_forward(model: mjx.Model, data: mjx.Data, effects: SceneEffects) -> mj
     data = smooth.com_vel(model, data)
     if effects.passive:
         data = passive.passive(model, data)
-    data = smooth.rne(model, data)
+    data = smooth.rne(model, data, flg_acc=not mass)
     if effects.tendons:
         data = smooth.tendon_bias(model, data)
     data = mjx_forward.fwd_actuation(model, data)
+    if not mass:
+        return data
     data = mjx_forward.fwd_acceleration(model, data)
     if effects.constraints and data._impl.efc_J.size:
         return solver.solve(model, data)
     return data.replace(qacc=data.qacc_smooth)
 
 
-def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str = "lean") -> Callable[[State, jax.Array], State]:
+def implicit_derivative_applies(model: mujoco.MjModel, effects: SceneEffects) -> bool:
+    """Whether qacc solves M(q) qacc = f(q, qvel, ctrl) exactly, so its derivative is implicit.
+
+    Then d qacc = -M^-1 d(M qacc - f) at fixed qacc: inverse dynamics (RNE) is
+    differentiated instead of the mass matrix, its factorisation and the solve.
+    Constraints, actuator activations, tendons (their armature enters M) and
+    Euler's implicit damping (it solves with M + dt D) change that equation.
+    """
+    return not (effects.constraints or effects.activation or effects.tendons) and bool(
+        model.opt.disableflags & _DISABLE.mjDSBL_EULERDAMP) and int(model.opt.integrator) == int(
+        mujoco.mjtIntegrator.mjINT_EULER)
+
+
+def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str = "lean",
+              implicit: bool = True) -> Callable[[State, jax.Array], State]:
     """``step(state, ctrl) -> state`` through MJX's JAX implementation.
 
     Args:
       model: the (lean or original) MuJoCo model.
       effects: the scene analysis; required for ``pipeline="lean"``.
-      pipeline: ``"lean"`` runs only the needed stages (Euler integrator);
+      pipeline: ``"lean"`` runs only the needed stages (Euler integrator) and,
+        where ``implicit_derivative_applies``, differentiates through inverse
+        dynamics (a custom JVP, so forward and reverse mode both use it);
         ``"mjx"`` calls ``mjx.step`` unchanged (any integrator).
+      implicit: False differentiates the lean step by plain autodiff through
+        the mass matrix and its solve (a baseline for benchmarks and tests).
     """
     mjx_model = mjx.put_model(model, impl="jax")
     template = mjx.make_data(mjx_model)
@@ -210,15 +237,44 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
     if pipeline == "lean" and not is_euler:
         pipeline = "mjx"  # RK4 and implicitfast call mjx.forward inside: flags still apply
 
-    def step(state: State, ctrl: jax.Array) -> State:
-        data = template.replace(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=ctrl)
-        if pipeline == "lean":
-            data = mjx_forward.euler(mjx_model, _lean_forward(mjx_model, data, effects))
-        else:
-            data = mjx.step(mjx_model, data)
+    def data_of(state: State, ctrl: jax.Array) -> mjx.Data:
+        return template.replace(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=ctrl)
+
+    def advance(data: mjx.Data) -> State:
+        data = mjx_forward.euler(mjx_model, data)
         return State(data.qpos, data.qvel, data.act)
 
-    return step
+    if pipeline == "mjx":
+        def step(state: State, ctrl: jax.Array) -> State:
+            data = mjx.step(mjx_model, data_of(state, ctrl))
+            return State(data.qpos, data.qvel, data.act)
+        return step
+
+    def step(state: State, ctrl: jax.Array) -> State:
+        return advance(_lean_forward(mjx_model, data_of(state, ctrl), effects))
+
+    if not (implicit and implicit_derivative_applies(model, effects)):
+        return step
+
+    implicit_step = jax.custom_jvp(step)
+
+    @implicit_step.defjvp
+    def _(primals, tangents):
+        state, ctrl = primals
+        state_dot, ctrl_dot = tangents
+        data = _lean_forward(mjx_model, data_of(state, ctrl), effects)
+
+        def residual(qpos, qvel, ctrl):  # M(q) qacc + c(q, qvel) - passive - actuator, qacc held fixed
+            inverse = _lean_forward(mjx_model, data_of(State(qpos, qvel, state.act), ctrl).replace(qacc=data.qacc),
+                                    effects, mass=False)
+            return inverse.qfrc_bias - inverse.qfrc_passive - inverse.qfrc_actuator
+
+        _, residual_dot = jax.jvp(residual, (state.qpos, state.qvel, ctrl), (state_dot.qpos, state_dot.qvel, ctrl_dot))
+        qacc_dot = -smooth.solve_m(mjx_model, data, residual_dot)
+        integrate = lambda qpos, qvel, qacc: advance(data.replace(qpos=qpos, qvel=qvel, qacc=qacc))
+        return jax.jvp(integrate, (state.qpos, state.qvel, data.qacc), (state_dot.qpos, state_dot.qvel, qacc_dot))
+
+    return implicit_step
 
 
 def initial_state(model: mujoco.MjModel) -> State:

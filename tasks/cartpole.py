@@ -221,6 +221,8 @@ def make(config: Config) -> Task:
         derivative = "forward" if state_size <= FORWARD_MODE_MAX_STATE else "reverse"
     summary = scene.describe(effects, lean) + (f"; pipeline: {config.pipeline}" if config.pipeline != "lean" else "")
     summary += f"; step gradients: {derivative} mode"
+    if config.pipeline == "lean" and scene.implicit_derivative_applies(lean, effects):
+        summary += " through inverse dynamics"
     return Task(
         name="cartpole",
         dynamics=Dynamics(step=step, policy=policy, loss=loss, horizon=horizon, step_derivative=derivative),

@@ -161,6 +161,58 @@ def test_lean_model_keeps_what_the_scene_has_and_differentiates_constraints():
     assert value <= 1.0 + 0.05  # the limit holds the hinge near its range
 
 
+BALL_AND_SPRING = """<mujoco>
+  <option timestep="0.01"/>
+  <default><geom contype="0" conaffinity="0"/></default>
+  <worldbody>
+    <body pos="0 0 1"><joint name="ball" type="ball"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0.1 -0.5" size="0.05"/>
+      <body pos="0.3 0.1 -0.5"><joint name="knee" type="hinge" axis="1 0 0" stiffness="3" springref="0.4"/>
+        <geom type="box" size="0.05 0.1 0.2" pos="0 0 -0.2"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="knee" gear="2"/><motor joint="ball" gear="0 1 0 0 0 0"/></actuator>
+</mujoco>"""
+
+
+@pytest.mark.parametrize("source", ["cartpole_3", "ball_and_spring"])
+def test_implicit_step_derivative_equals_autodiff_through_the_mass_matrix(x64, source):
+    """d qacc = -M^-1 d(inverse dynamics) must give the Jacobians plain autodiff gives, forward and reverse."""
+    if source == "ball_and_spring":  # a quaternion joint (nq != nv), a spring, two actuators
+        model = mujoco.MjModel.from_xml_string(BALL_AND_SPRING)
+    else:
+        model = mujoco.MjModel.from_xml_path(str(ROOT / "models" / f"{source}.xml"))
+    effects = scene.analyze(model)
+    lean = scene.lean_model(model, effects)
+    assert scene.implicit_derivative_applies(lean, effects)
+    implicit, autodiff = scene.make_step(lean, effects), scene.make_step(lean, effects, implicit=False)
+    rng = np.random.default_rng(3)
+    qpos = rng.normal(size=model.nq)
+    if source == "ball_and_spring":
+        qpos[:4] /= np.linalg.norm(qpos[:4])
+    state = scene.State(jnp.array(qpos), jnp.array(rng.normal(size=model.nv)), jnp.zeros(0))
+    control = jnp.array(rng.normal(size=model.nu))
+    expected = jax.jit(jax.jacfwd(autodiff, argnums=(0, 1)))(state, control)
+    for jacobian in (jax.jacfwd, jax.jacrev):
+        got = jax.jit(jacobian(implicit, argnums=(0, 1)))(state, control)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-11)
+    # The velocity rows are not trivial: they carry dt * d qacc.
+    velocity_by_position = np.asarray(expected.qvel[0].qpos)  # d qvel_next / d qpos
+    assert np.abs(velocity_by_position).max() > 1e-3
+
+
+def test_implicit_derivative_is_not_used_where_its_equation_does_not_hold():
+    damped = mujoco.MjModel.from_xml_string(SCENE.format(floor='contype="0" conaffinity="0"', joint='damping="0.5"',
+                                                         geom="", motor=""))
+    limited = mujoco.MjModel.from_xml_string(SCENE.format(floor='contype="0" conaffinity="0"',
+                                                          joint='limited="true" range="-1 1"', geom="", motor=""))
+    for model in (damped, limited):  # implicit damping solves with M + dt D; a limit adds constraint forces
+        effects = scene.analyze(model)
+        assert not scene.implicit_derivative_applies(scene.lean_model(model, effects), effects)
+
+
 ARM = """<mujoco model="two-link arm">
   <option timestep="0.01"/>
   <default><geom contype="0" conaffinity="0"/></default>
