@@ -58,6 +58,10 @@ class Dynamics:
         pass is a small matrix product per step. For small states simulated
         by many tiny operations (MJX) the batched forward pass is far cheaper
         than reverse mode through every operation.
+      unroll: steps per iteration of the rollout loops (``lax.scan``'s
+        ``unroll``). On a GPU, where each step is dozens of tiny kernels, 5-10
+        cuts the kernels and copies per step (measured 1.3-1.6x per epoch);
+        on a CPU 1 is fastest and compiles quickest.
     """
 
     step: Callable[[PyTree, PyTree], PyTree]
@@ -65,6 +69,7 @@ class Dynamics:
     loss: Callable[[PyTree, PyTree], jax.Array]
     horizon: int
     step_derivative: str = "reverse"
+    unroll: int = 1
 
 
 def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:
@@ -189,7 +194,8 @@ def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params_copies: PyTre
         next_copies, control_copies = step(params_copies, state_copies)
         return next_copies, (next_copies, control_copies)
 
-    _, (states, controls) = jax.lax.scan(body, _stack(initial_states, len(flows)), None, length=dynamics.horizon)
+    _, (states, controls) = jax.lax.scan(body, _stack(initial_states, len(flows)), None, length=dynamics.horizon,
+                                           unroll=dynamics.unroll)
     # scan stacks time first, [T, copies, batch, ...]; the loss wants one trajectory's [T, ...].
     per_trajectory = jax.vmap(jax.vmap(dynamics.loss, in_axes=(1, 1)), in_axes=(1, 1))(states, controls)
     return per_trajectory.mean(axis=1)
@@ -231,7 +237,7 @@ def reference_rollout(dynamics: Dynamics, params: PyTree, initial_state: PyTree,
         next_state = dynamics.step(jax.lax.stop_gradient(state) if cut_sim else state, control)
         return next_state, (next_state, control)
 
-    _, (states, controls) = jax.lax.scan(body, initial_state, None, length=dynamics.horizon)
+    _, (states, controls) = jax.lax.scan(body, initial_state, None, length=dynamics.horizon, unroll=dynamics.unroll)
     return Trajectory(states, controls)
 
 

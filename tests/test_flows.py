@@ -1,4 +1,6 @@
 """The gradient flows R, M, S and the combination C: closed forms, definitions, invariants."""
+from dataclasses import replace
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -89,22 +91,26 @@ def test_flows_needed():
         flows_needed("X")
 
 
-@pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
-def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, step_derivative):
-    """Nonlinear step on a pytree state, MLP-like policy, a loss on every state and on the controls."""
+@pytest.mark.parametrize("step_derivative, unroll", [("reverse", 1), ("forward", 1), ("forward", 5)])
+def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, step_derivative, unroll):
+    """Nonlinear step on a pytree state, MLP-like policy, a loss on every state and on the controls.
+
+    unroll=5 does not divide the horizon: the unrolled loop's remainder must be right too.
+    """
     dynamics = Dynamics(
         step=lambda s, u: (s[0] + 0.1 * jnp.sin(s[1][::-1]) + 0.2 * u, s[1] + 0.1 * s[0] * jnp.cos(u.sum())),
         policy=lambda p, s: jnp.tanh(jnp.concatenate(s) @ p["w"]) @ p["v"],
         loss=lambda states, controls: jnp.mean(states[0] ** 2) + jnp.mean(states[1][-1] ** 2) + 0.3 * jnp.mean(controls**2),
         horizon=12,
         step_derivative=step_derivative,
+        unroll=unroll,
     )
     key_w, key_v, key_x = jax.random.split(jax.random.PRNGKey(3), 3)
     params = {"w": jax.random.normal(key_w, (4, 5)), "v": jax.random.normal(key_v, (5, 2))}
     x0 = tuple(jax.random.normal(key_x, (2, 4, 2)))
     _, grads = flow_gradients(dynamics, ("R", "M", "S"), params, x0)
     for index, flow in enumerate(("R", "M", "S")):
-        expected = jax.grad(reference_loss, argnums=1)(dynamics, params, x0, flow)
+        expected = jax.grad(reference_loss, argnums=1)(replace(dynamics, unroll=1), params, x0, flow)
         for fast, slow in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
             np.testing.assert_allclose(fast[index], slow, rtol=1e-10, atol=1e-12)
 
