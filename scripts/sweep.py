@@ -12,7 +12,8 @@ over every visible device (jax.sharding), so two GPUs halve the time; with
 --distributed, jax.distributed spans several hosts. Results land in
 OUT/PRESET/: one run directory per (complexity, mode, clip) with the seeds as
 rows (scripts/plot.py reads them), summary.csv with the final test loss per
-cell, learning-curve figures, and sweep.json with wall times and devices.
+cell, learning-curve figures, and sweeps/<time>-<complexities>.json per call with
+wall times and devices.
 """
 from __future__ import annotations
 
@@ -238,6 +239,11 @@ def write_report(root: Path, directories: list[Path], task_name, option, complex
     print("\n".join(table))
 
 
+def run_directories(root: Path, task_name: str, option: str) -> list[Path]:
+    from stablebptt import runs
+    return sorted(d for d in root.glob(f"{task_name}-{option}*") if (d / runs.METRICS_FILE).exists())
+
+
 def main(argv: list[str]) -> int:
     config = parse_config(SweepConfig, argv, __doc__, "sweep")
     task_name, option, complexities = PRESETS[config.preset]
@@ -254,7 +260,7 @@ def main(argv: list[str]) -> int:
 
     if config.report:
         root = Path(config.out) / config.preset
-        directories = sorted(d for d in root.glob(f"{task_name}-{option}*") if (d / "metrics.csv").exists())
+        directories = run_directories(root, task_name, option)
         if not directories:
             fail(f"no run directories of preset {config.preset} in {root}")
         write_report(root, directories, task_name, option, complexities, modes, clips)
@@ -272,7 +278,7 @@ def main(argv: list[str]) -> int:
                         root / "_programs" / f"{option}{value}") for value in complexities]
     wall = time.perf_counter()
     deadline = time.monotonic() + config.time_limit if config.time_limit else None
-    report, directories = [], []
+    report = []
     for program in programs:
         try:
             outcome = run_program(program, task_name, option, config, lambda message: tqdm.write(message, file=sys.stderr), deadline)
@@ -281,15 +287,20 @@ def main(argv: list[str]) -> int:
         rows = outcome.pop("rows")
         rows = rows[rows[:, 1] < len(program.cells)]  # drop the device padding
         if len(rows):
-            directories += write_cells(program, rows, task_name, option, config, root)
+            write_cells(program, rows, task_name, option, config, root)
         report.append(outcome)
     finished = all(r["epochs_done"] == config.epochs for r in report)
-    runs.write_json(root / "sweep.json", {
+    # One record per call, never overwritten: calls may run side by side (one per GPU) or resume.
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    record = root / "sweeps" / f"{stamp}-{option}{'_'.join(str(p.complexity) for p in programs)}.json"
+    record.parent.mkdir(exist_ok=True)
+    runs.write_json(record, {
         "preset": config.preset, "config": dataclasses.asdict(config), "finished": finished,
         "devices": [str(d) for d in jax.devices()], "device_kind": jax.devices()[0].device_kind,
         "wall_seconds_this_call": time.perf_counter() - wall, "programs": report})
-    write_report(root, directories, task_name, option, complexities, modes, clips)
-    print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: {root}")
+    # The report covers every run directory of the preset, also those of earlier or parallel calls.
+    write_report(root, run_directories(root, task_name, option), task_name, option, PRESETS[config.preset][2], modes, clips)
+    print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: {root} (record: {record.name})")
     return 0
 
 

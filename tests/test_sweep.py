@@ -52,7 +52,9 @@ def test_a_tiny_grid_writes_tidy_results(tiny):
         assert all(np.isfinite(r["test_loss"]) for r in rows)
     summary = (tiny / "summary.csv").read_text().splitlines()
     assert len(summary) == 3 and summary[0].startswith("cell,")
-    report = json.loads((tiny / "sweep.json").read_text())
+    records = list((tiny / "sweeps").glob("*.json"))
+    assert len(records) == 1
+    report = json.loads(records[0].read_text())
     assert report["finished"] and report["programs"][0]["cells"] == 4
     assert (tiny / "repulsion-rc0.1.png").stat().st_size > 10_000
 
