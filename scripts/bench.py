@@ -21,6 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import dataclasses  # noqa: E402
+import os  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
@@ -140,7 +141,8 @@ def main(argv: list[str]) -> int:
         fail("--rounds and --batch must be positive")
     import jax
     header = [f"Measured by `python scripts/bench.py {' '.join(argv)}`".rstrip()
-              + f" on {platform.machine()} ({jax.devices()[0].platform}, {jax.device_count()} device), "
+              + f" on {platform.machine()} ({jax.devices()[0].platform}, {jax.device_count()} device, "
+              f"{len(os.sched_getaffinity(0))} of {os.cpu_count()} cores), "
               f"jax {jax.__version__}, batch {config.batch}, median of {config.rounds} rounds.", ""]
     print("\n".join(header), flush=True)
     report = list(header)
