@@ -44,7 +44,7 @@ def tiny(tmp_path_factory):
 
 
 def test_a_tiny_grid_writes_tidy_results(tiny):
-    cells = sorted(p.name for p in tiny.iterdir() if p.is_dir() and not p.name.startswith("_"))
+    cells = sorted(p.name for p in tiny.iterdir() if p.is_dir() and p.name.startswith("repulsion-"))
     assert cells == ["repulsion-rc0.1-C-value", "repulsion-rc0.1-R-value"]
     for cell in cells:
         rows = runs.read_metrics(tiny / cell / runs.METRICS_FILE)
