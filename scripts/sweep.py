@@ -38,7 +38,7 @@ PRESETS = {
     "tiny": ("repulsion", "rc", (0.1,)),  # the CPU test of the machinery
 }
 # Rollout-loop unrolling on GPUs, measured on an H200 (60 cells; s/epoch):
-# cart-pole 1.10 -> 0.69 at 5, quantum 0.68 -> 0.42 at 8, repulsion 0.20 -> 0.12 at 10.
+# cart-pole 1.10 -> 0.69-0.84 at 5, quantum 0.68 -> 0.42 at 8, repulsion 0.20 -> 0.12 at 10.
 # Beyond that compile time grows faster than the gain (cart-pole: 80 s at 10).
 GPU_UNROLL = {"cartpole": 5, "quantum": 8, "repulsion": 10}
 
