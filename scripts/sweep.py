@@ -8,8 +8,11 @@
 Everything that does not change the compiled program is vmapped into one
 program per complexity: seeds, mode (each cell computes R, M and S and its mode
 selects), clip mode and threshold, learning rate. The cell axis is sharded
-over every visible device (jax.sharding), so two GPUs halve the time; with
---distributed, jax.distributed spans several hosts. Results land in
+over every visible device (jax.sharding); with --distributed, jax.distributed
+spans several hosts. Sharding halves the time only where a GPU is busy: on an
+H200 a 60-cell program is bound by kernel latency (240 cells cost 1.2x of 60),
+so two GPUs serve best as one process each (CUDA_VISIBLE_DEVICES) on different
+complexities, or with more seeds. Results land in
 OUT/PRESET/: one run directory per (complexity, mode, clip) with the seeds as
 rows (scripts/plot.py reads them), summary.csv with the final test loss per
 cell, learning-curve figures, and sweeps/<time>-<complexities>.json per call with
@@ -156,11 +159,10 @@ def run_program(program: Program, task_name: str, option: str, config: SweepConf
             "train_seconds": time.perf_counter() - started - compile_seconds, "rows": rows}
 
 
-def write_cells(program: Program, rows, task_name: str, option: str, config: SweepConfig, root: Path) -> list[Path]:
+def write_cells(program: Program, rows, task_name: str, option: str, config: SweepConfig, root: Path) -> None:
     """Split a program's rows into one run directory per (mode, clip), seeds as rows."""
     import numpy as np
     from stablebptt import runs
-    directories = []
     groups = {}
     for index, (mode, clip, seed) in enumerate(program.cells):
         groups.setdefault((mode, clip), []).append((index, seed))
@@ -180,8 +182,6 @@ def write_cells(program: Program, rows, task_name: str, option: str, config: Swe
                       "train_size": config.train_size, "test_size": config.test_size},
             "sweep": config.preset})
         runs.write_metrics(directory / runs.METRICS_FILE, table)
-        directories.append(directory)
-    return directories
 
 
 def summarize(root: Path, directories: list[Path]) -> list[str]:
