@@ -6,16 +6,19 @@
     python scripts/sweep.py --preset quantum --time-limit 540 # stop and checkpoint before 9 minutes; rerun resumes
 
 Everything that does not change the compiled program is vmapped into one
-program per complexity: seeds, mode (each cell computes R, M and S and its mode
-selects), clip mode and threshold, learning rate. The cell axis is sharded
-over every visible device (jax.sharding); with --distributed, jax.distributed
-spans several hosts. Sharding halves the time only where a GPU is busy: on an
-H200 a 60-cell program is bound by kernel latency (240 cells cost 1.2x of 60),
-so two GPUs serve best as one process each (CUDA_VISIBLE_DEVICES) on different
-complexities, or with more seeds. Results land in
-OUT/PRESET/: one run directory per (complexity, mode, clip) with the seeds as
-rows (scripts/plot.py reads them), summary.csv with the final test loss per
-cell, learning-curve figures, and sweeps/<time>-<complexities>.json per call with
+program: seeds, mode (each cell computes R, M and S and its mode selects), clip
+mode and threshold, learning rate, and a task option that enters only the loss
+(repulsion's rc, quantum's target: one program for the whole grid). Cart-pole's
+poles change the model, so each pole count is its own program. Programs spread
+over every visible device: each takes a group of devices and runs beside the
+others, its cells sharded over its group (jax.sharding); with --distributed,
+jax.distributed spans several hosts and each host runs the groups of its own
+devices. On an H200 a program is bound by kernel latency (240 cells cost 1.2x
+of 60), so a GPU per program is what halves the time, not more GPUs per program.
+Results land in OUT/PRESET/: one run directory per (complexity, mode, clip)
+with the seeds as rows (scripts/plot.py reads them), summary.csv with the final
+test loss per cell, test_loss.csv (every seed's test loss every 10 epochs),
+learning-curve figures, and sweeps/<time>-<complexities>.json per call with
 wall times and devices.
 """
 from __future__ import annotations
@@ -28,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import dataclasses  # noqa: E402
 import itertools  # noqa: E402
 import time  # noqa: E402
+from concurrent.futures import ThreadPoolExecutor  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 
 from stablebptt.cli import build, fail, parse_config  # noqa: E402
@@ -38,7 +42,7 @@ PRESETS = {
     "cartpole": ("cartpole", "poles", (1, 2, 3, 4)),
     "repulsion": ("repulsion", "rc", (1.0, 0.1, 0.01, 0.001)),
     "quantum": ("quantum", "target", (3, 4, 5)),
-    "tiny": ("repulsion", "rc", (0.1,)),  # the CPU test of the machinery
+    "tiny": ("repulsion", "rc", (1.0, 0.1)),  # the CPU test of the machinery
 }
 # Rollout-loop unrolling on GPUs, measured on an H200 (60 cells; s/epoch):
 # cart-pole 1.10 -> 0.69-0.84 at 5, quantum 0.68 -> 0.42 at 8, repulsion 0.20 -> 0.12 at 10.
@@ -67,11 +71,41 @@ class SweepConfig:
 
 @dataclass
 class Program:
-    """One compiled program: one complexity of the grid, all its cells vmapped."""
+    """One compiled program: one or more complexities of the grid, all their cells vmapped."""
 
-    complexity: object
-    cells: list  # (mode, clip, seed) per cell
+    values: list  # the complexities this program trains
+    cells: list  # (value, mode, clip, seed) per cell
     directory: Path
+
+
+def plan_programs(values, modes, clips, seeds, per_cell: bool, option: str, root: Path) -> list[Program]:
+    """One program for all values where the task takes them per cell, else one per value."""
+    groups = [list(values)] if per_cell else [[value] for value in values]
+    return [Program(group, [(v, m, c, s) for v, m, c, s in itertools.product(group, modes, clips, seeds)],
+                    root / "_programs" / f"{option}{'_'.join(map(str, group))}") for group in groups]
+
+
+def place(programs: list, devices: list, process_index: int = 0) -> list[tuple[list, list]]:
+    """Split the devices into groups, one program per group at a time: [(devices, programs)].
+
+    With more devices than programs each program gets a group of several
+    (its cells sharded over them); with fewer, programs queue on the groups.
+    A group never spans processes, and only this process's groups are
+    returned: under jax.distributed each host runs the programs placed on
+    its own devices.
+    """
+    by_process = {}
+    for device in devices:
+        by_process.setdefault(device.process_index, []).append(device)
+    hosts = list(by_process.values())
+    # Give every host the same number of groups, as many as programs allow.
+    per_host = max(1, min(len(hosts[0]), -(-len(programs) // len(hosts))))
+    groups = []
+    for host in hosts:
+        bounds = [len(host) * i // per_host for i in range(per_host + 1)]  # sizes differ by one at most
+        groups += [host[bounds[i]:bounds[i + 1]] for i in range(per_host)]
+    queues = [(group, programs[i::len(groups)]) for i, group in enumerate(groups)]
+    return [(group, queue) for group, queue in queues if queue and group[0].process_index == process_index]
 
 
 def parse_list(text: str, allowed, name: str, kind=str) -> list:
@@ -89,55 +123,80 @@ def cell_name(task_name, option, value, mode, clip) -> str:
     return f"{task_name}-{option}{value}-{mode}-{clip}"
 
 
-def run_program(program: Program, task_name: str, option: str, config: SweepConfig, log, deadline: float | None) -> dict:
-    """Train every cell of one program to config.epochs, resuming from its checkpoint."""
+def make_task(task_name: str, option: str, value, config: SweepConfig):
+    import tasks
+    module = tasks.load(task_name)
+    task_options = {option: value}
+    if config.task_steps:
+        task_options["steps"] = config.task_steps
+    return module.make(build(module.Config, task_options))
+
+
+def takes_per_cell(task, option: str) -> bool:
+    return task.cell_option is not None and task.cell_option.name == option
+
+
+def identity(program: Program, task_name: str, option: str, config: SweepConfig) -> dict:
+    """What a program's checkpoint belongs to; a resume must match it."""
+    return {"cells": [list(c) for c in program.cells], "task": task_name, option: program.values,
+            "train_size": config.train_size, "test_size": config.test_size, "task_steps": config.task_steps}
+
+
+def check_resumable(program: Program, task_name: str, option: str, config: SweepConfig) -> None:
+    from stablebptt import runs
+    identity_file = program.directory / "cells.json"
+    if identity_file.exists() and runs.read_json(identity_file) != identity(program, task_name, option, config):
+        raise InputError(f"{program.directory} holds a checkpoint of a different grid: choose another --out or remove it")
+
+
+def run_program(program: Program, task_name: str, option: str, config: SweepConfig, devices: list, log,
+                deadline: float | None) -> dict:
+    """Train every cell of one program on its devices to config.epochs, resuming from its checkpoint."""
     import jax
     import jax.numpy as jnp
     import numpy as np
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
-    import tasks
     from stablebptt import runs
     from stablebptt.training import CLIP_MODES, MODES, TrainConfig, make_trainer
 
-    module = tasks.load(task_name)
-    task_options = {option: program.complexity}
-    if config.task_steps:
-        task_options["steps"] = config.task_steps
-    task = module.make(build(module.Config, task_options))
-    devices = jax.devices()
+    task = make_task(task_name, option, program.values[0], config)
+    per_cell = takes_per_cell(task, option)
     unroll = config.unroll or (GPU_UNROLL.get(task_name, 1) if devices[0].platform == "gpu" else 1)
     task = dataclasses.replace(task, dynamics=dataclasses.replace(task.dynamics, unroll=unroll))
-    cells = list(program.cells)
-    cells += [cells[-1]] * (-len(cells) % len(devices))  # pad to a multiple of the devices; dropped later
+    if per_cell:
+        with_value = task.cell_option.dynamics
+        task = dataclasses.replace(task, cell_option=dataclasses.replace(
+            task.cell_option, dynamics=lambda value: dataclasses.replace(with_value(value), unroll=unroll)))
+    count = len(program.cells)
+    cells = program.cells + [program.cells[-1]] * (-count % len(devices))  # pad to a multiple of the devices
     train_config = TrainConfig(epochs=config.epochs, seeds=len(cells), train_size=config.train_size,
                                test_size=config.test_size, seed_batching="vmap", checkpoint_every=config.checkpoint_every)
     trainer = make_trainer(task, train_config, grid=True)
     sharding = NamedSharding(Mesh(np.array(devices), ("cells",)), PartitionSpec("cells"))
     shard = lambda tree: jax.device_put(tree, sharding)
 
-    seeds = jnp.array([seed for _, _, seed in cells], dtype=jnp.uint32)
+    seeds = jnp.array([seed for _, _, _, seed in cells], dtype=jnp.uint32)
     state = trainer.init(seeds)
     hyper = dict(state.opt_state.hyperparams)
-    hyper["mode_index"] = jnp.array([MODES.index(mode) for mode, _, _ in cells], dtype=hyper["mode_index"].dtype)
-    hyper["clip_index"] = jnp.array([CLIP_MODES.index(clip) for _, clip, _ in cells], dtype=hyper["clip_index"].dtype)
+    hyper["mode_index"] = jnp.array([MODES.index(mode) for _, mode, _, _ in cells], dtype=hyper["mode_index"].dtype)
+    hyper["clip_index"] = jnp.array([CLIP_MODES.index(clip) for _, _, clip, _ in cells], dtype=hyper["clip_index"].dtype)
     state = state._replace(opt_state=state.opt_state._replace(hyperparams=hyper))
     program.directory.mkdir(parents=True, exist_ok=True)
-    identity = {"cells": [list(c) for c in cells], "task": task_name, option: program.complexity,
-                "train_size": config.train_size, "test_size": config.test_size, "task_steps": config.task_steps}
-    identity_file = program.directory / "cells.json"
-    if identity_file.exists() and runs.read_json(identity_file) != identity:
-        raise InputError(f"{program.directory} holds a checkpoint of a different grid: choose another --out or remove it")
-    runs.write_json(identity_file, identity)
+    runs.write_json(program.directory / "cells.json", identity(program, task_name, option, config))
+    # Checkpoints hold the real cells only, so a program resumes on any number of devices.
+    unpad = lambda tree: jax.tree.map(lambda a: a[:count], tree)
     if (program.directory / runs.CHECKPOINT_FILE).exists():
-        start, state, rows = runs.load_checkpoint(program.directory, state)
+        start, loaded, rows = runs.load_checkpoint(program.directory, unpad(state))
+        state = jax.tree.map(lambda fresh, saved: fresh.at[:count].set(saved), state, loaded)
     else:
         start, rows = 0, runs.empty_rows()
     state = shard(state)
-    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
+    values = shard(jnp.asarray([value for value, _, _, _ in cells])) if per_cell else None
+    arguments = (values, trainer.batches, trainer.train_states, trainer.test_states)
     started = time.perf_counter()
     epoch_fn = trainer.epoch.lower(state, *arguments).compile()
     compile_seconds = time.perf_counter() - started
-    cell_index = np.arange(len(cells))
+    cell_index = np.arange(count)
     epoch = start
     for epoch in range(start + 1, config.epochs + 1):
         if deadline and time.monotonic() > deadline:
@@ -145,17 +204,18 @@ def run_program(program: Program, task_name: str, option: str, config: SweepConf
             break
         tick = time.perf_counter()
         state, metrics = epoch_fn(state, *arguments)
-        metrics = jax.device_get(metrics)
+        metrics = unpad(jax.device_get(metrics))
         # A diverged cell keeps its NaNs in the table; vmapped cells cannot affect each other.
         rows = np.concatenate([rows, runs.epoch_rows(epoch, cell_index, metrics, time.perf_counter() - tick)])
         if epoch % config.checkpoint_every == 0 or epoch == config.epochs or (deadline and time.monotonic() > deadline):
-            runs.save_checkpoint(program.directory, epoch, state, rows)
-            log(f"{task_name} {option}={program.complexity}: epoch {epoch}/{config.epochs}, "
-                f"{(time.perf_counter() - started - compile_seconds) / max(epoch - start, 1):.2f} s/epoch for {len(cells)} cells")
+            runs.save_checkpoint(program.directory, epoch, unpad(state), rows)
+            log(f"{task_name} {option}={','.join(map(str, program.values))}: epoch {epoch}/{config.epochs}, "
+                f"{(time.perf_counter() - started - compile_seconds) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
+                f"on {len(devices)} device(s)")
             if deadline and time.monotonic() > deadline:
                 break
-    return {"complexity": program.complexity, "epochs_done": int(epoch), "cells": len(program.cells), "unroll": unroll,
-            "padded_cells": len(cells), "compile_seconds": compile_seconds,
+    return {"complexity": program.values, "epochs_done": int(epoch), "cells": count, "unroll": unroll,
+            "devices": [str(d) for d in devices], "padded_cells": len(cells), "compile_seconds": compile_seconds,
             "train_seconds": time.perf_counter() - started - compile_seconds, "rows": rows}
 
 
@@ -164,10 +224,10 @@ def write_cells(program: Program, rows, task_name: str, option: str, config: Swe
     import numpy as np
     from stablebptt import runs
     groups = {}
-    for index, (mode, clip, seed) in enumerate(program.cells):
-        groups.setdefault((mode, clip), []).append((index, seed))
-    for (mode, clip), members in groups.items():
-        directory = root / cell_name(task_name, option, program.complexity, mode, clip)
+    for index, (value, mode, clip, seed) in enumerate(program.cells):
+        groups.setdefault((value, mode, clip), []).append((index, seed))
+    for (value, mode, clip), members in groups.items():
+        directory = root / cell_name(task_name, option, value, mode, clip)
         directory.mkdir(parents=True, exist_ok=True)
         selected = []
         for index, seed in members:
@@ -177,7 +237,7 @@ def write_cells(program: Program, rows, task_name: str, option: str, config: Swe
         table = np.concatenate(selected)
         table = table[np.lexsort((table[:, 1], table[:, 0]))]
         runs.write_json(directory / runs.CONFIG_FILE, {
-            "task": task_name, "task_config": {option: program.complexity},
+            "task": task_name, "task_config": {option: value},
             "train": {"mode": mode, "clip": clip, "seeds": len(members), "seed": members[0][1], "epochs": config.epochs,
                       "train_size": config.train_size, "test_size": config.test_size},
             "sweep": config.preset})
@@ -225,11 +285,26 @@ def mode_table(directories: list[Path], task_name: str, option: str, complexitie
     return lines
 
 
+def tidy_test_loss(root: Path, directories: list[Path], option: str, every: int = 10) -> None:
+    """test_loss.csv: one row per cell, seed and every tenth epoch (and the last), small enough for git."""
+    from stablebptt import runs
+    lines = [f"{option},mode,clip,seed,epoch,test_loss"]
+    for directory in sorted(directories):
+        config = runs.read_json(directory / runs.CONFIG_FILE)
+        value, train = config["task_config"][option], config["train"]
+        rows = runs.read_metrics(directory / runs.METRICS_FILE)
+        last = max(row["epoch"] for row in rows)
+        lines += [f"{value},{train['mode']},{train['clip']},{int(row['seed'])},{int(row['epoch'])},{row['test_loss']:.7g}"
+                  for row in rows if row["epoch"] % every == 0 or row["epoch"] == last]
+    runs.atomic_write(root / "test_loss.csv", ("\n".join(lines) + "\n").encode())
+
+
 def write_report(root: Path, directories: list[Path], task_name, option, complexities, modes, clips) -> None:
-    """summary.csv, table.md and one learning-curve figure per complexity, from the run directories."""
+    """summary.csv, test_loss.csv, table.md and one learning-curve figure per complexity, from the run directories."""
     from stablebptt.plots import learning_curves
     from stablebptt.runs import atomic_write
     summarize(root, directories)
+    tidy_test_loss(root, directories, option)
     table = mode_table(directories, task_name, option, complexities, modes, clips)
     atomic_write(root / "table.md", ("\n".join(table) + "\n").encode())
     for value in complexities:
@@ -274,25 +349,42 @@ def main(argv: list[str]) -> int:
     root = Path(config.out) / config.preset
     root.mkdir(parents=True, exist_ok=True)
     seeds = [42 + s for s in range(config.seeds)]
-    programs = [Program(value, [(m, c, s) for m, c, s in itertools.product(modes, clips, seeds)],
-                        root / "_programs" / f"{option}{value}") for value in complexities]
+    try:
+        per_cell = takes_per_cell(make_task(task_name, option, complexities[0], config), option)
+    except InputError as error:
+        fail(str(error))
+    programs = plan_programs(complexities, modes, clips, seeds, per_cell, option, root)
+    try:
+        for program in programs:
+            check_resumable(program, task_name, option, config)
+    except InputError as error:
+        fail(str(error))
+    placement = place(programs, jax.devices(), jax.process_index())
     wall = time.perf_counter()
     deadline = time.monotonic() + config.time_limit if config.time_limit else None
-    report = []
-    for program in programs:
-        try:
-            outcome = run_program(program, task_name, option, config, lambda message: tqdm.write(message, file=sys.stderr), deadline)
-        except InputError as error:
-            fail(str(error))
-        rows = outcome.pop("rows")
-        rows = rows[rows[:, 1] < len(program.cells)]  # drop the device padding
-        if len(rows):
-            write_cells(program, rows, task_name, option, config, root)
-        report.append(outcome)
+    log = lambda message: tqdm.write(message, file=sys.stderr)
+
+    def run_queue(devices, queue):
+        """The programs placed on one device group, one after another; groups run side by side."""
+        outcomes = []
+        for program in queue:
+            outcome = run_program(program, task_name, option, config, devices, log, deadline)
+            rows = outcome.pop("rows")
+            if len(rows):
+                write_cells(program, rows, task_name, option, config, root)
+            outcomes.append(outcome)
+        return outcomes
+
+    # Threads only dispatch: compiling and running release the GIL, so the groups' programs overlap.
+    with ThreadPoolExecutor(max_workers=len(placement)) as pool:
+        futures = [pool.submit(run_queue, devices, queue) for devices, queue in placement]
+        report = [outcome for future in futures for outcome in future.result()]
     finished = all(r["epochs_done"] == config.epochs for r in report)
     # One record per call, never overwritten: calls may run side by side (one per GPU) or resume.
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    record = root / "sweeps" / f"{stamp}-{option}{'_'.join(str(p.complexity) for p in programs)}.json"
+    ran = [value for _, queue in placement for program in queue for value in program.values]
+    host = f"-host{jax.process_index()}" if jax.process_count() > 1 else ""
+    record = root / "sweeps" / f"{stamp}{host}-{option}{'_'.join(map(str, ran))}.json"
     record.parent.mkdir(exist_ok=True)
     runs.write_json(record, {
         "preset": config.preset, "config": dataclasses.asdict(config), "finished": finished,

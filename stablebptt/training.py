@@ -23,6 +23,22 @@ METRICS = ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine")
 
 
 @dataclass(frozen=True)
+class CellOption:
+    """A task option that changes numbers but not the compiled program (a loss weight, a target).
+
+    A sweep passes its values as a traced per-cell array, so cells with
+    different values vmap into one program.
+
+    Attributes:
+      name: the option's name in the task's Config, e.g. ``"rc"``.
+      dynamics: ``dynamics(value) -> Dynamics`` for a (traced) scalar value.
+    """
+
+    name: str
+    dynamics: Callable[[jax.Array], Dynamics]
+
+
+@dataclass(frozen=True)
 class Task:
     """What a task supplies to the engine: physics, data and a network.
 
@@ -32,6 +48,7 @@ class Task:
       init_params: ``init_params(key, zero_output) -> params``.
       sample_initial_states: ``sample_initial_states(key, n) -> batch`` (leading axis n).
       summary: one line on the set-up (what is simulated), printed by scripts.
+      cell_option: the option a sweep may vmap per cell, if the task has one.
     """
 
     name: str
@@ -39,6 +56,7 @@ class Task:
     init_params: Callable[[jax.Array, bool], PyTree]
     sample_initial_states: Callable[[jax.Array, int], PyTree]
     summary: str = ""
+    cell_option: CellOption | None = None
 
 
 @dataclass(frozen=True)
@@ -140,7 +158,9 @@ class Trainer(NamedTuple):
 
     flows: tuple[str, ...]
     init: Callable[[jax.Array], TrainState]  # seeds [S] -> states
-    epoch: Callable[..., tuple[TrainState, dict]]  # (states, batches, train, test) -> states, metrics [S]
+    # (states, batches, train, test) -> states, metrics [S]; a grid trainer takes
+    # (states, values, batches, train, test), values [S] of the task's cell option (None if it has none).
+    epoch: Callable[..., tuple[TrainState, dict]]
     evaluate: Callable[[PyTree, PyTree], jax.Array]  # (params [S], initial states) -> loss [S]
     train_states: PyTree
     test_states: PyTree
@@ -150,10 +170,10 @@ class Trainer(NamedTuple):
 def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer:
     """Static set-up of a run: data, flows, optimizer; returns jitted pure functions.
 
-    With ``grid=True`` every seed slot is a sweep cell: all flows are computed
-    and the optimizer of ``make_grid_optimizer`` selects each cell's update.
+    With ``grid=True`` every seed slot is a sweep cell: all flows are computed,
+    the optimizer of ``make_grid_optimizer`` selects each cell's update, and
+    ``epoch`` takes each cell's value of ``task.cell_option`` as its second argument.
     """
-    dynamics = task.dynamics
     flows = ("R", "M", "S") if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
@@ -167,10 +187,10 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)
         return TrainState(params, optimizer.init(params))
 
-    def evaluate(params, initial_states):
+    def evaluate(params, initial_states, dynamics=task.dynamics):
         return reference_loss(dynamics, params, initial_states)
 
-    def update(state, batch):
+    def update(dynamics, state, batch):
         loss, grads = flow_gradients(dynamics, flows, state.params, batch)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
@@ -181,35 +201,39 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
             cosine = jnp.nan
         return TrainState(params, opt_state), (loss, optax.tree.norm(updates), cosine)
 
-    def epoch(state, batches, train_states, test_states):
-        state, (losses, update_norms, cosines) = jax.lax.scan(update, state, batches)
+    def epoch(state, batches, train_states, test_states, dynamics=task.dynamics):
+        state, (losses, update_norms, cosines) = jax.lax.scan(lambda s, b: update(dynamics, s, b), state, batches)
         finite = jnp.isfinite(losses).all() & jnp.isfinite(update_norms).all()
         # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
         finite &= jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in jax.tree.leaves(state)
                                      if jnp.issubdtype(leaf.dtype, jnp.inexact)]))
         metrics = {
             "batch_loss": losses.mean(),
-            "train_loss": evaluate(state.params, train_states),
-            "test_loss": evaluate(state.params, test_states),
+            "train_loss": evaluate(state.params, train_states, dynamics),
+            "test_loss": evaluate(state.params, test_states, dynamics),
             "update_norm": update_norms.mean(),
             "cosine": cosines.mean(),
             "finite": finite,
         }
         return state, metrics
 
-    def over_seeds(function):
-        """Map ``function(per_seed, *shared)`` over the leading seed axis of its first argument."""
+    def grid_epoch(state, value, batches, train_states, test_states):
+        dynamics = task.dynamics if value is None else task.cell_option.dynamics(value)
+        return epoch(state, batches, train_states, test_states, dynamics)
+
+    def over_seeds(function, mapped=1):
+        """Map ``function(*per_seed, *shared)`` over the leading seed axis of its first ``mapped`` arguments."""
         if config.seed_batching == "vmap":
-            return jax.vmap(function, in_axes=(0,) + (None,) * (function.__code__.co_argcount - 1))
+            return lambda *args: jax.vmap(lambda *per_seed: function(*per_seed, *args[mapped:]))(*args[:mapped])
         # lax.map compiles the single-seed program once and loops it, so each
         # seed's numbers are bit-identical to that seed trained alone; XLA fuses
         # batched physics differently, which moves the last bits under vmap.
-        return lambda per_seed, *shared: jax.lax.map(lambda one: function(one, *shared), per_seed)
+        return lambda *args: jax.lax.map(lambda per_seed: function(*per_seed, *args[mapped:]), args[:mapped])
 
     return Trainer(
         flows=flows,
         init=jax.jit(over_seeds(init)),
-        epoch=jax.jit(over_seeds(epoch)),
+        epoch=jax.jit(over_seeds(grid_epoch, mapped=2) if grid else over_seeds(epoch)),
         evaluate=jax.jit(over_seeds(evaluate)),
         train_states=train_states,
         test_states=test_states,

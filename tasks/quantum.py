@@ -19,7 +19,7 @@ import numpy as np
 from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics
 from stablebptt.networks import glorot_uniform
-from stablebptt.training import Task
+from stablebptt.training import CellOption, Task
 
 DEFAULT_EPOCHS = 1000
 TARGETS = (3, 4, 5)
@@ -246,16 +246,23 @@ def sample_initial_states(physics: Physics, key: jax.Array, count: int) -> jax.A
 
 def make(config: Config, physics: Physics = Physics()) -> Task:
     """The quantum-control task: CN simulator, CNN controller, continuous fidelity loss."""
-    target = eigenstate(config.target, physics.nx)
+    step = make_step(physics, config.dt)
+    # Row n is eigenstate n (row 0 unused), so a traced target number picks its row.
+    targets = np.stack([np.zeros(physics.nx)] + [eigenstate(n, physics.nx) for n in range(1, max(TARGETS) + 1)])
 
-    def loss(states, controls):
-        # Sum over t = 1..T of 1 - |<target|psi_t>|^2: in [0, T] while the norm is 1.
-        del controls
-        return jnp.sum(1.0 - fidelity(states, jnp.asarray(target, states.dtype)))
+    def dynamics_with(target):
+        """The target enters only the loss, so a sweep passes it per cell as a traced value."""
+        def loss(states, controls):
+            # Sum over t = 1..T of 1 - |<target|psi_t>|^2: in [0, T] while the norm is 1.
+            del controls
+            return jnp.sum(1.0 - fidelity(states, jnp.asarray(targets, states.dtype)[target]))
+
+        return Dynamics(step=step, policy=network_apply, loss=loss, horizon=config.steps)
 
     return Task(
         name="quantum",
-        dynamics=Dynamics(step=make_step(physics, config.dt), policy=network_apply, loss=loss, horizon=config.steps),
+        dynamics=dynamics_with(config.target),
         init_params=lambda key, zero_output: network_init(key, physics, zero_output),
         sample_initial_states=lambda key, count: sample_initial_states(physics, key, count),
+        cell_option=CellOption("target", dynamics_with),
     )

@@ -15,7 +15,7 @@ from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics
 from stablebptt.integrators import INTEGRATORS
 from stablebptt.networks import mlp_apply, mlp_init
-from stablebptt.training import Task
+from stablebptt.training import CellOption, Task
 
 DEFAULT_EPOCHS = 100  # the public script says 10; the paper's smoothed figures imply more.
 
@@ -133,14 +133,19 @@ def make(config: Config, physics: Physics = Physics()) -> Task:
     def policy(params, state):
         return mlp_apply(params, observe(state))
 
-    def loss(states, controls):
-        # Mean over steps 1..T, evaders and coordinates of the squared distance to the origin.
-        evaders = states.position[:, physics.drivers :]
-        return jnp.mean(evaders**2) + config.rc * jnp.mean(controls**2)
+    def dynamics_with(rc):
+        """rc enters only the loss, so a sweep passes it per cell as a traced value."""
+        def loss(states, controls):
+            # Mean over steps 1..T, evaders and coordinates of the squared distance to the origin.
+            evaders = states.position[:, physics.drivers :]
+            return jnp.mean(evaders**2) + rc * jnp.mean(controls**2)
+
+        return Dynamics(step=step, policy=policy, loss=loss, horizon=config.steps)
 
     return Task(
         name="repulsion",
-        dynamics=Dynamics(step=step, policy=policy, loss=loss, horizon=config.steps),
+        dynamics=dynamics_with(config.rc),
         init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
         sample_initial_states=lambda key, count: sample_initial_states(physics, key, count),
+        cell_option=CellOption("rc", dynamics_with),
     )

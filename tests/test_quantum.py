@@ -239,6 +239,21 @@ def test_loss_lies_between_zero_and_horizon(task, params, states):
     assert jnp.all(losses >= -slack) and jnp.all(losses <= horizon + slack)
 
 
+def test_a_traced_target_gives_the_loss_of_that_target_built_in(task, states):
+    """A sweep passes the target per cell as a traced number: each must score like its own task,
+    and targets must differ (a loss that ignored the number would pass the first check)."""
+    per_cell = jax.jit(lambda target, s: task.cell_option.dynamics(target).loss(s, None))
+    trajectory = jnp.stack([states, jnp.roll(states, 1, axis=1)], axis=1)  # [B, 2 steps, nx, 2]
+    losses = []
+    for target in quantum.TARGETS:
+        built_in = quantum.make(quantum.Config(target=target)).dynamics.loss
+        expected = jax.vmap(lambda s: built_in(s, None))(trajectory)
+        got = jax.vmap(lambda s: per_cell(jnp.int32(target), s))(trajectory)
+        np.testing.assert_array_equal(got, expected)
+        losses.append(got)
+    assert not np.allclose(losses[0], losses[1]) and not np.allclose(losses[1], losses[2])
+
+
 def test_short_training_lowers_the_test_loss(task):
     config = TrainConfig(mode="C", train_size=32, test_size=32, batch=8, epochs=8)
     trainer = make_trainer(task, config)

@@ -1,7 +1,9 @@
 """The sweep machinery on a tiny grid: the grid optimizer, outputs, a vmapped cell against the cell alone, resume."""
+import importlib.util
 import json
 import subprocess
 import sys
+from collections import namedtuple
 
 import jax
 import jax.numpy as jnp
@@ -43,42 +45,52 @@ def tiny(tmp_path_factory):
     return out / "tiny"
 
 
+CELLS = ["repulsion-rc0.1-C-value", "repulsion-rc0.1-R-value", "repulsion-rc1.0-C-value", "repulsion-rc1.0-R-value"]
+
+
 def test_a_tiny_grid_writes_tidy_results(tiny):
     cells = sorted(p.name for p in tiny.iterdir() if p.is_dir() and p.name.startswith("repulsion-"))
-    assert cells == ["repulsion-rc0.1-C-value", "repulsion-rc0.1-R-value"]
+    assert cells == CELLS
     for cell in cells:
         rows = runs.read_metrics(tiny / cell / runs.METRICS_FILE)
         assert sorted({(r["epoch"], r["seed"]) for r in rows}) == [(1, 42), (1, 43), (2, 42), (2, 43)]
         assert all(np.isfinite(r["test_loss"]) for r in rows)
     summary = (tiny / "summary.csv").read_text().splitlines()
-    assert len(summary) == 3 and summary[0].startswith("cell,")
+    assert len(summary) == 5 and summary[0].startswith("cell,")
+    tidy = (tiny / "test_loss.csv").read_text().splitlines()
+    assert tidy[0] == "rc,mode,clip,seed,epoch,test_loss" and len(tidy) == 1 + 4 * 2  # the last epoch of 4 cells x 2 seeds
     records = list((tiny / "sweeps").glob("*.json"))
     assert len(records) == 1
     report = json.loads(records[0].read_text())
-    assert report["finished"] and report["programs"][0]["cells"] == 4
+    # rc enters only the loss: both values share ONE program with 2 rc x 2 modes x 2 seeds.
+    assert report["finished"] and len(report["programs"]) == 1 and report["programs"][0]["cells"] == 8
     assert (tiny / "repulsion-rc0.1.png").stat().st_size > 10_000
 
 
 def test_a_vmapped_cell_equals_the_same_cell_run_alone(tiny, tmp_path):
     """Equal to float32 rounding: XLA fuses batched cells differently, which moves the last bits
-    (a single run with --seed-batching map is bit-exact against itself; see README)."""
+    (a single run with --seed-batching map is bit-exact against itself; see README). The cell's rc
+    came in as a per-cell value next to a cell with rc 1.0, which must differ from it."""
     alone = tmp_path / "alone"
     result = subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), "--task", "repulsion", "--rc", "0.1",
                              "--steps", "20", "--mode", "C", "--clip", "value", "--epochs", "2", "--train-size", "16",
                              "--test-size", "16", "--seed", "43", "--out", str(alone), "--no-progress"],
                             capture_output=True, text=True, cwd=ROOT)
     assert result.returncode == 0, result.stderr
-    single = [r for r in runs.read_metrics(alone / runs.METRICS_FILE)]
+    single = runs.read_metrics(alone / runs.METRICS_FILE)
     cell = [r for r in runs.read_metrics(tiny / "repulsion-rc0.1-C-value" / runs.METRICS_FILE) if r["seed"] == 43]
+    other_rc = [r for r in runs.read_metrics(tiny / "repulsion-rc1.0-C-value" / runs.METRICS_FILE) if r["seed"] == 43]
+    assert len(single) == len(cell) == 2
     for a, b in zip(single, cell):
         for name in ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine"):
             assert np.isclose(a[name], b[name], rtol=1e-5, atol=0), name
+    assert not np.isclose(single[-1]["train_loss"], other_rc[-1]["train_loss"], rtol=1e-5, atol=0)
 
 
 def test_a_sweep_resumes_from_its_checkpoints(tiny, tmp_path):
     assert sweep(*TINY, "--epochs", "1", "--out", str(tmp_path)).returncode == 0
     assert sweep(*TINY, "--epochs", "2", "--out", str(tmp_path)).returncode == 0
-    for cell in ("repulsion-rc0.1-C-value", "repulsion-rc0.1-R-value"):
+    for cell in CELLS:
         resumed = runs.read_metrics(tmp_path / "tiny" / cell / runs.METRICS_FILE)
         whole = runs.read_metrics(tiny / cell / runs.METRICS_FILE)
         strip = lambda rows: [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
@@ -90,3 +102,34 @@ def test_bad_sweep_input_gets_one_line_and_exit_code_2():
         result = sweep(*arguments)
         lines = [line for line in result.stderr.splitlines() if line.strip()]
         assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, result.stderr)
+
+
+def load_sweep_script():
+    spec = importlib.util.spec_from_file_location("sweep_script", ROOT / "scripts" / "sweep.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the script runs
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("devices_per_host, hosts, programs", [(1, 1, 3), (4, 1, 4), (4, 1, 3), (4, 1, 1), (2, 1, 4), (2, 2, 3), (4, 2, 1)])
+def test_placement_runs_every_program_once_on_devices_of_one_host(devices_per_host, hosts, programs):
+    """Every program lands on exactly one group; groups are disjoint, never span hosts, and use
+    as many devices as the programs can: no device idles while programs queue on another."""
+    sweep_script = load_sweep_script()
+    Device = namedtuple("Device", "id process_index")
+    devices = [Device(h * devices_per_host + i, h) for h in range(hosts) for i in range(devices_per_host)]
+    placed = [sweep_script.place(list(range(programs)), devices, host) for host in range(hosts)]
+    queues = [queue for per_host in placed for _, queue in per_host]
+    assert sorted(p for queue in queues for p in queue) == list(range(programs))
+    groups = [group for per_host in placed for group, _ in per_host]
+    used = [d.id for group in groups for d in group]
+    assert len(used) == len(set(used))
+    for host, per_host in enumerate(placed):
+        assert all(d.process_index == host for group, _ in per_host for d in group)
+    if programs >= hosts * devices_per_host:  # every device its own group, the queues as even as can be
+        assert len(groups) == hosts * devices_per_host
+        assert max(map(len, queues)) - min(map(len, queues)) <= 1
+    else:  # every program alone on its group, each group as large as the host allows
+        assert all(len(queue) == 1 for queue in queues)
+        assert all(len(group) >= devices_per_host // -(-programs // hosts) for group in groups)
