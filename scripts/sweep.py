@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Run a grid (task x complexity x mode x clip mode x seeds), one compiled program per complexity.
+"""Run a grid (task x complexity x mode x clip mode x seeds) as few compiled programs, side by side on the devices.
 
     python scripts/sweep.py --preset cartpole                 # 1-4 poles x R/M/C/S x value/norm/none x 5 seeds
     python scripts/sweep.py --preset repulsion --epochs 200
