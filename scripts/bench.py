@@ -10,7 +10,8 @@ rollout with no flow machinery, the baseline the ratios divide by. For the
 cart-pole, also the MJX pipelines: the lean step (scene analysis; differentiated
 through inverse dynamics), the same step differentiated by plain autodiff through
 the mass matrix and its solve, mjx.step with MuJoCo's default flags, and
-closed-form cart-pole equations as the floor.
+closed-form cart-pole equations as the floor; and the parts of the lean R update
+(the rollout alone, the rollout with every step's Jacobian).
 Variants are timed round-robin, so drift of the machine hits all of them alike.
 """
 from __future__ import annotations
@@ -123,6 +124,38 @@ def pipeline_table(poles: int, batch: int, rounds: int) -> list[str]:
     for name, (ms, compile_s) in times.items():
         label, _, mode = name.partition(", C")
         lines.append(f"| {label} | {'C' if _ else 'R'} | {ms:.2f} | {ms / base:.2f} | {compile_s:.1f} |")
+    return lines + [""] + parts_table(lean, poles, batch, rounds, times["MJX lean step (scene analysis)"][0])
+
+
+def parts_table(task, poles: int, batch: int, rounds: int, whole_ms: float) -> list[str]:
+    """The lean R update split: the rollout alone, then the rollout with every step's Jacobian."""
+    import jax
+    from stablebptt.flows import jacobian_pullback, reference_loss
+
+    dynamics = task.dynamics
+    batch_policy = jax.vmap(dynamics.policy, in_axes=(None, 0))
+
+    def with_jacobians(params, states):
+        def body(carry, _):
+            states, total = carry
+            controls = batch_policy(params, states)
+            # The Jacobians the update's forward pass stores, summed into the carry so
+            # XLA cannot prune them, and with no large output to write.
+            next_states, pullback = jacobian_pullback(dynamics.step, states, controls)
+            return (next_states, total + pullback.state_jacobian.sum() + pullback.control_jacobian.sum()), None
+        return jax.lax.scan(body, (states, 0.0), None, length=dynamics.horizon)[0][1]
+
+    def setup():
+        import jax.random as random
+        return task.init_params(random.PRNGKey(0), False), task.sample_initial_states(random.PRNGKey(1), batch)
+
+    times = time_variants({"rollout only (policy and lean step, no derivatives)": (jax.jit(lambda p, x: reference_loss(dynamics, p, x)), setup),
+                           "rollout and every step's Jacobian (forward mode)": (jax.jit(with_jacobians), setup)}, rounds)
+    lines = [f"### Cart-pole, {poles} pole{'s' if poles > 1 else ''}: parts of the lean R update", "",
+             "| part | ms (median) | / whole R update | compile s |", "|---|---:|---:|---:|"]
+    for name, (ms, compile_s) in times.items():
+        lines.append(f"| {name} | {ms:.2f} | {ms / whole_ms:.2f} | {compile_s:.1f} |")
+    lines.append(f"| whole R update (the table above) | {whole_ms:.2f} | 1.00 | |")
     return lines + [""]
 
 

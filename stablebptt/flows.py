@@ -119,7 +119,7 @@ def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
     def forward(params, states):
         controls, policy_pullback = jax.vjp(batch_policy, params, states)
         if dynamics.step_derivative == "forward":
-            next_states, step_pullback = _jacobian_pullback(dynamics.step, states, controls)
+            next_states, step_pullback = jacobian_pullback(dynamics.step, states, controls)
         else:
             next_states, step_pullback = jax.vjp(batch_step, states, controls)
         return next_states, controls, (policy_pullback, step_pullback)
@@ -165,7 +165,7 @@ class _JacobianPullback(NamedTuple):
         return jax.vmap(unravel_state)(state_ct), jax.vmap(unravel_control)(control_ct)
 
 
-def _jacobian_pullback(step, states, controls):
+def jacobian_pullback(step, states, controls):
     """Next states and a pullback built from full step Jacobians (forward mode, all tangents at once)."""
     state_example, control_example = _first(states), _first(controls)
     unravel_state = ravel_pytree(state_example)[1]

@@ -136,11 +136,11 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
     if not effects.dampers:
         # Euler's implicit damping refactors the mass matrix: pointless without damping.
         lean.opt.disableflags |= _DISABLE.mjDSBL_EULERDAMP
-    if jax.default_backend() == "cpu":
-        # On a CPU, the dense mass matrix means a LAPACK call per example and
-        # step (and more in its derivatives); MJX's sparse path is plain fused
-        # arithmetic: about 1.8x faster for the cart-pole's forward pass.
-        lean.opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
+    # The dense mass matrix means a LAPACK call (CPU) or cuBLAS triangular solves
+    # (GPU) per step and more in its derivatives; MJX's sparse path is plain fused
+    # arithmetic. Measured: 1.8x for the cart-pole's forward pass on a CPU; per
+    # sweep epoch on an H200 (60 cells) 0.55 -> 0.39 s at 1 pole, 0.77 -> 0.65 s at 4.
+    lean.opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
     return lean
 
 
