@@ -30,9 +30,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import dataclasses  # noqa: E402
 import itertools  # noqa: E402
+import threading  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ThreadPoolExecutor  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
+from typing import Callable  # noqa: E402
 
 from stablebptt.cli import build, fail, parse_config  # noqa: E402
 from stablebptt.errors import InputError  # noqa: E402
@@ -150,8 +152,11 @@ def check_resumable(program: Program, task_name: str, option: str, config: Sweep
 
 
 def run_program(program: Program, task_name: str, option: str, config: SweepConfig, devices: list, log,
-                deadline: float | None) -> dict:
-    """Train every cell of one program on its devices to config.epochs, resuming from its checkpoint."""
+                should_stop: Callable[[], bool]) -> dict:
+    """Train every cell of one program on its devices to config.epochs, resuming from its checkpoint.
+
+    ``should_stop()`` true (time limit, or another program failed) checkpoints and returns early.
+    """
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -199,7 +204,7 @@ def run_program(program: Program, task_name: str, option: str, config: SweepConf
     cell_index = np.arange(count)
     epoch = start
     for epoch in range(start + 1, config.epochs + 1):
-        if deadline and time.monotonic() > deadline:
+        if should_stop():
             epoch -= 1
             break
         tick = time.perf_counter()
@@ -207,12 +212,13 @@ def run_program(program: Program, task_name: str, option: str, config: SweepConf
         metrics = unpad(jax.device_get(metrics))
         # A diverged cell keeps its NaNs in the table; vmapped cells cannot affect each other.
         rows = np.concatenate([rows, runs.epoch_rows(epoch, cell_index, metrics, time.perf_counter() - tick)])
-        if epoch % config.checkpoint_every == 0 or epoch == config.epochs or (deadline and time.monotonic() > deadline):
+        stopping = should_stop()
+        if epoch % config.checkpoint_every == 0 or epoch == config.epochs or stopping:
             runs.save_checkpoint(program.directory, epoch, unpad(state), rows)
             log(f"{task_name} {option}={','.join(map(str, program.values))}: epoch {epoch}/{config.epochs}, "
                 f"{(time.perf_counter() - started - compile_seconds) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
                 f"on {len(devices)} device(s)")
-            if deadline and time.monotonic() > deadline:
+            if stopping:
                 break
     return {"complexity": program.values, "epochs_done": int(epoch), "cells": count, "unroll": unroll,
             "devices": [str(d) for d in devices], "padded_cells": len(cells), "compile_seconds": compile_seconds,
@@ -362,13 +368,21 @@ def main(argv: list[str]) -> int:
     placement = place(programs, jax.devices(), jax.process_index())
     wall = time.perf_counter()
     deadline = time.monotonic() + config.time_limit if config.time_limit else None
+    failed = threading.Event()
+    should_stop = lambda: failed.is_set() or (deadline is not None and time.monotonic() > deadline)
     log = lambda message: tqdm.write(message, file=sys.stderr)
 
     def run_queue(devices, queue):
         """The programs placed on one device group, one after another; groups run side by side."""
         outcomes = []
         for program in queue:
-            outcome = run_program(program, task_name, option, config, devices, log, deadline)
+            if failed.is_set():
+                break
+            try:
+                outcome = run_program(program, task_name, option, config, devices, log, should_stop)
+            except BaseException:
+                failed.set()  # the other groups checkpoint and stop instead of running to their end
+                raise
             rows = outcome.pop("rows")
             if len(rows):
                 write_cells(program, rows, task_name, option, config, root)
@@ -376,9 +390,15 @@ def main(argv: list[str]) -> int:
         return outcomes
 
     # Threads only dispatch: compiling and running release the GIL, so the groups' programs overlap.
-    with ThreadPoolExecutor(max_workers=len(placement)) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, len(placement))) as pool:  # a host may get no program
         futures = [pool.submit(run_queue, devices, queue) for devices, queue in placement]
-        report = [outcome for future in futures for outcome in future.result()]
+        try:
+            report = [outcome for future in futures for outcome in future.result()]
+        except KeyboardInterrupt:
+            failed.set()  # every program checkpoints after its current epoch and stops
+            pool.shutdown(wait=True)
+            print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
+            return 130
     finished = all(r["epochs_done"] == config.epochs for r in report)
     # One record per call, never overwritten: calls may run side by side (one per GPU) or resume.
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
