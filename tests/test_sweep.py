@@ -1,6 +1,7 @@
 """The sweep machinery on a tiny grid: the grid optimizer, outputs, a vmapped cell against the cell alone, resume."""
 import importlib.util
 import json
+import signal
 import subprocess
 import sys
 from collections import namedtuple
@@ -133,3 +134,22 @@ def test_placement_runs_every_program_once_on_devices_of_one_host(devices_per_ho
     else:  # every program alone on its group, each group as large as the host allows
         assert all(len(queue) == 1 for queue in queues)
         assert all(len(group) >= devices_per_host // -(-programs // hosts) for group in groups)
+
+
+def test_ctrl_c_checkpoints_and_the_same_command_resumes(tmp_path):
+    """SIGINT after the first logged epoch: exit 130, a checkpoint at the epoch reached, and a rerun finishes."""
+    arguments = [sys.executable, str(ROOT / "scripts" / "sweep.py"), *TINY, "--epochs", "100000", "--out", str(tmp_path)]
+    process = subprocess.Popen(arguments, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=ROOT)
+    for line in process.stderr:
+        if "epoch " in line:
+            break
+    process.send_signal(signal.SIGINT)
+    _, rest = process.communicate(timeout=120)
+    assert process.returncode == 130, rest
+    with np.load(tmp_path / "tiny" / "_programs" / "rc1.0_0.1" / runs.CHECKPOINT_FILE) as saved:
+        reached = int(saved["epoch"])
+    assert 1 <= reached < 100000
+    finish = sweep(*TINY, "--epochs", str(reached + 1), "--out", str(tmp_path))
+    assert finish.returncode == 0, finish.stderr
+    rows = runs.read_metrics(tmp_path / "tiny" / CELLS[0] / runs.METRICS_FILE)
+    assert sorted({r["epoch"] for r in rows}) == list(range(1, reached + 2))
