@@ -9,10 +9,11 @@ R, M, S and C through the one-pass flows, and "R plain": jax.grad of the plain
 rollout with no flow machinery, the baseline the ratios divide by. For the
 cart-pole, also the MJX pipelines: the lean step (scene analysis; differentiated
 through inverse dynamics), the same step differentiated by plain autodiff through
-the mass matrix and its solve, mjx.step with MuJoCo's default flags, and
-closed-form cart-pole equations as the floor; and the parts of the lean R update
-(the rollout alone, the rollout with every step's Jacobian).
-Variants are timed round-robin, so drift of the machine hits all of them alike.
+the mass matrix and its solve, the same step with MJX's dense mass matrix,
+mjx.step with MuJoCo's default flags, and closed-form cart-pole equations as the
+floor; and the parts of the lean R update (the rollout alone, the rollout with
+every step's Jacobian). Variants of one table are timed round-robin, so drift of
+the machine hits all of them alike; tables are timed one after another.
 """
 from __future__ import annotations
 
@@ -103,6 +104,7 @@ def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
 
 
 def pipeline_table(poles: int, batch: int, rounds: int) -> list[str]:
+    import mujoco
     from stablebptt import scene
     from tasks import cartpole, cartpole_equations
     lean = cartpole.make(cartpole.Config(poles=poles))
@@ -112,8 +114,12 @@ def pipeline_table(poles: int, batch: int, rounds: int) -> list[str]:
     model = cartpole.load_model(cartpole.Config(poles=poles).model_path)
     effects = scene.analyze(model)
     autodiff = with_step(scene.make_step(scene.lean_model(model, effects), effects, implicit=False))
+    dense_model = scene.lean_model(model, effects)
+    dense_model.opt.jacobian = mujoco.mjtJacobian.mjJAC_DENSE  # what lean_model replaces by the sparse path
+    dense = with_step(scene.make_step(dense_model, effects))
     variants = {name: make_update(task, ("R",), batch) for name, task in
                 (("MJX lean step (scene analysis)", lean), ("MJX lean step, autodiff through M and its solve", autodiff),
+                 ("MJX lean step, dense mass matrix", dense),
                  ("mjx.step, MuJoCo default flags", default), ("closed-form equations (floor)", closed))}
     for name, task in (("MJX lean step (scene analysis)", lean), ("closed-form equations (floor)", closed)):
         variants[name + ", C"] = make_update(task, ("R", "M"), batch)
