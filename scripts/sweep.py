@@ -167,15 +167,11 @@ def run_program(program: Program, task_name: str, option: str, config: SweepConf
     task = make_task(task_name, option, program.values[0], config)
     per_cell = takes_per_cell(task, option)
     unroll = config.unroll or (GPU_UNROLL.get(task_name, 1) if devices[0].platform == "gpu" else 1)
-    task = dataclasses.replace(task, dynamics=dataclasses.replace(task.dynamics, unroll=unroll))
-    if per_cell:
-        with_value = task.cell_option.dynamics
-        task = dataclasses.replace(task, cell_option=dataclasses.replace(
-            task.cell_option, dynamics=lambda value: dataclasses.replace(with_value(value), unroll=unroll)))
     count = len(program.cells)
     cells = program.cells + [program.cells[-1]] * (-count % len(devices))  # pad to a multiple of the devices
     train_config = TrainConfig(epochs=config.epochs, seeds=len(cells), train_size=config.train_size,
-                               test_size=config.test_size, seed_batching="vmap", checkpoint_every=config.checkpoint_every)
+                               test_size=config.test_size, seed_batching="vmap", checkpoint_every=config.checkpoint_every,
+                               unroll=unroll)
     trainer = make_trainer(task, train_config, grid=True)
     sharding = NamedSharding(Mesh(np.array(devices), ("cells",)), PartitionSpec("cells"))
     shard = lambda tree: jax.device_put(tree, sharding)

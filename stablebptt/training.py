@@ -5,6 +5,7 @@ and returns pure functions; ``stablebptt.runs`` drives them epoch by epoch.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, NamedTuple
@@ -77,6 +78,7 @@ class TrainConfig:
     zero_output: bool = field(default=True, metadata={"help": "start the output layer at zero as the original run scripts do (--no-zero-output: Glorot)"})
     cosine: bool = field(default=True, metadata={"help": "also compute g_M and g_R in every mode to log their cosine (--no-cosine: only the flows the mode needs)"})
     x64: bool = field(default=False, metadata={"help": "run everything in float64"})
+    unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Dynamics.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: about 1.6x faster per seed on 2 CPU cores, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
 
@@ -85,7 +87,7 @@ class TrainConfig:
             raise InputError(f"unknown mode {self.mode!r}: choose one of {', '.join(MODES)}")
         if self.clip not in CLIP_MODES:
             raise InputError(f"unknown clip mode {self.clip!r}: choose one of {', '.join(CLIP_MODES)}")
-        for name in ("epochs", "seeds", "batch", "train_size", "test_size", "checkpoint_every"):
+        for name in ("epochs", "seeds", "batch", "train_size", "test_size", "checkpoint_every", "unroll"):
             if getattr(self, name) <= 0:
                 raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
         for name in ("lr", "clip_threshold"):
@@ -174,6 +176,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     the optimizer of ``make_grid_optimizer`` selects each cell's update, and
     ``epoch`` takes each cell's value of ``task.cell_option`` as its second argument.
     """
+    # The loop unrolling is the run's choice, applied to whichever dynamics an epoch uses.
+    with_unroll = lambda dynamics: dataclasses.replace(dynamics, unroll=config.unroll)
     flows = ("R", "M", "S") if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
@@ -187,7 +191,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)
         return TrainState(params, optimizer.init(params))
 
-    def evaluate(params, initial_states, dynamics=task.dynamics):
+    def evaluate(params, initial_states, dynamics=with_unroll(task.dynamics)):
         return reference_loss(dynamics, params, initial_states)
 
     def update(dynamics, state, batch):
@@ -201,7 +205,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
             cosine = jnp.nan
         return TrainState(params, opt_state), (loss, optax.tree.norm(updates), cosine)
 
-    def epoch(state, batches, train_states, test_states, dynamics=task.dynamics):
+    def epoch(state, batches, train_states, test_states, dynamics=with_unroll(task.dynamics)):
         state, (losses, update_norms, cosines) = jax.lax.scan(lambda s, b: update(dynamics, s, b), state, batches)
         finite = jnp.isfinite(losses).all() & jnp.isfinite(update_norms).all()
         # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
@@ -219,7 +223,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
 
     def grid_epoch(state, value, batches, train_states, test_states):
         dynamics = task.dynamics if value is None else task.cell_option.dynamics(value)
-        return epoch(state, batches, train_states, test_states, dynamics)
+        return epoch(state, batches, train_states, test_states, with_unroll(dynamics))
 
     def over_seeds(function, mapped=1):
         """Map ``function(*per_seed, *shared)`` over the leading seed axis of its first ``mapped`` arguments."""

@@ -8,6 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -48,6 +49,32 @@ def test_training_lowers_the_test_loss(three_seeds):
     assert np.all(history[-1]["test_loss"] < history[0]["test_loss"])
     assert np.all([h["finite"] for h in history])
     assert np.all(np.abs(history[-1]["cosine"]) <= 1.0)
+
+
+def scan_unrolls(jaxpr) -> set:
+    """The ``unroll`` of every scan in a jaxpr, nested ones included."""
+    found = set()
+    for equation in jaxpr.eqns:
+        if equation.primitive.name == "scan":
+            found.add(equation.params["unroll"])
+        for sub in jax.extend.core.jaxprs_in_params(equation.params):
+            found |= scan_unrolls(sub)
+    return found
+
+
+@pytest.mark.parametrize("grid", [False, True])
+def test_unroll_reaches_every_rollout_loop_and_leaves_the_numbers(task, grid):
+    """--unroll is applied to the epoch's dynamics, in a single run and a grid's per-cell ones."""
+    config = replace(SMALL, epochs=1, seeds=1, unroll=3)
+    trainer, plain = make_trainer(task, config, grid=grid), make_trainer(task, replace(config, unroll=1), grid=grid)
+    state = trainer.init(seed_array(config))
+    values = (jnp.array([0.01]),) if grid else ()
+    arguments = (state, *values, trainer.batches, trainer.train_states, trainer.test_states)
+    assert 3 in scan_unrolls(jax.make_jaxpr(trainer.epoch)(*arguments).jaxpr)
+    assert 3 not in scan_unrolls(jax.make_jaxpr(plain.epoch)(*arguments).jaxpr)
+    unrolled, rolled = trainer.epoch(*arguments)[1], plain.epoch(*arguments)[1]
+    for name in ("batch_loss", "test_loss", "update_norm"):
+        np.testing.assert_allclose(unrolled[name], rolled[name], rtol=1e-5)
 
 
 def test_mapped_seeds_equal_the_same_seeds_trained_alone(task, three_seeds):
