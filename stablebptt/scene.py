@@ -259,8 +259,7 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
 
     implicit_step = jax.custom_jvp(step)
 
-    @implicit_step.defjvp
-    def _(primals, tangents):
+    def implicit_jvp(primals, tangents):
         state, ctrl = primals
         state_dot, ctrl_dot = tangents
         data = _lean_forward(mjx_model, data_of(state, ctrl), effects)
@@ -270,12 +269,28 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
                                     effects, mass=False)
             return inverse.qfrc_bias - inverse.qfrc_passive - inverse.qfrc_actuator
 
-        _, residual_dot = jax.jvp(residual, (state.qpos, state.qvel, ctrl), (state_dot.qpos, state_dot.qvel, ctrl_dot))
+        # Differentiate the residual only in the inputs that vary: with the
+        # position held, kinematics and inertias are not differentiated at all.
+        inputs = {"qpos": state.qpos, "qvel": state.qvel, "ctrl": ctrl}
+        varying = {name: tangent for name, tangent in
+                   (("qpos", state_dot.qpos), ("qvel", state_dot.qvel), ("ctrl", ctrl_dot)) if not _is_zero(tangent)}
+        residual_dot = jnp.zeros_like(data.qacc)
+        if varying:
+            of_varying = lambda moving: residual(**{**inputs, **moving})
+            residual_dot = jax.jvp(of_varying, ({name: inputs[name] for name in varying},), (varying,))[1]
         qacc_dot = -smooth.solve_m(mjx_model, data, residual_dot)
+        dense = lambda tangent, primal: jnp.zeros_like(primal) if _is_zero(tangent) else tangent
         integrate = lambda qpos, qvel, qacc: advance(data.replace(qpos=qpos, qvel=qvel, qacc=qacc))
-        return jax.jvp(integrate, (state.qpos, state.qvel, data.qacc), (state_dot.qpos, state_dot.qvel, qacc_dot))
+        return jax.jvp(integrate, (state.qpos, state.qvel, data.qacc),
+                       (dense(state_dot.qpos, state.qpos), dense(state_dot.qvel, state.qvel), qacc_dot))
 
+    implicit_step.defjvp(implicit_jvp, symbolic_zeros=True)
     return implicit_step
+
+
+def _is_zero(tangent) -> bool:
+    """Whether a custom_jvp tangent is a symbolic zero (that input does not vary)."""
+    return isinstance(tangent, jax.custom_derivatives.SymbolicZero)
 
 
 def initial_state(model: mujoco.MjModel) -> State:

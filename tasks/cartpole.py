@@ -45,7 +45,7 @@ class Config:
     dt: float = field(default=0.0, metadata={"help": "override the MJCF's time step; the simulated time stays the same unless --steps is given"})
     steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the MJCF's bptt_horizon, else 100)"})
     pipeline: str = field(default="lean", metadata={"help": "lean: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "mjx")})
-    step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (full step Jacobian by forward mode), reverse, or auto (forward for states of at most 64 numbers)", "choices": ("auto", "forward", "reverse")})
+    step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers)", "choices": ("auto", "forward", "reverse")})
 
     def __post_init__(self):
         if not self.model and not 1 <= self.poles <= 4:

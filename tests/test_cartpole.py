@@ -6,13 +6,14 @@ from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
 import mujoco
 import numpy as np
 import pytest
 
 from conftest import ROOT, float64
 from stablebptt import scene
-from stablebptt.flows import flow_gradients
+from stablebptt.flows import flow_gradients, step_jacobians
 from stablebptt.training import TrainConfig, make_trainer, seed_array
 from tasks import cartpole, cartpole_equations
 
@@ -198,6 +199,13 @@ def test_implicit_step_derivative_equals_autodiff_through_the_mass_matrix(x64, s
         got = jax.jit(jacobian(implicit, argnums=(0, 1)))(state, control)
         for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-11)
+    # One input at a time, as the training's batched Jacobians go (the others are symbolic zeros).
+    by_input = jax.jit(lambda s, u: step_jacobians(implicit, s, u))(*jax.tree.map(lambda a: a[None], (state, control)))
+    flat_state, unravel = ravel_pytree(state)
+    flat_expected = jax.jit(jax.jacfwd(lambda x, u: ravel_pytree(autodiff(unravel(x), u))[0], argnums=(0, 1)))(
+        flat_state, control)
+    for got, want in zip(by_input, flat_expected):
+        np.testing.assert_allclose(got[0], want, rtol=1e-9, atol=1e-11)
     # The velocity rows are not trivial: they carry dt * d qacc.
     velocity_by_position = np.asarray(expected.qvel[0].qpos)  # d qvel_next / d qpos
     assert np.abs(velocity_by_position).max() > 1e-3

@@ -32,11 +32,13 @@ def closed_forms(theta, x0):
     return {"R": regular, "M": physics, "S": one_step}
 
 
+@pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
 @pytest.mark.parametrize("theta", [-0.7, 0.3])
-def test_flows_match_closed_forms(x64, theta):
+def test_flows_match_closed_forms(x64, theta, step_derivative):
     x0 = jnp.array([1.3])
     expected = closed_forms(theta, 1.3)
-    loss, grads = flow_gradients(linear_dynamics(), ("R", "M", "S"), jnp.array(theta), x0)
+    dynamics = replace(linear_dynamics(), step_derivative=step_derivative)
+    loss, grads = flow_gradients(dynamics, ("R", "M", "S"), jnp.array(theta), x0)
     assert np.isclose(loss, 0.5 * (1.3 * (A + B * theta) ** T) ** 2, rtol=1e-12)
     for index, flow in enumerate(("R", "M", "S")):
         assert np.isclose(grads[index], expected[flow], rtol=1e-12), flow
