@@ -33,6 +33,7 @@ import itertools  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ThreadPoolExecutor  # noqa: E402
+from concurrent.futures import wait as futures_wait  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from typing import Callable  # noqa: E402
 
@@ -46,7 +47,8 @@ PRESETS = {
     "quantum": ("quantum", "target", (3, 4, 5)),
     "tiny": ("repulsion", "rc", (1.0, 0.1)),  # the CPU test of the machinery
 }
-# Rollout-loop unrolling on GPUs, measured on an H200 (60 cells; s/epoch):
+# Rollout-loop unrolling on GPUs, measured on an H200 (60 cells; s/epoch; session 2, before the
+# cart-pole's step Jacobians were batched over all steps, not re-measured since):
 # cart-pole 1.10 -> 0.69-0.84 at 5, quantum 0.68 -> 0.42 at 8, repulsion 0.20 -> 0.12 at 10.
 # Beyond that compile time grows faster than the gain (cart-pole: 80 s at 10).
 GPU_UNROLL = {"cartpole": 5, "quantum": 8, "repulsion": 10}
@@ -389,6 +391,10 @@ def main(argv: list[str]) -> int:
     with ThreadPoolExecutor(max_workers=max(1, len(placement))) as pool:  # a host may get no program
         futures = [pool.submit(run_queue, devices, queue) for devices, queue in placement]
         try:
+            # A timed wait, not a blocking one: the OS may deliver Ctrl-C's SIGINT to any thread,
+            # and Python raises KeyboardInterrupt only once the main thread runs again.
+            while futures_wait(futures, timeout=0.5).not_done:
+                pass
             report = [outcome for future in futures for outcome in future.result()]
         except KeyboardInterrupt:
             failed.set()  # every program checkpoints after its current epoch and stops

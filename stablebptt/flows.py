@@ -186,12 +186,11 @@ def step_jacobians(step, states: PyTree, controls: PyTree) -> tuple[jax.Array, j
             inputs[index] = leaf
             return ravel_pytree(step(*jax.tree.unflatten(treedef, inputs)))[0]
 
-        output_size = ravel_pytree(state)[0].size
-        blocks = [jnp.zeros((output_size, 0)) if leaf.size == 0 else
-                  jax.jacfwd(functools.partial(moved, index))(leaf).reshape(output_size, leaf.size)
+        state_size = ravel_pytree(state)[0].size  # the step's output is a state too
+        blocks = [jnp.zeros((state_size, 0)) if leaf.size == 0 else
+                  jax.jacfwd(functools.partial(moved, index))(leaf).reshape(state_size, leaf.size)
                   for index, leaf in enumerate(leaves)]
         jacobian = jnp.concatenate(blocks, axis=1)  # columns in ravel_pytree order of (state, control)
-        state_size = ravel_pytree(state)[0].size
         return jacobian[:, :state_size], jacobian[:, state_size:]
 
     return jax.vmap(one)(states, controls)
