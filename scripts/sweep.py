@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import dataclasses  # noqa: E402
 import itertools  # noqa: E402
+import signal  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ThreadPoolExecutor  # noqa: E402
@@ -387,20 +388,29 @@ def main(argv: list[str]) -> int:
             outcomes.append(outcome)
         return outcomes
 
-    # Threads only dispatch: compiling and running release the GIL, so the groups' programs overlap.
-    with ThreadPoolExecutor(max_workers=max(1, len(placement))) as pool:  # a host may get no program
-        futures = [pool.submit(run_queue, devices, queue) for devices, queue in placement]
-        try:
-            # A timed wait, not a blocking one: the OS may deliver Ctrl-C's SIGINT to any thread,
-            # and Python raises KeyboardInterrupt only once the main thread runs again.
+    # Ctrl-C sets a flag, as in train.py, instead of raising wherever the main thread is; the
+    # handler also runs when SIGINT was inherited as ignored (a job started in the background).
+    interrupted = threading.Event()
+
+    def on_interrupt(signum, frame):
+        interrupted.set()
+        failed.set()  # every program checkpoints after its current epoch and stops
+
+    previous_handler = signal.signal(signal.SIGINT, on_interrupt)
+    try:
+        # Threads only dispatch: compiling and running release the GIL, so the groups' programs overlap.
+        with ThreadPoolExecutor(max_workers=max(1, len(placement))) as pool:  # a host may get no program
+            futures = [pool.submit(run_queue, devices, queue) for devices, queue in placement]
+            # A timed wait, not a blocking one: the OS may deliver SIGINT to any thread, and Python
+            # runs the handler only once the main thread runs again.
             while futures_wait(futures, timeout=0.5).not_done:
                 pass
             report = [outcome for future in futures for outcome in future.result()]
-        except KeyboardInterrupt:
-            failed.set()  # every program checkpoints after its current epoch and stops
-            pool.shutdown(wait=True)
-            print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
-            return 130
+    finally:
+        signal.signal(signal.SIGINT, previous_handler)
+    if interrupted.is_set():
+        print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
+        return 130
     finished = all(r["epochs_done"] == config.epochs for r in report)
     # One record per call, never overwritten: calls may run side by side (one per GPU) or resume.
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())

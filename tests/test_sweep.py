@@ -149,11 +149,13 @@ def interrupt_another_thread(pid: int) -> None:
 def test_ctrl_c_checkpoints_and_the_same_command_resumes(tmp_path):
     """SIGINT after the first logged epoch: exit 130, a checkpoint at the epoch reached, and a rerun finishes.
 
-    Where it can, the test sends the signal to a thread other than the main one: a main thread
-    blocked in a plain wait on the programs would never see it (it hung the CI once).
+    The hard way round, as it hung two CI runs: the sweep starts with SIGINT ignored (what a
+    shell gives a background job), and where it can, the test sends the signal to a thread other
+    than the main one, which a main thread blocked in a plain wait would never see.
     """
     arguments = [sys.executable, str(ROOT / "scripts" / "sweep.py"), *TINY, "--epochs", "100000", "--out", str(tmp_path)]
-    process = subprocess.Popen(arguments, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=ROOT)
+    process = subprocess.Popen(arguments, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=ROOT,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     for line in process.stderr:
         if "epoch " in line:
             break
