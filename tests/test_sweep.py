@@ -154,8 +154,9 @@ def test_ctrl_c_checkpoints_and_the_same_command_resumes(tmp_path):
     than the main one, which a main thread blocked in a plain wait would never see.
     """
     arguments = [sys.executable, str(ROOT / "scripts" / "sweep.py"), *TINY, "--epochs", "100000", "--out", str(tmp_path)]
-    process = subprocess.Popen(arguments, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=ROOT,
-                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    # The shell ignores SIGINT and execs the sweep in its place (same pid), which inherits that.
+    process = subprocess.Popen(["sh", "-c", 'trap "" INT; exec "$0" "$@"', *arguments], stderr=subprocess.PIPE,
+                               stdout=subprocess.DEVNULL, text=True, cwd=ROOT)
     for line in process.stderr:
         if "epoch " in line:
             break
