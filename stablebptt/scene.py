@@ -30,6 +30,7 @@ from mujoco.mjx._src import collision_driver, constraint, passive, smooth, solve
 from mujoco.mjx._src import forward as mjx_forward  # noqa: E402
 
 _DISABLE = mujoco.mjtDisableBit
+_SLIDE, _FREE = int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_FREE)
 INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,
                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
 
@@ -104,6 +105,44 @@ def analyze(model: mujoco.MjModel) -> SceneEffects:
         tendons=bool(model.ntendon),
         sensors=bool(model.nsensor),
     )
+
+
+def shift_invariant_qpos(model: mujoco.MjModel, effects: SceneEffects) -> np.ndarray:
+    """Which qpos entries the dynamics cannot sense: translations of a tree hanging from the world.
+
+    A slide joint (or a free joint's position) of a body attached to the world,
+    with no rotation before it, moves that body's whole tree along a fixed world
+    direction. Uniform gravity, inertia, Coriolis forces, damping and fluid
+    forces do not change under that shift unless something ties the tree to
+    the world's position: contacts, equality constraints, tendons, a limit or
+    spring on the joint, or an actuator whose force depends on its length.
+    Without those, a step maps qpos + d e_k to (next qpos) + d e_k and leaves
+    everything else as it was: the state Jacobian's column k is e_k.
+    """
+    invariant = np.zeros(model.nq, bool)
+    if effects.contacts or effects.equality or effects.tendons:
+        return invariant
+    gain, bias = model.actuator_gaintype, model.actuator_biastype
+    by_length = ((gain == mujoco.mjtGain.mjGAIN_AFFINE) & (model.actuator_gainprm[:, 1] != 0)) | (
+        (bias == mujoco.mjtBias.mjBIAS_AFFINE) & (model.actuator_biasprm[:, 1] != 0)) | (
+        (gain != mujoco.mjtGain.mjGAIN_FIXED) & (gain != mujoco.mjtGain.mjGAIN_AFFINE)) | (
+        (bias != mujoco.mjtBias.mjBIAS_NONE) & (bias != mujoco.mjtBias.mjBIAS_AFFINE)) | (
+        model.actuator_dyntype == mujoco.mjtDyn.mjDYN_MUSCLE)
+    on_joint = np.isin(model.actuator_trntype, (mujoco.mjtTrn.mjTRN_JOINT, mujoco.mjtTrn.mjTRN_JOINTINPARENT))
+    if np.any(by_length & ~on_joint):  # a site, body or slider-crank length: where the tree is may matter
+        return invariant
+    length_driven = set(model.actuator_trnid[by_length & on_joint, 0].tolist())
+    for body in range(1, model.nbody):
+        if model.body_parentid[body] != 0:
+            continue
+        first = model.body_jntadr[body]
+        for joint in range(first, first + model.body_jntnum[body]):
+            kind, address = int(model.jnt_type[joint]), model.jnt_qposadr[joint]
+            if kind not in (_SLIDE, _FREE):
+                break  # later slides move along turning axes, away from this joint's anchor
+            ties = bool(model.jnt_limited[joint]) or model.jnt_stiffness[joint] != 0 or joint in length_driven
+            invariant[address:address + (3 if kind == _FREE else 1)] = not ties
+    return invariant
 
 
 def with_options(model: mujoco.MjModel, integrator: str | None = None, timestep: float | None = None) -> mujoco.MjModel:

@@ -161,26 +161,26 @@ def test_lean_model_keeps_what_the_scene_has_and_differentiates_constraints():
     assert value <= 1.0 + 0.05  # the limit holds the hinge near its range
 
 
-BALL_AND_SPRING = """<mujoco>
+FLOATING_BALL_AND_SPRING = """<mujoco>
   <option timestep="0.01"/>
   <default><geom contype="0" conaffinity="0"/></default>
   <worldbody>
-    <body pos="0 0 1"><joint name="ball" type="ball"/>
+    <body pos="0 0 1"><freejoint name="float"/>
       <geom type="capsule" fromto="0 0 0 0.3 0.1 -0.5" size="0.05"/>
-      <body pos="0.3 0.1 -0.5"><joint name="knee" type="hinge" axis="1 0 0" stiffness="3" springref="0.4"/>
+      <body pos="0.3 0.1 -0.5"><joint name="ball" type="ball" stiffness="3"/>
         <geom type="box" size="0.05 0.1 0.2" pos="0 0 -0.2"/>
       </body>
     </body>
   </worldbody>
-  <actuator><motor joint="knee" gear="2"/><motor joint="ball" gear="0 1 0 0 0 0"/></actuator>
+  <actuator><motor joint="ball" gear="0 2 0"/><motor joint="float" gear="0 1 0 0 0 1"/></actuator>
 </mujoco>"""
 
 
-@pytest.mark.parametrize("source", ["cartpole_3", "ball_and_spring"])
+@pytest.mark.parametrize("source", ["cartpole_3", "floating_ball_and_spring"])
 def test_implicit_step_derivative_equals_autodiff_through_the_mass_matrix(x64, source):
     """d qacc = -M^-1 d(inverse dynamics) must give the Jacobians plain autodiff gives, forward and reverse."""
-    if source == "ball_and_spring":  # a quaternion joint (nq != nv), a spring, two actuators
-        model = mujoco.MjModel.from_xml_string(BALL_AND_SPRING)
+    if source == "floating_ball_and_spring":  # quaternions (nq != nv), a spring, two actuators, no cart
+        model = mujoco.MjModel.from_xml_string(FLOATING_BALL_AND_SPRING)
     else:
         model = mujoco.MjModel.from_xml_path(str(ROOT / "models" / f"{source}.xml"))
     effects = scene.analyze(model)
@@ -189,8 +189,9 @@ def test_implicit_step_derivative_equals_autodiff_through_the_mass_matrix(x64, s
     implicit, autodiff = scene.make_step(lean, effects), scene.make_step(lean, effects, implicit=False)
     rng = np.random.default_rng(3)
     qpos = rng.normal(size=model.nq)
-    if source == "ball_and_spring":
-        qpos[:4] /= np.linalg.norm(qpos[:4])
+    if source == "floating_ball_and_spring":
+        qpos[3:7] /= np.linalg.norm(qpos[3:7])
+        qpos[7:] /= np.linalg.norm(qpos[7:])
     state = scene.State(jnp.array(qpos), jnp.array(rng.normal(size=model.nv)), jnp.zeros(0))
     control = jnp.array(rng.normal(size=model.nu))
     expected = jax.jit(jax.jacfwd(autodiff, argnums=(0, 1)))(state, control)
@@ -198,13 +199,21 @@ def test_implicit_step_derivative_equals_autodiff_through_the_mass_matrix(x64, s
         got = jax.jit(jacobian(implicit, argnums=(0, 1)))(state, control)
         for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-11)
-    # One input at a time, as the training's batched Jacobians go (the others are symbolic zeros).
-    by_input = jax.jit(lambda s, u: step_jacobians(implicit, s, u))(*jax.tree.map(lambda a: a[None], (state, control)))
     # expected nests: output field -> (by state, by control) -> input field.
     rows = lambda block: np.reshape(block, (np.shape(block)[0], int(np.prod(np.shape(block)[1:]))))
     fields = scene.State._fields
     state_matrix = np.block([[rows(getattr(getattr(expected, out)[0], into)) for into in fields] for out in fields])
     control_matrix = np.concatenate([rows(getattr(expected, out)[1]) for out in fields])
+    # The translation symmetry the analysis claims (the cart; the free body's position) holds:
+    # shifting such an entry shifts the same entry of the next state and nothing else.
+    invariant = scene.shift_invariant_qpos(lean, effects)
+    assert np.flatnonzero(invariant).tolist() == ([0] if source == "cartpole_3" else [0, 1, 2])
+    symmetric = np.flatnonzero(invariant)  # qpos comes first in the state
+    np.testing.assert_allclose(state_matrix[:, symmetric], np.eye(len(state_matrix))[:, symmetric], atol=1e-11)
+    # One input at a time, as the training's batched Jacobians go (the others are symbolic zeros);
+    # the symmetric entries get their unit columns without a tangent.
+    mask = scene.State(invariant, np.zeros(model.nv, bool), np.zeros(model.na, bool))
+    by_input = jax.jit(lambda s, u: step_jacobians(implicit, s, u, mask))(*jax.tree.map(lambda a: a[None], (state, control)))
     np.testing.assert_allclose(by_input[0][0], state_matrix, rtol=1e-9, atol=1e-11)
     np.testing.assert_allclose(by_input[1][0], control_matrix, rtol=1e-9, atol=1e-11)
     # The velocity rows are not trivial: they carry dt * d qacc.
@@ -220,6 +229,40 @@ def test_implicit_derivative_is_not_used_where_its_equation_does_not_hold():
     for model in (damped, limited):  # implicit damping solves with M + dt D; a limit adds constraint forces
         effects = scene.analyze(model)
         assert not scene.implicit_derivative_applies(scene.lean_model(model, effects), effects)
+
+
+SLIDER = """<mujoco>
+  <default><geom contype="0" conaffinity="0"/></default>
+  <worldbody>
+    {floor}
+    <body name="cart"><joint name="x" type="slide" axis="1 0 0" {slide}/><geom type="box" size="0.2 0.1 0.1"/>
+      <body name="pole"><joint name="a" type="hinge" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 0 0 1" size="0.05"/>
+        <body name="tip"><joint name="z" type="slide" axis="0 0 1"/><geom type="sphere" size="0.1" pos="0 0 1"/></body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>{actuator}</actuator>
+</mujoco>"""
+
+
+@pytest.mark.parametrize("floor, slide, actuator, symmetric", [
+    ("", "", '<motor joint="x"/>', True),
+    ("", 'damping="0.3"', '<motor joint="x"/><motor joint="a"/>', True),  # damping: velocities only
+    ("", "", '<position joint="a" kp="5"/>', True),  # a servo on another joint
+    ("", 'stiffness="2"', '<motor joint="x"/>', False),  # a spring pulls the cart to its rest position
+    ("", 'limited="true" range="-1 1"', '<motor joint="x"/>', False),
+    ("", "", '<position joint="x" kp="5"/>', False),  # a servo's force depends on the cart's position
+    ('<geom type="plane" size="5 5 0.1" contype="1" conaffinity="1"/><geom type="sphere" size="0.1" pos="0 0 3" '
+     'contype="1" conaffinity="1"/>', "", '<motor joint="x"/>', False),  # a world geom the tree could touch
+])
+def test_translation_symmetry_is_claimed_only_where_nothing_ties_the_tree_to_the_world(floor, slide, actuator,
+                                                                                         symmetric):
+    model = mujoco.MjModel.from_xml_string(SLIDER.format(floor=floor, slide=slide, actuator=actuator))
+    if floor:  # make the tip collide with the world's geoms
+        model.geom_contype[:] = model.geom_conaffinity[:] = 1
+    invariant = scene.shift_invariant_qpos(model, scene.analyze(model))
+    # Only the root slide can be symmetric: the tip's slide moves along the turning pole.
+    assert invariant.tolist() == [symmetric, False, False]
 
 
 ARM = """<mujoco model="two-link arm">
