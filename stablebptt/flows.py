@@ -53,6 +53,18 @@ MODES = ("R", "M", "S", "C")
 _KEEPS = {"R": (True, True), "M": (True, False), "S": (False, False)}
 
 
+class KnownColumns(NamedTuple):
+    """Columns of a step's state Jacobian known in advance, over the flattened state.
+
+    Column ``columns[:, i]`` is d step(x, u) / d x[indices[i]] at every (x, u):
+    a symmetry, such as a shift that passes straight through to the next state.
+    Both arrays are static NumPy arrays.
+    """
+
+    indices: np.ndarray  # [known] entries of the flattened state
+    columns: np.ndarray  # [state, known]
+
+
 @dataclass(frozen=True)
 class Dynamics:
     """What BPTT differentiates: a policy, a simulator step and a trajectory loss.
@@ -74,12 +86,10 @@ class Dynamics:
         ``unroll``). On a GPU, where each step is dozens of tiny kernels, 5-10
         cuts the kernels and copies per step (measured 1.3-1.6x per epoch);
         on a CPU 1 is fastest and compiles quickest.
-      shift_invariant: optional, for ``"forward"``: a pytree like one state of
-        boolean NumPy arrays. True marks an entry the step is symmetric in:
-        shifting it by d shifts the next state's same entry by d and changes
-        nothing else (the translation of a system nothing ties to the world).
-        Its Jacobian column is then a unit vector and no tangent is pushed
-        through the simulator for it.
+      known_columns: optional, for ``"forward"``: columns of the step's state
+        Jacobian that a symmetry fixes (``KnownColumns``), e.g. the position and
+        velocity of a system nothing ties to the world (translation and Galilean
+        boost). No tangent is pushed through the simulator for them.
     """
 
     step: Callable[[PyTree, PyTree], PyTree]
@@ -88,7 +98,7 @@ class Dynamics:
     horizon: int
     step_derivative: str = "reverse"
     unroll: int = 1
-    shift_invariant: PyTree | None = None
+    known_columns: KnownColumns | None = None
 
 
 def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:
@@ -172,7 +182,7 @@ def _ravel_examples(tree: PyTree, leading_axes: int) -> jax.Array:
     return ravel(tree)
 
 
-def step_jacobians(step, states: PyTree, controls: PyTree, shift_invariant: PyTree | None = None
+def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns | None = None
                    ) -> tuple[jax.Array, jax.Array]:
     """Jacobians of ``step`` at every example of a batch, by forward mode.
 
@@ -181,22 +191,16 @@ def step_jacobians(step, states: PyTree, controls: PyTree, shift_invariant: PyTr
     which inputs vary (a ``custom_jvp`` with ``symbolic_zeros=True`` gets
     symbolic zeros for the others) and can skip the stages they do not reach:
     velocity tangents need no kinematics, control tangents only the actuators.
-    State entries marked in ``shift_invariant`` (see ``Dynamics``) get unit
-    columns and push no tangent.
+    Columns in ``known`` are copied, not computed.
 
     Returns:
       ``(state_jacobian [batch, state, state], control_jacobian [batch, state, control])``
       over the flattened state and control pytrees (``ravel_pytree`` order).
     """
     state_leaves = jax.tree.leaves(jax.tree.map(lambda a: a[0], states))
-    if shift_invariant is None:
-        invariant = [np.zeros(leaf.size, bool) for leaf in state_leaves]
-    else:
-        invariant = [np.ravel(np.asarray(mask, bool)) for mask in jax.tree.leaves(shift_invariant)]
-        if [mask.size for mask in invariant] != [leaf.size for leaf in state_leaves]:
-            raise ValueError("shift_invariant must have the state's structure and sizes")
     state_size = sum(leaf.size for leaf in state_leaves)  # the step's output is a state too
     offsets = np.cumsum([0] + [leaf.size for leaf in state_leaves])
+    known_at = {} if known is None else {int(i): np.asarray(c) for i, c in zip(known.indices, np.transpose(known.columns))}
 
     def one(state, control):
         leaves, treedef = jax.tree.flatten((state, control))
@@ -208,20 +212,20 @@ def step_jacobians(step, states: PyTree, controls: PyTree, shift_invariant: PyTr
 
         blocks = []
         for index, leaf in enumerate(leaves):
-            fixed = invariant[index] if index < len(invariant) else np.zeros(leaf.size, bool)
-            if not fixed.any():
+            given = [k for k in range(leaf.size) if index < len(state_leaves) and offsets[index] + k in known_at]
+            if not given:
                 blocks.append(jnp.zeros((state_size, 0)) if leaf.size == 0 else
                               jax.jacfwd(functools.partial(of_leaf, index))(leaf).reshape(state_size, leaf.size))
                 continue
-            # A symmetry: the shift passes straight through to the same entry. Tangents
-            # only for the other entries (constant unit tangents: no scatter to trace).
             block = np.zeros((state_size, leaf.size), leaf.dtype)
-            block[offsets[index] + np.flatnonzero(fixed), np.flatnonzero(fixed)] = 1.0
-            basis = np.eye(leaf.size, dtype=leaf.dtype)[~fixed]  # [moving, leaf]
+            for k in given:
+                block[:, k] = known_at[offsets[index] + k]
+            # Constant unit tangents for the other entries: no scatter of a tangent to trace.
+            basis = np.eye(leaf.size, dtype=leaf.dtype)[[k for k in range(leaf.size) if k not in given]]
             if len(basis):
                 push = lambda tangent: jax.jvp(functools.partial(of_leaf, index), (leaf,),
                                                (tangent.reshape(leaf.shape),))[1]
-                columns = jax.vmap(push, out_axes=1)(basis)  # [state, moving]
+                columns = jax.vmap(push, out_axes=1)(basis)  # [state, computed]
                 block = block + jnp.matmul(columns, basis, precision=jax.lax.Precision.HIGHEST)
             blocks.append(jnp.asarray(block))
         jacobian = jnp.concatenate(blocks, axis=1)  # columns in ravel_pytree order of (state, control)
@@ -257,7 +261,7 @@ def _linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: Py
 
     # Every step's Jacobians in one batched pass over [T * batch] examples.
     state_jacobian, control_jacobian = step_jacobians(dynamics.step, _merge(visited, 2), _merge(controls, 2),
-                                                       dynamics.shift_invariant)
+                                                       dynamics.known_columns)
     unmerge = lambda a: a.reshape((horizon, batch_size) + a.shape[1:])
     state_jacobian, control_jacobian = unmerge(state_jacobian), unmerge(control_jacobian)
 

@@ -29,6 +29,8 @@ with contextlib.redirect_stdout(io.StringIO()):
 from mujoco.mjx._src import collision_driver, constraint, passive, smooth, solver  # noqa: E402
 from mujoco.mjx._src import forward as mjx_forward  # noqa: E402
 
+from stablebptt.flows import KnownColumns  # noqa: E402
+
 _DISABLE = mujoco.mjtDisableBit
 _SLIDE, _FREE = int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_FREE)
 INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,
@@ -107,42 +109,72 @@ def analyze(model: mujoco.MjModel) -> SceneEffects:
     )
 
 
-def shift_invariant_qpos(model: mujoco.MjModel, effects: SceneEffects) -> np.ndarray:
-    """Which qpos entries the dynamics cannot sense: translations of a tree hanging from the world.
+def symmetries(model: mujoco.MjModel, effects: SceneEffects) -> tuple[KnownColumns, list[str]]:
+    """Columns of the step's state Jacobian that translation and Galilean symmetry fix.
 
-    A slide joint (or a free joint's position) of a body attached to the world,
+    A slide joint (or a free joint's position) of a body hanging from the world,
     with no rotation before it, moves that body's whole tree along a fixed world
-    direction. Uniform gravity, inertia, Coriolis forces, damping and fluid
-    forces do not change under that shift unless something ties the tree to
-    the world's position: contacts, equality constraints, tendons, a limit or
-    spring on the joint, or an actuator whose force depends on its length.
-    Without those, a step maps qpos + d e_k to (next qpos) + d e_k and leaves
-    everything else as it was: the state Jacobian's column k is e_k.
+    direction. Unless something ties the tree to where the world is (contacts,
+    equality constraints, tendons, a limit or spring on the joint, an actuator
+    whose force depends on its length), forces do not change under that shift,
+    so the step maps qpos + d e_k to (next qpos) + d e_k: column e_k.
+
+    Adding a velocity along the same direction is a Galilean boost of the whole
+    tree. Unless a force depends on velocity relative to the world (fluid
+    forces, damping or friction loss on the joint, contacts, equality
+    constraints, tendons, a limit, an actuator whose force depends on its
+    velocity), accelerations do not change, so the next velocity moves by d and
+    the next position by dt d (every integrator advances positions with the
+    velocities it reaches).
+
+    Returns:
+      the known columns over the flattened state (qpos, qvel, act), and the
+      names of the joints they belong to.
     """
-    invariant = np.zeros(model.nq, bool)
+    state_size = model.nq + model.nv + model.na
+    entries, names = [], []
     if effects.contacts or effects.equality or effects.tendons:
-        return invariant
-    gain, bias = model.actuator_gaintype, model.actuator_biastype
-    by_length = ((gain == mujoco.mjtGain.mjGAIN_AFFINE) & (model.actuator_gainprm[:, 1] != 0)) | (
-        (bias == mujoco.mjtBias.mjBIAS_AFFINE) & (model.actuator_biasprm[:, 1] != 0)) | (
-        (gain != mujoco.mjtGain.mjGAIN_FIXED) & (gain != mujoco.mjtGain.mjGAIN_AFFINE)) | (
-        (bias != mujoco.mjtBias.mjBIAS_NONE) & (bias != mujoco.mjtBias.mjBIAS_AFFINE)) | (
-        model.actuator_dyntype == mujoco.mjtDyn.mjDYN_MUSCLE)
+        return KnownColumns(np.zeros(0, int), np.zeros((state_size, 0))), names
+    gain, bias, gain_prm, bias_prm = (model.actuator_gaintype, model.actuator_biastype, model.actuator_gainprm,
+                                      model.actuator_biasprm)
+    other_gain = (gain != mujoco.mjtGain.mjGAIN_FIXED) & (gain != mujoco.mjtGain.mjGAIN_AFFINE)
+    other_bias = (bias != mujoco.mjtBias.mjBIAS_NONE) & (bias != mujoco.mjtBias.mjBIAS_AFFINE)
+    opaque = other_gain | other_bias | (model.actuator_dyntype == mujoco.mjtDyn.mjDYN_MUSCLE)
+    affine_gain, affine_bias = gain == mujoco.mjtGain.mjGAIN_AFFINE, bias == mujoco.mjtBias.mjBIAS_AFFINE
+    # Affine parameters: [constant, length, velocity].
+    by_length = opaque | (affine_gain & (gain_prm[:, 1] != 0)) | (affine_bias & (bias_prm[:, 1] != 0))
+    by_velocity = opaque | (affine_gain & (gain_prm[:, 2] != 0)) | (affine_bias & (bias_prm[:, 2] != 0))
     on_joint = np.isin(model.actuator_trntype, (mujoco.mjtTrn.mjTRN_JOINT, mujoco.mjtTrn.mjTRN_JOINTINPARENT))
-    if np.any(by_length & ~on_joint):  # a site, body or slider-crank length: where the tree is may matter
-        return invariant
-    length_driven = set(model.actuator_trnid[by_length & on_joint, 0].tolist())
+    if np.any((by_length | by_velocity) & ~on_joint):  # a site, body or slider-crank: where the tree is may matter
+        return KnownColumns(np.zeros(0, int), np.zeros((state_size, 0))), names
+    length_driven = set(model.actuator_trnid[by_length, 0].tolist())
+    velocity_driven = set(model.actuator_trnid[by_velocity, 0].tolist())
+    dt = float(model.opt.timestep)
     for body in range(1, model.nbody):
         if model.body_parentid[body] != 0:
             continue
         first = model.body_jntadr[body]
         for joint in range(first, first + model.body_jntnum[body]):
-            kind, address = int(model.jnt_type[joint]), model.jnt_qposadr[joint]
+            kind, qpos_at, dof_at = int(model.jnt_type[joint]), model.jnt_qposadr[joint], model.jnt_dofadr[joint]
             if kind not in (_SLIDE, _FREE):
                 break  # later slides move along turning axes, away from this joint's anchor
-            ties = bool(model.jnt_limited[joint]) or model.jnt_stiffness[joint] != 0 or joint in length_driven
-            invariant[address:address + (3 if kind == _FREE else 1)] = not ties
-    return invariant
+            tied = bool(model.jnt_limited[joint])
+            for axis in range(3 if kind == _FREE else 1):
+                qpos_k, dof_k = qpos_at + axis, dof_at + axis
+                translation = np.zeros(state_size)
+                translation[qpos_k] = 1.0
+                if not (tied or model.jnt_stiffness[joint] != 0 or joint in length_driven):
+                    entries.append((qpos_k, translation))
+                if not (tied or effects.fluid or model.dof_damping[dof_k] != 0 or model.dof_frictionloss[dof_k] != 0
+                        or joint in velocity_driven):
+                    boost = dt * translation
+                    boost[model.nq + dof_k] = 1.0
+                    entries.append((model.nq + dof_k, boost))
+            if any(index in (qpos_at, model.nq + dof_at) for index, _ in entries):
+                names.append(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, joint) or f"joint {joint}")
+    if not entries:
+        return KnownColumns(np.zeros(0, int), np.zeros((state_size, 0))), names
+    return KnownColumns(np.array([i for i, _ in entries]), np.stack([c for _, c in entries], axis=1)), names
 
 
 def with_options(model: mujoco.MjModel, integrator: str | None = None, timestep: float | None = None) -> mujoco.MjModel:

@@ -223,16 +223,13 @@ def make(config: Config) -> Task:
     summary += f"; step gradients: {derivative} mode"
     if config.pipeline == "lean" and scene.implicit_derivative_applies(lean, effects):
         summary += " through inverse dynamics"
-    invariant = scene.shift_invariant_qpos(lean, effects)
-    if derivative == "forward" and invariant.any():
-        names = sorted({mujoco.mj_id2name(lean, mujoco.mjtObj.mjOBJ_JOINT, int(j)) or f"joint {j}"
-                        for j in np.searchsorted(lean.jnt_qposadr, np.flatnonzero(invariant), side="right") - 1})
-        summary += f" (translation symmetry: no tangent for {', '.join(names)})"
-    shift_invariant = State(invariant, np.zeros(model.nv, bool), np.zeros(model.na, bool))
+    known_columns, symmetric_joints = scene.symmetries(lean, effects)
+    if derivative == "forward" and symmetric_joints:
+        summary += f" (symmetries: no tangent for {', '.join(symmetric_joints)})"
     return Task(
         name="cartpole",
         dynamics=Dynamics(step=step, policy=policy, loss=loss, horizon=horizon, step_derivative=derivative,
-                          shift_invariant=shift_invariant),
+                          known_columns=known_columns),
         init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
         sample_initial_states=sample_initial_states,
         summary=f"{path.name}: {summary}; horizon {horizon} steps, {spec.loss}-state loss",

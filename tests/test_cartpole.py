@@ -204,16 +204,15 @@ def test_implicit_step_derivative_equals_autodiff_through_the_mass_matrix(x64, s
     fields = scene.State._fields
     state_matrix = np.block([[rows(getattr(getattr(expected, out)[0], into)) for into in fields] for out in fields])
     control_matrix = np.concatenate([rows(getattr(expected, out)[1]) for out in fields])
-    # The translation symmetry the analysis claims (the cart; the free body's position) holds:
-    # shifting such an entry shifts the same entry of the next state and nothing else.
-    invariant = scene.shift_invariant_qpos(lean, effects)
-    assert np.flatnonzero(invariant).tolist() == ([0] if source == "cartpole_3" else [0, 1, 2])
-    symmetric = np.flatnonzero(invariant)  # qpos comes first in the state
-    np.testing.assert_allclose(state_matrix[:, symmetric], np.eye(len(state_matrix))[:, symmetric], atol=1e-11)
-    # One input at a time, as the training's batched Jacobians go (the others are symbolic zeros);
-    # the symmetric entries get their unit columns without a tangent.
-    mask = scene.State(invariant, np.zeros(model.nv, bool), np.zeros(model.na, bool))
-    by_input = jax.jit(lambda s, u: step_jacobians(implicit, s, u, mask))(*jax.tree.map(lambda a: a[None], (state, control)))
+    # The symmetries the analysis claims hold: shifting the cart's (the free body's) position shifts
+    # the next position alone; a Galilean boost shifts the next velocity by as much, the position by dt as much.
+    known, _ = scene.symmetries(lean, effects)
+    translations = [0] if source == "cartpole_3" else [0, 1, 2]
+    assert sorted(known.indices.tolist()) == sorted(translations + [model.nq + k for k in translations])
+    np.testing.assert_allclose(state_matrix[:, known.indices], known.columns, atol=1e-11)
+    # One input at a time, as the training's batched Jacobians go (the others are symbolic zeros),
+    # with the known columns copied instead of computed.
+    by_input = jax.jit(lambda s, u: step_jacobians(implicit, s, u, known))(*jax.tree.map(lambda a: a[None], (state, control)))
     np.testing.assert_allclose(by_input[0][0], state_matrix, rtol=1e-9, atol=1e-11)
     np.testing.assert_allclose(by_input[1][0], control_matrix, rtol=1e-9, atol=1e-11)
     # The velocity rows are not trivial: they carry dt * d qacc.
@@ -232,6 +231,7 @@ def test_implicit_derivative_is_not_used_where_its_equation_does_not_hold():
 
 
 SLIDER = """<mujoco>
+  <option {option}/>
   <default><geom contype="0" conaffinity="0"/></default>
   <worldbody>
     {floor}
@@ -245,24 +245,26 @@ SLIDER = """<mujoco>
 </mujoco>"""
 
 
-@pytest.mark.parametrize("floor, slide, actuator, symmetric", [
-    ("", "", '<motor joint="x"/>', True),
-    ("", 'damping="0.3"', '<motor joint="x"/><motor joint="a"/>', True),  # damping: velocities only
-    ("", "", '<position joint="a" kp="5"/>', True),  # a servo on another joint
-    ("", 'stiffness="2"', '<motor joint="x"/>', False),  # a spring pulls the cart to its rest position
-    ("", 'limited="true" range="-1 1"', '<motor joint="x"/>', False),
-    ("", "", '<position joint="x" kp="5"/>', False),  # a servo's force depends on the cart's position
-    ('<geom type="plane" size="5 5 0.1" contype="1" conaffinity="1"/><geom type="sphere" size="0.1" pos="0 0 3" '
-     'contype="1" conaffinity="1"/>', "", '<motor joint="x"/>', False),  # a world geom the tree could touch
+@pytest.mark.parametrize("option, floor, slide, actuator, position, velocity", [
+    ("", "", "", '<motor joint="x"/>', True, True),
+    ("", "", 'damping="0.3"', '<motor joint="x"/>', True, False),  # damping: a force from the velocity
+    ("", "", "", '<motor joint="x"/><velocity joint="a" kv="2"/>', True, True),  # relative velocity only
+    ("", "", 'stiffness="2"', '<motor joint="x"/>', False, True),  # a spring pulls towards its rest position
+    ("", "", 'limited="true" range="-1 1"', '<motor joint="x"/>', False, False),
+    ("", "", "", '<position joint="x" kp="5"/>', False, True),  # a servo's force depends on the position
+    ("", "", "", '<velocity joint="x" kv="2"/>', True, False),
+    ('density="1.2" viscosity="0.1"', "", "", '<motor joint="x"/>', True, False),  # air at rest in the world
+    ("", '<geom type="plane" size="5 5 0.1"/>', "", '<motor joint="x"/>', False, False),  # the floor can be touched
 ])
-def test_translation_symmetry_is_claimed_only_where_nothing_ties_the_tree_to_the_world(floor, slide, actuator,
-                                                                                         symmetric):
-    model = mujoco.MjModel.from_xml_string(SLIDER.format(floor=floor, slide=slide, actuator=actuator))
-    if floor:  # make the tip collide with the world's geoms
+def test_symmetries_are_claimed_only_where_nothing_ties_the_tree_to_the_world(option, floor, slide, actuator,
+                                                                               position, velocity):
+    model = mujoco.MjModel.from_xml_string(SLIDER.format(option=option, floor=floor, slide=slide, actuator=actuator))
+    if floor:  # let every geom collide
         model.geom_contype[:] = model.geom_conaffinity[:] = 1
-    invariant = scene.shift_invariant_qpos(model, scene.analyze(model))
-    # Only the root slide can be symmetric: the tip's slide moves along the turning pole.
-    assert invariant.tolist() == [symmetric, False, False]
+    known, joints = scene.symmetries(model, scene.analyze(model))
+    # Only the cart can be symmetric: the tip's slide moves along the turning pole.
+    assert sorted(known.indices.tolist()) == [0] * position + [3] * velocity  # qpos x, qvel x
+    assert joints == (["x"] if position or velocity else [])
 
 
 ARM = """<mujoco model="two-link arm">
