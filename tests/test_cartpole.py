@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
 import mujoco
 import numpy as np
 import pytest
@@ -265,6 +266,24 @@ def test_symmetries_are_claimed_only_where_nothing_ties_the_tree_to_the_world(op
     # Only the cart can be symmetric: the tip's slide moves along the turning pole.
     assert sorted(known.indices.tolist()) == [0] * position + [3] * velocity  # qpos x, qvel x
     assert joints == (["x"] if position or velocity else [])
+
+
+@pytest.mark.parametrize("integrator", ["rk4", "implicitfast"])
+def test_symmetry_columns_hold_for_the_other_integrators(x64, integrator):
+    """Every integrator advances positions with the velocities it reaches: the boost column is e_v + dt e_q."""
+    model = mujoco.MjModel.from_xml_path(str(ROOT / "models" / "cartpole_1.xml"))
+    effects = scene.analyze(model)
+    lean = scene.lean_model(model, effects, integrator=integrator, timestep=0.02)
+    step = scene.make_step(lean, effects)
+    known, _ = scene.symmetries(lean, effects)
+    assert known.indices.tolist() == [0, model.nq] and known.columns[0, 1] == 0.02
+    rng = np.random.default_rng(0)
+    flat, unravel = ravel_pytree(scene.State(jnp.array(rng.normal(size=model.nq)), jnp.array(rng.normal(size=model.nv)),
+                                             jnp.zeros(0)))
+    control = jnp.array(rng.normal(size=model.nu))
+    jacobian = jax.jit(jax.jacfwd(lambda x: ravel_pytree(step(unravel(x), control))[0]))(flat)
+    np.testing.assert_allclose(np.asarray(jacobian)[:, known.indices], known.columns, atol=1e-12)
+    assert np.abs(np.asarray(jacobian)[model.nq:, 1]).max() > 1e-3  # the pole's column is not trivial
 
 
 ARM = """<mujoco model="two-link arm">
