@@ -212,22 +212,23 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
 
         blocks = []
         for index, leaf in enumerate(leaves):
-            given = [k for k in range(leaf.size) if index < len(state_leaves) and offsets[index] + k in known_at]
-            if not given:
-                blocks.append(jnp.zeros((state_size, 0)) if leaf.size == 0 else
-                              jax.jacfwd(functools.partial(of_leaf, index))(leaf).reshape(state_size, leaf.size))
+            copied = np.zeros((state_size, leaf.size), leaf.dtype)
+            free = []
+            for k in range(leaf.size):
+                if index < len(state_leaves) and offsets[index] + k in known_at:
+                    copied[:, k] = known_at[offsets[index] + k]
+                else:
+                    free.append(k)
+            if not free:
+                blocks.append(jnp.asarray(copied))
                 continue
-            block = np.zeros((state_size, leaf.size), leaf.dtype)
-            for k in given:
-                block[:, k] = known_at[offsets[index] + k]
-            # Constant unit tangents for the other entries: no scatter of a tangent to trace.
-            basis = np.eye(leaf.size, dtype=leaf.dtype)[[k for k in range(leaf.size) if k not in given]]
-            if len(basis):
-                push = lambda tangent: jax.jvp(functools.partial(of_leaf, index), (leaf,),
-                                               (tangent.reshape(leaf.shape),))[1]
-                columns = jax.vmap(push, out_axes=1)(basis)  # [state, computed]
-                block = block + jnp.matmul(columns, basis, precision=jax.lax.Precision.HIGHEST)
-            blocks.append(jnp.asarray(block))
+            # Constant unit tangents for the free entries only: no scatter of a tangent to trace.
+            basis = np.eye(leaf.size, dtype=leaf.dtype)[free]
+            push = lambda tangent: jax.jvp(functools.partial(of_leaf, index), (leaf,), (tangent.reshape(leaf.shape),))[1]
+            columns = jax.vmap(push, out_axes=1)(basis)  # [state, free]
+            if len(free) < leaf.size:
+                columns = copied + jnp.matmul(columns, basis, precision=jax.lax.Precision.HIGHEST)
+            blocks.append(columns)
         jacobian = jnp.concatenate(blocks, axis=1)  # columns in ravel_pytree order of (state, control)
         return jacobian[:, :state_size], jacobian[:, state_size:]
 

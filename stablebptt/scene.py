@@ -133,8 +133,9 @@ def symmetries(model: mujoco.MjModel, effects: SceneEffects) -> tuple[KnownColum
     """
     state_size = model.nq + model.nv + model.na
     entries, names = [], []
+    nothing = KnownColumns(np.zeros(0, int), np.zeros((state_size, 0)))
     if effects.contacts or effects.equality or effects.tendons:
-        return KnownColumns(np.zeros(0, int), np.zeros((state_size, 0))), names
+        return nothing, names
     gain, bias, gain_prm, bias_prm = (model.actuator_gaintype, model.actuator_biastype, model.actuator_gainprm,
                                       model.actuator_biasprm)
     other_gain = (gain != mujoco.mjtGain.mjGAIN_FIXED) & (gain != mujoco.mjtGain.mjGAIN_AFFINE)
@@ -146,7 +147,7 @@ def symmetries(model: mujoco.MjModel, effects: SceneEffects) -> tuple[KnownColum
     by_velocity = opaque | (affine_gain & (gain_prm[:, 2] != 0)) | (affine_bias & (bias_prm[:, 2] != 0))
     on_joint = np.isin(model.actuator_trntype, (mujoco.mjtTrn.mjTRN_JOINT, mujoco.mjtTrn.mjTRN_JOINTINPARENT))
     if np.any((by_length | by_velocity) & ~on_joint):  # a site, body or slider-crank: where the tree is may matter
-        return KnownColumns(np.zeros(0, int), np.zeros((state_size, 0))), names
+        return nothing, names
     length_driven = set(model.actuator_trnid[by_length, 0].tolist())
     velocity_driven = set(model.actuator_trnid[by_velocity, 0].tolist())
     dt = float(model.opt.timestep)
@@ -155,6 +156,7 @@ def symmetries(model: mujoco.MjModel, effects: SceneEffects) -> tuple[KnownColum
             continue
         first = model.body_jntadr[body]
         for joint in range(first, first + model.body_jntnum[body]):
+            known_before = len(entries)
             kind, qpos_at, dof_at = int(model.jnt_type[joint]), model.jnt_qposadr[joint], model.jnt_dofadr[joint]
             if kind not in (_SLIDE, _FREE):
                 break  # later slides move along turning axes, away from this joint's anchor
@@ -170,10 +172,10 @@ def symmetries(model: mujoco.MjModel, effects: SceneEffects) -> tuple[KnownColum
                     boost = dt * translation
                     boost[model.nq + dof_k] = 1.0
                     entries.append((model.nq + dof_k, boost))
-            if any(index in (qpos_at, model.nq + dof_at) for index, _ in entries):
+            if len(entries) > known_before:
                 names.append(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, joint) or f"joint {joint}")
     if not entries:
-        return KnownColumns(np.zeros(0, int), np.zeros((state_size, 0))), names
+        return nothing, names
     return KnownColumns(np.array([i for i, _ in entries]), np.stack([c for _, c in entries], axis=1)), names
 
 
