@@ -15,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import dataclasses  # noqa: E402
 import platform  # noqa: E402
+import time  # noqa: E402
 
 from stablebptt.cli import Parser, add_options, build, fail, option_name  # noqa: E402
 from stablebptt.errors import InputError  # noqa: E402
@@ -72,6 +73,7 @@ def configure(args, owners):
 
 
 def main(argv: list[str]) -> int:
+    started = time.perf_counter()
     args, owners = parse(argv)
     try:
         task_name, task_config, train_config, run_dir, resuming = configure(args, owners)
@@ -89,23 +91,30 @@ def main(argv: list[str]) -> int:
         if resuming:
             if not (run_dir / runs.CHECKPOINT_FILE).exists():
                 raise InputError(f"{run_dir} has no checkpoint yet: start the run again")
+            runs.check_same_task(run_dir, task.resolved)
         else:
-            run_dir = runs.claim_run_dir(run_dir or runs.default_run_dir(RUNS_ROOT, task_name))
+            run_dir = runs.claim_run_dir(run_dir or runs.default_run_dir(RUNS_ROOT, task.name))
     except InputError as error:
         fail(str(error))
 
     if task.summary:
         print(task.summary)
-    trainer = make_trainer(task, train_config)
+    try:
+        trainer = make_trainer(task, train_config)
+    except InputError as error:
+        fail(f"{task.name}: {error}")
     seeds = np.asarray(seed_array(train_config))
     state = trainer.init(seed_array(train_config))
     if resuming:
         start_epoch, state, rows = runs.load_checkpoint(run_dir, state)
     else:
         start_epoch, rows = 0, runs.empty_rows()
+    if "model_file" in task.resolved and not resuming:  # the file as trained, beside its hash in config.json
+        runs.atomic_write(run_dir / runs.MODEL_COPY_FILE, Path(task.resolved["model_file"]).read_bytes())
     runs.write_json(run_dir / runs.CONFIG_FILE, {
         "task": task_name,
         "task_config": dataclasses.asdict(task_config),
+        "resolved_task": {"name": task.name, **task.resolved},
         "train": dataclasses.asdict(train_config),
         "flows_computed": list(trainer.flows),
         "environment": {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])},
@@ -113,13 +122,24 @@ def main(argv: list[str]) -> int:
 
     from tqdm import tqdm
     bar = tqdm(total=train_config.epochs, initial=start_epoch, unit="epoch", disable=args.no_progress,
-               desc=f"{task_name} {train_config.mode}", dynamic_ncols=True)
+               desc=f"{task.name} {train_config.mode}", dynamic_ncols=True)
+
+    updates = train_config.train_size // train_config.batch
+    compiled = {}
+
+    def on_compiled(seconds):
+        compiled.update(seconds=seconds, ready=time.perf_counter() - started)
 
     def on_epoch(epoch, metrics):
+        if epoch == start_epoch + 1:  # an epoch is one program: its first update is timed as its share
+            first_update = compiled["ready"] + metrics["seconds"] / updates
+            bar.write(f"time to the first update: {first_update:.0f} s (compiling {compiled['seconds']:.0f} s; "
+                      f"the first epoch, {updates} updates and the train and test losses, {metrics['seconds']:.1f} s)",
+                      file=sys.stdout)
         bar.update(1)
         bar.set_postfix(test_loss=f"{float(np.mean(metrics['test_loss'])):.4g}")
 
-    outcome = runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds, on_epoch)
+    outcome = runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds, on_epoch, on_compiled)
     bar.close()
     if outcome.status == "diverged":
         print(f"error: {outcome.message}", file=sys.stderr)
@@ -131,7 +151,7 @@ def main(argv: list[str]) -> int:
     plot_run(run_dir)
     mean, std = runs.summarize(outcome.rows)
     spread = f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
-    print(f"done: {task_name}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")
+    print(f"done: {task.name}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")
     return 0
 
 

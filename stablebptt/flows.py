@@ -90,6 +90,12 @@ class Dynamics:
         Jacobian that a symmetry fixes (``KnownColumns``), e.g. the position and
         velocity of a system nothing ties to the world (translation and Galilean
         boost). No tangent is pushed through the simulator for them.
+      jacobian_chunk: for ``"forward"``: examples whose step Jacobians are
+        computed at once (None: all T x batch); bounds the memory of large scenes
+        (``stablebptt.memory.plan_memory`` chooses it).
+      rematerialize: for ``"reverse"``: store only each step's inputs and
+        recompute the step in the backward pass, trading one more forward pass
+        for the memory of every step's intermediates.
     """
 
     step: Callable[[PyTree, PyTree], PyTree]
@@ -99,6 +105,8 @@ class Dynamics:
     step_derivative: str = "reverse"
     unroll: int = 1
     known_columns: KnownColumns | None = None
+    jacobian_chunk: int | None = None
+    rematerialize: bool = False
 
 
 def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:
@@ -156,11 +164,13 @@ def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
         return _stack(next_states, copies), _stack(controls, copies)
 
     def step_fwd(params_copies, state_copies):
-        next_states, controls, pullbacks = forward(_first(params_copies), _first(state_copies))
-        return (_stack(next_states, copies), _stack(controls, copies)), pullbacks
+        params, states = _first(params_copies), _first(state_copies)
+        next_states, controls, pullbacks = forward(params, states)
+        residuals = (params, states) if dynamics.rematerialize else pullbacks
+        return (_stack(next_states, copies), _stack(controls, copies)), residuals
 
-    def step_bwd(pullbacks, cotangents):
-        policy_pullback, step_pullback = pullbacks
+    def step_bwd(residuals, cotangents):
+        policy_pullback, step_pullback = forward(*residuals)[2] if dynamics.rematerialize else residuals
         next_state_ct, control_ct = cotangents
         state_ct_sim, control_ct_sim = jax.vmap(step_pullback)(next_state_ct)
         control_ct = jax.tree.map(jnp.add, control_ct, control_ct_sim)
@@ -182,8 +192,8 @@ def _ravel_examples(tree: PyTree, leading_axes: int) -> jax.Array:
     return ravel(tree)
 
 
-def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns | None = None
-                   ) -> tuple[jax.Array, jax.Array]:
+def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns | None = None,
+                   chunk: int | None = None) -> tuple[jax.Array, jax.Array]:
     """Jacobians of ``step`` at every example of a batch, by forward mode.
 
     One forward pass per input leaf (a state leaf such as qpos or qvel, or the
@@ -191,7 +201,8 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
     which inputs vary (a ``custom_jvp`` with ``symbolic_zeros=True`` gets
     symbolic zeros for the others) and can skip the stages they do not reach:
     velocity tangents need no kinematics, control tangents only the actuators.
-    Columns in ``known`` are copied, not computed.
+    Columns in ``known`` are copied, not computed. ``chunk`` examples at a time
+    (default: all) bound the memory.
 
     Returns:
       ``(state_jacobian [batch, state, state], control_jacobian [batch, state, control])``
@@ -232,7 +243,9 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
         jacobian = jnp.concatenate(blocks, axis=1)  # columns in ravel_pytree order of (state, control)
         return jacobian[:, :state_size], jacobian[:, state_size:]
 
-    return jax.vmap(one)(states, controls)
+    if chunk is None:
+        return jax.vmap(one)(states, controls)
+    return jax.lax.map(lambda example: one(*example), (states, controls), batch_size=chunk)
 
 
 def _merge(tree: PyTree, axes: int) -> PyTree:
@@ -262,7 +275,7 @@ def _linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: Py
 
     # Every step's Jacobians in one batched pass over [T * batch] examples.
     state_jacobian, control_jacobian = step_jacobians(dynamics.step, _merge(visited, 2), _merge(controls, 2),
-                                                       dynamics.known_columns)
+                                                       dynamics.known_columns, dynamics.jacobian_chunk)
     unmerge = lambda a: a.reshape((horizon, batch_size) + a.shape[1:])
     state_jacobian, control_jacobian = unmerge(state_jacobian), unmerge(control_jacobian)
 
@@ -370,13 +383,18 @@ def reference_rollout(dynamics: Dynamics, params: PyTree, initial_state: PyTree,
     return Trajectory(states, controls)
 
 
-def reference_loss(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R") -> jax.Array:
-    """Mean loss over a batch of initial states; differentiate it for the flow's gradient."""
+def reference_losses(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R") -> jax.Array:
+    """The loss of each trajectory from a batch of initial states."""
     def one(x0):
         trajectory = reference_rollout(dynamics, params, x0, flow)
         return dynamics.loss(trajectory.states, trajectory.controls)
 
-    return jax.vmap(one)(initial_states).mean()
+    return jax.vmap(one)(initial_states)
+
+
+def reference_loss(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R") -> jax.Array:
+    """Mean loss over a batch of initial states; differentiate it for the flow's gradient."""
+    return reference_losses(dynamics, params, initial_states, flow).mean()
 
 
 def sign_agreement(grad_m: PyTree, grad_r: PyTree) -> PyTree:

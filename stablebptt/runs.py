@@ -2,7 +2,8 @@
 
 A run directory holds ``config.json``, ``metrics.csv`` (one row per epoch and
 seed), ``params.npz`` (final or latest parameters, leading axis = seed) and
-``checkpoint.npz`` (parameters, optimizer state and all metrics so far). The
+``checkpoint.npz`` (parameters, optimizer state and all metrics so far), and
+for an MJCF task ``model.xml``, a copy of the model file. The
 checkpoint is the source of truth: resuming reads it and rewrites the rest.
 """
 from __future__ import annotations
@@ -22,12 +23,13 @@ import jax
 import numpy as np
 
 from stablebptt.errors import InputError
-from stablebptt.training import METRICS, TrainConfig, Trainer, TrainState
+from stablebptt.training import METRICS, TrainConfig, Trainer, TrainState, nonfinite_names
 
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.csv"
 PARAMS_FILE = "params.npz"
 CHECKPOINT_FILE = "checkpoint.npz"
+MODEL_COPY_FILE = "model.xml"  # a copy of the MJCF file a run trained on
 COLUMNS = ("epoch", "seed") + METRICS + ("seconds",)
 
 
@@ -121,6 +123,14 @@ def default_run_dir(root: Path, task_name: str) -> Path:
     return candidate
 
 
+def check_same_task(run_dir: Path, resolved: dict) -> None:
+    """Refuse to resume a run whose model file changed since it started (it would train another task)."""
+    saved = read_json(run_dir / CONFIG_FILE).get("resolved_task", {})
+    if "model_sha256" in saved and saved["model_sha256"] != resolved.get("model_sha256"):
+        raise InputError(f"{resolved.get('model_file', 'the model file')} changed since {run_dir} started: "
+                         "restore it, or start a new run")
+
+
 def claim_run_dir(path: Path) -> Path:
     """Create a fresh run directory; never write into an existing non-empty one."""
     if path.exists() and (not path.is_dir() or any(path.iterdir())):
@@ -172,14 +182,19 @@ def train_epochs(
     rows: np.ndarray,
     seeds: np.ndarray,
     on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None,
+    on_compiled: Callable[[float], None] = lambda seconds: None,
 ) -> Outcome:
     """Run epochs ``start_epoch+1 .. config.epochs``, checkpointing as configured.
 
     Stops early on Ctrl-C (after saving) or on a non-finite loss or update
     (keeping the last good checkpoint, which it writes if it is not on disk yet).
+    ``on_compiled`` gets the seconds the epoch took to compile; ``on_epoch``
+    the epoch's metrics, with its wall time under ``"seconds"``.
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
+    started = time.perf_counter()
     epoch_fn = trainer.epoch.lower(state, *arguments).compile()  # compile before timing epochs
+    on_compiled(time.perf_counter() - started)
     saved_epoch = start_epoch if (run_dir / CHECKPOINT_FILE).exists() else -1
 
     def save(epoch, state, rows):
@@ -197,16 +212,17 @@ def train_epochs(
             seconds = time.perf_counter() - started
             if not np.all(metrics["finite"]):
                 bad = [int(s) for s, ok in zip(seeds, metrics["finite"]) if not ok]
+                what = nonfinite_names(trainer.flows, int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))))
                 if saved_epoch != epoch - 1:
                     saved_epoch = save(epoch - 1, state, rows)
-                message = (f"non-finite loss or update at epoch {epoch} (seed {', '.join(map(str, bad))}); "
+                message = (f"non-finite {', '.join(what)} at epoch {epoch} (seed {', '.join(map(str, bad))}); "
                            f"stopped, the last good checkpoint (epoch {saved_epoch}) is kept in {run_dir}")
                 return Outcome("diverged", saved_epoch, state, rows, message)
             state = new_state
             rows = np.concatenate([rows, epoch_rows(epoch, seeds, metrics, seconds)])
             if epoch % config.checkpoint_every == 0 or epoch == config.epochs:
                 saved_epoch = save(epoch, state, rows)
-            on_epoch(epoch, metrics)
+            on_epoch(epoch, {**metrics, "seconds": seconds})
             if stop["stop"]:
                 if saved_epoch != epoch:
                     saved_epoch = save(epoch, state, rows)

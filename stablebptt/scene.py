@@ -29,9 +29,32 @@ with contextlib.redirect_stdout(io.StringIO()):
 from mujoco.mjx._src import collision_driver, constraint, passive, smooth, solver  # noqa: E402
 from mujoco.mjx._src import forward as mjx_forward  # noqa: E402
 
+from stablebptt.errors import InputError  # noqa: E402
+
+
+@jax.custom_jvp
+def _sqrt_flat_at_zero(x):
+    return jnp.sqrt(x)
+
+
+@_sqrt_flat_at_zero.defjvp
+def _sqrt_flat_at_zero_jvp(primals, tangents):
+    (x,), (x_dot,) = primals, tangents
+    root = jnp.sqrt(x)
+    return root, jnp.where(x > 0, x_dot / (2 * jnp.where(x > 0, root, 1.0)), 0.0)
+
+
+# MJX's elliptic-cone line search takes the square root of a contact's squared
+# tangential force, exactly 0 for a contact that does not slide: its slope there
+# is 0 / 0 and turns every forward-mode step Jacobian into NaN, although the
+# terms it feeds are masked out at 0. MJX's solver module alone gets a square
+# root whose slope at 0 is 0; values are unchanged.
+solver.jp = type(jnp)("jax.numpy, square root flat at zero")
+solver.jp.__dict__.update({**vars(jnp), "sqrt": _sqrt_flat_at_zero})
 from stablebptt.flows import KnownColumns  # noqa: E402
 
 _DISABLE = mujoco.mjtDisableBit
+_ENABLE = mujoco.mjtEnableBit
 _SLIDE, _FREE = int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_FREE)
 INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,
                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
@@ -74,14 +97,12 @@ _FLAGS = (
     ("springs", _DISABLE.mjDSBL_SPRING),
     ("dampers", _DISABLE.mjDSBL_DAMPER),
     ("control_clamp", _DISABLE.mjDSBL_CLAMPCTRL),
-    ("sensors", _DISABLE.mjDSBL_SENSOR),
 )
 _LABELS = {
     "contacts": "contacts", "joint_limits": "joint limits", "tendon_limits": "tendon limits",
     "equality": "equality constraints", "friction_loss": "friction loss", "springs": "springs",
     "dampers": "dampers", "gravity_compensation": "gravity compensation", "fluid": "fluid forces",
     "control_clamp": "control clamping", "activation": "actuator activation", "tendons": "tendons",
-    "sensors": "sensors",
 }
 
 
@@ -179,6 +200,89 @@ def symmetries(model: mujoco.MjModel, effects: SceneEffects) -> tuple[KnownColum
     return KnownColumns(np.array([i for i, _ in entries]), np.stack([c for _, c in entries], axis=1)), names
 
 
+# Enable flags that only compute diagnostics (no force, state or step depends on
+# them): switched off on the simulated copy and named in the scene line.
+_DIAGNOSTICS = {int(_ENABLE.mjENBL_ENERGY): "energy", int(_ENABLE.mjENBL_FWDINV): "forward-inverse comparison"}
+# What to tell a user about the enable flags MJX cannot simulate.
+_ENABLE_ADVICE = {int(_ENABLE.mjENBL_OVERRIDE): "contact override: remove <flag override=\"enable\"/>",
+                  int(_ENABLE.mjENBL_DIAGEXACT): "exact constraint diagonal: remove <flag diagexact=\"enable\"/>",
+                  int(_ENABLE.mjENBL_SPECULATIVE): "speculative contacts: remove <flag speculative=\"enable\"/>"}
+_GEOM_NAMES = {int(t): t.name[len("mjGEOM_"):].lower() for t in (
+    mujoco.mjtGeom.mjGEOM_PLANE, mujoco.mjtGeom.mjGEOM_HFIELD, mujoco.mjtGeom.mjGEOM_SPHERE,
+    mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_ELLIPSOID, mujoco.mjtGeom.mjGEOM_CYLINDER,
+    mujoco.mjtGeom.mjGEOM_BOX, mujoco.mjtGeom.mjGEOM_MESH, mujoco.mjtGeom.mjGEOM_SDF)}
+
+
+def diagnostics(model: mujoco.MjModel) -> list[str]:
+    """The diagnostics ``model`` enables: they change no dynamics, so the simulated copy skips them."""
+    return [label for bit, label in _DIAGNOSTICS.items() if model.opt.enableflags & bit]
+
+
+def diagnostics_bits(model: mujoco.MjModel) -> list[int]:
+    """The enable flags of ``diagnostics(model)``."""
+    return [bit for bit in _DIAGNOSTICS if model.opt.enableflags & bit]
+
+
+def _name(model: mujoco.MjModel, kind, index: int) -> str:
+    return mujoco.mj_id2name(model, kind, index) or f"#{index}"
+
+
+def check_supported(model: mujoco.MjModel) -> None:
+    """Raise ``InputError`` naming the first feature of ``model`` that MJX cannot simulate, and what to change.
+
+    Call it on the copy that will be simulated (``lean_model``'s), before
+    ``mjx.put_model``: it mirrors MJX's own checks, so no MJX traceback reaches a user.
+    """
+    def refuse(feature: str):
+        raise InputError(f"MJX cannot simulate {feature}")
+
+    if model.nflex:
+        refuse("flexible bodies (<flex>, <flexcomp>): remove them")
+    for bit, advice in _ENABLE_ADVICE.items():
+        if model.opt.enableflags & bit:
+            refuse(advice)
+    supported_integrators = {int(v) for v in INTEGRATORS.values()}
+    if int(model.opt.integrator) not in supported_integrators:
+        refuse(f"integrator {mujoco.mjtIntegrator(model.opt.integrator).name[len('mjINT_'):].lower()}: "
+               "choose euler, rk4 or implicitfast (--integrator)")
+    if int(model.opt.solver) == int(mujoco.mjtSolver.mjSOL_PGS):
+        refuse('the PGS constraint solver: set <option solver="Newton"/> or "CG"')
+    fluid = model.opt.density > 0 or model.opt.viscosity > 0 or np.any(model.opt.wind)
+    if fluid and int(model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST):
+        refuse("fluid forces with the implicitfast integrator: choose euler or rk4 (--integrator)")
+    geom = mujoco.mjtObj.mjOBJ_GEOM
+    for g1, g2, _ in collision_driver.geom_pairs(model):
+        t1, t2 = int(model.geom_type[g1]), int(model.geom_type[g2])
+        if not collision_driver.has_collision_fn(t1, t2):
+            refuse(f"{_GEOM_NAMES.get(t1, t1)}-{_GEOM_NAMES.get(t2, t2)} contacts (geoms '{_name(model, geom, g1)}' and "
+                   f"'{_name(model, geom, g2)}'): change one geom's type, or stop the pair colliding "
+                   "(contype/conaffinity or <exclude>)")
+        if {t1, t2} & {int(mujoco.mjtGeom.mjGEOM_MESH), int(mujoco.mjtGeom.mjGEOM_HFIELD)} and (
+                model.geom_margin[g1] + model.geom_margin[g2] > 0):
+            refuse(f"a contact margin on a mesh or height field (geoms '{_name(model, geom, g1)}' and "
+                   f"'{_name(model, geom, g2)}'): set margin=\"0\"")
+    from mujoco.mjx._src import types as mjx_types
+    for values, supported, kind, what in (
+            (model.actuator_gaintype, mjx_types.GainType, mujoco.mjtGain, "actuator gain"),
+            (model.actuator_biastype, mjx_types.BiasType, mujoco.mjtBias, "actuator bias"),
+            (model.actuator_dyntype, mjx_types.DynType, mujoco.mjtDyn, "actuator dynamics"),
+            (model.actuator_trntype, mjx_types.TrnType, mujoco.mjtTrn, "actuator transmission"),
+            (model.eq_type, mjx_types.EqType, mujoco.mjtEq, "equality constraint"),
+            (model.wrap_type, mjx_types.WrapType, mujoco.mjtWrap, "tendon wrap")):
+        missing = sorted(set(int(v) for v in values) - set(int(s) for s in supported))
+        if missing:
+            refuse(f"{what} type {kind(missing[0]).name.split('_', 1)[1].lower()}: replace it")
+
+
+def put_model(model: mujoco.MjModel):
+    """``mjx.put_model`` after ``check_supported``; anything MJX still refuses becomes one ``InputError`` line."""
+    check_supported(model)
+    try:
+        return mjx.put_model(model, impl="jax")
+    except NotImplementedError as error:
+        raise InputError(f"MJX cannot simulate this model: {error}") from None
+
+
 def with_options(model: mujoco.MjModel, integrator: str | None = None, timestep: float | None = None) -> mujoco.MjModel:
     """A copy of ``model`` with its integrator and time step overridden where given."""
     copied = copy.copy(model)
@@ -190,9 +294,26 @@ def with_options(model: mujoco.MjModel, integrator: str | None = None, timestep:
 
 
 def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | None = None,
-               timestep: float | None = None) -> mujoco.MjModel:
-    """A copy of ``model`` with every absent effect switched off and differentiable solver settings."""
+               timestep: float | None = None, loop_free_solver: bool = True) -> mujoco.MjModel:
+    """A copy of ``model`` with every absent effect and every diagnostic switched off.
+
+    Args:
+      loop_free_solver: where the scene has constraints, True sets MJX's solver
+        to one Newton iteration (reverse-mode autodiff cannot pass a while
+        loop); False keeps the model's own solver settings, which forward mode
+        differentiates exactly.
+    """
     lean = with_options(model, integrator, timestep)
+    for bit in diagnostics_bits(lean):
+        lean.opt.enableflags &= ~bit
+    # Sensors feed no loss, so they are never simulated; MJX still checks every
+    # sensor's type, so the copy's become clocks, which it supports.
+    lean.opt.disableflags |= _DISABLE.mjDSBL_SENSOR
+    lean.sensor_type[:] = mujoco.mjtSensor.mjSENS_CLOCK
+    if not effects.contacts:
+        # No pair can ever touch (or contacts are off): MJX need not know the geoms' collision types.
+        lean.geom_contype[:] = 0
+        lean.geom_conaffinity[:] = 0
     for name, bit in _FLAGS:
         if bit is not None and not getattr(effects, name):
             lean.opt.disableflags |= bit
@@ -200,7 +321,7 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
         lean.opt.disableflags |= _DISABLE.mjDSBL_LIMIT
     if not effects.constraints:
         lean.opt.disableflags |= _DISABLE.mjDSBL_CONSTRAINT
-    else:
+    elif loop_free_solver:
         # MJX reverse-differentiates its solver only without a while loop: one
         # Newton iteration with a bounded line search (a scan).
         lean.opt.iterations = 1
@@ -218,15 +339,25 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
     return lean
 
 
-def describe(effects: SceneEffects, model: mujoco.MjModel) -> str:
-    """One line: what is simulated, what is skipped, and any solver setting chosen for gradients."""
+def describe(effects: SceneEffects, model: mujoco.MjModel, original: mujoco.MjModel | None = None) -> str:
+    """One line: what is simulated, what is skipped, and any solver setting chosen for gradients.
+
+    ``original``, the user's model, names the diagnostics the simulated copy skips.
+    """
     simulated = [label for name, label in _LABELS.items() if getattr(effects, name)]
     skipped = [label for name, label in _LABELS.items() if not getattr(effects, name)]
+    skipped += ["sensors"] + [f"{label} diagnostic" for label in diagnostics(original if original is not None else model)]
     integrator = {v: k for k, v in INTEGRATORS.items()}.get(int(model.opt.integrator), str(model.opt.integrator))
     line = (f"scene: {model.nq} qpos, {model.nv} dof, {model.nu} actuators, {integrator} at dt {model.opt.timestep:g}; "
             f"simulated: rigid-body dynamics{''.join(', ' + s for s in simulated)}; skipped: {', '.join(skipped) or 'nothing'}")
     if effects.constraints:
-        line += "; constraint solver: 1 Newton iteration (differentiable, no while loop)"
+        if model.opt.iterations == 1:
+            line += "; constraint solver: 1 Newton iteration (reverse-mode gradients need a loop-free solver)"
+        else:
+            solver = mujoco.mjtSolver(model.opt.solver).name[len("mjSOL_"):].capitalize()
+            solver = "CG" if solver == "Cg" else solver
+            line += (f"; constraint solver: the model's own ({solver}, at most {model.opt.iterations} iterations, "
+                     f"tolerance {model.opt.tolerance:g})")
     return line
 
 
@@ -305,7 +436,7 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
       implicit: False differentiates the lean step by plain autodiff through
         the mass matrix and its solve (a baseline for benchmarks and tests).
     """
-    mjx_model = mjx.put_model(model, impl="jax")
+    mjx_model = put_model(model)
     template = mjx.make_data(mjx_model)
     is_euler = int(model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_EULER)
     if pipeline == "lean" and not is_euler:

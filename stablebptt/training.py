@@ -15,11 +15,14 @@ import jax.numpy as jnp
 import optax
 
 from stablebptt.errors import InputError
-from stablebptt.flows import MODES, Dynamics, flow_gradients, flows_needed, reference_loss, select_flow, tree_cosine
+from stablebptt.flows import (MODES, Dynamics, flow_gradients, flows_needed, reference_loss, reference_losses,
+                              select_flow, tree_cosine)
+from stablebptt.memory import MemoryPlan, plan_memory
 
 PyTree = Any
 CLIP_MODES = ("value", "norm", "none")
 SEED_BATCHING = ("map", "vmap")
+MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
 METRICS = ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine")
 
 
@@ -50,6 +53,8 @@ class Task:
       sample_initial_states: ``sample_initial_states(key, n) -> batch`` (leading axis n).
       summary: one line on the set-up (what is simulated), printed by scripts.
       cell_option: the option a sweep may vmap per cell, if the task has one.
+      resolved: the task as resolved from its sources (model file, defaults,
+        options), JSON-serialisable; runs record it in their config.
     """
 
     name: str
@@ -58,6 +63,7 @@ class Task:
     sample_initial_states: Callable[[jax.Array, int], PyTree]
     summary: str = ""
     cell_option: CellOption | None = None
+    resolved: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -94,6 +100,10 @@ class TrainConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"--{name.replace('_', '-')} must be a positive number, got {value}")
+        for name, last in (("seed", self.seed + self.seeds - 1), ("data_seed", self.data_seed)):
+            if not 0 <= getattr(self, name) <= last <= MAX_SEED:
+                raise InputError(f"--{name.replace('_', '-')} must be from 0 to {MAX_SEED}"
+                                 + (f" with --seeds {self.seeds}" if name == "seed" else "") + f", got {getattr(self, name)}")
         if self.seed_batching not in SEED_BATCHING:
             raise InputError(f"unknown seed batching {self.seed_batching!r}: choose map or vmap")
         if self.train_size % self.batch:
@@ -176,14 +186,16 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     the optimizer of ``make_grid_optimizer`` selects each cell's update, and
     ``epoch`` takes each cell's value of ``task.cell_option`` as its second argument.
     """
-    # The loop unrolling is the run's choice, applied to whichever dynamics an epoch uses.
-    with_unroll = lambda dynamics: dataclasses.replace(dynamics, unroll=config.unroll)
     flows = ("R", "M", "S") if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
     train_key, test_key = jax.random.split(jax.random.PRNGKey(config.data_seed))
     train_states = task.sample_initial_states(train_key, config.train_size)
     test_states = task.sample_initial_states(test_key, config.test_size)
+    plan = memory_plan(task, config, jax.tree.map(lambda a: a[0], train_states))
+    # The loop unrolling and the memory plan are the run's, applied to whichever dynamics an epoch uses.
+    with_unroll = lambda dynamics: dataclasses.replace(dynamics, unroll=config.unroll, jacobian_chunk=plan.jacobian_chunk,
+                                                       rematerialize=plan.rematerialize)
     # Fixed order, no shuffling: minibatch i is always the same states.
     batches = jax.tree.map(lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), train_states)
 
@@ -203,21 +215,30 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
             cosine = tree_cosine(row("M"), row("R"))
         else:
             cosine = jnp.nan
-        return TrainState(params, opt_state), (loss, optax.tree.norm(updates), cosine)
+        # Every flow's gradient, not only the update: mode C's sign agreement
+        # turns a NaN of g_R into a finite zero update.
+        flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])
+        return TrainState(params, opt_state), (loss, optax.tree.norm(updates), cosine, flows_finite)
 
     def epoch(state, batches, train_states, test_states, dynamics=with_unroll(task.dynamics)):
-        state, (losses, update_norms, cosines) = jax.lax.scan(lambda s, b: update(dynamics, s, b), state, batches)
-        finite = jnp.isfinite(losses).all() & jnp.isfinite(update_norms).all()
+        state, (losses, update_norms, cosines, flows_finite) = jax.lax.scan(
+            lambda s, b: update(dynamics, s, b), state, batches)
+        # Training and test states in one rollout: the program holds one copy of the simulator, not two.
+        both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), train_states, test_states)
+        losses_of_both = reference_losses(dynamics, state.params, both)
+        train_loss, test_loss = losses_of_both[:config.train_size].mean(), losses_of_both[config.train_size:].mean()
         # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
-        finite &= jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in jax.tree.leaves(state)
-                                     if jnp.issubdtype(leaf.dtype, jnp.inexact)]))
+        checks = [jnp.isfinite(losses).all(), jnp.isfinite(update_norms).all() & _all_finite(state),
+                  jnp.isfinite(train_loss), jnp.isfinite(test_loss)] + list(flows_finite.all(axis=0))
+        failed = sum(jnp.where(ok, 0, 1 << bit) for bit, ok in enumerate(checks))
         metrics = {
             "batch_loss": losses.mean(),
-            "train_loss": evaluate(state.params, train_states, dynamics),
-            "test_loss": evaluate(state.params, test_states, dynamics),
+            "train_loss": train_loss,
+            "test_loss": test_loss,
             "update_norm": update_norms.mean(),
             "cosine": cosines.mean(),
-            "finite": finite,
+            "finite": failed == 0,
+            "nonfinite": failed,  # bit set per failed check, in the order of nonfinite_names(flows)
         }
         return state, metrics
 
@@ -243,6 +264,29 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         test_states=test_states,
         batches=batches,
     )
+
+
+def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree) -> MemoryPlan:
+    """The settings that fit ``task``'s gradient path, at ``config.batch`` examples per update, into memory."""
+    dynamics = task.dynamics
+    params = jax.eval_shape(lambda: task.init_params(jax.random.PRNGKey(0), config.zero_output))
+    control = jax.eval_shape(dynamics.policy, params, initial_state)
+    control = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), control)
+    size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
+    known = 0 if dynamics.known_columns is None else len(dynamics.known_columns.indices)
+    return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, dynamics.step_derivative,
+                       tangents=size(initial_state) + size(control) - known)
+
+
+def _all_finite(tree: PyTree) -> jax.Array:
+    leaves = [leaf for leaf in jax.tree.leaves(tree) if jnp.issubdtype(leaf.dtype, jnp.inexact)]
+    return jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in leaves])) if leaves else jnp.array(True)
+
+
+def nonfinite_names(flows: tuple[str, ...], failed: int) -> list[str]:
+    """What the ``nonfinite`` metric of an epoch says was not finite, in words."""
+    names = ["batch loss", "update or optimizer state", "train loss", "test loss"] + [f"gradient of flow {f}" for f in flows]
+    return [name for bit, name in enumerate(names) if int(failed) >> bit & 1]
 
 
 def seed_array(config: TrainConfig) -> jax.Array:

@@ -9,6 +9,13 @@ joints and actuators are found by type.
 """
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import io
+import math
+import os
+import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,6 +35,7 @@ MODELS = Path(__file__).resolve().parent.parent / "models"
 DEFAULT_EPOCHS = 1000
 DEFAULT_HORIZON = 100
 DEFAULT_SPREAD = 0.1  # per-dof half-width of the initial-state noise when the MJCF declares none
+MAX_HORIZON = 100_000  # steps; beyond it the rollout's stored states alone outgrow any machine
 FORWARD_MODE_MAX_STATE = 64  # numbers in (qpos, qvel, act) up to which step Jacobians are built forward
 # Joint types as plain ints: MuJoCo's enums do not compare equal to NumPy integers.
 FREE, BALL, SLIDE, HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL,
@@ -50,10 +58,12 @@ class Config:
     def __post_init__(self):
         if not self.model and not 1 <= self.poles <= 4:
             raise InputError(f"--poles must be 1, 2, 3 or 4, got {self.poles}; for other systems pass --model FILE.xml")
-        if self.spread < 0:
-            raise InputError(f"--spread must be zero or positive, got {self.spread}")
-        if self.dt < 0 or self.steps < 0:
-            raise InputError("--dt and --steps must be positive (or 0 for the MJCF's own)")
+        if not (math.isfinite(self.spread) and self.spread >= 0):
+            raise InputError(f"--spread must be a finite number, zero or positive, got {self.spread}")
+        if not (math.isfinite(self.dt) and self.dt >= 0):
+            raise InputError(f"--dt must be a finite positive time step (or 0 for the MJCF's own), got {self.dt}")
+        if not 0 <= self.steps <= MAX_HORIZON:
+            raise InputError(f"--steps must be between 1 and {MAX_HORIZON} (or 0 for the MJCF's own), got {self.steps}")
 
     @property
     def model_path(self) -> Path:
@@ -65,10 +75,36 @@ def load_model(path: Path) -> mujoco.MjModel:
     if not path.is_file():
         raise InputError(f"model file {path} does not exist")
     try:
-        return mujoco.MjModel.from_xml_path(str(path))
+        with _c_stderr_captured() as warnings:
+            model = mujoco.MjModel.from_xml_path(str(path))
     except ValueError as error:
         detail = " ".join(str(error).split())
         raise InputError(f"cannot load {path}: {detail}") from None
+    for line in warnings.getvalue().splitlines():
+        # MuJoCo's parser warns of every NaN in the file; NaN and infinity are refused below and in read_spec.
+        if line.strip() and "NaN" not in line:
+            print(f"{path.name}: {line.strip()}", file=sys.stderr)
+    timestep = float(model.opt.timestep)
+    if not (math.isfinite(timestep) and timestep > 0):
+        raise InputError(f"{path.name}: <option timestep> must be a finite positive number, got {timestep:g}")
+    return model
+
+
+@contextlib.contextmanager
+def _c_stderr_captured():
+    """Collect what C code writes to standard error (MuJoCo's parser warnings) instead of letting it through."""
+    collected = io.StringIO()
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield collected
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            collected.write(sink.read().decode(errors="replace"))
 
 
 def _numeric(model: mujoco.MjModel, name: str, size: int | None, default):
@@ -79,6 +115,8 @@ def _numeric(model: mujoco.MjModel, name: str, size: int | None, default):
     values = np.array(model.numeric_data[start:start + length], dtype=float)
     if size is not None and len(values) != size:
         raise InputError(f"<numeric name=\"{name}\"> has {len(values)} values, the model needs {size}")
+    if not np.all(np.isfinite(values)):
+        raise InputError(f"<numeric name=\"{name}\"> must hold finite numbers, got {' '.join(f'{v:g}' for v in values)}")
     return values
 
 
@@ -87,7 +125,11 @@ def _text(model: mujoco.MjModel, name: str, default: str) -> str:
     if index < 0:
         return default
     start, length = model.text_adr[index], model.text_size[index]
-    return bytes(model.text_data[start:start + length]).decode().rstrip("\x00").strip()
+    raw = bytes(model.text_data[start:start + length]).rstrip(b"\x00")
+    try:
+        return raw.decode("utf-8").strip()
+    except UnicodeDecodeError:
+        raise InputError(f"<text name=\"{name}\"> is not UTF-8 text: {raw!r}") from None
 
 
 def _keyframe(model: mujoco.MjModel, name: str):
@@ -111,8 +153,11 @@ class Spec:
 def read_spec(model: mujoco.MjModel, spread_scale: float = 1.0) -> Spec:
     """Read the task convention of models/README.md from ``model``."""
     if model.nu == 0:
-        raise InputError("the model has no actuators: add an <actuator> so the controller can act")
+        raise InputError("no actuators: add an <actuator> so the controller can act")
     horizon = _numeric(model, "bptt_horizon", 1, np.array([DEFAULT_HORIZON]))
+    if not (horizon[0] == round(horizon[0]) and 1 <= horizon[0] <= MAX_HORIZON):
+        raise InputError(f"<numeric name=\"bptt_horizon\"> must be a whole number of steps from 1 to {MAX_HORIZON}, "
+                         f"got {horizon[0]:g}")
     loss = _text(model, "bptt_loss", "final")
     if loss not in ("final", "mean"):
         raise InputError(f'<text name="bptt_loss"> must be "final" or "mean", got "{loss}"')
@@ -120,6 +165,9 @@ def read_spec(model: mujoco.MjModel, spread_scale: float = 1.0) -> Spec:
     if not np.any(weights > 0) or np.any(weights < 0):
         raise InputError("bptt_joint_weight needs non-negative weights, at least one positive")
     init_key, target_key = _keyframe(model, "init"), _keyframe(model, "target")
+    for key, label in ((init_key, "init"), (target_key, "target")):
+        if key is not None and not all(np.all(np.isfinite(getattr(key, f))) for f in ("qpos", "qvel", "act")):
+            raise InputError(f'<key name="{label}"> must hold finite numbers')
     init = State(
         jnp.asarray(init_key.qpos if init_key is not None else model.qpos0),
         jnp.asarray(init_key.qvel if init_key is not None else np.zeros(model.nv)),
@@ -185,15 +233,41 @@ def joint_errors(model: mujoco.MjModel, qpos: jax.Array, target: np.ndarray) -> 
 def make(config: Config) -> Task:
     path = config.model_path
     model = load_model(path)
-    if model.njnt == 0:
-        raise InputError(f"{path} has no joints: nothing to control")
-    spec = read_spec(model, config.spread)
-    effects = scene.analyze(model)
+    try:
+        if model.njnt == 0:
+            raise InputError("no joints: nothing to control")
+        spec = read_spec(model, config.spread)
+        effects = scene.analyze(model)
+        return _make(config, path, model, spec, effects)
+    except InputError as error:  # every message names the model it is about
+        raise InputError(f"{path.name}: {error}") from None
+
+
+def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects: scene.SceneEffects) -> Task:
+    state_size = 2 * model.nv + model.na + (model.nq - model.nv)
+    derivative = config.step_derivative
+    if derivative == "auto":
+        # Forward mode costs one batched pass per state number; reverse mode one
+        # pass through every tiny MJX operation: small states favour forward.
+        derivative = "forward" if state_size <= FORWARD_MODE_MAX_STATE else "reverse"
+    timestep = config.dt or float(model.opt.timestep)
+    simulated_time = spec.horizon * float(model.opt.timestep)
+    horizon = config.steps or round(simulated_time / timestep)
+    if horizon < 1:
+        raise InputError(f"--dt {config.dt:g} leaves less than one step of the task's {simulated_time:g} s: "
+                         f"choose a smaller --dt, or give --steps")
+    if horizon > MAX_HORIZON:
+        raise InputError(f"--dt {config.dt:g} makes the task's {simulated_time:g} s {horizon:.3g} steps, more than "
+                         f"{MAX_HORIZON}: choose a larger --dt, or give --steps")
     if config.pipeline == "mjx":  # the baseline: MuJoCo's default flags, only integrator and dt overridden
         lean = scene.with_options(model, config.integrator or None, config.dt or None)
+        for bit in scene.diagnostics_bits(lean):  # diagnostics change no dynamics, and MJX has none
+            lean.opt.enableflags &= ~bit
     else:
-        lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None)
-    horizon = config.steps or max(1, round(spec.horizon * model.opt.timestep / lean.opt.timestep))
+        # Forward mode differentiates the model's own constraint solver (its
+        # while loop) exactly; reverse mode needs a loop-free one.
+        lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None,
+                                loop_free_solver=derivative == "reverse")
     step = scene.make_step(lean, effects, config.pipeline)
     weights = jnp.asarray(spec.joint_weight / spec.joint_weight.sum())
     target = spec.target_qpos
@@ -213,24 +287,38 @@ def make(config: Config) -> Task:
         qpos = jax.vmap(lambda d: perturb_qpos(model, spec.init.qpos, d))(dq)
         return State(qpos, spec.init.qvel + dv, jnp.broadcast_to(spec.init.act, (count, model.na)))
 
-    state_size = 2 * model.nv + model.na + (model.nq - model.nv)
-    derivative = config.step_derivative
-    if derivative == "auto":
-        # Forward mode costs one batched pass per state number; reverse mode one
-        # pass through every tiny MJX operation: small states favour forward.
-        derivative = "forward" if state_size <= FORWARD_MODE_MAX_STATE else "reverse"
-    summary = scene.describe(effects, lean) + (f"; pipeline: {config.pipeline}" if config.pipeline != "lean" else "")
+    summary = scene.describe(effects, lean, model) + (f"; pipeline: {config.pipeline}" if config.pipeline != "lean" else "")
     summary += f"; step gradients: {derivative} mode"
     if config.pipeline == "lean" and scene.implicit_derivative_applies(lean, effects):
         summary += " through inverse dynamics"
     known_columns, symmetric_joints = scene.symmetries(lean, effects)
     if derivative == "forward" and symmetric_joints:
         summary += f" (symmetries: no tangent for {', '.join(symmetric_joints)})"
+    name = "cartpole" if not config.model else path.stem
+    as_list = lambda a: np.asarray(a, dtype=float).tolist()
+    resolved = {
+        "model_file": str(path.resolve()),
+        "model_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+        "timestep": float(lean.opt.timestep),
+        "horizon_steps": horizon,
+        "loss": spec.loss,
+        "joint_weight": dict(zip(joint_names(model), as_list(spec.joint_weight))),
+        "init": {"qpos": as_list(spec.init.qpos), "qvel": as_list(spec.init.qvel), "act": as_list(spec.init.act)},
+        "qpos_spread": as_list(spec.qpos_spread),
+        "qvel_spread": as_list(spec.qvel_spread),
+        "target_qpos": as_list(spec.target_qpos),
+        "step_derivative": derivative,
+    }
     return Task(
-        name="cartpole",
+        name=name,
         dynamics=Dynamics(step=step, policy=policy, loss=loss, horizon=horizon, step_derivative=derivative,
                           known_columns=known_columns),
         init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
         sample_initial_states=sample_initial_states,
         summary=f"{path.name}: {summary}; horizon {horizon} steps, {spec.loss}-state loss",
+        resolved=resolved,
     )
+
+
+def joint_names(model: mujoco.MjModel) -> list[str]:
+    return [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint {j}" for j in range(model.njnt)]

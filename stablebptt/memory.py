@@ -1,0 +1,134 @@
+"""The memory of the gradient path, estimated from a trace before anything compiles.
+
+A step's memory is estimated from its jaxpr: the peak of the values live at
+once when the equations run one by one, each freed after its last use (an inner
+loop holds one iteration's values at a time). XLA fuses many of them away, so
+the estimate errs on the safe side.
+
+``plan_memory`` turns the bound into the settings that fit the machine: the
+forward-mode step Jacobians of all T x batch examples are computed in chunks
+small enough to fit, and the reverse-mode rollout recomputes each step in the
+backward pass (``jax.checkpoint``) instead of storing its intermediates when
+storing them would not fit. Only a scene that cannot fit even one example is
+refused, with the estimate and the option that helps.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stablebptt.errors import InputError
+
+PyTree = Any
+BUDGET_FRACTION = 0.5  # of the memory available when the plan is made: the rest is XLA's, the data's and the OS's
+
+
+def _value_bytes(variables) -> int:
+    return sum(int(np.prod(v.aval.shape)) * v.aval.dtype.itemsize for v in variables
+               if isinstance(v, jax.extend.core.Var) and hasattr(v.aval, "shape") and hasattr(v.aval, "dtype"))
+
+
+def _peak_bytes(jaxpr) -> int:
+    """The most bytes live at once when ``jaxpr`` runs equation by equation, each value freed after its last use."""
+    last_use = {}
+    for index, equation in enumerate(jaxpr.eqns):
+        for variable in equation.invars:
+            if isinstance(variable, jax.extend.core.Var):
+                last_use[variable] = index
+    for variable in jaxpr.outvars:
+        if isinstance(variable, jax.extend.core.Var):
+            last_use[variable] = len(jaxpr.eqns)
+    live = _value_bytes(list(jaxpr.invars) + list(jaxpr.constvars))
+    peak = live
+    for index, equation in enumerate(jaxpr.eqns):
+        inner = max((_peak_bytes(j) for j in jax.extend.core.jaxprs_in_params(equation.params)), default=0)
+        live += _value_bytes(equation.outvars)
+        peak = max(peak, live + inner)
+        dead = {v for v in equation.invars if isinstance(v, jax.extend.core.Var) and last_use.get(v) == index}
+        dead |= {v for v in equation.outvars if v not in last_use}
+        live -= _value_bytes(dead)
+    return peak
+
+
+def traced_bytes(function: Callable, *example_args) -> int:
+    """The bytes one call of ``function`` holds at its peak, from its jaxpr (no compilation)."""
+    return _peak_bytes(jax.make_jaxpr(function)(*example_args).jaxpr)
+
+
+def available_bytes() -> int:
+    """Memory the OS reports as available (MemAvailable), else the physical memory."""
+    try:
+        with open("/proc/meminfo") as handle:
+            for line in handle:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+class MemoryPlan(NamedTuple):
+    """Settings of the gradient path that fit the memory budget.
+
+    Attributes:
+      jacobian_chunk: examples per chunk of the batched step Jacobians
+        (``"forward"``), or None for all at once.
+      rematerialize: recompute each step in the backward pass (``"reverse"``).
+      estimate: the bound, in bytes, of the gradient path without the plan.
+    """
+
+    jacobian_chunk: int | None
+    rematerialize: bool
+    estimate: int
+
+
+def _gigabytes(count: float) -> str:
+    return f"{count / 2**30:.3g} GB"
+
+
+def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, batch: int, step_derivative: str,
+                tangents: int, budget: int | None = None) -> MemoryPlan:
+    """Fit the gradient path of ``batch`` rollouts of ``horizon`` steps into ``budget`` bytes.
+
+    Args:
+      step: ``step(state, control) -> state``.
+      state, control: one example of each (no batch axis).
+      horizon, batch: the rollout's steps and examples per update.
+      step_derivative: ``"forward"`` or ``"reverse"`` (``Dynamics.step_derivative``).
+      tangents: forward-mode tangents pushed per example (Jacobian columns computed).
+      budget: bytes the path may use; default a fraction of the available memory.
+
+    Raises:
+      InputError: if not even one example fits.
+    """
+    budget = budget if budget is not None else int(BUDGET_FRACTION * available_bytes())
+    examples = horizon * batch
+    if step_derivative == "forward":
+        tangent_of = lambda tree: jax.tree.map(jnp.ones_like, tree)
+        per_tangent = traced_bytes(lambda s, u: jax.jvp(step, (s, u), (tangent_of(s), tangent_of(u))), state, control)
+        per_example = per_tangent * max(tangents, 1)
+        if per_example > budget:
+            raise InputError(f"one example's step Jacobian needs up to {_gigabytes(per_example)}, more than the "
+                             f"{_gigabytes(budget)} this machine can give it: choose --step-derivative reverse")
+        fitting = budget // per_example
+        if fitting >= examples:
+            return MemoryPlan(None, False, per_example * examples)
+        # A divisor of the example count: equal chunks compile the step's Jacobian once, not twice.
+        chunk = max(d for d in range(1, int(fitting) + 1) if examples % d == 0)
+        return MemoryPlan(chunk, False, per_example * examples)
+    # Reverse mode stores every step's intermediates for the backward pass.
+    per_step = traced_bytes(lambda s, u: jax.vjp(step, s, u)[1], state, control)
+    stored = per_step * examples
+    if stored <= budget:
+        return MemoryPlan(None, False, stored)
+    state_bytes = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves((state, control)))
+    rematerialized = state_bytes * examples + per_step * batch
+    if rematerialized > budget:
+        raise InputError(f"the backward pass of {batch} examples x {horizon} steps needs up to "
+                         f"{_gigabytes(rematerialized)} even recomputing each step, more than the {_gigabytes(budget)} "
+                         f"this machine can give it: use a smaller --batch or fewer --steps")
+    return MemoryPlan(None, True, stored)
