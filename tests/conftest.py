@@ -9,6 +9,8 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+import stablebptt  # noqa: E402,F401  (its XLA:CPU set-up must precede JAX's CPU client)
+
 
 @contextlib.contextmanager
 def float64():

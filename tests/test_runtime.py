@@ -1,0 +1,46 @@
+"""XLA:CPU runtime set-up: batched LAPACK calls running at once must not deadlock the intra-op pool.
+
+jaxlib 0.10.2's LAPACK kernels (cholesky, triangular solve; MJX's Newton solver)
+split a batch of at least ~200k flops into chunks queued on XLA's intra-op pool and
+block the pool thread that runs them until the chunks are done. When as many such
+calls run at once as the pool has threads, every thread waits and nobody runs the
+chunks. ``import stablebptt`` gives the pool one thread (PJRT_NPROC=1), with which
+the kernels run the whole batch in place.
+"""
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from conftest import ROOT
+
+# 16 independent triangular solves of 100 7x7 systems with 49 right-hand sides each
+# (hopper's step-Jacobian solves, smaller batch): with a 2-thread pool this hangs
+# within the first ~50 calls (3 of 3 runs on 2 cores); fixed, 300 calls take ~1 s.
+PROGRAM = textwrap.dedent("""
+    import stablebptt  # the library's runtime set-up, before JAX starts its CPU client
+    import jax, jax.numpy as jnp
+    key = jax.random.PRNGKey(0)
+    chol = jnp.tril(jax.random.normal(key, (100, 7, 7))) + 21 * jnp.eye(7)
+    rhs = [jax.random.normal(jax.random.fold_in(key, i), (100, 7, 49)) for i in range(16)]
+    solve = jax.jit(lambda c, bs: [jax.lax.linalg.triangular_solve(c, b, left_side=True, lower=True) for b in bs])
+    for _ in range(300):
+        jax.block_until_ready(solve(chol, rhs))
+    threads = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
+    print("intra-op threads:", threads.count("tf_XLAEigen"))
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads thread names from /proc")
+def test_concurrent_batched_lapack_calls_finish():
+    env = {k: v for k, v in os.environ.items() if k not in ("PJRT_NPROC", "NPROC")}
+    env["PYTHONPATH"] = str(ROOT)
+    try:
+        result = subprocess.run([sys.executable, "-c", "import os\n" + PROGRAM], env=env, capture_output=True,
+                                text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("concurrent batched LAPACK calls deadlocked XLA:CPU's intra-op pool")
+    assert result.returncode == 0, result.stderr
+    assert "intra-op threads: 1" in result.stdout, result.stdout
