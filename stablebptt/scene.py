@@ -94,8 +94,6 @@ _FLAGS = (
     ("joint_limits", None),  # LIMIT covers joints and tendons: set below when both are absent
     ("equality", _DISABLE.mjDSBL_EQUALITY),
     ("friction_loss", _DISABLE.mjDSBL_FRICTIONLOSS),
-    ("springs", _DISABLE.mjDSBL_SPRING),
-    ("dampers", _DISABLE.mjDSBL_DAMPER),
     ("control_clamp", _DISABLE.mjDSBL_CLAMPCTRL),
 )
 _LABELS = {
@@ -319,6 +317,11 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
             lean.opt.disableflags |= bit
     if not (effects.joint_limits or effects.tendon_limits):
         lean.opt.disableflags |= _DISABLE.mjDSBL_LIMIT
+    if not effects.passive:
+        # MJX zeroes ALL passive forces (springs, dampers, gravity compensation,
+        # fluid) when either flag is set, unlike MuJoCo's C step: only both, and
+        # only when the scene has none of them.
+        lean.opt.disableflags |= _DISABLE.mjDSBL_SPRING | _DISABLE.mjDSBL_DAMPER
     if not effects.constraints:
         lean.opt.disableflags |= _DISABLE.mjDSBL_CONSTRAINT
     elif loop_free_solver:

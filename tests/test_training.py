@@ -129,6 +129,29 @@ def test_divergence_stops_with_the_epoch_and_keeps_the_last_good_checkpoint(tmp_
     assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(saved))
 
 
+def nan_through_the_policy_input_task():
+    """g_R is NaN (the policy's input passes a square root at 0, times 0) while g_M, the loss and
+    mode C's sign-agreement update stay finite: C's update is a finite zero that hides the NaN."""
+    return Task(
+        name="hidden-nan",
+        dynamics=Dynamics(step=lambda x, u: x + u, policy=lambda p, x: p * x + 0.0 * jnp.sqrt(jnp.abs(x - x)),
+                          loss=lambda states, controls: jnp.sum((states[-1] - 2.0) ** 2), horizon=3),
+        init_params=lambda key, zero_output: jnp.array([0.5]),
+        sample_initial_states=lambda key, n: jax.random.uniform(key, (n, 1), minval=0.5, maxval=1.0),
+    )
+
+
+def test_a_non_finite_gradient_of_any_flow_stops_training_even_when_the_update_is_finite(tmp_path):
+    config = TrainConfig(epochs=3, train_size=8, test_size=8, batch=8, mode="C")
+    trainer = make_trainer(nan_through_the_policy_input_task(), config)
+    state = trainer.init(seed_array(config))
+    _, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+    assert np.isfinite(metrics["update_norm"][0]) and np.isfinite(metrics["test_loss"][0])  # nothing else shows it
+    outcome = runs.train_epochs(trainer, config, tmp_path, state, 0, runs.empty_rows(), np.asarray(seed_array(config)))
+    assert outcome.status == "diverged" and outcome.epoch == 0
+    assert "gradient of flow R" in outcome.message and "flow M" not in outcome.message, outcome.message
+
+
 def train_cli(*args, **kwargs):
     return subprocess.run(TRAIN + list(args), capture_output=True, text=True, cwd=kwargs.pop("cwd", ROOT), **kwargs)
 
