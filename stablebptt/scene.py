@@ -27,6 +27,7 @@ with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx
 # Internal MJX stages: pinned with mujoco-mjx in pyproject.toml.
 from mujoco.mjx._src import collision_driver, constraint, passive, smooth, solver  # noqa: E402
+from mujoco.mjx._src import types as mjx_types  # noqa: E402
 from mujoco.mjx._src import forward as mjx_forward  # noqa: E402
 
 from stablebptt.errors import InputError  # noqa: E402
@@ -259,7 +260,6 @@ def check_supported(model: mujoco.MjModel) -> None:
                 model.geom_margin[g1] + model.geom_margin[g2] > 0):
             refuse(f"a contact margin on a mesh or height field (geoms '{_name(model, geom, g1)}' and "
                    f"'{_name(model, geom, g2)}'): set margin=\"0\"")
-    from mujoco.mjx._src import types as mjx_types
     for values, supported, kind, what in (
             (model.actuator_gaintype, mjx_types.GainType, mujoco.mjtGain, "actuator gain"),
             (model.actuator_biastype, mjx_types.BiasType, mujoco.mjtBias, "actuator bias"),

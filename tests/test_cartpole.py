@@ -308,8 +308,8 @@ def test_an_unannotated_arm_with_two_actuators_trains_with_no_code_change(tmp_pa
     model_file.write_text(ARM.format(custom=textwrap.dedent("""
         <custom><numeric name="bptt_horizon" data="40"/></custom>
         <keyframe><key name="target" qpos="1.2 -0.8"/></keyframe>""")))
-    result = subprocess.run(TRAIN + ["--model", str(model_file), "--epochs", "3", "--train-size", "16",
-                                     "--test-size", "16", "--lr", "1e-2", "--out", str(tmp_path / "run"),
+    result = subprocess.run(TRAIN + ["--model", str(model_file), "--epochs", "5", "--train-size", "16",
+                                     "--test-size", "16", "--lr", "3e-3", "--out", str(tmp_path / "run"),
                                      "--no-progress"], capture_output=True, text=True, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     assert "dampers" in result.stdout.split("skipped")[0] and "control clamping" in result.stdout.split("skipped")[0]
