@@ -7,8 +7,10 @@ import numpy as np
 import optax
 import pytest
 
+from stablebptt.errors import InputError
 from stablebptt.flows import (Dynamics, flow_gradients, flows_needed, reference_loss, reference_rollout,
                               select_flow, sign_agreement, tree_cosine)
+from stablebptt.memory import plan_memory
 
 A, B, T = 0.9, 0.5, 6  # x_{t+1} = A x_t + B u_t, u_t = theta x_t, loss x_T^2 / 2
 
@@ -93,11 +95,15 @@ def test_flows_needed():
         flows_needed("X")
 
 
-@pytest.mark.parametrize("step_derivative, unroll", [("reverse", 1), ("forward", 1), ("forward", 5)])
-def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, step_derivative, unroll):
+@pytest.mark.parametrize("step_derivative, unroll, memory", [
+    ("reverse", 1, {}), ("forward", 1, {}), ("forward", 5, {}),
+    ("forward", 1, {"jacobian_chunk": 8}), ("reverse", 1, {"rematerialize": True})])
+def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, step_derivative, unroll, memory):
     """Nonlinear step on a pytree state, MLP-like policy, a loss on every state and on the controls.
 
-    unroll=5 does not divide the horizon: the unrolled loop's remainder must be right too.
+    unroll=5 does not divide the horizon: the unrolled loop's remainder must be right too. The
+    memory plan's settings (Jacobians in chunks of 8 of the 48 examples, steps recomputed in the
+    backward pass) change no number either.
     """
     dynamics = Dynamics(
         step=lambda s, u: (s[0] + 0.1 * jnp.sin(s[1][::-1]) + 0.2 * u, s[1] + 0.1 * s[0] * jnp.cos(u.sum())),
@@ -106,13 +112,14 @@ def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, 
         horizon=12,
         step_derivative=step_derivative,
         unroll=unroll,
+        **memory,
     )
     key_w, key_v, key_x = jax.random.split(jax.random.PRNGKey(3), 3)
     params = {"w": jax.random.normal(key_w, (4, 5)), "v": jax.random.normal(key_v, (5, 2))}
     x0 = tuple(jax.random.normal(key_x, (2, 4, 2)))
     _, grads = flow_gradients(dynamics, ("R", "M", "S"), params, x0)
     for index, flow in enumerate(("R", "M", "S")):
-        expected = jax.grad(reference_loss, argnums=1)(replace(dynamics, unroll=1), params, x0, flow)
+        expected = jax.grad(reference_loss, argnums=1)(replace(dynamics, unroll=1, rematerialize=False), params, x0, flow)
         for fast, slow in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
             np.testing.assert_allclose(fast[index], slow, rtol=1e-10, atol=1e-12)
 
@@ -125,3 +132,21 @@ def test_the_combination_never_points_uphill():
     combined = sign_agreement(g_m, g_r)
     assert np.all(np.sum(combined * g_r, axis=1) >= 0)
     assert np.all((combined == 0) | (combined == g_m))
+
+
+def test_the_memory_plan_chunks_recomputes_or_refuses_as_the_budget_shrinks():
+    step = lambda x, u: jnp.tanh(x @ jnp.ones((16, 16)) + u.sum())
+    state, control = jnp.ones(16), jnp.ones(2)
+    plenty = plan_memory(step, state, control, horizon=10, batch=8, step_derivative="forward", tangents=18,
+                         budget=2**40)
+    assert plenty.jacobian_chunk is None and plenty.estimate > 0
+    one_example = plenty.estimate // 80
+    chunked = plan_memory(step, state, control, 10, 8, "forward", 18, budget=int(7.5 * one_example))
+    assert chunked.jacobian_chunk == 5  # the largest divisor of 80 examples that fits 7.5 of them
+    with pytest.raises(InputError, match="--step-derivative reverse"):
+        plan_memory(step, state, control, 10, 8, "forward", 18, budget=one_example - 1)
+    stored = plan_memory(step, state, control, 10, 8, "reverse", 18, budget=2**40)
+    assert not stored.rematerialize
+    assert plan_memory(step, state, control, 10, 8, "reverse", 18, budget=stored.estimate - 1).rematerialize
+    with pytest.raises(InputError, match="--batch"):
+        plan_memory(step, state, control, 10, 8, "reverse", 18, budget=1)
