@@ -48,10 +48,8 @@ PRESETS = {
     "quantum": ("quantum", "target", (3, 4, 5)),
     "tiny": ("repulsion", "rc", (1.0, 0.1)),  # the CPU test of the machinery
 }
-# Rollout-loop unrolling on GPUs, measured on an H200 (60 cells; s/epoch; session 2, before the
-# cart-pole's step Jacobians were batched over all steps, not re-measured since):
-# cart-pole 1.10 -> 0.69-0.84 at 5, quantum 0.68 -> 0.42 at 8, repulsion 0.20 -> 0.12 at 10.
-# Beyond that compile time grows faster than the gain (cart-pole: 80 s at 10).
+# Rollout-loop unrolling on GPUs: the README's GPU table gives the measured s/epoch (one H200,
+# 60 cells); beyond these counts compile time grows faster than the gain.
 GPU_UNROLL = {"cartpole": 5, "quantum": 8, "repulsion": 10}
 
 
