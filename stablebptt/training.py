@@ -194,7 +194,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     test_states = task.sample_initial_states(test_key, config.test_size)
     plan = memory_plan(task, config, jax.tree.map(lambda a: a[0], train_states))
     # The loop unrolling and the memory plan are the run's, applied to whichever dynamics an epoch uses.
-    with_unroll = lambda dynamics: dataclasses.replace(dynamics, unroll=config.unroll, jacobian_chunk=plan.jacobian_chunk,
+    for_this_run = lambda dynamics: dataclasses.replace(dynamics, unroll=config.unroll, jacobian_chunk=plan.jacobian_chunk,
                                                        rematerialize=plan.rematerialize)
     # Fixed order, no shuffling: minibatch i is always the same states.
     batches = jax.tree.map(lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), train_states)
@@ -203,7 +203,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)
         return TrainState(params, optimizer.init(params))
 
-    def evaluate(params, initial_states, dynamics=with_unroll(task.dynamics)):
+    def evaluate(params, initial_states, dynamics=for_this_run(task.dynamics)):
         return reference_loss(dynamics, params, initial_states)
 
     def update(dynamics, state, batch):
@@ -220,7 +220,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])
         return TrainState(params, opt_state), (loss, optax.tree.norm(updates), cosine, flows_finite)
 
-    def epoch(state, batches, train_states, test_states, dynamics=with_unroll(task.dynamics)):
+    def epoch(state, batches, train_states, test_states, dynamics=for_this_run(task.dynamics)):
         state, (losses, update_norms, cosines, flows_finite) = jax.lax.scan(
             lambda s, b: update(dynamics, s, b), state, batches)
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
@@ -244,7 +244,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
 
     def grid_epoch(state, value, batches, train_states, test_states):
         dynamics = task.dynamics if value is None else task.cell_option.dynamics(value)
-        return epoch(state, batches, train_states, test_states, with_unroll(dynamics))
+        return epoch(state, batches, train_states, test_states, for_this_run(dynamics))
 
     def over_seeds(function, mapped=1):
         """Map ``function(*per_seed, *shared)`` over the leading seed axis of its first ``mapped`` arguments."""
