@@ -7,10 +7,10 @@ INSTALLED := $(VENV)/.installed
 
 .PHONY: train test
 
-$(INSTALLED): pyproject.toml
+$(INSTALLED): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet --constraint constraints.txt -e '.[dev]'
 	touch $(INSTALLED)
 
 # A budget that finishes in a few minutes on a 2-core laptop; drop --epochs for the paper's 1000.

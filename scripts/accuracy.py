@@ -28,17 +28,16 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import csv  # noqa: E402
-import dataclasses  # noqa: E402
-import io  # noqa: E402
-import platform  # noqa: E402
-import time  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
-from typing import Any, Callable, NamedTuple  # noqa: E402
+import csv
+import dataclasses
+import io
+import platform
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, NamedTuple
 
-from stablebptt.cli import fail, parse_config  # noqa: E402
+from stablebptt.cli import fail, parse_config
 
 STUDIES = ("trajectory", "gradients", "training")
 TASKS = ("cartpole", "repulsion", "quantum")
@@ -228,7 +227,7 @@ def rollout_program(step: Callable, steps: int) -> Callable:
 
 
 def cartpole_setup(poles: int, quick: bool) -> TrajectorySetup:
-    from tasks import cartpole, cartpole_equations
+    from stablebptt.tasks import cartpole, cartpole_equations
     reference_dt = 1e-4
 
     def make_task(integrator, dt):
@@ -261,7 +260,7 @@ def cartpole_setup(poles: int, quick: bool) -> TrajectorySetup:
 
 
 def repulsion_setup(quick: bool) -> TrajectorySetup:
-    from tasks import repulsion
+    from stablebptt.tasks import repulsion
 
     def make_task(integrator, dt):
         return repulsion.make(repulsion.Config(integrator=integrator, steps=round(REPULSION_DURATION / dt)))
@@ -287,7 +286,7 @@ def repulsion_setup(quick: bool) -> TrajectorySetup:
 
 
 def quantum_setup(quick: bool) -> TrajectorySetup:
-    from tasks import quantum
+    from stablebptt.tasks import quantum
     physics = quantum.Physics()
 
     def make_task(integrator, dt):
@@ -403,7 +402,7 @@ class GradientSetup:
 
 
 def gradient_setups(config: AccuracyConfig) -> list[GradientSetup]:
-    from tasks import cartpole, quantum, repulsion
+    from stablebptt.tasks import cartpole, quantum, repulsion
 
     def upright(states):
         # Angles 0 +- 30 degrees instead of pi +- 30: the poles fall and tumble, a chaotic motion.
@@ -509,7 +508,7 @@ def growth_rows(rows: list[dict]) -> list[dict]:
 
 def training_task(name: str):
     """The training study's task: repulsion at rc 0.01 (where the paper's modes differ most), else the defaults."""
-    import tasks
+    from stablebptt import tasks
     module = tasks.load(name)
     return module.make(module.Config(rc=0.01) if name == "repulsion" else module.Config())
 

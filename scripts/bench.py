@@ -20,15 +20,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import dataclasses  # noqa: E402
-import os  # noqa: E402
-import platform  # noqa: E402
-import time  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
+import dataclasses
+import os
+import platform
+import time
+from dataclasses import dataclass, field
 
-from stablebptt.cli import fail, parse_config  # noqa: E402
+from stablebptt.cli import fail, parse_config
 
 MODE_FLOWS = {"R": ("R",), "M": ("M",), "S": ("S",), "C": ("R", "M")}
 
@@ -108,7 +107,7 @@ def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
 def pipeline_table(poles: int, batch: int, rounds: int) -> list[str]:
     import mujoco
     from stablebptt import scene
-    from tasks import cartpole, cartpole_equations
+    from stablebptt.tasks import cartpole, cartpole_equations
     lean = cartpole.make(cartpole.Config(poles=poles))
     default = cartpole.make(cartpole.Config(poles=poles, pipeline="mjx"))
     with_step = lambda step: dataclasses.replace(lean, dynamics=dataclasses.replace(lean.dynamics, step=step))
@@ -177,7 +176,7 @@ def parts_table(task, poles: int, batch: int, rounds: int, whole_update) -> list
 
 def main(argv: list[str]) -> int:
     config = parse_config(BenchConfig, argv, __doc__, "benchmark")
-    import tasks
+    from stablebptt import tasks
     names = [t for t in config.tasks.split(",") if t]
     unknown = [t for t in names if t not in tasks.TASK_MODULES]
     if unknown:

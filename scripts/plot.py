@@ -17,12 +17,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import argparse  # noqa: E402
+import argparse
 
-from stablebptt.cli import Parser, fail  # noqa: E402
-from stablebptt.errors import InputError  # noqa: E402
+from stablebptt.cli import Parser, fail
+from stablebptt.errors import InputError
 
 
 def parse(argv: list[str]) -> argparse.Namespace:

@@ -20,15 +20,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import argparse  # noqa: E402
-import dataclasses  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
-from datetime import datetime  # noqa: E402
+import argparse
+import dataclasses
+from dataclasses import dataclass, field
+from datetime import datetime
 
-from stablebptt.cli import Parser, add_options, build, fail  # noqa: E402
-from stablebptt.errors import InputError  # noqa: E402
+from stablebptt.cli import Parser, add_options, build, fail
+from stablebptt.errors import InputError
 
 RENDERS_ROOT = Path("renders")
 STEM = "rollout"  # default name of the files written into a run directory
@@ -122,7 +121,7 @@ def read_run(run_dir: Path) -> dict:
     if not run_dir.is_dir():
         raise InputError(f"{run_dir} is not a directory: give a run directory written by scripts/train.py")
     from stablebptt.runs import CONFIG_FILE, PARAMS_FILE, read_json  # imports JAX: only once there is a run to read
-    import tasks
+    from stablebptt import tasks
     saved = read_json(run_dir / CONFIG_FILE)
     if not (isinstance(saved, dict) and isinstance(saved.get("task_config"), dict) and isinstance(saved.get("train"), dict)):
         raise InputError(f"{run_dir / CONFIG_FILE} is not a run configuration (expected 'task', 'task_config' and 'train')")
@@ -200,12 +199,12 @@ def render_figures(task_name: str, task_config, states, controls, titles, label,
                    video: Path | None, picture: Path) -> list[Path]:
     """Repulsion and quantum: matplotlib pictures and animations (tasks/figures.py)."""
     from stablebptt import rendering
-    from tasks import figures
+    from stablebptt.tasks import figures
 
     written = []
     panel = (config.width, config.height)
     if task_name == "repulsion":
-        from tasks.repulsion import Physics
+        from stablebptt.tasks.repulsion import Physics
         positions = states.position
         if video is not None:
             frames = figures.repulsion_frames(positions, Physics().duration, panel, titles)
@@ -223,7 +222,7 @@ def render_figures(task_name: str, task_config, states, controls, titles, label,
 def build_controller(args, config: RenderConfig, saved: dict | None):
     """(task name, task config, train config, task, parameters of one seed, label) of the run or the --model."""
     import jax
-    import tasks
+    from stablebptt import tasks
     from stablebptt.runs import METRICS_FILE, read_metrics
     from stablebptt.training import TrainConfig
 

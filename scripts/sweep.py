@@ -26,20 +26,19 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import dataclasses  # noqa: E402
-import itertools  # noqa: E402
-import signal  # noqa: E402
-import threading  # noqa: E402
-import time  # noqa: E402
-from concurrent.futures import ThreadPoolExecutor  # noqa: E402
-from concurrent.futures import wait as futures_wait  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
-from typing import Callable  # noqa: E402
+import dataclasses
+import itertools
+import signal
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
+from dataclasses import dataclass, field
+from typing import Callable
 
-from stablebptt.cli import build, fail, parse_config  # noqa: E402
-from stablebptt.errors import InputError  # noqa: E402
+from stablebptt.cli import build, fail, parse_config
+from stablebptt.errors import InputError
 
 # preset -> (task, the option that sets the complexity, its values)
 PRESETS = {
@@ -127,7 +126,7 @@ def cell_name(task_name, option, value, mode, clip) -> str:
 
 
 def make_task(task_name: str, option: str, value, config: SweepConfig):
-    import tasks
+    from stablebptt import tasks
     module = tasks.load(task_name)
     task_options = {option: value}
     if config.task_steps:

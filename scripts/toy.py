@@ -14,12 +14,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from dataclasses import dataclass, field  # noqa: E402
+from dataclasses import dataclass, field
 
-from stablebptt.cli import parse_config  # noqa: E402
-from stablebptt.errors import InputError  # noqa: E402
+from stablebptt.cli import parse_config
+from stablebptt.errors import InputError
 
 
 @dataclass(frozen=True)

@@ -11,16 +11,15 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import dataclasses  # noqa: E402
-import platform  # noqa: E402
-import time  # noqa: E402
+import dataclasses
+import platform
+import time
 
-from stablebptt.cli import Parser, add_options, build, fail, option_name  # noqa: E402
-from stablebptt.errors import InputError  # noqa: E402
-from stablebptt.training import TrainConfig  # noqa: E402
-import tasks  # noqa: E402
+from stablebptt.cli import Parser, add_options, build, fail, option_name
+from stablebptt.errors import InputError
+from stablebptt.training import TrainConfig
+from stablebptt import tasks
 
 RUNS_ROOT = Path("runs")
 RESUMABLE = {"epochs"}  # what --resume may change: extending a finished run

@@ -10,9 +10,7 @@ tendons, collision and constraint assembly).
 """
 from __future__ import annotations
 
-import contextlib
 import copy
-import io
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
@@ -21,38 +19,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-# MJX prints "Failed to import warp" on stdout when the (gradient-free) Warp
-# backend is absent, which it always is here: keep that out of users' output.
-with contextlib.redirect_stdout(io.StringIO()):
-    from mujoco import mjx
-# Internal MJX stages: pinned with mujoco-mjx in pyproject.toml.
-from mujoco.mjx._src import collision_driver, constraint, passive, smooth, solver  # noqa: E402
-from mujoco.mjx._src import types as mjx_types  # noqa: E402
-from mujoco.mjx._src import forward as mjx_forward  # noqa: E402
-
-from stablebptt.errors import InputError  # noqa: E402
-
-
-@jax.custom_jvp
-def _sqrt_flat_at_zero(x):
-    return jnp.sqrt(x)
-
-
-@_sqrt_flat_at_zero.defjvp
-def _sqrt_flat_at_zero_jvp(primals, tangents):
-    (x,), (x_dot,) = primals, tangents
-    root = jnp.sqrt(x)
-    return root, jnp.where(x > 0, x_dot / (2 * jnp.where(x > 0, root, 1.0)), 0.0)
-
-
-# MJX's elliptic-cone line search takes the square root of a contact's squared
-# tangential force, exactly 0 for a contact that does not slide: its slope there
-# is 0 / 0 and turns every forward-mode step Jacobian into NaN, although the
-# terms it feeds are masked out at 0. MJX's solver module alone gets a square
-# root whose slope at 0 is 0; values are unchanged.
-solver.jp = type(jnp)("jax.numpy, square root flat at zero")
-solver.jp.__dict__.update({**vars(jnp), "sqrt": _sqrt_flat_at_zero})
-from stablebptt.flows import KnownColumns  # noqa: E402
+from stablebptt.errors import InputError
+from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth, solver
+from stablebptt.mjx_internals import forward as mjx_forward
+from stablebptt.mjx_internals import types as mjx_types
+from stablebptt.flows import KnownColumns
 
 _DISABLE = mujoco.mjtDisableBit
 _ENABLE = mujoco.mjtEnableBit

@@ -5,9 +5,9 @@ import importlib
 from types import ModuleType
 
 TASK_MODULES = {
-    "cartpole": "tasks.cartpole",
-    "repulsion": "tasks.repulsion",
-    "quantum": "tasks.quantum",
+    "cartpole": "stablebptt.tasks.cartpole",
+    "repulsion": "stablebptt.tasks.repulsion",
+    "quantum": "stablebptt.tasks.quantum",
 }
 DEFAULT_TASK = "cartpole"
 

@@ -9,13 +9,9 @@ joints and actuators are found by type.
 """
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import io
 import math
-import os
 import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,14 +20,14 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stablebptt import scene
+from stablebptt import models, mujoco_log, scene
 from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.scene import State
 from stablebptt.training import Task
 
-MODELS = Path(__file__).resolve().parent.parent / "models"
+MODELS = models.DIRECTORY  # package data: found wherever the package is installed
 DEFAULT_EPOCHS = 1000
 DEFAULT_HORIZON = 100
 DEFAULT_SPREAD = 0.1  # per-dof half-width of the initial-state noise when the MJCF declares none
@@ -67,7 +63,7 @@ class Config:
 
     @property
     def model_path(self) -> Path:
-        return Path(self.model) if self.model else MODELS / f"cartpole_{self.poles}.xml"
+        return Path(self.model) if self.model else models.cartpole(self.poles)
 
 
 def load_model(path: Path) -> mujoco.MjModel:
@@ -75,12 +71,12 @@ def load_model(path: Path) -> mujoco.MjModel:
     if not path.is_file():
         raise InputError(f"model file {path} does not exist")
     try:
-        with _c_stderr_captured() as warnings:
+        with mujoco_log.collected() as warnings:
             model = mujoco.MjModel.from_xml_path(str(path))
     except ValueError as error:
         detail = " ".join(str(error).split())
         raise InputError(f"cannot load {path}: {detail}") from None
-    for line in warnings.getvalue().splitlines():
+    for line in warnings:
         # MuJoCo's parser warns of every NaN in the file; NaN and infinity are refused below and in read_spec.
         if line.strip() and "NaN" not in line:
             print(f"{path.name}: {line.strip()}", file=sys.stderr)
@@ -88,23 +84,6 @@ def load_model(path: Path) -> mujoco.MjModel:
     if not (math.isfinite(timestep) and timestep > 0):
         raise InputError(f"{path.name}: <option timestep> must be a finite positive number, got {timestep:g}")
     return model
-
-
-@contextlib.contextmanager
-def _c_stderr_captured():
-    """Collect what C code writes to standard error (MuJoCo's parser warnings) instead of letting it through."""
-    collected = io.StringIO()
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield collected
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            collected.write(sink.read().decode(errors="replace"))
 
 
 def _numeric(model: mujoco.MjModel, name: str, size: int | None, default):

@@ -23,7 +23,7 @@ from matplotlib.lines import Line2D
 
 from stablebptt.plots import render
 from stablebptt.rendering import figure_pixels
-from tasks import quantum, repulsion
+from stablebptt.tasks import quantum, repulsion
 
 # Okabe-Ito colours (readable with colour blindness), as the learning curves use.
 DRIVER_COLOUR = "#0072B2"

@@ -1,15 +1,16 @@
-"""Shared test set-up: the repository root on sys.path, and a float64 switch for single tests."""
+"""Shared test set-up: the package imported first, and a float64 switch for single tests.
+
+The tests import the installed package (``make`` installs it in editable mode), as users do.
+"""
 import contextlib
-import sys
 from pathlib import Path
 
 import jax
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+import stablebptt  # noqa: F401  (its XLA:CPU set-up must precede JAX's CPU client)
 
-import stablebptt  # noqa: E402,F401  (its XLA:CPU set-up must precede JAX's CPU client)
+ROOT = Path(__file__).resolve().parent.parent  # the checkout: scripts are run from here
 
 
 @contextlib.contextmanager

@@ -15,7 +15,7 @@ from conftest import ROOT, float64
 from stablebptt import scene
 from stablebptt.flows import flow_gradients, step_jacobians
 from stablebptt.training import TrainConfig, make_trainer, seed_array
-from tasks import cartpole, cartpole_equations
+from stablebptt.tasks import cartpole, cartpole_equations
 
 TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
 

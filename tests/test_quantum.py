@@ -9,12 +9,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import tasks
+from stablebptt import tasks
 from stablebptt.cli import add_options
 from stablebptt.errors import InputError
 from stablebptt.flows import FLOWS, flow_gradients, reference_loss, reference_rollout
 from stablebptt.training import TrainConfig, make_trainer, seed_array
-from tasks import quantum
+from stablebptt.tasks import quantum
 
 PHYSICS = quantum.Physics()
 LONG = 10_000  # steps of the long evolutions

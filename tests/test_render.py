@@ -51,7 +51,7 @@ def assert_not_blank(image: np.ndarray) -> None:
 
 def write_run(path: Path, task_name: str, task_config: dict, seeds: int = 1, **train) -> Path:
     """A run directory as scripts/train.py leaves it (config.json, params.npz), without training."""
-    import tasks
+    from stablebptt import tasks
 
     module = tasks.load(task_name)
     config = TrainConfig(seeds=seeds, train_size=16, test_size=16, epochs=1, **train)
@@ -229,7 +229,7 @@ def test_a_video_needs_a_video_suffix(tmp_path):
 # ---- repulsion and quantum pictures, from made-up rollouts ----
 
 def test_repulsion_paths_and_animation(tmp_path):
-    from tasks import figures
+    from stablebptt.tasks import figures
 
     # Six agents on spirals into the origin: [N=2, T+1=9, agents=6, 2].
     time = np.linspace(0, 1, 9)[:, None]
@@ -246,7 +246,7 @@ def test_repulsion_paths_and_animation(tmp_path):
 
 
 def test_quantum_density_and_animation(tmp_path):
-    from tasks import figures, quantum
+    from stablebptt.tasks import figures, quantum
 
     # Eigenstates 1 and 2 in equal parts, each turning at its own frequency: the density sloshes. [N=2, T+1=11, nx, 2]
     physics, dt = quantum.Physics(), 0.0625

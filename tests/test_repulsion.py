@@ -4,8 +4,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.flows import flow_gradients, reference_rollout
-from tasks import repulsion
-from tasks.repulsion import Physics, State, accelerations
+from stablebptt.tasks import repulsion
+from stablebptt.tasks.repulsion import Physics, State, accelerations
 
 
 def test_an_evader_is_pushed_away_from_a_driver():

@@ -20,7 +20,7 @@ from conftest import ROOT
 from stablebptt import runs
 from stablebptt.flows import flow_gradients, reference_rollout
 from stablebptt.training import TrainConfig, make_optimizer, make_trainer, seed_array
-from tasks import cartpole, repulsion
+from stablebptt.tasks import cartpole, repulsion
 
 PRECISIONS = (32, 64)
 FLOWS = ("R", "M")

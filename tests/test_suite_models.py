@@ -26,7 +26,7 @@ from stablebptt import scene
 from stablebptt.errors import InputError
 from stablebptt.flows import step_jacobians
 from stablebptt.training import TrainConfig, memory_plan
-from tasks import cartpole
+from stablebptt.tasks import cartpole
 
 DM_CONTROL = "dm_control==1.0.50"
 SUITE = ["acrobot", "ball_in_cup", "cartpole", "cheetah", "dog", "finger", "fish", "hopper", "humanoid",

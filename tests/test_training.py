@@ -18,7 +18,7 @@ from stablebptt import runs
 from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics
 from stablebptt.training import Task, TrainConfig, make_trainer, seed_array
-from tasks import repulsion
+from stablebptt.tasks import repulsion
 
 SMALL = TrainConfig(epochs=3, train_size=32, test_size=32, batch=8, mode="C")
 TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
