@@ -115,21 +115,20 @@ def output_paths(args, config: RenderConfig, picture: str) -> tuple[Path, Path]:
 
 
 def read_run(run_dir: Path) -> dict:
-    """The run's config.json, checked for what rendering needs."""
-    if not run_dir.exists():
-        raise InputError(f"{run_dir} does not exist: give a run directory written by scripts/train.py")
-    if not run_dir.is_dir():
-        raise InputError(f"{run_dir} is not a directory: give a run directory written by scripts/train.py")
-    from stablebptt.runs import CONFIG_FILE, PARAMS_FILE, read_json  # imports JAX: only once there is a run to read
+    """The run's config.json, checked for what rendering needs, with the model file to rebuild its task from."""
+    from stablebptt import runs  # imports JAX: only once there is a run to read
     from stablebptt import tasks
-    saved = read_json(run_dir / CONFIG_FILE)
-    if not (isinstance(saved, dict) and isinstance(saved.get("task_config"), dict) and isinstance(saved.get("train"), dict)):
-        raise InputError(f"{run_dir / CONFIG_FILE} is not a run configuration (expected 'task', 'task_config' and 'train')")
-    if saved.get("task") not in tasks.TASK_MODULES:
-        raise InputError(f"{run_dir / CONFIG_FILE} names the task {saved.get('task')!r}, which is none of "
+    saved = runs.open_run(run_dir)
+    if saved["task"] not in tasks.TASK_MODULES:
+        raise InputError(f"{run_dir / runs.CONFIG_FILE} names the task {saved['task']!r}, which is none of "
                          f"{', '.join(sorted(tasks.TASK_MODULES))}")
-    if not (run_dir / PARAMS_FILE).is_file():
-        raise InputError(f"{run_dir} has no {PARAMS_FILE}: the run has not finished an epoch yet")
+    if not (run_dir / runs.PARAMS_FILE).is_file():
+        raise InputError(f"{run_dir} has no {runs.PARAMS_FILE}: the run has not finished an epoch yet")
+    model_file, note = runs.model_to_reopen(run_dir, saved)
+    if model_file is not None and "model" in saved["task_config"]:
+        saved = {**saved, "task_config": {**saved["task_config"], "model": model_file}}
+        if note:
+            print(note, file=sys.stderr)
     return saved
 
 
@@ -234,9 +233,9 @@ def build_controller(args, config: RenderConfig, saved: dict | None):
         return "cartpole", task_config, TrainConfig(), task, params, f"{args.model.name}, zero policy"
     task_name = saved["task"]
     module = tasks.load(task_name)
-    train = build(TrainConfig, saved["train"])
+    train = build(TrainConfig, saved["train"], str(args.run_dir / "config.json"))
     jax.config.update("jax_enable_x64", train.x64)  # before any array, as the run was trained
-    task_config = build(module.Config, saved["task_config"])
+    task_config = build(module.Config, saved["task_config"], str(args.run_dir / "config.json"))
     task = module.make(task_config)
     params = load_controller(args.run_dir, task, train, config.seed_index)
     setting = {"cartpole": lambda c: c.model_path.name, "repulsion": lambda c: f"repulsion, rc={c.rc:g}",

@@ -29,7 +29,6 @@ from pathlib import Path
 
 import dataclasses
 import itertools
-import signal
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -37,7 +36,7 @@ from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass, field
 from typing import Callable
 
-from stablebptt.cli import build, fail, parse_config
+from stablebptt.cli import build, fail, parse_config, stop_on_signals
 from stablebptt.errors import InputError
 
 # preset -> (task, the option that sets the complexity, its values)
@@ -198,24 +197,20 @@ def run_program(program: Program, task_name: str, option: str, config: SweepConf
     epoch_fn = trainer.epoch.lower(state, *arguments).compile()
     compile_seconds = time.perf_counter() - started
     cell_index = np.arange(count)
-    epoch = start
-    for epoch in range(start + 1, config.epochs + 1):
-        if should_stop():
-            epoch -= 1
-            break
-        tick = time.perf_counter()
+
+    def run_epoch(state):
         state, metrics = epoch_fn(state, *arguments)
-        metrics = unpad(jax.device_get(metrics))
         # A diverged cell keeps its NaNs in the table; vmapped cells cannot affect each other.
-        rows = np.concatenate([rows, runs.epoch_rows(epoch, cell_index, metrics, time.perf_counter() - tick)])
-        stopping = should_stop()
-        if epoch % config.checkpoint_every == 0 or epoch == config.epochs or stopping:
-            runs.save_checkpoint(program.directory, epoch, unpad(state), rows)
-            log(f"{task_name} {option}={','.join(map(str, program.values))}: epoch {epoch}/{config.epochs}, "
-                f"{(time.perf_counter() - started - compile_seconds) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
-                f"on {len(devices)} device(s)")
-            if stopping:
-                break
+        return state, unpad(jax.device_get(metrics))
+
+    def save(epoch, state, rows):
+        runs.save_checkpoint(program.directory, epoch, unpad(state), rows)
+        log(f"{task_name} {option}={','.join(map(str, program.values))}: epoch {epoch}/{config.epochs}, "
+            f"{(time.perf_counter() - started - compile_seconds) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
+            f"on {len(devices)} device(s)")
+
+    _, epoch, state, rows, _ = runs.fit(run_epoch, state, start, config.epochs, rows, cell_index, save,
+                                        config.checkpoint_every, should_stop)
     return {"complexity": program.values, "epochs_done": int(epoch), "cells": count, "unroll": unroll,
             "devices": [str(d) for d in devices], "padded_cells": len(cells), "compile_seconds": compile_seconds,
             "train_seconds": time.perf_counter() - started - compile_seconds, "rows": rows}
@@ -368,14 +363,15 @@ def main(argv: list[str]) -> int:
     should_stop = lambda: failed.is_set() or (deadline is not None and time.monotonic() > deadline)
     log = lambda message: tqdm.write(message, file=sys.stderr)
 
-    def run_queue(devices, queue):
+    def run_queue(devices, queue, interrupted):
         """The programs placed on one device group, one after another; groups run side by side."""
         outcomes = []
         for program in queue:
-            if failed.is_set():
+            if failed.is_set() or interrupted():
                 break
             try:
-                outcome = run_program(program, task_name, option, config, devices, log, should_stop)
+                outcome = run_program(program, task_name, option, config, devices, log,
+                                      lambda: should_stop() or interrupted())
             except BaseException:
                 failed.set()  # the other groups checkpoint and stop instead of running to their end
                 raise
@@ -385,27 +381,18 @@ def main(argv: list[str]) -> int:
             outcomes.append(outcome)
         return outcomes
 
-    # Ctrl-C sets a flag, as in train.py, instead of raising wherever the main thread is; the
-    # handler also runs when SIGINT was inherited as ignored (a job started in the background).
-    interrupted = threading.Event()
-
-    def on_interrupt(signum, frame):
-        interrupted.set()
-        failed.set()  # every program checkpoints after its current epoch and stops
-
-    previous_handler = signal.signal(signal.SIGINT, on_interrupt)
-    try:
+    # A signal (Ctrl-C, SIGTERM, SIGHUP) sets a flag, as in train.py: every program checkpoints
+    # after its current epoch and stops.
+    with stop_on_signals(log) as interrupted:
         # Threads only dispatch: compiling and running release the GIL, so the groups' programs overlap.
         with ThreadPoolExecutor(max_workers=max(1, len(placement))) as pool:  # a host may get no program
-            futures = [pool.submit(run_queue, devices, queue) for devices, queue in placement]
-            # A timed wait, not a blocking one: the OS may deliver SIGINT to any thread, and Python
+            futures = [pool.submit(run_queue, devices, queue, interrupted) for devices, queue in placement]
+            # A timed wait, not a blocking one: the OS may deliver a signal to any thread, and Python
             # runs the handler only once the main thread runs again.
             while futures_wait(futures, timeout=0.5).not_done:
                 pass
             report = [outcome for future in futures for outcome in future.result()]
-    finally:
-        signal.signal(signal.SIGINT, previous_handler)
-    if interrupted.is_set():
+    if interrupted():
         print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
         return 130
     finished = all(r["epochs_done"] == config.epochs for r in report)

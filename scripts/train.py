@@ -52,30 +52,50 @@ def choose_task(args, owners) -> str:
 
 
 def configure(args, owners):
-    """(task name, task config, train config, run dir, resuming) from the command line or a run directory."""
+    """(task name, task config, train config, run dir, the run's record or None) from the command line or a run."""
     given = {name: value for name, value in vars(args).items() if name in owners}
     if args.resume is not None:
         changed = sorted(set(given) - RESUMABLE)
         if changed or args.out is not None or args.task is not None:
             fail(f"--resume continues a run with its saved configuration; only --epochs may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
-        from stablebptt.runs import CONFIG_FILE, read_json
-        saved = read_json(args.resume / CONFIG_FILE)
-        task_name = saved["task"]
-        task_config = build(tasks.load(task_name).Config, saved["task_config"])
-        train_config = build(TrainConfig, {**saved["train"], **given})
-        return task_name, task_config, train_config, args.resume, True
+        from stablebptt import runs
+        record = runs.open_run(args.resume)
+        source = args.resume / runs.CONFIG_FILE
+        task_name = record["task"]
+        if task_name not in tasks.TASK_MODULES:
+            raise InputError(f"{source} names the task {task_name!r}, which is none of {', '.join(sorted(tasks.TASK_MODULES))}")
+        task_values = dict(record["task_config"])
+        model_file, note = runs.model_to_reopen(args.resume, record)
+        if model_file is not None and "model" in task_values:
+            task_values["model"] = model_file
+            if note:
+                print(note, file=sys.stderr)
+        task_config = build(tasks.load(task_name).Config, task_values, str(source))
+        train_config = build(TrainConfig, {**record["train"], **given}, str(source))
+        return task_name, task_config, train_config, args.resume, record
     task_name = choose_task(args, owners)
     module = tasks.load(task_name)
+    if given.get("model"):  # absolute: the run resumes and renders from any working directory
+        given["model"] = str(Path(given["model"]).resolve())
     task_config = build(module.Config, given)
     train_config = build(TrainConfig, {"epochs": module.DEFAULT_EPOCHS, **given})
-    return task_name, task_config, train_config, args.out, False
+    return task_name, task_config, train_config, args.out, None
 
 
 def main(argv: list[str]) -> int:
+    locks: list = []  # the run folder's lock, released however main ends (in a process, the OS would)
+    try:
+        return train(argv, locks)
+    finally:
+        for lock in locks:
+            lock.release()
+
+
+def train(argv: list[str], locks: list) -> int:
     started = time.perf_counter()
     args, owners = parse(argv)
     try:
-        task_name, task_config, train_config, run_dir, resuming = configure(args, owners)
+        task_name, task_config, train_config, run_dir, record = configure(args, owners)
     except InputError as error:
         fail(str(error))
 
@@ -83,45 +103,64 @@ def main(argv: list[str]) -> int:
     jax.config.update("jax_enable_x64", train_config.x64)
     import numpy as np
     from stablebptt import runs
+    from stablebptt.errors import StorageError
     from stablebptt.training import make_trainer, seed_array
 
     try:
         task = tasks.load(task_name).make(task_config)
-        if resuming:
-            if not (run_dir / runs.CHECKPOINT_FILE).exists():
-                raise InputError(f"{run_dir} has no checkpoint yet: start the run again")
-            runs.check_same_task(run_dir, task.resolved)
+        if record is None:
+            record = {
+                "task": task_name,
+                "task_config": dataclasses.asdict(task_config),
+                "resolved_task": {"name": task.name, **task.resolved},
+                "train": dataclasses.asdict(train_config),
+                "environment": {"python": platform.python_version(), "jax": jax.__version__,
+                                "device": str(jax.devices()[0])},
+            }
+            run_dir = run_dir or runs.default_run_dir(RUNS_ROOT, task.name)
+            locks.append(runs.create_run(run_dir, record))  # claims the folder: from here on it resumes
+            if "model_file" in task.resolved:
+                runs.copy_model(run_dir, task.resolved["model_file"])
+            resuming = False
         else:
-            run_dir = runs.claim_run_dir(run_dir or runs.default_run_dir(RUNS_ROOT, task.name))
+            locks.append(runs.RunLock(run_dir))
+            resuming = True
     except InputError as error:
         fail(str(error))
-
-    if task.summary:
-        print(task.summary)
+    except StorageError as error:
+        fail(str(error.strerror), code=1)
+    task_label = record.get("resolved_task", {}).get("name", task.name)
     try:
         trainer = make_trainer(task, train_config)
     except InputError as error:
-        fail(f"{task.name}: {error}")
+        fail(f"{task_label}: {error}")
     seeds = np.asarray(seed_array(train_config))
     state = trainer.init(seed_array(train_config))
-    if resuming:
-        start_epoch, state, rows = runs.load_checkpoint(run_dir, state)
-    else:
-        start_epoch, rows = 0, runs.empty_rows()
-    if "model_file" in task.resolved and not resuming:  # the file as trained, beside its hash in config.json
-        runs.atomic_write(run_dir / runs.MODEL_COPY_FILE, Path(task.resolved["model_file"]).read_bytes())
-    runs.write_json(run_dir / runs.CONFIG_FILE, {
-        "task": task_name,
-        "task_config": dataclasses.asdict(task_config),
-        "resolved_task": {"name": task.name, **task.resolved},
-        "train": dataclasses.asdict(train_config),
-        "flows_computed": list(trainer.flows),
-        "environment": {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])},
-    })
+    owner = runs.identity(record)
+    start_epoch, rows = 0, runs.empty_rows()
+    try:
+        if resuming and (run_dir / runs.CHECKPOINT_FILE).exists():
+            start_epoch, state, rows = runs.load_checkpoint(run_dir, state, owner)
+        if train_config.epochs < start_epoch:
+            raise InputError(f"{run_dir} has trained {start_epoch} epochs: --epochs must be at least that to continue")
+        if resuming and train_config.epochs > start_epoch and train_config.epochs != record["train"]["epochs"]:
+            runs.write_json(run_dir / runs.CONFIG_FILE, {**record, "train": dataclasses.asdict(train_config)})
+    except InputError as error:
+        fail(str(error))
+    except StorageError as error:
+        fail(str(error.strerror), code=1)
+
+    if task.summary:
+        print(task.summary)
+    if start_epoch == train_config.epochs and resuming:
+        mean, std = runs.summarize(rows) if len(rows) else (float("nan"), 0.0)
+        print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
+        return 0
 
     from tqdm import tqdm
+    from stablebptt.cli import stop_on_signals
     bar = tqdm(total=train_config.epochs, initial=start_epoch, unit="epoch", disable=args.no_progress,
-               desc=f"{task.name} {train_config.mode}", dynamic_ncols=True)
+               desc=f"{task_label} {train_config.mode}", dynamic_ncols=True)
 
     updates = train_config.train_size // train_config.batch
     compiled = {}
@@ -138,7 +177,12 @@ def main(argv: list[str]) -> int:
         bar.update(1)
         bar.set_postfix(test_loss=f"{float(np.mean(metrics['test_loss'])):.4g}")
 
-    outcome = runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds, on_epoch, on_compiled)
+    try:
+        with stop_on_signals(lambda message: bar.write(message, file=sys.stderr)) as should_stop:
+            outcome = runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds, on_epoch,
+                                        on_compiled, should_stop, owner)
+    except StorageError as error:
+        fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     bar.close()
     if outcome.status == "diverged":
         print(f"error: {outcome.message}", file=sys.stderr)
@@ -150,7 +194,7 @@ def main(argv: list[str]) -> int:
     plot_run(run_dir)
     mean, std = runs.summarize(outcome.rows)
     spread = f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
-    print(f"done: {task.name}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")
+    print(f"done: {task_label}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")
     return 0
 
 

@@ -14,8 +14,6 @@ import os
 # thread the kernels run the batch in place. A user's own PJRT_NPROC is kept.
 os.environ.setdefault("PJRT_NPROC", "1")
 
-from stablebptt import mujoco_log  # noqa: E402,F401  (MuJoCo warnings to stderr, never to MUJOCO_LOG.TXT)
-
 from stablebptt.flows import FLOWS, MODES, Dynamics, flow_gradients, select_flow, sign_agreement
 
 __all__ = ["FLOWS", "MODES", "Dynamics", "flow_gradients", "select_flow", "sign_agreement"]

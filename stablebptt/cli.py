@@ -7,9 +7,12 @@ code 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import os
+import signal
 import sys
-from typing import Any, NoReturn
+from typing import Any, Callable, Iterator, NoReturn
 
 _TYPES = {"int": int, "float": float, "str": str, "bool": bool}
 
@@ -70,7 +73,49 @@ def parse_config(config_class: type, argv: list[str], description: str, title: s
         fail(str(error))
 
 
-def build(config_class: type, values: dict[str, Any]):
-    """The dataclass from the given values (unknown keys ignored); validation errors propagate."""
-    known = {f.name for f in dataclasses.fields(config_class)}
-    return config_class(**{k: v for k, v in values.items() if k in known})
+def build(config_class: type, values: dict[str, Any], source: str = ""):
+    """The dataclass from the given values (unknown keys ignored); validation errors propagate.
+
+    A value of the wrong type (read from a file: ``source`` names it) is an InputError.
+    """
+    from stablebptt.errors import InputError
+    fields = {f.name: f for f in dataclasses.fields(config_class)}
+    for name, value in values.items():
+        if name not in fields:
+            continue
+        kind = _TYPES[fields[name].type if isinstance(fields[name].type, str) else fields[name].type.__name__]
+        fits = (isinstance(value, bool) if kind is bool else isinstance(value, kind) and not isinstance(value, bool)
+                or kind is float and isinstance(value, int) and not isinstance(value, bool))
+        if not fits:
+            where = f"{source}: " if source else ""
+            raise InputError(f"{where}{name} must be {kind.__name__}, got {value!r}")
+    return config_class(**{k: v for k, v in values.items() if k in fields})
+
+
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+@contextlib.contextmanager
+def stop_on_signals(announce: Callable[[str], None] = lambda message: None) -> Iterator[Callable[[], bool]]:
+    """Within the block, Ctrl-C, SIGTERM (timeout, Slurm, Kubernetes, docker stop) and SIGHUP ask to stop.
+
+    Yields ``should_stop()``, which the training loop polls between epochs: it
+    saves and stops. A second signal ends the process at once; the run folder
+    still resumes, from its last checkpoint. Main thread only (as Python's signals).
+    """
+    requested: list[int] = []
+
+    def handler(signum, frame):
+        if requested:  # the second: stop now
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+        requested.append(signum)
+        announce(f"{signal.Signals(signum).name}: stopping after this epoch (the checkpoint is saved; "
+                 "send it again to stop at once)")
+
+    previous = {signum: signal.signal(signum, handler) for signum in STOP_SIGNALS}
+    try:
+        yield lambda: bool(requested)
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)

@@ -1,8 +1,8 @@
 """MuJoCo's warnings, routed through Python.
 
 By default MuJoCo prints a warning and appends it to ``MUJOCO_LOG.TXT`` in the
-working directory. Importing this module (``import stablebptt`` does) installs a
-handler instead: a warning goes to stderr prefixed ``mujoco:``, or, inside
+working directory. Importing this module (``stablebptt.scene`` does, so every task
+built from a model file) installs a handler instead: a warning goes to stderr prefixed ``mujoco:``, or, inside
 ``collected()``, into a list the caller reports in its own words (e.g. with the
 model's file name). No log file is ever written.
 """

@@ -139,6 +139,12 @@ def select_gl_backend(backends: Sequence[str] = BACKENDS,
     raise NoHeadlessGL(f"no headless OpenGL for MuJoCo ({tried}): install it with {install}")
 
 
+def _brighten_headlight(headlight) -> None:
+    if np.allclose(headlight.ambient, 0.1) and np.allclose(headlight.diffuse, 0.4):
+        # MuJoCo's defaults, made for a dark background, leave colours murky on white.
+        headlight.ambient, headlight.diffuse = [0.35] * 3, [0.55] * 3
+
+
 def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), background: Sequence[float] = BACKGROUND):
     """The MJCF at ``path`` compiled for rendering: a plain backdrop and a large enough offscreen buffer.
 
@@ -147,7 +153,7 @@ def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), ba
     offscreen framebuffer is enlarged to ``framebuffer`` when it is smaller.
 
     Args:
-      path: the MJCF file.
+      path: the MJCF file, or a compiled ``.mjb`` (a run's copy; drawn without the backdrop).
       framebuffer: (width, height) of the largest render, supersampling included.
       background: RGB in [0, 1] of the backdrop.
 
@@ -159,6 +165,12 @@ def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), ba
     path = Path(path)
     if not path.is_file():
         raise InputError(f"model file {path} does not exist")
+    if path.suffix == ".mjb":  # a run's compiled copy: no skybox can be added, the rest applies
+        model = mujoco.MjModel.from_binary_path(str(path))
+        _brighten_headlight(model.vis.headlight)
+        model.vis.global_.offwidth = max(model.vis.global_.offwidth, int(framebuffer[0]))
+        model.vis.global_.offheight = max(model.vis.global_.offheight, int(framebuffer[1]))
+        return model
     try:
         spec = mujoco.MjSpec.from_file(str(path))
     except ValueError as error:
@@ -167,10 +179,7 @@ def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), ba
         spec.add_texture(name="stablebptt_backdrop", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
                          builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT, rgb1=list(background), rgb2=list(background),
                          width=8, height=8)
-    headlight = spec.visual.headlight
-    if np.allclose(headlight.ambient, 0.1) and np.allclose(headlight.diffuse, 0.4):
-        # MuJoCo's defaults, made for a dark background, leave colours murky on white.
-        headlight.ambient, headlight.diffuse = [0.35] * 3, [0.55] * 3
+    _brighten_headlight(spec.visual.headlight)
     visual = spec.visual.global_
     visual.offwidth = max(visual.offwidth, int(framebuffer[0]))
     visual.offheight = max(visual.offheight, int(framebuffer[1]))

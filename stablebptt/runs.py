@@ -3,18 +3,26 @@
 A run directory holds ``config.json``, ``metrics.csv`` (one row per epoch and
 seed), ``params.npz`` (final or latest parameters, leading axis = seed) and
 ``checkpoint.npz`` (parameters, optimizer state and all metrics so far), and
-for an MJCF task ``model.xml``, a copy of the model file. The
-checkpoint is the source of truth: resuming reads it and rewrites the rest.
+for an MJCF task ``model.xml`` and ``model.mjb``, the model file as given and as
+compiled (self-contained: includes and meshes inside), so the run can go on
+after the file moved. The checkpoint is the source of truth: resuming reads it
+and rewrites the rest.
+
+Every state of a folder can go on: ``config.json`` is written first and claims
+the folder (atomically: of two runs given one folder, one gets it); a folder
+without a checkpoint resumes from epoch 0; files are replaced atomically, so a
+signal or a full disk at any moment leaves the old file or the new one. A run
+holds a lock on its folder while it lives (released by the OS however it ends).
 """
 from __future__ import annotations
 
-import contextlib
 import csv
+import hashlib
 import io
 import json
 import os
-import signal
 import time
+import zipfile
 from datetime import datetime
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
@@ -22,7 +30,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, StorageError
 from stablebptt.training import METRICS, TrainConfig, Trainer, TrainState, nonfinite_names
 
 CONFIG_FILE = "config.json"
@@ -30,21 +38,49 @@ METRICS_FILE = "metrics.csv"
 PARAMS_FILE = "params.npz"
 CHECKPOINT_FILE = "checkpoint.npz"
 MODEL_COPY_FILE = "model.xml"  # a copy of the MJCF file a run trained on
+MODEL_BINARY_FILE = "model.mjb"  # the same model compiled, with everything it includes
+LOCK_FILE = ".lock"
 COLUMNS = ("epoch", "seed") + METRICS + ("seconds",)
 
 
+def _temporary(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def _write_temporary(path: Path, data: bytes) -> Path:
+    """``data`` in a temporary file beside ``path``, on disk; removed again if anything fails."""
+    temporary = _temporary(path)
+    try:
+        with open(temporary, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+    except OSError as error:
+        temporary.unlink(missing_ok=True)
+        raise StorageError(error.errno, f"cannot write {path}: {error.strerror or error}") from None
+    return temporary
+
+
 def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that readers see the old or the new file, never half of one."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(temporary, "wb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temporary, path)
+    """Write ``data`` to ``path`` so that readers see the old or the new file, never half of one.
+
+    Raises:
+      StorageError: the file could not be written (e.g. a full disk); no temporary file is left.
+    """
+    temporary = _write_temporary(path, data)
+    try:
+        os.replace(temporary, path)
+    except OSError as error:
+        temporary.unlink(missing_ok=True)
+        raise StorageError(error.errno, f"cannot write {path}: {error.strerror or error}") from None
+
+
+def _json_bytes(payload: Any) -> bytes:
+    return (json.dumps(payload, indent=2, sort_keys=True) + "\n").encode()
 
 
 def write_json(path: Path, payload: Any) -> None:
-    atomic_write(path, (json.dumps(payload, indent=2, sort_keys=True) + "\n").encode())
+    atomic_write(path, _json_bytes(payload))
 
 
 def read_json(path: Path) -> Any:
@@ -84,8 +120,13 @@ def save_params(path: Path, params: Any) -> None:
 
 def load_params(path: Path, template: Any) -> Any:
     """Parameters saved by ``save_params``, in the structure of ``template``."""
-    with np.load(path) as data:
-        leaves = [data[f"leaf_{i:03d}"] for i in range(len(data.files))]
+    try:
+        with np.load(path) as data:
+            leaves = [data[f"leaf_{i:03d}"] for i in range(len(data.files))]
+    except FileNotFoundError:
+        raise InputError(f"{path} does not exist: the run has not finished an epoch yet") from None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
+        raise InputError(f"{path} is damaged ({' '.join(str(error).split())})") from None
     return _unflatten_like(template, leaves, path)
 
 
@@ -96,21 +137,40 @@ def _unflatten_like(template: Any, leaves: list[np.ndarray], path: Path) -> Any:
     return jax.tree.unflatten(treedef, [np.asarray(a, dtype=np.asarray(b).dtype) for a, b in zip(leaves, template_leaves)])
 
 
-def save_checkpoint(run_dir: Path, epoch: int, state: TrainState, rows: np.ndarray) -> None:
+def identity(record: dict) -> str:
+    """What a checkpoint belongs to: the task and the training settings, except how long to train."""
+    train = {k: v for k, v in record.get("train", {}).items() if k not in ("epochs", "checkpoint_every")}
+    return hashlib.sha256(json.dumps([record.get("task"), record.get("task_config"), train],
+                                     sort_keys=True).encode()).hexdigest()
+
+
+def save_checkpoint(run_dir: Path, epoch: int, state: TrainState, rows: np.ndarray, owner: str = "") -> None:
+    """Parameters, optimizer state and metrics after ``epoch``; ``owner`` is the run's ``identity``."""
     leaves = jax.tree.leaves(jax.device_get(state))
     arrays = {f"leaf_{i:03d}": leaf for i, leaf in enumerate(leaves)}
-    atomic_write(run_dir / CHECKPOINT_FILE, _npz_bytes({"epoch": np.array(epoch), "metrics": rows, **arrays}))
+    atomic_write(run_dir / CHECKPOINT_FILE, _npz_bytes({"epoch": np.array(epoch), "metrics": rows,
+                                                        "owner": np.array(owner), **arrays}))
 
 
-def load_checkpoint(run_dir: Path, template: TrainState) -> tuple[int, TrainState, np.ndarray]:
+def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tuple[int, TrainState, np.ndarray]:
+    """(epoch, state, metric rows) of the checkpoint; a checkpoint of another run or a damaged one is refused."""
     path = run_dir / CHECKPOINT_FILE
     try:
         with np.load(path) as data:
             epoch = int(data["epoch"])
             rows = np.array(data["metrics"])
-            leaves = [data[f"leaf_{i:03d}"] for i in range(len(data.files) - 2)]
+            saved_owner = str(data["owner"]) if "owner" in data.files else ""
+            leaves = [data[f"leaf_{i:03d}"] for i in range(sum(name.startswith("leaf_") for name in data.files))]
     except FileNotFoundError:
         raise InputError(f"{path} does not exist: the run never finished an epoch; start it again") from None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
+        raise InputError(f"{path} is damaged ({' '.join(str(error).split())}): restore it, or delete it "
+                         "and --resume starts the run again from epoch 0") from None
+    if owner and saved_owner and saved_owner != owner:
+        raise InputError(f"{path} is the checkpoint of another run (another task or settings than "
+                         f"{run_dir / CONFIG_FILE}): put the right checkpoint back, or delete it to start from epoch 0")
+    if rows.ndim != 2 or rows.shape[1] != len(COLUMNS) or not 0 <= epoch <= 10**9:
+        raise InputError(f"{path} is damaged (its metrics or epoch do not fit this version's run format)")
     return epoch, _unflatten_like(template, leaves, path), rows
 
 
@@ -123,26 +183,136 @@ def default_run_dir(root: Path, task_name: str) -> Path:
     return candidate
 
 
-def check_same_task(run_dir: Path, resolved: dict) -> None:
-    """Refuse to resume a run whose model file changed since it started (it would train another task)."""
-    saved = read_json(run_dir / CONFIG_FILE).get("resolved_task", {})
-    if "model_sha256" in saved and saved["model_sha256"] != resolved.get("model_sha256"):
-        raise InputError(f"{resolved.get('model_file', 'the model file')} changed since {run_dir} started: "
-                         "restore it, or start a new run")
+class RunLock:
+    """An exclusive lock on a run folder for as long as this object lives (or the process does).
+
+    ``fcntl.flock`` is released by the OS however the process ends, SIGKILL included,
+    so a killed run never leaves its folder locked.
+    """
+
+    def __init__(self, run_dir: Path):
+        self.handle = None
+        try:
+            import fcntl
+        except ImportError:  # no flock on this platform: folders are claimed by config.json alone
+            return
+        path = run_dir / LOCK_FILE
+        try:
+            handle = open(path, "a+")
+        except OSError as error:
+            raise InputError(f"cannot write to {run_dir}: {error.strerror}") from None
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            handle.close()
+            raise InputError(f"{run_dir} is in use by another run (process {holder}): wait for it to end, "
+                             "or choose another --out") from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(str(os.getpid()))
+        handle.flush()
+        self.handle = handle
+        for stale in run_dir.glob(".*.tmp"):  # temporaries of a process killed mid-write: only the holder writes
+            stale.unlink(missing_ok=True)
+
+    def release(self) -> None:
+        if self.handle is not None:
+            self.handle.close()
+            self.handle = None
 
 
-def claim_run_dir(path: Path) -> Path:
-    """Create a fresh run directory; never write into an existing non-empty one."""
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
-        raise InputError(f"{path} already exists and is not empty: choose another --out, or continue it with --resume {path}")
+def create_run(path: Path, record: dict) -> RunLock:
+    """Claim a fresh run folder by writing its ``config.json`` (``record``); returns the folder's lock.
+
+    Never writes into a folder that holds anything but hidden files (a lock, or
+    temporaries of a start that was killed). Of two runs given one folder at once,
+    one gets it and the other an ``InputError``.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{path} is a file: give a directory for the run")
     try:
         path.mkdir(parents=True, exist_ok=True)
-        probe = path / ".write-test"
-        probe.write_bytes(b"")
-        probe.unlink()
     except OSError as error:
-        raise InputError(f"cannot write to {path}: {error.strerror}") from None
-    return path
+        raise InputError(f"cannot create {path}: {error.strerror}") from None
+    def refuse_if_used():
+        if any(not entry.name.startswith(".") for entry in path.iterdir()):
+            raise InputError(f"{path} already exists and is not empty: choose another --out, or continue it with --resume {path}")
+
+    refuse_if_used()  # before the lock: a folder that is not ours is left untouched
+    lock = RunLock(path)
+    try:
+        refuse_if_used()  # again under the lock: another run may have claimed it in between
+        temporary = _write_temporary(path / CONFIG_FILE, _json_bytes(record))
+        try:
+            os.link(temporary, path / CONFIG_FILE)  # fails if the name exists: an atomic claim
+        except FileExistsError:
+            raise InputError(f"{path} was just claimed by another run: choose another --out") from None
+        except OSError as error:
+            raise StorageError(error.errno, f"cannot write {path / CONFIG_FILE}: {error.strerror}") from None
+        finally:
+            temporary.unlink(missing_ok=True)
+    except BaseException:
+        lock.release()
+        raise
+    return lock
+
+
+RECORD_FIELDS = {"task": str, "task_config": dict, "train": dict}
+
+
+def open_run(path: Path) -> dict:
+    """The ``config.json`` of the run folder ``path``, with 'task' (str), 'task_config' and 'train' (objects)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path} does not exist: give a run directory")
+    if not path.is_dir():
+        raise InputError(f"{path} is a file, not a run directory: give the folder the run wrote")
+    record = read_json(path / CONFIG_FILE)
+    wrong = [f"'{key}' ({kind.__name__})" for key, kind in RECORD_FIELDS.items()
+             if not isinstance(record, dict) or not isinstance(record.get(key), kind)]
+    if wrong:
+        raise InputError(f"{path / CONFIG_FILE} is not a run configuration: it lacks {', '.join(wrong)}")
+    return record
+
+
+def copy_model(run_dir: Path, model_file: str | Path) -> None:
+    """Keep the model file in the run folder, as given (``model.xml``) and compiled (``model.mjb``)."""
+    import mujoco
+
+    from stablebptt import mujoco_log
+    model_file = Path(model_file)
+    atomic_write(run_dir / MODEL_COPY_FILE, model_file.read_bytes())
+    with mujoco_log.collected():  # the task reported them when it loaded the file
+        model = mujoco.MjModel.from_xml_path(str(model_file))
+    binary = np.zeros(mujoco.mj_sizeModel(model), dtype=np.uint8)
+    mujoco.mj_saveModel(model, None, binary)
+    atomic_write(run_dir / MODEL_BINARY_FILE, binary.tobytes())
+
+
+def model_to_reopen(run_dir: Path, record: dict) -> tuple[str | None, str]:
+    """(the model file to rebuild a run's task from, a note for the user), or (None, "") for no model file.
+
+    The file the run started from while it is unchanged; the run's compiled copy
+    when that file is gone (moved, or another working directory). A changed file
+    is refused: the run would train or show another system than it recorded.
+    """
+    resolved = record.get("resolved_task") or {}
+    original = resolved.get("model_file")
+    if not original:
+        return None, ""
+    original = Path(original)
+    if original.is_file():
+        if resolved.get("model_sha256") not in (None, hashlib.sha256(original.read_bytes()).hexdigest()):
+            raise InputError(f"{original} changed since the run in {run_dir} started: restore it (the run's copy is "
+                             f"{run_dir / MODEL_COPY_FILE}), or start a new run with the changed file")
+        return str(original), ""
+    copy = run_dir / MODEL_BINARY_FILE
+    if not copy.is_file():
+        raise InputError(f"{original} does not exist any more and {run_dir} has no {MODEL_BINARY_FILE}: put the file back")
+    return str(copy), f"{original} is gone: using the run's own copy, {copy}"
 
 
 class Outcome(NamedTuple):
@@ -153,24 +323,72 @@ class Outcome(NamedTuple):
     message: str
 
 
-@contextlib.contextmanager
-def _stop_on_sigint():
-    """Turn Ctrl-C into a flag the loop checks between epochs, so a save is never cut."""
-    requested = {"stop": False}
-
-    def handler(signum, frame):
-        requested["stop"] = True
-
-    previous = signal.signal(signal.SIGINT, handler)
-    try:
-        yield requested
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
 def epoch_rows(epoch: int, seeds: np.ndarray, metrics: dict, seconds: float) -> np.ndarray:
     columns = [np.full(len(seeds), epoch), seeds] + [np.asarray(metrics[m], dtype=np.float64) for m in METRICS]
     return np.stack(columns + [np.full(len(seeds), seconds)], axis=1)
+
+
+def fit(
+    run_epoch: Callable[[Any], tuple[Any, dict]],
+    state: Any,
+    start_epoch: int,
+    epochs: int,
+    rows: np.ndarray,
+    row_ids: np.ndarray,
+    save: Callable[[int, Any, np.ndarray], None],
+    checkpoint_every: int,
+    should_stop: Callable[[], bool] = lambda: False,
+    on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None,
+    diverged: Callable[[dict], str] = lambda metrics: "",
+) -> tuple[str, int, Any, np.ndarray, str]:
+    """The epoch loop: epochs ``start_epoch+1 .. epochs``, checkpointing, stopping and divergence.
+
+    Args:
+      run_epoch: ``run_epoch(state) -> (new state, metrics on the host)``, one per row id.
+      state, start_epoch, rows: where training stands (``rows`` as ``epoch_rows`` makes them).
+      epochs: the epoch to train to.
+      row_ids: the seed (or cell) number of each row an epoch adds.
+      save: ``save(epoch, state, rows)`` writes a checkpoint.
+      checkpoint_every: save every this many epochs, and at the end.
+      should_stop: polled before and after every epoch; true saves and stops.
+      on_epoch: gets each epoch's metrics, with its wall time under ``"seconds"``.
+      diverged: a message when an epoch's metrics must not be kept (its state is
+        dropped, the last good one saved), else "".
+
+    Returns:
+      (status, last saved epoch, state, rows, message); status "complete",
+      "interrupted" or "diverged".
+    """
+    saved_epoch = start_epoch
+
+    def checkpoint(epoch, state, rows):
+        nonlocal saved_epoch
+        if saved_epoch != epoch or epoch == start_epoch == 0:
+            save(epoch, state, rows)
+            saved_epoch = epoch
+
+    epoch = start_epoch
+    for epoch in range(start_epoch + 1, epochs + 1):
+        if should_stop():
+            if epoch - 1 > start_epoch:
+                checkpoint(epoch - 1, state, rows)
+            return "interrupted", epoch - 1, state, rows, ""
+        started = time.perf_counter()
+        new_state, metrics = run_epoch(state)
+        seconds = time.perf_counter() - started
+        problem = diverged(metrics)
+        if problem:
+            checkpoint(epoch - 1, state, rows)
+            return "diverged", epoch - 1, state, rows, problem
+        state = new_state
+        rows = np.concatenate([rows, epoch_rows(epoch, row_ids, metrics, seconds)])
+        stopping = should_stop()
+        if epoch % checkpoint_every == 0 or epoch == epochs or stopping:
+            checkpoint(epoch, state, rows)
+        on_epoch(epoch, {**metrics, "seconds": seconds})
+        if stopping:
+            return "interrupted", epoch, state, rows, ""
+    return "complete", epoch, state, rows, ""
 
 
 def train_epochs(
@@ -183,54 +401,47 @@ def train_epochs(
     seeds: np.ndarray,
     on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None,
     on_compiled: Callable[[float], None] = lambda seconds: None,
+    should_stop: Callable[[], bool] = lambda: False,
+    owner: str = "",
 ) -> Outcome:
-    """Run epochs ``start_epoch+1 .. config.epochs``, checkpointing as configured.
+    """Train one run's seeds to ``config.epochs`` from ``start_epoch``, checkpointing into ``run_dir``.
 
-    Stops early on Ctrl-C (after saving) or on a non-finite loss or update
-    (keeping the last good checkpoint, which it writes if it is not on disk yet).
-    ``on_compiled`` gets the seconds the epoch took to compile; ``on_epoch``
-    the epoch's metrics, with its wall time under ``"seconds"``.
+    Stops early when ``should_stop()`` (after saving; the command line sets it on a
+    signal) or on a non-finite loss or update (keeping the last good checkpoint).
+    ``on_compiled`` gets the seconds the epoch took to compile; ``on_epoch`` the
+    epoch's metrics, with its wall time under ``"seconds"``. Runs in any thread.
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
     started = time.perf_counter()
     epoch_fn = trainer.epoch.lower(state, *arguments).compile()  # compile before timing epochs
     on_compiled(time.perf_counter() - started)
-    saved_epoch = start_epoch if (run_dir / CHECKPOINT_FILE).exists() else -1
+
+    def run_epoch(state):
+        new_state, metrics = epoch_fn(state, *arguments)
+        return new_state, jax.device_get(metrics)
 
     def save(epoch, state, rows):
-        save_checkpoint(run_dir, epoch, state, rows)
+        save_checkpoint(run_dir, epoch, state, rows, owner)
         save_params(run_dir / PARAMS_FILE, state.params)
         write_metrics(run_dir / METRICS_FILE, rows)
-        return epoch
 
-    epoch = start_epoch
-    with _stop_on_sigint() as stop:
-        for epoch in range(start_epoch + 1, config.epochs + 1):
-            started = time.perf_counter()
-            new_state, metrics = epoch_fn(state, *arguments)
-            metrics = jax.device_get(metrics)
-            seconds = time.perf_counter() - started
-            if not np.all(metrics["finite"]):
-                bad = [int(s) for s, ok in zip(seeds, metrics["finite"]) if not ok]
-                what = nonfinite_names(trainer.flows, int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))))
-                if saved_epoch != epoch - 1:
-                    saved_epoch = save(epoch - 1, state, rows)
-                message = (f"non-finite {', '.join(what)} at epoch {epoch} (seed {', '.join(map(str, bad))}); "
-                           f"stopped, the last good checkpoint (epoch {saved_epoch}) is kept in {run_dir}")
-                return Outcome("diverged", saved_epoch, state, rows, message)
-            state = new_state
-            rows = np.concatenate([rows, epoch_rows(epoch, seeds, metrics, seconds)])
-            if epoch % config.checkpoint_every == 0 or epoch == config.epochs:
-                saved_epoch = save(epoch, state, rows)
-            on_epoch(epoch, {**metrics, "seconds": seconds})
-            if stop["stop"]:
-                if saved_epoch != epoch:
-                    saved_epoch = save(epoch, state, rows)
-                return Outcome("interrupted", epoch, state, rows,
-                               f"interrupted after epoch {epoch}; continue with --resume {run_dir}")
-    if saved_epoch != epoch:
-        save(epoch, state, rows)
-    return Outcome("complete", epoch, state, rows, "")
+    def diverged(metrics):
+        if np.all(metrics["finite"]):
+            return ""
+        bad = [int(s) for s, ok in zip(seeds, metrics["finite"]) if not ok]
+        what = nonfinite_names(trainer.flows, int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))))
+        return f"non-finite {', '.join(what)} at epoch {{epoch}} (seed {', '.join(map(str, bad))})"
+
+    status, epoch, state, rows, problem = fit(run_epoch, state, start_epoch, config.epochs, rows, seeds, save,
+                                              config.checkpoint_every, should_stop, on_epoch, diverged)
+    if status == "diverged":
+        message = (f"{problem.format(epoch=epoch + 1)}; stopped, the last good checkpoint (epoch {epoch}) "
+                   f"is kept in {run_dir}")
+    elif status == "interrupted":
+        message = f"interrupted after epoch {epoch}; continue with --resume {run_dir}"
+    else:
+        message = ""
+    return Outcome(status, epoch, state, rows, message)
 
 
 def summarize(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float]:

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from stablebptt import mujoco_log  # noqa: F401  (MuJoCo's warnings to stderr, never to MUJOCO_LOG.TXT)
 from stablebptt.errors import InputError
 from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth, solver
 from stablebptt.mjx_internals import forward as mjx_forward

@@ -67,12 +67,15 @@ class Config:
 
 
 def load_model(path: Path) -> mujoco.MjModel:
-    """Load an MJCF; any failure becomes one clear InputError line."""
+    """Load an MJCF (or a compiled ``.mjb``, as runs keep); any failure becomes one clear InputError line."""
     if not path.is_file():
         raise InputError(f"model file {path} does not exist")
     try:
         with mujoco_log.collected() as warnings:
-            model = mujoco.MjModel.from_xml_path(str(path))
+            if path.suffix == ".mjb":
+                model = mujoco.MjModel.from_binary_path(str(path))
+            else:
+                model = mujoco.MjModel.from_xml_path(str(path))
     except ValueError as error:
         detail = " ".join(str(error).split())
         raise InputError(f"cannot load {path}: {detail}") from None

@@ -1,0 +1,295 @@
+"""Faults lose nothing and every run folder can go on: signals at any moment, two runs on one
+folder, damaged folders, a full disk, a model file that moved or changed, any thread."""
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from stablebptt import runs
+from stablebptt.commands import train as train_command
+from stablebptt.errors import InputError
+from stablebptt.tasks import repulsion
+from stablebptt.training import TrainConfig, make_trainer, seed_array
+
+SMALL = ["--task", "repulsion", "--train-size", "16", "--test-size", "16", "--batch", "8", "--no-progress"]
+TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
+
+
+def train(capsys, *argv: str) -> tuple[int, list[str], str]:
+    """scripts/train.py in this process: (exit code, stderr lines, stdout)."""
+    try:
+        code = train_command.main(list(argv))
+    except SystemExit as exit_:
+        code = exit_.code
+    captured = capsys.readouterr()
+    return code, [line for line in captured.err.splitlines() if line.strip()], captured.out
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.name != runs.LOCK_FILE}
+
+
+def epochs_in(folder: Path) -> list[int]:
+    return sorted({int(row["epoch"]) for row in runs.read_metrics(folder / runs.METRICS_FILE)})
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    """A repulsion run of 2 epochs, made by the command line in this process."""
+    run_dir = tmp_path_factory.mktemp("faults") / "finished"
+    assert train_command.main(SMALL + ["--epochs", "2", "--out", str(run_dir)]) == 0
+    return run_dir
+
+
+def wait_for(path: Path, process: subprocess.Popen, seconds: float = 180) -> None:
+    deadline = time.monotonic() + seconds
+    while not path.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert path.exists(), process.communicate(timeout=60)
+
+
+def test_sigterm_saves_like_ctrl_c_and_resume_goes_on(tmp_path, capsys):
+    run_dir = tmp_path / "terminated"
+    process = subprocess.Popen(TRAIN + SMALL + ["--epochs", "1000", "--out", str(run_dir)], cwd=tmp_path,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    wait_for(run_dir / runs.CHECKPOINT_FILE, process)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr
+    assert "SIGTERM" in stderr and f"--resume {run_dir}" in stderr and "Traceback" not in stderr
+    done = epochs_in(run_dir)
+    assert done == list(range(1, len(done) + 1)) and len(done) < 1000  # every epoch trained is kept
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--epochs", str(len(done) + 1), "--no-progress")
+    assert code == 0, err
+    assert epochs_in(run_dir) == list(range(1, len(done) + 2))
+
+
+@pytest.mark.parametrize("how", ["SIGKILL as the folder is claimed", "SIGTERM while compiling"])
+def test_a_signal_at_any_moment_leaves_a_folder_that_resumes(tmp_path, capsys, how):
+    run_dir = tmp_path / "early"
+    process = subprocess.Popen(TRAIN + SMALL + ["--epochs", "1", "--out", str(run_dir)], cwd=tmp_path,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    wait_for(run_dir / runs.CONFIG_FILE, process)
+    if how.startswith("SIGKILL"):
+        process.send_signal(signal.SIGKILL)
+    else:
+        time.sleep(1.0)  # task built; the epoch program is being traced or compiled
+        process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert "Traceback" not in stderr
+    if process.returncode == 0:
+        pytest.skip("the run finished before the signal")  # a machine far faster than CI's
+    assert not (run_dir / runs.CHECKPOINT_FILE).exists()
+    again = train(capsys, *SMALL, "--epochs", "1", "--out", str(run_dir))  # the same command: refused, pointing on
+    assert again[0] == 2 and f"--resume {run_dir}" in again[1][0], again
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
+    assert code == 0, err
+    assert epochs_in(run_dir) == [1]
+
+
+def test_two_runs_given_one_folder_at_once_one_is_refused(tmp_path):
+    record = {"task": "repulsion", "task_config": {}, "train": {}}
+    for attempt in range(20):
+        folder = tmp_path / f"contested-{attempt}"
+        start = threading.Barrier(2)
+        results: list = []
+
+        def claim():
+            start.wait()
+            try:
+                results.append(runs.create_run(folder, record))
+            except InputError as error:
+                results.append(error)
+
+        threads = [threading.Thread(target=claim) for _ in range(2)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        winners = [r for r in results if isinstance(r, runs.RunLock)]
+        losers = [r for r in results if isinstance(r, InputError)]
+        assert len(winners) == 1 and len(losers) == 1, results
+        assert "\n" not in str(losers[0]) and str(folder) in str(losers[0])
+        winners[0].release()
+    assert json.loads((tmp_path / "contested-0" / runs.CONFIG_FILE).read_text()) == record
+
+
+def test_a_folder_in_use_is_refused_to_a_second_process(finished, capsys):
+    lock = runs.RunLock(finished)  # as a live run holds it
+    try:
+        code, err, _ = train(capsys, "--resume", str(finished), "--epochs", "3", "--no-progress")
+    finally:
+        lock.release()
+    assert code == 2 and len(err) == 1 and "in use by another run" in err[0], err
+
+
+def _truncate_checkpoint(folder: Path) -> None:
+    data = (folder / runs.CHECKPOINT_FILE).read_bytes()
+    (folder / runs.CHECKPOINT_FILE).write_bytes(data[: len(data) // 2])
+
+
+def _edit_config(change):
+    def damage(folder: Path) -> None:
+        record = json.loads((folder / runs.CONFIG_FILE).read_text())
+        change(record)
+        (folder / runs.CONFIG_FILE).write_text(json.dumps(record))
+    return damage
+
+
+def _foreign_checkpoint(folder: Path) -> None:
+    record = json.loads((folder / runs.CONFIG_FILE).read_text())
+    other = {**record, "task_config": {**record["task_config"], "rc": 0.5}}  # same shapes, another task
+    trainer_config = TrainConfig(**{**record["train"]})
+    template = make_trainer(repulsion.make(repulsion.Config()), trainer_config).init(seed_array(trainer_config))
+    epoch, state, rows = runs.load_checkpoint(folder, template)
+    runs.save_checkpoint(folder, epoch, state, rows, runs.identity(other))
+
+
+DAMAGES = {
+    "truncated checkpoint": (_truncate_checkpoint, "is damaged"),
+    "config.json not JSON": (lambda f: (f / runs.CONFIG_FILE).write_text("{\"task\": "), "not valid JSON"),
+    "config.json a list": (lambda f: (f / runs.CONFIG_FILE).write_text("[]"), "not a run configuration"),
+    "a training option of the wrong type": (_edit_config(lambda r: r["train"].update(seeds="ten")), "seeds must be int"),
+    "task option of the wrong type": (_edit_config(lambda r: r["task_config"].update(rc=[1])), "rc must be float"),
+    "unknown task": (_edit_config(lambda r: r.update(task="pendulum")), "names the task 'pendulum'"),
+    "task_config missing": (_edit_config(lambda r: r.pop("task_config")), "task_config"),
+    "checkpoint of another run": (_foreign_checkpoint, "checkpoint of another run"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGES))
+def test_a_damaged_folder_gets_one_line_and_is_left_as_it_was(finished, tmp_path, capsys, case):
+    damage, words = DAMAGES[case]
+    folder = tmp_path / "damaged"
+    shutil.copytree(finished, folder)
+    damage(folder)
+    before = snapshot(folder)
+    code, err, _ = train(capsys, "--resume", str(folder), "--epochs", "3", "--no-progress")
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: ") and words in err[0], err
+    assert snapshot(folder) == before
+
+
+def test_resume_given_a_file_or_fewer_epochs_changes_nothing(finished, capsys):
+    before = snapshot(finished)
+    code, err, _ = train(capsys, "--resume", str(finished / runs.CONFIG_FILE))
+    assert code == 2 and len(err) == 1 and "is a file, not a run directory" in err[0], err
+    code, err, _ = train(capsys, "--resume", str(finished), "--epochs", "1", "--no-progress")
+    assert code == 2 and len(err) == 1 and "has trained 2 epochs" in err[0], err
+    code, err, out = train(capsys, "--resume", str(finished), "--no-progress")
+    assert code == 0 and "done already" in out, err
+    assert snapshot(finished) == before
+
+
+def test_a_full_disk_gets_one_line_leaves_no_temporary_and_the_run_resumes(tmp_path, capsys, monkeypatch):
+    run_dir = tmp_path / "full"
+    real_fsync, calls = os.fsync, []
+
+    def fsync_until_the_disk_is_full(descriptor):
+        calls.append(descriptor)
+        if len(calls) > 4:  # config.json, then epoch 1's checkpoint, params and metrics fit
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real_fsync(descriptor)
+
+    monkeypatch.setattr(os, "fsync", fsync_until_the_disk_is_full)
+    code, err, _ = train(capsys, *SMALL, "--epochs", "3", "--checkpoint-every", "1", "--out", str(run_dir))
+    assert code == 1 and len(err) == 1 and "No space left on device" in err[0] and "--resume" in err[0], err
+    assert not [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]
+    assert epochs_in(run_dir) == [1]
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
+    assert code == 0, err
+    assert epochs_in(run_dir) == [1, 2, 3]
+
+
+def test_atomic_write_leaves_the_old_file_when_the_disk_is_full(tmp_path, monkeypatch):
+    target = tmp_path / "record.json"
+    runs.write_json(target, {"kept": True})
+
+    def full(descriptor):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(runs.StorageError, match="No space left"):
+        runs.write_json(target, {"kept": False})
+    assert json.loads(target.read_text()) == {"kept": True}
+    assert [p.name for p in tmp_path.iterdir()] == ["record.json"]
+
+
+ARM = """<mujoco model="arm">
+  <option timestep="0.02"/>
+  <include file="arm_body.xml"/>
+  <actuator><motor joint="shoulder" gear="2"/></actuator>
+  <custom><numeric name="bptt_horizon" data="8"/></custom>
+  <keyframe><key name="target" qpos="0.5"/></keyframe>
+</mujoco>"""
+ARM_BODY = """<mujoco><worldbody><body><joint name="shoulder" type="hinge" damping="0.1"/>
+  <geom type="capsule" size="0.05" fromto="0 0 0 0 0 -0.5"/></body></worldbody></mujoco>"""
+
+
+def test_a_run_remembers_its_model_resumes_and_renders_after_the_file_moved(tmp_path, capsys, monkeypatch):
+    source = tmp_path / "lab"
+    source.mkdir()
+    (source / "arm.xml").write_text(ARM)
+    (source / "arm_body.xml").write_text(ARM_BODY)
+    monkeypatch.chdir(source)
+    options = ["--train-size", "8", "--test-size", "8", "--no-progress"]
+    code, err, _ = train(capsys, "--model", "arm.xml", "--epochs", "1", "--out", str(tmp_path / "run"), *options)
+    assert code == 0, err
+    run_dir = tmp_path / "run"
+    assert (run_dir / runs.MODEL_BINARY_FILE).is_file()
+
+    (source / "arm_body.xml").write_text(ARM_BODY)  # rewritten unchanged: still the same model
+    (source / "arm.xml").write_text(ARM.replace('gear="2"', 'gear="3"'))
+    before = snapshot(run_dir)
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--epochs", "2", "--no-progress")
+    assert code == 2 and len(err) == 1 and "arm.xml changed since the run" in err[0], err
+    assert snapshot(run_dir) == before
+
+    shutil.move(source, tmp_path / "elsewhere")  # the file moved, and we work in another directory
+    monkeypatch.chdir(tmp_path)
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--epochs", "2", "--no-progress")
+    assert code == 0, err
+    assert any("is gone: using the run's own copy" in line for line in err)
+    assert epochs_in(run_dir) == [1, 2]
+    assert json.loads((run_dir / runs.CONFIG_FILE).read_text())["resolved_task"]["name"] == "arm"
+
+    render = subprocess.run([sys.executable, str(ROOT / "scripts" / "render.py"), str(run_dir), "--rollouts", "1",
+                             "--no-video"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert render.returncode == 0, render.stderr
+    assert list(run_dir.glob("*.png"))
+
+
+def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
+    config = TrainConfig(epochs=2, train_size=16, test_size=16, seeds=1)
+    task = repulsion.make(repulsion.Config())
+    record = {"task": "repulsion", "task_config": dataclasses.asdict(repulsion.Config()),
+              "train": dataclasses.asdict(config)}
+    outcome = {}
+
+    def work():
+        lock = runs.create_run(tmp_path / "threaded", record)
+        trainer = make_trainer(task, config)
+        outcome["value"] = runs.train_epochs(trainer, config, tmp_path / "threaded", trainer.init(seed_array(config)),
+                                             0, runs.empty_rows(), np.asarray(seed_array(config)))
+        lock.release()
+
+    worker = threading.Thread(target=work)
+    worker.start()
+    worker.join()
+    assert outcome["value"].status == "complete" and outcome["value"].epoch == 2
+    from stablebptt.plots import plot_run
+    figure = plot_run(tmp_path / "threaded")
+    assert Path(figure).is_file()
