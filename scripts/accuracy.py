@@ -127,29 +127,23 @@ def compile_call(function: Callable, arguments: tuple, bits: int) -> tuple[Call,
     if _traced_in["bits"] not in (None, bits):
         jax.clear_caches()
     _traced_in["bits"] = bits
+    from stablebptt import timing
     with precision(bits):
-        started = time.perf_counter()
-        compiled = function.lower(*arguments).compile()
-        return Call(compiled, arguments, bits), time.perf_counter() - started
+        compiled, seconds = timing.compile_ahead(function, *arguments)
+        return Call(compiled, arguments, bits), seconds
 
 
 def run_once(call: Call) -> tuple[Any, float]:
     """Run a compiled call; returns the result and the seconds it took."""
-    import jax
+    from stablebptt import timing
     with precision(call.bits):
-        started = time.perf_counter()
-        result = jax.block_until_ready(call.function(*call.arguments))
-        return result, time.perf_counter() - started
+        return timing.timed(lambda: call.function(*call.arguments))
 
 
 def time_round_robin(calls: dict, rounds: int) -> dict:
     """Median seconds per call of already compiled ``calls``, one call of each per round."""
-    import numpy as np
-    samples = {key: [] for key in calls}
-    for _ in range(rounds):
-        for key, call in calls.items():
-            samples[key].append(run_once(call)[1])
-    return {key: float(np.median(values)) for key, values in samples.items()}
+    from stablebptt import timing
+    return timing.round_robin({key: (lambda call=call: run_once(call)[0]) for key, call in calls.items()}, rounds, warmup=0)
 
 
 def policy_params(task, seed: int) -> Any:

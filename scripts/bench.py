@@ -24,7 +24,6 @@ from pathlib import Path
 import dataclasses
 import os
 import platform
-import time
 from dataclasses import dataclass, field
 
 from stablebptt.cli import fail, parse_config
@@ -70,25 +69,15 @@ def make_update(task, flows, batch_size, plain=False):
 
 
 def time_variants(variants: dict, rounds: int) -> dict[str, tuple[float, float]]:
-    """Median milliseconds per call and compile seconds, timed round-robin."""
-    import jax
-    import numpy as np
+    """Median milliseconds per call and compile seconds (the first call), timed round-robin."""
+    from stablebptt import timing
     prepared, compile_seconds = {}, {}
     for name, (update, setup) in variants.items():
         arguments = setup()
-        started = time.perf_counter()
-        jax.block_until_ready(update(*arguments))
-        compile_seconds[name] = time.perf_counter() - started
-        prepared[name] = (update, arguments)
-    for update, arguments in prepared.values():  # one untimed round: the first calls after compiling run cold
-        jax.block_until_ready(update(*arguments))
-    samples = {name: [] for name in variants}
-    for _ in range(rounds):
-        for name, (update, arguments) in prepared.items():
-            started = time.perf_counter()
-            jax.block_until_ready(update(*arguments))
-            samples[name].append(time.perf_counter() - started)
-    return {name: (1e3 * float(np.median(samples[name])), compile_seconds[name]) for name in variants}
+        compile_seconds[name] = timing.timed(lambda: update(*arguments))[1]
+        prepared[name] = lambda update=update, arguments=arguments: update(*arguments)
+    medians = timing.round_robin(prepared, rounds)
+    return {name: (1e3 * medians[name], compile_seconds[name]) for name in variants}
 
 
 def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
@@ -178,9 +167,9 @@ def main(argv: list[str]) -> int:
     config = parse_config(BenchConfig, argv, __doc__, "benchmark")
     from stablebptt import tasks
     names = [t for t in config.tasks.split(",") if t]
-    unknown = [t for t in names if t not in tasks.TASK_MODULES]
+    unknown = [t for t in names if t not in tasks.entries()]
     if unknown:
-        fail(f"unknown task {unknown[0]!r}: choose from {', '.join(sorted(tasks.TASK_MODULES))}")
+        fail(f"unknown task {unknown[0]!r}: choose from {', '.join(sorted(tasks.entries()))}")
     try:
         poles = [int(p) for p in config.poles.split(",") if p]
     except ValueError:

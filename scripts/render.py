@@ -31,7 +31,6 @@ from stablebptt.errors import InputError
 
 RENDERS_ROOT = Path("renders")
 STEM = "rollout"  # default name of the files written into a run directory
-PICTURES = {"cartpole": "strip", "repulsion": "paths", "quantum": "density"}  # task -> suffix of its picture
 
 
 @dataclass(frozen=True)
@@ -114,152 +113,41 @@ def output_paths(args, config: RenderConfig, picture: str) -> tuple[Path, Path]:
     return _named(candidate, suffix), _named(candidate, f"-{picture}.png")
 
 
-def read_run(run_dir: Path) -> dict:
-    """The run's config.json, checked for what rendering needs, with the model file to rebuild its task from."""
-    from stablebptt import runs  # imports JAX: only once there is a run to read
-    from stablebptt import tasks
-    saved = runs.open_run(run_dir)
-    if saved["task"] not in tasks.TASK_MODULES:
-        raise InputError(f"{run_dir / runs.CONFIG_FILE} names the task {saved['task']!r}, which is none of "
-                         f"{', '.join(sorted(tasks.TASK_MODULES))}")
-    if not (run_dir / runs.PARAMS_FILE).is_file():
-        raise InputError(f"{run_dir} has no {runs.PARAMS_FILE}: the run has not finished an epoch yet")
-    model_file, note = runs.model_to_reopen(run_dir, saved)
-    if model_file is not None and "model" in saved["task_config"]:
-        saved = {**saved, "task_config": {**saved["task_config"], "model": model_file}}
-        if note:
-            print(note, file=sys.stderr)
-    return saved
-
-
-def load_controller(run_dir: Path, task, train, seed_index: int):
-    """The parameters of one seed of the run."""
-    import zipfile
-
-    import jax
-    import numpy as np
-    from stablebptt.runs import PARAMS_FILE, load_params
-
-    if seed_index >= train.seeds:
-        raise InputError(f"--seed-index {seed_index}: the run has {train.seeds} seed(s), 0 to {train.seeds - 1}")
-    keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)
-    template = jax.vmap(lambda key: task.init_params(key, train.zero_output))(keys)
-    try:
-        params = load_params(run_dir / PARAMS_FILE, template)
-    except InputError:
-        raise
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # a truncated or foreign file
-        raise InputError(f"cannot read {run_dir / PARAMS_FILE}: {' '.join(str(error).split())}") from None
-    return jax.tree.map(lambda leaf: np.asarray(leaf)[seed_index], params)
-
-
-def roll_out(task, train, params, count: int):
-    """States [N, T+1, ...] (the initial state first), controls [N, T, ...] and losses [N] from the run's test states."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-    from stablebptt.flows import reference_rollout
-
-    # The test states exactly as make_trainer draws them: the same split of the data seed.
-    _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))
-    initial = jax.tree.map(lambda a: a[:count], task.sample_initial_states(test_key, train.test_size))
-
-    @jax.jit
-    def run(params, initial):
-        trajectory = jax.vmap(lambda x0: reference_rollout(task.dynamics, params, x0))(initial)
-        losses = jax.vmap(task.dynamics.loss)(trajectory.states, trajectory.controls)
-        states = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[:, None], xs], axis=1), initial, trajectory.states)
-        return states, trajectory.controls, losses
-
-    states, controls, losses = jax.device_get(run(params, initial))
-    return states, controls, np.asarray(losses)
-
-
-def render_mujoco(model_path: Path, qpos, config: RenderConfig, video: Path | None, strip: Path) -> list[Path]:
-    """The MuJoCo scene: a video of the rollouts side by side and the frame strip of the first."""
-    from stablebptt import rendering
-
-    strip_size = (2 * config.width, 2 * config.height)  # a picture for print: twice the video panel
-    model = rendering.render_model(model_path, framebuffer=(rendering.SUPERSAMPLE * strip_size[0],
-                                                            rendering.SUPERSAMPLE * strip_size[1]))
-    written = []
-    cameras = [rendering.frame_camera(model, *rendering.rollout_extent(model, q), config.width, config.height) for q in qpos]
-    if video is not None:
-        panels = [rendering.render_frames(model, q, camera, config.width, config.height)[0] for q, camera in zip(qpos, cameras)]
-        written.append(rendering.write_video(video, rendering.tile(panels), config.fps))
-    picks = rendering.strip_indices(len(qpos[0]), config.strip_states)
-    frames, masks = rendering.render_frames(model, qpos[0][picks], cameras[0], *strip_size,
-                                            supersample=rendering.SUPERSAMPLE, with_masks=True)
-    written.append(rendering.write_png(strip, rendering.frame_strip(frames, masks)))
-    return written
-
-
-def render_figures(task_name: str, task_config, states, controls, titles, label, config: RenderConfig,
-                   video: Path | None, picture: Path) -> list[Path]:
-    """Repulsion and quantum: matplotlib pictures and animations (tasks/figures.py)."""
-    from stablebptt import rendering
-    from stablebptt.tasks import figures
-
-    written = []
-    panel = (config.width, config.height)
-    if task_name == "repulsion":
-        from stablebptt.tasks.repulsion import Physics
-        positions = states.position
-        if video is not None:
-            frames = figures.repulsion_frames(positions, Physics().duration, panel, titles)
-            written.append(rendering.write_video(video, frames, config.fps))
-        written.append(figures.repulsion_paths(positions, picture, titles, title=label))
-    else:
-        if video is not None:
-            frames = figures.quantum_frames(states, controls, task_config.dt, task_config.target, panel, titles)
-            written.append(rendering.write_video(video, frames, config.fps))
-        written.append(figures.quantum_density(states, controls, task_config.dt, task_config.target, picture, titles,
-                                               title=label))
-    return written
-
-
-def build_controller(args, config: RenderConfig, saved: dict | None):
+def build_controller(args, config: RenderConfig):
     """(task name, task config, train config, task, parameters of one seed, label) of the run or the --model."""
     import jax
     from stablebptt import tasks
-    from stablebptt.runs import METRICS_FILE, read_metrics
+    from stablebptt.tasks.trained import open_trained
     from stablebptt.training import TrainConfig
 
-    if saved is None:
-        module = tasks.load("cartpole")
+    if args.run_dir is None:
+        module = tasks.load("cartpole")  # the MJCF task
         task_config = module.Config(model=str(args.model), steps=config.steps)
         task = module.make(task_config)
         params = task.init_params(jax.random.PRNGKey(0), True)  # a zero output layer: the policy outputs 0
         return "cartpole", task_config, TrainConfig(), task, params, f"{args.model.name}, zero policy"
-    task_name = saved["task"]
-    module = tasks.load(task_name)
-    train = build(TrainConfig, saved["train"], str(args.run_dir / "config.json"))
-    jax.config.update("jax_enable_x64", train.x64)  # before any array, as the run was trained
-    task_config = build(module.Config, saved["task_config"], str(args.run_dir / "config.json"))
-    task = module.make(task_config)
-    params = load_controller(args.run_dir, task, train, config.seed_index)
-    setting = {"cartpole": lambda c: c.model_path.name, "repulsion": lambda c: f"repulsion, rc={c.rc:g}",
-               "quantum": lambda c: f"quantum, target state {c.target}"}[task_name](task_config)
-    try:  # the epochs params.npz holds: fewer than configured when the run was stopped early
-        epochs = f", {int(max(row['epoch'] for row in read_metrics(args.run_dir / METRICS_FILE)))} epochs"
-    except (OSError, ValueError, KeyError, TypeError):
-        epochs = ""
-    label = f"{setting}, mode {train.mode}{epochs}, seed {train.seed + config.seed_index}"
-    return task_name, task_config, train, task, params, label
+    trained = open_trained(args.run_dir)
+    params = trained.seed_params(config.seed_index)
+    label = f"{trained.label}, seed {trained.train.seed + config.seed_index}"
+    return trained.task_name, trained.task_config, trained.train, trained.task, params, label
 
 
 def main(argv: list[str]) -> int:
     args, config = parse(argv)
     try:
         if args.run_dir is not None:
-            saved = read_run(args.run_dir)
-            task_name = saved["task"]
+            from stablebptt import runs  # imports JAX: only once there is a run to read
+            task_name = runs.open_run(args.run_dir)["task"]
         else:
             if not args.model.is_file():
                 raise InputError(f"model file {args.model} does not exist")
-            saved, task_name = None, "cartpole"
-        video, picture = output_paths(args, config, PICTURES[task_name])
-        if task_name == "cartpole":
+            task_name = "cartpole"  # the MJCF task
+        from stablebptt import tasks
+        entry = tasks.entry(task_name)
+        if not entry.draw:
+            raise InputError(f"the task {task_name} has no drawing (its registry entry gives no draw)")
+        video, picture = output_paths(args, config, entry.picture)
+        if entry.mujoco_frames:
             # Before mujoco is imported: it reads MUJOCO_GL once.
             from stablebptt.rendering import select_gl_backend
             select_gl_backend()
@@ -268,13 +156,16 @@ def main(argv: list[str]) -> int:
 
     import jax
     import numpy as np
+    from stablebptt.cli import use_compile_cache
+    use_compile_cache()
 
     try:
-        task_name, task_config, train, task, params, label = build_controller(args, config, saved)
+        task_name, task_config, train, task, params, label = build_controller(args, config)
     except (InputError, TypeError) as error:  # TypeError: a config.json value of the wrong type
         fail(str(error))
 
-    states, controls, losses = roll_out(task, train, params, config.rollouts)
+    from stablebptt.tasks.trained import rollouts_from_test_states
+    states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
     # [N, T+1]: whether every number of the state is finite; a diverged rollout has nothing to draw.
     finite = np.stack([np.isfinite(np.reshape(a, a.shape[:2] + (-1,))).all(axis=-1) for a in jax.tree.leaves(states)]).all(axis=0)
     for index, steps_finite in enumerate(finite):
@@ -287,10 +178,7 @@ def main(argv: list[str]) -> int:
     video = video if config.video else None
     picture.parent.mkdir(parents=True, exist_ok=True)  # renders/ for --model
     try:
-        if task_name == "cartpole":
-            written = render_mujoco(task_config.model_path, states.qpos, config, video, picture)
-        else:
-            written = render_figures(task_name, task_config, states, controls, titles, label, config, video, picture)
+        written = entry.drawer()(task_config, states, controls, titles, label, config, video, picture)
     except InputError as error:
         fail(str(error))
     except OSError as error:  # a full disk, a directory without write permission

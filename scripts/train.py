@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 
+import argparse
 import dataclasses
 import platform
 import time
@@ -26,15 +27,17 @@ RESUMABLE = {"epochs"}  # what --resume may change: extending a finished run
 
 
 def parse(argv: list[str]):
-    parser = Parser(description=__doc__, formatter_class=lambda prog: __import__("argparse").RawDescriptionHelpFormatter(prog, max_help_position=32))
-    parser.add_argument("--task", choices=sorted(tasks.TASK_MODULES), default=None,
+    parser = Parser(description=__doc__, formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32))
+    parser.add_argument("--task", choices=sorted(tasks.entries()), default=None,
                         help=f"which task (default: {tasks.DEFAULT_TASK}, or the task whose options are given)")
     parser.add_argument("--out", type=Path, default=None, help="run directory to create (default: runs/TASK-TIME); never overwritten")
     parser.add_argument("--resume", type=Path, default=None, help="continue the run in this directory from its checkpoint")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs and CI)")
+    parser.add_argument("--compile-cache", action=argparse.BooleanOptionalAction, default=True,
+                        help="keep compiled programs between runs (in $STABLEBPTT_COMPILE_CACHE or ~/.cache/stablebptt; default: on)")
     # owners: option -> the configs that have it ("train" or task names)
     owners = {name: {"train"} for name in add_options(parser, TrainConfig, "training")}
-    for task_name in sorted(tasks.TASK_MODULES):
+    for task_name in sorted(tasks.entries()):
         for name in add_options(parser, tasks.load(task_name).Config, f"task {task_name}", set(owners)):
             owners.setdefault(name, set()).add(task_name)
     return parser.parse_args(argv), owners
@@ -62,8 +65,8 @@ def configure(args, owners):
         record = runs.open_run(args.resume)
         source = args.resume / runs.CONFIG_FILE
         task_name = record["task"]
-        if task_name not in tasks.TASK_MODULES:
-            raise InputError(f"{source} names the task {task_name!r}, which is none of {', '.join(sorted(tasks.TASK_MODULES))}")
+        if task_name not in tasks.entries():
+            raise InputError(f"{source} names the task {task_name!r}, which is none of {', '.join(sorted(tasks.entries()))}")
         task_values = dict(record["task_config"])
         model_file, note = runs.model_to_reopen(args.resume, record)
         if model_file is not None and "model" in task_values:
@@ -101,6 +104,8 @@ def train(argv: list[str], locks: list) -> int:
 
     import jax  # after parsing: --x64 must be set before any array exists
     jax.config.update("jax_enable_x64", train_config.x64)
+    from stablebptt.cli import use_compile_cache
+    use_compile_cache(args.compile_cache)
     import numpy as np
     from stablebptt import runs
     from stablebptt.errors import StorageError

@@ -12,6 +12,7 @@ import dataclasses
 import os
 import signal
 import sys
+from pathlib import Path
 from typing import Any, Callable, Iterator, NoReturn
 
 _TYPES = {"int": int, "float": float, "str": str, "bool": bool}
@@ -119,3 +120,29 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None) -> I
     finally:
         for signum, old in previous.items():
             signal.signal(signum, old)
+
+
+COMPILE_CACHE_ENV = "STABLEBPTT_COMPILE_CACHE"  # a directory, or "off"
+
+
+def compile_cache_dir() -> Path | None:
+    """Where compiled programs are kept between runs: $STABLEBPTT_COMPILE_CACHE, else the user's
+    cache directory ($XDG_CACHE_HOME or ~/.cache, then stablebptt/jax); None when it is "off"."""
+    value = os.environ.get(COMPILE_CACHE_ENV, "")
+    if value == "off":
+        return None
+    if value:
+        return Path(value)
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "stablebptt" / "jax"
+
+
+def use_compile_cache(enabled: bool = True) -> Path | None:
+    """Turn on JAX's persistent compilation cache (before the first compile): a second identical run
+    loads its programs instead of compiling them. Returns the directory, or None when off."""
+    directory = compile_cache_dir() if enabled else None
+    if directory is None:
+        return None
+    import jax
+    jax.config.update("jax_compilation_cache_dir", str(directory))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # tiny programs recompile faster than they load
+    return directory

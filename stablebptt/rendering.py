@@ -448,3 +448,21 @@ def write_video(path: str | Path, frames: np.ndarray, fps: float = 30.0) -> Path
         temporary.unlink(missing_ok=True)
     return path
 
+
+
+def draw_mujoco_rollouts(task_config, states, controls, titles, label, settings, video: Path | None,
+                         strip: Path) -> list[Path]:
+    """An MJCF task's rollouts (``task_config.model_path``): a video of them side by side and the
+    frame strip of the first. ``settings`` has width, height (of a video panel), fps and strip_states."""
+    strip_size = (2 * settings.width, 2 * settings.height)  # a picture for print: twice the video panel
+    model = render_model(task_config.model_path, framebuffer=(SUPERSAMPLE * strip_size[0], SUPERSAMPLE * strip_size[1]))
+    qpos = states.qpos
+    written = []
+    cameras = [frame_camera(model, *rollout_extent(model, q), settings.width, settings.height) for q in qpos]
+    if video is not None:
+        panels = [render_frames(model, q, camera, settings.width, settings.height)[0] for q, camera in zip(qpos, cameras)]
+        written.append(write_video(video, tile(panels), settings.fps))
+    picks = strip_indices(len(qpos[0]), settings.strip_states)
+    frames, masks = render_frames(model, qpos[0][picks], cameras[0], *strip_size, supersample=SUPERSAMPLE, with_masks=True)
+    written.append(write_png(strip, frame_strip(frames, masks)))
+    return written

@@ -31,6 +31,7 @@ import jax
 import numpy as np
 
 from stablebptt.errors import InputError, StorageError
+from stablebptt.timing import compile_ahead
 from stablebptt.training import METRICS, TrainConfig, Trainer, TrainState, nonfinite_names
 
 CONFIG_FILE = "config.json"
@@ -412,9 +413,8 @@ def train_epochs(
     epoch's metrics, with its wall time under ``"seconds"``. Runs in any thread.
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    started = time.perf_counter()
-    epoch_fn = trainer.epoch.lower(state, *arguments).compile()  # compile before timing epochs
-    on_compiled(time.perf_counter() - started)
+    epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)  # before timing epochs
+    on_compiled(compile_seconds)
 
     def run_epoch(state):
         new_state, metrics = epoch_fn(state, *arguments)

@@ -1,17 +1,130 @@
-"""The task registry: each task module offers ``Config``, ``make(config) -> Task`` and ``DEFAULT_EPOCHS``."""
+"""The task registry: what the command line needs to know about each task.
+
+A task is a module with ``Config`` (a typed dataclass: its command-line
+options), ``make(config) -> stablebptt.training.Task`` and ``DEFAULT_EPOCHS``,
+described by an ``Entry``: how to name a configuration, how to draw its
+rollouts, which grids the sweep offers. Entries import nothing: a task's module
+(and MuJoCo with it) is imported only when the task is used, so rendering can
+still choose MuJoCo's OpenGL backend first.
+
+Your own task: write such a module and register it, either from Python before
+calling a command's ``main``::
+
+    from stablebptt import tasks
+    tasks.register(tasks.Entry(name="arm", module="my_lab.arm_task", label=lambda c: f"arm, {c.links} links"))
+
+or for every use of the installed command, through an entry point in your
+package's pyproject.toml (the value is a module defining ``ENTRY``)::
+
+    [project.entry-points."stablebptt.tasks"]
+    arm = "my_lab.arm_task"
+"""
 from __future__ import annotations
 
 import importlib
+from dataclasses import dataclass, field
+from importlib.metadata import entry_points
 from types import ModuleType
+from typing import Any, Callable
 
-TASK_MODULES = {
-    "cartpole": "stablebptt.tasks.cartpole",
-    "repulsion": "stablebptt.tasks.repulsion",
-    "quantum": "stablebptt.tasks.quantum",
-}
 DEFAULT_TASK = "cartpole"
+
+
+def _import(dotted: str) -> Any:
+    """``"package.module:attribute"`` -> the attribute; ``"package.module"`` -> the module."""
+    module, _, attribute = dotted.partition(":")
+    loaded = importlib.import_module(module)
+    return getattr(loaded, attribute) if attribute else loaded
+
+
+@dataclass(frozen=True)
+class Entry:
+    """A task as the command line sees it.
+
+    Attributes:
+      name: the ``--task`` value.
+      module: import path of the module with ``Config``, ``make`` and ``DEFAULT_EPOCHS``.
+      label: a configuration in a few words, for titles (``label(config) -> str``).
+      draw: ``"module:function"`` (or the function) drawing rollouts:
+        ``draw(task_config, states, controls, titles, label, settings, video, picture) -> [written paths]``,
+        with ``settings`` render.py's options (width, height, fps, strip_states). Empty: not drawable.
+      picture: suffix of the picture file ``draw`` writes (``rollout-<picture>.png``).
+      mujoco_frames: ``draw`` renders with MuJoCo's OpenGL (a backend is chosen before MuJoCo loads).
+      presets: sweep grids: preset name -> (the option that sets the complexity, its values).
+      gpu_unroll: rollout steps per loop iteration for sweeps on a GPU (measured per task: the
+        README's GPU table; beyond it compile time grows faster than the gain).
+    """
+
+    name: str
+    module: str
+    label: Callable[[Any], str] = lambda config: ""
+    draw: str | Callable = ""
+    picture: str = "picture"
+    mujoco_frames: bool = False
+    presets: dict[str, tuple[str, tuple]] = field(default_factory=dict)
+    gpu_unroll: int = 1
+
+    def load(self) -> ModuleType:
+        """The task's module, imported now."""
+        return importlib.import_module(self.module)
+
+    def drawer(self) -> Callable:
+        return _import(self.draw) if isinstance(self.draw, str) else self.draw
+
+
+_BUILTIN = (
+    Entry("cartpole", "stablebptt.tasks.cartpole", label=lambda c: c.model_path.name,
+          draw="stablebptt.rendering:draw_mujoco_rollouts", picture="strip", mujoco_frames=True,
+          presets={"cartpole": ("poles", (1, 2, 3, 4))}, gpu_unroll=5),
+    Entry("repulsion", "stablebptt.tasks.repulsion", label=lambda c: f"repulsion, rc={c.rc:g}",
+          draw="stablebptt.tasks.figures:draw_repulsion", picture="paths",
+          presets={"repulsion": ("rc", (1.0, 0.1, 0.01, 0.001)),
+                   "tiny": ("rc", (1.0, 0.1))},  # the CPU test of the sweep's machinery
+          gpu_unroll=10),
+    Entry("quantum", "stablebptt.tasks.quantum", label=lambda c: f"quantum, target state {c.target}",
+          draw="stablebptt.tasks.figures:draw_quantum", picture="density",
+          presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8),
+)
+_REGISTRY: dict[str, Entry] = {}
+_DISCOVERED: list[bool] = []
+
+
+def register(entry: Entry) -> None:
+    """Make ``entry`` a task of every command (``--task NAME``); a later entry of the same name replaces it."""
+    _REGISTRY[entry.name] = entry
+
+
+def _discover() -> None:
+    if _DISCOVERED:
+        return
+    _DISCOVERED.append(True)
+    registered = dict(_REGISTRY)  # register() calls made before discovery take precedence
+    for entry in _BUILTIN:
+        register(entry)
+    for point in entry_points(group="stablebptt.tasks"):
+        register(point.load().ENTRY)
+    _REGISTRY.update(registered)
+
+
+def entries() -> dict[str, Entry]:
+    """Every registered task by name: the built-in ones, entry points, and ``register`` calls."""
+    _discover()
+    return dict(_REGISTRY)
+
+
+def entry(name: str) -> Entry:
+    from stablebptt.errors import InputError
+    known = entries()
+    if name not in known:
+        raise InputError(f"unknown task {name!r}: one of {', '.join(sorted(known))}")
+    return known[name]
 
 
 def load(name: str) -> ModuleType:
     """The task module; imported lazily so that a task's heavy imports are paid only when used."""
-    return importlib.import_module(TASK_MODULES[name])
+    return entry(name).load()
+
+
+def presets() -> dict[str, tuple[str, str, tuple]]:
+    """Every sweep grid: preset name -> (task, option, values)."""
+    return {preset: (e.name, option, values) for e in entries().values() for preset, (option, values) in e.presets.items()}

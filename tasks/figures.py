@@ -319,3 +319,25 @@ def quantum_frames(states: np.ndarray, controls: np.ndarray, dt: float, target: 
             clock.set_text(f"t = {dt * step:.2f}")
             frames.append(figure_pixels(figure))
         return np.stack(frames)
+
+
+def draw_repulsion(task_config, states, controls, titles, label, settings, video: Path | None, picture: Path) -> list[Path]:
+    """The registry's drawer for repulsion: an animation of the agents and their paths."""
+    from stablebptt.rendering import write_video
+    written = []
+    if video is not None:
+        frames = repulsion_frames(states.position, repulsion.Physics().duration, (settings.width, settings.height), titles)
+        written.append(write_video(video, frames, settings.fps))
+    written.append(repulsion_paths(states.position, picture, titles, title=label))
+    return written
+
+
+def draw_quantum(task_config, states, controls, titles, label, settings, video: Path | None, picture: Path) -> list[Path]:
+    """The registry's drawer for quantum control: the density's animation and its picture over time."""
+    from stablebptt.rendering import write_video
+    written = []
+    if video is not None:
+        frames = quantum_frames(states, controls, task_config.dt, task_config.target, (settings.width, settings.height), titles)
+        written.append(write_video(video, frames, settings.fps))
+    written.append(quantum_density(states, controls, task_config.dt, task_config.target, picture, titles, title=label))
+    return written

@@ -2,13 +2,25 @@
 
 The tests import the installed package (``make`` installs it in editable mode), as users do.
 """
+import atexit
 import contextlib
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import jax
 import pytest
 
 import stablebptt  # noqa: F401  (its XLA:CPU set-up must precede JAX's CPU client)
+from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+
+# One compilation cache for the session, the command lines the tests start included: a program
+# compiled once (the same small run, resumed, killed, rendered) is loaded the next time. Never
+# the user's own cache.
+os.environ[COMPILE_CACHE_ENV] = tempfile.mkdtemp(prefix="stablebptt-test-cache-")
+atexit.register(shutil.rmtree, os.environ[COMPILE_CACHE_ENV], ignore_errors=True)
+use_compile_cache()
 
 ROOT = Path(__file__).resolve().parent.parent  # the checkout: scripts are run from here
 

@@ -287,7 +287,7 @@ def test_options_are_cli_ready():
     parser = argparse.ArgumentParser()
     types = {f.name: f.type for f in dataclasses.fields(TrainConfig)}
     present = set(add_options(parser, TrainConfig, "training"))
-    for name in sorted(set(tasks.TASK_MODULES) - {"quantum"}):
+    for name in sorted(set(tasks.entries()) - {"quantum"}):
         config_class = tasks.load(name).Config
         present |= set(add_options(parser, config_class, name, present))
         types.update({f.name: f.type for f in dataclasses.fields(config_class)})

@@ -1,6 +1,5 @@
 """The sweep machinery on a tiny grid: the grid optimizer, outputs, a vmapped cell against the cell alone, resume."""
 import ctypes
-import importlib.util
 import json
 import os
 import platform
@@ -16,6 +15,7 @@ import pytest
 
 from conftest import ROOT
 from stablebptt import runs
+from stablebptt.grid import place
 from stablebptt.training import CLIP_MODES, MODES, TrainConfig, make_grid_optimizer, make_optimizer
 
 TINY = ["--preset", "tiny", "--modes", "C,R", "--clips", "value", "--seeds", "2", "--train-size", "16",
@@ -108,22 +108,13 @@ def test_bad_sweep_input_gets_one_line_and_exit_code_2():
         assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, result.stderr)
 
 
-def load_sweep_script():
-    spec = importlib.util.spec_from_file_location("sweep_script", ROOT / "scripts" / "sweep.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the script runs
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.parametrize("devices_per_host, hosts, programs", [(1, 1, 3), (4, 1, 4), (4, 1, 3), (4, 1, 1), (2, 1, 4), (2, 2, 3), (4, 2, 1)])
 def test_placement_runs_every_program_once_on_devices_of_one_host(devices_per_host, hosts, programs):
     """Every program lands on exactly one group; groups are disjoint, never span hosts, and use
     as many devices as the programs can: no device idles while programs queue on another."""
-    sweep_script = load_sweep_script()
     Device = namedtuple("Device", "id process_index")
     devices = [Device(h * devices_per_host + i, h) for h in range(hosts) for i in range(devices_per_host)]
-    placed = [sweep_script.place(list(range(programs)), devices, host) for host in range(hosts)]
+    placed = [place(list(range(programs)), devices, host) for host in range(hosts)]
     queues = [queue for per_host in placed for _, queue in per_host]
     assert sorted(p for queue in queues for p in queue) == list(range(programs))
     groups = [group for per_host in placed for group, _ in per_host]
@@ -180,3 +171,52 @@ def test_ctrl_c_checkpoints_and_the_same_command_resumes(tmp_path):
     assert finish.returncode == 0, finish.stderr
     rows = runs.read_metrics(tmp_path / "tiny" / CELLS[0] / runs.METRICS_FILE)
     assert sorted({r["epoch"] for r in rows}) == list(range(1, reached + 2))
+
+
+def free_port() -> int:
+    import socket
+    with socket.socket() as probe:
+        probe.bind(("localhost", 0))
+        return probe.getsockname()[1]
+
+
+def test_two_processes_under_jax_distributed_give_the_results_of_one(tmp_path):
+    """Two local CPU processes (one device each) share the tiny grid, one program each, and
+    write exactly the cells one process writes alone; process 0 reports once both are done."""
+    grid = [*TINY, "--no-group-values", "--epochs", "2"]
+    assert sweep(*grid, "--out", str(tmp_path / "one")).returncode == 0
+    port = free_port()
+    processes = [subprocess.Popen([sys.executable, str(ROOT / "scripts" / "sweep.py"), *grid, "--out", str(tmp_path / "two"),
+                                   "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)],
+                                  cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for i in range(2)]
+    outputs = [process.communicate(timeout=600) for process in processes]
+    assert [process.returncode for process in processes] == [0, 0], [err[-2000:] for _, err in outputs]
+    records = sorted((tmp_path / "two" / "tiny" / "sweeps").glob("*.json"))
+    assert [r.name.split("-")[1] for r in records] == ["host0", "host1"]
+    ran = [[program["complexity"] for program in runs.read_json(r)["programs"]] for r in records]
+    assert sorted(ran) == [[[0.1]], [[1.0]]]  # one program on each host
+    for cell in CELLS:
+        alone = runs.read_metrics(tmp_path / "one" / "tiny" / cell / runs.METRICS_FILE)
+        shared = runs.read_metrics(tmp_path / "two" / "tiny" / cell / runs.METRICS_FILE)
+        assert [{k: v for k, v in r.items() if k != "seconds"} for r in alone] == \
+               [{k: v for k, v in r.items() if k != "seconds"} for r in shared], cell
+    assert (tmp_path / "two" / "tiny" / "summary.csv").read_text() == (tmp_path / "one" / "tiny" / "summary.csv").read_text()
+
+
+def test_distributed_options_go_together():
+    for arguments in (["--coordinator", "localhost:1"], ["--num-processes", "2", "--process-id", "2", "--coordinator", "h:1"]):
+        result = sweep(*TINY, *arguments)
+        assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def test_a_cell_is_a_run_folder_that_renders(tiny, tmp_path):
+    """A cell's config.json has the single-run schema and its params.npz the cell's seeds."""
+    cell = tiny / "repulsion-rc0.1-C-value"
+    record = runs.open_run(cell)
+    assert record["train"]["mode"] == "C" and record["train"]["seeds"] == 2 and record["train"]["seed"] == 42
+    assert record["task_config"]["rc"] == 0.1 and record["task_config"]["steps"] == 20
+    rendered = subprocess.run([sys.executable, str(ROOT / "scripts" / "render.py"), str(cell), "--rollouts", "1",
+                               "--seed-index", "1", "--no-video"], capture_output=True, text=True, cwd=tmp_path)
+    assert rendered.returncode == 0, rendered.stderr
+    assert list(cell.glob("*.png"))

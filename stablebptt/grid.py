@@ -1,0 +1,334 @@
+"""Grids of runs: task option x mode x clip mode x seeds, trained as few compiled programs.
+
+Everything that does not change the compiled program is vmapped into one
+program: seeds, mode (each cell computes R, M and S and its mode selects), clip
+mode and threshold, learning rate, and a task option that enters only the loss
+(``Task.cell_option``: repulsion's rc, quantum's target). An option that changes
+the model (cart-pole's poles) makes one program per value. Programs spread over
+the devices (``place``): each takes a group of devices and runs beside the
+others, its cells sharded over its group; under jax.distributed each host runs
+the programs placed on its own devices. Every cell ends as a run folder of the
+single-run schema (``stablebptt.runs``), and ``write_report`` rebuilds the grid's
+tables and figures from those folders.
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stablebptt import runs
+from stablebptt.errors import InputError
+from stablebptt.timing import compile_ahead
+from stablebptt.training import CLIP_MODES, MODES, Task, TrainConfig, make_trainer
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A grid of cells (value, mode, clip, seed) and how to train it.
+
+    Attributes:
+      task_name, option: the task and the option whose ``values`` the grid varies.
+      make_task, task_config: a value -> its task, and the task configuration recorded per cell.
+      modes, clips, seeds: the other axes.
+      epochs, train_size, test_size, checkpoint_every: as in ``TrainConfig``.
+      unroll: rollout steps per loop iteration (0: ``gpu_unroll`` on GPUs, 1 on CPUs).
+      group_values: vmap the values into one program where the task takes them per cell.
+      name: recorded in each cell's config.json (the sweep's preset).
+      identity: more of what a program's checkpoint belongs to (e.g. a horizon override).
+    """
+
+    task_name: str
+    option: str
+    values: tuple
+    make_task: Callable[[Any], Task]
+    task_config: Callable[[Any], Any]
+    modes: tuple = MODES
+    clips: tuple = CLIP_MODES
+    seeds: tuple = (42,)
+    epochs: int = 1000
+    train_size: int = 256
+    test_size: int = 256
+    checkpoint_every: int = 10
+    unroll: int = 0
+    gpu_unroll: int = 1
+    group_values: bool = True
+    name: str = ""
+    identity: dict = field(default_factory=dict)
+
+
+@dataclass
+class Program:
+    """One compiled program: one or more values of the grid, all their cells vmapped."""
+
+    values: list  # the values this program trains
+    cells: list  # (value, mode, clip, seed) per cell
+    directory: Path
+
+
+def cell_name(task_name, option, value, mode, clip) -> str:
+    return f"{task_name}-{option}{value}-{mode}-{clip}"
+
+
+def takes_per_cell(task: Task, option: str) -> bool:
+    return task.cell_option is not None and task.cell_option.name == option
+
+
+def plan(grid: Grid, root: Path) -> list[Program]:
+    """One program for all values where the task takes them per cell (and ``group_values``), else one per value."""
+    per_cell = grid.group_values and takes_per_cell(grid.make_task(grid.values[0]), grid.option)
+    groups = [list(grid.values)] if per_cell else [[value] for value in grid.values]
+    return [Program(group, [(v, m, c, s) for v, m, c, s in itertools.product(group, grid.modes, grid.clips, grid.seeds)],
+                    root / "_programs" / f"{grid.option}{'_'.join(map(str, group))}") for group in groups]
+
+
+def place(programs: list, devices: list, process_index: int = 0) -> list[tuple[list, list]]:
+    """Split the devices into groups, one program per group at a time: [(devices, programs)].
+
+    With more devices than programs each program gets a group of several
+    (its cells sharded over them); with fewer, programs queue on the groups.
+    A group never spans processes, and only this process's groups are
+    returned: under jax.distributed each host runs the programs placed on
+    its own devices.
+    """
+    by_process = {}
+    for device in devices:
+        by_process.setdefault(device.process_index, []).append(device)
+    hosts = list(by_process.values())
+    # Give every host the same number of groups, as many as programs allow.
+    per_host = max(1, min(len(hosts[0]), -(-len(programs) // len(hosts))))
+    groups = []
+    for host in hosts:
+        bounds = [len(host) * i // per_host for i in range(per_host + 1)]  # sizes differ by one at most
+        groups += [host[bounds[i]:bounds[i + 1]] for i in range(per_host)]
+    queues = [(group, programs[i::len(groups)]) for i, group in enumerate(groups)]
+    return [(group, queue) for group, queue in queues if queue and group[0].process_index == process_index]
+
+
+def _identity(program: Program, grid: Grid) -> dict:
+    """What a program's checkpoint belongs to; a resume must match it."""
+    return {"cells": [list(c) for c in program.cells], "task": grid.task_name, grid.option: program.values,
+            "train_size": grid.train_size, "test_size": grid.test_size, **grid.identity}
+
+
+def check_resumable(program: Program, grid: Grid) -> None:
+    identity_file = program.directory / "cells.json"
+    if identity_file.exists() and runs.read_json(identity_file) != _identity(program, grid):
+        raise InputError(f"{program.directory} holds a checkpoint of a different grid: choose another --out or remove it")
+
+
+def run_program(program: Program, grid: Grid, devices: list, log: Callable[[str], None],
+                should_stop: Callable[[], bool]) -> dict:
+    """Train every cell of one program on its devices to ``grid.epochs``, resuming from its checkpoint.
+
+    ``should_stop()`` true (time limit, a signal, another program failed) checkpoints and returns early.
+    Returns the program's record, with its metric rows, final parameters and train config.
+    """
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    task = grid.make_task(program.values[0])
+    per_cell = len(program.values) > 1 or (grid.group_values and takes_per_cell(task, grid.option))
+    unroll = grid.unroll or (grid.gpu_unroll if devices[0].platform == "gpu" else 1)
+    count = len(program.cells)
+    cells = program.cells + [program.cells[-1]] * (-count % len(devices))  # pad to a multiple of the devices
+    train_config = TrainConfig(epochs=grid.epochs, seeds=len(cells), train_size=grid.train_size,
+                               test_size=grid.test_size, seed_batching="vmap", checkpoint_every=grid.checkpoint_every,
+                               unroll=unroll)
+    trainer = make_trainer(task, train_config, grid=True)
+    sharding = NamedSharding(Mesh(np.array(devices), ("cells",)), PartitionSpec("cells"))
+    shard = lambda tree: jax.device_put(tree, sharding)
+
+    seeds = jnp.array([seed for _, _, _, seed in cells], dtype=jnp.uint32)
+    state = trainer.init(seeds)
+    hyper = dict(state.opt_state.hyperparams)
+    hyper["mode_index"] = jnp.array([MODES.index(mode) for _, mode, _, _ in cells], dtype=hyper["mode_index"].dtype)
+    hyper["clip_index"] = jnp.array([CLIP_MODES.index(clip) for _, _, clip, _ in cells], dtype=hyper["clip_index"].dtype)
+    state = state._replace(opt_state=state.opt_state._replace(hyperparams=hyper))
+    program.directory.mkdir(parents=True, exist_ok=True)
+    runs.write_json(program.directory / "cells.json", _identity(program, grid))
+    # Checkpoints hold the real cells only, so a program resumes on any number of devices.
+    unpad = lambda tree: jax.tree.map(lambda a: a[:count], tree)
+    if (program.directory / runs.CHECKPOINT_FILE).exists():
+        start, loaded, rows = runs.load_checkpoint(program.directory, unpad(state))
+        state = jax.tree.map(lambda fresh, saved: fresh.at[:count].set(saved), state, loaded)
+    else:
+        start, rows = 0, runs.empty_rows()
+    state = shard(state)
+    values = shard(jnp.asarray([value for value, _, _, _ in cells])) if per_cell else None
+    arguments = (values, trainer.batches, trainer.train_states, trainer.test_states)
+    started = time.perf_counter()
+    epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)
+    cell_index = np.arange(count)
+
+    def run_epoch(state):
+        state, metrics = epoch_fn(state, *arguments)
+        # A diverged cell keeps its NaNs in the table; vmapped cells cannot affect each other.
+        return state, unpad(jax.device_get(metrics))
+
+    def save(epoch, state, rows):
+        runs.save_checkpoint(program.directory, epoch, unpad(state), rows)
+        log(f"{grid.task_name} {grid.option}={','.join(map(str, program.values))}: epoch {epoch}/{grid.epochs}, "
+            f"{(time.perf_counter() - started - compile_seconds) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
+            f"on {len(devices)} device(s)")
+
+    _, epoch, state, rows, _ = runs.fit(run_epoch, state, start, grid.epochs, rows, cell_index, save,
+                                        grid.checkpoint_every, should_stop)
+    return {"complexity": program.values, "epochs_done": int(epoch), "cells": count, "unroll": unroll,
+            "train_config": train_config, "params": jax.device_get(unpad(state).params),
+            "devices": [str(d) for d in devices], "padded_cells": len(cells), "compile_seconds": compile_seconds,
+            "train_seconds": time.perf_counter() - started - compile_seconds, "rows": rows}
+
+
+def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None:
+    """Split a program's rows and parameters into one run folder per (value, mode, clip), seeds as
+    rows: config.json, metrics.csv and params.npz of the single-run schema, so every cell renders,
+    plots and reopens (``stablebptt.tasks.trained``) as a single run does."""
+    rows, params = outcome["rows"], outcome["params"]
+    groups = {}
+    for index, (value, mode, clip, seed) in enumerate(program.cells):
+        groups.setdefault((value, mode, clip), []).append((index, seed))
+    for (value, mode, clip), members in groups.items():
+        directory = root / cell_name(grid.task_name, grid.option, value, mode, clip)
+        directory.mkdir(parents=True, exist_ok=True)
+        selected = []
+        for index, seed in members:
+            part = rows[rows[:, 1] == index].copy()
+            part[:, 1] = seed
+            selected.append(part)
+        table = np.concatenate(selected)
+        table = table[np.lexsort((table[:, 1], table[:, 0]))]
+        seeds = [seed for _, seed in members]
+        assert seeds == list(range(seeds[0], seeds[0] + len(seeds)))  # as TrainConfig's seed and seeds name them
+        train = dataclasses.replace(outcome["train_config"], mode=mode, clip=clip, seeds=len(members), seed=seeds[0],
+                                    epochs=grid.epochs)
+        runs.write_json(directory / runs.CONFIG_FILE, {
+            "task": grid.task_name, "task_config": dataclasses.asdict(grid.task_config(value)),
+            "train": dataclasses.asdict(train), "sweep": grid.name})
+        runs.write_metrics(directory / runs.METRICS_FILE, table)
+        indices = np.array([index for index, _ in members])
+        runs.save_params(directory / runs.PARAMS_FILE, jax.tree.map(lambda leaf: np.asarray(leaf)[indices], params))
+
+
+def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: False,
+             log: Callable[[str], None] = print) -> list[dict]:
+    """Train this process's share of the grid into ``root``, resuming from checkpoints; runs in any thread.
+
+    Programs go to device groups (``place``); the groups run side by side in threads (which only
+    dispatch: compiling and running release the GIL), each group's programs one after another.
+    A failing program stops the others at their next epoch. Returns each program's record.
+
+    Raises:
+      InputError: a checkpoint in ``root`` belongs to a different grid.
+    """
+    programs = plan(grid, root)
+    for program in programs:
+        check_resumable(program, grid)
+    placement = place(programs, jax.devices(), jax.process_index())
+    failed = threading.Event()
+    stop = lambda: failed.is_set() or should_stop()
+
+    def run_queue(devices, queue):
+        outcomes = []
+        for program in queue:
+            if stop():
+                break
+            try:
+                outcome = run_program(program, grid, devices, log, stop)
+            except BaseException:
+                failed.set()  # the other groups checkpoint and stop instead of running to their end
+                raise
+            if len(outcome["rows"]):
+                write_cells(program, outcome, grid, root)
+            for name in ("rows", "params", "train_config"):  # what the record does not keep
+                outcome.pop(name)
+            outcomes.append(outcome)
+        return outcomes
+
+    with ThreadPoolExecutor(max_workers=max(1, len(placement))) as pool:  # a host may get no program
+        futures = [pool.submit(run_queue, devices, queue) for devices, queue in placement]
+        # A timed wait, not a blocking one: a signal handler of the calling (main) thread runs
+        # only once that thread runs Python again.
+        while futures_wait(futures, timeout=0.5).not_done:
+            pass
+        return [outcome for future in futures for outcome in future.result()]
+
+
+def summarize(root: Path, directories: list[Path]) -> list[str]:
+    """summary.csv and a Markdown table: final test loss, mean +- std over seeds, per cell."""
+    lines = ["| cell | epochs | final test loss (mean +- std over seeds) | diverged seeds |", "|---|---:|---:|---:|"]
+    csv_lines = ["cell,epochs,test_loss_mean,test_loss_std,diverged_seeds"]
+    for directory in sorted(directories):
+        rows = runs.read_metrics(directory / runs.METRICS_FILE)
+        last = max(row["epoch"] for row in rows)
+        final = np.array([row["test_loss"] for row in rows if row["epoch"] == last])
+        diverged = int(np.sum(~np.isfinite(final)))
+        finite = final[np.isfinite(final)]
+        mean, std = (float(finite.mean()), float(finite.std())) if len(finite) else (float("nan"), float("nan"))
+        lines.append(f"| {directory.name} | {int(last)} | {mean:.4g} +- {std:.2g} | {diverged} |")
+        csv_lines.append(f"{directory.name},{int(last)},{mean!r},{std!r},{diverged}")
+    runs.atomic_write(root / "summary.csv", ("\n".join(csv_lines) + "\n").encode())
+    return lines
+
+
+def mode_table(directories: list[Path], task_name: str, option: str, complexities, modes, clips) -> list[str]:
+    """Final test loss, mean +- std over seeds: one row per complexity and clip mode, one column per mode."""
+    lines = [f"| {option} | clip | epochs | " + " | ".join(modes) + " |", "|---|---|---:|" + "---:|" * len(modes)]
+    for value in complexities:
+        for clip in clips:
+            cells, epochs = [], ""
+            for mode in modes:
+                directory = next((d for d in directories if d.name == cell_name(task_name, option, value, mode, clip)), None)
+                if directory is None:
+                    cells.append("-")
+                    continue
+                rows = runs.read_metrics(directory / runs.METRICS_FILE)
+                last = max(r["epoch"] for r in rows)
+                final = np.array([r["test_loss"] for r in rows if r["epoch"] == last])
+                epochs = str(int(last))
+                cells.append(f"{np.nanmean(final):.3g} +- {np.nanstd(final):.2g}" if np.isfinite(final).any() else "diverged")
+            lines.append(f"| {value} | {clip} | {epochs} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def tidy_test_loss(root: Path, directories: list[Path], option: str, every: int = 10) -> None:
+    """test_loss.csv: one row per cell, seed and every tenth epoch (and the last), small enough for git."""
+    lines = [f"{option},mode,clip,seed,epoch,test_loss"]
+    for directory in sorted(directories):
+        config = runs.read_json(directory / runs.CONFIG_FILE)
+        value, train = config["task_config"][option], config["train"]
+        rows = runs.read_metrics(directory / runs.METRICS_FILE)
+        last = max(row["epoch"] for row in rows)
+        lines += [f"{value},{train['mode']},{train['clip']},{int(row['seed'])},{int(row['epoch'])},{row['test_loss']:.7g}"
+                  for row in rows if row["epoch"] % every == 0 or row["epoch"] == last]
+    runs.atomic_write(root / "test_loss.csv", ("\n".join(lines) + "\n").encode())
+
+
+def write_report(root: Path, directories: list[Path], task_name, option, complexities, modes, clips) -> list[str]:
+    """summary.csv, test_loss.csv, table.md and one learning-curve figure per complexity, from the run
+    directories; returns the table (Markdown lines)."""
+    from stablebptt.plots import learning_curves
+    summarize(root, directories)
+    tidy_test_loss(root, directories, option)
+    table = mode_table(directories, task_name, option, complexities, modes, clips)
+    runs.atomic_write(root / "table.md", ("\n".join(table) + "\n").encode())
+    for value in complexities:
+        members = [d for d in directories if d.name.startswith(f"{task_name}-{option}{value}-")]
+        if members:
+            learning_curves(members, root / f"{task_name}-{option}{value}.png", smooth=None)
+    return table
+
+
+def run_directories(root: Path, task_name: str, option: str) -> list[Path]:
+    return sorted(d for d in root.glob(f"{task_name}-{option}*") if (d / runs.METRICS_FILE).exists())
+
+

@@ -1,0 +1,39 @@
+"""The timing harness of the benchmarks: compile ahead, then time calls round-robin.
+
+Round-robin (one call of each variant per round, the median over rounds) exposes
+every variant to the same drift of the machine (frequency scaling, other
+processes), so ratios measured in one run compare like with like.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+
+def compile_ahead(function: Callable, *arguments) -> tuple[Callable, float]:
+    """``function`` (jitted) compiled for ``arguments``, and the seconds that took."""
+    started = time.perf_counter()
+    compiled = function.lower(*arguments).compile()
+    return compiled, time.perf_counter() - started
+
+
+def timed(call: Callable[[], Any]) -> tuple[Any, float]:
+    """``call()``'s result, waited for (JAX dispatches asynchronously), and the seconds it took."""
+    import jax
+    started = time.perf_counter()
+    result = jax.block_until_ready(call())
+    return result, time.perf_counter() - started
+
+
+def round_robin(calls: dict[str, Callable[[], Any]], rounds: int, warmup: int = 1) -> dict[str, float]:
+    """Median seconds per call of each zero-argument ``calls[name]``, after ``warmup`` untimed rounds
+    (the first calls after compiling run cold)."""
+    import numpy as np
+    for _ in range(warmup):
+        for call in calls.values():
+            timed(call)
+    samples: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(rounds):
+        for name, call in calls.items():
+            samples[name].append(timed(call)[1])
+    return {name: float(np.median(values)) for name, values in samples.items()}

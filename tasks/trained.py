@@ -1,0 +1,108 @@
+"""A trained run folder (a single run or a sweep cell) reopened: its task rebuilt, its policies
+loaded and rolled out from the run's own test states.
+
+    trained = open_trained(Path("runs/cartpole-20261122-101500"))
+    states, controls, losses = rollouts_from_test_states(trained.task, trained.train, trained.seed_params(0), 3)
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from stablebptt import runs
+from stablebptt.cli import build
+from stablebptt.errors import InputError
+from stablebptt.tasks import entry
+from stablebptt.training import Task, TrainConfig
+
+
+@dataclass(frozen=True)
+class Trained:
+    """What a run folder holds, ready to use.
+
+    Attributes:
+      run_dir: the folder.
+      task_name: its registry name; ``task_config``, ``train``: its configurations.
+      task: the task rebuilt from them (from the run's own model copy if the file moved).
+      params: the parameters of every seed (leading axis: seed).
+      label: the configuration in a few words, with mode and epochs trained.
+    """
+
+    run_dir: Path
+    task_name: str
+    task_config: Any
+    train: TrainConfig
+    task: Task
+    params: Any
+    label: str
+
+    def seed_params(self, seed_index: int) -> Any:
+        """The parameters of the seed ``train.seed + seed_index``."""
+        import jax
+        import numpy as np
+        if not 0 <= seed_index < self.train.seeds:
+            raise InputError(f"seed index {seed_index}: the run has {self.train.seeds} seed(s), 0 to {self.train.seeds - 1}")
+        return jax.tree.map(lambda leaf: np.asarray(leaf)[seed_index], self.params)
+
+
+def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> Trained:
+    """Reopen a run folder: config checked, task rebuilt, parameters loaded. Switches JAX to the
+    run's precision (``train.x64``), so call it before creating arrays of your own.
+
+    Raises:
+      InputError: not a run folder, an unknown task, a damaged or missing parameter file, or a
+        model file that changed since the run (``note`` is told when the run's copy stands in
+        for a file that moved).
+    """
+    import jax
+
+    run_dir = Path(run_dir)
+    record = runs.open_run(run_dir)
+    source = str(run_dir / runs.CONFIG_FILE)
+    task_entry = entry(record["task"])
+    if not (run_dir / runs.PARAMS_FILE).is_file():
+        raise InputError(f"{run_dir} has no {runs.PARAMS_FILE}: the run has not finished an epoch yet")
+    task_values = dict(record["task_config"])
+    model_file, moved = runs.model_to_reopen(run_dir, record)
+    if model_file is not None and "model" in task_values:
+        task_values["model"] = model_file
+        if moved:
+            note(moved)
+    module = task_entry.load()
+    train = build(TrainConfig, record["train"], source)
+    jax.config.update("jax_enable_x64", train.x64)  # before any array, as the run was trained
+    task_config = build(module.Config, task_values, source)
+    task = module.make(task_config)
+    keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)
+    template = jax.vmap(lambda key: task.init_params(key, train.zero_output))(keys)
+    params = runs.load_params(run_dir / runs.PARAMS_FILE, template)
+    try:  # the epochs params.npz holds: fewer than configured when the run was stopped early
+        epochs = f", {int(max(row['epoch'] for row in runs.read_metrics(run_dir / runs.METRICS_FILE)))} epochs"
+    except (OSError, ValueError, KeyError, TypeError):
+        epochs = ""
+    label = f"{task_entry.label(task_config)}, mode {train.mode}{epochs}"
+    return Trained(run_dir, record["task"], task_config, train, task, params, label)
+
+
+def rollouts_from_test_states(task: Task, train: TrainConfig, params: Any, count: int):
+    """States [N, T+1, ...] (the initial state first), controls [N, T, ...] and losses [N] of the policy
+    ``params`` from the first ``count`` test states, drawn exactly as training drew them."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from stablebptt.flows import reference_rollout
+
+    _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))  # make_trainer's split of the data seed
+    initial = jax.tree.map(lambda a: a[:count], task.sample_initial_states(test_key, train.test_size))
+
+    @jax.jit
+    def run(params, initial):
+        trajectory = jax.vmap(lambda x0: reference_rollout(task.dynamics, params, x0))(initial)
+        losses = jax.vmap(task.dynamics.loss)(trajectory.states, trajectory.controls)
+        states = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[:, None], xs], axis=1), initial, trajectory.states)
+        return states, trajectory.controls, losses
+
+    states, controls, losses = jax.device_get(run(params, initial))
+    return states, controls, np.asarray(losses)
