@@ -115,6 +115,10 @@ class TrainState(NamedTuple):
     opt_state: PyTree
 
 
+# Clip modes as optax transforms of the threshold: single runs and grid cells clip with the same ones.
+CLIPPERS = {"value": optax.clip, "norm": optax.clip_by_global_norm, "none": lambda threshold: optax.identity()}
+
+
 def make_optimizer(config: TrainConfig, flows: tuple[str, ...]) -> optax.GradientTransformation:
     """ONE chain: reduce the flows to the mode's update -> clip -> Adam.
 
@@ -122,43 +126,35 @@ def make_optimizer(config: TrainConfig, flows: tuple[str, ...]) -> optax.Gradien
     (``inject_hyperparams``), so a sweep can vmap over them.
     """
     def chain(learning_rate, clip_threshold):
-        clipper = {
-            "value": lambda: optax.clip(clip_threshold),
-            "norm": lambda: optax.clip_by_global_norm(clip_threshold),
-            "none": optax.identity,
-        }[config.clip]()
-        return optax.chain(select_flow(config.mode, flows), clipper, optax.adam(learning_rate))
+        return optax.chain(select_flow(config.mode, flows), CLIPPERS[config.clip](clip_threshold),
+                           optax.adam(learning_rate))
 
     return optax.inject_hyperparams(chain)(learning_rate=config.lr, clip_threshold=config.clip_threshold)
+
+
+def _switch(transforms: list[optax.GradientTransformation], index: jax.Array) -> optax.GradientTransformation:
+    """The update of ``transforms[index]`` for an index known only at run time (stateless transforms)."""
+    def update(updates, state, params=None):
+        candidates = [transform.update(updates, optax.EmptyState(), params)[0] for transform in transforms]
+        return jax.tree.map(lambda *c: jnp.select([index == i for i in range(len(c))], c), *candidates), state
+
+    return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
 
 
 def make_grid_optimizer(config: TrainConfig) -> optax.GradientTransformation:
     """The chain of ``make_optimizer`` with the mode and clip mode as numbers in the optimizer state.
 
     Used by sweeps: every cell computes the flows R, M and S, and its mode
-    (index into ``MODES``) and clip mode (index into ``CLIP_MODES``) select
-    the update with ``jnp.select``, so cells of different modes and clip
-    modes vmap into one program. Set the per-cell values in
+    (index into ``MODES``) and clip mode (index into ``CLIP_MODES``) select the
+    update among the very transforms a single run chains, so cells of different
+    modes and clip modes vmap into one program. Set the per-cell values in
     ``opt_state.hyperparams`` after ``init``.
     """
     flows = ("R", "M", "S")
 
     def chain(learning_rate, clip_threshold, mode_index, clip_index):
-        def select(updates, state, params=None):
-            rows = [jax.tree.map(lambda a, i=i: a[i], updates) for i in range(len(flows))]
-            candidates = rows + [select_flow("C", flows).update(updates, None)[0]]  # order of MODES
-            return jax.tree.map(lambda *c: jnp.select([mode_index == i for i in range(len(MODES))], c), *candidates), state
-
-        def clip(updates, state, params=None):
-            value = jax.tree.map(lambda g: jnp.clip(g, -clip_threshold, clip_threshold), updates)
-            norm = optax.tree.norm(updates)
-            # The arithmetic of optax.clip_by_global_norm, so grid cells match single runs.
-            scaled = jax.tree.map(lambda g: jnp.where(norm < clip_threshold, g, (g / norm) * clip_threshold), updates)
-            return jax.tree.map(lambda v, n, g: jnp.select([clip_index == 0, clip_index == 1], [v, n], g),
-                                value, scaled, updates), state
-
-        empty = lambda params: optax.EmptyState()
-        return optax.chain(optax.GradientTransformation(empty, select), optax.GradientTransformation(empty, clip),
+        return optax.chain(_switch([select_flow(mode, flows) for mode in MODES], mode_index),
+                           _switch([CLIPPERS[clip](clip_threshold) for clip in CLIP_MODES], clip_index),
                            optax.adam(learning_rate))
 
     return optax.inject_hyperparams(chain)(learning_rate=config.lr, clip_threshold=config.clip_threshold,
