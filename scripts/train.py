@@ -62,19 +62,10 @@ def configure(args, owners):
         if changed or args.out is not None or args.task is not None:
             fail(f"--resume continues a run with its saved configuration; only --epochs may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
         from stablebptt import runs
+        from stablebptt.tasks.trained import configs_of
         record = runs.open_run(args.resume)
-        source = args.resume / runs.CONFIG_FILE
         task_name = record["task"]
-        if task_name not in tasks.entries():
-            raise InputError(f"{source} names the task {task_name!r}, which is none of {', '.join(sorted(tasks.entries()))}")
-        task_values = dict(record["task_config"])
-        model_file, note = runs.model_to_reopen(args.resume, record)
-        if model_file is not None and "model" in task_values:
-            task_values["model"] = model_file
-            if note:
-                print(note, file=sys.stderr)
-        task_config = build(tasks.load(task_name).Config, task_values, str(source))
-        train_config = build(TrainConfig, {**record["train"], **given}, str(source))
+        task_config, train_config = configs_of(args.resume, record, given)
         return task_name, task_config, train_config, args.resume, record
     task_name = choose_task(args, owners)
     module = tasks.load(task_name)

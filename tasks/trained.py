@@ -14,7 +14,7 @@ from typing import Any, Callable
 from stablebptt import runs
 from stablebptt.cli import build
 from stablebptt.errors import InputError
-from stablebptt.tasks import entry
+from stablebptt.tasks import entries, entry
 from stablebptt.training import Task, TrainConfig
 
 
@@ -47,6 +47,30 @@ class Trained:
         return jax.tree.map(lambda leaf: np.asarray(leaf)[seed_index], self.params)
 
 
+def configs_of(run_dir: Path, record: dict, train_changes: dict | None = None,
+               note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> tuple[Any, TrainConfig]:
+    """(task config, train config) of the run in ``run_dir`` whose config.json is ``record``.
+
+    The task config points at the run's own model copy when the model file has moved (``note`` is
+    told); ``train_changes`` (e.g. more epochs) are applied to the train config.
+
+    Raises:
+      InputError: an unknown task, values of the wrong type, or a model file changed since the run.
+    """
+    source = str(Path(run_dir) / runs.CONFIG_FILE)
+    if record["task"] not in entries():
+        raise InputError(f"{source} names the task {record['task']!r}, which is none of {', '.join(sorted(entries()))}")
+    module = entry(record["task"]).load()
+    task_values = dict(record["task_config"])
+    model_file, moved = runs.model_to_reopen(Path(run_dir), record)
+    if model_file is not None and "model" in task_values:
+        task_values["model"] = model_file
+        if moved:
+            note(moved)
+    return (build(module.Config, task_values, source),
+            build(TrainConfig, {**record["train"], **(train_changes or {})}, source))
+
+
 def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> Trained:
     """Reopen a run folder: config checked, task rebuilt, parameters loaded. Switches JAX to the
     run's precision (``train.x64``), so call it before creating arrays of your own.
@@ -60,21 +84,12 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
 
     run_dir = Path(run_dir)
     record = runs.open_run(run_dir)
-    source = str(run_dir / runs.CONFIG_FILE)
+    task_config, train = configs_of(run_dir, record, note=note)
     task_entry = entry(record["task"])
     if not (run_dir / runs.PARAMS_FILE).is_file():
         raise InputError(f"{run_dir} has no {runs.PARAMS_FILE}: the run has not finished an epoch yet")
-    task_values = dict(record["task_config"])
-    model_file, moved = runs.model_to_reopen(run_dir, record)
-    if model_file is not None and "model" in task_values:
-        task_values["model"] = model_file
-        if moved:
-            note(moved)
-    module = task_entry.load()
-    train = build(TrainConfig, record["train"], source)
     jax.config.update("jax_enable_x64", train.x64)  # before any array, as the run was trained
-    task_config = build(module.Config, task_values, source)
-    task = module.make(task_config)
+    task = task_entry.load().make(task_config)
     keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)
     template = jax.vmap(lambda key: task.init_params(key, train.zero_output))(keys)
     params = runs.load_params(run_dir / runs.PARAMS_FILE, template)
