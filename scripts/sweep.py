@@ -5,21 +5,10 @@
     python scripts/sweep.py --preset repulsion --epochs 200
     python scripts/sweep.py --preset quantum --time-limit 540 # stop and checkpoint before 9 minutes; rerun resumes
 
-Everything that does not change the compiled program is vmapped into one
-program: seeds, mode (each cell computes R, M and S and its mode selects), clip
-mode and threshold, learning rate, and a task option that enters only the loss
-(repulsion's rc, quantum's target: one program for the whole grid). Cart-pole's
-poles change the model, so each pole count is its own program. Programs spread
-over every visible device: each takes a group of devices and runs beside the
-others, its cells sharded over its group (jax.sharding); with --distributed,
-jax.distributed spans several hosts and each host runs the groups of its own
-devices. On an H200 a program is bound by kernel latency (240 cells cost 1.2x
-of 60), so a GPU per program is what halves the time, not more GPUs per program.
-Results land in OUT/PRESET/: one run directory per (complexity, mode, clip)
-with the seeds as rows (scripts/plot.py reads them), summary.csv with the final
-test loss per cell, test_loss.csv (every seed's test loss every 10 epochs),
-learning-curve figures, and sweeps/<time>-<complexities>.json per call with
-wall times and devices.
+What shares a program, how programs spread over devices and hosts, and what each cell
+leaves: stablebptt/grid.py. Results land in OUT/PRESET/: one run folder per (complexity,
+mode, clip) with the seeds as rows, summary.csv, test_loss.csv, table.md, learning-curve
+figures, and sweeps/<time>-<complexities>.json per call with wall times and devices.
 """
 from __future__ import annotations
 
