@@ -241,3 +241,16 @@ def test_accuracy_script_rejects_bad_input_in_one_line(tmp_path):
         result = subprocess.run(script + arguments, capture_output=True, text=True, cwd=ROOT)
         lines = result.stderr.strip().splitlines()
         assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+
+
+def test_bench_command_times_every_mode_and_writes_its_table(tmp_path):
+    """`stablebptt bench` (through the installed command's dispatcher): one table per task, a row per mode."""
+    out = tmp_path / "bench.md"
+    result = subprocess.run([sys.executable, "-m", "stablebptt.commands.main", "bench", "--tasks", "repulsion",
+                             "--rounds", "1", "--out", str(out)], capture_output=True, text=True, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    rows = {line.split("|")[1].strip(): line for line in out.read_text().splitlines() if line.startswith("| ")}
+    for variant in ("R plain", "R", "M", "S", "C", "R + cosine"):
+        milliseconds = float(rows[variant].split("|")[2])
+        assert milliseconds > 0, variant
+    assert "C / R = " in out.read_text() and out.read_text() in result.stdout + "\n"

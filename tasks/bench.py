@@ -1,0 +1,137 @@
+"""The benchmark's measurements: update times per mode, the cart-pole's MJX pipelines against the
+closed-form floor, and the parts of an update, as Markdown tables (scripts/bench.py prints them).
+
+Variants of one table are timed round-robin (``stablebptt.timing``), so drift of the
+machine hits all of them alike; compare times within one table only.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+from stablebptt import timing
+
+MODE_FLOWS = {"R": ("R",), "M": ("M",), "S": ("S",), "C": ("R", "M")}
+
+
+def make_update(task, flows, batch_size, plain=False):
+    """A jitted update: gradient (one-pass flows, or plain jax.grad), clip, Adam."""
+    import jax
+    import optax
+    from stablebptt.flows import flow_gradients, reference_loss
+    from stablebptt.training import TrainConfig, make_optimizer
+
+    mode = "C" if flows == ("R", "M") else flows[0]
+    optimizer = make_optimizer(TrainConfig(mode=mode), flows)
+
+    def update(params, opt_state, batch):
+        if plain:
+            loss, grad = jax.value_and_grad(reference_loss, argnums=1)(task.dynamics, params, batch)
+            grads = jax.tree.map(lambda g: g[None], grad)
+        else:
+            loss, grads = flow_gradients(task.dynamics, flows, params, batch)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    def setup():
+        import jax.random as random
+        params = task.init_params(random.PRNGKey(0), False)
+        batch = task.sample_initial_states(random.PRNGKey(1), batch_size)
+        return params, optimizer.init(params), batch
+
+    return jax.jit(update), setup
+
+
+def time_variants(variants: dict, rounds: int) -> dict[str, tuple[float, float]]:
+    """Median milliseconds per call and compile seconds (the first call), timed round-robin."""
+    prepared, compile_seconds = {}, {}
+    for name, (update, setup) in variants.items():
+        arguments = setup()
+        compile_seconds[name] = timing.timed(lambda: update(*arguments))[1]
+        prepared[name] = lambda update=update, arguments=arguments: update(*arguments)
+    medians = timing.round_robin(prepared, rounds)
+    return {name: (1e3 * medians[name], compile_seconds[name]) for name in variants}
+
+
+def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
+    variants = {"R plain": make_update(task, ("R",), batch, plain=True)}
+    variants.update({mode: make_update(task, flows, batch) for mode, flows in MODE_FLOWS.items()})
+    variants["R + cosine"] = make_update(task, ("R", "M"), batch)
+    times = time_variants(variants, rounds)
+    base = times["R plain"][0]
+    lines = [f"### {title}", "", "| update | ms (median) | / R plain | compile s |", "|---|---:|---:|---:|"]
+    for name, (ms, compile_s) in times.items():
+        lines.append(f"| {name} | {ms:.2f} | {ms / base:.2f} | {compile_s:.1f} |")
+    lines.append(f"\nC / R = {times['C'][0] / times['R'][0]:.2f} (C needs g_M and g_R, both from one forward rollout).\n")
+    return lines
+
+
+def pipeline_table(poles: int, batch: int, rounds: int) -> list[str]:
+    import mujoco
+    from stablebptt import scene
+    from stablebptt.tasks import cartpole, cartpole_equations
+    lean = cartpole.make(cartpole.Config(poles=poles))
+    default = cartpole.make(cartpole.Config(poles=poles, pipeline="mjx"))
+    with_step = lambda step: dataclasses.replace(lean, dynamics=dataclasses.replace(lean.dynamics, step=step))
+    closed = with_step(cartpole_equations.make_step(0.01))
+    model = cartpole.load_model(cartpole.Config(poles=poles).model_path)
+    effects = scene.analyze(model)
+    autodiff = with_step(scene.make_step(scene.lean_model(model, effects), effects, implicit=False))
+    dense_model = scene.lean_model(model, effects)
+    dense_model.opt.jacobian = mujoco.mjtJacobian.mjJAC_DENSE  # what lean_model replaces by the sparse path
+    dense = with_step(scene.make_step(dense_model, effects))
+    variants = {name: make_update(task, ("R",), batch) for name, task in
+                (("MJX lean step (scene analysis)", lean), ("MJX lean step, autodiff through M and its solve", autodiff),
+                 ("MJX lean step, dense mass matrix", dense),
+                 ("mjx.step, MuJoCo default flags", default), ("closed-form equations (floor)", closed))}
+    for name, task in (("MJX lean step (scene analysis)", lean), ("closed-form equations (floor)", closed)):
+        variants[name + ", C"] = make_update(task, ("R", "M"), batch)
+    times = time_variants(variants, rounds)
+    base = times["mjx.step, MuJoCo default flags"][0]
+    lines = [f"### Cart-pole, {poles} pole{'s' if poles > 1 else ''}: where the time goes", "",
+             "| simulator | mode | ms (median) | / mjx.step default | compile s |", "|---|---|---:|---:|---:|"]
+    for name, (ms, compile_s) in times.items():
+        label, _, mode = name.partition(", C")
+        lines.append(f"| {label} | {'C' if _ else 'R'} | {ms:.2f} | {ms / base:.2f} | {compile_s:.1f} |")
+    return lines + [""] + parts_table(lean, poles, batch, rounds, variants["MJX lean step (scene analysis)"])
+
+
+def parts_table(task, poles: int, batch: int, rounds: int, whole_update) -> list[str]:
+    """The lean R update split: the rollout alone, and every step's Jacobian in one batched call.
+
+    ``whole_update`` (the pipeline table's compiled lean R update and its
+    setup, not compiled again) is timed in the same round-robin, so the rest
+    by difference does not mix two tables' machine states.
+    """
+    import jax
+    import jax.random as random
+    from stablebptt.flows import reference_loss, reference_rollout, step_jacobians
+
+    dynamics = task.dynamics
+    params = task.init_params(random.PRNGKey(0), False)
+    starts = task.sample_initial_states(random.PRNGKey(1), batch)
+    # The (state, control) pairs of one rollout, all steps and examples in one batch.
+    visited = jax.jit(jax.vmap(lambda x0: reference_rollout(dynamics, params, x0)))(starts)
+    merge = lambda tree: jax.tree.map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), tree)
+    pairs = (merge(visited.states), merge(visited.controls))
+
+    def jacobians(states, controls):
+        return jax.tree.map(lambda a: a.sum(), step_jacobians(dynamics.step, states, controls, dynamics.known_columns))
+
+    whole = "whole R update"
+    times = time_variants({"rollout only (policy and lean step, no derivatives)": (
+                               jax.jit(lambda p, x: reference_loss(dynamics, p, x)), lambda: (params, starts)),
+                           f"every step's Jacobian, one batched call ({dynamics.horizon} x {batch} examples)": (
+                               jax.jit(jacobians), lambda: pairs),
+                           whole: whole_update}, rounds)
+    whole_ms = times.pop(whole)[0]
+    lines = [f"### Cart-pole, {poles} pole{'s' if poles > 1 else ''}: parts of the lean R update", "",
+             "| part | ms (median) | / whole R update | compile s |", "|---|---:|---:|---:|"]
+    for name, (ms, compile_s) in times.items():
+        lines.append(f"| {name} | {ms:.2f} | {ms / whole_ms:.2f} | {compile_s:.1f} |")
+    rest = whole_ms - sum(ms for ms, _ in times.values())
+    lines.append(f"| the rest, by difference (adjoint recurrence, policy Jacobians and pullback, Adam) | {rest:.2f} | "
+                 f"{rest / whole_ms:.2f} | |")
+    lines.append(f"| whole R update (timed with the parts) | {whole_ms:.2f} | 1.00 | |")
+    return lines + [""]
+
+
