@@ -31,11 +31,10 @@ import sys
 import time
 from pathlib import Path
 
-from stablebptt.cli import fail, parse_config
 from stablebptt import accuracy_report
 from stablebptt.accuracy_report import STUDIES
+from stablebptt.cli import fail, parse_config
 from stablebptt.tasks.accuracy import TASKS, AccuracyConfig
-
 
 def parse(argv: list[str]) -> AccuracyConfig:
     config = parse_config(AccuracyConfig, argv, __doc__, "accuracy study")

@@ -17,13 +17,11 @@ the machine hits all of them alike; tables are timed one after another.
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-
 import os
 import platform
+import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from stablebptt.cli import fail, parse_config
 

@@ -14,15 +14,12 @@ figure is derived from config.json and metrics.csv, so it is replaced
 """
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
-
-import argparse
-
 from stablebptt.cli import Parser, fail
 from stablebptt.errors import InputError
-
 
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

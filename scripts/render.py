@@ -17,14 +17,12 @@ never overwritten: the default names get a suffix -2, -3, ...; an existing
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-
 import argparse
 import dataclasses
+import sys
 from dataclasses import dataclass, field
 from datetime import datetime
+from pathlib import Path
 
 from stablebptt.cli import Parser, add_options, build, fail
 from stablebptt.errors import InputError

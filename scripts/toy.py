@@ -12,14 +12,11 @@ stablebptt.flows.sign_agreement).
 from __future__ import annotations
 
 import sys
-from pathlib import Path
-
-
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from stablebptt.cli import parse_config
 from stablebptt.errors import InputError
-
 
 @dataclass(frozen=True)
 class ToyConfig:

@@ -8,19 +8,15 @@
 """
 from __future__ import annotations
 
+import argparse
 import sys
+import time
 from pathlib import Path
 
-
-import argparse
-import dataclasses
-import platform
-import time
-
+from stablebptt import tasks
 from stablebptt.cli import Parser, add_options, build, fail, option_name
 from stablebptt.errors import InputError
 from stablebptt.training import TrainConfig
-from stablebptt import tasks
 
 RUNS_ROOT = Path("runs")
 RESUMABLE = {"epochs"}  # what --resume may change: extending a finished run
@@ -77,15 +73,15 @@ def configure(args, owners):
 
 
 def main(argv: list[str]) -> int:
-    locks: list = []  # the run folder's lock, released however main ends (in a process, the OS would)
+    held: list = []  # the run folder in use, its lock released however main ends (in a process, the OS would)
     try:
-        return train(argv, locks)
+        return train(argv, held)
     finally:
-        for lock in locks:
-            lock.release()
+        for run in held:
+            run.close()
 
 
-def train(argv: list[str], locks: list) -> int:
+def train(argv: list[str], held: list) -> int:
     started = time.perf_counter()
     args, owners = parse(argv)
     try:
@@ -105,46 +101,27 @@ def train(argv: list[str], locks: list) -> int:
     try:
         task = tasks.load(task_name).make(task_config)
         if record is None:
-            record = {
-                "task": task_name,
-                "task_config": dataclasses.asdict(task_config),
-                "resolved_task": {"name": task.name, **task.resolved},
-                "train": dataclasses.asdict(train_config),
-                "environment": {"python": platform.python_version(), "jax": jax.__version__,
-                                "device": str(jax.devices()[0])},
-            }
             run_dir = run_dir or runs.default_run_dir(RUNS_ROOT, task.name)
-            locks.append(runs.create_run(run_dir, record))  # claims the folder: from here on it resumes
-            if "model_file" in task.resolved:
-                runs.copy_model(run_dir, task.resolved["model_file"])
-            resuming = False
+            run = runs.Run.create(run_dir, runs.new_record(task_name, task_config, task, train_config))
         else:
-            locks.append(runs.RunLock(run_dir))
-            resuming = True
+            run = runs.Run.open(run_dir, record)
     except InputError as error:
         fail(str(error))
     except StorageError as error:
         fail(str(error.strerror), code=1)
-    task_label = record.get("resolved_task", {}).get("name", task.name)
+    held.append(run)
     try:
         trainer = make_trainer(task, train_config)
     except InputError as error:
-        fail(f"{task_label}: {error}")
+        fail(f"{run.name}: {error}")
     seeds = np.asarray(seed_array(train_config))
-    state = trainer.init(seed_array(train_config))
-    owner = runs.identity(record)
-    start_epoch, rows = 0, runs.empty_rows()
     try:
-        if resuming and (run_dir / runs.CHECKPOINT_FILE).exists():
-            start_epoch, state, rows = runs.load_checkpoint(run_dir, state, owner)
-        if train_config.epochs < start_epoch:
-            raise InputError(f"{run_dir} has trained {start_epoch} epochs: --epochs must be at least that to continue")
-        if resuming and train_config.epochs > start_epoch and train_config.epochs != record["train"]["epochs"]:
-            runs.write_json(run_dir / runs.CONFIG_FILE, {**record, "train": dataclasses.asdict(train_config)})
+        start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
     except InputError as error:
         fail(str(error))
     except StorageError as error:
         fail(str(error.strerror), code=1)
+    task_label, resuming = run.name, run.resuming
 
     if task.summary:
         print(task.summary)
@@ -176,7 +153,7 @@ def train(argv: list[str], locks: list) -> int:
     try:
         with stop_on_signals(lambda message: bar.write(message, file=sys.stderr)) as should_stop:
             outcome = runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds, on_epoch,
-                                        on_compiled, should_stop, owner)
+                                        on_compiled, should_stop, run.owner)
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     bar.close()

@@ -316,6 +316,76 @@ def model_to_reopen(run_dir: Path, record: dict) -> tuple[str | None, str]:
     return str(copy), f"{original} is gone: using the run's own copy, {copy}"
 
 
+def new_record(task_name: str, task_config: Any, task: Any, train_config: TrainConfig) -> dict:
+    """The config.json of a new run: the task as configured and as resolved, training, versions, device."""
+    import dataclasses
+    import platform
+    return {
+        "task": task_name,
+        "task_config": dataclasses.asdict(task_config),
+        "resolved_task": {"name": task.name, **task.resolved},
+        "train": dataclasses.asdict(train_config),
+        "environment": {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])},
+    }
+
+
+class Run:
+    """A run folder in use, held under its lock until ``close``: its record and where training stands.
+
+    ``Run.create`` claims a fresh folder (and keeps the model file, for an MJCF
+    task); ``Run.open`` continues one. ``start`` loads the checkpoint, if any;
+    ``train_epochs`` trains into the folder.
+    """
+
+    def __init__(self, directory: Path, record: dict, lock: RunLock, resuming: bool):
+        self.directory, self.record, self.lock, self.resuming = Path(directory), record, lock, resuming
+
+    @classmethod
+    def create(cls, directory: Path, record: dict) -> "Run":
+        lock = create_run(directory, record)  # from here on the folder resumes
+        model_file = record.get("resolved_task", {}).get("model_file")
+        try:
+            if model_file:
+                copy_model(Path(directory), model_file)
+        except BaseException:
+            lock.release()
+            raise
+        return cls(directory, record, lock, resuming=False)
+
+    @classmethod
+    def open(cls, directory: Path, record: dict | None = None) -> "Run":
+        record = open_run(directory) if record is None else record
+        return cls(directory, record, RunLock(Path(directory)), resuming=True)
+
+    @property
+    def owner(self) -> str:
+        return identity(self.record)
+
+    @property
+    def name(self) -> str:
+        return self.record.get("resolved_task", {}).get("name", self.record["task"])
+
+    def start(self, fresh: TrainState, config: TrainConfig) -> tuple[int, TrainState, np.ndarray]:
+        """(epoch, state, metric rows) to train on from: the checkpoint's, else ``fresh`` at epoch 0.
+
+        A resumed run's record takes ``config.epochs`` when it trains further; fewer epochs
+        than trained are refused and change nothing.
+        """
+        start_epoch, state, rows = 0, fresh, empty_rows()
+        if (self.directory / CHECKPOINT_FILE).exists():
+            start_epoch, state, rows = load_checkpoint(self.directory, fresh, self.owner)
+        if config.epochs < start_epoch:
+            raise InputError(f"{self.directory} has trained {start_epoch} epochs: --epochs must be at least that to continue")
+        if self.resuming and config.epochs > start_epoch and config.epochs != self.record["train"]["epochs"]:
+            import dataclasses
+            self.record = {**self.record, "train": dataclasses.asdict(config)}
+            write_json(self.directory / CONFIG_FILE, self.record)
+        return start_epoch, state, rows
+
+    def close(self) -> None:
+        self.lock.release()
+
+
 class Outcome(NamedTuple):
     status: str  # "complete", "interrupted" or "diverged"
     epoch: int  # last epoch whose state is saved
