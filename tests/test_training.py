@@ -248,3 +248,14 @@ def test_an_existing_or_unwritable_out_is_refused_and_left_untouched(uninterrupt
         result = train_cli(*SMALL_CLI, "--epochs", "1", "--out", str(out))
         assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert {p.name: p.stat().st_mtime_ns for p in uninterrupted.iterdir()} == before
+
+
+def test_compiled_programs_are_kept_between_runs_unless_turned_off(tmp_path):
+    """The command line's persistent compilation cache: filled by a run, left empty with --no-compile-cache."""
+    for flag, cache in (("--compile-cache", tmp_path / "kept"), ("--no-compile-cache", tmp_path / "off")):
+        env = {**os.environ, "STABLEBPTT_COMPILE_CACHE": str(cache)}
+        result = subprocess.run(TRAIN + SMALL_CLI + ["--epochs", "1", "--out", str(tmp_path / flag), flag],
+                                capture_output=True, text=True, cwd=tmp_path, env=env)
+        assert result.returncode == 0, result.stderr
+        entries = list(cache.glob("*")) if cache.exists() else []
+        assert bool(entries) == (flag == "--compile-cache"), (flag, entries)
