@@ -25,6 +25,7 @@ from datetime import datetime
 from pathlib import Path
 
 from stablebptt.cli import Parser, add_options, build, fail
+from stablebptt.rendering import fresh_outputs
 from stablebptt.errors import InputError
 
 RENDERS_ROOT = Path("renders")
@@ -80,37 +81,6 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, RenderConfig]:
     return args, config
 
 
-def _named(stem: Path, ending: str) -> Path:
-    """``stem`` with ``ending`` appended (not ``with_suffix``, which would eat a dot inside a model's name)."""
-    return stem.with_name(stem.name + ending)
-
-
-def output_paths(args, config: RenderConfig, picture: str) -> tuple[Path, Path]:
-    """(video, picture) paths that do not exist yet; an existing --out is an error."""
-    suffix = ".gif" if config.gif else ".mp4"
-    if args.out is not None:
-        if args.out.suffix.lower() not in (".mp4", ".gif"):
-            raise InputError(f"--out {args.out}: give a video file name ending in .mp4 or .gif")
-        if config.gif and args.out.suffix.lower() != ".gif":
-            raise InputError(f"--gif writes a GIF, but --out {args.out} ends in {args.out.suffix}: drop one of the two")
-        if not args.out.parent.is_dir():
-            raise InputError(f"cannot write {args.out}: the directory {args.out.parent} does not exist")
-        video, picture_path = args.out, _named(args.out.with_suffix(""), f"-{picture}.png")
-        for path in (video, picture_path) if config.video else (picture_path,):
-            if path.exists():
-                raise InputError(f"{path} already exists: choose another --out (render.py never overwrites)")
-        return video, picture_path
-    if args.run_dir is not None:
-        stem = args.run_dir / STEM
-    else:
-        stem = RENDERS_ROOT / f"{args.model.stem}-{datetime.now():%Y%m%d-%H%M%S}"
-    candidate, number = stem, 1
-    while (config.video and _named(candidate, suffix).exists()) or _named(candidate, f"-{picture}.png").exists():
-        number += 1
-        candidate = _named(stem, f"-{number}")
-    return _named(candidate, suffix), _named(candidate, f"-{picture}.png")
-
-
 def build_controller(args, config: RenderConfig):
     """(task name, task config, train config, task, parameters of one seed, label) of the run or the --model."""
     import jax
@@ -144,7 +114,9 @@ def main(argv: list[str]) -> int:
         entry = tasks.entry(task_name)
         if not entry.draw:
             raise InputError(f"the task {task_name} has no drawing (its registry entry gives no draw)")
-        video, picture = output_paths(args, config, entry.picture)
+        default_stem = (args.run_dir / STEM if args.run_dir is not None
+                        else RENDERS_ROOT / f"{args.model.stem}-{datetime.now():%Y%m%d-%H%M%S}")
+        video, picture = fresh_outputs(args.out, default_stem, entry.picture, config.gif, config.video)
         if entry.mujoco_frames:
             # Before mujoco is imported: it reads MUJOCO_GL once.
             from stablebptt.rendering import select_gl_backend

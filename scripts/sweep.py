@@ -110,7 +110,6 @@ def main(argv: list[str]) -> int:
     start_processes(config)
     import jax
     from tqdm import tqdm
-    from stablebptt import runs
     root.mkdir(parents=True, exist_ok=True)
     grid = grids.Grid(
         task_name, option, tuple(complexities),
@@ -134,24 +133,12 @@ def main(argv: list[str]) -> int:
         print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
         return 130
     finished = all(r["epochs_done"] == config.epochs for r in report)
-    # One record per call, never overwritten: calls may run side by side (one per GPU) or resume.
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    ran = [value for r in report for value in r["complexity"]]
-    host = f"-host{jax.process_index()}" if jax.process_count() > 1 else ""
-    record = root / "sweeps" / f"{stamp}{host}-{option}{'_'.join(map(str, ran))}.json"
-    record.parent.mkdir(exist_ok=True)
-    runs.write_json(record, {
-        "preset": config.preset, "config": dataclasses.asdict(config), "finished": finished,
-        "devices": [str(d) for d in jax.devices()], "device_kind": jax.devices()[0].device_kind,
-        "wall_seconds_this_call": time.perf_counter() - wall, "programs": report})
-    if jax.process_count() > 1:  # every host's cells are written before process 0 reports on them
-        from jax.experimental import multihost_utils
-        multihost_utils.sync_global_devices("stablebptt sweep: cells written")
+    record = grids.write_record(root, {"preset": config.preset, "option": option, "config": dataclasses.asdict(config),
+                                       "finished": finished, "wall_seconds_this_call": time.perf_counter() - wall}, report)
     if jax.process_index() == 0:
         # The report covers every run directory of the preset, also those of earlier or parallel calls.
-        table = grids.write_report(root, grids.run_directories(root, task_name, option), task_name, option,
-                                   PRESETS[config.preset][2], modes, clips)
-        print("\n".join(table))
+        print("\n".join(grids.write_report(root, grids.run_directories(root, task_name, option), task_name, option,
+                                            PRESETS[config.preset][2], modes, clips)))
     print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: {root} (record: {record.name})")
     return 0
 

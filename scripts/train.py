@@ -130,33 +130,16 @@ def train(argv: list[str], held: list) -> int:
         print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
         return 0
 
-    from tqdm import tqdm
-    from stablebptt.cli import stop_on_signals
-    bar = tqdm(total=train_config.epochs, initial=start_epoch, unit="epoch", disable=args.no_progress,
-               desc=f"{task_label} {train_config.mode}", dynamic_ncols=True)
-
-    updates = train_config.train_size // train_config.batch
-    compiled = {}
-
-    def on_compiled(seconds):
-        compiled.update(seconds=seconds, ready=time.perf_counter() - started)
-
-    def on_epoch(epoch, metrics):
-        if epoch == start_epoch + 1:  # an epoch is one program: its first update is timed as its share
-            first_update = compiled["ready"] + metrics["seconds"] / updates
-            bar.write(f"time to the first update: {first_update:.0f} s (compiling {compiled['seconds']:.0f} s; "
-                      f"the first epoch, {updates} updates and the train and test losses, {metrics['seconds']:.1f} s)",
-                      file=sys.stdout)
-        bar.update(1)
-        bar.set_postfix(test_loss=f"{float(np.mean(metrics['test_loss'])):.4g}")
-
+    from stablebptt.cli import EpochProgress, stop_on_signals
+    progress = EpochProgress(started, train_config.epochs, start_epoch, train_config.train_size // train_config.batch,
+                             f"{task_label} {train_config.mode}", args.no_progress)
     try:
-        with stop_on_signals(lambda message: bar.write(message, file=sys.stderr)) as should_stop:
-            outcome = runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds, on_epoch,
-                                        on_compiled, should_stop, run.owner)
+        with stop_on_signals(progress.write) as should_stop:
+            outcome = runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
+                                        progress.on_epoch, progress.on_compiled, should_stop, run.owner)
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
-    bar.close()
+    progress.close()
     if outcome.status == "diverged":
         print(f"error: {outcome.message}", file=sys.stderr)
         return 1

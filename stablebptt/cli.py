@@ -146,3 +146,37 @@ def use_compile_cache(enabled: bool = True) -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(directory))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # tiny programs recompile faster than they load
     return directory
+
+
+class EpochProgress:
+    """A progress bar over epochs with the current test loss, and the time to the first update.
+
+    ``on_compiled`` and ``on_epoch`` are ``runs.train_epochs``'s callbacks; ``write``
+    prints a line without breaking the bar.
+    """
+
+    def __init__(self, started: float, total: int, initial: int, updates_per_epoch: int, label: str, disable: bool):
+        from tqdm import tqdm
+        self.started, self.initial, self.updates = started, initial, updates_per_epoch
+        self.bar = tqdm(total=total, initial=initial, unit="epoch", disable=disable, desc=label, dynamic_ncols=True)
+        self.compiled: dict[str, float] = {}
+
+    def write(self, line: str, stream=None) -> None:
+        self.bar.write(line, file=stream or sys.stderr)
+
+    def on_compiled(self, seconds: float) -> None:
+        import time
+        self.compiled = {"seconds": seconds, "ready": time.perf_counter() - self.started}
+
+    def on_epoch(self, epoch: int, metrics: dict) -> None:
+        import numpy as np
+        if epoch == self.initial + 1:  # an epoch is one program: its first update is timed as its share
+            first_update = self.compiled["ready"] + metrics["seconds"] / self.updates
+            self.write(f"time to the first update: {first_update:.0f} s (compiling {self.compiled['seconds']:.0f} s; "
+                       f"the first epoch, {self.updates} updates and the train and test losses, "
+                       f"{metrics['seconds']:.1f} s)", sys.stdout)
+        self.bar.update(1)
+        self.bar.set_postfix(test_loss=f"{float(np.mean(metrics['test_loss'])):.4g}")
+
+    def close(self) -> None:
+        self.bar.close()

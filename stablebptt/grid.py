@@ -76,6 +76,23 @@ class Program:
     directory: Path
 
 
+def write_record(root: Path, record: dict, report: list[dict]) -> Path:
+    """This call's record, ``root/sweeps/<time>[-host<i>]-<option><values>.json`` (never overwritten:
+    calls may run side by side, one per GPU, or resume): ``record`` with the devices and the programs'
+    ``report``. Under jax.distributed, waits until every host has written its cells."""
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    ran = "_".join(str(value) for program in report for value in program["complexity"])
+    host = f"-host{jax.process_index()}" if jax.process_count() > 1 else ""
+    path = root / "sweeps" / f"{stamp}{host}-{record.get('option', '')}{ran}.json"
+    path.parent.mkdir(exist_ok=True)
+    runs.write_json(path, {**record, "devices": [str(d) for d in jax.devices()],
+                           "device_kind": jax.devices()[0].device_kind, "programs": report})
+    if jax.process_count() > 1:  # every host's cells are written before process 0 reports on them
+        from jax.experimental import multihost_utils
+        multihost_utils.sync_global_devices("stablebptt grid: cells written")
+    return path
+
+
 def cell_name(task_name, option, value, mode, clip) -> str:
     return f"{task_name}-{option}{value}-{mode}-{clip}"
 

@@ -466,3 +466,35 @@ def draw_mujoco_rollouts(task_config, states, controls, titles, label, settings,
     frames, masks = render_frames(model, qpos[0][picks], cameras[0], *strip_size, supersample=SUPERSAMPLE, with_masks=True)
     written.append(write_png(strip, frame_strip(frames, masks)))
     return written
+
+
+def _named_path(stem: Path, ending: str) -> Path:
+    """``stem`` with ``ending`` appended (not ``with_suffix``, which would eat a dot inside a model's name)."""
+    return stem.with_name(stem.name + ending)
+
+
+def fresh_outputs(out: Path | None, default_stem: Path, picture: str, gif: bool, video: bool) -> tuple[Path, Path]:
+    """(video, picture) paths that do not exist yet.
+
+    With ``out`` (a video file name; the picture is named after it) an existing file is an
+    error; otherwise ``default_stem`` + ``.mp4``/``.gif`` and ``-<picture>.png``, with a
+    suffix -2, -3, ... until neither exists.
+    """
+    suffix = ".gif" if gif else ".mp4"
+    if out is not None:
+        if out.suffix.lower() not in (".mp4", ".gif"):
+            raise InputError(f"--out {out}: give a video file name ending in .mp4 or .gif")
+        if gif and out.suffix.lower() != ".gif":
+            raise InputError(f"--gif writes a GIF, but --out {out} ends in {out.suffix}: drop one of the two")
+        if not out.parent.is_dir():
+            raise InputError(f"cannot write {out}: the directory {out.parent} does not exist")
+        picture_path = _named_path(out.with_suffix(""), f"-{picture}.png")
+        for path in (out, picture_path) if video else (picture_path,):
+            if path.exists():
+                raise InputError(f"{path} already exists: choose another --out (render.py never overwrites)")
+        return out, picture_path
+    candidate, number = default_stem, 1
+    while (video and _named_path(candidate, suffix).exists()) or _named_path(candidate, f"-{picture}.png").exists():
+        number += 1
+        candidate = _named_path(default_stem, f"-{number}")
+    return _named_path(candidate, suffix), _named_path(candidate, f"-{picture}.png")
