@@ -6,25 +6,20 @@
     python scripts/render.py runs/quantum-20261122-101500     # rollout.mp4 and rollout-density.png
     python scripts/render.py --model models/cartpole_3.xml    # renders/cartpole_3-<time>.mp4 and -strip.png
 
-The controller is rolled out from the run's first test initial states (the
-same states its test loss is measured on), one video frame per simulation
-step, the rollouts side by side. MuJoCo scenes are drawn with the offscreen
-renderer through EGL, or OSMesa when EGL does not work, by a camera that
-keeps the whole rollout in view; the frame strip overlays states of the first
-rollout, earlier ones fainter, at twice the panel size. Existing files are
-never overwritten: the default names get a suffix -2, -3, ...; an existing
---out is refused.
+The controller is rolled out from the run's first test initial states, one video
+frame per step, the rollouts side by side (how MuJoCo scenes are drawn:
+stablebptt/rendering.py). Existing files are never overwritten: default names
+get a suffix -2, -3, ...; an existing --out is refused.
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-from stablebptt.cli import Parser, add_options, build, fail
+from stablebptt.cli import Parser, add_options, build, fail, one_line_errors
 from stablebptt.rendering import fresh_outputs
 from stablebptt.errors import InputError
 
@@ -69,11 +64,8 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, RenderConfig]:
     args = parser.parse_args(argv)
     if (args.run_dir is None) == (args.model is None):
         fail("give a run directory or --model FILE.xml (one of the two)")
-    names = {f.name for f in dataclasses.fields(RenderConfig)}
-    try:
-        config = build(RenderConfig, {k: v for k, v in vars(args).items() if k in names})
-    except InputError as error:
-        fail(str(error))
+    with one_line_errors():
+        config = build(RenderConfig, vars(args))  # build ignores what is not a rendering option
     if args.model is not None and "seed_index" in vars(args):
         fail("--seed-index chooses a seed of a run: it needs a run directory, not --model")
     if args.run_dir is not None and config.steps:
@@ -102,7 +94,7 @@ def build_controller(args, config: RenderConfig):
 
 def main(argv: list[str]) -> int:
     args, config = parse(argv)
-    try:
+    with one_line_errors():
         if args.run_dir is not None:
             from stablebptt import runs  # imports JAX: only once there is a run to read
             task_name = runs.open_run(args.run_dir)["task"]
@@ -121,11 +113,7 @@ def main(argv: list[str]) -> int:
             # Before mujoco is imported: it reads MUJOCO_GL once.
             from stablebptt.rendering import select_gl_backend
             select_gl_backend()
-    except InputError as error:
-        fail(str(error))
 
-    import jax
-    import numpy as np
     from stablebptt.cli import use_compile_cache
     use_compile_cache()
 
@@ -134,17 +122,15 @@ def main(argv: list[str]) -> int:
     except (InputError, TypeError) as error:  # TypeError: a config.json value of the wrong type
         fail(str(error))
 
-    from stablebptt.tasks.trained import rollouts_from_test_states
+    from stablebptt.tasks.trained import first_nonfinite_step, rollouts_from_test_states
     states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
-    # [N, T+1]: whether every number of the state is finite; a diverged rollout has nothing to draw.
-    finite = np.stack([np.isfinite(np.reshape(a, a.shape[:2] + (-1,))).all(axis=-1) for a in jax.tree.leaves(states)]).all(axis=0)
-    for index, steps_finite in enumerate(finite):
-        if not steps_finite.all():
-            fail(f"the rollout from test state {index + 1} is not finite from step {int(np.argmin(steps_finite))} on "
+    for index, step in enumerate(first_nonfinite_step(states)):
+        if step >= 0:  # a diverged rollout has nothing to draw
+            fail(f"the rollout from test state {index + 1} is not finite from step {step} on "
                  "(the controller or the simulation diverged): nothing to draw", code=1)
     titles = [f"test state {i + 1}: loss {loss:.3g}" for i, loss in enumerate(losses)]
-    rollouts = f"{len(losses)} rollout{'s' if len(losses) != 1 else ''}"
-    print(f"{label}: {rollouts} of {controls.shape[1]} steps, losses {', '.join(f'{loss:.4g}' for loss in losses)}")
+    print(f"{label}: {len(losses)} rollout{'s' if len(losses) != 1 else ''} of {controls.shape[1]} steps, "
+          f"losses {', '.join(f'{loss:.4g}' for loss in losses)}")
     video = video if config.video else None
     picture.parent.mkdir(parents=True, exist_ok=True)  # renders/ for --model
     try:

@@ -14,8 +14,7 @@ import time
 from pathlib import Path
 
 from stablebptt import tasks
-from stablebptt.cli import Parser, add_options, build, fail, option_name
-from stablebptt.errors import InputError
+from stablebptt.cli import Parser, add_options, build, fail, one_line_errors, option_name
 from stablebptt.training import TrainConfig
 
 RUNS_ROOT = Path("runs")
@@ -84,10 +83,8 @@ def main(argv: list[str]) -> int:
 def train(argv: list[str], held: list) -> int:
     started = time.perf_counter()
     args, owners = parse(argv)
-    try:
+    with one_line_errors():
         task_name, task_config, train_config, run_dir, record = configure(args, owners)
-    except InputError as error:
-        fail(str(error))
 
     import jax  # after parsing: --x64 must be set before any array exists
     jax.config.update("jax_enable_x64", train_config.x64)
@@ -98,29 +95,19 @@ def train(argv: list[str], held: list) -> int:
     from stablebptt.errors import StorageError
     from stablebptt.training import make_trainer, seed_array
 
-    try:
+    with one_line_errors():
         task = tasks.load(task_name).make(task_config)
         if record is None:
             run_dir = run_dir or runs.default_run_dir(RUNS_ROOT, task.name)
             run = runs.Run.create(run_dir, runs.new_record(task_name, task_config, task, train_config))
         else:
             run = runs.Run.open(run_dir, record)
-    except InputError as error:
-        fail(str(error))
-    except StorageError as error:
-        fail(str(error.strerror), code=1)
     held.append(run)
-    try:
+    with one_line_errors(f"{run.name}: "):  # the memory plan may refuse the scene
         trainer = make_trainer(task, train_config)
-    except InputError as error:
-        fail(f"{run.name}: {error}")
     seeds = np.asarray(seed_array(train_config))
-    try:
+    with one_line_errors():
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
-    except InputError as error:
-        fail(str(error))
-    except StorageError as error:
-        fail(str(error.strerror), code=1)
     task_label, resuming = run.name, run.resuming
 
     if task.summary:

@@ -93,6 +93,19 @@ def build(config_class: type, values: dict[str, Any], source: str = ""):
     return config_class(**{k: v for k, v in values.items() if k in fields})
 
 
+@contextlib.contextmanager
+def one_line_errors(prefix: str = "") -> Iterator[None]:
+    """Within the block, bad input (InputError) ends the command with one line and exit code 2, a
+    file that cannot be written (StorageError: a full disk, permissions) with one line and exit code 1."""
+    from stablebptt.errors import InputError, StorageError
+    try:
+        yield
+    except InputError as error:
+        fail(f"{prefix}{error}")
+    except StorageError as error:
+        fail(f"{prefix}{error.strerror}", code=1)
+
+
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 

@@ -121,3 +121,13 @@ def rollouts_from_test_states(task: Task, train: TrainConfig, params: Any, count
 
     states, controls, losses = jax.device_get(run(params, initial))
     return states, controls, np.asarray(losses)
+
+
+def first_nonfinite_step(states: Any) -> list[int]:
+    """Per rollout of ``states`` ([N, T+1, ...] leaves), the first step with a number that is not
+    finite, or -1 where every step is finite."""
+    import jax
+    import numpy as np
+    finite = np.stack([np.isfinite(np.reshape(a, a.shape[:2] + (-1,))).all(axis=-1)
+                       for a in jax.tree.leaves(states)]).all(axis=0)  # [N, T+1]
+    return [int(np.argmin(row)) if not row.all() else -1 for row in finite]
