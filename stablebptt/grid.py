@@ -74,6 +74,7 @@ class Program:
     values: list  # the values this program trains
     cells: list  # (value, mode, clip, seed) per cell
     directory: Path
+    per_cell: bool  # the values enter as per-cell inputs of one program (Task.cell_option)
 
 
 def write_record(root: Path, record: dict, report: list[dict]) -> Path:
@@ -106,7 +107,7 @@ def plan(grid: Grid, root: Path) -> list[Program]:
     per_cell = grid.group_values and takes_per_cell(grid.make_task(grid.values[0]), grid.option)
     groups = [list(grid.values)] if per_cell else [[value] for value in grid.values]
     return [Program(group, [(v, m, c, s) for v, m, c, s in itertools.product(group, grid.modes, grid.clips, grid.seeds)],
-                    root / "_programs" / f"{grid.option}{'_'.join(map(str, group))}") for group in groups]
+                    root / "_programs" / f"{grid.option}{'_'.join(map(str, group))}", per_cell) for group in groups]
 
 
 def place(programs: list, devices: list, process_index: int = 0) -> list[tuple[list, list]]:
@@ -154,7 +155,6 @@ def run_program(program: Program, grid: Grid, devices: list, log: Callable[[str]
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
     task = grid.make_task(program.values[0])
-    per_cell = len(program.values) > 1 or (grid.group_values and takes_per_cell(task, grid.option))
     unroll = grid.unroll or (grid.gpu_unroll if devices[0].platform == "gpu" else 1)
     count = len(program.cells)
     cells = program.cells + [program.cells[-1]] * (-count % len(devices))  # pad to a multiple of the devices
@@ -181,7 +181,7 @@ def run_program(program: Program, grid: Grid, devices: list, log: Callable[[str]
     else:
         start, rows = 0, runs.empty_rows()
     state = shard(state)
-    values = shard(jnp.asarray([value for value, _, _, _ in cells])) if per_cell else None
+    values = shard(jnp.asarray([value for value, _, _, _ in cells])) if program.per_cell else None
     arguments = (values, trainer.batches, trainer.train_states, trainer.test_states)
     started = time.perf_counter()
     epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)

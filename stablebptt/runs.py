@@ -430,11 +430,11 @@ def fit(
       (status, last saved epoch, state, rows, message); status "complete",
       "interrupted" or "diverged".
     """
-    saved_epoch = start_epoch
+    saved_epoch = start_epoch if start_epoch > 0 else -1  # a start past epoch 0 comes from a checkpoint
 
     def checkpoint(epoch, state, rows):
         nonlocal saved_epoch
-        if saved_epoch != epoch or epoch == start_epoch == 0:
+        if saved_epoch != epoch:
             save(epoch, state, rows)
             saved_epoch = epoch
 

@@ -86,7 +86,7 @@ _BUILTIN = (
           presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8),
 )
 _REGISTRY: dict[str, Entry] = {}
-_DISCOVERED: list[bool] = []
+_discovered = False
 
 
 def register(entry: Entry) -> None:
@@ -95,9 +95,10 @@ def register(entry: Entry) -> None:
 
 
 def _discover() -> None:
-    if _DISCOVERED:
+    global _discovered
+    if _discovered:
         return
-    _DISCOVERED.append(True)
+    _discovered = True
     registered = dict(_REGISTRY)  # register() calls made before discovery take precedence
     for entry in _BUILTIN:
         register(entry)
