@@ -6,11 +6,13 @@ and returns pure functions; ``stablebptt.runs`` drives them epoch by epoch.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, NamedTuple
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import optax
 
@@ -22,6 +24,13 @@ from stablebptt.memory import MemoryPlan, plan_memory
 PyTree = Any
 CLIP_MODES = ("value", "norm", "none")
 SEED_BATCHING = ("map", "vmap")
+EPOCH_PROGRAMS = ("auto", "whole", "per-update")
+# Operations in one traced step above which ``epoch_program="auto"`` compiles per update. XLA's
+# CPU compiler can take many minutes and gigabytes for an epoch program that inlines a contact
+# model's step in nested loops (updates, rollouts, Jacobians, evaluation), where the same pieces
+# compiled apart take a few minutes. The built-in tasks' steps (the cart-poles: about 4,000) stay
+# in one program; the DeepMind Control Suite's models other than pendulum and reacher do not.
+PER_UPDATE_STEP_SIZE = 8_000
 MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
 METRICS = ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine")
 
@@ -87,6 +96,7 @@ class TrainConfig:
     unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Dynamics.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: about 1.6x faster per seed on 2 CPU cores, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
+    epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{PER_UPDATE_STEP_SIZE} operations", "choices": EPOCH_PROGRAMS})
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -106,6 +116,8 @@ class TrainConfig:
                                  + (f" with --seeds {self.seeds}" if name == "seed" else "") + f", got {getattr(self, name)}")
         if self.seed_batching not in SEED_BATCHING:
             raise InputError(f"unknown seed batching {self.seed_batching!r}: choose map or vmap")
+        if self.epoch_program not in EPOCH_PROGRAMS:
+            raise InputError(f"unknown epoch program {self.epoch_program!r}: choose one of {', '.join(EPOCH_PROGRAMS)}")
         if self.train_size % self.batch:
             raise InputError(f"--batch {self.batch} does not divide the {self.train_size} training states: pick a divisor")
 
@@ -216,18 +228,20 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])
         return TrainState(params, opt_state), (loss, optax.tree.norm(updates), cosine, flows_finite)
 
-    def epoch(state, batches, train_states, test_states, dynamics=for_this_run(task.dynamics)):
-        state, (losses, update_norms, cosines, flows_finite) = jax.lax.scan(
-            lambda s, b: update(dynamics, s, b), state, batches)
+    def evaluate_both(params, train_states, test_states, dynamics=for_this_run(task.dynamics)):
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
         both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), train_states, test_states)
-        losses_of_both = reference_losses(dynamics, state.params, both)
+        return reference_losses(dynamics, params, both)
+
+    def summarize(state, per_update, losses_of_both):
+        """The epoch's metrics from its updates' outputs ([updates] each) and every state's loss."""
+        losses, update_norms, cosines, flows_finite = per_update
         train_loss, test_loss = losses_of_both[:config.train_size].mean(), losses_of_both[config.train_size:].mean()
         # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
         checks = [jnp.isfinite(losses).all(), jnp.isfinite(update_norms).all() & _all_finite(state),
                   jnp.isfinite(train_loss), jnp.isfinite(test_loss)] + list(flows_finite.all(axis=0))
         failed = sum(jnp.where(ok, 0, 1 << bit) for bit, ok in enumerate(checks))
-        metrics = {
+        return {
             "batch_loss": losses.mean(),
             "train_loss": train_loss,
             "test_loss": test_loss,
@@ -236,7 +250,10 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
             "finite": failed == 0,
             "nonfinite": failed,  # bit set per failed check, in the order of nonfinite_names(flows)
         }
-        return state, metrics
+
+    def epoch(state, batches, train_states, test_states, dynamics=for_this_run(task.dynamics)):
+        state, per_update = jax.lax.scan(lambda s, b: update(dynamics, s, b), state, batches)
+        return state, summarize(state, per_update, evaluate_both(state.params, train_states, test_states, dynamics))
 
     def grid_epoch(state, value, batches, train_states, test_states):
         dynamics = task.dynamics if value is None else task.cell_option.dynamics(value)
@@ -251,10 +268,18 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         # batched physics differently, which moves the last bits under vmap.
         return lambda *args: jax.lax.map(lambda per_seed: function(*per_seed, *args[mapped:]), args[:mapped])
 
+    if grid:
+        epoch_program = jax.jit(over_seeds(grid_epoch, mapped=2))
+    elif choose_epoch_program(task, config, jax.tree.map(lambda a: a[0], train_states)) == "whole":
+        epoch_program = jax.jit(over_seeds(epoch))
+    else:
+        dynamics = for_this_run(task.dynamics)
+        epoch_program = PerUpdateEpoch(jax.jit(over_seeds(functools.partial(update, dynamics))),
+                                       jax.jit(over_seeds(evaluate_both)), jax.jit(over_seeds(summarize, mapped=3)))
     return Trainer(
         flows=flows,
         init=jax.jit(over_seeds(init)),
-        epoch=jax.jit(over_seeds(grid_epoch, mapped=2) if grid else over_seeds(epoch)),
+        epoch=epoch_program,
         evaluate=jax.jit(over_seeds(evaluate)),
         train_states=train_states,
         test_states=test_states,
@@ -262,12 +287,77 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     )
 
 
+class PerUpdateEpoch:
+    """An epoch as a Python loop over separately compiled programs: one update, one evaluation, one summary.
+
+    Called like the one-program epoch, ``(states, batches, train, test) -> (states,
+    metrics)``, with the same metrics; ``lower(...).compile()`` compiles every
+    program ahead, as ``jax.jit``'s does for the whole epoch. XLA compiles the
+    pieces apart in a fraction of the time and memory it needs for one program
+    holding them all.
+    """
+
+    def __init__(self, update: Callable, evaluate: Callable, summarize: Callable):
+        self.update, self.evaluate, self.summarize = update, evaluate, summarize
+
+    def __call__(self, state, batches, train_states, test_states):
+        updates = len(jax.tree.leaves(batches)[0])
+        outputs = []
+        for index in range(updates):
+            state, output = self.update(state, jax.tree.map(lambda a, i=index: a[i], batches))
+            outputs.append(output)
+        per_update = jax.tree.map(lambda *each: jnp.stack(each, axis=1), *outputs)  # [seeds, updates]
+        return state, self.summarize(state, per_update, self.evaluate(state.params, train_states, test_states))
+
+    def lower(self, state, batches, train_states, test_states):
+        return _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states))
+
+
+class _LoweredPerUpdateEpoch(NamedTuple):
+    epoch: PerUpdateEpoch
+    arguments: tuple
+
+    def compile(self) -> PerUpdateEpoch:
+        state, batches, train_states, test_states = self.arguments
+        batch = jax.tree.map(lambda a: a[0], batches)
+        update = self.epoch.update.lower(state, batch).compile()
+        output = jax.eval_shape(self.epoch.update, state, batch)[1]
+        per_update = jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], len(jax.tree.leaves(batches)[0])) + a.shape[1:],
+                                                                 a.dtype), output)
+        evaluate = self.epoch.evaluate.lower(state.params, train_states, test_states).compile()
+        losses = jax.eval_shape(self.epoch.evaluate, state.params, train_states, test_states)
+        summarize = self.epoch.summarize.lower(state, per_update, losses).compile()
+        return PerUpdateEpoch(update, evaluate, summarize)
+
+
+def _example_control(task: Task, config: TrainConfig, initial_state: PyTree) -> PyTree:
+    params = jax.eval_shape(lambda: task.init_params(jax.random.PRNGKey(0), config.zero_output))
+    control = jax.eval_shape(task.dynamics.policy, params, initial_state)
+    return jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), control)
+
+
+def _operations(jaxpr) -> int:
+    return sum(1 + sum(_operations(inner) for inner in jax.extend.core.jaxprs_in_params(equation.params))
+               for equation in jaxpr.eqns)
+
+
+def step_operations(task: Task, config: TrainConfig, initial_state: PyTree) -> int:
+    """Operations in one traced simulator step, inner loops' bodies counted once."""
+    control = _example_control(task, config, initial_state)
+    return _operations(jax.make_jaxpr(task.dynamics.step)(initial_state, control).jaxpr)
+
+
+def choose_epoch_program(task: Task, config: TrainConfig, initial_state: PyTree) -> str:
+    """``"whole"`` or ``"per-update"``: ``config.epoch_program``, with ``"auto"`` decided by the step's size."""
+    if config.epoch_program != "auto":
+        return config.epoch_program
+    return "per-update" if step_operations(task, config, initial_state) > PER_UPDATE_STEP_SIZE else "whole"
+
+
 def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree) -> MemoryPlan:
     """The settings that fit ``task``'s gradient path, at ``config.batch`` examples per update, into memory."""
     dynamics = task.dynamics
-    params = jax.eval_shape(lambda: task.init_params(jax.random.PRNGKey(0), config.zero_output))
-    control = jax.eval_shape(dynamics.policy, params, initial_state)
-    control = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), control)
+    control = _example_control(task, config, initial_state)
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
     known = 0 if dynamics.known_columns is None else len(dynamics.known_columns.indices)
     return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, dynamics.step_derivative,

@@ -96,6 +96,23 @@ def test_vmapped_seeds_agree_with_mapped_seeds_to_rounding(task, three_seeds):
     np.testing.assert_allclose(vmapped[0]["test_loss"], history[0]["test_loss"], rtol=1e-5)
 
 
+def test_an_epoch_compiled_per_update_trains_as_the_epoch_compiled_whole(task, three_seeds, tmp_path):
+    """The same updates and metrics from separately compiled programs (large scenes) as from one."""
+    state, history = three_seeds
+    config = replace(SMALL, seeds=3, seed=7, epoch_program="per-update")
+    trainer = make_trainer(task, config)
+    assert type(trainer.epoch).__name__ == "PerUpdateEpoch"
+    # Through the epoch loop of runs, which compiles ahead before timing.
+    outcome = runs.train_epochs(trainer, config, tmp_path, trainer.init(seed_array(config)), 0, runs.empty_rows(),
+                                np.asarray(seed_array(config)))
+    assert outcome.status == "complete"
+    for name in ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine"):
+        per_update = outcome.rows[:, runs.COLUMNS.index(name)].reshape(3, 3)  # [epoch, seed]
+        np.testing.assert_allclose(per_update, [h[name] for h in history], rtol=1e-5, err_msg=name)
+    for whole, split in zip(jax.tree.leaves(state.params), jax.tree.leaves(outcome.state.params)):
+        np.testing.assert_allclose(split, whole, rtol=1e-4, atol=1e-7)
+
+
 def test_runs_are_bit_reproducible(task, three_seeds):
     config = replace(SMALL, seeds=3, seed=7)
     _, again = run_epochs(make_trainer(task, config), config, 3)
