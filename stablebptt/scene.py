@@ -264,14 +264,15 @@ def with_options(model: mujoco.MjModel, integrator: str | None = None, timestep:
 
 
 def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | None = None,
-               timestep: float | None = None, loop_free_solver: bool = True) -> mujoco.MjModel:
+               timestep: float | None = None, solver_iterations: int | None = None) -> mujoco.MjModel:
     """A copy of ``model`` with every absent effect and every diagnostic switched off.
 
     Args:
-      loop_free_solver: where the scene has constraints, True sets MJX's solver
-        to one Newton iteration (reverse-mode autodiff cannot pass a while
-        loop); False keeps the model's own solver settings, which forward mode
-        differentiates exactly.
+      solver_iterations: None keeps the model's own constraint solver (a while
+        loop: forward mode differentiates it exactly, reverse mode cannot pass
+        it). A number N sets exactly N Newton iterations (tolerance 0, which
+        MuJoCo's C step honours too), which ``make_step`` runs as a scan that
+        reverse mode passes; ``loop_free_iterations`` chooses N.
     """
     lean = with_options(model, integrator, timestep)
     for bit in diagnostics_bits(lean):
@@ -296,12 +297,8 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
         lean.opt.disableflags |= _DISABLE.mjDSBL_SPRING | _DISABLE.mjDSBL_DAMPER
     if not effects.constraints:
         lean.opt.disableflags |= _DISABLE.mjDSBL_CONSTRAINT
-    elif loop_free_solver:
-        # MJX reverse-differentiates its solver only without a while loop: one
-        # Newton iteration with a bounded line search (a scan).
-        lean.opt.iterations = 1
-        lean.opt.ls_iterations = min(int(lean.opt.ls_iterations), 8)
-        lean.opt.solver = mujoco.mjtSolver.mjSOL_NEWTON
+    elif solver_iterations is not None:
+        _fix_iterations(lean, solver_iterations)
     if not effects.dampers:
         # Euler's implicit damping refactors the mass matrix: pointless without damping.
         lean.opt.disableflags |= _DISABLE.mjDSBL_EULERDAMP
@@ -312,6 +309,77 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
     # (60 cells) 0.55 -> 0.39 s at 1 pole, 0.77 -> 0.65 s at 4.
     lean.opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
     return lean
+
+
+def _fix_iterations(model: mujoco.MjModel, iterations: int) -> None:
+    model.opt.solver = mujoco.mjtSolver.mjSOL_NEWTON
+    model.opt.iterations = iterations
+    model.opt.tolerance = 0.0  # never stop early: exactly ``iterations``
+
+
+def fixed_iterations(model: mujoco.MjModel) -> bool:
+    """Whether ``model``'s Newton solver runs a fixed number of iterations (tolerance 0), loop-free in MJX."""
+    return model.opt.tolerance == 0 and int(model.opt.solver) == int(mujoco.mjtSolver.mjSOL_NEWTON)
+
+
+ITERATION_CANDIDATES = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 100)
+ITERATION_TOLERANCE = 1e-3  # relative error in acceleration a loop-free solver may have against the model's own
+
+
+def sampled_states(model: mujoco.MjModel, qpos: np.ndarray | None = None, qvel: np.ndarray | None = None,
+                   steps: int = 160, count: int = 16, seed: int = 0) -> list[mujoco.MjData]:
+    """``count`` states that the model's own physics (MuJoCo's C step) reaches over ``steps`` steps from
+    (``qpos``, ``qvel``), default its reference pose at rest, under random controls in their ranges."""
+    data = mujoco.MjData(model)
+    if qpos is not None:
+        data.qpos[:] = qpos
+    if qvel is not None:
+        data.qvel[:] = qvel
+    rng = np.random.default_rng(seed)
+    low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+    limited = model.actuator_ctrllimited.astype(bool)
+    every = max(steps // count, 1)
+    states = []
+    for index in range(every * count):
+        data.ctrl[:] = np.where(limited, rng.uniform(low, high), rng.uniform(-1, 1, model.nu))
+        mujoco.mj_step(model, data)
+        if not np.all(np.isfinite(data.qvel)):
+            break
+        if index % every == every - 1:
+            states.append(copy.copy(data))
+    return states
+
+
+def _acceleration(model: mujoco.MjModel, state: mujoco.MjData) -> np.ndarray:
+    data = copy.copy(state)
+    data.qacc_warmstart[:] = 0  # the lean step starts from zero or the unconstrained acceleration, as here
+    mujoco.mj_forward(model, data)
+    return data.qacc.copy()
+
+
+def iteration_error(model: mujoco.MjModel, iterations: int, states: list | None = None) -> float:
+    """The largest relative acceleration error of ``iterations`` fixed Newton iterations against ``model``'s
+    own solver at ``states`` (default: ``sampled_states(model)``), in MuJoCo's C forward dynamics."""
+    states = sampled_states(model) if states is None else states
+    fixed = copy.copy(model)
+    _fix_iterations(fixed, iterations)
+    error = 0.0
+    for state in states:
+        reference = _acceleration(model, state)
+        error = max(error, float(np.linalg.norm(_acceleration(fixed, state) - reference)
+                                 / max(np.linalg.norm(reference), 1e-9)))
+    return error
+
+
+def loop_free_iterations(model: mujoco.MjModel, states: list | None = None, tolerance: float = ITERATION_TOLERANCE) -> int:
+    """The fewest fixed Newton iterations within ``tolerance`` of ``model``'s own solver (relative, in
+    acceleration, at ``states``, default ``sampled_states(model)``); at most the model's own limit."""
+    states = sampled_states(model) if states is None else states
+    limit = max(int(model.opt.iterations), 1)
+    for count in ITERATION_CANDIDATES:
+        if count >= limit or iteration_error(model, count, states) <= tolerance:
+            return min(count, limit)
+    return limit
 
 
 def describe(effects: SceneEffects, model: mujoco.MjModel, original: mujoco.MjModel | None = None) -> str:
@@ -326,14 +394,20 @@ def describe(effects: SceneEffects, model: mujoco.MjModel, original: mujoco.MjMo
     line = (f"scene: {model.nq} qpos, {model.nv} dof, {model.nu} actuators, {integrator} at dt {model.opt.timestep:g}; "
             f"simulated: rigid-body dynamics{''.join(', ' + s for s in simulated)}; skipped: {', '.join(skipped) or 'nothing'}")
     if effects.constraints:
-        if model.opt.iterations == 1:
-            line += "; constraint solver: 1 Newton iteration (reverse-mode gradients need a loop-free solver)"
+        if fixed_iterations(model):
+            count = int(model.opt.iterations)
+            line += f"; constraint solver: {count} Newton iteration{'s' if count > 1 else ''}, fixed"
+            if original is not None and not fixed_iterations(original):
+                line += f" (loop-free; the model's own: {_solver_name(original)}, tolerance {original.opt.tolerance:g})"
         else:
-            solver = mujoco.mjtSolver(model.opt.solver).name[len("mjSOL_"):].capitalize()
-            solver = "CG" if solver == "Cg" else solver
-            line += (f"; constraint solver: the model's own ({solver}, at most {model.opt.iterations} iterations, "
+            line += (f"; constraint solver: the model's own ({_solver_name(model)}, at most {model.opt.iterations} iterations, "
                      f"tolerance {model.opt.tolerance:g})")
     return line
+
+
+def _solver_name(model: mujoco.MjModel) -> str:
+    name = mujoco.mjtSolver(model.opt.solver).name[len("mjSOL_"):].capitalize()
+    return "CG" if name == "Cg" else name
 
 
 class State(NamedTuple):
@@ -380,8 +454,28 @@ def _lean_forward(model: mjx.Model, data: mjx.Data, effects: SceneEffects, mass:
         return data
     data = mjx_forward.fwd_acceleration(model, data)
     if effects.constraints and data._impl.efc_J.size:
-        return solver.solve(model, data)
+        return _solve(model, data)
     return data.replace(qacc=data.qacc_smooth)
+
+
+def _solve(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """MJX's constraint solver; with a tolerance of 0, exactly ``iterations`` Newton iterations as a scan.
+
+    MJX runs more than one iteration in a while loop, which reverse mode cannot
+    pass. A Newton iteration depends on nothing but the acceleration it starts
+    from, so N iterations are N one-iteration solves, each warm-started at the
+    last one's acceleration (which has the lower cost, so MJX starts there).
+    """
+    iterations = int(model.opt.iterations)
+    if not (float(model.opt.tolerance) == 0 and iterations > 1 and model.opt.solver == mjx_types.SolverType.NEWTON):
+        return solver.solve(model, data)
+    once = model.replace(opt=model.opt.replace(iterations=1))
+    again = model.replace(opt=model.opt.replace(iterations=1, disableflags=model.opt.disableflags
+                                                & ~mjx_types.DisableBit.WARMSTART))
+    data = solver.solve(once, data)
+    data, _ = jax.lax.scan(lambda d, _: (solver.solve(again, d.replace(qacc_warmstart=d.qacc)), None),
+                           data, None, length=iterations - 1)
+    return data
 
 
 def implicit_derivative_applies(model: mujoco.MjModel, effects: SceneEffects) -> bool:

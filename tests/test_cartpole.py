@@ -142,14 +142,15 @@ def test_lean_model_keeps_what_the_scene_has_and_differentiates_constraints():
     model = mujoco.MjModel.from_xml_string(SCENE.format(floor="", joint='damping="0.5" limited="true" range="-1 1"',
                                                         geom="", motor='ctrlrange="-1 1"'))
     effects = scene.analyze(model)
-    lean = scene.lean_model(model, effects)
+    lean = scene.lean_model(model, effects, solver_iterations=1)
     flags = int(lean.opt.disableflags)
     for kept in ("mjDSBL_CONTACT", "mjDSBL_LIMIT", "mjDSBL_DAMPER", "mjDSBL_CLAMPCTRL", "mjDSBL_EULERDAMP"):
         assert not flags & int(getattr(mujoco.mjtDisableBit, kept)), kept
     # No stiffness anywhere, but MJX's spring flag would switch the damper off too.
     assert not flags & int(mujoco.mjtDisableBit.mjDSBL_SPRING)
     assert lean.opt.iterations == 1 and model.opt.iterations != 1  # the user's model is untouched
-    assert "1 Newton iteration" in scene.describe(effects, lean)
+    assert "1 Newton iteration, fixed" in scene.describe(effects, lean)
+    assert scene.lean_model(model, effects).opt.iterations == model.opt.iterations  # the model's own by default
     # And the constrained, damped, clamped scene differentiates end to end.
     step = scene.make_step(lean, effects)
     start = scene.State(jnp.array([0.9]), jnp.array([2.0]), jnp.zeros(0))

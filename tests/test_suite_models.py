@@ -124,6 +124,44 @@ def test_the_step_and_its_derivative_agree_with_mujocos_c_step(suite, x64, name)
     assert np.linalg.norm(derivative - central) <= 1e-5 * np.linalg.norm(central)
 
 
+def test_a_loop_free_solver_runs_mujocos_newton_iterations_and_reverse_mode_passes_it(suite, x64):
+    """hopper in reverse mode: the fewest fixed Newton iterations within the stated tolerance of the
+    file's own solver, stepped exactly as MuJoCo's C step steps that count, differentiable both ways."""
+    model = mujoco.MjModel.from_xml_path(str(suite / "hopper.xml"))
+    count = scene.loop_free_iterations(model)
+    assert scene.iteration_error(model, count) <= scene.ITERATION_TOLERANCE
+    fewer = [c for c in scene.ITERATION_CANDIDATES if c < count]
+    assert not fewer or scene.iteration_error(model, fewer[-1]) > scene.ITERATION_TOLERANCE  # the fewest
+    effects = scene.analyze(model)
+    lean = scene.lean_model(model, effects, solver_iterations=count)
+    assert scene.fixed_iterations(lean) and lean.opt.iterations == count
+    assert f"{count} Newton iterations, fixed" in scene.describe(effects, lean, model)
+    data = mujoco.MjData(lean)
+    rng = np.random.default_rng(1)
+    for _ in range(100):  # onto the floor, in contact
+        data.ctrl[:] = rng.uniform(-1, 1, model.nu)
+        mujoco.mj_step(lean, data)
+    assert data.ncon > 0
+    state = scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.array(data.act))
+    control = jnp.array(rng.uniform(-1, 1, model.nu))
+    data.ctrl[:] = control
+    data.qacc_warmstart[:] = 0  # the lean step starts from zero or the unconstrained acceleration
+    mujoco.mj_step(lean, data)
+    step = scene.make_step(lean, effects)
+    following = jax.jit(step)(state, control)
+    np.testing.assert_allclose(np.concatenate([following.qpos, following.qvel]), np.concatenate([data.qpos, data.qvel]),
+                               rtol=0, atol=1e-9)
+    # Reverse mode passes the fixed iterations and agrees with forward mode: <J^T w, v> = <w, J v>.
+    tangent = (scene.State(jnp.zeros(model.nq), jnp.array(rng.normal(size=model.nv)), jnp.zeros(0)),
+               jnp.array(rng.normal(size=model.nu)))
+    weight = scene.State(jnp.array(rng.normal(size=model.nq)), jnp.array(rng.normal(size=model.nv)), jnp.zeros(0))
+    forward = jax.jit(lambda s, u, t: jax.jvp(step, (s, u), t)[1])(state, control, tangent)
+    reverse = jax.jit(lambda s, u, w: jax.vjp(step, s, u)[1](w))(state, control, weight)
+    dot = lambda a, b: sum(float(jnp.vdot(x, y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+    assert np.isfinite(dot(reverse, reverse))
+    np.testing.assert_allclose(dot(reverse, tangent), dot(weight, forward), rtol=1e-8)
+
+
 def test_step_jacobians_of_a_contact_model_with_friction_loss_are_finite(suite):
     """finger: contacts with an elliptic cone, joint limits and friction loss, the model's own solver.
 
