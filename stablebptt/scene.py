@@ -361,23 +361,24 @@ def iteration_error(model: mujoco.MjModel, iterations: int, states: list | None 
     """The largest relative acceleration error of ``iterations`` fixed Newton iterations against ``model``'s
     own solver at ``states`` (default: ``sampled_states(model)``), in MuJoCo's C forward dynamics."""
     states = sampled_states(model) if states is None else states
+    return _largest_error(model, iterations, states, [_acceleration(model, state) for state in states])
+
+
+def _largest_error(model: mujoco.MjModel, iterations: int, states: list, references: list) -> float:
     fixed = copy.copy(model)
     _fix_iterations(fixed, iterations)
-    error = 0.0
-    for state in states:
-        reference = _acceleration(model, state)
-        error = max(error, float(np.linalg.norm(_acceleration(fixed, state) - reference)
-                                 / max(np.linalg.norm(reference), 1e-9)))
-    return error
+    return max((float(np.linalg.norm(_acceleration(fixed, state) - reference) / max(np.linalg.norm(reference), 1e-9))
+                for state, reference in zip(states, references)), default=0.0)
 
 
 def loop_free_iterations(model: mujoco.MjModel, states: list | None = None, tolerance: float = ITERATION_TOLERANCE) -> int:
     """The fewest fixed Newton iterations within ``tolerance`` of ``model``'s own solver (relative, in
     acceleration, at ``states``, default ``sampled_states(model)``); at most the model's own limit."""
     states = sampled_states(model) if states is None else states
+    references = [_acceleration(model, state) for state in states]  # the model's own solver, once
     limit = max(int(model.opt.iterations), 1)
     for count in ITERATION_CANDIDATES:
-        if count >= limit or iteration_error(model, count, states) <= tolerance:
+        if count >= limit or _largest_error(model, count, states, references) <= tolerance:
             return min(count, limit)
     return limit
 

@@ -301,9 +301,8 @@ class PerUpdateEpoch:
         self.update, self.evaluate, self.summarize = update, evaluate, summarize
 
     def __call__(self, state, batches, train_states, test_states):
-        updates = len(jax.tree.leaves(batches)[0])
         outputs = []
-        for index in range(updates):
+        for index in range(_updates(batches)):
             state, output = self.update(state, jax.tree.map(lambda a, i=index: a[i], batches))
             outputs.append(output)
         per_update = jax.tree.map(lambda *each: jnp.stack(each, axis=1), *outputs)  # [seeds, updates]
@@ -319,15 +318,18 @@ class _LoweredPerUpdateEpoch(NamedTuple):
 
     def compile(self) -> PerUpdateEpoch:
         state, batches, train_states, test_states = self.arguments
-        batch = jax.tree.map(lambda a: a[0], batches)
-        update = self.epoch.update.lower(state, batch).compile()
-        output = jax.eval_shape(self.epoch.update, state, batch)[1]
-        per_update = jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], len(jax.tree.leaves(batches)[0])) + a.shape[1:],
-                                                                 a.dtype), output)
-        evaluate = self.epoch.evaluate.lower(state.params, train_states, test_states).compile()
-        losses = jax.eval_shape(self.epoch.evaluate, state.params, train_states, test_states)
-        summarize = self.epoch.summarize.lower(state, per_update, losses).compile()
-        return PerUpdateEpoch(update, evaluate, summarize)
+        # Each lowered program knows its outputs' shapes: nothing is traced twice.
+        update = self.epoch.update.lower(state, jax.tree.map(lambda a: a[0], batches))
+        per_update = jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], _updates(batches)) + a.shape[1:], a.dtype),
+                                  update.out_info[1])
+        evaluate = self.epoch.evaluate.lower(state.params, train_states, test_states)
+        losses = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), evaluate.out_info)
+        summarize = self.epoch.summarize.lower(state, per_update, losses)
+        return PerUpdateEpoch(update.compile(), evaluate.compile(), summarize.compile())
+
+
+def _updates(batches: PyTree) -> int:
+    return len(jax.tree.leaves(batches)[0])
 
 
 def _example_control(task: Task, config: TrainConfig, initial_state: PyTree) -> PyTree:
