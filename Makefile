@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 INSTALLED := $(VENV)/.installed
 
-.PHONY: train test
+.PHONY: train test test-fast
 
 $(INSTALLED): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -19,3 +19,7 @@ train: $(INSTALLED)
 
 test: $(INSTALLED)
 	$(BIN)/python -m pytest -q
+
+# Closed forms, invariants and every task's gradients at a tiny horizon: under 2 minutes.
+test-fast: $(INSTALLED)
+	$(BIN)/python -m pytest -q -m "not slow"

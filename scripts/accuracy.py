@@ -44,6 +44,8 @@ def parse(argv: list[str]) -> AccuracyConfig:
     for name in config.study_list:
         if name not in STUDIES:
             fail(f"unknown study {name!r} in --studies: choose from {', '.join(STUDIES)}")
+    if "contact" in config.study_list and not Path(config.suite, "hopper.xml").is_file():
+        fail("the contact study needs --suite: the folder of dm_control's suite/*.xml (pip download dm_control, unzip)")
     if not (1 <= config.poles <= 4 and 1 <= config.gradient_poles <= 4):
         fail("--poles and --gradient-poles must be 1, 2, 3 or 4")
     for name in ("batch", "rounds", "epochs", "train_size"):
@@ -73,7 +75,8 @@ def main(argv: list[str]) -> int:
     import os
     import jax
     from stablebptt.runs import write_json
-    from stablebptt.tasks.accuracy import gradient_setups, gradient_study, trajectory_setups, trajectory_study, training_study
+    from stablebptt.tasks.accuracy import (contact_study, gradient_setups, gradient_study, trajectory_setups,
+                                          trajectory_study, training_study)
 
     started = time.perf_counter()
     log = lambda message: print(message, file=sys.stderr, flush=True)
@@ -84,7 +87,8 @@ def main(argv: list[str]) -> int:
     tables = []
     for name, study in (("trajectory", lambda: [row for setup in trajectory_setups(config) for row in trajectory_study(setup, config, log)]),
                         ("gradients", lambda: [row for setup in gradient_setups(config) for row in gradient_study(setup, config, log)]),
-                        ("training", lambda: training_study(config, log))):
+                        ("training", lambda: training_study(config, log)),
+                        ("contact", lambda: contact_study(config, log))):
         if name in config.study_list:
             rows = study()
             accuracy_report.write_csv(out / f"{name}.csv", rows)

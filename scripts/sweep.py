@@ -47,7 +47,7 @@ class SweepConfig:
     process_id: int = field(default=-1, metadata={"help": "several hosts: this process's number, 0 to --num-processes - 1"})
     group_values: bool = field(default=True, metadata={"help": "vmap a task's complexities into one program where it can (fewer compiles); --no-group-values: a program each, to spread over devices or hosts"})
     compile_cache: bool = field(default=True, metadata={"help": "keep compiled programs between calls (in $STABLEBPTT_COMPILE_CACHE or ~/.cache/stablebptt)"})
-    report: bool = field(default=False, metadata={"help": "train nothing: rebuild summary.csv, table.md and figures from the run directories in OUT/PRESET"})
+    report: bool = field(default=False, metadata={"help": "train nothing: rebuild summary.csv, table.md, intervals.md and figures from the run directories in OUT/PRESET (without them: intervals.md from its test_loss.csv)"})
 
 
 def parse_list(text: str, allowed, name: str, kind=str) -> list:
@@ -102,6 +102,9 @@ def main(argv: list[str]) -> int:
 
     if config.report:
         directories = grids.run_directories(root, task_name, option)
+        if not directories and (root / "test_loss.csv").is_file():  # a checkout: only the tidy CSV is in git
+            print("\n".join(grids.write_intervals(root, option)))
+            return 0
         if not directories:
             fail(f"no run directories of preset {config.preset} in {root}")
         print("\n".join(grids.write_report(root, directories, task_name, option, complexities, modes, clips)))

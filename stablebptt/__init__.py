@@ -1,7 +1,10 @@
 """stablebptt: stable backpropagation through time through differentiable physics.
 
-The gradient flows R, M, S and their combination C live in ``stablebptt.flows``;
-the training engine in ``stablebptt.training``; run directories in ``stablebptt.runs``.
+The public API: describe a system as a ``Task`` (a ``Dynamics`` of policy, step,
+loss and horizon; a network initialiser; an initial-state sampler) and ``train``
+it with a ``TrainConfig``. The gradient flows R, M, S and their combination C
+live in ``stablebptt.flows``; run folders in ``stablebptt.runs``; MuJoCo scene
+analysis in ``stablebptt.scene``; the built-in tasks in ``stablebptt.tasks``.
 """
 import os
 
@@ -10,10 +13,15 @@ import os
 # triangular solves, batched over every step's Jacobian) split a large batch into
 # chunks queued on the intra-op pool and block the pool thread that runs them until
 # the chunks are done; when as many such calls run at once as the pool has threads,
-# every thread waits and the program hangs (jaxlib 0.10.2, 2 cores). With one
+# every thread waits and the program hangs. With one
 # thread the kernels run the batch in place. A user's own PJRT_NPROC is kept.
 os.environ.setdefault("PJRT_NPROC", "1")
 
+from stablebptt.errors import InputError
 from stablebptt.flows import FLOWS, MODES, Dynamics, flow_gradients, select_flow, sign_agreement
+from stablebptt.networks import mlp_apply, mlp_init
+from stablebptt.runs import Trained, TrainingDiverged, train
+from stablebptt.training import Task, TrainConfig, make_trainer
 
-__all__ = ["FLOWS", "MODES", "Dynamics", "flow_gradients", "select_flow", "sign_agreement"]
+__all__ = ["FLOWS", "MODES", "Dynamics", "InputError", "Task", "TrainConfig", "Trained", "TrainingDiverged",
+           "flow_gradients", "make_trainer", "mlp_apply", "mlp_init", "select_flow", "sign_agreement", "train"]

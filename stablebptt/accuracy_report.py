@@ -10,7 +10,7 @@ import io
 from pathlib import Path
 
 META_FILE = "meta.json"
-STUDIES = ("trajectory", "gradients", "training")
+STUDIES = ("trajectory", "gradients", "training", "contact")
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
@@ -302,6 +302,43 @@ def training_table(rows: list[dict]) -> list[str]:
                            "test loss at end", "best test loss"], lines)
 
 
+def contact_figure(rows: list[dict]):
+    """Two log-log panels: trajectory error against rollout time, Jacobian error against Jacobian time; one colour per model."""
+    import math
+    from matplotlib.lines import Line2D
+
+    figure = _figure(11.0, 5.2)
+    panels = figure.subplots(1, 2)
+    models = list(dict.fromkeys(r["model"] for r in rows))
+    colours = {model: f"C{index}" for index, model in enumerate(models)}
+    for ax, (x, y, xlabel, ylabel) in zip(panels, (
+            ("ms_per_simulated_second", "trajectory_error", "MJX rollout, ms per simulated second (float32)",
+             "max |state - MuJoCo C| at the end"),
+            ("jacobian_ms_per_step", "jacobian_error", "forward-mode step Jacobians, ms per batch (float32)",
+             "relative error against central differences"))):
+        for model in models:
+            members = [r for r in rows if r["model"] == model and math.isfinite(r[y]) and r[y] > 0]
+            ax.plot([r[x] for r in members], [r[y] for r in members], linestyle="none", **_marker_style(colours[model], True))
+            for r in members:
+                ax.annotate(r["setting"].split(" (")[0].replace(" iterations", " it.").replace(" iteration", " it."),
+                            (r[x], r[y]), textcoords="offset points", xytext=(5, 3), fontsize=7, color=colours[model])
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        _log_axes(ax)
+    handles = [Line2D([], [], linestyle="none", label=model, **_marker_style(colours[model], True)) for model in models]
+    figure.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
+    figure.suptitle("Contact scenes: error against time per constraint-solver setting", fontsize=12)
+    return figure
+
+
+def contact_table(rows: list[dict]) -> list[str]:
+    lines = [[r["model"], str(r["contacts"]), r["setting"], f"{r['dt']:.4g}", sci(r["trajectory_error"]),
+              sci(r["jacobian_error"]), fixed(r["ms_per_simulated_second"], 1), fixed(r["jacobian_ms_per_step"], 1)]
+             for r in rows]
+    return markdown_table(["model", "contacts", "solver", "dt", "trajectory error", "Jacobian rel. error",
+                           "ms / simulated s", "ms / Jacobians"], lines)
+
+
 def report(out: Path, draw: tuple[str, ...] = STUDIES) -> list[str]:
     """Summary.md, and the figures of the studies in ``draw``, from the CSVs and meta.json in ``out``.
 
@@ -358,6 +395,22 @@ def report(out: Path, draw: tuple[str, ...] = STUDIES) -> list[str]:
                     "data and parameters. Each mode computes only the flows it needs (--no-cosine); epochs are "
                     "timed round-robin, compilation excluded.", ""]
         summary += table + ["", "![training](training.png)", ""]
+        printed += table + [""]
+    if measured("contact"):
+        rows = read_csv(out / "contact.csv")
+        if "contact" in draw:
+            render(contact_figure(rows), out / "contact.png")
+        table = contact_table(rows)
+        summary += ["## Contact scenes: what solver accuracy costs", "",
+                    "DeepMind Control Suite models, from a state each reaches in MuJoCo's C simulation under random "
+                    "controls ('contacts': its active contacts). Trajectory error: the "
+                    "lean MJX step in float64 against MuJoCo's C step with the model's own settings, after "
+                    f"{rows[0]['steps']} steps of random controls (each held for two steps, so '2 dt' sees the same "
+                    "controls). Jacobian error: forward-mode step Jacobian (float64) against central differences of "
+                    "the C step with the model's own solver at the same time step, relative Frobenius norm. Times: "
+                    f"float32, a batch of {rows[0]['batch']} states. 'N iterations': exactly N Newton iterations, "
+                    "loop-free (what reverse mode runs).", ""]
+        summary += table + ["", "![contact](contact.png)", ""]
         printed += table + [""]
     atomic_write(out / "summary.md", ("\n".join(summary) + "\n").encode())
     return printed

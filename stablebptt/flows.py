@@ -84,8 +84,8 @@ class Dynamics:
         of tiny sequential kernels by a few large ones.
       unroll: steps per iteration of the rollout loops (``lax.scan``'s
         ``unroll``). On a GPU, where each step is dozens of tiny kernels, 5-10
-        cuts the kernels and copies per step (measured 1.3-1.6x per epoch);
-        on a CPU 1 is fastest and compiles quickest.
+        cuts the kernels and copies per step (docs/performance.md); on a CPU
+        1 is fastest and compiles quickest.
       known_columns: optional, for ``"forward"``: columns of the step's state
         Jacobian that a symmetry fixes (``KnownColumns``), e.g. the position and
         velocity of a system nothing ties to the world (translation and Galilean
@@ -96,6 +96,10 @@ class Dynamics:
       rematerialize: for ``"reverse"``: store only each step's inputs and
         recompute the step in the backward pass, trading one more forward pass
         for the memory of every step's intermediates.
+      jacobian_per_input: for ``"forward"``: one forward pass per input leaf
+        (True: each skips the stages its input does not reach) or one pass for
+        all (False: one copy of the differentiated step, far quicker to compile
+        for large scenes); see ``step_jacobians``.
     """
 
     step: Callable[[PyTree, PyTree], PyTree]
@@ -107,6 +111,7 @@ class Dynamics:
     known_columns: KnownColumns | None = None
     jacobian_chunk: int | None = None
     rematerialize: bool = False
+    jacobian_per_input: bool = True
 
 
 def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:
@@ -193,16 +198,19 @@ def _ravel_examples(tree: PyTree, leading_axes: int) -> jax.Array:
 
 
 def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns | None = None,
-                   chunk: int | None = None) -> tuple[jax.Array, jax.Array]:
+                   chunk: int | None = None, per_input: bool = True) -> tuple[jax.Array, jax.Array]:
     """Jacobians of ``step`` at every example of a batch, by forward mode.
 
-    One forward pass per input leaf (a state leaf such as qpos or qvel, or the
-    control), with the other leaves held fixed. A simulator therefore sees
-    which inputs vary (a ``custom_jvp`` with ``symbolic_zeros=True`` gets
-    symbolic zeros for the others) and can skip the stages they do not reach:
-    velocity tangents need no kinematics, control tangents only the actuators.
-    Columns in ``known`` are copied, not computed. ``chunk`` examples at a time
-    (default: all) bound the memory.
+    With ``per_input`` (the default), one forward pass per input leaf (a state
+    leaf such as qpos or qvel, or the control), with the other leaves held
+    fixed. A simulator therefore sees which inputs vary (a ``custom_jvp`` with
+    ``symbolic_zeros=True`` gets symbolic zeros for the others) and can skip the
+    stages they do not reach: velocity tangents need no kinematics, control
+    tangents only the actuators. Without it, one pass pushes every tangent at
+    once: more work per tangent, but one copy of the differentiated step in the
+    program, which compiles several times faster for large scenes. Columns in
+    ``known`` are copied, not computed. ``chunk`` examples at a time (default:
+    all) bound the memory.
 
     Returns:
       ``(state_jacobian [batch, state, state], control_jacobian [batch, state, control])``
@@ -210,34 +218,40 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
     """
     state_leaves = jax.tree.leaves(jax.tree.map(lambda a: a[0], states))
     state_size = sum(leaf.size for leaf in state_leaves)  # the step's output is a state too
-    offsets = np.cumsum([0] + [leaf.size for leaf in state_leaves])
     known_at = {} if known is None else {int(i): np.asarray(c) for i, c in zip(known.indices, np.transpose(known.columns))}
 
     def one(state, control):
         leaves, treedef = jax.tree.flatten((state, control))
-
-        def of_leaf(index, leaf):  # step's flat output as a function of one input leaf
-            inputs = list(leaves)
-            inputs[index] = leaf
-            return ravel_pytree(step(*jax.tree.unflatten(treedef, inputs)))[0]
-
+        sizes = [leaf.size for leaf in leaves]
+        offsets = np.cumsum([0] + sizes)
+        # Input groups pushed together: each leaf alone, or all leaves in one pass.
+        groups = [[index] for index in range(len(leaves))] if per_input else [list(range(len(leaves)))]
         blocks = []
-        for index, leaf in enumerate(leaves):
-            copied = np.zeros((state_size, leaf.size), leaf.dtype)
+        for group in groups:
+            columns_of_group = [offsets[index] + k for index in group for k in range(sizes[index])]
+            copied = np.zeros((state_size, len(columns_of_group)), np.result_type(*[leaves[i].dtype for i in group]))
             free = []
-            for k in range(leaf.size):
-                if index < len(state_leaves) and offsets[index] + k in known_at:
-                    copied[:, k] = known_at[offsets[index] + k]
+            for position, column in enumerate(columns_of_group):
+                if column in known_at:  # only state columns are ever known
+                    copied[:, position] = known_at[column]
                 else:
-                    free.append(k)
+                    free.append(position)
             if not free:
                 blocks.append(jnp.asarray(copied))
                 continue
+
+            def of_group(flat, group=group):  # step's flat output as a function of the group's inputs
+                inputs, start = list(leaves), 0
+                for index in group:
+                    inputs[index] = flat[start:start + sizes[index]].reshape(leaves[index].shape)
+                    start += sizes[index]
+                return ravel_pytree(step(*jax.tree.unflatten(treedef, inputs)))[0]
+
+            point = jnp.concatenate([leaves[index].ravel() for index in group])
             # Constant unit tangents for the free entries only: no scatter of a tangent to trace.
-            basis = np.eye(leaf.size, dtype=leaf.dtype)[free]
-            push = lambda tangent: jax.jvp(functools.partial(of_leaf, index), (leaf,), (tangent.reshape(leaf.shape),))[1]
-            columns = jax.vmap(push, out_axes=1)(basis)  # [state, free]
-            if len(free) < leaf.size:
+            basis = np.eye(len(columns_of_group), dtype=copied.dtype)[free]
+            columns = jax.vmap(lambda tangent: jax.jvp(of_group, (point,), (tangent,))[1], out_axes=1)(basis)
+            if len(free) < len(columns_of_group):
                 columns = copied + jnp.matmul(columns, basis, precision=jax.lax.Precision.HIGHEST)
             blocks.append(columns)
         jacobian = jnp.concatenate(blocks, axis=1)  # columns in ravel_pytree order of (state, control)
@@ -275,7 +289,8 @@ def _linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: Py
 
     # Every step's Jacobians in one batched pass over [T * batch] examples.
     state_jacobian, control_jacobian = step_jacobians(dynamics.step, _merge(visited, 2), _merge(controls, 2),
-                                                       dynamics.known_columns, dynamics.jacobian_chunk)
+                                                       dynamics.known_columns, dynamics.jacobian_chunk,
+                                                       dynamics.jacobian_per_input)
     unmerge = lambda a: a.reshape((horizon, batch_size) + a.shape[1:])
     state_jacobian, control_jacobian = unmerge(state_jacobian), unmerge(control_jacobian)
 

@@ -330,6 +330,54 @@ def tidy_test_loss(root: Path, directories: list[Path], option: str, every: int 
     runs.atomic_write(root / "test_loss.csv", ("\n".join(lines) + "\n").encode())
 
 
+BOOTSTRAP_RESAMPLES = 10_000
+BOOTSTRAP_SEED = 0  # the intervals are reproducible to the digit
+
+
+def paired_bootstrap(differences: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
+    """Mean of per-seed ``differences`` and its ``level`` percentile-bootstrap interval (seeds resampled)."""
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    means = differences[rng.integers(0, len(differences), (BOOTSTRAP_RESAMPLES, len(differences)))].mean(axis=1)
+    tail = 100 * (1 - level) / 2
+    return float(differences.mean()), float(np.percentile(means, tail)), float(np.percentile(means, 100 - tail))
+
+
+def claim_intervals(test_loss_csv: Path, option: str) -> list[str]:
+    """Per complexity and clip mode: final test loss of C minus R and of C minus M, mean over seeds with its
+    95% paired bootstrap interval, and whether the interval supports "C is better" (it lies below 0).
+
+    Seeds pair the runs: a seed gives every mode the same data and initial parameters.
+    """
+    import csv
+    with open(test_loss_csv, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    last = max(int(r["epoch"]) for r in rows)
+    final = {(r[option], r["clip"], r["mode"], r["seed"]): float(r["test_loss"]) for r in rows if int(r["epoch"]) == last}
+    seeds = sorted({key[3] for key in final}, key=int)
+    lines = [f"| {option} | clip | seeds | C - R: mean [95% interval] | verdict | C - M: mean [95% interval] | verdict |",
+             "|---|---|---:|---:|---|---:|---|"]
+    verdict = lambda low, high: "C better" if high < 0 else ("C worse" if low > 0 else "not resolved")
+    for value, clip in dict.fromkeys((key[0], key[1]) for key in final):
+        cells = []
+        for other in ("R", "M"):
+            pairs = [(final.get((value, clip, "C", s)), final.get((value, clip, other, s))) for s in seeds]
+            differences = np.array([c - o for c, o in pairs if c is not None and o is not None])
+            if len(differences) < 2 or not np.all(np.isfinite(differences)):
+                cells += ["-", "-"]
+                continue
+            mean, low, high = paired_bootstrap(differences)
+            cells += [f"{mean:+.3g} [{low:+.3g}, {high:+.3g}]", verdict(low, high)]
+        lines.append(f"| {value} | {clip} | {len(seeds)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def write_intervals(root: Path, option: str) -> list[str]:
+    """intervals.md from the preset's test_loss.csv (which the report keeps in git)."""
+    table = claim_intervals(root / "test_loss.csv", option)
+    runs.atomic_write(root / "intervals.md", ("\n".join(table) + "\n").encode())
+    return table
+
+
 def write_report(root: Path, directories: list[Path], task_name, option, complexities, modes, clips) -> list[str]:
     """summary.csv, test_loss.csv, table.md and one learning-curve figure per complexity, from the run
     directories; returns the table (Markdown lines)."""
@@ -338,6 +386,7 @@ def write_report(root: Path, directories: list[Path], task_name, option, complex
     tidy_test_loss(root, directories, option)
     table = mode_table(directories, task_name, option, complexities, modes, clips)
     runs.atomic_write(root / "table.md", ("\n".join(table) + "\n").encode())
+    write_intervals(root, option)
     for value in complexities:
         members = [d for d in directories if d.name.startswith(f"{task_name}-{option}{value}-")]
         if members:

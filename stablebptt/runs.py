@@ -514,6 +514,73 @@ def train_epochs(
     return Outcome(status, epoch, state, rows, message)
 
 
+class Trained(NamedTuple):
+    """What ``train`` returns: the parameters and every epoch's metrics, per seed."""
+
+    params: Any  # the trained parameters; every leaf has a leading seed axis
+    metrics: dict[str, np.ndarray]  # METRICS name -> [epochs, seeds]
+    seconds_to_first_update: float  # compiling included
+
+    @property
+    def test_loss(self) -> np.ndarray:
+        """Mean test loss over seeds, per epoch."""
+        return self.metrics["test_loss"].mean(axis=1)
+
+
+class TrainingDiverged(ArithmeticError):
+    """A loss, update or gradient of training went non-finite; the message says which, and when."""
+
+
+def train(task: Any, config: TrainConfig = TrainConfig(),
+          on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None) -> Trained:
+    """Train ``task``'s controller in memory, with no run folder, and return the result.
+
+    Args:
+      task: a ``Task``: dynamics (policy, step, loss, horizon), network initialiser
+        and initial-state sampler.
+      config: a ``TrainConfig`` (gradient flow ``mode``, ``epochs``, sizes, seeds, ...).
+      on_epoch: called after every epoch with its metrics (arrays over seeds).
+
+    Returns:
+      A ``Trained``: parameters with a leading seed axis and metrics ``[epochs, seeds]``.
+
+    Raises:
+      TrainingDiverged: a loss, update or gradient of a computed flow was not finite.
+
+    Example::
+
+      result = stablebptt.train(task, stablebptt.TrainConfig(mode="C", epochs=50))
+      print(result.test_loss[-1])
+    """
+    from stablebptt.training import make_trainer, seed_array
+    started = time.perf_counter()
+    trainer = make_trainer(task, config)
+    seeds = np.asarray(seed_array(config))
+    state = trainer.init(seed_array(config))
+    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
+    epoch_fn, _ = compile_ahead(trainer.epoch, state, *arguments)
+    first_update: list[float] = []
+
+    def run_epoch(state):
+        new_state, metrics = epoch_fn(state, *arguments)
+        metrics = jax.device_get(metrics)
+        first_update.append(first_update[0] if first_update else time.perf_counter() - started)
+        return new_state, metrics
+
+    def diverged(metrics):
+        if np.all(metrics["finite"]):
+            return ""
+        what = nonfinite_names(trainer.flows, int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))))
+        return f"non-finite {', '.join(what)}"
+
+    status, epoch, state, rows, problem = fit(run_epoch, state, 0, config.epochs, empty_rows(), seeds,
+                                              lambda *saved: None, config.epochs, on_epoch=on_epoch, diverged=diverged)
+    if status == "diverged":
+        raise TrainingDiverged(f"{task.name}: {problem} at epoch {epoch + 1} (TrainConfig.mode {config.mode!r})")
+    per_epoch = {name: rows[:, COLUMNS.index(name)].reshape(epoch, len(seeds)) for name in METRICS}
+    return Trained(state.params, per_epoch, first_update[0] if first_update else 0.0)
+
+
 def summarize(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float]:
     """Mean and standard deviation over seeds of ``column`` at the last epoch."""
     last = rows[rows[:, 0] == rows[:, 0].max()]

@@ -304,9 +304,7 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
         lean.opt.disableflags |= _DISABLE.mjDSBL_EULERDAMP
     # The dense mass matrix means a LAPACK call (CPU) or cuBLAS triangular solves
     # (GPU) per step and more in its derivatives; MJX's sparse path is plain fused
-    # arithmetic. Measured for the cart-pole: 1.07-1.11x per update on one CPU core
-    # (scripts/bench.py, row "dense mass matrix"); per sweep epoch on an H200
-    # (60 cells) 0.55 -> 0.39 s at 1 pole, 0.77 -> 0.65 s at 4.
+    # arithmetic, and faster on both (scripts/bench.py, rows "dense mass matrix").
     lean.opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
     return lean
 

@@ -25,12 +25,13 @@ PyTree = Any
 CLIP_MODES = ("value", "norm", "none")
 SEED_BATCHING = ("map", "vmap")
 EPOCH_PROGRAMS = ("auto", "whole", "per-update")
-# Operations in one traced step above which ``epoch_program="auto"`` compiles per update. XLA's
-# CPU compiler can take many minutes and gigabytes for an epoch program that inlines a contact
-# model's step in nested loops (updates, rollouts, Jacobians, evaluation), where the same pieces
-# compiled apart take a few minutes. The built-in tasks' steps (the cart-poles: about 4,000) stay
-# in one program; the DeepMind Control Suite's models other than pendulum and reacher do not.
-PER_UPDATE_STEP_SIZE = 8_000
+# Operations in one traced step above which a scene counts as large: ``epoch_program="auto"``
+# compiles it per update, and forward mode pushes all its tangents in one pass. XLA's CPU compiler
+# can take many minutes and gigabytes for a program that inlines a contact model's step many times
+# (updates, rollouts, one Jacobian pass per input, evaluation), where fewer copies compiled apart
+# take a few minutes. The built-in tasks' steps (the cart-poles: about 4,000) are small; the
+# DeepMind Control Suite's models other than pendulum and reacher are large.
+LARGE_STEP = 8_000
 MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
 METRICS = ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine")
 
@@ -95,8 +96,8 @@ class TrainConfig:
     x64: bool = field(default=False, metadata={"help": "run everything in float64"})
     unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Dynamics.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
-    seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: about 1.6x faster per seed on 2 CPU cores, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
-    epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{PER_UPDATE_STEP_SIZE} operations", "choices": EPOCH_PROGRAMS})
+    seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: faster per seed, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
+    epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations", "choices": EPOCH_PROGRAMS})
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -200,10 +201,13 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     train_key, test_key = jax.random.split(jax.random.PRNGKey(config.data_seed))
     train_states = task.sample_initial_states(train_key, config.train_size)
     test_states = task.sample_initial_states(test_key, config.test_size)
-    plan = memory_plan(task, config, jax.tree.map(lambda a: a[0], train_states))
-    # The loop unrolling and the memory plan are the run's, applied to whichever dynamics an epoch uses.
+    example_state = jax.tree.map(lambda a: a[0], train_states)
+    plan = memory_plan(task, config, example_state)
+    large = step_operations(task, config, example_state) > LARGE_STEP
+    # The loop unrolling, the memory plan and a large step's single Jacobian pass are the run's,
+    # applied to whichever dynamics an epoch uses.
     for_this_run = lambda dynamics: dataclasses.replace(dynamics, unroll=config.unroll, jacobian_chunk=plan.jacobian_chunk,
-                                                       rematerialize=plan.rematerialize)
+                                                       rematerialize=plan.rematerialize, jacobian_per_input=not large)
     # Fixed order, no shuffling: minibatch i is always the same states.
     batches = jax.tree.map(lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), train_states)
 
@@ -270,7 +274,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
 
     if grid:
         epoch_program = jax.jit(over_seeds(grid_epoch, mapped=2))
-    elif choose_epoch_program(task, config, jax.tree.map(lambda a: a[0], train_states)) == "whole":
+    elif config.epoch_program == "whole" or config.epoch_program == "auto" and not large:
         epoch_program = jax.jit(over_seeds(epoch))
     else:
         dynamics = for_this_run(task.dynamics)
@@ -347,13 +351,6 @@ def step_operations(task: Task, config: TrainConfig, initial_state: PyTree) -> i
     """Operations in one traced simulator step, inner loops' bodies counted once."""
     control = _example_control(task, config, initial_state)
     return _operations(jax.make_jaxpr(task.dynamics.step)(initial_state, control).jaxpr)
-
-
-def choose_epoch_program(task: Task, config: TrainConfig, initial_state: PyTree) -> str:
-    """``"whole"`` or ``"per-update"``: ``config.epoch_program``, with ``"auto"`` decided by the step's size."""
-    if config.epoch_program != "auto":
-        return config.epoch_program
-    return "per-update" if step_operations(task, config, initial_state) > PER_UPDATE_STEP_SIZE else "whole"
 
 
 def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree) -> MemoryPlan:

@@ -52,7 +52,7 @@ class Entry:
       mujoco_frames: ``draw`` renders with MuJoCo's OpenGL (a backend is chosen before MuJoCo loads).
       presets: sweep grids: preset name -> (the option that sets the complexity, its values).
       gpu_unroll: rollout steps per loop iteration for sweeps on a GPU (measured per task: the
-        README's GPU table; beyond it compile time grows faster than the gain).
+        docs/performance.md; beyond it compile time grows faster than the gain).
     """
 
     name: str

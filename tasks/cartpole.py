@@ -3,13 +3,17 @@
 The task is read from the MJCF itself (models/README.md documents the
 convention): initial states from keyframe ``init`` plus a spread, the target
 from keyframe ``target`` (else the reference pose), per-joint loss weights,
-final or averaged loss and the horizon from ``<custom>`` fields. The cart-poles
-use the same convention, so nothing here knows about carts, slides or poles:
-joints and actuators are found by type.
+final or averaged loss and the horizon from ``<custom>`` fields. A task file
+next to the model (``MODEL.task.json``) or the task options override them, so a
+third-party file trains toward a chosen target untouched. The cart-poles use the
+same convention, so nothing here knows about carts, slides or poles: joints and
+actuators are found by type.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import json
 import math
 import sys
 from dataclasses import dataclass, field
@@ -23,6 +27,7 @@ import numpy as np
 from stablebptt import models, mujoco_log, scene
 from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics
+from stablebptt.mjx_internals import mjx
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.scene import State
 from stablebptt.training import Task
@@ -38,6 +43,10 @@ FREE, BALL, SLIDE, HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.
                                             mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE))
 
 
+# What a task file may set: the task, not the simulation.
+TASK_FILE_OPTIONS = ("init_pose", "target_pose", "reach", "loss_joints", "loss", "horizon_seconds", "spread")
+
+
 @dataclass(frozen=True)
 class Config:
     """Options of the cart-pole / MJCF task."""
@@ -51,6 +60,14 @@ class Config:
     pipeline: str = field(default="lean", metadata={"help": "lean: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "mjx")})
     solver_iterations: int = field(default=0, metadata={"help": "constraint solver of scenes with contacts or limits: N runs exactly N Newton iterations (loop-free); 0 keeps the model's own solver where gradients are forward mode and, in reverse mode, takes the fewest iterations within 1e-3 of it (relative acceleration at sampled states)"})
     step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers)", "choices": ("auto", "forward", "reverse")})
+    # The task, over what the MJCF declares (models/README.md); a task file may set these too.
+    task_file: str = field(default="", metadata={"help": "JSON file of task options (keys as these options' names, e.g. {\"init_pose\": \"hinge=3.1416\"}); default: MODEL.task.json next to the model when it exists; none: no file"})
+    init_pose: str = field(default="", metadata={"help": "centre of the initial states: a keyframe's name, or JOINT=VALUE,... on the MJCF's own (hinges in radians)"})
+    target_pose: str = field(default="", metadata={"help": "target of the pose loss: a keyframe's name, or JOINT=VALUE,... on the MJCF's own"})
+    reach: str = field(default="", metadata={"help": "SITE=X,Y,Z (or BODY=X,Y,Z): the loss includes that site's (body's) squared distance to the point, in metres; the pose loss then only covers --loss-joints"})
+    loss_joints: str = field(default="", metadata={"help": "joints the pose loss compares, comma-separated (leave passive bodies out); none: no pose loss"})
+    loss: str = field(default="", metadata={"help": "when the loss is taken: final (last state) or mean (over all steps); default: the MJCF's bptt_loss, else final", "choices": ("", "final", "mean")})
+    horizon_seconds: float = field(default=0.0, metadata={"help": "horizon in simulated seconds (0: the MJCF's bptt_horizon, else 100 steps); --steps overrides it"})
 
     def __post_init__(self):
         if not self.model and not 1 <= self.poles <= 4:
@@ -63,6 +80,36 @@ class Config:
             raise InputError(f"--solver-iterations must be between 1 and 10000 (or 0 to choose), got {self.solver_iterations}")
         if not 0 <= self.steps <= MAX_HORIZON:
             raise InputError(f"--steps must be between 1 and {MAX_HORIZON} (or 0 for the MJCF's own), got {self.steps}")
+        if not (math.isfinite(self.horizon_seconds) and self.horizon_seconds >= 0):
+            raise InputError(f"--horizon-seconds must be a finite positive time (or 0 for the MJCF's own), got {self.horizon_seconds}")
+        self._merge_task_file()
+
+    def _merge_task_file(self) -> None:
+        """Fill the task options still at their defaults from the task file, and record which file that was."""
+        if self.task_file == "none" or not (self.task_file or self.model):
+            return
+        given = bool(self.task_file)
+        path = Path(self.task_file) if given else Path(self.model).with_suffix(".task.json")
+        if not path.is_file():
+            if given:
+                raise InputError(f"task file {path} does not exist")
+            return
+        try:
+            values = json.loads(path.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise InputError(f"task file {path} is not JSON text: {error}") from None
+        if not isinstance(values, dict):
+            raise InputError(f"task file {path} must hold one JSON object of task options")
+        unknown = sorted(set(values) - set(TASK_FILE_OPTIONS))
+        if unknown:
+            raise InputError(f"task file {path}: unknown option {unknown[0]!r} (it may set {', '.join(TASK_FILE_OPTIONS)})")
+        from stablebptt.cli import build  # the same type checks as a run's config.json
+        from_file = build(Config, {**values, "task_file": "none"}, source=str(path))
+        defaults = Config(task_file="none")
+        for name in values:
+            if getattr(self, name) == getattr(defaults, name):  # the command line wins
+                object.__setattr__(self, name, getattr(from_file, name))
+        object.__setattr__(self, "task_file", str(path.resolve()))
 
     @property
     def model_path(self) -> Path:
@@ -123,49 +170,129 @@ def _keyframe(model: mujoco.MjModel, name: str):
 
 
 @dataclass(frozen=True)
-class Spec:
-    """The task an MJCF declares, after defaults."""
+class Reach:
+    """A site's (or body's) world position the loss pulls toward a point."""
 
-    horizon: int
+    kind: str  # "site" or "body"
+    name: str
+    index: int
+    point: np.ndarray  # [3], metres
+
+
+@dataclass(frozen=True)
+class Spec:
+    """The task an MJCF declares, after the task options and defaults."""
+
+    horizon: int  # steps at the MJCF's own time step
     loss: str  # "final" or "mean"
-    joint_weight: np.ndarray  # [njnt]
+    joint_weight: np.ndarray  # [njnt]; all zero when only a reach is in the loss
     init: State
     qpos_spread: np.ndarray  # [nv], tangent space
     qvel_spread: np.ndarray  # [nv]
     target_qpos: np.ndarray  # [nq]
+    reach: Reach | None
+    unused_keyframes: tuple[str, ...]
 
 
-def read_spec(model: mujoco.MjModel, spread_scale: float = 1.0) -> Spec:
-    """Read the task convention of models/README.md from ``model``."""
+def _joint(model: mujoco.MjModel, name: str, option: str) -> int:
+    index = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+    if index < 0:
+        raise InputError(f"{option}: no joint named {name!r} (joints: {', '.join(joint_names(model))})")
+    return index
+
+
+def _number(text: str, option: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise InputError(f"{option}: {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise InputError(f"{option}: values must be finite, got {text}")
+    return value
+
+
+def _pose(model: mujoco.MjModel, text: str, base, option: str):
+    """``(qpos, keyframe or None)`` of a pose option: a keyframe's name, or JOINT=VALUE pairs set on ``base``."""
+    if not text:
+        return np.array(base.qpos if base is not None else model.qpos0), base
+    if "=" not in text:
+        key = _keyframe(model, text)
+        if key is None:
+            names = [model.key(k).name for k in range(model.nkey)]
+            raise InputError(f"{option}: no keyframe named {text!r} (keyframes: {', '.join(names) or 'none'}); "
+                             "or give JOINT=VALUE,...")
+        return np.array(key.qpos), key
+    qpos = np.array(base.qpos if base is not None else model.qpos0)
+    for pair in text.split(","):
+        name, _, value = pair.partition("=")
+        joint = _joint(model, name.strip(), option)
+        if int(model.jnt_type[joint]) not in (HINGE, SLIDE):
+            raise InputError(f"{option}: joint {name.strip()!r} is a free or ball joint; set it through a keyframe")
+        qpos[model.jnt_qposadr[joint]] = _number(value, option)
+    return qpos, None
+
+
+def _reach(model: mujoco.MjModel, text: str) -> Reach | None:
+    if not text:
+        return None
+    name, _, point = text.partition("=")
+    values = [_number(v, "--reach") for v in point.split(",")] if point else []
+    if len(values) != 3:
+        raise InputError(f"--reach must be NAME=X,Y,Z (a site or body and a point in metres), got {text!r}")
+    for kind, object_type in (("site", mujoco.mjtObj.mjOBJ_SITE), ("body", mujoco.mjtObj.mjOBJ_BODY)):
+        index = mujoco.mj_name2id(model, object_type, name.strip())
+        if index >= 0:
+            return Reach(kind, name.strip(), index, np.array(values))
+    raise InputError(f"--reach: no site or body named {name.strip()!r}")
+
+
+def read_spec(model: mujoco.MjModel, config: Config | None = None) -> Spec:
+    """The task of models/README.md's convention in ``model``, with ``config``'s task options over it."""
+    config = config or Config(task_file="none")
     if model.nu == 0:
         raise InputError("no actuators: add an <actuator> so the controller can act")
     horizon = _numeric(model, "bptt_horizon", 1, np.array([DEFAULT_HORIZON]))
     if not (horizon[0] == round(horizon[0]) and 1 <= horizon[0] <= MAX_HORIZON):
         raise InputError(f"<numeric name=\"bptt_horizon\"> must be a whole number of steps from 1 to {MAX_HORIZON}, "
                          f"got {horizon[0]:g}")
-    loss = _text(model, "bptt_loss", "final")
+    loss = config.loss or _text(model, "bptt_loss", "final")
     if loss not in ("final", "mean"):
         raise InputError(f'<text name="bptt_loss"> must be "final" or "mean", got "{loss}"')
     weights = _numeric(model, "bptt_joint_weight", model.njnt, np.ones(model.njnt))
-    if not np.any(weights > 0) or np.any(weights < 0):
-        raise InputError("bptt_joint_weight needs non-negative weights, at least one positive")
+    if np.any(weights < 0):
+        raise InputError("bptt_joint_weight needs non-negative weights")
+    reach = _reach(model, config.reach)
+    if config.loss_joints == "none" or (reach is not None and not config.loss_joints):
+        weights = np.zeros(model.njnt)
+    elif config.loss_joints:
+        chosen = {_joint(model, name.strip(), "--loss-joints") for name in config.loss_joints.split(",")}
+        weights = np.where(np.isin(np.arange(model.njnt), sorted(chosen)), weights, 0.0)
+    if not np.any(weights > 0) and reach is None:
+        raise InputError("the loss compares nothing: give a joint a positive weight (bptt_joint_weight, "
+                         "--loss-joints) or a point to reach (--reach)")
     init_key, target_key = _keyframe(model, "init"), _keyframe(model, "target")
     for key, label in ((init_key, "init"), (target_key, "target")):
         if key is not None and not all(np.all(np.isfinite(getattr(key, f))) for f in ("qpos", "qvel", "act")):
             raise InputError(f'<key name="{label}"> must hold finite numbers')
+    init_qpos, chosen_init = _pose(model, config.init_pose, init_key, "--init-pose")
+    target_qpos, chosen_target = _pose(model, config.target_pose, target_key, "--target-pose")
+    velocity_from = chosen_init if chosen_init is not None else init_key
     init = State(
-        jnp.asarray(init_key.qpos if init_key is not None else model.qpos0),
-        jnp.asarray(init_key.qvel if init_key is not None else np.zeros(model.nv)),
-        jnp.asarray(init_key.act if init_key is not None else np.zeros(model.na)),
+        jnp.asarray(init_qpos),
+        jnp.asarray(velocity_from.qvel if velocity_from is not None else np.zeros(model.nv)),
+        jnp.asarray(velocity_from.act if velocity_from is not None else np.zeros(model.na)),
     )
+    used = {key.name for key in (init_key, target_key, chosen_init, chosen_target) if key is not None}
     return Spec(
         horizon=int(horizon[0]),
         loss=loss,
         joint_weight=weights,
         init=init,
-        qpos_spread=spread_scale * _numeric(model, "bptt_qpos_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
-        qvel_spread=spread_scale * _numeric(model, "bptt_qvel_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
-        target_qpos=np.array(target_key.qpos if target_key is not None else model.qpos0),
+        qpos_spread=config.spread * _numeric(model, "bptt_qpos_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
+        qvel_spread=config.spread * _numeric(model, "bptt_qvel_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
+        target_qpos=target_qpos,
+        reach=reach,
+        unused_keyframes=tuple(model.key(k).name or f"#{k}" for k in range(model.nkey) if model.key(k).name not in used),
     )
 
 
@@ -221,7 +348,11 @@ def make(config: Config) -> Task:
     try:
         if model.njnt == 0:
             raise InputError("no joints: nothing to control")
-        spec = read_spec(model, config.spread)
+        spec = read_spec(model, config)
+        if spec.unused_keyframes:
+            print(f"{path.name}: keyframe{'s' if len(spec.unused_keyframes) > 1 else ''} "
+                  f"{', '.join(spec.unused_keyframes)} not used by the task (choose one with --init-pose NAME "
+                  "or --target-pose NAME)", file=sys.stderr)
         effects = scene.analyze(model)
         return _make(config, path, model, spec, effects)
     except InputError as error:  # every message names the model it is about
@@ -236,14 +367,14 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         # pass through every tiny MJX operation: small states favour forward.
         derivative = "forward" if state_size <= FORWARD_MODE_MAX_STATE else "reverse"
     timestep = config.dt or float(model.opt.timestep)
-    simulated_time = spec.horizon * float(model.opt.timestep)
+    simulated_time = config.horizon_seconds or spec.horizon * float(model.opt.timestep)
     horizon = config.steps or round(simulated_time / timestep)
     if horizon < 1:
-        raise InputError(f"--dt {config.dt:g} leaves less than one step of the task's {simulated_time:g} s: "
-                         f"choose a smaller --dt, or give --steps")
+        raise InputError(f"a time step of {timestep:g} s leaves less than one step of the task's {simulated_time:g} s: "
+                         f"choose a smaller --dt, a longer --horizon-seconds, or give --steps")
     if horizon > MAX_HORIZON:
-        raise InputError(f"--dt {config.dt:g} makes the task's {simulated_time:g} s {horizon:.3g} steps, more than "
-                         f"{MAX_HORIZON}: choose a larger --dt, or give --steps")
+        raise InputError(f"a time step of {timestep:g} s makes the task's {simulated_time:g} s {horizon:.3g} steps, "
+                         f"more than {MAX_HORIZON}: choose a larger --dt, or give --steps")
     if config.pipeline == "mjx":  # the baseline: MuJoCo's default flags, only integrator and dt overridden
         lean = scene.with_options(model, config.integrator or None, config.dt or None)
         for bit in scene.diagnostics_bits(lean):  # diagnostics change no dynamics, and MJX has none
@@ -259,15 +390,35 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
                 physics, np.asarray(spec.init.qpos), np.asarray(spec.init.qvel), steps=horizon))
         lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None, iterations)
     step = scene.make_step(lean, effects, config.pipeline)
-    weights = jnp.asarray(spec.joint_weight / spec.joint_weight.sum())
+    weights = jnp.asarray(spec.joint_weight / max(spec.joint_weight.sum(), 1e-300))
     target = spec.target_qpos
     sizes = (model.nq + model.nv + model.na, 100, 100, model.nu)
 
+    # A limited actuator's control is squashed smoothly into its range (a zero output is its centre,
+    # slope 1 there): a clamp gives a saturated controller a zero gradient, and it never leaves saturation.
+    limited = np.asarray(model.actuator_ctrllimited, bool)
+    centre = np.where(limited, model.actuator_ctrlrange.mean(axis=1), 0.0)
+    half_width = np.where(limited, np.maximum(np.diff(model.actuator_ctrlrange, axis=1)[:, 0] / 2, 1e-12), 1.0)
+
     def policy(params, state: State):
-        return mlp_apply(params, jnp.concatenate([state.qpos, state.qvel, state.act]))
+        raw = mlp_apply(params, jnp.concatenate([state.qpos, state.qvel, state.act]))
+        return jnp.where(limited, centre + half_width * jnp.tanh(raw / half_width), raw)
+
+    reach = spec.reach
+    if reach is not None:
+        kinematics_model = scene.put_model(lean)
+        empty = mjx.make_data(kinematics_model)
+
+    def state_loss(qpos):
+        pose = weights @ joint_errors(model, qpos, target) if spec.joint_weight.any() else 0.0
+        if reach is None:
+            return pose
+        placed = mjx.kinematics(kinematics_model, empty.replace(qpos=qpos))
+        position = (placed.site_xpos if reach.kind == "site" else placed.xpos)[reach.index]
+        return pose + jnp.sum((position - reach.point) ** 2)
 
     def loss(states: State, controls):
-        per_step = jax.vmap(lambda qpos: weights @ joint_errors(model, qpos, target))(states.qpos)
+        per_step = jax.vmap(state_loss)(states.qpos)
         return per_step[-1] if spec.loss == "final" else per_step.mean()
 
     def sample_initial_states(key, count):
@@ -297,6 +448,8 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         "qpos_spread": as_list(spec.qpos_spread),
         "qvel_spread": as_list(spec.qvel_spread),
         "target_qpos": as_list(spec.target_qpos),
+        "reach": None if reach is None else {reach.kind: reach.name, "point": as_list(reach.point)},
+        "task_file": config.task_file if config.task_file != "none" else "",
         "step_derivative": derivative,
         "solver": {"iterations": int(lean.opt.iterations), "tolerance": float(lean.opt.tolerance),
                    "solver": mujoco.mjtSolver(lean.opt.solver).name} if effects.constraints else None,
@@ -307,7 +460,8 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
                           known_columns=known_columns),
         init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
         sample_initial_states=sample_initial_states,
-        summary=f"{path.name}: {summary}; horizon {horizon} steps, {spec.loss}-state loss",
+        summary=f"{path.name}: {summary}; horizon {horizon} steps, {spec.loss}-state loss"
+                + (f" (reaching {reach.name})" if reach is not None else ""),
         resolved=resolved,
     )
 

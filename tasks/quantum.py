@@ -96,8 +96,7 @@ def _solve_stack(diagonal: jax.Array, off: jax.Array, rhs: jax.Array) -> jax.Arr
 def _solve_stack_vmap(axis_size, in_batched, diagonal, off, rhs):
     # Give every operand the batch axis. Left to itself, tridiagonal_solve solves a
     # batched rhs against unbatched diagonals as extra right-hand-side columns, which
-    # the GPU solver runs about 70x slower than a batch of systems (H200, JAX 0.11.2):
-    # exactly the case of the gradient flows, whose adjoint copies share one forward pass.
+    # the GPU solver runs far slower than a batch of systems: exactly the case of the gradient flows, whose adjoint copies share one forward pass.
     operands = [a if batched else jnp.broadcast_to(a, (axis_size,) + a.shape)
                 for a, batched in zip((diagonal, off, rhs), in_batched)]
     return _solve_stack(*operands), True
@@ -208,8 +207,8 @@ def network_apply(params: list[tuple[jax.Array, jax.Array]], state: jax.Array) -
 
     Each convolution is one matrix product over its receptive fields: the same
     numbers as ``lax.conv_general_dilated`` with 'valid' padding (the tests check
-    this), but 3-4x faster to differentiate on CPU, where XLA's convolution
-    gradients are slow at these sizes (55 vs 17 ms per R update, batch 8).
+    this), but several times faster to differentiate on CPU, where XLA's
+    convolution gradients are slow at these sizes.
     """
     (conv2, bias2), (conv1, bias1), (dense, bias) = params
     # The 3 x 2 kernel spans the whole (re, im) axis: a 1-D convolution over space with 2 channels.

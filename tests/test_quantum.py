@@ -254,6 +254,7 @@ def test_a_traced_target_gives_the_loss_of_that_target_built_in(task, states):
     assert not np.allclose(losses[0], losses[1]) and not np.allclose(losses[1], losses[2])
 
 
+@pytest.mark.slow
 def test_short_training_lowers_the_test_loss(task):
     config = TrainConfig(mode="C", train_size=32, test_size=32, batch=8, epochs=8)
     trainer = make_trainer(task, config)

@@ -18,7 +18,7 @@ from conftest import ROOT
 
 # 16 independent triangular solves of 100 7x7 systems with 49 right-hand sides each
 # (hopper's step-Jacobian solves, smaller batch): with a 2-thread pool this hangs
-# within the first ~50 calls (3 of 3 runs on 2 cores); fixed, 300 calls take ~1 s.
+# within the first calls on a 2-core machine; fixed, 300 calls take about a second.
 PROGRAM = textwrap.dedent("""
     import stablebptt  # the library's runtime set-up, before JAX starts its CPU client
     import jax, jax.numpy as jnp

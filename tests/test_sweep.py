@@ -220,3 +220,19 @@ def test_a_cell_is_a_run_folder_that_renders(tiny, tmp_path):
                                "--seed-index", "1", "--no-video"], capture_output=True, text=True, cwd=tmp_path)
     assert rendered.returncode == 0, rendered.stderr
     assert list(cell.glob("*.png"))
+
+
+def test_paired_bootstrap_intervals_decide_only_what_the_seeds_support(tmp_path):
+    from stablebptt.grid import claim_intervals, paired_bootstrap
+    mean, low, high = paired_bootstrap(np.array([-0.3, -0.2, -0.25, -0.35, -0.28]))
+    assert low <= mean <= high < 0
+    mean, low, high = paired_bootstrap(np.array([-1.0, 1.0, -0.5, 0.5, 0.1]))
+    assert low < 0 < high and paired_bootstrap(np.array([-1.0, 1.0, -0.5, 0.5, 0.1])) == (mean, low, high)
+    # C beats R on every seed; C and M differ by noise: "C better" and "not resolved".
+    lines = ["rc,mode,clip,seed,epoch,test_loss"]
+    for seed, noise in enumerate([0.02, -0.01, 0.03, -0.02, 0.0]):
+        lines += [f"0.1,R,none,{seed},100,{1.0 + noise}", f"0.1,C,none,{seed},100,{0.5 + noise}",
+                  f"0.1,M,none,{seed},100,{0.5 - noise}", f"0.1,C,none,{seed},50,9"]
+    (tmp_path / "test_loss.csv").write_text("\n".join(lines) + "\n")
+    row = claim_intervals(tmp_path / "test_loss.csv", "rc")[2]
+    assert row.startswith("| 0.1 | none | 5 | -0.5 [-0.5, -0.5] | C better |") and row.endswith("| not resolved |"), row
