@@ -19,8 +19,9 @@ _TYPES = {"int": int, "float": float, "str": str, "bool": bool}
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
-    """Print one line on stderr and exit (2 = bad input)."""
-    print(f"error: {message}", file=sys.stderr)
+    """Print one line on stderr and exit (2 = bad input); config fields are named as their options."""
+    from stablebptt.errors import as_options
+    print(f"error: {as_options(message)}", file=sys.stderr)
     sys.exit(code)
 
 

@@ -1,4 +1,29 @@
-"""The exceptions that mean: say so in one line, no traceback."""
+"""The exceptions that mean: say so in one line, no traceback.
+
+Library errors name what a Python user set: a config field (``TrainConfig.lr``,
+``cartpole.Config.dt``) or a ``Dynamics`` field. The command line shows each as
+its option (``--lr``, ``--dt``): ``as_options``.
+"""
+import re
+
+# A field the command line sets under another name.
+_OPTION_OF = {"Dynamics.horizon": "steps"}
+_FIELD = re.compile(r"\b(?:[a-z_]\w*\.)?(?:\w*Config|Dynamics)\.([a-z_]\w*)")
+
+
+def config_field(config, name: str) -> str:
+    """How errors name field ``name`` of a config (class or instance): ``TrainConfig.lr``, ``cartpole.Config.dt``."""
+    cls = config if isinstance(config, type) else type(config)
+    owner = cls.__name__ if cls.__name__ != "Config" else f"{cls.__module__.rsplit('.', 1)[-1]}.Config"
+    return f"{owner}.{name}"
+
+
+def as_options(message: str) -> str:
+    """``message`` with every config or Dynamics field named as its command-line option."""
+    def option(match):
+        field = match.group(0).split(".", match.group(0).count(".") - 1)[-1]
+        return "--" + _OPTION_OF.get(field, match.group(1)).replace("_", "-")
+    return _FIELD.sub(option, message)
 
 
 class InputError(ValueError):

@@ -114,7 +114,7 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
         per_example = per_tangent * max(tangents, 1)
         if per_example > budget:
             raise InputError(f"one example's step Jacobian needs up to {_gigabytes(per_example)}, more than the "
-                             f"{_gigabytes(budget)} this machine can give it: choose --step-derivative reverse")
+                             f"{_gigabytes(budget)} this machine can give it: set Dynamics.step_derivative to 'reverse'")
         fitting = budget // per_example
         if fitting >= examples:
             return MemoryPlan(None, False, per_example * examples)
@@ -131,5 +131,5 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
     if rematerialized > budget:
         raise InputError(f"the backward pass of {batch} examples x {horizon} steps needs up to "
                          f"{_gigabytes(rematerialized)} even recomputing each step, more than the {_gigabytes(budget)} "
-                         f"this machine can give it: use a smaller --batch or fewer --steps")
+                         f"this machine can give it: use a smaller TrainConfig.batch or a shorter Dynamics.horizon")
     return MemoryPlan(None, True, stored)

@@ -16,7 +16,7 @@ import jax.extend
 import jax.numpy as jnp
 import optax
 
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, config_field
 from stablebptt.flows import (MODES, Dynamics, flow_gradients, flows_needed, reference_loss, reference_losses,
                               select_flow, tree_cosine)
 from stablebptt.memory import MemoryPlan, plan_memory
@@ -106,21 +106,23 @@ class TrainConfig:
             raise InputError(f"unknown clip mode {self.clip!r}: choose one of {', '.join(CLIP_MODES)}")
         for name in ("epochs", "seeds", "batch", "train_size", "test_size", "checkpoint_every", "unroll"):
             if getattr(self, name) <= 0:
-                raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
+                raise InputError(f"{config_field(self, name)} must be a positive integer, got {getattr(self, name)}")
         for name in ("lr", "clip_threshold"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
-                raise InputError(f"--{name.replace('_', '-')} must be a positive number, got {value}")
+                raise InputError(f"{config_field(self, name)} must be a positive number, got {value}")
         for name, last in (("seed", self.seed + self.seeds - 1), ("data_seed", self.data_seed)):
             if not 0 <= getattr(self, name) <= last <= MAX_SEED:
-                raise InputError(f"--{name.replace('_', '-')} must be from 0 to {MAX_SEED}"
-                                 + (f" with --seeds {self.seeds}" if name == "seed" else "") + f", got {getattr(self, name)}")
+                raise InputError(f"{config_field(self, name)} must be from 0 to {MAX_SEED}"
+                                 + (f" with {config_field(self, 'seeds')} {self.seeds}" if name == "seed" else "")
+                                 + f", got {getattr(self, name)}")
         if self.seed_batching not in SEED_BATCHING:
             raise InputError(f"unknown seed batching {self.seed_batching!r}: choose map or vmap")
         if self.epoch_program not in EPOCH_PROGRAMS:
             raise InputError(f"unknown epoch program {self.epoch_program!r}: choose one of {', '.join(EPOCH_PROGRAMS)}")
         if self.train_size % self.batch:
-            raise InputError(f"--batch {self.batch} does not divide the {self.train_size} training states: pick a divisor")
+            raise InputError(f"{config_field(self, 'batch')} {self.batch} does not divide the {self.train_size} training "
+                             "states: pick a divisor")
 
 
 class TrainState(NamedTuple):

@@ -25,7 +25,7 @@ import mujoco
 import numpy as np
 
 from stablebptt import models, mujoco_log, scene
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, config_field
 from stablebptt.flows import Dynamics
 from stablebptt.mjx_internals import mjx
 from stablebptt.networks import mlp_apply, mlp_init
@@ -71,17 +71,17 @@ class Config:
 
     def __post_init__(self):
         if not self.model and not 1 <= self.poles <= 4:
-            raise InputError(f"--poles must be 1, 2, 3 or 4, got {self.poles}; for other systems pass --model FILE.xml")
+            raise InputError(f"{config_field(self, 'poles')} must be 1, 2, 3 or 4, got {self.poles}; for other systems give {config_field(self, 'model')} (an MJCF file)")
         if not (math.isfinite(self.spread) and self.spread >= 0):
-            raise InputError(f"--spread must be a finite number, zero or positive, got {self.spread}")
+            raise InputError(f"{config_field(self, 'spread')} must be a finite number, zero or positive, got {self.spread}")
         if not (math.isfinite(self.dt) and self.dt >= 0):
-            raise InputError(f"--dt must be a finite positive time step (or 0 for the MJCF's own), got {self.dt}")
+            raise InputError(f"{config_field(self, 'dt')} must be a finite positive time step (or 0 for the MJCF's own), got {self.dt}")
         if not 0 <= self.solver_iterations <= 10_000:
-            raise InputError(f"--solver-iterations must be between 1 and 10000 (or 0 to choose), got {self.solver_iterations}")
+            raise InputError(f"{config_field(self, 'solver_iterations')} must be between 1 and 10000 (or 0 to choose), got {self.solver_iterations}")
         if not 0 <= self.steps <= MAX_HORIZON:
-            raise InputError(f"--steps must be between 1 and {MAX_HORIZON} (or 0 for the MJCF's own), got {self.steps}")
+            raise InputError(f"{config_field(self, 'steps')} must be between 1 and {MAX_HORIZON} (or 0 for the MJCF's own), got {self.steps}")
         if not (math.isfinite(self.horizon_seconds) and self.horizon_seconds >= 0):
-            raise InputError(f"--horizon-seconds must be a finite positive time (or 0 for the MJCF's own), got {self.horizon_seconds}")
+            raise InputError(f"{config_field(self, 'horizon_seconds')} must be a finite positive time (or 0 for the MJCF's own), got {self.horizon_seconds}")
         self._merge_task_file()
 
     def _merge_task_file(self) -> None:
@@ -236,14 +236,14 @@ def _reach(model: mujoco.MjModel, text: str) -> Reach | None:
     if not text:
         return None
     name, _, point = text.partition("=")
-    values = [_number(v, "--reach") for v in point.split(",")] if point else []
+    values = [_number(v, config_field(Config, "reach")) for v in point.split(",")] if point else []
     if len(values) != 3:
-        raise InputError(f"--reach must be NAME=X,Y,Z (a site or body and a point in metres), got {text!r}")
+        raise InputError(f"{config_field(Config, 'reach')} must be NAME=X,Y,Z (a site or body and a point in metres), got {text!r}")
     for kind, object_type in (("site", mujoco.mjtObj.mjOBJ_SITE), ("body", mujoco.mjtObj.mjOBJ_BODY)):
         index = mujoco.mj_name2id(model, object_type, name.strip())
         if index >= 0:
             return Reach(kind, name.strip(), index, np.array(values))
-    raise InputError(f"--reach: no site or body named {name.strip()!r}")
+    raise InputError(f"{config_field(Config, 'reach')}: no site or body named {name.strip()!r}")
 
 
 def read_spec(model: mujoco.MjModel, config: Config | None = None) -> Spec:
@@ -265,17 +265,17 @@ def read_spec(model: mujoco.MjModel, config: Config | None = None) -> Spec:
     if config.loss_joints == "none" or (reach is not None and not config.loss_joints):
         weights = np.zeros(model.njnt)
     elif config.loss_joints:
-        chosen = {_joint(model, name.strip(), "--loss-joints") for name in config.loss_joints.split(",")}
+        chosen = {_joint(model, name.strip(), config_field(Config, "loss_joints")) for name in config.loss_joints.split(",")}
         weights = np.where(np.isin(np.arange(model.njnt), sorted(chosen)), weights, 0.0)
     if not np.any(weights > 0) and reach is None:
         raise InputError("the loss compares nothing: give a joint a positive weight (bptt_joint_weight, "
-                         "--loss-joints) or a point to reach (--reach)")
+                         f"{config_field(Config, 'loss_joints')}) or a point to reach ({config_field(Config, 'reach')})")
     init_key, target_key = _keyframe(model, "init"), _keyframe(model, "target")
     for key, label in ((init_key, "init"), (target_key, "target")):
         if key is not None and not all(np.all(np.isfinite(getattr(key, f))) for f in ("qpos", "qvel", "act")):
             raise InputError(f'<key name="{label}"> must hold finite numbers')
-    init_qpos, chosen_init = _pose(model, config.init_pose, init_key, "--init-pose")
-    target_qpos, chosen_target = _pose(model, config.target_pose, target_key, "--target-pose")
+    init_qpos, chosen_init = _pose(model, config.init_pose, init_key, config_field(Config, "init_pose"))
+    target_qpos, chosen_target = _pose(model, config.target_pose, target_key, config_field(Config, "target_pose"))
     velocity_from = chosen_init if chosen_init is not None else init_key
     init = State(
         jnp.asarray(init_qpos),
@@ -371,10 +371,12 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
     horizon = config.steps or round(simulated_time / timestep)
     if horizon < 1:
         raise InputError(f"a time step of {timestep:g} s leaves less than one step of the task's {simulated_time:g} s: "
-                         f"choose a smaller --dt, a longer --horizon-seconds, or give --steps")
+                         f"choose a smaller {config_field(Config, 'dt')}, a longer "
+                         f"{config_field(Config, 'horizon_seconds')}, or give {config_field(Config, 'steps')}")
     if horizon > MAX_HORIZON:
         raise InputError(f"a time step of {timestep:g} s makes the task's {simulated_time:g} s {horizon:.3g} steps, "
-                         f"more than {MAX_HORIZON}: choose a larger --dt, or give --steps")
+                         f"more than {MAX_HORIZON}: choose a larger {config_field(Config, 'dt')}, or give "
+                         f"{config_field(Config, 'steps')}")
     if config.pipeline == "mjx":  # the baseline: MuJoCo's default flags, only integrator and dt overridden
         lean = scene.with_options(model, config.integrator or None, config.dt or None)
         for bit in scene.diagnostics_bits(lean):  # diagnostics change no dynamics, and MJX has none

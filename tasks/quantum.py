@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, config_field
 from stablebptt.flows import Dynamics
 from stablebptt.networks import glorot_uniform
 from stablebptt.training import CellOption, Task
@@ -36,11 +36,11 @@ class Config:
 
     def __post_init__(self):
         if self.target not in TARGETS:
-            raise InputError(f"--target must be one of {', '.join(map(str, TARGETS))} (the eigenstate to reach), got {self.target}")
+            raise InputError(f"{config_field(self, 'target')} must be one of {', '.join(map(str, TARGETS))} (the eigenstate to reach), got {self.target}")
         if self.steps <= 0:
-            raise InputError(f"--steps must be a positive integer, got {self.steps}")
+            raise InputError(f"{config_field(self, 'steps')} must be a positive integer, got {self.steps}")
         if not (math.isfinite(self.dt) and self.dt > 0):
-            raise InputError(f"--dt must be a positive number, got {self.dt}")
+            raise InputError(f"{config_field(self, 'dt')} must be a positive number, got {self.dt}")
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, config_field
 from stablebptt.flows import Dynamics
 from stablebptt.integrators import INTEGRATORS
 from stablebptt.networks import mlp_apply, mlp_init
@@ -30,9 +30,9 @@ class Config:
 
     def __post_init__(self):
         if not self.rc >= 0:
-            raise InputError(f"--rc must be zero or positive, got {self.rc}")
+            raise InputError(f"{config_field(self, 'rc')} must be zero or positive, got {self.rc}")
         if self.steps <= 0:
-            raise InputError(f"--steps must be a positive integer, got {self.steps}")
+            raise InputError(f"{config_field(self, 'steps')} must be a positive integer, got {self.steps}")
 
 
 @dataclass(frozen=True)

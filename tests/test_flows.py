@@ -143,10 +143,10 @@ def test_the_memory_plan_chunks_recomputes_or_refuses_as_the_budget_shrinks():
     one_example = plenty.estimate // 80
     chunked = plan_memory(step, state, control, 10, 8, "forward", 18, budget=int(7.5 * one_example))
     assert chunked.jacobian_chunk == 5  # the largest divisor of 80 examples that fits 7.5 of them
-    with pytest.raises(InputError, match="--step-derivative reverse"):
+    with pytest.raises(InputError, match="Dynamics.step_derivative to 'reverse'"):
         plan_memory(step, state, control, 10, 8, "forward", 18, budget=one_example - 1)
     stored = plan_memory(step, state, control, 10, 8, "reverse", 18, budget=2**40)
     assert not stored.rematerialize
     assert plan_memory(step, state, control, 10, 8, "reverse", 18, budget=stored.estimate - 1).rematerialize
-    with pytest.raises(InputError, match="--batch"):
+    with pytest.raises(InputError, match="TrainConfig.batch"):
         plan_memory(step, state, control, 10, 8, "reverse", 18, budget=1)

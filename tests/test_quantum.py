@@ -272,10 +272,10 @@ def test_short_training_lowers_the_test_loss(task):
 
 
 @pytest.mark.parametrize("changes, option", [
-    ({"target": 7}, "--target"),
-    ({"steps": 0}, "--steps"),
-    ({"dt": 0.0}, "--dt"),
-    ({"dt": float("nan")}, "--dt"),
+    ({"target": 7}, "quantum.Config.target"),
+    ({"steps": 0}, "quantum.Config.steps"),
+    ({"dt": 0.0}, "quantum.Config.dt"),
+    ({"dt": float("nan")}, "quantum.Config.dt"),
 ])
 def test_config_rejects_bad_values(changes, option):
     with pytest.raises(InputError, match=option):

@@ -88,7 +88,7 @@ def test_a_limited_actuator_never_leaves_its_range_and_keeps_a_gradient(pendulum
     (dict(reach="tip=1,0"), "NAME=X,Y,Z"),
     (dict(reach="hand=1,0,0"), "no site or body named 'hand'"),
     (dict(loss_joints="none"), "the loss compares nothing"),
-    (dict(horizon_seconds=float("nan")), "--horizon-seconds"),
+    (dict(horizon_seconds=float("nan")), "cartpole.Config.horizon_seconds"),
     (dict(horizon_seconds=0.001), "less than one step"),
     (dict(task_file="missing.json"), "does not exist"),
 ])
