@@ -178,17 +178,25 @@ def test_step_jacobians_of_a_contact_model_with_friction_loss_are_finite(suite):
 
 
 def test_a_suite_model_trains_and_renders_from_the_command_line(suite, tmp_path):
-    """pendulum: the suite's energy flag, named after its file in every message and record."""
-    run = tmp_path / "run"
-    train = subprocess.run([sys.executable, "scripts/train.py", "--model", str(suite / "pendulum.xml"), "--epochs", "2",
-                            "--train-size", "8", "--test-size", "8", "--steps", "20", "--no-progress",
-                            "--out", str(run)], capture_output=True, text=True, cwd=ROOT)
+    """models/README.md's worked example, shortened: dm_control's pendulum, file untouched, swung up from
+    hanging by a task file; the suite's energy flag off, the model's name in every message and record."""
+    run, task_file = tmp_path / "run", tmp_path / "swing_up.task.json"
+    task_file.write_text('{"init_pose": "hinge=3.14159", "horizon_seconds": 7}')
+    train = subprocess.run([sys.executable, "scripts/train.py", "--model", str(suite / "pendulum.xml"),
+                            "--task-file", str(task_file), "--epochs", "4", "--train-size", "64", "--test-size", "8",
+                            "--lr", "3e-3", "--clip", "norm", "--no-progress", "--out", str(run)],
+                           capture_output=True, text=True, cwd=ROOT)
     assert train.returncode == 0, train.stderr
     assert "time to the first update:" in train.stdout and "done: pendulum, mode C" in train.stdout
     import json
     saved = json.loads((run / "config.json").read_text())
-    assert saved["resolved_task"]["name"] == "pendulum" and saved["resolved_task"]["horizon_steps"] == 20
+    resolved = saved["resolved_task"]
+    assert resolved["name"] == "pendulum" and resolved["horizon_steps"] == 350  # 7 s at the file's 0.02 s
+    assert resolved["init"]["qpos"] == pytest.approx([3.14159]) and resolved["task_file"] == str(task_file)
     assert (run / "model.xml").read_bytes() == (suite / "pendulum.xml").read_bytes()
+    # Hanging is a loss of 2; 32 updates of C already bring most test states up (the worked example: 0.11).
+    final_losses = [float(line.split(",")[4]) for line in (run / "metrics.csv").read_text().splitlines()[1:]]
+    assert final_losses[-1] < 0.5, final_losses
     render = subprocess.run([sys.executable, "scripts/render.py", str(run), "--rollouts", "1",
                              "--no-video"], capture_output=True, text=True, cwd=ROOT)
     assert render.returncode == 0, render.stderr
