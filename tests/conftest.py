@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent  # the checkout: scripts are run f
 
 # The fast tier (make test-fast, under 2 minutes): closed forms, invariants, every task's gradients at a
 # tiny horizon, task options and hostile input. Every other module is marked slow.
-FAST_MODULES = {"test_flows", "test_smoke", "test_repulsion", "test_quantum", "test_task_options",
+FAST_MODULES = {"test_building_blocks", "test_flows", "test_smoke", "test_repulsion", "test_quantum", "test_task_options",
                 "test_hostile_inputs", "test_registry"}
 
 
