@@ -88,7 +88,9 @@ def main(argv: list[str]) -> int:
     for name, study in (("trajectory", lambda: [row for setup in trajectory_setups(config) for row in trajectory_study(setup, config, log)]),
                         ("gradients", lambda: [row for setup in gradient_setups(config) for row in gradient_study(setup, config, log)]),
                         ("training", lambda: training_study(config, log)),
-                        ("contact", lambda: contact_study(config, log))):
+                        ("contact", lambda: contact_study(
+                            config, log, done=accuracy_report.read_csv(out / "contact.csv") if (out / "contact.csv").is_file() else [],
+                            on_row=lambda rows: accuracy_report.write_csv(out / "contact.csv", rows)))):
         if name in config.study_list:
             rows = study()
             accuracy_report.write_csv(out / f"{name}.csv", rows)

@@ -530,10 +530,14 @@ def _c_jacobian(model, qpos, qvel, control) -> "np.ndarray":
     return np.stack(columns, axis=1)
 
 
-def contact_study(config: AccuracyConfig, log: Callable) -> list[dict]:
+def contact_study(config: AccuracyConfig, log: Callable, done: list[dict] = (),
+                  on_row: Callable[[list[dict]], None] = lambda rows: None) -> list[dict]:
     """Rows per suite model with contacts and solver setting: trajectory error against MuJoCo's C step with the
     model's own settings, step-Jacobian error against central differences of the C step, and the time of a
-    batched MJX rollout and of batched forward-mode step Jacobians."""
+    batched MJX rollout and of batched forward-mode step Jacobians.
+
+    Rows in ``done`` (an earlier, interrupted call's) are kept and not measured again; ``on_row`` gets
+    all rows after each new one, so a long study can be stopped and resumed."""
     import jax
     import jax.numpy as jnp
     import mujoco
@@ -543,7 +547,8 @@ def contact_study(config: AccuracyConfig, log: Callable) -> list[dict]:
     from stablebptt.flows import step_jacobians
     from stablebptt.tasks.cartpole import load_model
 
-    rows = []
+    rows = list(done)
+    measured = {(row["model"], row["setting"]) for row in rows}
     steps = 10 if config.quick else CONTACT_STEPS
     for name in [n for n in config.contact_models.split(",") if n]:
         model = load_model(Path(config.suite) / f"{name}.xml")
@@ -560,6 +565,8 @@ def contact_study(config: AccuracyConfig, log: Callable) -> list[dict]:
         contacts = int(data.ncon)
         held = np.repeat(random_controls(steps), 2, axis=0)  # each control held for two steps: 2 dt sees the same
         for label, iterations, dt in contact_settings(model):
+            if (name, label) in measured:
+                continue
             factor = round(dt / float(model.opt.timestep))
             controls = held[::factor][:2 * steps // factor]
             reference_model = scene.with_options(model, timestep=dt)
@@ -592,6 +599,7 @@ def contact_study(config: AccuracyConfig, log: Callable) -> list[dict]:
                          "contacts": contacts, "trajectory_error": error, "jacobian_error": jacobian_error,
                          "ms_per_simulated_second": 1e3 * seconds["forward"] / simulated,
                          "jacobian_ms_per_step": 1e3 * seconds["jacobians"], "batch": config.batch})
+            on_row(rows)
             log(f"  {name:12s} {label:32s} trajectory {error:.2e}  Jacobian {jacobian_error:.2e}  "
                 f"{rows[-1]['ms_per_simulated_second']:.1f} ms / sim. s  {rows[-1]['jacobian_ms_per_step']:.1f} ms / Jacobians")
     return rows
