@@ -302,6 +302,13 @@ def training_table(rows: list[dict]) -> list[str]:
                            "test loss at end", "best test loss"], lines)
 
 
+def _short_setting(setting: str) -> str:
+    """"own (100 it., tol 1e-08), 2 dt" -> "own, 2 dt"; "4 iterations" -> "4 it."."""
+    head, _, tail = setting.partition(" (")
+    return (head + ("," + tail.split("),", 1)[1] if ")," in tail else "")).replace(" iterations", " it.").replace(
+        " iteration", " it.")
+
+
 def contact_figure(rows: list[dict]):
     """Two log-log panels: trajectory error against rollout time, Jacobian error against Jacobian time; one colour per model."""
     import math
@@ -318,14 +325,16 @@ def contact_figure(rows: list[dict]):
              "relative error against central differences"))):
         for model in models:
             members = [r for r in rows if r["model"] == model and math.isfinite(r[y]) and r[y] > 0]
-            ax.plot([r[x] for r in members], [r[y] for r in members], linestyle="none", **_marker_style(colours[model], True))
+            ax.plot([r[x] for r in members], [r[y] for r in members], linestyle="none",
+                    **{**_marker_style(colours[model], True), "marker": "o"})
             for r in members:
-                ax.annotate(r["setting"].split(" (")[0].replace(" iterations", " it.").replace(" iteration", " it."),
-                            (r[x], r[y]), textcoords="offset points", xytext=(5, 3), fontsize=7, color=colours[model])
+                ax.annotate(_short_setting(r["setting"]), (r[x], r[y]), textcoords="offset points", xytext=(5, 3),
+                            fontsize=7, color=colours[model])
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         _log_axes(ax)
-    handles = [Line2D([], [], linestyle="none", label=model, **_marker_style(colours[model], True)) for model in models]
+    handles = [Line2D([], [], linestyle="none", label=model, **{**_marker_style(colours[model], True), "marker": "o"})
+               for model in models]
     figure.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
     figure.suptitle("Contact scenes: error against time per constraint-solver setting", fontsize=12)
     return figure
