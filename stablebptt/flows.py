@@ -84,8 +84,8 @@ class Dynamics:
         of tiny sequential kernels by a few large ones.
       unroll: steps per iteration of the rollout loops (``lax.scan``'s
         ``unroll``). On a GPU, where each step is dozens of tiny kernels, 5-10
-        cuts the kernels and copies per step (docs/performance.md); on a CPU
-        1 is fastest and compiles quickest.
+        cuts the kernels and copies per step; on a CPU 1 is fastest and
+        compiles quickest.
       known_columns: optional, for ``"forward"``: columns of the step's state
         Jacobian that a symmetry fixes (``KnownColumns``), e.g. the position and
         velocity of a system nothing ties to the world (translation and Galilean

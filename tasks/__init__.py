@@ -51,8 +51,8 @@ class Entry:
       picture: suffix of the picture file ``draw`` writes (``rollout-<picture>.png``).
       mujoco_frames: ``draw`` renders with MuJoCo's OpenGL (a backend is chosen before MuJoCo loads).
       presets: sweep grids: preset name -> (the option that sets the complexity, its values).
-      gpu_unroll: rollout steps per loop iteration for sweeps on a GPU (measured per task: the
-        docs/performance.md; beyond it compile time grows faster than the gain).
+      gpu_unroll: rollout steps per loop iteration for sweeps on a GPU (chosen per task by
+        measurement; beyond it compile time grows faster than the gain).
     """
 
     name: str
