@@ -1,4 +1,4 @@
-"""Hostile but parseable models and options: one line on stderr, exit code 2, nothing trained or written.
+"""Bad and hostile input - options, models, files: one line on stderr, exit code 2, nothing trained or written.
 
 Run in-process through scripts/train.py's ``main``: each case fails before anything compiles.
 """
@@ -67,3 +67,42 @@ def test_hostile_input_is_one_line_and_exit_code_2(train_main, tmp_path, capsys,
     assert exit_.value.code == 2 and len(lines) == 1, lines
     assert lines[0].startswith("error: ") and words in lines[0], lines[0]
     assert not out.exists()  # nothing was written that could be neither resumed nor reused
+
+
+# Bad options and broken model files ({dir}: the test's folder; a file named last is written with the content).
+BAD_COMMAND_LINES = [
+    (["--task", "pendulum"], None),
+    (["--mode", "X"], None),
+    (["--clip", "maybe"], None),
+    (["--task", "repulsion", "--epochs", "0"], None),
+    (["--task", "repulsion", "--seeds", "-1"], None),
+    (["--task", "repulsion", "--lr", "0"], None),
+    (["--task", "repulsion", "--lr", "-1e-3"], None),
+    (["--task", "repulsion", "--batch", "0"], None),
+    (["--task", "repulsion", "--batch", "7"], None),
+    (["--task", "repulsion", "--poles", "3"], None),
+    (["--epochs", "many"], None),
+    (["--resume", "/nonexistent/run"], None),
+    (["--poles", "5"], None),
+    (["--poles", "0"], None),
+    (["--model", "missing.xml"], None),
+    (["--model", "{dir}/broken.xml"], "<mujoco><worldbody><body></mujoco>"),
+    (["--model", "{dir}/no_actuator.xml"], "<mujoco><worldbody><body><joint type='hinge'/><geom size='.1'/></body></worldbody></mujoco>"),
+    (["--model", "{dir}/bad_key.xml"], "<mujoco><worldbody><body><joint type='hinge'/><geom size='.1'/></body></worldbody>"
+                                       "<actuator><motor joint='0'/></actuator><keyframe><key name='init' qpos='1 2 3'/></keyframe></mujoco>"),
+    (["--model", "{dir}/bad_spread.xml"], "<mujoco><worldbody><body><joint name='j' type='hinge'/><geom size='.1'/></body></worldbody>"
+                                          "<actuator><motor joint='j'/></actuator><custom><numeric name='bptt_qpos_spread' data='1 2'/></custom></mujoco>"),
+]
+
+
+@pytest.mark.parametrize("arguments, content", BAD_COMMAND_LINES, ids=[" ".join(a) for a, _ in BAD_COMMAND_LINES])
+def test_bad_command_line_is_one_line_and_exit_code_2(train_main, tmp_path, capsys, arguments, content):
+    arguments = [a.format(dir=tmp_path) for a in arguments]
+    if content is not None:
+        (tmp_path / arguments[-1].split("/")[-1]).write_text(content)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_:
+        train_main(arguments + ["--out", str(out), "--no-progress"] if "--resume" not in arguments else arguments)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert exit_.value.code == 2 and len(lines) == 1 and lines[0].startswith("error: "), lines
+    assert not out.exists()

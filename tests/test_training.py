@@ -233,30 +233,6 @@ def test_sigint_stops_cleanly_after_saving(tmp_path):
     assert 1 <= epoch < 500 and rows[:, 0].max() == epoch
 
 
-BAD_INPUT = [
-    ["--task", "pendulum"],
-    ["--mode", "X"],
-    ["--clip", "maybe"],
-    ["--task", "repulsion", "--epochs", "0"],
-    ["--task", "repulsion", "--seeds", "-1"],
-    ["--task", "repulsion", "--lr", "0"],
-    ["--task", "repulsion", "--lr", "-1e-3"],
-    ["--task", "repulsion", "--batch", "0"],
-    ["--task", "repulsion", "--batch", "7"],
-    ["--task", "repulsion", "--poles", "3"],
-    ["--epochs", "many"],
-    ["--resume", "/nonexistent/run"],
-]
-
-
-@pytest.mark.parametrize("arguments", BAD_INPUT, ids=[" ".join(a) for a in BAD_INPUT])
-def test_bad_input_gets_one_line_and_exit_code_2(arguments):
-    result = train_cli(*arguments)
-    assert result.returncode == 2, result.stderr
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in result.stderr, result.stderr
-
-
 def test_an_existing_or_unwritable_out_is_refused_and_left_untouched(uninterrupted, tmp_path):
     before = {p.name: p.stat().st_mtime_ns for p in uninterrupted.iterdir()}
     blocker = tmp_path / "a-file"
