@@ -33,7 +33,6 @@ kept as the definition both paths are tested against.
 """
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple

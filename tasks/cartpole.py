@@ -11,7 +11,6 @@ actuators are found by type.
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math

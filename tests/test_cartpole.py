@@ -2,7 +2,6 @@
 import subprocess
 import sys
 import textwrap
-from dataclasses import replace
 
 import jax
 import jax.numpy as jnp

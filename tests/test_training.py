@@ -5,7 +5,6 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import jax
 import jax.extend
@@ -15,7 +14,6 @@ import pytest
 
 from conftest import ROOT
 from stablebptt import runs
-from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics
 from stablebptt.training import Task, TrainConfig, make_trainer, seed_array
 from stablebptt.tasks import repulsion
