@@ -102,7 +102,7 @@ def main(argv: list[str]) -> int:
 
     if config.report:
         directories = grids.run_directories(root, task_name, option)
-        if not directories and (root / "test_loss.csv").is_file():  # a checkout: only the tidy CSV is in git
+        if not directories and (root / "test_loss.csv").is_file():  # only the tidy CSV ships in results/
             print("\n".join(grids.write_intervals(root, option)))
             return 0
         if not directories:

@@ -8,7 +8,7 @@ import re
 
 # A field the command line sets under another name.
 _OPTION_OF = {"Dynamics.horizon": "steps"}
-_FIELD = re.compile(r"\b(?:[a-z_]\w*\.)?(?:\w*Config|Dynamics)\.([a-z_]\w*)")
+_FIELD = re.compile(r"\b(?:[a-z_]\w*\.)?((?:\w*Config|Dynamics)\.([a-z_]\w*))")  # (owner.field, field)
 
 
 def config_field(config, name: str) -> str:
@@ -20,10 +20,7 @@ def config_field(config, name: str) -> str:
 
 def as_options(message: str) -> str:
     """``message`` with every config or Dynamics field named as its command-line option."""
-    def option(match):
-        field = match.group(0).split(".", match.group(0).count(".") - 1)[-1]
-        return "--" + _OPTION_OF.get(field, match.group(1)).replace("_", "-")
-    return _FIELD.sub(option, message)
+    return _FIELD.sub(lambda match: "--" + _OPTION_OF.get(match.group(1), match.group(2)).replace("_", "-"), message)
 
 
 class InputError(ValueError):

@@ -372,7 +372,7 @@ def claim_intervals(test_loss_csv: Path, option: str) -> list[str]:
 
 
 def write_intervals(root: Path, option: str) -> list[str]:
-    """intervals.md from the preset's test_loss.csv (which the report keeps in git)."""
+    """intervals.md from the preset's test_loss.csv (kept with the tables, so it needs no run directories)."""
     table = claim_intervals(root / "test_loss.csv", option)
     runs.atomic_write(root / "intervals.md", ("\n".join(table) + "\n").encode())
     return table

@@ -559,12 +559,13 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
     state = trainer.init(seed_array(config))
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
     epoch_fn, _ = compile_ahead(trainer.epoch, state, *arguments)
-    first_update: list[float] = []
+    first_update = 0.0  # seconds from the call to the end of the first epoch
 
     def run_epoch(state):
+        nonlocal first_update
         new_state, metrics = epoch_fn(state, *arguments)
         metrics = jax.device_get(metrics)
-        first_update.append(first_update[0] if first_update else time.perf_counter() - started)
+        first_update = first_update or time.perf_counter() - started
         return new_state, metrics
 
     def diverged(metrics):
@@ -578,7 +579,7 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
     if status == "diverged":
         raise TrainingDiverged(f"{task.name}: {problem} at epoch {epoch + 1} (TrainConfig.mode {config.mode!r})")
     per_epoch = {name: rows[:, COLUMNS.index(name)].reshape(epoch, len(seeds)) for name in METRICS}
-    return Trained(state.params, per_epoch, first_update[0] if first_update else 0.0)
+    return Trained(state.params, per_epoch, first_update)
 
 
 def summarize(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float]:

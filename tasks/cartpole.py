@@ -79,6 +79,8 @@ class Config:
             raise InputError(f"{config_field(self, 'solver_iterations')} must be between 1 and 10000 (or 0 to choose), got {self.solver_iterations}")
         if not 0 <= self.steps <= MAX_HORIZON:
             raise InputError(f"{config_field(self, 'steps')} must be between 1 and {MAX_HORIZON} (or 0 for the MJCF's own), got {self.steps}")
+        if self.loss not in ("", "final", "mean"):
+            raise InputError(f"{config_field(self, 'loss')} must be final or mean (or empty for the MJCF's own), got {self.loss!r}")
         if not (math.isfinite(self.horizon_seconds) and self.horizon_seconds >= 0):
             raise InputError(f"{config_field(self, 'horizon_seconds')} must be a finite positive time (or 0 for the MJCF's own), got {self.horizon_seconds}")
         self._merge_task_file()
@@ -212,8 +214,9 @@ def _number(text: str, option: str) -> float:
 
 def _pose(model: mujoco.MjModel, text: str, base, option: str):
     """``(qpos, keyframe or None)`` of a pose option: a keyframe's name, or JOINT=VALUE pairs set on ``base``."""
+    qpos = np.array(base.qpos if base is not None else model.qpos0)
     if not text:
-        return np.array(base.qpos if base is not None else model.qpos0), base
+        return qpos, base
     if "=" not in text:
         key = _keyframe(model, text)
         if key is None:
@@ -221,7 +224,6 @@ def _pose(model: mujoco.MjModel, text: str, base, option: str):
             raise InputError(f"{option}: no keyframe named {text!r} (keyframes: {', '.join(names) or 'none'}); "
                              "or give JOINT=VALUE,...")
         return np.array(key.qpos), key
-    qpos = np.array(base.qpos if base is not None else model.qpos0)
     for pair in text.split(","):
         name, _, value = pair.partition("=")
         joint = _joint(model, name.strip(), option)

@@ -90,6 +90,7 @@ def test_a_limited_actuator_never_leaves_its_range_and_keeps_a_gradient(pendulum
     (dict(loss_joints="none"), "the loss compares nothing"),
     (dict(horizon_seconds=float("nan")), "cartpole.Config.horizon_seconds"),
     (dict(horizon_seconds=0.001), "less than one step"),
+    (dict(loss="sometimes"), "must be final or mean"),
     (dict(task_file="missing.json"), "does not exist"),
 ])
 def test_bad_task_options_are_one_clear_error(pendulum, options, words):
