@@ -7,11 +7,11 @@
 Per task, one update (gradient of a batch-8 rollout, then clip and Adam) per mode:
 R, M, S and C through the one-pass flows, and "R plain": jax.grad of the plain
 rollout with no flow machinery, the baseline the ratios divide by. For the
-cart-pole, also the MJX pipelines: the lean step (scene analysis; differentiated
-through inverse dynamics), the same step differentiated by plain autodiff through
-the mass matrix and its solve, the same step with MJX's dense mass matrix,
-mjx.step with MuJoCo's default flags, and closed-form cart-pole equations as the
-floor; and the parts of the lean R update (the rollout alone, and every step's
+cart-pole, also its steps: the default one generated body by body (stablebptt/tree.py),
+MJX's stages the scene needs (differentiated through inverse dynamics), the same
+differentiated by plain autodiff through the mass matrix and its solve, the same
+with MJX's dense mass matrix, mjx.step with MuJoCo's default flags, and
+closed-form cart-pole equations as the floor; and the parts of the default R update (the rollout alone, and every step's
 Jacobian built in one batched call, as the update builds them). Variants of one table are timed round-robin, so drift of
 the machine hits all of them alike; tables are timed one after another.
 """

@@ -145,12 +145,28 @@ def check_resumable(program: Program, grid: Grid) -> None:
         raise InputError(f"{program.directory} holds a checkpoint of a different grid: choose another --out or remove it")
 
 
-def run_program(program: Program, grid: Grid, devices: list, log: Callable[[str], None],
-                should_stop: Callable[[], bool]) -> dict:
-    """Train every cell of one program on its devices to ``grid.epochs``, resuming from its checkpoint.
+@dataclass
+class Prepared:
+    """A program ready to train: its compiled epoch, inputs and where training stands."""
 
-    ``should_stop()`` true (time limit, a signal, another program failed) checkpoints and returns early.
-    Returns the program's record, with its metric rows, final parameters and train config.
+    program: Program
+    devices: list
+    epoch_fn: Callable
+    arguments: tuple
+    state: Any
+    start: int
+    rows: np.ndarray
+    train_config: TrainConfig
+    unroll: int
+    padded_cells: int
+    compile_seconds: float
+
+
+def prepare(program: Program, grid: Grid, devices: list) -> Prepared:
+    """Build one program's trainer on its devices, resume its checkpoint and compile its epoch.
+
+    Runs in any thread: the programs of a device group compile side by side on the
+    host's cores while the first of them trains.
     """
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -174,36 +190,52 @@ def run_program(program: Program, grid: Grid, devices: list, log: Callable[[str]
     program.directory.mkdir(parents=True, exist_ok=True)
     runs.write_json(program.directory / "cells.json", _identity(program, grid))
     # Checkpoints hold the real cells only, so a program resumes on any number of devices.
-    unpad = lambda tree: jax.tree.map(lambda a: a[:count], tree)
     if (program.directory / runs.CHECKPOINT_FILE).exists():
-        start, loaded, rows = runs.load_checkpoint(program.directory, unpad(state))
+        start, loaded, rows = runs.load_checkpoint(program.directory, _unpad(state, count))
         state = jax.tree.map(lambda fresh, saved: fresh.at[:count].set(saved), state, loaded)
     else:
         start, rows = 0, runs.empty_rows()
     state = shard(state)
     values = shard(jnp.asarray([value for value, _, _, _ in cells])) if program.per_cell else None
     arguments = (values, trainer.batches, trainer.train_states, trainer.test_states)
-    started = time.perf_counter()
     epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)
+    return Prepared(program, devices, epoch_fn, arguments, state, start, rows, train_config, unroll, len(cells),
+                    compile_seconds)
+
+
+def _unpad(tree, count: int):
+    return jax.tree.map(lambda a: a[:count], tree)
+
+
+def train_prepared(prepared: Prepared, grid: Grid, log: Callable[[str], None],
+                   should_stop: Callable[[], bool]) -> dict:
+    """Train every cell of one prepared program to ``grid.epochs``.
+
+    ``should_stop()`` true (time limit, a signal, another program failed) checkpoints and returns early.
+    Returns the program's record, with its metric rows, final parameters and train config.
+    """
+    program, count = prepared.program, len(prepared.program.cells)
+    epoch_fn, arguments, start = prepared.epoch_fn, prepared.arguments, prepared.start
     cell_index = np.arange(count)
+    started = time.perf_counter()
 
     def run_epoch(state):
         state, metrics = epoch_fn(state, *arguments)
         # A diverged cell keeps its NaNs in the table; vmapped cells cannot affect each other.
-        return state, unpad(jax.device_get(metrics))
+        return state, _unpad(jax.device_get(metrics), count)
 
     def save(epoch, state, rows):
-        runs.save_checkpoint(program.directory, epoch, unpad(state), rows)
+        runs.save_checkpoint(program.directory, epoch, _unpad(state, count), rows)
         log(f"{grid.task_name} {grid.option}={','.join(map(str, program.values))}: epoch {epoch}/{grid.epochs}, "
-            f"{(time.perf_counter() - started - compile_seconds) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
-            f"on {len(devices)} device(s)")
+            f"{(time.perf_counter() - started) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
+            f"on {len(prepared.devices)} device(s)")
 
-    _, epoch, state, rows, _ = runs.fit(run_epoch, state, start, grid.epochs, rows, cell_index, save,
+    _, epoch, state, rows, _ = runs.fit(run_epoch, prepared.state, start, grid.epochs, prepared.rows, cell_index, save,
                                         grid.checkpoint_every, should_stop)
-    return {"complexity": program.values, "epochs_done": int(epoch), "cells": count, "unroll": unroll,
-            "train_config": train_config, "params": jax.device_get(unpad(state).params),
-            "devices": [str(d) for d in devices], "padded_cells": len(cells), "compile_seconds": compile_seconds,
-            "train_seconds": time.perf_counter() - started - compile_seconds, "rows": rows}
+    return {"complexity": program.values, "epochs_done": int(epoch), "cells": count, "unroll": prepared.unroll,
+            "train_config": prepared.train_config, "params": jax.device_get(_unpad(state, count).params),
+            "devices": [str(d) for d in prepared.devices], "padded_cells": prepared.padded_cells,
+            "compile_seconds": prepared.compile_seconds, "train_seconds": time.perf_counter() - started, "rows": rows}
 
 
 def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None:
@@ -241,7 +273,8 @@ def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: F
     """Train this process's share of the grid into ``root``, resuming from checkpoints; runs in any thread.
 
     Programs go to device groups (``place``); the groups run side by side in threads (which only
-    dispatch: compiling and running release the GIL), each group's programs one after another.
+    dispatch: compiling and running release the GIL), each group's programs compiled together and
+    trained one after another.
     A failing program stops the others at their next epoch. Returns each program's record.
 
     Raises:
@@ -256,11 +289,16 @@ def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: F
 
     def run_queue(devices, queue):
         outcomes = []
-        for program in queue:
+        # Every program of the queue compiles at once, in threads (compiling releases the GIL and
+        # uses the host's cores), so later programs are ready when the device is free for them.
+        compiler = ThreadPoolExecutor(max_workers=len(queue))
+        ready = [compiler.submit(prepare, program, grid, devices) for program in queue]
+        compiler.shutdown(wait=False, cancel_futures=True)  # a stop cancels the compiles not yet begun
+        for program, prepared in zip(queue, ready):
             if stop():
                 break
             try:
-                outcome = run_program(program, grid, devices, log, stop)
+                outcome = train_prepared(prepared.result(), grid, log, stop)
             except BaseException:
                 failed.set()  # the other groups checkpoint and stop instead of running to their end
                 raise

@@ -59,4 +59,37 @@ def _sqrt_flat_at_zero_jvp(primals, tangents):
 solver.jp = type(jnp)("jax.numpy, square root flat at zero")
 solver.jp.__dict__.update({**vars(jnp), "sqrt": _sqrt_flat_at_zero})
 
+@jax.custom_jvp
+def _quotient_carrier(deriv_0, deriv_1):
+    return deriv_0
+
+
+@_quotient_carrier.defjvp
+def _quotient_carrier_jvp(primals, tangents):
+    (deriv_0, deriv_1), (deriv_0_dot, deriv_1_dot) = primals, tangents
+    return deriv_0, deriv_0_dot - (deriv_0 / deriv_1) * deriv_1_dot
+
+
+_ls_point_create = solver._LSPoint.create.__func__
+
+
+def _ls_point_create_stable(cls, *args, **kwargs):
+    point = _ls_point_create(cls, *args, **kwargs)
+    return point.replace(deriv_0=_quotient_carrier(point.deriv_0, point.deriv_1),
+                         deriv_1=jax.lax.stop_gradient(point.deriv_1))
+
+
+# MJX's line search steps to alpha - deriv_0 / deriv_1, and those are the only
+# differentiable use of a point's two derivatives (everywhere else they are
+# compared). The slope of a quotient in deriv_1 is -deriv_0 / deriv_1**2, which
+# XLA evaluates as deriv_0 / (deriv_1 * deriv_1): where the search direction is
+# rounding noise (no constraint active, the unconstrained acceleration already
+# optimal), deriv_1 is ~1e-20 and its square underflows float32 to 0, giving
+# inf, and NaN against the zero cotangent such a step gets. Points carry the
+# same values, but deriv_1's tangent moves into deriv_0's as
+# d deriv_0 - (deriv_0 / deriv_1) d deriv_1 (deriv_1 itself gets none), so the
+# quotient's derivative, (d deriv_0 - ratio d deriv_1) / deriv_1, is unchanged
+# and has no square, in forward and reverse mode alike.
+solver._LSPoint.create = classmethod(_ls_point_create_stable)
+
 __all__ = ["mjx", "collision_driver", "constraint", "passive", "smooth", "solver", "forward", "types"]

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from stablebptt import tree
 from stablebptt import mujoco_log  # noqa: F401  (MuJoCo's warnings to stderr, never to MUJOCO_LOG.TXT)
 from stablebptt.errors import InputError
 from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth, solver
@@ -490,6 +491,11 @@ def implicit_derivative_applies(model: mujoco.MjModel, effects: SceneEffects) ->
         mujoco.mjtIntegrator.mjINT_EULER)
 
 
+def generated_step_applies(model: mujoco.MjModel, effects: SceneEffects | None) -> bool:
+    """Whether ``stablebptt.tree`` generates this scene's step: a small contact-free tree of hinges and slides."""
+    return effects is not None and not tree.unsupported(model, effects)
+
+
 def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str = "lean",
               implicit: bool = True) -> Callable[[State, jax.Array], State]:
     """``step(state, ctrl) -> state`` through MJX's JAX implementation.
@@ -497,17 +503,23 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
     Args:
       model: the (lean or original) MuJoCo model.
       effects: the scene analysis; required for ``pipeline="lean"``.
-      pipeline: ``"lean"`` runs only the needed stages (Euler integrator) and,
+      pipeline: ``"lean"`` generates the step body by body where
+        ``generated_step_applies`` (``stablebptt.tree``), else is ``"stages"``;
+        ``"stages"`` runs only MJX's needed stages (Euler integrator) and,
         where ``implicit_derivative_applies``, differentiates through inverse
         dynamics (a custom JVP, so forward and reverse mode both use it);
         ``"mjx"`` calls ``mjx.step`` unchanged (any integrator).
-      implicit: False differentiates the lean step by plain autodiff through
+      implicit: False differentiates MJX's stages by plain autodiff through
         the mass matrix and its solve (a baseline for benchmarks and tests).
     """
+    if pipeline == "lean":
+        if implicit and generated_step_applies(model, effects):
+            return tree.make_step(model)
+        pipeline = "stages"
     mjx_model = put_model(model)
     template = mjx.make_data(mjx_model)
     is_euler = int(model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_EULER)
-    if pipeline == "lean" and not is_euler:
+    if pipeline == "stages" and not is_euler:
         pipeline = "mjx"  # RK4 and implicitfast call mjx.forward inside: flags still apply
 
     def data_of(state: State, ctrl: jax.Array) -> mjx.Data:

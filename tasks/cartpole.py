@@ -56,7 +56,7 @@ class Config:
     integrator: str = field(default="", metadata={"help": "override the MJCF's integrator: euler, rk4 or implicitfast", "choices": ("", "euler", "rk4", "implicitfast")})
     dt: float = field(default=0.0, metadata={"help": "override the MJCF's time step; the simulated time stays the same unless --steps is given"})
     steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the MJCF's bptt_horizon, else 100)"})
-    pipeline: str = field(default="lean", metadata={"help": "lean: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "mjx")})
+    pipeline: str = field(default="lean", metadata={"help": "lean: a step generated body by body for small contact-free trees of hinges and slides, else stages; stages: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "stages", "mjx")})
     solver_iterations: int = field(default=0, metadata={"help": "constraint solver of scenes with contacts or limits: N runs exactly N Newton iterations (loop-free); 0 keeps the model's own solver where gradients are forward mode and, in reverse mode, takes the fewest iterations within 1e-3 of it (relative acceleration at sampled states)"})
     step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers)", "choices": ("auto", "forward", "reverse")})
     # The task, over what the MJCF declares (models/README.md); a task file may set these too.
@@ -432,8 +432,11 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         return State(qpos, spec.init.qvel + dv, jnp.broadcast_to(spec.init.act, (count, model.na)))
 
     summary = scene.describe(effects, lean, model) + (f"; pipeline: {config.pipeline}" if config.pipeline != "lean" else "")
+    generated = config.pipeline == "lean" and scene.generated_step_applies(lean, effects)
+    if generated:
+        summary += "; step: generated body by body"
     summary += f"; step gradients: {derivative} mode"
-    if config.pipeline == "lean" and scene.implicit_derivative_applies(lean, effects):
+    if generated or (config.pipeline in ("lean", "stages") and scene.implicit_derivative_applies(lean, effects)):
         summary += " through inverse dynamics"
     known_columns, symmetric_joints = scene.symmetries(lean, effects)
     if derivative == "forward" and symmetric_joints:

@@ -86,8 +86,9 @@ def test_every_suite_model_becomes_a_task_or_is_refused_in_one_line(suite, name)
 
 
 # Models whose differentiated step is checked against MuJoCo's C step: the energy flag (pendulum),
-# a joint limit with the model's own solver (reacher), contacts on the floor (hopper).
-CHECKED = ["pendulum", "reacher", "hopper"]
+# RK4 (acrobot; both steps generated body by body), a joint limit with the model's own solver
+# (reacher), contacts on the floor (hopper).
+CHECKED = ["pendulum", "acrobot", "reacher", "hopper"]
 
 
 @pytest.mark.parametrize("name", CHECKED)
@@ -201,3 +202,28 @@ def test_a_suite_model_trains_and_renders_from_the_command_line(suite, tmp_path)
                              "--no-video"], capture_output=True, text=True, cwd=ROOT)
     assert render.returncode == 0, render.stderr
     assert list(run.glob("*-strip.png"))
+
+
+# Eight reacher states (float32, zero control) from a 20-step rollout; at the last, MJX's line
+# search met a search direction of rounding noise: its Newton step's derivative divided by the
+# square of ~1e-20, which float32 flushes to 0 (stablebptt/mjx_internals.py explains the remedy).
+REACHER_QPOS = [[-0.05686615, 0.08633361], [-0.06332258, 0.02021889], [0.022796154, 0.06927885],
+                [-0.020602277, -0.07723963], [-0.009803113, -0.018506018], [-0.022436908, 0.010405372],
+                [0.03532419, -0.07883733], [-0.03214946, 0.06130206]]
+REACHER_QVEL = [[-0.013969594, -0.0043659396], [-0.00890346, -0.0027836794], [0.027263714, 0.008518695],
+                [0.020994965, 0.006562692], [0.026421068, 0.008260929], [0.022445856, 0.007017428],
+                [0.019866386, 0.0062097562], [-0.007989659, -0.0024974558]]
+
+
+def test_the_loop_free_solvers_jacobians_stay_finite_where_the_line_search_direction_vanishes(suite):
+    task = cartpole.make(cartpole.Config(model=str(suite / "reacher.xml"), step_derivative="reverse",
+                                         solver_iterations=1, steps=5))
+    states = scene.State(jnp.array(REACHER_QPOS, jnp.float32), jnp.array(REACHER_QVEL, jnp.float32), jnp.zeros((8, 0)))
+    flat = lambda s: jnp.concatenate([s.qpos, s.qvel])
+    jacobians = {}
+    for name, jacobian in (("reverse", jax.jacrev), ("forward", jax.jacfwd)):
+        by_example = jax.vmap(jacobian(lambda s, u: flat(task.dynamics.step(s, u)), argnums=(0, 1)))
+        jacobians[name] = jax.jit(by_example)(states, jnp.zeros((8, 2), jnp.float32))
+        assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(jacobians[name])), name
+    for a, b in zip(jax.tree.leaves(jacobians["reverse"]), jax.tree.leaves(jacobians["forward"])):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)

@@ -1,0 +1,148 @@
+"""The step generated body by body (stablebptt/tree.py) is MuJoCo's physics and MJX's derivative.
+
+Trajectories are compared with MuJoCo's C step (mujoco.mj_step) in float64 for
+every model in models/ and for a tree that exercises each term the generator
+writes out; Jacobians with plain autodiff through MJX's own stages.
+"""
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from stablebptt import scene, tree
+
+# Every term the generator writes: a tilted base with a slide and an off-centre hinge in one
+# body, a welded body without joints, branches, rotated inertias, armature, springs, joint damping
+# (Euler's implicit damping), a clamped motor with a gear, a position servo with kv, a force limit,
+# and gravity off the z axis.
+BRANCHES = """<mujoco model="branches">
+  <option timestep="0.005" integrator="{integrator}" gravity="0.3 -0.2 -9.81"/>
+  <worldbody>
+    <body name="base" pos="0.1 0.2 0.3" quat="0.9 0.1 0.3 0.2">
+      <joint name="slide" type="slide" axis="1 0.2 0" damping="0.3" armature="0.05"/>
+      <joint name="twist" type="hinge" axis="0 0 1" pos="0.05 0 0.1" stiffness="2" springref="0.3"/>
+      <inertial pos="0.02 0.01 -0.03" quat="0.8 0.2 0.1 0.4" mass="1.3" diaginertia="0.02 0.03 0.04"/>
+      <body name="arm" pos="0.2 0 0" euler="10 20 30">
+        <joint name="shoulder" type="hinge" axis="0 1 0.3" pos="0 0 0.05" damping="0.1"/>
+        <inertial pos="0.1 0 0.2" mass="0.4" diaginertia="0.004 0.005 0.002"/>
+        <body name="welded" pos="0 0.1 0.3">
+          <inertial pos="0 0.05 0" mass="0.2" diaginertia="0.001 0.002 0.003"/>
+          <body name="hand" pos="0 0 0.2">
+            <joint name="wrist" type="hinge" axis="1 0 0"/>
+            <inertial pos="0 0 0.1" mass="0.1" diaginertia="0.001 0.001 0.0005"/>
+          </body>
+        </body>
+      </body>
+      <body name="leg" pos="-0.2 0 0">
+        <joint name="hip" type="hinge" axis="0 1 0" armature="0.01"/>
+        <joint name="knee" type="slide" axis="0 0 1" stiffness="5"/>
+        <inertial pos="-0.1 0 0.2" mass="0.5" diaginertia="0.004 0.005 0.002"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor joint="slide" gear="2" ctrlrange="-0.5 0.5" ctrllimited="true"/>
+    <position joint="shoulder" kp="3" kv="0.2" ctrlrange="-1 1"/>
+    <motor joint="hip" forcelimited="true" forcerange="-0.3 0.3"/>
+  </actuator>
+</mujoco>"""
+
+MODELS = {f"cartpole_{n}": lambda n=n: mujoco.MjModel.from_xml_path(str(ROOT / "models" / f"cartpole_{n}.xml"))
+          for n in (1, 2, 3, 4)}
+MODELS["branches, Euler"] = lambda: mujoco.MjModel.from_xml_string(BRANCHES.format(integrator="Euler"))
+MODELS["branches, RK4"] = lambda: mujoco.MjModel.from_xml_string(BRANCHES.format(integrator="RK4"))
+
+
+def lean_of(model):
+    effects = scene.analyze(model)
+    return scene.lean_model(model, effects), effects
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_the_generated_step_follows_mujocos_c_step(x64, name):
+    model = MODELS[name]()
+    lean, effects = lean_of(model)
+    assert scene.generated_step_applies(lean, effects)
+    step = jax.jit(scene.make_step(lean, effects))
+    rng = np.random.default_rng(0)
+    data = mujoco.MjData(model)
+    data.qpos[:] = model.qpos0 + rng.uniform(-1, 1, model.nq)
+    data.qvel[:] = rng.uniform(-2, 2, model.nv)
+    state = scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
+    for _ in range(200):  # controls beyond the ranges test the clamps
+        data.ctrl[:] = rng.uniform(-2, 2, model.nu)
+        state = step(state, jnp.array(data.ctrl))
+        mujoco.mj_step(model, data)
+        scale = max(1.0, np.abs(data.qvel).max())
+        np.testing.assert_allclose(state.qpos, data.qpos, rtol=0, atol=1e-10 * scale)
+        np.testing.assert_allclose(state.qvel, data.qvel, rtol=0, atol=1e-10 * scale)
+    assert np.abs(data.qvel).max() > 0.1  # it moved
+
+
+def random_point(model, seed):
+    rng = np.random.default_rng(seed)
+    state = scene.State(jnp.array(model.qpos0 + rng.normal(size=model.nq)), jnp.array(rng.normal(size=model.nv)),
+                        jnp.zeros(0))
+    return state, jnp.array(rng.uniform(-0.4, 0.4, model.nu))  # inside the clamps: differentiable there
+
+
+def test_the_generated_steps_derivative_is_plain_autodiff_through_mjx(x64):
+    """Forward and reverse mode through the inverse-dynamics derivative give MJX's Jacobians
+    (cartpole_3 likewise in tests/test_cartpole.py)."""
+    model = MODELS["branches, Euler"]()
+    lean, effects = lean_of(model)
+    generated = scene.make_step(lean, effects)
+    mjx_autodiff = scene.make_step(lean, effects, "stages", implicit=False)
+    state, control = random_point(model, 1)
+    expected = jax.jit(jax.jacfwd(mjx_autodiff, argnums=(0, 1)))(state, control)
+    for jacobian in (jax.jacfwd, jax.jacrev):
+        got = jax.jit(jacobian(generated, argnums=(0, 1)))(state, control)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-11)
+    assert np.abs(np.asarray(expected.qvel[0].qpos)).max() > 1e-3  # d qvel' / d qpos is not trivial
+
+
+def test_rk4s_derivative_passes_its_stages(x64):
+    """RK4 chains four accelerations: its Jacobian against central differences of the step itself."""
+    model = MODELS["cartpole_2"]()
+    effects = scene.analyze(model)
+    lean = scene.lean_model(model, effects, integrator="rk4")
+    assert scene.generated_step_applies(lean, effects)
+    step = scene.make_step(lean, effects)
+    state, control = random_point(model, 2)
+    flat = jax.jit(lambda q, v, u: jnp.concatenate(jax.tree.leaves(step(scene.State(q, v, state.act), u))))
+    inputs = (state.qpos, state.qvel, control)
+    for jacobian in (jax.jacfwd, jax.jacrev):
+        got = jax.jit(jacobian(flat, argnums=(0, 1, 2)))(*inputs)
+        for argument, block in enumerate(got):
+            columns = []
+            for k in range(inputs[argument].shape[0]):
+                shifted = lambda e: [x + e * (i == argument) * jnp.eye(x.shape[0])[k] for i, x in enumerate(inputs)]
+                columns.append((flat(*shifted(1e-6)) - flat(*shifted(-1e-6))) / 2e-6)
+            np.testing.assert_allclose(block, np.stack(columns, axis=1), rtol=1e-6, atol=1e-8)
+
+
+LIMITED = BRANCHES.format(integrator="Euler").replace('type="hinge" axis="1 0 0"',
+                                                     'type="hinge" axis="1 0 0" limited="true" range="-1 1"')
+
+
+@pytest.mark.parametrize("source, edit, reason", [
+    (LIMITED, None, "constraints"),
+    (BRANCHES.format(integrator="implicitfast"), None, "mjINT_IMPLICITFAST integrator"),
+    (BRANCHES.format(integrator="Euler").replace('type="hinge" axis="1 0 0"', 'type="ball"'), None,
+     "free or ball joints"),
+    (BRANCHES.format(integrator="Euler"), lambda m: m.body_gravcomp.__setitem__(2, 1.0), "gravity compensation"),
+])
+def test_scenes_the_generator_does_not_cover_run_through_mjx(source, edit, reason):
+    model = mujoco.MjModel.from_xml_string(source)
+    if edit:
+        edit(model)
+    lean, effects = lean_of(model)
+    assert reason in tree.unsupported(lean, effects)
+    assert not scene.generated_step_applies(lean, effects)
+    # The default pipeline then is MJX's: its step runs and stays finite.
+    step = jax.jit(scene.make_step(lean, effects))
+    state = step(scene.initial_state(lean), jnp.zeros(lean.nu))
+    assert np.all(np.isfinite(state.qpos)) and np.all(np.isfinite(state.qvel))
