@@ -280,11 +280,15 @@ class _Scene:
             inertias[b] = _Inertia(rotational, _v_scale(centre, mass), mass)
         return inertias
 
-    def inverse_dynamics(self, qpos, qvel, qacc):
+    def place(self, qpos):
+        """What the mass matrix and inverse dynamics share: joint axes and body inertias at ``qpos``."""
+        position, rotation, axes = self.kinematics(qpos)
+        return axes, self.inertias(position, rotation)
+
+    def inverse_dynamics(self, placed, qvel, qacc):
         """Recursive Newton-Euler: M(q) qacc + c(q, qvel), armature excluded (MuJoCo's qfrc_bias at qacc)."""
         m = self.model
-        position, rotation, axes = self.kinematics(qpos)
-        inertias = self.inertias(position, rotation)
+        axes, inertias = placed
         velocity, acceleration, force = {0: (_ZERO3, _ZERO3)}, {0: (_ZERO3, _v_scale(self.gravity, -1.0))}, {}
         for b in self.bodies:
             v, a = velocity[m.body_parentid[b]], acceleration[m.body_parentid[b]]
@@ -303,11 +307,11 @@ class _Scene:
                 torque[dof] = _s_dot(axis, force[b])
         return torque
 
-    def mass_matrix(self, qpos):
+    def mass_matrix(self, placed):
         """Composite rigid bodies: M_ij = s_i . (I_c s_j) for dof i an ancestor of (or before, in its body) dof j."""
         m = self.model
-        position, rotation, axes = self.kinematics(qpos)
-        composite = self.inertias(position, rotation)
+        axes, inertias = placed
+        composite = dict(inertias)
         for b in reversed(self.bodies):
             parent = m.body_parentid[b]
             if parent:
@@ -383,25 +387,29 @@ def make_acceleration(model: mujoco.MjModel) -> Callable:
     """``acceleration(qpos, qvel, ctrl) -> qacc`` of one example, with the inverse-dynamics derivative."""
     scene = _Scene(model)
 
-    def solve(qpos, rhs):
-        matrix = scene.mass_matrix(qpos)
+    def solve(placed, rhs):
+        matrix = scene.mass_matrix(placed)
         for i in range(scene.nv):
             matrix[i][i] = _add(matrix[i][i], float(scene.diagonal[i]))
-        return _stack(_cholesky_solve(matrix, [rhs[i] for i in range(scene.nv)]), qpos)
+        return _stack(_cholesky_solve(matrix, [rhs[i] for i in range(scene.nv)]), rhs)
 
-    def residual(qpos, qvel, ctrl, qacc):
-        return _stack(scene.inverse_dynamics(qpos, qvel, qacc), qvel) - scene.applied_forces(qpos, qvel, ctrl)
+    def residual(qpos, qvel, ctrl, qacc, placed):
+        return _stack(scene.inverse_dynamics(placed, qvel, qacc), qvel) - scene.applied_forces(qpos, qvel, ctrl)
+
+    def forward(qpos, qvel, ctrl, placed):
+        return solve(placed, -residual(qpos, qvel, ctrl, [0.0] * scene.nv, placed))
 
     @jax.custom_jvp
     def acceleration(qpos, qvel, ctrl):
-        return solve(qpos, -residual(qpos, qvel, ctrl, [0.0] * scene.nv))
+        return forward(qpos, qvel, ctrl, scene.place(qpos))
 
     @acceleration.defjvp
     def acceleration_jvp(primals, tangents):
         qpos, qvel, ctrl = primals
-        qacc = acceleration(qpos, qvel, ctrl)
-        _, residual_dot = jax.jvp(lambda q, v, u: residual(q, v, u, qacc), primals, tangents)
-        return qacc, -solve(qpos, residual_dot)
+        placed = scene.place(qpos)  # once for the value and the solve; the residual's tangent places again
+        qacc = forward(qpos, qvel, ctrl, placed)
+        _, residual_dot = jax.jvp(lambda q, v, u: residual(q, v, u, qacc, scene.place(q)), primals, tangents)
+        return qacc, -solve(placed, residual_dot)
 
     return acceleration
 
