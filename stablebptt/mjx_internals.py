@@ -22,7 +22,7 @@ WRITTEN_FOR = "3.17.0"  # mujoco-mjx
 # backend is absent, which it always is here: keep that out of users' output.
 with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx  # noqa: F401
-from mujoco.mjx._src import collision_driver, constraint, passive, smooth, solver  # noqa: E402
+from mujoco.mjx._src import collision_convex, collision_driver, constraint, passive, smooth, solver  # noqa: E402
 from mujoco.mjx._src import forward  # noqa: E402
 from mujoco.mjx._src import types  # noqa: E402
 
@@ -92,4 +92,25 @@ def _ls_point_create_stable(cls, *args, **kwargs):
 # and has no square, in forward and reverse mode alike.
 solver._LSPoint.create = classmethod(_ls_point_create_stable)
 
-__all__ = ["mjx", "collision_driver", "constraint", "passive", "smooth", "solver", "forward", "types"]
+
+def _closest_segment_point_plane_stable(a, b, p0, plane_normal):
+    n = plane_normal
+    along = jnp.sum(n * (b - a))
+    denominator = along + 1e-6 * (along == 0.0)
+    numerator = jnp.sum(p0 * n) - jnp.sum(n * a)
+    raw = jax.lax.stop_gradient(numerator / denominator)
+    on_segment = (raw >= 0) & (raw <= 1)
+    t = jnp.where(on_segment, numerator / jnp.where(on_segment, denominator, 1.0), jnp.clip(raw, 0, 1))
+    return a + t * (b - a)
+
+
+# MJX clips a capsule's or box's edge against a convex body's side planes at
+# t = distance / (normal . edge), clipped to [0, 1]. For a plane nearly
+# parallel to the edge the quotient is huge and clipped away, so its cotangent
+# is 0, but the quotient's slope in the denominator, -t / denominator, is inf in
+# float32: 0 x inf gives NaN in reverse mode (manipulator, stacker). Here a
+# clipped t is a constant, as its derivative already says, and the quotient is
+# only formed where it lands on the segment; values are unchanged.
+collision_convex._closest_segment_point_plane = _closest_segment_point_plane_stable
+
+__all__ = ["mjx", "collision_convex", "collision_driver", "constraint", "passive", "smooth", "solver", "forward", "types"]

@@ -227,3 +227,32 @@ def test_the_loop_free_solvers_jacobians_stay_finite_where_the_line_search_direc
         assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(jacobians[name])), name
     for a, b in zip(jax.tree.leaves(jacobians["reverse"]), jax.tree.leaves(jacobians["forward"])):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_clipping_an_edge_nearly_parallel_to_a_side_plane_keeps_reverse_mode_finite():
+    # MJX clips a capsule's or box's edge against a convex body's side planes
+    # (manipulator, stacker); an edge nearly parallel to a plane gave NaN
+    # cotangents. Values: the clipped intersection of the closed form.
+    from stablebptt.mjx_internals import collision_convex
+    point = collision_convex._closest_segment_point_plane
+    normal = jnp.array([0.0, 0.0, 1.0], jnp.float32)
+    cases = [((0, 0, 0), (1, 0, 1e-30), (0, 0, 1)),  # nearly parallel, clipped to b
+             ((0, 0, 0), (1, 0, 0), (0, 0, 1)),  # exactly parallel (MJX divides by 1e-6)
+             ((0, 0, -1), (1, 0, 1), (0, 0, 0.5)),  # crosses the plane at t = 0.75
+             ((0, 0, 1), (1, 0, 2), (0, 0, 0.5))]  # plane behind a: clipped to a
+    for a, b, on_plane in cases:
+        a, b, on_plane = (jnp.array(v, jnp.float32) for v in (a, b, on_plane))
+        along = float(b[2] - a[2])
+        t = float(np.clip((on_plane[2] - a[2]) / (along if along else 1e-6), 0, 1))
+        np.testing.assert_allclose(point(a, b, on_plane, normal), a + t * (b - a), atol=1e-6)
+        gradients = jax.grad(lambda a, b, p: jnp.sum(point(a, b, p, normal)), argnums=(0, 1, 2))(a, b, on_plane)
+        assert all(bool(jnp.all(jnp.isfinite(g))) for g in gradients), (a, b, gradients)
+    # Where the intersection lies on the edge, its derivative is the closed form's:
+    # the plane's height moves the point along the edge by 1 / (b - a)_z.
+    a, b = jnp.array([0.0, 0.0, -1.0]), jnp.array([1.0, 0.0, 1.0])
+    slope = jax.grad(lambda h: point(a, b, jnp.array([0.0, 0.0, h]), normal)[0])(0.5)
+    np.testing.assert_allclose(slope, 0.5, rtol=1e-6)
+    edges = jax.grad(lambda p0: jnp.sum(collision_convex._clip_edge_to_planes(
+        p0, jnp.array([1.0, 0.0, 1e-30]), jnp.array([[0.0, 0.0, 1.0]] * 4), jnp.tile(normal, (4, 1)))[0]))(
+        jnp.zeros(3, jnp.float32))
+    assert bool(jnp.all(jnp.isfinite(edges)))
