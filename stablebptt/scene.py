@@ -254,6 +254,12 @@ def put_model(model: mujoco.MjModel):
         raise InputError(f"MJX cannot simulate this model: {error}") from None
 
 
+def constraint_rows(model: mujoco.MjModel) -> int:
+    """The rows of MJX's constraint system for ``model`` (every candidate contact's and limit's, active or not):
+    the size of the solver's matrices, and so of its per-step work."""
+    return int(mjx.make_data(put_model(model))._impl.efc_J.shape[0])
+
+
 def with_options(model: mujoco.MjModel, integrator: str | None = None, timestep: float | None = None) -> mujoco.MjModel:
     """A copy of ``model`` with its integrator and time step overridden where given."""
     copied = copy.copy(model)

@@ -37,6 +37,11 @@ DEFAULT_HORIZON = 100
 DEFAULT_SPREAD = 0.1  # per-dof half-width of the initial-state noise when the MJCF declares none
 MAX_HORIZON = 100_000  # steps; beyond it the rollout's stored states alone outgrow any machine
 FORWARD_MODE_MAX_STATE = 64  # numbers in (qpos, qvel, act) up to which step Jacobians are built forward
+# Forward mode pushes every tangent through the constraint solver; reverse mode pulls one cotangent
+# through a loop-free solver. Tangents x constraint rows above which forward mode's exact solver is
+# not worth its price (docs/performance.md): manipulator (40,000) and stacker (46,000) update 8-14x
+# slower forward; humanoid (23,000) 2.7x, cheetah (3,500) 3.7x.
+FORWARD_MODE_MAX_SOLVER_WORK = 30_000
 # Joint types as plain ints: MuJoCo's enums do not compare equal to NumPy integers.
 FREE, BALL, SLIDE, HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL,
                                             mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE))
@@ -58,7 +63,7 @@ class Config:
     steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the MJCF's bptt_horizon, else 100)"})
     pipeline: str = field(default="lean", metadata={"help": "lean: a step generated body by body for small contact-free trees of hinges and slides, else stages; stages: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "stages", "mjx")})
     solver_iterations: int = field(default=0, metadata={"help": "constraint solver of scenes with contacts or limits: N runs exactly N Newton iterations (loop-free); 0 keeps the model's own solver where gradients are forward mode and, in reverse mode, takes the fewest iterations within 1e-3 of it (relative acceleration at sampled states)"})
-    step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers)", "choices": ("auto", "forward", "reverse")})
+    step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers whose tangents times constraint rows stay within 30,000)", "choices": ("auto", "forward", "reverse")})
     # The task, over what the MJCF declares (models/README.md); a task file may set these too.
     task_file: str = field(default="", metadata={"help": "JSON file of task options (keys as these options' names, e.g. {\"init_pose\": \"hinge=3.1416\"}); default: MODEL.task.json next to the model when it exists; none: no file"})
     init_pose: str = field(default="", metadata={"help": "centre of the initial states: a keyframe's name, or JOINT=VALUE,... on the MJCF's own (hinges in radians)"})
@@ -365,8 +370,15 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
     derivative = config.step_derivative
     if derivative == "auto":
         # Forward mode costs one batched pass per state number; reverse mode one
-        # pass through every tiny MJX operation: small states favour forward.
-        derivative = "forward" if state_size <= FORWARD_MODE_MAX_STATE else "reverse"
+        # pass through every tiny MJX operation: small states favour forward,
+        # unless every tangent also goes through a large constraint system.
+        tangents = state_size + model.nu
+        solver_work = 0
+        if effects.constraints:
+            solver_work = tangents * scene.constraint_rows(
+                scene.lean_model(model, effects, config.integrator or None, config.dt or None))
+        derivative = ("forward" if state_size <= FORWARD_MODE_MAX_STATE and solver_work <= FORWARD_MODE_MAX_SOLVER_WORK
+                      else "reverse")
     timestep = config.dt or float(model.opt.timestep)
     simulated_time = config.horizon_seconds or spec.horizon * float(model.opt.timestep)
     horizon = config.steps or round(simulated_time / timestep)
@@ -436,6 +448,8 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
     if generated:
         summary += "; step: generated body by body"
     summary += f"; step gradients: {derivative} mode"
+    if config.step_derivative == "auto" and derivative == "reverse" and state_size <= FORWARD_MODE_MAX_STATE:
+        summary += f" ({tangents} tangents x {solver_work // tangents} constraint rows: cheaper than forward)"
     if generated or (config.pipeline in ("lean", "stages") and scene.implicit_derivative_applies(lean, effects)):
         summary += " through inverse dynamics"
     known_columns, symmetric_joints = scene.symmetries(lean, effects)
