@@ -415,10 +415,11 @@ def report(out: Path, draw: tuple[str, ...] = STUDIES) -> list[str]:
                     "controls ('contacts': its active contacts). Trajectory error: the "
                     "lean MJX step in float64 against MuJoCo's C step with the model's own settings, after "
                     f"{rows[0]['steps']} steps of random controls (each held for two steps, so '2 dt' sees the same "
-                    "controls). Jacobian error: forward-mode step Jacobian (float64) against central differences of "
-                    "the C step with the model's own solver at the same time step, relative Frobenius norm. Times: "
-                    f"float32, a batch of {rows[0]['batch']} states. 'N iterations': exactly N Newton iterations, "
-                    "loop-free (what reverse mode runs).", ""]
+                    "controls). Jacobian error: forward-mode step Jacobian (float64; the solver's implicit derivative "
+                    "at the acceleration it reaches) against central differences of the C step with the model's own "
+                    "solver at the same time step, relative Frobenius norm. Times: float32, a batch of "
+                    f"{rows[0]['batch']} states. 'N iterations': exactly N Newton iterations "
+                    "(`--solver-iterations N`).", ""]
         summary += table + ["", "![contact](contact.png)", ""]
         printed += table + [""]
     atomic_write(out / "summary.md", ("\n".join(summary) + "\n").encode())

@@ -22,7 +22,7 @@ WRITTEN_FOR = "3.17.0"  # mujoco-mjx
 # backend is absent, which it always is here: keep that out of users' output.
 with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx  # noqa: F401
-from mujoco.mjx._src import collision_convex, collision_driver, constraint, passive, smooth, solver  # noqa: E402
+from mujoco.mjx._src import collision_convex, collision_driver, constraint, passive, smooth, solver, support  # noqa: E402
 from mujoco.mjx._src import forward  # noqa: E402
 from mujoco.mjx._src import types  # noqa: E402
 
@@ -113,4 +113,4 @@ def _closest_segment_point_plane_stable(a, b, p0, plane_normal):
 # only formed where it lands on the segment; values are unchanged.
 collision_convex._closest_segment_point_plane = _closest_segment_point_plane_stable
 
-__all__ = ["mjx", "collision_convex", "collision_driver", "constraint", "passive", "smooth", "solver", "forward", "types"]
+__all__ = ["mjx", "collision_convex", "collision_driver", "constraint", "passive", "smooth", "solver", "support", "forward", "types"]

@@ -2,8 +2,8 @@
 
 ``analyze(model)`` reads an ``mujoco.MjModel`` and finds which effects it can
 need at all; ``lean_model`` switches the others off through MuJoCo's disable
-flags (on a copy: the user's file and model are untouched) and picks solver
-settings MJX can reverse-differentiate; ``make_step`` builds a step over the
+flags (on a copy: the user's file and model are untouched); ``make_step``
+builds a step over the
 minimal state (qpos, qvel, act) that runs only the pipeline stages the scene
 needs, skipping those no flag reaches (camera and light poses, sensors,
 tendons, collision and constraint assembly).
@@ -22,7 +22,7 @@ import numpy as np
 from stablebptt import tree
 from stablebptt import mujoco_log  # noqa: F401  (MuJoCo's warnings to stderr, never to MUJOCO_LOG.TXT)
 from stablebptt.errors import InputError
-from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth, solver
+from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth, solver, support
 from stablebptt.mjx_internals import forward as mjx_forward
 from stablebptt.mjx_internals import types as mjx_types
 from stablebptt.flows import KnownColumns
@@ -275,11 +275,11 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
     """A copy of ``model`` with every absent effect and every diagnostic switched off.
 
     Args:
-      solver_iterations: None keeps the model's own constraint solver (a while
-        loop: forward mode differentiates it exactly, reverse mode cannot pass
-        it). A number N sets exactly N Newton iterations (tolerance 0, which
-        MuJoCo's C step honours too), which ``make_step`` runs as a scan that
-        reverse mode passes; ``loop_free_iterations`` chooses N.
+      solver_iterations: None keeps the model's own constraint solver. A
+        number N sets exactly N Newton iterations (tolerance 0, which MuJoCo's
+        C step honours too): cheaper, and different physics where N does not
+        reach the solution. Either way the solver's iterations are not
+        differentiated (``_solve``).
     """
     lean = with_options(model, integrator, timestep)
     for bit in diagnostics_bits(lean):
@@ -323,69 +323,8 @@ def _fix_iterations(model: mujoco.MjModel, iterations: int) -> None:
 
 
 def fixed_iterations(model: mujoco.MjModel) -> bool:
-    """Whether ``model``'s Newton solver runs a fixed number of iterations (tolerance 0), loop-free in MJX."""
+    """Whether ``model``'s Newton solver runs a fixed number of iterations (tolerance 0)."""
     return model.opt.tolerance == 0 and int(model.opt.solver) == int(mujoco.mjtSolver.mjSOL_NEWTON)
-
-
-ITERATION_CANDIDATES = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 100)
-ITERATION_TOLERANCE = 1e-3  # relative error in acceleration a loop-free solver may have against the model's own
-
-
-def sampled_states(model: mujoco.MjModel, qpos: np.ndarray | None = None, qvel: np.ndarray | None = None,
-                   steps: int = 160, count: int = 16, seed: int = 0) -> list[mujoco.MjData]:
-    """``count`` states that the model's own physics (MuJoCo's C step) reaches over ``steps`` steps from
-    (``qpos``, ``qvel``), default its reference pose at rest, under random controls in their ranges."""
-    data = mujoco.MjData(model)
-    if qpos is not None:
-        data.qpos[:] = qpos
-    if qvel is not None:
-        data.qvel[:] = qvel
-    rng = np.random.default_rng(seed)
-    low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
-    limited = model.actuator_ctrllimited.astype(bool)
-    every = max(steps // count, 1)
-    states = []
-    for index in range(every * count):
-        data.ctrl[:] = np.where(limited, rng.uniform(low, high), rng.uniform(-1, 1, model.nu))
-        mujoco.mj_step(model, data)
-        if not np.all(np.isfinite(data.qvel)):
-            break
-        if index % every == every - 1:
-            states.append(copy.copy(data))
-    return states
-
-
-def _acceleration(model: mujoco.MjModel, state: mujoco.MjData) -> np.ndarray:
-    data = copy.copy(state)
-    data.qacc_warmstart[:] = 0  # the lean step starts from zero or the unconstrained acceleration, as here
-    mujoco.mj_forward(model, data)
-    return data.qacc.copy()
-
-
-def iteration_error(model: mujoco.MjModel, iterations: int, states: list | None = None) -> float:
-    """The largest relative acceleration error of ``iterations`` fixed Newton iterations against ``model``'s
-    own solver at ``states`` (default: ``sampled_states(model)``), in MuJoCo's C forward dynamics."""
-    states = sampled_states(model) if states is None else states
-    return _largest_error(model, iterations, states, [_acceleration(model, state) for state in states])
-
-
-def _largest_error(model: mujoco.MjModel, iterations: int, states: list, references: list) -> float:
-    fixed = copy.copy(model)
-    _fix_iterations(fixed, iterations)
-    return max((float(np.linalg.norm(_acceleration(fixed, state) - reference) / max(np.linalg.norm(reference), 1e-9))
-                for state, reference in zip(states, references)), default=0.0)
-
-
-def loop_free_iterations(model: mujoco.MjModel, states: list | None = None, tolerance: float = ITERATION_TOLERANCE) -> int:
-    """The fewest fixed Newton iterations within ``tolerance`` of ``model``'s own solver (relative, in
-    acceleration, at ``states``, default ``sampled_states(model)``); at most the model's own limit."""
-    states = sampled_states(model) if states is None else states
-    references = [_acceleration(model, state) for state in states]  # the model's own solver, once
-    limit = max(int(model.opt.iterations), 1)
-    for count in ITERATION_CANDIDATES:
-        if count >= limit or _largest_error(model, count, states, references) <= tolerance:
-            return min(count, limit)
-    return limit
 
 
 def describe(effects: SceneEffects, model: mujoco.MjModel, original: mujoco.MjModel | None = None) -> str:
@@ -404,7 +343,7 @@ def describe(effects: SceneEffects, model: mujoco.MjModel, original: mujoco.MjMo
             count = int(model.opt.iterations)
             line += f"; constraint solver: {count} Newton iteration{'s' if count > 1 else ''}, fixed"
             if original is not None and not fixed_iterations(original):
-                line += f" (loop-free; the model's own: {_solver_name(original)}, tolerance {original.opt.tolerance:g})"
+                line += f" (the model's own: {_solver_name(original)}, tolerance {original.opt.tolerance:g})"
         else:
             line += (f"; constraint solver: the model's own ({_solver_name(model)}, at most {model.opt.iterations} iterations, "
                      f"tolerance {model.opt.tolerance:g})")
@@ -465,23 +404,29 @@ def _lean_forward(model: mjx.Model, data: mjx.Data, effects: SceneEffects, mass:
 
 
 def _solve(model: mjx.Model, data: mjx.Data) -> mjx.Data:
-    """MJX's constraint solver; with a tolerance of 0, exactly ``iterations`` Newton iterations as a scan.
+    """MJX's constraint solver, differentiated implicitly at the acceleration it finds.
 
-    MJX runs more than one iteration in a while loop, which reverse mode cannot
-    pass. A Newton iteration depends on nothing but the acceleration it starts
-    from, so N iterations are N one-iteration solves, each warm-started at the
-    last one's acceleration (which has the lower cost, so MJX starts there).
+    The solver minimizes a convex cost in the acceleration, so at its minimum
+    the cost's gradient g vanishes and d qacc = -H^-1 (d g at fixed qacc), H
+    the cost's Hessian: one Newton step's tangent, taken at the solution. Its
+    value is 0 there, so values are the solver's; its tangent is the solution's
+    (implicit function theorem), not that of the iterations that found it.
+    Differentiating the iterations instead goes wrong where the start is already
+    optimal: a joint at rest in friction loss (dm_control's finger) keeps the
+    unconstrained acceleration's tangent, off by 10x in the constraint force.
+    The iterations themselves are not differentiated at all, so reverse mode
+    passes the model's own solver (its while loop) as forward mode does.
     """
-    iterations = int(model.opt.iterations)
-    if not (float(model.opt.tolerance) == 0 and iterations > 1 and model.opt.solver == mjx_types.SolverType.NEWTON):
-        return solver.solve(model, data)
-    once = model.replace(opt=model.opt.replace(iterations=1))
-    again = model.replace(opt=model.opt.replace(iterations=1, disableflags=model.opt.disableflags
-                                                & ~mjx_types.DisableBit.WARMSTART))
-    data = solver.solve(once, data)
-    data, _ = jax.lax.scan(lambda d, _: (solver.solve(again, d.replace(qacc_warmstart=d.qacc)), None),
-                           data, None, length=iterations - 1)
-    return data
+    solved = solver.solve(model, jax.lax.stop_gradient(data))
+    newton = model.replace(opt=model.opt.replace(solver=mjx_types.SolverType.NEWTON))
+    at_solution = solver.Context.create(newton, data.replace(qacc=solved.qacc))
+    correction = -at_solution.Mgrad  # H^-1 g: ~0 in value, the implicit tangent
+    qacc = solved.qacc + correction - jax.lax.stop_gradient(correction)
+    # At the minimum M qacc - qfrc_smooth - qfrc_constraint = 0: the constraint force's tangent.
+    balance = support.mul_m(model, data, qacc) - data.qfrc_smooth
+    qfrc_constraint = solved.qfrc_constraint + balance - jax.lax.stop_gradient(balance)
+    return data.tree_replace({"qacc": qacc, "qfrc_constraint": qfrc_constraint,
+                              "_impl.efc_force": solved._impl.efc_force})
 
 
 def implicit_derivative_applies(model: mujoco.MjModel, effects: SceneEffects) -> bool:

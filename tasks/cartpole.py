@@ -37,8 +37,8 @@ DEFAULT_HORIZON = 100
 DEFAULT_SPREAD = 0.1  # per-dof half-width of the initial-state noise when the MJCF declares none
 MAX_HORIZON = 100_000  # steps; beyond it the rollout's stored states alone outgrow any machine
 FORWARD_MODE_MAX_STATE = 64  # numbers in (qpos, qvel, act) up to which step Jacobians are built forward
-# Forward mode pushes every tangent through the constraint solver; reverse mode pulls one cotangent
-# through a loop-free solver. Tangents x constraint rows above which forward mode's exact solver is
+# Forward mode pushes every tangent through the constraint solver's implicit derivative; reverse mode
+# pulls one cotangent through it. Tangents x constraint rows above which forward mode is
 # not worth its price (docs/performance.md): manipulator (40,000) and stacker (46,000) update 8-14x
 # slower forward; humanoid (23,000) 2.7x, cheetah (3,500) 3.7x.
 FORWARD_MODE_MAX_SOLVER_WORK = 30_000
@@ -62,7 +62,7 @@ class Config:
     dt: float = field(default=0.0, metadata={"help": "override the MJCF's time step; the simulated time stays the same unless --steps is given"})
     steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the MJCF's bptt_horizon, else 100)"})
     pipeline: str = field(default="lean", metadata={"help": "lean: a step generated body by body for small contact-free trees of hinges and slides, else stages; stages: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "stages", "mjx")})
-    solver_iterations: int = field(default=0, metadata={"help": "constraint solver of scenes with contacts or limits: N runs exactly N Newton iterations (loop-free); 0 keeps the model's own solver where gradients are forward mode and, in reverse mode, takes the fewest iterations within 1e-3 of it (relative acceleration at sampled states)"})
+    solver_iterations: int = field(default=0, metadata={"help": "constraint solver of scenes with contacts or limits: N runs exactly N Newton iterations (cheaper, different physics); 0 keeps the model's own solver"})
     step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers whose tangents times constraint rows stay within 30,000)", "choices": ("auto", "forward", "reverse")})
     # The task, over what the MJCF declares (models/README.md); a task file may set these too.
     task_file: str = field(default="", metadata={"help": "JSON file of task options (keys as these options' names, e.g. {\"init_pose\": \"hinge=3.1416\"}); default: MODEL.task.json next to the model when it exists; none: no file"})
@@ -81,7 +81,7 @@ class Config:
         if not (math.isfinite(self.dt) and self.dt >= 0):
             raise InputError(f"{config_field(self, 'dt')} must be a finite positive time step (or 0 for the MJCF's own), got {self.dt}")
         if not 0 <= self.solver_iterations <= 10_000:
-            raise InputError(f"{config_field(self, 'solver_iterations')} must be between 1 and 10000 (or 0 to choose), got {self.solver_iterations}")
+            raise InputError(f"{config_field(self, 'solver_iterations')} must be between 1 and 10000 (or 0 for the model's own), got {self.solver_iterations}")
         if not 0 <= self.steps <= MAX_HORIZON:
             raise InputError(f"{config_field(self, 'steps')} must be between 1 and {MAX_HORIZON} (or 0 for the MJCF's own), got {self.steps}")
         if self.loss not in ("", "final", "mean"):
@@ -395,14 +395,7 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         for bit in scene.diagnostics_bits(lean):  # diagnostics change no dynamics, and MJX has none
             lean.opt.enableflags &= ~bit
     else:
-        # Forward mode differentiates the model's own constraint solver (its
-        # while loop) exactly; reverse mode needs a loop-free one, as close to it as asked.
-        iterations = config.solver_iterations or None
-        if iterations is None and derivative == "reverse" and effects.constraints:
-            # Measured where this task's rollouts go: from its initial state, over its horizon.
-            physics = scene.with_options(model, config.integrator or None, config.dt or None)
-            iterations = scene.loop_free_iterations(physics, scene.sampled_states(
-                physics, np.asarray(spec.init.qpos), np.asarray(spec.init.qvel), steps=horizon))
+        iterations = config.solver_iterations or None  # None: the model's own solver, as the file says
         lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None, iterations)
     step = scene.make_step(lean, effects, config.pipeline)
     weights = jnp.asarray(spec.joint_weight / max(spec.joint_weight.sum(), 1e-300))
