@@ -38,10 +38,10 @@ DEFAULT_SPREAD = 0.1  # per-dof half-width of the initial-state noise when the M
 MAX_HORIZON = 100_000  # steps; beyond it the rollout's stored states alone outgrow any machine
 FORWARD_MODE_MAX_STATE = 64  # numbers in (qpos, qvel, act) up to which step Jacobians are built forward
 # Forward mode pushes every tangent through the constraint solver's implicit derivative; reverse mode
-# pulls one cotangent through it. Tangents x constraint rows above which forward mode is
-# not worth its price (docs/performance.md): manipulator (40,000) and stacker (46,000) update 8-14x
-# slower forward; humanoid (23,000) 2.7x, cheetah (3,500) 3.7x.
-FORWARD_MODE_MAX_SOLVER_WORK = 30_000
+# pulls one cotangent through it. Tangents x constraint rows above which reverse mode's epoch is the
+# shorter (docs/performance.md): point_mass (12) and reacher (6) train 2-3x faster forward;
+# ball_in_cup (650), finger (744), cheetah (3,504) and humanoid (23,028) 1.2-12x faster reverse.
+FORWARD_MODE_MAX_SOLVER_WORK = 500
 # Joint types as plain ints: MuJoCo's enums do not compare equal to NumPy integers.
 FREE, BALL, SLIDE, HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL,
                                             mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE))
@@ -63,7 +63,7 @@ class Config:
     steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the MJCF's bptt_horizon, else 100)"})
     pipeline: str = field(default="lean", metadata={"help": "lean: a step generated body by body for small contact-free trees of hinges and slides, else stages; stages: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "stages", "mjx")})
     solver_iterations: int = field(default=0, metadata={"help": "constraint solver of scenes with contacts or limits: N runs exactly N Newton iterations (cheaper, different physics); 0 keeps the model's own solver"})
-    step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers whose tangents times constraint rows stay within 30,000)", "choices": ("auto", "forward", "reverse")})
+    step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers whose tangents times constraint rows stay within 500)", "choices": ("auto", "forward", "reverse")})
     # The task, over what the MJCF declares (models/README.md); a task file may set these too.
     task_file: str = field(default="", metadata={"help": "JSON file of task options (keys as these options' names, e.g. {\"init_pose\": \"hinge=3.1416\"}); default: MODEL.task.json next to the model when it exists; none: no file"})
     init_pose: str = field(default="", metadata={"help": "centre of the initial states: a keyframe's name, or JOINT=VALUE,... on the MJCF's own (hinges in radians)"})
