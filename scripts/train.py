@@ -126,6 +126,14 @@ def train(argv: list[str], held: list) -> int:
                                         progress.on_epoch, progress.on_compiled, should_stop, run.owner)
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
+    except jax.errors.JaxRuntimeError as error:
+        if "RESOURCE_EXHAUSTED" not in str(error):
+            raise
+        # Not the plan's estimate failing alone: other processes may hold the device's memory.
+        device = jax.devices()[0]
+        fail(f"{task_label}: out of memory on {device.platform} ({device.device_kind}) while training; the run keeps "
+             f"its last checkpoint: free memory (another process may hold it) and continue with --resume {run_dir}, "
+             f"or start a new run with a smaller --batch, fewer --seeds or --steps", code=1)
     progress.close()
     if outcome.status == "diverged":
         print(f"error: {outcome.message}", file=sys.stderr)

@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -209,6 +210,25 @@ def test_a_full_disk_gets_one_line_leaves_no_temporary_and_the_run_resumes(tmp_p
     assert not [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]
     assert epochs_in(run_dir) == [1]
     monkeypatch.setattr(os, "fsync", real_fsync)
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
+    assert code == 0, err
+    assert epochs_in(run_dir) == [1, 2, 3]
+
+
+def test_running_out_of_device_memory_gets_one_line_and_the_run_resumes(tmp_path, capsys, monkeypatch):
+    # What a GPU shared with other processes raises mid-training (XLA's allocator, not the memory plan).
+    from stablebptt.cli import EpochProgress
+    run_dir, real_on_epoch = tmp_path / "oom", EpochProgress.on_epoch
+
+    def allocation_fails_in_epoch_2(self, epoch, metrics):
+        if epoch == 2:
+            raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 238662897624 bytes.")
+        return real_on_epoch(self, epoch, metrics)
+
+    monkeypatch.setattr(EpochProgress, "on_epoch", allocation_fails_in_epoch_2)
+    code, err, _ = train(capsys, *SMALL, "--epochs", "3", "--checkpoint-every", "1", "--out", str(run_dir))
+    assert code == 1 and len(err) == 1 and "out of memory on cpu" in err[0] and "--resume" in err[0], err
+    monkeypatch.setattr(EpochProgress, "on_epoch", real_on_epoch)
     code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
     assert code == 0, err
     assert epochs_in(run_dir) == [1, 2, 3]
