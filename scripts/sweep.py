@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from stablebptt import tasks
-from stablebptt.cli import build, fail, parse_config, stop_on_signals
+from stablebptt.cli import build, fail, out_of_memory, parse_config, stop_on_signals
 from stablebptt.errors import InputError
 
 # preset -> (task, the option that sets the complexity, its values): from the task registry
@@ -132,6 +132,11 @@ def main(argv: list[str]) -> int:
             report = grids.run_grid(grid, root, lambda: interrupted() or (deadline is not None and time.monotonic() > deadline), log)
         except InputError as error:
             fail(str(error))
+        except jax.errors.JaxRuntimeError as error:
+            if (line := out_of_memory(error)) is None:
+                raise
+            fail(f"{line}; every program keeps its last checkpoint: free memory (another process may hold it) and "
+                 f"run the same command again to resume, or give fewer --seeds", code=1)
     if interrupted():
         print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
         return 130

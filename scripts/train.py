@@ -117,7 +117,7 @@ def train(argv: list[str], held: list) -> int:
         print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
         return 0
 
-    from stablebptt.cli import EpochProgress, stop_on_signals
+    from stablebptt.cli import EpochProgress, out_of_memory, stop_on_signals
     progress = EpochProgress(started, train_config.epochs, start_epoch, train_config.train_size // train_config.batch,
                              f"{task_label} {train_config.mode}", args.no_progress)
     try:
@@ -127,13 +127,11 @@ def train(argv: list[str], held: list) -> int:
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     except jax.errors.JaxRuntimeError as error:
-        if "RESOURCE_EXHAUSTED" not in str(error):
+        if (line := out_of_memory(error)) is None:
             raise
-        # Not the plan's estimate failing alone: other processes may hold the device's memory.
-        device = jax.devices()[0]
-        fail(f"{task_label}: out of memory on {device.platform} ({device.device_kind}) while training; the run keeps "
-             f"its last checkpoint: free memory (another process may hold it) and continue with --resume {run_dir}, "
-             f"or start a new run with a smaller --batch, fewer --seeds or --steps", code=1)
+        fail(f"{task_label}: {line}; the run keeps its last checkpoint: free memory (another process may hold it) "
+             f"and continue with --resume {run_dir}, or start a new run with a smaller --batch, fewer --seeds or "
+             f"--steps", code=1)
     progress.close()
     if outcome.status == "diverged":
         print(f"error: {outcome.message}", file=sys.stderr)

@@ -107,6 +107,18 @@ def one_line_errors(prefix: str = "") -> Iterator[None]:
         fail(f"{prefix}{error.strerror}", code=1)
 
 
+def out_of_memory(error: BaseException) -> str | None:
+    """The start of the one line for a device allocation failure (XLA's RESOURCE_EXHAUSTED), or None.
+
+    It happens after the memory plan's estimate where other processes hold the device's memory.
+    """
+    import jax
+    if not (isinstance(error, jax.errors.JaxRuntimeError) and "RESOURCE_EXHAUSTED" in str(error)):
+        return None
+    device = jax.devices()[0]
+    return f"out of memory on {device.platform} ({device.device_kind}) while training"
+
+
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 

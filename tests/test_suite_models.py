@@ -168,6 +168,27 @@ def test_the_models_own_solver_in_reverse_mode_steps_as_mujocos_c_step_and_agree
     np.testing.assert_allclose(dot(reverse, tangent), dot(weight, forward), rtol=1e-8)
 
 
+def test_a_contact_rollout_follows_mujocos_c_step_with_the_files_own_solver(suite, x64):
+    """hopper falling onto the floor and kicking for 1 s under random controls: the lean step, as
+    training runs it, against MuJoCo's C step with the file's settings, state by state."""
+    path = suite / "hopper.xml"
+    task = cartpole.make(cartpole.Config(model=str(path)))
+    model = mujoco.MjModel.from_xml_path(str(path))
+    controls = np.random.default_rng(2).uniform(-1, 1, (round(1.0 / model.opt.timestep), model.nu))
+    data, visited, touching = mujoco.MjData(model), [], 0
+    for control in controls:
+        data.ctrl[:] = control
+        mujoco.mj_step(model, data)
+        visited.append(np.concatenate([data.qpos, data.qvel]))
+        touching += data.ncon > 0
+    assert touching > len(controls) // 4  # mostly in contact: the solver works in most steps
+    start = scene.initial_state(model)
+    states = jax.jit(lambda s, us: jax.lax.scan(lambda x, u: (task.dynamics.step(x, u),) * 2, s, us)[1])(
+        start, jnp.asarray(controls))
+    ours = np.concatenate([states.qpos, states.qvel], axis=1)
+    np.testing.assert_allclose(ours, np.array(visited), rtol=0, atol=1e-8)
+
+
 def test_step_jacobians_of_a_contact_model_with_friction_loss_are_finite(suite):
     """finger: contacts with an elliptic cone, joint limits and friction loss, the model's own solver.
 

@@ -108,6 +108,20 @@ def test_bad_sweep_input_gets_one_line_and_exit_code_2():
         assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, result.stderr)
 
 
+def test_running_out_of_device_memory_ends_a_sweep_in_one_line(tmp_path, capsys, monkeypatch):
+    from stablebptt import grid
+    from stablebptt.commands import sweep as sweep_command
+
+    def allocation_fails(*args, **kwargs):
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 1073741824 bytes.")
+
+    monkeypatch.setattr(grid, "run_grid", allocation_fails)
+    with pytest.raises(SystemExit) as exit_:
+        sweep_command.main([*TINY, "--epochs", "1", "--out", str(tmp_path)])
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert exit_.value.code == 1 and len(lines) == 1 and "out of memory on cpu" in lines[0] and "resume" in lines[0], lines
+
+
 @pytest.mark.parametrize("devices_per_host, hosts, programs", [(1, 1, 3), (4, 1, 4), (4, 1, 3), (4, 1, 1), (2, 1, 4), (2, 2, 3), (4, 2, 1)])
 def test_placement_runs_every_program_once_on_devices_of_one_host(devices_per_host, hosts, programs):
     """Every program lands on exactly one group; groups are disjoint, never span hosts, and use
