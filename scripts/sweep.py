@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from stablebptt import tasks
-from stablebptt.cli import build, fail, out_of_memory, parse_config, stop_on_signals
+from stablebptt.cli import build, fail, in_worker_thread, out_of_memory, parse_config, stop_on_signals
 from stablebptt.errors import InputError
 
 # preset -> (task, the option that sets the complexity, its values): from the task registry
@@ -129,7 +129,8 @@ def main(argv: list[str]) -> int:
     # after its current epoch and stops.
     with stop_on_signals(log) as interrupted:
         try:
-            report = grids.run_grid(grid, root, lambda: interrupted() or (deadline is not None and time.monotonic() > deadline), log)
+            stop = lambda: interrupted() or (deadline is not None and time.monotonic() > deadline)
+            report = in_worker_thread(lambda: grids.run_grid(grid, root, stop, log))
         except InputError as error:
             fail(str(error))
         except jax.errors.JaxRuntimeError as error:

@@ -117,13 +117,14 @@ def train(argv: list[str], held: list) -> int:
         print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
         return 0
 
-    from stablebptt.cli import EpochProgress, out_of_memory, stop_on_signals
+    from stablebptt.cli import EpochProgress, in_worker_thread, out_of_memory, stop_on_signals
     progress = EpochProgress(started, train_config.epochs, start_epoch, train_config.train_size // train_config.batch,
                              f"{task_label} {train_config.mode}", args.no_progress)
     try:
         with stop_on_signals(progress.write) as should_stop:
-            outcome = runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
-                                        progress.on_epoch, progress.on_compiled, should_stop, run.owner)
+            outcome = in_worker_thread(lambda: runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
+                                                                   progress.on_epoch, progress.on_compiled, should_stop,
+                                                                   run.owner))
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     except jax.errors.JaxRuntimeError as error:

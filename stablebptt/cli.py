@@ -12,6 +12,7 @@ import dataclasses
 import os
 import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Any, Callable, Iterator, NoReturn
 
@@ -146,6 +147,30 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None) -> I
     finally:
         for signum, old in previous.items():
             signal.signal(signum, old)
+
+
+def in_worker_thread(work: Callable[[], Any]) -> Any:
+    """``work()`` in a worker thread, the main thread waiting in short slices; its result or its exception.
+
+    Python runs signal handlers only between the main thread's calls: a main thread
+    inside one XLA compile (minutes for a large contact scene) would not see
+    SIGTERM until it returned, and a second signal would not stop it at once.
+    """
+    outcome: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            outcome["value"] = work()
+        except BaseException as error:  # handed to the main thread as it is
+            outcome["error"] = error
+
+    worker = threading.Thread(target=run, name="stablebptt-work", daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(0.2)
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["value"]
 
 
 COMPILE_CACHE_ENV = "STABLEBPTT_COMPILE_CACHE"  # a directory, or "off"

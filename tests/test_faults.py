@@ -101,6 +101,31 @@ def test_a_signal_at_any_moment_leaves_a_folder_that_resumes(tmp_path, capsys, h
     assert epochs_in(run_dir) == [1]
 
 
+def test_signals_are_handled_while_the_work_sits_in_one_long_native_call():
+    # XLA compiles a large contact scene in one call for many minutes; Python runs a signal handler
+    # only when the main thread's call returns, so the work runs in a worker thread. The native call
+    # here is LAPACK's (it releases the interpreter, as XLA's compiler does).
+    from stablebptt.cli import in_worker_thread
+    handled, call = [], []
+    previous = signal.signal(signal.SIGUSR1, lambda signum, frame: handled.append(time.perf_counter()))
+    try:
+        def work():
+            matrix = np.random.default_rng(0).standard_normal((2000, 2000))
+            threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGUSR1)).start()
+            call.append(time.perf_counter())
+            np.linalg.eigvals(matrix)  # about 2 s on one core
+            call.append(time.perf_counter())
+            return "done"
+        assert in_worker_thread(work) == "done"
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    # Handled in the first half of the call, not after it (in the main thread it would wait for the return).
+    start, end = call
+    assert handled and handled[0] - start < (end - start) / 2, (handled, call)
+    with pytest.raises(InputError, match="raised in the worker"):
+        in_worker_thread(lambda: (_ for _ in ()).throw(InputError("raised in the worker")))
+
+
 def test_two_runs_given_one_folder_at_once_one_is_refused(tmp_path):
     record = {"task": "repulsion", "task_config": {}, "train": {}}
     for attempt in range(20):
