@@ -367,18 +367,6 @@ def make(config: Config) -> Task:
 
 def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects: scene.SceneEffects) -> Task:
     state_size = 2 * model.nv + model.na + (model.nq - model.nv)
-    derivative = config.step_derivative
-    if derivative == "auto":
-        # Forward mode costs one batched pass per state number; reverse mode one
-        # pass through every tiny MJX operation: small states favour forward,
-        # unless every tangent also goes through a large constraint system.
-        tangents = state_size + model.nu
-        solver_work = 0
-        if effects.constraints:
-            solver_work = tangents * scene.constraint_rows(
-                scene.lean_model(model, effects, config.integrator or None, config.dt or None))
-        derivative = ("forward" if state_size <= FORWARD_MODE_MAX_STATE and solver_work <= FORWARD_MODE_MAX_SOLVER_WORK
-                      else "reverse")
     timestep = config.dt or float(model.opt.timestep)
     simulated_time = config.horizon_seconds or spec.horizon * float(model.opt.timestep)
     horizon = config.steps or round(simulated_time / timestep)
@@ -397,6 +385,15 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
     else:
         iterations = config.solver_iterations or None  # None: the model's own solver, as the file says
         lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None, iterations)
+    derivative = config.step_derivative
+    if derivative == "auto":
+        # Forward mode costs one batched pass per state number; reverse mode one
+        # pass through every tiny MJX operation: small states favour forward,
+        # unless every tangent also goes through a large constraint system.
+        tangents = state_size + model.nu
+        rows = scene.constraint_rows(lean) if effects.constraints else 0
+        derivative = ("forward" if state_size <= FORWARD_MODE_MAX_STATE and tangents * rows <= FORWARD_MODE_MAX_SOLVER_WORK
+                      else "reverse")
     step = scene.make_step(lean, effects, config.pipeline)
     weights = jnp.asarray(spec.joint_weight / max(spec.joint_weight.sum(), 1e-300))
     target = spec.target_qpos
@@ -442,7 +439,7 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         summary += "; step: generated body by body"
     summary += f"; step gradients: {derivative} mode"
     if config.step_derivative == "auto" and derivative == "reverse" and state_size <= FORWARD_MODE_MAX_STATE:
-        summary += f" ({tangents} tangents x {solver_work // tangents} constraint rows: cheaper than forward)"
+        summary += f" ({tangents} tangents x {rows} constraint rows: cheaper than forward)"
     if generated or (config.pipeline in ("lean", "stages") and scene.implicit_derivative_applies(lean, effects)):
         summary += " through inverse dynamics"
     known_columns, symmetric_joints = scene.symmetries(lean, effects)
