@@ -309,18 +309,24 @@ def _linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: Py
     copies = len(flows)
     keep_sim = np.array([_KEEPS[f][0] for f in flows]).reshape(copies, 1, 1)
     keep_net = np.array([_KEEPS[f][1] for f in flows]).reshape(copies, 1, 1)
-    # Tiny matrices: full float32 precision costs nothing (GPUs default to TF32 for matmuls).
-    product = lambda spec, a, b: jnp.einsum(spec, a, b, precision=jax.lax.Precision.HIGHEST)
+    def vector_times_jacobian(vectors, jacobians):
+        """[copies, batch, rows] x [batch, rows, columns] -> [copies, batch, columns].
+
+        Multiply and sum, not a matrix product: XLA fuses the products of one
+        step into a few loops in full float32 (GPUs would take TF32 matmuls),
+        where batched matrix products of a few rows each cost a library call apiece.
+        """
+        return jnp.sum(vectors[..., :, None] * jacobians[None], axis=-2)
 
     def pull_back(adjoint, step):
         """From the adjoint of x_{t+1} per flow [copies, batch, state] to that of x_t, and u_t's."""
         state_jac, control_jac, policy_jac, direct_state, direct_control = step
-        control_adjoint = direct_control + product("cbo,bou->cbu", adjoint, control_jac)
-        through_sim = product("cbo,bos->cbs", adjoint, state_jac)
+        control_adjoint = direct_control + vector_times_jacobian(adjoint, control_jac)
+        through_sim = vector_times_jacobian(adjoint, state_jac)
         # where, not multiply: a cut path must not turn inf into NaN.
         state_adjoint = direct_state + jnp.where(keep_sim, through_sim, 0.0)
         if policy_jac is not None:
-            through_net = product("cbu,bus->cbs", control_adjoint, policy_jac)
+            through_net = vector_times_jacobian(control_adjoint, policy_jac)
             state_adjoint = state_adjoint + jnp.where(keep_net, through_net, 0.0)
         return state_adjoint, control_adjoint
 
