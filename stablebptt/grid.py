@@ -273,8 +273,8 @@ def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: F
     """Train this process's share of the grid into ``root``, resuming from checkpoints; runs in any thread.
 
     Programs go to device groups (``place``); the groups run side by side in threads (which only
-    dispatch: compiling and running release the GIL), each group's first program compiled alone,
-    the others together while it trains, and trained one after another.
+    dispatch: compiling and running release the GIL), each group's programs compiled together and
+    trained one after another.
     A failing program stops the others at their next epoch. Returns each program's record.
 
     Raises:
@@ -289,30 +289,24 @@ def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: F
 
     def run_queue(devices, queue):
         outcomes = []
-        # The first program compiles alone, so the device starts as soon as it can; the others then
-        # compile at once, in threads (compiling releases the GIL and uses the host's cores), while
-        # the first trains, and are ready when the device is free for them.
-        compiler = ThreadPoolExecutor(max_workers=max(1, len(queue) - 1))
-        ready = [compiler.submit(prepare, program, grid, devices) for program in queue[:1]]
-        try:
-            for index, program in enumerate(queue):
-                if stop():
-                    break
-                try:
-                    prepared = ready[index].result()
-                    if index == 0:
-                        ready += [compiler.submit(prepare, later, grid, devices) for later in queue[1:]]
-                    outcome = train_prepared(prepared, grid, log, stop)
-                except BaseException:
-                    failed.set()  # the other groups checkpoint and stop instead of running to their end
-                    raise
-                if len(outcome["rows"]):
-                    write_cells(program, outcome, grid, root)
-                for name in ("rows", "params", "train_config"):  # what the record does not keep
-                    outcome.pop(name)
-                outcomes.append(outcome)
-        finally:
-            compiler.shutdown(wait=False, cancel_futures=True)  # a stop cancels the compiles not yet begun
+        # Every program of the queue compiles at once, in threads (compiling releases the GIL and
+        # uses the host's cores), so later programs are ready when the device is free for them.
+        compiler = ThreadPoolExecutor(max_workers=len(queue))
+        ready = [compiler.submit(prepare, program, grid, devices) for program in queue]
+        compiler.shutdown(wait=False, cancel_futures=True)  # a stop cancels the compiles not yet begun
+        for program, prepared in zip(queue, ready):
+            if stop():
+                break
+            try:
+                outcome = train_prepared(prepared.result(), grid, log, stop)
+            except BaseException:
+                failed.set()  # the other groups checkpoint and stop instead of running to their end
+                raise
+            if len(outcome["rows"]):
+                write_cells(program, outcome, grid, root)
+            for name in ("rows", "params", "train_config"):  # what the record does not keep
+                outcome.pop(name)
+            outcomes.append(outcome)
         return outcomes
 
     with ThreadPoolExecutor(max_workers=max(1, len(placement))) as pool:  # a host may get no program
