@@ -99,6 +99,13 @@ class Dynamics:
         (True: each skips the stages its input does not reach) or one pass for
         all (False: one copy of the differentiated step, far quicker to compile
         for large scenes); see ``step_jacobians``.
+      policy_gradient: for ``"reverse"``: ``"batched"`` computes each flow's
+        parameter gradient after the reverse pass, in one batched pullback over
+        every visited state (few large matrix products; the flows that do not
+        pass through the policy's input then skip it per step), at the price of
+        one more policy forward pass over those states; ``"per-step"`` pulls
+        every flow back through the policy at every step (cheaper where the
+        policy's batched backward pass is slow: XLA's CPU convolutions).
     """
 
     step: Callable[[PyTree, PyTree], PyTree]
@@ -111,6 +118,7 @@ class Dynamics:
     jacobian_chunk: int | None = None
     rematerialize: bool = False
     jacobian_per_input: bool = True
+    policy_gradient: str = "batched"
 
 
 def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:
@@ -138,18 +146,27 @@ def _first(tree: PyTree) -> PyTree:
 def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
     """One simulator step of a whole batch whose reverse pass carries one adjoint per flow (``"reverse"``).
 
-    States hold ``len(flows)`` identical copies along a leading axis, then the
-    batch; only the cotangents of the copies differ. The forward pass computes
-    the step once. The batch lives inside the custom_vjp on purpose: vmapping a
-    custom_vjp over examples makes its backward return one weight cotangent per
-    example and sum them afterwards, where one batched pullback contracts over
-    the batch in a single matrix product.
+    ``step(params, state_copies, control_offsets)``: states hold ``len(flows)``
+    identical copies along a leading axis, then the batch; only the cotangents
+    of the copies differ. The forward pass computes the step once. The batch
+    lives inside the custom_vjp on purpose: one batched pullback per step,
+    not one per example.
+
+    The controls are ``policy(params, x) + control_offsets`` (the offsets are
+    zeros), so the offsets' cotangent is each flow's adjoint of every control.
+    With ``Dynamics.policy_gradient == "batched"`` the reverse pass returns no
+    parameter cotangent: the parameter gradient is one batched pullback over
+    all visited states afterwards (``_policy_gradients``), and the policy is
+    pulled back per step only for the flows whose state cotangent passes
+    through it (R). With ``"per-step"`` each step returns every flow's
+    parameter cotangent (``params`` then holds one copy per flow).
     """
     copies = len(flows)
     # NumPy, not jnp: constants created under a trace would be tracers closed
     # over by the custom_vjp.
     keep_sim = np.array([_KEEPS[f][0] for f in flows])
-    keep_net = np.array([_KEEPS[f][1] for f in flows])
+    through_net = [index for index, f in enumerate(flows) if _KEEPS[f][1]]
+    per_step = dynamics.policy_gradient == "per-step"
     batch_policy = jax.vmap(dynamics.policy, in_axes=(None, 0))
     batch_step = jax.vmap(dynamics.step)
 
@@ -158,31 +175,43 @@ def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
         return jnp.where(mask.reshape((copies,) + (1,) * (a.ndim - 1)), a, jnp.zeros_like(a))
 
     def forward(params, states):
-        controls, policy_pullback = jax.vjp(batch_policy, params, states)
+        policy = batch_policy if per_step else lambda params, s: batch_policy(jax.lax.stop_gradient(params), s)
+        controls, policy_pullback = jax.vjp(policy, params, states)
         next_states, step_pullback = jax.vjp(batch_step, states, controls)
         return next_states, controls, (policy_pullback, step_pullback)
 
+    def outputs(next_states, controls, control_offsets):
+        return _stack(next_states, copies), jax.tree.map(jnp.add, _stack(controls, copies), control_offsets)
+
+    params_of = _first if per_step else lambda params: params
+
     @jax.custom_vjp
-    def step(params_copies, state_copies):
-        next_states, controls, _ = forward(_first(params_copies), _first(state_copies))
-        return _stack(next_states, copies), _stack(controls, copies)
+    def step(params, state_copies, control_offsets):
+        next_states, controls, _ = forward(params_of(params), _first(state_copies))
+        return outputs(next_states, controls, control_offsets)
 
-    def step_fwd(params_copies, state_copies):
-        params, states = _first(params_copies), _first(state_copies)
-        next_states, controls, pullbacks = forward(params, states)
-        residuals = (params, states) if dynamics.rematerialize else pullbacks
-        return (_stack(next_states, copies), _stack(controls, copies)), residuals
+    def step_fwd(params, state_copies, control_offsets):
+        states = _first(state_copies)
+        next_states, controls, pullbacks = forward(params_of(params), states)
+        residuals = (params_of(params), states) if dynamics.rematerialize else pullbacks
+        return outputs(next_states, controls, control_offsets), (residuals, params)
 
-    def step_bwd(residuals, cotangents):
+    def step_bwd(saved, cotangents):
+        residuals, params = saved
         policy_pullback, step_pullback = forward(*residuals)[2] if dynamics.rematerialize else residuals
         next_state_ct, control_ct = cotangents
         state_ct_sim, control_ct_sim = jax.vmap(step_pullback)(next_state_ct)
         control_ct = jax.tree.map(jnp.add, control_ct, control_ct_sim)
-        params_ct, state_ct_net = jax.vmap(policy_pullback)(control_ct)
-        state_ct = jax.tree.map(
-            lambda sim, net: select(keep_sim, sim) + select(keep_net, net), state_ct_sim, state_ct_net
-        )
-        return params_ct, state_ct
+        state_ct = jax.tree.map(lambda sim: select(keep_sim, sim), state_ct_sim)
+        if per_step:  # one pullback per flow gives its parameter cotangent and, for R, its state's
+            params_ct, net = jax.vmap(policy_pullback)(control_ct)
+            net = jax.tree.map(lambda a: select(np.isin(np.arange(copies), through_net), a), net)
+            return params_ct, jax.tree.map(jnp.add, state_ct, net), control_ct
+        if through_net:
+            rows = np.array(through_net)
+            net = jax.vmap(lambda ct: policy_pullback(ct)[1])(jax.tree.map(lambda a: a[rows], control_ct))
+            state_ct = jax.tree.map(lambda total, part: total.at[rows].add(part), state_ct, net)
+        return jax.tree.map(jnp.zeros_like, params), state_ct, control_ct
 
     step.defvjp(step_fwd, step_bwd)
     return step
@@ -309,6 +338,7 @@ def _linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: Py
     copies = len(flows)
     keep_sim = np.array([_KEEPS[f][0] for f in flows]).reshape(copies, 1, 1)
     keep_net = np.array([_KEEPS[f][1] for f in flows]).reshape(copies, 1, 1)
+
     def vector_times_jacobian(vectors, jacobians):
         """[copies, batch, rows] x [batch, rows, columns] -> [copies, batch, columns].
 
@@ -337,27 +367,50 @@ def _linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: Py
         (state_jacobian, control_jacobian, policy_jacobian, direct_state, control_grad),
         reverse=True, unroll=dynamics.unroll)  # [T, copies, batch, control]
 
-    # sum over t and examples of (du_t/dparams)^T adjoint(u_t): one batched pullback per flow.
-    _, policy_pullback = jax.vjp(lambda p: jax.vmap(flat_policy, in_axes=(None, 0))(p, flat_visited.reshape(
-        (horizon * batch_size, -1))), params)
+    return loss, _policy_gradients(dynamics, params, visited, control_adjoints)
+
+
+def _policy_gradients(dynamics: Dynamics, params: PyTree, visited: PyTree, control_adjoints: jax.Array) -> PyTree:
+    """Each flow's parameter gradient: the sum over steps and examples of (du_t/dparams)^T adjoint(u_t).
+
+    One batched pullback over every visited state (``visited``: x_0..x_{T-1},
+    [T, batch, ...]), one per flow (``control_adjoints``: [T, copies, batch,
+    control], flattened controls): a few large matrix products instead of small
+    ones per step.
+    """
+    horizon, copies, batch_size = control_adjoints.shape[:3]
+    flat_visited = _ravel_examples(visited, 2).reshape((horizon * batch_size, -1))
+    unravel_state = ravel_pytree(jax.tree.map(lambda a: a[0, 0], visited))[1]
+
+    def flat_policy(params, flat_state):
+        return ravel_pytree(dynamics.policy(params, unravel_state(flat_state)))[0]
+
+    _, policy_pullback = jax.vjp(lambda p: jax.vmap(flat_policy, in_axes=(None, 0))(p, flat_visited), params)
     per_flow = jnp.moveaxis(control_adjoints, 1, 0).reshape((copies, horizon * batch_size, -1))
-    grads = jax.vmap(lambda adjoint: policy_pullback(adjoint)[0])(per_flow)
-    return loss, grads
+    return jax.vmap(lambda adjoint: policy_pullback(adjoint)[0])(per_flow)
 
 
-def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params_copies: PyTree, initial_states: PyTree):
-    """Mean batch loss once per flow copy (identical values, distinct gradients)."""
+def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
+                control_offsets: PyTree):
+    """Mean batch loss once per flow copy (identical values, distinct gradients), and the visited states.
+
+    ``params`` holds one copy per flow (leading axis) where
+    ``dynamics.policy_gradient`` is ``"per-step"``. Differentiated with respect
+    to ``control_offsets`` (zeros added to the controls, [T, copies, batch, ...]),
+    it gives every flow's adjoint of every control. Returns ``(losses [copies], x_0..x_{T-1})``.
+    """
     step = _multi_adjoint_step(dynamics, flows)
+    copies = len(flows)
 
-    def body(state_copies, _):
-        next_copies, control_copies = step(params_copies, state_copies)
-        return next_copies, (next_copies, control_copies)
+    def body(state_copies, offsets):
+        next_copies, control_copies = step(params, state_copies, offsets)
+        return next_copies, (_first(state_copies), next_copies, control_copies)
 
-    _, (states, controls) = jax.lax.scan(body, _stack(initial_states, len(flows)), None, length=dynamics.horizon,
-                                           unroll=dynamics.unroll)
+    _, (visited, states, controls) = jax.lax.scan(body, _stack(initial_states, copies), control_offsets,
+                                                  unroll=dynamics.unroll)
     # scan stacks time first, [T, copies, batch, ...]; the loss wants one trajectory's [T, ...].
     per_trajectory = jax.vmap(jax.vmap(dynamics.loss, in_axes=(1, 1)), in_axes=(1, 1))(states, controls)
-    return per_trajectory.mean(axis=1)
+    return per_trajectory.mean(axis=1), visited
 
 
 def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree):
@@ -376,12 +429,19 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
     if dynamics.step_derivative == "forward":
         return _linearized_gradients(dynamics, flows, params, initial_states)
 
-    def total(params_copies):
-        per_flow = flow_losses(dynamics, flows, params_copies, initial_states)
-        return per_flow.sum(), per_flow[0]
+    control = jax.eval_shape(jax.vmap(dynamics.policy, in_axes=(None, 0)), params, initial_states)
+    offsets = jax.tree.map(lambda a: jnp.zeros((dynamics.horizon, len(flows)) + a.shape, a.dtype), control)
+    per_step = dynamics.policy_gradient == "per-step"
 
-    grads, loss = jax.grad(total, has_aux=True)(_stack(params, len(flows)))
-    return loss, grads
+    def total(params, offsets):
+        per_flow, visited = flow_losses(dynamics, flows, params, initial_states, offsets)
+        return per_flow.sum(), (per_flow[0], visited)
+
+    (params_grads, control_adjoints), (loss, visited) = jax.grad(total, argnums=(0, 1), has_aux=True)(
+        _stack(params, len(flows)) if per_step else params, offsets)
+    if per_step:
+        return loss, params_grads
+    return loss, _policy_gradients(dynamics, params, visited, _ravel_examples(control_adjoints, 3))
 
 
 class Trajectory(NamedTuple):

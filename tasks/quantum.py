@@ -256,7 +256,9 @@ def make(config: Config, physics: Physics = Physics()) -> Task:
             del controls
             return jnp.sum(1.0 - fidelity(states, jnp.asarray(targets, states.dtype)[target]))
 
-        return Dynamics(step=step, policy=network_apply, loss=loss, horizon=config.steps)
+        # Per step: for this convolutional policy the batched pullback (which repeats the
+        # convolutions' forward pass and R's backward one) costs more than it saves on a CPU.
+        return Dynamics(step=step, policy=network_apply, loss=loss, horizon=config.steps, policy_gradient="per-step")
 
     return Task(
         name="quantum",

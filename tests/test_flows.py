@@ -97,13 +97,14 @@ def test_flows_needed():
 
 @pytest.mark.parametrize("step_derivative, unroll, memory", [
     ("reverse", 1, {}), ("forward", 1, {}), ("forward", 5, {}),
-    ("forward", 1, {"jacobian_chunk": 8}), ("reverse", 1, {"rematerialize": True})])
+    ("forward", 1, {"jacobian_chunk": 8}), ("reverse", 1, {"rematerialize": True}),
+    ("reverse", 5, {"policy_gradient": "per-step", "rematerialize": True})])
 def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, step_derivative, unroll, memory):
     """Nonlinear step on a pytree state, MLP-like policy, a loss on every state and on the controls.
 
     unroll=5 does not divide the horizon: the unrolled loop's remainder must be right too. The
     memory plan's settings (Jacobians in chunks of 8 of the 48 examples, steps recomputed in the
-    backward pass) change no number either.
+    backward pass) change no number either, nor does where reverse mode forms the parameter gradient.
     """
     dynamics = Dynamics(
         step=lambda s, u: (s[0] + 0.1 * jnp.sin(s[1][::-1]) + 0.2 * u, s[1] + 0.1 * s[0] * jnp.cos(u.sum())),
