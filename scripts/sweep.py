@@ -13,6 +13,7 @@ figures, and sweeps/<time>-<complexities>.json per call with wall times and devi
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from dataclasses import dataclass, field
@@ -38,7 +39,8 @@ class SweepConfig:
     test_size: int = field(default=256, metadata={"help": "test initial states"})
     task_steps: int = field(default=0, metadata={"help": "override the task's horizon in steps (0: its own; for quick tests)"})
     unroll: int = field(default=0, metadata={"help": "rollout steps per loop iteration (0: measured per-task value on GPUs, 1 on CPUs)"})
-    checkpoint_every: int = field(default=10, metadata={"help": "epochs between checkpoints"})
+    checkpoint_every: int = field(default=10, metadata={"help": "epochs between checkpoints and progress lines"})
+    checkpoint_seconds: float = field(default=30.0, metadata={"help": "and at least this many seconds between checkpoints (a stop and the end always save)"})
     time_limit: float = field(default=0.0, metadata={"help": "seconds after which to checkpoint and stop (0: none); rerun to resume"})
     out: str = field(default="results", metadata={"help": "results root; the sweep writes OUT/PRESET/"})
     distributed: bool = field(default=False, metadata={"help": "several hosts: jax.distributed, its settings from the cluster (Slurm, Open MPI, ...) or JAX_COORDINATOR_ADDRESS"})
@@ -97,6 +99,9 @@ def main(argv: list[str]) -> int:
     for name in ("seeds", "epochs", "train_size", "test_size", "checkpoint_every"):
         if getattr(config, name) <= 0:
             fail(f"--{name.replace('_', '-')} must be a positive integer")
+    for name in ("checkpoint_seconds", "time_limit"):
+        if not (math.isfinite(getattr(config, name)) and getattr(config, name) >= 0):
+            fail(f"--{name.replace('_', '-')} must be a number of seconds, 0 or more, got {getattr(config, name)}")
     root = Path(config.out) / config.preset
     from stablebptt import grid as grids
 
@@ -120,7 +125,7 @@ def main(argv: list[str]) -> int:
         task_config=lambda value: task_config(task_name, option, value, config),
         modes=tuple(modes), clips=tuple(clips), seeds=tuple(42 + s for s in range(config.seeds)),
         epochs=config.epochs, train_size=config.train_size, test_size=config.test_size,
-        checkpoint_every=config.checkpoint_every, unroll=config.unroll, gpu_unroll=tasks.entry(task_name).gpu_unroll,
+        checkpoint_every=config.checkpoint_every, checkpoint_seconds=config.checkpoint_seconds, unroll=config.unroll, gpu_unroll=tasks.entry(task_name).gpu_unroll,
         group_values=config.group_values, name=config.preset, identity={"task_steps": config.task_steps})
     wall = time.perf_counter()
     deadline = time.monotonic() + config.time_limit if config.time_limit else None

@@ -41,7 +41,10 @@ class Grid:
       task_name, option: the task and the option whose ``values`` the grid varies.
       make_task, task_config: a value -> its task, and the task configuration recorded per cell.
       modes, clips, seeds: the other axes.
-      epochs, train_size, test_size, checkpoint_every: as in ``TrainConfig``.
+      epochs, train_size, test_size, checkpoint_every: as in ``TrainConfig``
+        (``checkpoint_every`` also paces the progress log).
+      checkpoint_seconds: the least wall time between two checkpoints (the end
+        and a stop always save).
       unroll: rollout steps per loop iteration (0: ``gpu_unroll`` on GPUs, 1 on CPUs).
       group_values: vmap the values into one program where the task takes them per cell.
       name: recorded in each cell's config.json (the sweep's preset).
@@ -60,6 +63,7 @@ class Grid:
     train_size: int = 256
     test_size: int = 256
     checkpoint_every: int = 10
+    checkpoint_seconds: float = 30.0
     unroll: int = 0
     gpu_unroll: int = 1
     group_values: bool = True
@@ -226,12 +230,16 @@ def train_prepared(prepared: Prepared, grid: Grid, log: Callable[[str], None],
 
     def save(epoch, state, rows):
         runs.save_checkpoint(program.directory, epoch, _unpad(state, count), rows)
-        log(f"{grid.task_name} {grid.option}={','.join(map(str, program.values))}: epoch {epoch}/{grid.epochs}, "
-            f"{(time.perf_counter() - started) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
-            f"on {len(prepared.devices)} device(s)")
+
+    def report(epoch, metrics):
+        if epoch % grid.checkpoint_every == 0 or epoch == grid.epochs:
+            log(f"{grid.task_name} {grid.option}={','.join(map(str, program.values))}: epoch {epoch}/{grid.epochs}, "
+                f"{(time.perf_counter() - started) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
+                f"on {len(prepared.devices)} device(s)")
 
     _, epoch, state, rows, _ = runs.fit(run_epoch, prepared.state, start, grid.epochs, prepared.rows, cell_index, save,
-                                        grid.checkpoint_every, should_stop)
+                                        grid.checkpoint_every, should_stop, report,
+                                        checkpoint_seconds=grid.checkpoint_seconds)
     return {"complexity": program.values, "epochs_done": int(epoch), "cells": count, "unroll": prepared.unroll,
             "train_config": prepared.train_config, "params": jax.device_get(_unpad(state, count).params),
             "devices": [str(d) for d in prepared.devices], "padded_cells": prepared.padded_cells,

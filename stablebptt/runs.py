@@ -411,6 +411,7 @@ def fit(
     should_stop: Callable[[], bool] = lambda: False,
     on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None,
     diverged: Callable[[dict], str] = lambda metrics: "",
+    checkpoint_seconds: float = 0.0,
 ) -> tuple[str, int, Any, np.ndarray, str]:
     """The epoch loop: epochs ``start_epoch+1 .. epochs``, checkpointing, stopping and divergence.
 
@@ -421,6 +422,10 @@ def fit(
       row_ids: the seed (or cell) number of each row an epoch adds.
       save: ``save(epoch, state, rows)`` writes a checkpoint.
       checkpoint_every: save every this many epochs, and at the end.
+      checkpoint_seconds: and no sooner than this many seconds after the
+        last save (the end and a stop always save). A checkpoint rewrites
+        every metric row so far: a grid of short epochs saving every few
+        epochs spends much of its time writing.
       should_stop: polled before and after every epoch; true saves and stops.
       on_epoch: gets each epoch's metrics, with its wall time under ``"seconds"``.
       diverged: a message when an epoch's metrics must not be kept (its state is
@@ -431,35 +436,43 @@ def fit(
       "interrupted" or "diverged".
     """
     saved_epoch = start_epoch if start_epoch > 0 else -1  # a start past epoch 0 comes from a checkpoint
+    last_save = time.monotonic()
+    blocks = [rows]  # joined only when saved or returned: appending by concatenation is quadratic
 
-    def checkpoint(epoch, state, rows):
-        nonlocal saved_epoch
+    def all_rows():
+        if len(blocks) > 1:
+            blocks[:] = [np.concatenate(blocks)]
+        return blocks[0]
+
+    def checkpoint(epoch, state):
+        nonlocal saved_epoch, last_save
         if saved_epoch != epoch:
-            save(epoch, state, rows)
-            saved_epoch = epoch
+            save(epoch, state, all_rows())
+            saved_epoch, last_save = epoch, time.monotonic()
 
     epoch = start_epoch
     for epoch in range(start_epoch + 1, epochs + 1):
         if should_stop():
             if epoch - 1 > start_epoch:
-                checkpoint(epoch - 1, state, rows)
-            return "interrupted", epoch - 1, state, rows, ""
+                checkpoint(epoch - 1, state)
+            return "interrupted", epoch - 1, state, all_rows(), ""
         started = time.perf_counter()
         new_state, metrics = run_epoch(state)
         seconds = time.perf_counter() - started
         problem = diverged(metrics)
         if problem:
-            checkpoint(epoch - 1, state, rows)
-            return "diverged", epoch - 1, state, rows, problem
+            checkpoint(epoch - 1, state)
+            return "diverged", epoch - 1, state, all_rows(), problem
         state = new_state
-        rows = np.concatenate([rows, epoch_rows(epoch, row_ids, metrics, seconds)])
+        blocks.append(epoch_rows(epoch, row_ids, metrics, seconds))
         stopping = should_stop()
-        if epoch % checkpoint_every == 0 or epoch == epochs or stopping:
-            checkpoint(epoch, state, rows)
+        due = epoch % checkpoint_every == 0 and time.monotonic() - last_save >= checkpoint_seconds
+        if due or epoch == epochs or stopping:
+            checkpoint(epoch, state)
         on_epoch(epoch, {**metrics, "seconds": seconds})
         if stopping:
-            return "interrupted", epoch, state, rows, ""
-    return "complete", epoch, state, rows, ""
+            return "interrupted", epoch, state, all_rows(), ""
+    return "complete", epoch, state, all_rows(), ""
 
 
 def train_epochs(

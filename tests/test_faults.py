@@ -275,6 +275,27 @@ def test_atomic_write_leaves_the_old_file_when_the_disk_is_full(tmp_path, monkey
     assert [p.name for p in tmp_path.iterdir()] == ["record.json"]
 
 
+@pytest.mark.parametrize("checkpoint_seconds, saved", [(0.0, [3, 6, 7]), (3600.0, [7]), (0.0, [2])])
+def test_the_epoch_loop_saves_on_its_cadence_at_the_end_and_at_a_stop(checkpoint_seconds, saved):
+    """Every ``checkpoint_every`` epochs at least ``checkpoint_seconds`` apart, always at the end
+    and at a stop; the rows returned and saved are every epoch's, in order, whatever the cadence."""
+    stop_after = saved[-1] if saved == [2] else None
+    epochs_run, saves = [], []
+
+    def run_epoch(state):
+        epochs_run.append(state + 1)
+        return state + 1, {name: np.full(2, state + 1.0) for name in runs.METRICS}
+
+    status, epoch, state, rows, _ = runs.fit(
+        run_epoch, 0, 0, 7, np.zeros((0, len(runs.COLUMNS))), np.arange(2),
+        lambda epoch, state, rows: saves.append((epoch, rows[:, 0].tolist())), 3,
+        should_stop=lambda: stop_after is not None and len(epochs_run) >= stop_after,
+        checkpoint_seconds=checkpoint_seconds)
+    assert [e for e, _ in saves] == saved and epoch == state == saved[-1]
+    assert status == ("interrupted" if stop_after else "complete")
+    every_epoch = [float(e) for e in range(1, epoch + 1) for _ in range(2)]
+    assert rows[:, 0].tolist() == every_epoch and saves[-1][1] == every_epoch
+
 ARM = """<mujoco model="arm">
   <option timestep="0.02"/>
   <include file="arm_body.xml"/>
