@@ -385,7 +385,14 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
     else:
         iterations = config.solver_iterations or None  # None: the model's own solver, as the file says
         lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None, iterations)
-    derivative = config.step_derivative
+    # mjx.step runs MuJoCo's solver as a while loop of dynamic length: forward mode goes through
+    # it, reverse mode cannot (the other pipelines differentiate the solver at its solution).
+    solver_loop = config.pipeline == "mjx" and scene.constraint_rows(lean) > 0
+    if solver_loop and config.step_derivative == "reverse":
+        raise InputError(f"{config_field(Config, 'pipeline')} mjx runs MuJoCo's constraint solver as a loop that reverse "
+                         f"mode cannot differentiate: give {config_field(Config, 'step_derivative')} forward, or take "
+                         f"{config_field(Config, 'pipeline')} lean or stages, which differentiate the solver at its solution")
+    derivative = "forward" if solver_loop else config.step_derivative
     if derivative == "auto":
         # Forward mode costs one batched pass per state number; reverse mode one
         # pass through every tiny MJX operation: small states favour forward,
@@ -438,7 +445,9 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
     if generated:
         summary += "; step: generated body by body"
     summary += f"; step gradients: {derivative} mode"
-    if config.step_derivative == "auto" and derivative == "reverse" and state_size <= FORWARD_MODE_MAX_STATE:
+    if solver_loop and config.step_derivative == "auto":
+        summary += " (mjx.step's solver loop has no reverse mode)"
+    elif config.step_derivative == "auto" and derivative == "reverse" and state_size <= FORWARD_MODE_MAX_STATE:
         summary += f" ({tangents} tangents x {rows} constraint rows: cheaper than forward)"
     if generated or (config.pipeline in ("lean", "stages") and scene.implicit_derivative_applies(lean, effects)):
         summary += " through inverse dynamics"
