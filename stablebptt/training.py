@@ -32,6 +32,13 @@ EPOCH_PROGRAMS = ("auto", "whole", "per-update")
 # take a few minutes. The built-in tasks' steps (the cart-poles: about 4,000) are small; the
 # DeepMind Control Suite's models other than pendulum and reacher are large.
 LARGE_STEP = 8_000
+# XLA:CPU's default fusion emitters compute each element of a fusion by calling the
+# functions of its operands, so an operand that many elements read is recomputed for each.
+# MJX's kinematics of a deep tree fuse into long elementwise chains: humanoid_CMU's first
+# 5-step epoch had not ended after 20 minutes, nearly all of it in one fusion of 623
+# operations that yields 24 numbers; with XLA's loop emitter it takes 5-7 s. Small steps
+# keep the fusion emitters: their updates run 15-30% faster with them.
+LARGE_STEP_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
 METRICS = ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine")
 
@@ -206,6 +213,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     example_state = jax.tree.map(lambda a: a[0], train_states)
     plan = memory_plan(task, config, example_state)
     large = step_operations(task, config, example_state) > LARGE_STEP
+    jit = functools.partial(jax.jit, compiler_options=compiler_options(large))
     # The loop unrolling, the memory plan and a large step's single Jacobian pass are the run's,
     # applied to whichever dynamics an epoch uses.
     for_this_run = lambda dynamics: dataclasses.replace(dynamics, unroll=config.unroll, jacobian_chunk=plan.jacobian_chunk,
@@ -275,18 +283,18 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         return lambda *args: jax.lax.map(lambda per_seed: function(*per_seed, *args[mapped:]), args[:mapped])
 
     if grid:
-        epoch_program = jax.jit(over_seeds(grid_epoch, mapped=2))
+        epoch_program = jit(over_seeds(grid_epoch, mapped=2))
     elif config.epoch_program == "whole" or config.epoch_program == "auto" and not large:
-        epoch_program = jax.jit(over_seeds(epoch))
+        epoch_program = jit(over_seeds(epoch))
     else:
         dynamics = for_this_run(task.dynamics)
-        epoch_program = PerUpdateEpoch(jax.jit(over_seeds(functools.partial(update, dynamics))),
-                                       jax.jit(over_seeds(evaluate_both)), jax.jit(over_seeds(summarize, mapped=3)))
+        epoch_program = PerUpdateEpoch(jit(over_seeds(functools.partial(update, dynamics))),
+                                       jit(over_seeds(evaluate_both)), jit(over_seeds(summarize, mapped=3)))
     return Trainer(
         flows=flows,
-        init=jax.jit(over_seeds(init)),
+        init=jit(over_seeds(init)),
         epoch=epoch_program,
-        evaluate=jax.jit(over_seeds(evaluate)),
+        evaluate=jit(over_seeds(evaluate)),
         train_states=train_states,
         test_states=test_states,
         batches=batches,
@@ -347,6 +355,12 @@ def _example_control(task: Task, config: TrainConfig, initial_state: PyTree) -> 
 def _operations(jaxpr) -> int:
     return sum(1 + sum(_operations(inner) for inner in jax.extend.core.jaxprs_in_params(equation.params))
                for equation in jaxpr.eqns)
+
+
+def compiler_options(large: bool) -> dict | None:
+    """XLA options of a program that holds a simulator step; ``large``: the step has more than
+    ``LARGE_STEP`` operations (``step_operations``)."""
+    return dict(LARGE_STEP_CPU_OPTIONS) if large and jax.default_backend() == "cpu" else None
 
 
 def step_operations(task: Task, config: TrainConfig, initial_state: PyTree) -> int:

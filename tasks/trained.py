@@ -6,6 +6,7 @@ loaded and rolled out from the run's own test states.
 """
 from __future__ import annotations
 
+import functools
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,7 +16,7 @@ from stablebptt import runs
 from stablebptt.cli import build
 from stablebptt.errors import InputError
 from stablebptt.tasks import entries, entry
-from stablebptt.training import Task, TrainConfig
+from stablebptt.training import LARGE_STEP, Task, TrainConfig, compiler_options, step_operations
 
 
 @dataclass(frozen=True)
@@ -111,8 +112,9 @@ def rollouts_from_test_states(task: Task, train: TrainConfig, params: Any, count
 
     _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))  # make_trainer's split of the data seed
     initial = jax.tree.map(lambda a: a[:count], task.sample_initial_states(test_key, train.test_size))
+    large = step_operations(task, train, jax.tree.map(lambda a: a[0], initial)) > LARGE_STEP
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=compiler_options(large))
     def run(params, initial):
         trajectory = jax.vmap(lambda x0: reference_rollout(task.dynamics, params, x0))(initial)
         losses = jax.vmap(task.dynamics.loss)(trajectory.states, trajectory.controls)

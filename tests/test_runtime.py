@@ -44,3 +44,27 @@ def test_concurrent_batched_lapack_calls_finish():
         pytest.fail("concurrent batched LAPACK calls deadlocked XLA:CPU's intra-op pool")
     assert result.returncode == 0, result.stderr
     assert "intra-op threads: 1" in result.stdout, result.stdout
+
+
+def test_large_scenes_compile_with_a_loop_emitter_this_xla_accepts_and_the_numbers_stay():
+    """Programs holding a step of more than LARGE_STEP operations compile without XLA:CPU's fusion
+    emitters (``training.LARGE_STEP_CPU_OPTIONS``; through them humanoid_CMU's kinematics ran for
+    minutes per step). A jaxlib that no longer knows the option fails this compile; the option
+    must change no result beyond rounding."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from stablebptt.training import LARGE_STEP_CPU_OPTIONS, compiler_options
+
+    assert compiler_options(False) is None
+    assert compiler_options(True) == (LARGE_STEP_CPU_OPTIONS if jax.default_backend() == "cpu" else None)
+
+    def chain(x):  # a deep elementwise chain whose operands many elements read, as a tree's kinematics fuse
+        for _ in range(10):
+            x = jnp.sin(jnp.concatenate([x[1:] - x[:-1], x[:1] * x[-1:]]) + jnp.cross(x[:3], x[-3:]).sum())
+        return x
+
+    x = jnp.linspace(0.1, 1.0, 8)
+    with_loop_emitter = jax.jit(chain, compiler_options=LARGE_STEP_CPU_OPTIONS)(x)
+    np.testing.assert_allclose(with_loop_emitter, jax.jit(chain)(x), rtol=1e-5, atol=1e-6)
+    assert np.all(np.isfinite(with_loop_emitter)) and np.ptp(with_loop_emitter) > 0
