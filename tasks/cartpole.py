@@ -387,7 +387,9 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None, iterations)
     # mjx.step runs MuJoCo's solver as a while loop of dynamic length: forward mode goes through
     # it, reverse mode cannot (the other pipelines differentiate the solver at its solution).
-    solver_loop = config.pipeline == "mjx" and scene.constraint_rows(lean) > 0
+    # Counted once (it builds the MJX model): mjx.step simulates every constraint, the other pipelines the scene's.
+    rows = scene.constraint_rows(lean) if effects.constraints or config.pipeline == "mjx" else 0
+    solver_loop = config.pipeline == "mjx" and rows > 0
     if solver_loop and config.step_derivative == "reverse":
         raise InputError(f"{config_field(Config, 'pipeline')} mjx runs MuJoCo's constraint solver as a loop that reverse "
                          f"mode cannot differentiate: give {config_field(Config, 'step_derivative')} forward, or take "
@@ -398,7 +400,6 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         # pass through every tiny MJX operation: small states favour forward,
         # unless every tangent also goes through a large constraint system.
         tangents = state_size + model.nu
-        rows = scene.constraint_rows(lean) if effects.constraints else 0
         derivative = ("forward" if state_size <= FORWARD_MODE_MAX_STATE and tangents * rows <= FORWARD_MODE_MAX_SOLVER_WORK
                       else "reverse")
     step = scene.make_step(lean, effects, config.pipeline)
