@@ -84,22 +84,33 @@ def to_real(psi: jax.Array) -> jax.Array:
     return jnp.stack([psi.real, psi.imag], axis=-1)
 
 
+def _solve_columns(diagonal: jax.Array, off: jax.Array, columns: jax.Array) -> jax.Array:
+    """Solve tridiag(off, diagonal, off) X = columns; diagonals [..., m], columns [..., m, k]."""
+    lower = jnp.concatenate([jnp.zeros_like(off[..., :1]), off[..., :-1]], axis=-1)  # lower[0] lies outside
+    upper = off.at[..., -1].set(0)  # and so does upper[-1]
+    return jax.lax.linalg.tridiagonal_solve(lower, diagonal, upper, columns)
+
+
 @jax.custom_batching.custom_vmap
 def _solve_stack(diagonal: jax.Array, off: jax.Array, rhs: jax.Array) -> jax.Array:
     """Solve tridiag(off, diagonal, off) x = rhs for a stack of systems; every operand [..., m]."""
-    lower = jnp.concatenate([jnp.zeros_like(off[..., :1]), off[..., :-1]], axis=-1)  # lower[0] lies outside
-    upper = off.at[..., -1].set(0)  # and so does upper[-1]
-    return jax.lax.linalg.tridiagonal_solve(lower, diagonal, upper, rhs[..., None])[..., 0]
+    return _solve_columns(diagonal, off, rhs[..., None])[..., 0]
 
 
 @_solve_stack.def_vmap
 def _solve_stack_vmap(axis_size, in_batched, diagonal, off, rhs):
-    # Give every operand the batch axis. Left to itself, tridiagonal_solve solves a
-    # batched rhs against unbatched diagonals as extra right-hand-side columns, which
-    # the GPU solver runs far slower than a batch of systems: exactly the case of the gradient flows, whose adjoint copies share one forward pass.
+    # A batched rhs against unbatched diagonals: the gradient flows' adjoint copies,
+    # which share one forward pass. A CPU (LAPACK) factorizes each system once for
+    # all right-hand-side columns; the GPU solver runs columns far slower than a
+    # batch of systems, so there every operand gets the batch axis.
     operands = [a if batched else jnp.broadcast_to(a, (axis_size,) + a.shape)
                 for a, batched in zip((diagonal, off, rhs), in_batched)]
-    return _solve_stack(*operands), True
+    if in_batched[0] or in_batched[1] or not in_batched[2]:
+        return _solve_stack(*operands), True
+
+    as_columns = lambda diagonal, off, rhs: jnp.moveaxis(_solve_columns(diagonal, off, jnp.moveaxis(rhs, 0, -1)), -1, 0)
+    return jax.lax.platform_dependent(diagonal, off, rhs, cpu=as_columns,
+                                      default=lambda *_: _solve_stack(*operands)), True
 
 
 @jax.custom_vjp
@@ -112,8 +123,9 @@ def symmetric_tridiagonal_solve(diagonal: jax.Array, off: jax.Array, rhs: jax.Ar
       rhs: right-hand side, shape [m].
 
     Returns:
-      The solution, shape [m]. O(m) work; vmap gives a batch of systems (never
-      extra right-hand sides), also in the reverse pass.
+      The solution, shape [m]. O(m) work; vmap gives a batch of systems, also
+      in the reverse pass (on a CPU, copies that share the matrix become
+      right-hand-side columns of one system).
     """
     return _solve_stack(diagonal, off, rhs)
 
@@ -256,9 +268,12 @@ def make(config: Config, physics: Physics = Physics()) -> Task:
             del controls
             return jnp.sum(1.0 - fidelity(states, jnp.asarray(targets, states.dtype)[target]))
 
-        # Per step: for this convolutional policy the batched pullback (which repeats the
-        # convolutions' forward pass and R's backward one) costs more than it saves on a CPU.
-        return Dynamics(step=step, policy=network_apply, loss=loss, horizon=config.steps, policy_gradient="per-step")
+        return Dynamics(step=step, policy=network_apply, loss=loss, horizon=config.steps,
+                        policy_gradient=policy_gradient)
+
+    # The batched pullback repeats the convolutions' forward pass: on a CPU that costs
+    # more than it saves, on a GPU it pays (docs/performance.md).
+    policy_gradient = "per-step" if jax.default_backend() == "cpu" else "batched"
 
     return Task(
         name="quantum",
