@@ -3,6 +3,7 @@
 
     python scripts/bench.py                          # every task, poles 1 and 3
     python scripts/bench.py --tasks cartpole --poles 1,2,3,4 --out results/bench_cpu.md
+    python scripts/bench.py --tasks cartpole --tables steps --simulators generated,floor   # the floor ratio alone
 
 Per task, one update (gradient of a batch-8 rollout, then clip and Adam) per mode:
 R, M, S and C through the one-pass flows, and "R plain": jax.grad of the plain
@@ -24,6 +25,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from stablebptt.cli import fail, parse_config
+from stablebptt.tasks.bench import SIMULATORS
+
+TABLES = ("modes", "steps")
 
 @dataclass(frozen=True)
 class BenchConfig:
@@ -32,6 +36,8 @@ class BenchConfig:
     batch: int = field(default=8, metadata={"help": "initial states per update"})
     rounds: int = field(default=20, metadata={"help": "timed rounds per variant (median reported)"})
     out: str = field(default="", metadata={"help": "also write the tables to this Markdown file"})
+    tables: str = field(default="modes,steps", metadata={"help": "tables to time: modes (an update per mode, every task), steps (the cart-pole's simulators against the closed-form floor, and the parts of its update)"})
+    simulators: str = field(default=",".join(SIMULATORS), metadata={"help": "the cart-pole simulators of the steps table"})
 
 
 def main(argv: list[str]) -> int:
@@ -47,6 +53,11 @@ def main(argv: list[str]) -> int:
         fail(f"--poles takes comma-separated integers, got {config.poles!r}")
     if config.rounds <= 0 or config.batch <= 0:
         fail("--rounds and --batch must be positive")
+    tables = [t for t in config.tables.split(",") if t]
+    simulators = tuple(s for s in config.simulators.split(",") if s)
+    for option, chosen, known in (("--tables", tables, TABLES), ("--simulators", simulators, tuple(SIMULATORS))):
+        if not chosen or any(name not in known for name in chosen):
+            fail(f"{option} takes a comma-separated subset of {', '.join(known)}, got {','.join(chosen) or 'nothing'}")
     import jax
     header = [f"Measured by `python scripts/bench.py {' '.join(argv)}`".rstrip()
               + f" on {platform.machine()} ({jax.devices()[0].platform}, {jax.device_count()} device, "
@@ -60,11 +71,15 @@ def main(argv: list[str]) -> int:
         if name == "cartpole":
             section = []
             for count in poles:
-                task = module.make(module.Config(poles=count))
-                section += mode_table(f"Cart-pole (MJX), {count} pole{'s' if count > 1 else ''}", task, config.batch, config.rounds)
-                section += pipeline_table(count, config.batch, config.rounds)
-        else:
+                if "modes" in tables:
+                    task = module.make(module.Config(poles=count))
+                    section += mode_table(f"Cart-pole (MJX), {count} pole{'s' if count > 1 else ''}", task, config.batch, config.rounds)
+                if "steps" in tables:
+                    section += pipeline_table(count, config.batch, config.rounds, simulators)
+        elif "modes" in tables:
             section = mode_table(name.capitalize(), module.make(module.Config()), config.batch, config.rounds)
+        else:
+            continue
         print("\n".join(section), flush=True)
         report += section
         if config.out:  # after every task, so a long benchmark keeps what it measured

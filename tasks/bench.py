@@ -65,38 +65,50 @@ def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
     return lines
 
 
-def pipeline_table(poles: int, batch: int, rounds: int) -> list[str]:
+# The cart-pole simulators of the steps table: option name -> row label.
+SIMULATORS = {"generated": "generated step, body by body (the default)", "stages": "MJX stages (scene analysis)",
+              "autodiff": "MJX stages, autodiff through M and its solve", "dense": "MJX stages, dense mass matrix",
+              "mjx": "mjx.step, MuJoCo default flags", "floor": "closed-form equations (floor)"}
+
+
+def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tuple(SIMULATORS)) -> list[str]:
+    """R updates of the cart-pole through each simulator in ``simulators`` (C too for the generated step and
+    the floor), with the parts of the generated step's update where it is among them."""
     import mujoco
     from stablebptt import scene
     from stablebptt.tasks import cartpole, cartpole_equations
     generated = cartpole.make(cartpole.Config(poles=poles))
     stages = cartpole.make(cartpole.Config(poles=poles, pipeline="stages"))
-    default = cartpole.make(cartpole.Config(poles=poles, pipeline="mjx"))
     with_step = lambda step: dataclasses.replace(stages, dynamics=dataclasses.replace(stages.dynamics, step=step))
-    closed = with_step(cartpole_equations.make_step(0.01))
     model = cartpole.load_model(cartpole.Config(poles=poles).model_path)
     effects = scene.analyze(model)
-    autodiff = with_step(scene.make_step(scene.lean_model(model, effects), effects, "stages", implicit=False))
-    dense_model = scene.lean_model(model, effects)
-    dense_model.opt.jacobian = mujoco.mjtJacobian.mjJAC_DENSE  # what lean_model replaces by the sparse path
-    dense = with_step(scene.make_step(dense_model, effects, "stages"))
-    floor = "closed-form equations (floor)"
-    variants = {name: make_update(task, ("R",), batch) for name, task in
-                (("generated step, body by body (the default)", generated), ("MJX stages (scene analysis)", stages),
-                 ("MJX stages, autodiff through M and its solve", autodiff), ("MJX stages, dense mass matrix", dense),
-                 ("mjx.step, MuJoCo default flags", default), (floor, closed))}
-    for name, task in (("generated step, body by body (the default)", generated), (floor, closed)):
-        variants[name + ", C"] = make_update(task, ("R", "M"), batch)
+
+    def dense():
+        dense_model = scene.lean_model(model, effects)
+        dense_model.opt.jacobian = mujoco.mjtJacobian.mjJAC_DENSE  # what lean_model replaces by the sparse path
+        return with_step(scene.make_step(dense_model, effects, "stages"))
+
+    build = {"generated": lambda: generated, "stages": lambda: stages,
+             "autodiff": lambda: with_step(scene.make_step(scene.lean_model(model, effects), effects, "stages", implicit=False)),
+             "dense": dense, "mjx": lambda: cartpole.make(cartpole.Config(poles=poles, pipeline="mjx")),
+             "floor": lambda: with_step(cartpole_equations.make_step(0.01))}
+    chosen = {name: build[name]() for name in SIMULATORS if name in simulators}
+    variants = {SIMULATORS[name]: make_update(task, ("R",), batch) for name, task in chosen.items()}
+    for name in ("generated", "floor"):
+        if name in chosen:
+            variants[SIMULATORS[name] + ", C"] = make_update(chosen[name], ("R", "M"), batch)
     times = time_variants(variants, rounds)
-    base, lowest = times["mjx.step, MuJoCo default flags"][0], times[floor][0]
+    base, lowest = (times.get(SIMULATORS[name], (None,))[0] for name in ("mjx", "floor"))
+    ratio = lambda ms, reference: f"{ms / reference:.2f}" if reference else ""
     lines = [f"### Cart-pole, {poles} pole{'s' if poles > 1 else ''}: where the time goes", "",
              "| simulator | mode | ms (median) | / mjx.step default | / floor (R) | compile s |",
              "|---|---|---:|---:|---:|---:|"]
     for name, (ms, compile_s) in times.items():
         label, _, mode = name.partition(", C")
-        lines.append(f"| {label} | {'C' if _ else 'R'} | {ms:.2f} | {ms / base:.2f} | {ms / lowest:.2f} | {compile_s:.1f} |")
-    return lines + [""] + parts_table(generated, poles, batch, rounds,
-                                      variants["generated step, body by body (the default)"])
+        lines.append(f"| {label} | {'C' if _ else 'R'} | {ms:.2f} | {ratio(ms, base)} | {ratio(ms, lowest)} | {compile_s:.1f} |")
+    if "generated" not in chosen:
+        return lines + [""]
+    return lines + [""] + parts_table(generated, poles, batch, rounds, variants[SIMULATORS["generated"]])
 
 
 def parts_table(task, poles: int, batch: int, rounds: int, whole_update) -> list[str]:

@@ -237,20 +237,43 @@ def test_accuracy_script_quick_run_writes_tables_and_figures(tmp_path):
 
 def test_accuracy_script_rejects_bad_input_in_one_line(tmp_path):
     script = [sys.executable, str(ROOT / "scripts" / "accuracy.py")]
-    for arguments in (["--tasks", "pendulum"], ["--studies", "speed"], ["--replot", "--out", str(tmp_path)]):
-        result = subprocess.run(script + arguments, capture_output=True, text=True, cwd=ROOT)
-        lines = result.stderr.strip().splitlines()
-        assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    processes = [subprocess.Popen(script + arguments, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+                 for arguments in (["--tasks", "pendulum"], ["--studies", "speed"], ["--replot", "--out", str(tmp_path)])]
+    for process in processes:  # side by side: each is refused before it computes anything
+        _, stderr = process.communicate()
+        lines = stderr.strip().splitlines()
+        assert process.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), stderr
 
 
-def test_bench_command_times_every_mode_and_writes_its_table(tmp_path):
-    """`stablebptt bench` (through the installed command's dispatcher): one table per task, a row per mode."""
-    out = tmp_path / "bench.md"
-    result = subprocess.run([sys.executable, "-m", "stablebptt.commands.main", "bench", "--tasks", "repulsion",
-                             "--rounds", "1", "--out", str(out)], capture_output=True, text=True, cwd=tmp_path)
-    assert result.returncode == 0, result.stderr
-    rows = {line.split("|")[1].strip(): line for line in out.read_text().splitlines() if line.startswith("| ")}
+def test_bench_command_writes_the_tables_it_is_asked_for(tmp_path):
+    """`stablebptt bench` (through the installed command's dispatcher): a row per mode for repulsion; for the
+    cart-pole with `--tables steps --simulators generated,floor`, only those simulators and the parts."""
+    command = [sys.executable, "-m", "stablebptt.commands.main", "bench", "--rounds", "1"]
+    refused = subprocess.run(command + ["--tasks", "cartpole", "--simulators", "generated,warp"],
+                             capture_output=True, text=True, cwd=tmp_path)
+    lines = refused.stderr.strip().splitlines()
+    assert refused.returncode == 2 and len(lines) == 1 and "--simulators" in lines[0], refused.stderr
+    modes, steps = tmp_path / "modes.md", tmp_path / "steps.md"
+    # Side by side: the two commands share nothing but the machine.
+    processes = [subprocess.Popen(command + arguments, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+                 for arguments in (["--tasks", "repulsion", "--out", str(modes)],
+                                   ["--tasks", "cartpole", "--poles", "1", "--tables", "steps", "--simulators",
+                                    "generated,floor", "--out", str(steps)])]
+    outputs = [process.communicate() for process in processes]
+    for process, (_, stderr) in zip(processes, outputs):
+        assert process.returncode == 0, stderr
+
+    table = lambda text: [[cell.strip() for cell in line.split("|")[1:-1]] for line in text.splitlines() if line.startswith("| ")]
+    rows = {row[0]: row for row in table(modes.read_text())}
     for variant in ("R plain", "R", "M", "S", "C", "R + cosine"):
-        milliseconds = float(rows[variant].split("|")[2])
-        assert milliseconds > 0, variant
-    assert "C / R = " in out.read_text() and out.read_text() in result.stdout + "\n"
+        assert float(rows[variant][1]) > 0, variant
+    assert "C / R = " in modes.read_text() and modes.read_text() in outputs[0][0] + "\n"
+
+    text = steps.read_text()
+    assert "### Cart-pole (MJX)" not in text and "where the time goes" in text and "parts of the default R update" in text
+    rows = table(text)
+    simulators = [(row[0], row[1]) for row in rows if row[1] in ("R", "C")]
+    assert simulators == [("generated step, body by body (the default)", "R"), ("closed-form equations (floor)", "R"),
+                          ("generated step, body by body (the default)", "C"), ("closed-form equations (floor)", "C")]
+    floor_row = next(row for row in rows if row[:2] == ["closed-form equations (floor)", "R"])
+    assert floor_row[3] == "" and floor_row[4] == "1.00"  # no mjx.step row to divide by; the floor over itself

@@ -243,10 +243,14 @@ def test_an_existing_or_unwritable_out_is_refused_and_left_untouched(uninterrupt
 
 def test_compiled_programs_are_kept_between_runs_unless_turned_off(tmp_path):
     """The command line's persistent compilation cache: filled by a run, left empty with --no-compile-cache."""
+    runs = {}
     for flag, cache in (("--compile-cache", tmp_path / "kept"), ("--no-compile-cache", tmp_path / "off")):
         env = {**os.environ, "STABLEBPTT_COMPILE_CACHE": str(cache)}
-        result = subprocess.run(TRAIN + SMALL_CLI + ["--epochs", "1", "--out", str(tmp_path / flag), flag],
-                                capture_output=True, text=True, cwd=tmp_path, env=env)
-        assert result.returncode == 0, result.stderr
+        # Side by side: the two runs share nothing but the machine.
+        runs[flag, cache] = subprocess.Popen(TRAIN + SMALL_CLI + ["--epochs", "1", "--out", str(tmp_path / flag), flag],
+                                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env)
+    for (flag, cache), process in runs.items():
+        _, stderr = process.communicate()
+        assert process.returncode == 0, stderr
         entries = list(cache.glob("*")) if cache.exists() else []
         assert bool(entries) == (flag == "--compile-cache"), (flag, entries)
