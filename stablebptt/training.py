@@ -212,7 +212,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     test_states = task.sample_initial_states(test_key, config.test_size)
     example_state = jax.tree.map(lambda a: a[0], train_states)
     plan = memory_plan(task, config, example_state)
-    large = step_operations(task, config, example_state) > LARGE_STEP
+    large = large_step(task, config, example_state)
     jit = functools.partial(jax.jit, compiler_options=compiler_options(large))
     # The loop unrolling, the memory plan and a large step's single Jacobian pass are the run's,
     # applied to whichever dynamics an epoch uses.
@@ -358,9 +358,13 @@ def _operations(jaxpr) -> int:
 
 
 def compiler_options(large: bool) -> dict | None:
-    """XLA options of a program that holds a simulator step; ``large``: the step has more than
-    ``LARGE_STEP`` operations (``step_operations``)."""
+    """XLA options of a program that holds a simulator step; ``large``: ``large_step``'s answer."""
     return dict(LARGE_STEP_CPU_OPTIONS) if large and jax.default_backend() == "cpu" else None
+
+
+def large_step(task: Task, config: TrainConfig, initial_state: PyTree) -> bool:
+    """Whether one simulator step has more than ``LARGE_STEP`` operations (``step_operations``)."""
+    return step_operations(task, config, initial_state) > LARGE_STEP
 
 
 def step_operations(task: Task, config: TrainConfig, initial_state: PyTree) -> int:

@@ -104,8 +104,8 @@ def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tupl
              "| simulator | mode | ms (median) | / mjx.step default | / floor (R) | compile s |",
              "|---|---|---:|---:|---:|---:|"]
     for name, (ms, compile_s) in times.items():
-        label, _, mode = name.partition(", C")
-        lines.append(f"| {label} | {'C' if _ else 'R'} | {ms:.2f} | {ratio(ms, base)} | {ratio(ms, lowest)} | {compile_s:.1f} |")
+        label, c_row, _ = name.partition(", C")
+        lines.append(f"| {label} | {'C' if c_row else 'R'} | {ms:.2f} | {ratio(ms, base)} | {ratio(ms, lowest)} | {compile_s:.1f} |")
     if "generated" not in chosen:
         return lines + [""]
     return lines + [""] + parts_table(generated, poles, batch, rounds, variants[SIMULATORS["generated"]])

@@ -261,6 +261,10 @@ def make(config: Config, physics: Physics = Physics()) -> Task:
     # Row n is eigenstate n (row 0 unused), so a traced target number picks its row.
     targets = np.stack([np.zeros(physics.nx)] + [eigenstate(n, physics.nx) for n in range(1, max(TARGETS) + 1)])
 
+    # The batched pullback repeats the convolutions' forward pass: on a CPU that costs
+    # more than it saves, on a GPU it pays (docs/performance.md).
+    policy_gradient = "per-step" if jax.default_backend() == "cpu" else "batched"
+
     def dynamics_with(target):
         """The target enters only the loss, so a sweep passes it per cell as a traced value."""
         def loss(states, controls):
@@ -270,10 +274,6 @@ def make(config: Config, physics: Physics = Physics()) -> Task:
 
         return Dynamics(step=step, policy=network_apply, loss=loss, horizon=config.steps,
                         policy_gradient=policy_gradient)
-
-    # The batched pullback repeats the convolutions' forward pass: on a CPU that costs
-    # more than it saves, on a GPU it pays (docs/performance.md).
-    policy_gradient = "per-step" if jax.default_backend() == "cpu" else "batched"
 
     return Task(
         name="quantum",

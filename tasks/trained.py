@@ -16,7 +16,7 @@ from stablebptt import runs
 from stablebptt.cli import build
 from stablebptt.errors import InputError
 from stablebptt.tasks import entries, entry
-from stablebptt.training import LARGE_STEP, Task, TrainConfig, compiler_options, step_operations
+from stablebptt.training import Task, TrainConfig, compiler_options, large_step
 
 
 @dataclass(frozen=True)
@@ -112,7 +112,7 @@ def rollouts_from_test_states(task: Task, train: TrainConfig, params: Any, count
 
     _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))  # make_trainer's split of the data seed
     initial = jax.tree.map(lambda a: a[:count], task.sample_initial_states(test_key, train.test_size))
-    large = step_operations(task, train, jax.tree.map(lambda a: a[0], initial)) > LARGE_STEP
+    large = large_step(task, train, jax.tree.map(lambda a: a[0], initial))
 
     @functools.partial(jax.jit, compiler_options=compiler_options(large))
     def run(params, initial):
