@@ -143,6 +143,39 @@ def _first(tree: PyTree) -> PyTree:
     return jax.tree.map(lambda a: a[0], tree)
 
 
+def differentiable(leaf) -> bool:
+    """Whether a state leaf carries a derivative: float and complex arrays do; integers, booleans and
+    PRNG keys (a step counter, a contact index, an environment's key) pass through a rollout untouched."""
+    return jnp.issubdtype(jnp.result_type(leaf), jnp.inexact)
+
+
+class Parts(NamedTuple):
+    """A state split into its differentiable leaves and the rest, to be put back by ``join``."""
+
+    floats: list
+    others: list
+    treedef: Any
+    is_float: tuple[bool, ...]
+
+
+def split(tree: PyTree) -> Parts:
+    leaves, treedef = jax.tree.flatten(tree)
+    is_float = tuple(differentiable(leaf) for leaf in leaves)
+    return Parts([a for a, f in zip(leaves, is_float) if f], [a for a, f in zip(leaves, is_float) if not f],
+                 treedef, is_float)
+
+
+def join(parts: Parts, floats: list | None = None, others: list | None = None) -> PyTree:
+    """The state of ``parts`` with its float leaves (or its other leaves) replaced where given."""
+    floats, others = iter(parts.floats if floats is None else floats), iter(parts.others if others is None else others)
+    return jax.tree.unflatten(parts.treedef, [next(floats) if f else next(others) for f in parts.is_float])
+
+
+def _no_cotangent(leaf) -> np.ndarray:
+    """The cotangent JAX expects for a leaf with no derivative."""
+    return np.zeros(np.shape(leaf), dtype=jax.dtypes.float0)
+
+
 def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
     """One simulator step of a whole batch whose reverse pass carries one adjoint per flow (``"reverse"``).
 
@@ -175,10 +208,17 @@ def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
         return jnp.where(mask.reshape((copies,) + (1,) * (a.ndim - 1)), a, jnp.zeros_like(a))
 
     def forward(params, states):
+        # Only float leaves are differentiated; the others (counters, keys, indices) ride along.
+        parts = split(states)
         policy = batch_policy if per_step else lambda params, s: batch_policy(jax.lax.stop_gradient(params), s)
-        controls, policy_pullback = jax.vjp(policy, params, states)
-        next_states, step_pullback = jax.vjp(batch_step, states, controls)
-        return next_states, controls, (policy_pullback, step_pullback)
+        controls, policy_pullback = jax.vjp(lambda p, floats: policy(p, join(parts, floats)), params, parts.floats)
+
+        def float_step(floats, controls):
+            reached = split(batch_step(join(parts, floats), controls))
+            return reached.floats, reached.others
+
+        next_floats, step_pullback, next_others = jax.vjp(float_step, parts.floats, controls, has_aux=True)
+        return join(parts, next_floats, next_others), controls, (policy_pullback, step_pullback)
 
     def outputs(next_states, controls, control_offsets):
         return _stack(next_states, copies), jax.tree.map(jnp.add, _stack(controls, copies), control_offsets)
@@ -200,21 +240,31 @@ def _multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
         residuals, params = saved
         policy_pullback, step_pullback = forward(*residuals)[2] if dynamics.rematerialize else residuals
         next_state_ct, control_ct = cotangents
-        state_ct_sim, control_ct_sim = jax.vmap(step_pullback)(next_state_ct)
+        # Leaves without a derivative get float0 cotangents, which mark them here.
+        parts = split_cotangent(next_state_ct)
+        state_ct_sim, control_ct_sim = jax.vmap(step_pullback)(parts.floats)
         control_ct = jax.tree.map(jnp.add, control_ct, control_ct_sim)
-        state_ct = jax.tree.map(lambda sim: select(keep_sim, sim), state_ct_sim)
+        state_ct = [select(keep_sim, sim) for sim in state_ct_sim]
         if per_step:  # one pullback per flow gives its parameter cotangent and, for R, its state's
             params_ct, net = jax.vmap(policy_pullback)(control_ct)
-            net = jax.tree.map(lambda a: select(np.isin(np.arange(copies), through_net), a), net)
-            return params_ct, jax.tree.map(jnp.add, state_ct, net), control_ct
+            net = [select(np.isin(np.arange(copies), through_net), a) for a in net]
+            return params_ct, join(parts, [a + b for a, b in zip(state_ct, net)]), control_ct
         if through_net:
             rows = np.array(through_net)
             net = jax.vmap(lambda ct: policy_pullback(ct)[1])(jax.tree.map(lambda a: a[rows], control_ct))
-            state_ct = jax.tree.map(lambda total, part: total.at[rows].add(part), state_ct, net)
-        return jax.tree.map(jnp.zeros_like, params), state_ct, control_ct
+            state_ct = [total.at[rows].add(part) for total, part in zip(state_ct, net)]
+        return jax.tree.map(jnp.zeros_like, params), join(parts, state_ct), control_ct
 
     step.defvjp(step_fwd, step_bwd)
     return step
+
+
+def split_cotangent(cotangent: PyTree) -> Parts:
+    """A cotangent split as ``split`` splits its primal: float0 leaves belong to leaves without a derivative."""
+    leaves, treedef = jax.tree.flatten(cotangent)
+    is_float = tuple(leaf.dtype != jax.dtypes.float0 for leaf in leaves)
+    return Parts([a for a, f in zip(leaves, is_float) if f], [a for a, f in zip(leaves, is_float) if not f],
+                 treedef, is_float)
 
 
 def _ravel_examples(tree: PyTree, leading_axes: int) -> jax.Array:
@@ -242,14 +292,15 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
 
     Returns:
       ``(state_jacobian [batch, state, state], control_jacobian [batch, state, control])``
-      over the flattened state and control pytrees (``ravel_pytree`` order).
+      over the flattened state and control pytrees (``ravel_pytree`` order of the state's float
+      leaves; its other leaves have no derivative).
     """
-    state_leaves = jax.tree.leaves(jax.tree.map(lambda a: a[0], states))
-    state_size = sum(leaf.size for leaf in state_leaves)  # the step's output is a state too
+    state_size = sum(leaf.size for leaf in split(jax.tree.map(lambda a: a[0], states)).floats)  # the output is a state too
     known_at = {} if known is None else {int(i): np.asarray(c) for i, c in zip(known.indices, np.transpose(known.columns))}
 
     def one(state, control):
-        leaves, treedef = jax.tree.flatten((state, control))
+        parts = split(state)  # leaves without a derivative are held, not differentiated
+        leaves, treedef = jax.tree.flatten((parts.floats, control))
         sizes = [leaf.size for leaf in leaves]
         offsets = np.cumsum([0] + sizes)
         # Input groups pushed together: each leaf alone, or all leaves in one pass.
@@ -273,7 +324,8 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
                 for index in group:
                     inputs[index] = flat[start:start + sizes[index]].reshape(leaves[index].shape)
                     start += sizes[index]
-                return ravel_pytree(step(*jax.tree.unflatten(treedef, inputs)))[0]
+                floats, control = jax.tree.unflatten(treedef, inputs)
+                return ravel_pytree(split(step(join(parts, floats), control)).floats)[0]
 
             point = jnp.concatenate([leaves[index].ravel() for index in group])
             # Constant unit tangents for the free entries only: no scatter of a tangent to trace.
@@ -309,10 +361,12 @@ def _linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: Py
     # visited holds x_0..x_{T-1}, [T, batch, ...]; the loss sees x_1..x_T.
     reached = jax.tree.map(lambda past, last: jnp.concatenate([past[1:], last[None]]), visited, final)
 
-    def batch_loss(states, controls):
-        return jax.vmap(dynamics.loss, in_axes=(1, 1))(states, controls).mean()
+    reached_parts = split(reached)
 
-    loss, (state_grad, control_grad) = jax.value_and_grad(batch_loss, argnums=(0, 1))(reached, controls)
+    def batch_loss(floats, controls):
+        return jax.vmap(dynamics.loss, in_axes=(1, 1))(join(reached_parts, floats), controls).mean()
+
+    loss, (state_grad, control_grad) = jax.value_and_grad(batch_loss, argnums=(0, 1))(reached_parts.floats, controls)
     state_grad, control_grad = _ravel_examples(state_grad, 2), _ravel_examples(control_grad, 2)
 
     # Every step's Jacobians in one batched pass over [T * batch] examples.
@@ -322,18 +376,19 @@ def _linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: Py
     unmerge = lambda a: a.reshape((horizon, batch_size) + a.shape[1:])
     state_jacobian, control_jacobian = unmerge(state_jacobian), unmerge(control_jacobian)
 
-    unravel_state = ravel_pytree(jax.tree.map(lambda a: a[0, 0], visited))[1]
-    flat_visited = _ravel_examples(visited, 2)
+    visited_parts = split(visited)
+    unravel_floats = ravel_pytree([a[0, 0] for a in visited_parts.floats])[1]
+    flat_visited = _ravel_examples(visited_parts.floats, 2)
 
-    def flat_policy(params, flat_state):
-        return ravel_pytree(dynamics.policy(params, unravel_state(flat_state)))[0]
+    def flat_policy(params, flat_state, others):
+        return ravel_pytree(dynamics.policy(params, join(visited_parts, unravel_floats(flat_state), others)))[0]
 
     policy_jacobian = None
     if "R" in flows:  # only R pulls adjoints back through the policy's input
         state_size, control_size = flat_visited.shape[-1], control_grad.shape[-1]
         jacobian = jax.jacrev if control_size < state_size else jax.jacfwd
-        policy_jacobian = jax.vmap(jax.vmap(jacobian(flat_policy, argnums=1), in_axes=(None, 0)),
-                                   in_axes=(None, 0))(params, flat_visited)  # [T, batch, control, state]
+        policy_jacobian = jax.vmap(jax.vmap(jacobian(flat_policy, argnums=1), in_axes=(None, 0, 0)),
+                                   in_axes=(None, 0, 0))(params, flat_visited, visited_parts.others)  # [T, batch, control, state]
 
     copies = len(flows)
     keep_sim = np.array([_KEEPS[f][0] for f in flows]).reshape(copies, 1, 1)
@@ -379,13 +434,12 @@ def _policy_gradients(dynamics: Dynamics, params: PyTree, visited: PyTree, contr
     ones per step.
     """
     horizon, copies, batch_size = control_adjoints.shape[:3]
-    flat_visited = _ravel_examples(visited, 2).reshape((horizon * batch_size, -1))
-    unravel_state = ravel_pytree(jax.tree.map(lambda a: a[0, 0], visited))[1]
+    examples = _merge(visited, 2)  # [T * batch, ...], leaves without a derivative included
 
-    def flat_policy(params, flat_state):
-        return ravel_pytree(dynamics.policy(params, unravel_state(flat_state)))[0]
+    def flat_controls(params):
+        return _ravel_examples(jax.vmap(dynamics.policy, in_axes=(None, 0))(params, examples), 1)
 
-    _, policy_pullback = jax.vjp(lambda p: jax.vmap(flat_policy, in_axes=(None, 0))(p, flat_visited), params)
+    _, policy_pullback = jax.vjp(flat_controls, params)
     per_flow = jnp.moveaxis(control_adjoints, 1, 0).reshape((copies, horizon * batch_size, -1))
     return jax.vmap(lambda adjoint: policy_pullback(adjoint)[0])(per_flow)
 

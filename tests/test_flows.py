@@ -151,3 +151,30 @@ def test_the_memory_plan_chunks_recomputes_or_refuses_as_the_budget_shrinks():
     assert plan_memory(step, state, control, 10, 8, "reverse", 18, budget=stored.estimate - 1).rematerialize
     with pytest.raises(InputError, match="TrainConfig.batch"):
         plan_memory(step, state, control, 10, 8, "reverse", 18, budget=1)
+
+
+def counted_dynamics(step_derivative):
+    """x carries a step counter, a PRNG key and a flag beside its floats: an environment's state in small."""
+    def step(state, u):
+        noise = 0.01 * jax.random.normal(jax.random.fold_in(state["key"], state["count"]), (2,))
+        x = jnp.where(state["flag"], A, 0.8) * state["x"] + B * u + noise
+        return {"x": x, "count": state["count"] + 1, "key": state["key"], "flag": x[0] > 0}
+
+    return Dynamics(step=step, policy=lambda theta, s: jnp.tanh(theta @ s["x"]) * (1 + 0.1 * s["count"]),
+                    loss=lambda states, controls: jnp.sum(states["x"] ** 2) + 0.1 * jnp.sum(controls ** 2),
+                    horizon=T, step_derivative=step_derivative)
+
+
+@pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
+@pytest.mark.parametrize("policy_gradient", ["batched", "per-step"])
+def test_states_with_integer_bool_and_key_leaves(x64, step_derivative, policy_gradient):
+    """Such leaves pass through untouched; every flow still equals its stop_gradient definition."""
+    dynamics = replace(counted_dynamics(step_derivative), policy_gradient=policy_gradient)
+    theta = jnp.array([[0.3, -0.2], [0.1, 0.4]])
+    states = {"x": jax.random.normal(jax.random.PRNGKey(0), (3, 2)), "count": jnp.arange(3, dtype=jnp.int32),
+              "key": jax.random.split(jax.random.key(7), 3), "flag": jnp.array([True, False, True])}
+    loss, grads = flow_gradients(dynamics, ("R", "M", "S"), theta, states)
+    assert np.isclose(loss, reference_loss(dynamics, theta, states), rtol=1e-12)
+    for index, flow in enumerate(("R", "M", "S")):
+        np.testing.assert_allclose(grads[index], jax.grad(reference_loss, argnums=1)(dynamics, theta, states, flow),
+                                   rtol=1e-10, atol=1e-14, err_msg=flow)
