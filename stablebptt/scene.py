@@ -21,6 +21,7 @@ import numpy as np
 
 from stablebptt import tree
 from stablebptt import mujoco_log  # noqa: F401  (MuJoCo's warnings to stderr, never to MUJOCO_LOG.TXT)
+from stablebptt.constraint_derivatives import solve_implicitly, traced_differentiably
 from stablebptt.errors import InputError
 from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth, solver, support
 from stablebptt.mjx_internals import forward as mjx_forward
@@ -279,7 +280,7 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
         number N sets exactly N Newton iterations (tolerance 0, which MuJoCo's
         C step honours too): cheaper, and different physics where N does not
         reach the solution. Either way the solver's iterations are not
-        differentiated (``_solve``).
+        differentiated (``constraint_derivatives.solve_implicitly``).
     """
     lean = with_options(model, integrator, timestep)
     for bit in diagnostics_bits(lean):
@@ -399,34 +400,8 @@ def _lean_forward(model: mjx.Model, data: mjx.Data, effects: SceneEffects, mass:
         return data
     data = mjx_forward.fwd_acceleration(model, data)
     if effects.constraints and data._impl.efc_J.size:
-        return _solve(model, data)
+        return solve_implicitly(model, data)
     return data.replace(qacc=data.qacc_smooth)
-
-
-def _solve(model: mjx.Model, data: mjx.Data) -> mjx.Data:
-    """MJX's constraint solver, differentiated implicitly at the acceleration it finds.
-
-    The solver minimizes a convex cost in the acceleration, so at its minimum
-    the cost's gradient g vanishes and d qacc = -H^-1 (d g at fixed qacc), H
-    the cost's Hessian: one Newton step's tangent, taken at the solution. Its
-    value is 0 there, so values are the solver's; its tangent is the solution's
-    (implicit function theorem), not that of the iterations that found it.
-    Differentiating the iterations instead goes wrong where the start is already
-    optimal: a joint at rest in friction loss (dm_control's finger) keeps the
-    unconstrained acceleration's tangent, off by 10x in the constraint force.
-    The iterations themselves are not differentiated at all, so reverse mode
-    passes the model's own solver (its while loop) as forward mode does.
-    """
-    solved = solver.solve(model, jax.lax.stop_gradient(data))
-    newton = model.replace(opt=model.opt.replace(solver=mjx_types.SolverType.NEWTON))
-    at_solution = solver.Context.create(newton, data.replace(qacc=solved.qacc))
-    correction = -at_solution.Mgrad  # H^-1 g: ~0 in value, the implicit tangent
-    qacc = solved.qacc + correction - jax.lax.stop_gradient(correction)
-    # At the minimum M qacc - qfrc_smooth - qfrc_constraint = 0: the constraint force's tangent.
-    balance = support.mul_m(model, data, qacc) - data.qfrc_smooth
-    qfrc_constraint = solved.qfrc_constraint + balance - jax.lax.stop_gradient(balance)
-    return data.tree_replace({"qacc": qacc, "qfrc_constraint": qfrc_constraint,
-                              "_impl.efc_force": solved._impl.efc_force})
 
 
 def implicit_derivative_applies(model: mujoco.MjModel, effects: SceneEffects) -> bool:
@@ -484,13 +459,13 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
         def step(state: State, ctrl: jax.Array) -> State:
             data = mjx.step(mjx_model, data_of(state, ctrl))
             return State(data.qpos, data.qvel, data.act)
-        return step
+        return traced_differentiably(step)
 
     def step(state: State, ctrl: jax.Array) -> State:
         return advance(_lean_forward(mjx_model, data_of(state, ctrl), effects))
 
     if not (implicit and implicit_derivative_applies(model, effects)):
-        return step
+        return traced_differentiably(step)
 
     implicit_step = jax.custom_jvp(step)
 
@@ -520,7 +495,7 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
                        (dense(state_dot.qpos, state.qpos), dense(state_dot.qvel, state.qvel), qacc_dot))
 
     implicit_step.defjvp(implicit_jvp, symbolic_zeros=True)
-    return implicit_step
+    return traced_differentiably(implicit_step)
 
 
 def _is_zero(tangent) -> bool:

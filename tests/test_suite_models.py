@@ -234,7 +234,7 @@ def test_a_suite_model_trains_and_renders_from_the_command_line(suite, tmp_path)
 
 # Eight reacher states (float32, zero control) from a 20-step rollout; at the last, MJX's line
 # search met a search direction of rounding noise: its Newton step's derivative divided by the
-# square of ~1e-20, which float32 flushes to 0 (stablebptt/mjx_internals.py explains the remedy).
+# square of ~1e-20, which float32 flushes to 0 (stablebptt/constraint_derivatives.py explains the remedy).
 REACHER_QPOS = [[-0.05686615, 0.08633361], [-0.06332258, 0.02021889], [0.022796154, 0.06927885],
                 [-0.020602277, -0.07723963], [-0.009803113, -0.018506018], [-0.022436908, 0.010405372],
                 [0.03532419, -0.07883733], [-0.03214946, 0.06130206]]
@@ -261,8 +261,9 @@ def test_clipping_an_edge_nearly_parallel_to_a_side_plane_keeps_reverse_mode_fin
     # MJX clips a capsule's or box's edge against a convex body's side planes
     # (manipulator, stacker); an edge nearly parallel to a plane gave NaN
     # cotangents. Values: the clipped intersection of the closed form.
+    from stablebptt.constraint_derivatives import _closest_segment_point_plane_stable as point
+    from stablebptt.constraint_derivatives import differentiable_mjx
     from stablebptt.mjx_internals import collision_convex
-    point = collision_convex._closest_segment_point_plane
     normal = jnp.array([0.0, 0.0, 1.0], jnp.float32)
     cases = [((0, 0, 0), (1, 0, 1e-30), (0, 0, 1)),  # nearly parallel, clipped to b
              ((0, 0, 0), (1, 0, 0), (0, 0, 1)),  # exactly parallel (MJX divides by 1e-6)
@@ -280,10 +281,13 @@ def test_clipping_an_edge_nearly_parallel_to_a_side_plane_keeps_reverse_mode_fin
     a, b = jnp.array([0.0, 0.0, -1.0]), jnp.array([1.0, 0.0, 1.0])
     slope = jax.grad(lambda h: point(a, b, jnp.array([0.0, 0.0, h]), normal)[0])(0.5)
     np.testing.assert_allclose(slope, 0.5, rtol=1e-6)
-    edges = jax.grad(lambda p0: jnp.sum(collision_convex._clip_edge_to_planes(
-        p0, jnp.array([1.0, 0.0, 1e-30]), jnp.array([[0.0, 0.0, 1.0]] * 4), jnp.tile(normal, (4, 1)))[0]))(
-        jnp.zeros(3, jnp.float32))
+    with differentiable_mjx():  # MJX's own edge clipping calls the remedy inside the context only
+        assert collision_convex._closest_segment_point_plane is point
+        edges = jax.grad(lambda p0: jnp.sum(collision_convex._clip_edge_to_planes(
+            p0, jnp.array([1.0, 0.0, 1e-30]), jnp.array([[0.0, 0.0, 1.0]] * 4), jnp.tile(normal, (4, 1)))[0]))(
+            jnp.zeros(3, jnp.float32))
     assert bool(jnp.all(jnp.isfinite(edges)))
+    assert collision_convex._closest_segment_point_plane is not point  # undone on exit
 
 
 def test_auto_takes_reverse_mode_only_where_forward_tangents_would_each_pass_a_large_constraint_system(suite):
