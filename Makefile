@@ -1,5 +1,6 @@
 # The two commands of the README. Both create .venv when it is missing and
-# install the project into it; they need only python3 and pip.
+# install the project into it (with MuJoCo Playground, which the environment
+# tests use); they need only python3 and pip.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -10,7 +11,7 @@ INSTALLED := $(VENV)/.installed
 $(INSTALLED): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet --constraint constraints.txt -e '.[dev]'
+	$(BIN)/python -m pip install --quiet --constraint constraints.txt -e '.[dev,playground]'
 	touch $(INSTALLED)
 
 # A budget that finishes in a few minutes on a 2-core laptop; drop --epochs for the paper's 1000.

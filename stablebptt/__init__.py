@@ -5,6 +5,8 @@ loss and horizon; a network initialiser; an initial-state sampler) and ``train``
 it with a ``TrainConfig``. The gradient flows R, M, S and their combination C
 live in ``stablebptt.flows``; run folders in ``stablebptt.runs``; MuJoCo scene
 analysis in ``stablebptt.scene``; the built-in tasks in ``stablebptt.tasks``.
+``env_task`` turns an environment in Brax's protocol (MuJoCo Playground's, a
+lab's own) into a ``Task`` (``stablebptt.environments``).
 """
 import os
 
@@ -24,4 +26,14 @@ from stablebptt.runs import Trained, TrainingDiverged, train
 from stablebptt.training import Task, TrainConfig, make_trainer
 
 __all__ = ["FLOWS", "MODES", "Dynamics", "InputError", "Task", "TrainConfig", "Trained", "TrainingDiverged",
-           "flow_gradients", "make_trainer", "mlp_apply", "mlp_init", "select_flow", "sign_agreement", "train"]
+           "env_task", "flow_gradients", "make_trainer", "mlp_apply", "mlp_init", "select_flow", "sign_agreement",
+           "train"]
+
+
+def __getattr__(name: str):
+    # Imported on first use: the environment adapter imports MJX, and MuJoCo must not load before a
+    # renderer has chosen its OpenGL backend.
+    if name == "env_task":
+        from stablebptt.environments import env_task
+        return env_task
+    raise AttributeError(f"module 'stablebptt' has no attribute {name!r}")

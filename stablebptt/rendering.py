@@ -456,7 +456,29 @@ def draw_mujoco_rollouts(task_config, states, controls, titles, label, settings,
     frame strip of the first. ``settings`` has width, height (of a video panel), fps and strip_states."""
     strip_size = (2 * settings.width, 2 * settings.height)  # a picture for print: twice the video panel
     model = render_model(task_config.model_path, framebuffer=(SUPERSAMPLE * strip_size[0], SUPERSAMPLE * strip_size[1]))
-    qpos = states.qpos
+    return _draw_qpos(model, states.qpos, settings, video, strip)
+
+
+def draw_env_rollouts(task_config, states, controls, titles, label, settings, video: Path | None,
+                      strip: Path) -> list[Path]:
+    """An environment's rollouts, drawn from its own ``mj_model`` and the positions in its states'
+    ``data`` (an ``mjx.Data``, as MuJoCo Playground's)."""
+    from stablebptt.environments import load_env
+    env = load_env(task_config.env)
+    model = getattr(env, "mj_model", None)
+    qpos = getattr(getattr(states, "data", None), "qpos", None)
+    if model is None or qpos is None:
+        raise InputError(f"{task_config.env} has no mj_model or its states no data.qpos: nothing to draw it from")
+    strip_size = (2 * settings.width, 2 * settings.height)
+    _brighten_headlight(model.vis.headlight)
+    model.vis.global_.offwidth = max(model.vis.global_.offwidth, SUPERSAMPLE * strip_size[0])
+    model.vis.global_.offheight = max(model.vis.global_.offheight, SUPERSAMPLE * strip_size[1])
+    return _draw_qpos(model, np.asarray(qpos), settings, video, strip)
+
+
+def _draw_qpos(model, qpos: np.ndarray, settings, video: Path | None, strip: Path) -> list[Path]:
+    """Rollouts given as positions [N, T+1, nq]: the video side by side and the strip of the first."""
+    strip_size = (2 * settings.width, 2 * settings.height)
     written = []
     cameras = [frame_camera(model, *rollout_extent(model, q), settings.width, settings.height) for q in qpos]
     if video is not None:

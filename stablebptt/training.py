@@ -72,6 +72,9 @@ class Task:
       cell_option: the option a sweep may vmap per cell, if the task has one.
       resolved: the task as resolved from its sources (model file, defaults,
         options), JSON-serialisable; runs record it in their config.
+      evaluation: ``evaluation(params, initial_states) -> losses [n]``, what the
+        train and test losses of an epoch report (an environment's negative
+        episode return); None: the loss of ``dynamics``' rollout from each state.
     """
 
     name: str
@@ -81,6 +84,7 @@ class Task:
     summary: str = ""
     cell_option: CellOption | None = None
     resolved: dict = field(default_factory=dict)
+    evaluation: Callable[[PyTree, PyTree], jax.Array] | None = None
 
 
 @dataclass(frozen=True)
@@ -226,6 +230,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         return TrainState(params, optimizer.init(params))
 
     def evaluate(params, initial_states, dynamics=for_this_run(task.dynamics)):
+        if task.evaluation is not None:
+            return task.evaluation(params, initial_states).mean()
         return reference_loss(dynamics, params, initial_states)
 
     def update(dynamics, state, batch):
@@ -245,6 +251,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     def evaluate_both(params, train_states, test_states, dynamics=for_this_run(task.dynamics)):
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
         both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), train_states, test_states)
+        if task.evaluation is not None:
+            return task.evaluation(params, both)
         return reference_losses(dynamics, params, both)
 
     def summarize(state, per_update, losses_of_both):

@@ -84,6 +84,8 @@ _BUILTIN = (
     Entry("quantum", "stablebptt.tasks.quantum", label=lambda c: f"quantum, target state {c.target}",
           draw="stablebptt.tasks.figures:draw_quantum", picture="density",
           presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8),
+    Entry("env", "stablebptt.tasks.env", label=lambda c: c.env or "an environment",
+          draw="stablebptt.rendering:draw_env_rollouts", picture="strip", mujoco_frames=True),
 )
 _REGISTRY: dict[str, Entry] = {}
 _discovered = False

@@ -1,0 +1,332 @@
+"""Environments as tasks: any environment in Brax's protocol trains through the gradient flows.
+
+The protocol (Brax's, which MuJoCo Playground follows): ``env.reset(key) ->
+State`` and ``env.step(State, action) -> State``, where ``State`` is a pytree
+with ``obs``, ``reward`` and ``done`` (and anything else: an ``mjx.Data``, a
+PRNG key, a step counter), plus ``env.observation_size`` and
+``env.action_size``. ``env_task`` turns such an environment into a ``Task``:
+
+- the loss of a rollout of ``horizon`` steps is its negative (optionally
+  discounted) return, rewards counted until the first ``done``;
+- initial states come from ``env.reset`` (jitted, batched);
+- the policy sees ``State.obs`` and its actions are squashed into [-1, 1];
+- the train and test losses of every epoch are the negative EPISODE return
+  (``episode_length`` steps, the deterministic policy, from fresh resets), the
+  number Brax and MuJoCo Playground report;
+- an ``mjx.step`` inside ``env.step`` is traced with its constraint solver
+  differentiated implicitly (``constraint_derivatives``), so solvers of any
+  iteration count pass reverse mode.
+
+Before training, ``diagnose_reward`` looks at the reward's gradient at sampled
+states: a reward whose gradient is zero everywhere (a step function) is
+refused, a NaN derivative of a known form is repaired, and a NaN at exactly
+zero action is avoided by starting the policy's output layer small instead of
+at zero (``RewardDiagnosis``).
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stablebptt.constraint_derivatives import differentiable_mjx
+from stablebptt.errors import InputError
+from stablebptt.flows import Dynamics, join, reference_losses, split
+from stablebptt.networks import mlp_apply, mlp_init
+from stablebptt.training import Task
+
+PyTree = Any
+# Output weights of a policy that must not start at exactly zero action: small enough that the
+# first actions stay near zero, large enough that the reward's derivative is taken off zero.
+SMALL_OUTPUT_SCALE = 1e-2
+DIAGNOSIS_STATES = 8  # resets, each also a few random steps on: where the reward's gradient is looked at
+DIAGNOSIS_STEPS = 5
+
+
+class EnvError(InputError):
+    """An environment that cannot train: not in the protocol, or a reward with no usable gradient."""
+
+
+def observation(state: PyTree) -> jax.Array:
+    """The policy's input: ``State.obs``, or its ``"state"`` entry where the observation is a dict."""
+    obs = state.obs
+    if isinstance(obs, dict):
+        return obs["state"]
+    return obs
+
+
+def check_protocol(env: Any) -> None:
+    """Raise ``EnvError`` naming what ``env`` lacks of Brax's environment protocol."""
+    missing = [name for name in ("reset", "step", "observation_size", "action_size") if not hasattr(env, name)]
+    if missing:
+        raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: it has no "
+                       f"{', '.join(missing)} (reset(key) -> State, step(State, action) -> State, "
+                       "observation_size, action_size)")
+    size = env.observation_size
+    if isinstance(size, dict):
+        if "state" not in size:
+            raise EnvError(f"{type(env).__name__}'s observation is a dict without a 'state' entry "
+                           f"({', '.join(size)}): give an environment with a vector observation")
+        size = size["state"]
+    if not (isinstance(size, (int, np.integer)) or (isinstance(size, tuple) and len(size) == 1)):
+        raise EnvError(f"{type(env).__name__}'s observation has shape {size}: only vector observations are supported")
+
+
+def observation_size(env: Any) -> int:
+    size = env.observation_size
+    size = size["state"] if isinstance(size, dict) else size
+    return int(size[0] if isinstance(size, tuple) else size)
+
+
+class RewardDiagnosis(NamedTuple):
+    """What the reward's gradient looks like at sampled states, with zero and with random actions.
+
+    ``kind`` is ``"usable"``, ``"nan at zero action"``, ``"nan"`` or ``"zero"``.
+    """
+
+    kind: str
+    nan_at_zero: float  # share of sampled states whose gradient is NaN at zero action
+    nan_at_random: float  # the same with random actions
+    zero: bool  # the gradient is exactly zero at every sampled state and action
+
+    def describe(self) -> str:
+        return {"usable": "reward gradient: usable",
+                "nan at zero action": "reward gradient: NaN at exactly zero action (the policy starts off zero)",
+                "nan": f"reward gradient: NaN at {self.nan_at_random:.0%} of sampled states",
+                "zero": "reward gradient: zero at every sampled state"}[self.kind]
+
+
+def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> RewardDiagnosis:
+    """The gradient of one step's reward with respect to the state's floats and the action.
+
+    Args:
+      step: the environment's step.
+      states: a batch of states (leading axis), e.g. resets and states a few random steps on.
+      actions: random actions, one per state; zero actions are tried too.
+    """
+    def gradient(state, action):
+        parts = split(state)
+        grads = jax.grad(lambda floats, a: step(join(parts, floats), a).reward, argnums=(0, 1))(parts.floats, action)
+        leaves = jax.tree.leaves(grads)
+        finite = jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in leaves]))
+        size = jnp.max(jnp.array([jnp.max(jnp.abs(jnp.where(jnp.isfinite(leaf), leaf, 0.0)), initial=0.0)
+                                  for leaf in leaves]))
+        return finite, size
+
+    both = jax.jit(jax.vmap(gradient))
+    finite_zero, size_zero = both(states, jnp.zeros_like(actions))
+    finite_random, size_random = both(states, actions)
+    nan_at_zero = float(1 - np.mean(np.asarray(finite_zero)))
+    nan_at_random = float(1 - np.mean(np.asarray(finite_random)))
+    zero = not (np.any(np.asarray(size_zero) > 0) or np.any(np.asarray(size_random) > 0))
+    if nan_at_random > 0:
+        kind = "nan"
+    elif nan_at_zero > 0:
+        kind = "nan at zero action"
+    elif zero:
+        kind = "zero"
+    else:
+        kind = "usable"
+    return RewardDiagnosis(kind, nan_at_zero, nan_at_random, zero)
+
+
+def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
+    """Resets and the states a few random actions lead to, with a random action for each."""
+    reset_key, action_key = jax.random.split(key)
+
+    def visit(key):
+        state = env.reset(key)
+        keys = jax.random.split(jax.random.fold_in(key, 1), DIAGNOSIS_STEPS + 1)
+
+        def advance(state, k):
+            action = jax.random.uniform(k, (env.action_size,), minval=-1.0, maxval=1.0)
+            return step(state, action), state
+
+        last, visited = jax.lax.scan(advance, state, keys[:-1])
+        return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), visited, last)
+
+    states = jax.jit(jax.vmap(visit))(jax.random.split(reset_key, DIAGNOSIS_STATES))
+    states = jax.tree.map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), states)
+    count = jax.tree.leaves(states)[0].shape[0]
+    actions = jax.random.uniform(action_key, (count, env.action_size), minval=-1.0, maxval=1.0)
+    return states, actions
+
+
+def _count(states: PyTree) -> int:
+    return jax.tree.leaves(states)[0].shape[0]
+
+
+class EpisodeState(NamedTuple):
+    """An environment state with the return so far and whether the episode still runs."""
+
+    env: PyTree
+    total: jax.Array
+    running: jax.Array
+
+
+def episode_dynamics(step: Callable, policy: Callable, episode_length: int) -> Dynamics:
+    """A rollout whose loss is the negative episode return, rewards counted until the first ``done``.
+
+    Its state wraps the environment's (``EpisodeState``) so that the return is
+    summed as the rollout goes and no step's state needs keeping.
+    """
+    def episode_step(state: EpisodeState, action):
+        reached = step(state.env, action)
+        # where, not a product: a reward after the end (a NaN state, say) must not leak in.
+        total = state.total + jnp.where(state.running, reached.reward, 0.0)
+        return EpisodeState(reached, total, state.running & (reached.done == 0))
+
+    return Dynamics(step=episode_step, policy=lambda params, state: policy(params, state.env),
+                    loss=lambda states, actions: -states.total[-1], horizon=episode_length)
+
+
+def rollout_loss(discount: float) -> Callable:
+    """The negative discounted return of one rollout, rewards counted until the first ``done``."""
+    def loss(states, actions):
+        done = jax.lax.stop_gradient(states.done)
+        # Step t's reward counts if no earlier step ended the episode.
+        running = jnp.concatenate([jnp.ones((1,), done.dtype), jnp.cumprod(1 - done)[:-1]]) > 0
+        weights = discount ** jnp.arange(done.shape[0], dtype=states.reward.dtype)
+        return -jnp.sum(jnp.where(running, weights * states.reward, 0.0))
+
+    return loss
+
+
+@contextlib.contextmanager
+def _no_context():
+    yield
+
+
+def load_env(spec: str) -> Any:
+    """The environment ``spec`` names: ``package.module:attribute`` (an environment, or a class or
+    factory called without arguments), else a name in MuJoCo Playground's registry."""
+    if ":" not in spec:
+        from stablebptt import playground
+        return playground.load(spec)
+    module_name, _, attribute = spec.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as error:
+        raise EnvError(f"environment {spec}: cannot import {module_name} ({error})") from None
+    if not attribute or not hasattr(module, attribute):
+        raise EnvError(f"environment {spec}: {module_name} has no attribute {attribute!r}")
+    found = getattr(module, attribute)
+    if not all(hasattr(found, name) for name in ("reset", "step")) or isinstance(found, type):
+        if not callable(found):
+            raise EnvError(f"environment {spec}: {attribute} is neither an environment nor a factory of one")
+        try:
+            found = found()
+        except Exception as error:  # noqa: BLE001 - the user's factory failed: say so in one line
+            raise EnvError(f"environment {spec}: {attribute}() failed ({type(error).__name__}: {error})") from None
+    check_protocol(found)
+    return found
+
+
+def _is_playground(env: Any) -> bool:
+    return type(env).__module__.startswith("mujoco_playground")
+
+
+def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,
+             hidden: Sequence[int] = (64, 64), name: str = "", reward_context: Callable | None = None,
+             reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0) -> Task:
+    """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
+
+    Args:
+      env: the environment (``reset``, ``step``, ``observation_size``, ``action_size``).
+      horizon: steps of one training rollout (the BPTT horizon).
+      discount: per-step discount of the training loss's return (1: the plain return).
+      episode_length: steps of the evaluation episodes whose return the train and
+        test losses report (negated); None: the environment's own
+        (``env._config.episode_length``, as Playground and Brax evaluate), else 1000.
+      hidden: widths of the policy's hidden layers.
+      name: the task's name in run folders (default: the environment's class name).
+      reward_context: a context manager entered whenever the step is traced (a
+        repair of the reward's derivative; ``reward_repairs`` names it for the summary).
+        None: for MuJoCo Playground's environments ``playground.repaired_rewards``, else none.
+      diagnose: look at the reward's gradient before training (``diagnose_reward``);
+        a reward with no usable gradient raises ``EnvError``.
+
+    Example::
+
+        env = mujoco_playground.registry.load("CartpoleSwingup", config_overrides={"impl": "jax"})
+        task = sb.env_task(env, horizon=100)
+        result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
+    """
+    check_protocol(env)
+    if episode_length is None:
+        episode_length = int(getattr(getattr(env, "_config", None), "episode_length", 1000))
+    if reward_context is None:
+        reward_context, reward_repairs = _no_context, reward_repairs
+        if _is_playground(env):
+            from stablebptt import playground
+            reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
+    if not (isinstance(horizon, (int, np.integer)) and not isinstance(horizon, bool) and horizon >= 1):
+        raise EnvError(f"horizon must be a positive whole number of steps, got {horizon!r}")
+    if not (isinstance(episode_length, (int, np.integer)) and episode_length >= 1):
+        raise EnvError(f"episode_length must be a positive whole number of steps, got {episode_length!r}")
+    if not (math.isfinite(discount) and 0 < discount <= 1):
+        raise EnvError(f"discount must be in (0, 1], got {discount}")
+    label = name or type(env).__name__
+
+    def step(state, action):
+        with differentiable_mjx(implicit_solver=True), reward_context():
+            return env.step(state, action)
+
+    def policy(params, state):
+        return jnp.tanh(mlp_apply(params, observation(state)))
+
+    sizes = (observation_size(env), *hidden, int(env.action_size))
+    reset = jax.jit(jax.vmap(env.reset))
+
+    def sample_initial_states(key, count):
+        return reset(jax.random.split(key, count))
+
+    diagnosis = None
+    start_off_zero = False
+    if diagnose:
+        diagnosis = diagnose_reward(step, *_sample_for_diagnosis(env, step, jax.random.PRNGKey(diagnosis_seed)))
+        advice = ("give a dense reward (a variant without 'Sparse'; a tolerance with a margin > 0) "
+                  "or a reward of your own")
+        if diagnosis.kind == "zero":
+            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
+                           f"(a step function, such as a tolerance with margin 0): BPTT has nothing to follow; {advice}")
+        if diagnosis.kind == "nan":
+            raise EnvError(f"{label}: the reward's gradient is NaN at {diagnosis.nan_at_random:.0%} of sampled states "
+                           f"with random actions{' even after repairing ' + reward_repairs if reward_repairs else ''}: "
+                           f"{advice} (a norm taken at zero, a tolerance with an infinite bound and no margin?)")
+        start_off_zero = diagnosis.kind == "nan at zero action"
+
+    def init_params(key, zero_output):
+        params = mlp_init(key, sizes, zero_output and not start_off_zero)
+        if zero_output and start_off_zero:  # small, not zero: the reward's derivative is NaN at zero action
+            weights, bias = params[-1]
+            params[-1] = (SMALL_OUTPUT_SCALE * weights, bias)
+        return params
+
+    evaluation = episode_dynamics(step, policy, episode_length)
+    summary = (f"{label}: {sizes[0]} observations, {sizes[-1]} actions in [-1, 1]; horizon {horizon} steps, "
+               f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "
+               f"train/test loss: negative return of {episode_length}-step episodes; "
+               "constraint solver differentiated at its solution")
+    if reward_repairs:
+        summary += f"; repaired: {reward_repairs}"
+    if diagnosis is not None:
+        summary += f"; {diagnosis.describe()}"
+    return Task(
+        name=label,
+        dynamics=Dynamics(step=step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
+        init_params=init_params,
+        sample_initial_states=sample_initial_states,
+        summary=summary,
+        resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
+                  "hidden": list(hidden), "reward_gradient": diagnosis.kind if diagnosis else "not checked",
+                  "reward_repairs": reward_repairs, "policy_output_start": "small" if start_off_zero else "zero"},
+        evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
+            states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
+    )

@@ -1,0 +1,119 @@
+"""MuJoCo Playground's environments, loaded for the gradient flows (the optional extra ``playground``).
+
+``load(name)`` takes an environment from Playground's registry with MJX's JAX
+implementation (``impl="jax"``; Warp has no gradients) and refuses, in one
+line, a name the registry lacks, a missing extra and an environment that runs
+on Warp only. ``repaired_rewards()`` is the context ``environments.env_task``
+enters while the step traces: Playground's reward ``tolerance`` computed in a
+form whose values are the same and whose derivative is never NaN.
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+from typing import Any, Iterator
+
+import jax.numpy as jnp
+
+from stablebptt.errors import InputError
+
+EXTRA = "pip install 'stablebptt[playground]'"
+REPAIRS = "Playground's reward tolerance in a form whose derivative is finite (values unchanged)"
+
+
+class PlaygroundMissing(InputError):
+    """MuJoCo Playground is not installed."""
+
+
+def registry() -> Any:
+    """Playground's registry module; ``PlaygroundMissing`` names the extra to install."""
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # its Warp import notice is not the user's business
+            from mujoco_playground import registry as playground_registry
+    except ImportError as error:
+        raise PlaygroundMissing(f"MuJoCo Playground is not installed ({error}): {EXTRA}") from None
+    return playground_registry
+
+
+def names() -> tuple[str, ...]:
+    """Every environment of Playground's registry."""
+    return tuple(registry().ALL_ENVS)
+
+
+def suite_names() -> tuple[str, ...]:
+    """Playground's DeepMind Control Suite environments."""
+    from mujoco_playground import dm_control_suite
+    return tuple(dm_control_suite.ALL_ENVS)
+
+
+def load(name: str) -> Any:
+    """The environment ``name`` of Playground's registry, simulated by MJX's JAX implementation."""
+    known = registry()
+    if name not in known.ALL_ENVS:
+        close = [env for env in known.ALL_ENVS if env.lower() == name.lower()]
+        hint = f"did you mean {close[0]}?" if close else "python -c 'from mujoco_playground import registry; print(registry.ALL_ENVS)' lists them"
+        raise InputError(f"unknown environment {name!r}: not in MuJoCo Playground's registry ({hint})")
+    config = known.get_default_config(name)
+    if "impl" not in config:
+        raise InputError(f"{name} has no 'impl' setting: it runs on MuJoCo Warp only, which has no gradients")
+    try:
+        env = known.load(name, config_overrides={"impl": "jax"})
+    except Exception as error:  # noqa: BLE001 - an env that cannot be built on MJX's JAX implementation
+        raise InputError(f"{name} cannot be built with impl='jax' ({type(error).__name__}: "
+                         f"{str(error).splitlines()[0] if str(error) else ''}): it needs MuJoCo Warp, which has no gradients") from None
+    impl = getattr(getattr(env, "mjx_model", None), "impl", None)
+    if impl is not None and getattr(impl, "value", impl) != "jax":
+        raise InputError(f"{name} runs on {getattr(impl, 'value', impl)}, not MJX's JAX implementation: no gradients")
+    return env
+
+
+def _sigmoid(distance: jnp.ndarray, value_at_1: float, kind: str) -> jnp.ndarray:
+    """dm_control's tolerance sigmoids: 1 at distance 0, ``value_at_1`` at distance 1."""
+    if kind == "gaussian":
+        return jnp.exp(-0.5 * (distance * jnp.sqrt(-2 * jnp.log(value_at_1))) ** 2)
+    if kind == "hyperbolic":
+        return 1 / jnp.cosh(distance * jnp.arccosh(1 / value_at_1))
+    if kind == "long_tail":
+        return 1 / ((distance * jnp.sqrt(1 / value_at_1 - 1)) ** 2 + 1)
+    if kind == "reciprocal":
+        return 1 / (jnp.abs(distance) * (1 / value_at_1 - 1) + 1)
+    if kind == "tanh_squared":
+        return 1 - jnp.tanh(distance * jnp.arctanh(jnp.sqrt(1 - value_at_1))) ** 2
+    scaled = distance * {"cosine": jnp.arccos(2 * value_at_1 - 1) / jnp.pi, "linear": 1 - value_at_1,
+                         "quadratic": jnp.sqrt(1 - value_at_1)}[kind]
+    inside = jnp.abs(scaled) < 1
+    scaled = jnp.where(inside, scaled, 0.0)  # outside, the constant 0: no slope from an unused branch
+    shape = {"cosine": (1 + jnp.cos(jnp.pi * scaled)) / 2, "linear": 1 - scaled, "quadratic": 1 - scaled ** 2}[kind]
+    return jnp.where(inside, shape, 0.0)
+
+
+def safe_tolerance(x, bounds=(0.0, 0.0), margin=0.0, sigmoid="gaussian", value_at_margin=0.1):
+    """Playground's ``reward.tolerance`` with the same values and a derivative that is never NaN.
+
+    Playground evaluates the sigmoid at the distance to the bounds everywhere
+    and keeps 1 inside them. With an infinite bound that distance is infinite
+    inside, the sigmoid's slope there is inf x 0 = NaN, and the unused branch's
+    NaN reaches the gradient. Here the sigmoid sees distance 0 inside the bounds
+    (where its value is discarded), so inside the derivative is exactly 0.
+    """
+    lower, upper = bounds
+    if lower > upper or margin < 0:
+        raise ValueError("tolerance needs lower <= upper and margin >= 0")
+    inside = jnp.logical_and(lower <= x, x <= upper)
+    if margin == 0:
+        return jnp.where(inside, 1.0, 0.0)
+    # Differences are linear: an infinite one in an unused branch passes a finite (zero) slope.
+    distance = jnp.where(inside, 0.0, jnp.where(x < lower, lower - x, x - upper)) / margin
+    return jnp.where(inside, 1.0, _sigmoid(distance, value_at_margin, sigmoid))
+
+
+@contextlib.contextmanager
+def repaired_rewards() -> Iterator[None]:
+    """Within the block, Playground's rewards use ``safe_tolerance`` (enter it while a step traces)."""
+    from mujoco_playground._src import reward
+    original = reward.tolerance
+    reward.tolerance = safe_tolerance
+    try:
+        yield
+    finally:
+        reward.tolerance = original

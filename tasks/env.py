@@ -1,0 +1,50 @@
+"""An environment in Brax's protocol as a task: MuJoCo Playground's registry by name, or any importable env.
+
+    python scripts/train.py --env CartpoleSwingup --steps 100
+    python scripts/train.py --env my_lab.envs:make_arm_env --steps 50
+
+The loss of a training rollout is its negative return; every epoch's train and
+test losses are the negative episode return from fresh resets, as Playground
+and Brax report it (``stablebptt.environments``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from stablebptt.environments import env_task, load_env
+from stablebptt.errors import InputError, config_field
+from stablebptt.training import Task
+
+DEFAULT_EPOCHS = 200
+DEFAULT_STEPS = 100
+MAX_STEPS = 100_000
+
+
+@dataclass(frozen=True)
+class Config:
+    env: str = field(default="", metadata={"help": "an environment: a name in MuJoCo Playground's registry (e.g. CartpoleSwingup; pip install 'stablebptt[playground]'), or package.module:attribute, an environment in Brax's protocol or a factory of one"})
+    steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the task's own)"})
+    discount: float = field(default=1.0, metadata={"help": "per-step discount of the training rollout's return, in (0, 1]"})
+    episode_length: int = field(default=0, metadata={"help": "steps of the evaluation episodes whose return every epoch logs (0: the environment's own)"})
+
+    def __post_init__(self):
+        if not 0 <= self.steps <= MAX_STEPS:
+            raise InputError(f"{config_field(self, 'steps')} must be between 1 and {MAX_STEPS} (or 0 for {DEFAULT_STEPS}), got {self.steps}")
+        if not (math.isfinite(self.discount) and 0 < self.discount <= 1):
+            raise InputError(f"{config_field(self, 'discount')} must be in (0, 1], got {self.discount}")
+        if not 0 <= self.episode_length <= MAX_STEPS:
+            raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
+
+
+def run_name(config: Config) -> str:
+    """The environment's name in run folders: the registry name, or the attribute of package.module:attribute."""
+    return config.env.rpartition(":")[2] or config.env
+
+
+def make(config: Config) -> Task:
+    if not config.env:
+        raise InputError(f"give {config_field(config, 'env')}: a MuJoCo Playground name or package.module:attribute")
+    env = load_env(config.env)
+    return env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
+                    episode_length=config.episode_length or None, name=run_name(config))

@@ -1,0 +1,73 @@
+"""Small environments in Brax's protocol for the tests (importable as ``envs_for_tests:...``).
+
+A cart on a line that should sit at the origin: its state carries what every
+real environment's state has beside floats - a step counter, a PRNG key, a flag
+- and the reward is chosen per test: smooth, a step function, or a norm whose
+derivative is NaN at zero action.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+DT = 0.05
+
+
+class State(NamedTuple):
+    obs: jax.Array
+    reward: jax.Array
+    done: jax.Array
+    data: dict[str, Any]
+
+
+REWARDS = {
+    "smooth": lambda position, action: -position ** 2 - 0.01 * jnp.sum(action ** 2),
+    "step": lambda position, action: jnp.where(jnp.abs(position) < 0.1, 1.0, 0.0),
+    # |action|: its derivative is NaN at exactly zero action (the norm's slope 0 / 0), finite elsewhere.
+    "norm": lambda position, action: -position ** 2 - 0.01 * jnp.sqrt(jnp.sum(action ** 2)),
+    "root": lambda position, action: -jnp.sqrt(position),  # NaN for every position below 0
+}
+
+
+class Cart:
+    """A damped cart driven by a force in [-1, 1]; the episode ends (done) once it leaves |x| < 5."""
+
+    observation_size = 2
+    action_size = 1
+
+    def __init__(self, reward: str = "smooth"):
+        self.reward_of = REWARDS[reward]
+        self._config = type("Config", (), {"episode_length": 30})()
+
+    def reset(self, key: jax.Array) -> State:
+        key, position_key = jax.random.split(key)
+        position = jax.random.uniform(position_key, (), minval=-1.0, maxval=1.0)
+        data = {"position": position, "velocity": jnp.zeros(()), "count": jnp.zeros((), jnp.int32), "rng": key,
+                "moving": jnp.zeros((), bool)}
+        return State(self._observe(data), jnp.zeros(()), jnp.zeros(()), data)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        data = state.data
+        rng, noise_key = jax.random.split(data["rng"])
+        # The key feeds the physics (a tiny force noise): it must ride through the rollout untouched.
+        force = action[0] + 1e-3 * jax.random.normal(noise_key, ())
+        velocity = data["velocity"] + DT * (force - 0.5 * data["velocity"])
+        position = data["position"] + DT * velocity
+        data = {"position": position, "velocity": velocity, "count": data["count"] + 1, "rng": rng,
+                "moving": jnp.abs(velocity) > 1e-3}
+        done = jnp.where(jnp.abs(position) > 5.0, 1.0, 0.0)
+        return State(self._observe(data), self.reward_of(position, action), done, data)
+
+    @staticmethod
+    def _observe(data) -> jax.Array:
+        return jnp.stack([data["position"], data["velocity"]])
+
+
+def make_cart() -> Cart:
+    """A factory, as ``--env envs_for_tests:make_cart`` takes it."""
+    return Cart()
+
+
+step_reward_cart = Cart("step")

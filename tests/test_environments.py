@@ -1,0 +1,160 @@
+"""Environments in Brax's protocol as tasks: states with integer, bool and key leaves, the reward's
+diagnosis, the command line's --env, MJX's constraint solver differentiated inside mjx.step, and
+MuJoCo Playground (tests that need the extra skip without it)."""
+import importlib.util
+import os
+import subprocess
+import sys
+from dataclasses import replace
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+import stablebptt as sb
+from conftest import ROOT, float64
+from envs_for_tests import Cart
+from stablebptt.constraint_derivatives import differentiable_mjx
+from stablebptt.environments import EnvError, env_task, load_env
+from stablebptt.flows import flow_gradients, reference_loss
+from stablebptt.mjx_internals import mjx
+
+HAS_PLAYGROUND = importlib.util.find_spec("mujoco_playground") is not None
+needs_playground = pytest.mark.skipif(not HAS_PLAYGROUND, reason="MuJoCo Playground is not installed "
+                                                                  "(pip install 'stablebptt[playground]')")
+TINY = sb.TrainConfig(mode="C", epochs=3, train_size=8, test_size=8, batch=4, clip="norm", lr=1e-2)
+
+
+def test_an_environment_trains_and_flow_r_is_the_gradient_of_the_plain_rollout():
+    task = env_task(Cart(), horizon=12)
+    assert task.resolved["reward_gradient"] == "usable" and task.resolved["episode_length"] == 30
+    with float64():
+        params = task.init_params(jax.random.PRNGKey(1), False)
+        states = task.sample_initial_states(jax.random.PRNGKey(2), 4)
+        assert states.data["count"].dtype == jnp.int32 and states.data["moving"].dtype == bool
+        loss, grads = flow_gradients(task.dynamics, ("R",), params, states)
+        plain = jax.grad(reference_loss, argnums=1)(task.dynamics, params, states)
+        for ours, theirs in zip(jax.tree.leaves(grads), jax.tree.leaves(plain)):
+            np.testing.assert_allclose(ours[0], theirs, rtol=1e-9, atol=1e-12)
+    result = sb.train(task, TINY)
+    # The train and test losses are negative episode returns (30 steps, each reward <= 0).
+    assert np.all(np.isfinite(result.test_loss)) and np.all(result.test_loss >= 0)
+    assert result.test_loss[-1] < result.test_loss[0]  # it learns to hold the cart at the origin
+
+
+def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_starts_off_zero():
+    with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
+        env_task(Cart("step"), horizon=5)
+    with pytest.raises(EnvError, match=r"gradient is NaN at \d+% of sampled states"):
+        env_task(Cart("root"), horizon=5)
+    task = env_task(Cart("norm"), horizon=5)
+    assert task.resolved["reward_gradient"] == "nan at zero action"
+    assert task.resolved["policy_output_start"] == "small"
+    params = task.init_params(jax.random.PRNGKey(0), True)
+    assert 0 < float(jnp.max(jnp.abs(params[-1][0]))) < 0.1  # small output weights, not zero
+    result = sb.train(task, replace(TINY, epochs=1))
+    assert np.isfinite(result.test_loss).all()
+
+
+def run_script(*args, env=None):
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=900,
+                          env={**os.environ, **(env or {})})
+
+
+def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_in_one_line(tmp_path):
+    on_path = {"PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
+    done = run_script("scripts/train.py", "--env", "envs_for_tests:make_cart", "--steps", "6", "--epochs", "2",
+                      "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
+                      "--out", str(tmp_path / "run"), env=on_path)
+    assert done.returncode == 0, done.stderr
+    assert "make_cart" in done.stdout and "reward gradient: usable" in done.stdout
+    record = sb.runs.read_json(tmp_path / "run" / "config.json")
+    assert record["task"] == "env" and record["task_config"]["env"] == "envs_for_tests:make_cart"
+    for args, expected in ((["--env", "envs_for_tests:step_reward_cart"], "gradient is zero at every sampled state"),
+                           (["--env", "no_such_module:env"], "cannot import no_such_module"),
+                           (["--env", "envs_for_tests:nothing"], "has no attribute 'nothing'"),
+                           (["--env", "envs_for_tests:make_cart", "--discount", "0"], "--discount must be in (0, 1]")):
+        refused = run_script("scripts/train.py", *args, "--epochs", "1", "--out", str(tmp_path / "refused"), env=on_path)
+        assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+        assert expected in refused.stderr and not (tmp_path / "refused").exists()
+
+
+# A hinge pressed past its limit and a ball in sliding contact with the floor; the model's own
+# Newton solver runs 4 iterations, which plain reverse mode cannot pass (a while loop).
+LIMIT_AND_CONTACT = """
+<mujoco><option timestep="0.01" iterations="4" tolerance="1e-12" ls_tolerance="1e-12"/>
+<worldbody><geom type="plane" size="2 2 .1"/>
+<body pos="0 0 1"><joint name="hinge" type="hinge" axis="0 1 0" limited="true" range="-0.5 0.5" damping="0.1"/>
+<geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/></body>
+<body pos="0.6 0 0.1"><joint type="slide" axis="1 0 0"/><joint type="slide" axis="0 0 1"/>
+<geom type="sphere" size="0.1" friction="0.5"/></body>
+</worldbody><actuator><motor joint="hinge"/></actuator></mujoco>"""
+
+
+def test_mjx_step_inside_an_environment_is_differentiated_at_the_solver_solution_as_mujocos_c_step():
+    model = mujoco.MjModel.from_xml_string(LIMIT_AND_CONTACT)
+    x0 = np.array([0.52, 0.1, -0.002, 0.3, 0.2, -0.1])  # past the limit, the ball pressed into the floor
+    ctrl = 0.5
+
+    def c_step(x):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:], data.ctrl[:] = x[:3], x[3:], ctrl
+        mujoco.mj_step(model, data)
+        assert data.nefc >= 4  # the limit and the contact's pyramid stay active under the perturbations
+        return np.concatenate([data.qpos, data.qvel])
+
+    eps = 1e-6
+    central = np.stack([(c_step(x0 + eps * e) - c_step(x0 - eps * e)) / (2 * eps) for e in np.eye(6)], axis=1)
+    with float64():
+        mjx_model = mjx.put_model(model, impl="jax")
+
+        def step(x):  # what an environment's step does
+            data = mjx.make_data(mjx_model, impl="jax").replace(qpos=x[:3], qvel=x[3:], ctrl=jnp.array([ctrl]))
+            data = mjx.step(mjx_model, data)
+            return jnp.concatenate([data.qpos, data.qvel])
+
+        with pytest.raises(ValueError, match="Reverse-mode differentiation does not work for lax.while_loop"):
+            jax.jacrev(step)(jnp.asarray(x0))
+        with differentiable_mjx(implicit_solver=True):
+            np.testing.assert_allclose(step(jnp.asarray(x0)), c_step(x0), atol=1e-12)
+            reverse = jax.jit(jax.jacrev(step))(jnp.asarray(x0))  # forward mode: tests/test_suite_models.py
+    assert np.abs(central).max() > 10  # the constraints matter: these Jacobians are far from identity
+    np.testing.assert_allclose(reverse, central, atol=1e-7)
+
+
+@needs_playground
+def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
+    from mujoco_playground._src import reward
+    from stablebptt.playground import safe_tolerance
+    x = jnp.linspace(-3.0, 3.0, 61)
+    repaired = 0
+    for sigmoid in ("gaussian", "hyperbolic", "long_tail", "reciprocal", "tanh_squared", "cosine", "linear", "quadratic"):
+        for bounds in ((0.0, 0.0), (1.0, np.inf), (-np.inf, 0.5), (-1.0, 1.0)):
+            for margin in (0.0, 1.0, 2.0):
+                theirs = lambda v: reward.tolerance(v, bounds, margin, sigmoid, 0.1)  # noqa: E731
+                ours = lambda v: safe_tolerance(v, bounds, margin, sigmoid, 0.1)  # noqa: E731
+                np.testing.assert_allclose(ours(x), theirs(x), atol=1e-6)
+                slope, their_slope = jax.vmap(jax.grad(ours))(x), jax.vmap(jax.grad(theirs))(x)
+                assert np.isfinite(slope).all(), (sigmoid, bounds, margin)
+                finite = np.isfinite(their_slope)
+                np.testing.assert_allclose(slope[finite], their_slope[finite], atol=1e-5)
+                repaired += int((~finite).sum())
+    assert repaired > 0  # the infinite upper bound's NaN is there to repair
+
+
+@needs_playground
+def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_path):
+    run = tmp_path / "cartpole"
+    done = run_script("scripts/train.py", "--env", "CartpoleSwingup", "--steps", "8", "--episode-length", "8",
+                      "--epochs", "1", "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
+                      "--out", str(run))
+    assert done.returncode == 0, done.stderr
+    assert "repaired: Playground's reward tolerance" in done.stdout and "reward gradient: usable" in done.stdout
+    rendered = run_script("scripts/render.py", str(run), "--rollouts", "1", "--no-video")
+    assert rendered.returncode == 0, rendered.stderr
+    assert (run / "rollout-strip.png").stat().st_size > 1000
+    refused = run_script("scripts/train.py", "--env", "cartpoleswingup", "--out", str(tmp_path / "no"))
+    assert refused.returncode == 2 and "did you mean CartpoleSwingup?" in refused.stderr
+    assert refused.stderr.count("\n") == 1 and not (tmp_path / "no").exists()
