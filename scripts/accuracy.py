@@ -74,7 +74,7 @@ def main(argv: list[str]) -> int:
 
     import os
     import jax
-    from stablebptt.runs import write_json
+    from stablebptt.storage import write_json
     from stablebptt.tasks.accuracy import (contact_study, gradient_setups, gradient_study, trajectory_setups,
                                           trajectory_study, training_study)
 

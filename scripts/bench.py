@@ -83,7 +83,7 @@ def main(argv: list[str]) -> int:
         print("\n".join(section), flush=True)
         report += section
         if config.out:  # after every task, so a long benchmark keeps what it measured
-            from stablebptt.runs import atomic_write
+            from stablebptt.storage import atomic_write
             Path(config.out).parent.mkdir(parents=True, exist_ok=True)
             atomic_write(Path(config.out), ("\n".join(report) + "\n").encode())
     return 0

@@ -15,7 +15,7 @@ STUDIES = ("trajectory", "gradients", "training", "contact")
 
 def write_csv(path: Path, rows: list[dict]) -> None:
     """A tidy CSV, one row per measurement; floats in full precision."""
-    from stablebptt.runs import atomic_write
+    from stablebptt.storage import atomic_write
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()
@@ -354,7 +354,7 @@ def report(out: Path, draw: tuple[str, ...] = STUDIES) -> list[str]:
     Never measures. Returns the key tables (Markdown lines).
     """
     from stablebptt.plots import render
-    from stablebptt.runs import atomic_write, read_json
+    from stablebptt.storage import atomic_write, read_json
 
     meta = read_json(out / META_FILE)
     summary = ["# What accuracy costs in time", "",

@@ -31,6 +31,7 @@ import jax
 import numpy as np
 
 from stablebptt.errors import InputError, StorageError
+from stablebptt.storage import atomic_write, json_bytes, read_json, write_json, write_temporary  # noqa: F401 (re-exported)
 from stablebptt.timing import compile_ahead
 from stablebptt.training import METRICS, TrainConfig, Trainer, TrainState, nonfinite_names
 
@@ -42,55 +43,6 @@ MODEL_COPY_FILE = "model.xml"  # a copy of the MJCF file a run trained on
 MODEL_BINARY_FILE = "model.mjb"  # the same model compiled, with everything it includes
 LOCK_FILE = ".lock"
 COLUMNS = ("epoch", "seed") + METRICS + ("seconds",)
-
-
-def _temporary(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
-
-
-def _write_temporary(path: Path, data: bytes) -> Path:
-    """``data`` in a temporary file beside ``path``, on disk; removed again if anything fails."""
-    temporary = _temporary(path)
-    try:
-        with open(temporary, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-    except OSError as error:
-        temporary.unlink(missing_ok=True)
-        raise StorageError(error.errno, f"cannot write {path}: {error.strerror or error}") from None
-    return temporary
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that readers see the old or the new file, never half of one.
-
-    Raises:
-      StorageError: the file could not be written (e.g. a full disk); no temporary file is left.
-    """
-    temporary = _write_temporary(path, data)
-    try:
-        os.replace(temporary, path)
-    except OSError as error:
-        temporary.unlink(missing_ok=True)
-        raise StorageError(error.errno, f"cannot write {path}: {error.strerror or error}") from None
-
-
-def _json_bytes(payload: Any) -> bytes:
-    return (json.dumps(payload, indent=2, sort_keys=True) + "\n").encode()
-
-
-def write_json(path: Path, payload: Any) -> None:
-    atomic_write(path, _json_bytes(payload))
-
-
-def read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path} does not exist: is this a run directory?") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise InputError(f"{path} is not valid JSON ({error})") from None
 
 
 def write_metrics(path: Path, rows: np.ndarray) -> None:
@@ -246,7 +198,7 @@ def create_run(path: Path, record: dict) -> RunLock:
     lock = RunLock(path)
     try:
         refuse_if_used()  # again under the lock: another run may have claimed it in between
-        temporary = _write_temporary(path / CONFIG_FILE, _json_bytes(record))
+        temporary = write_temporary(path / CONFIG_FILE, json_bytes(record))
         try:
             os.link(temporary, path / CONFIG_FILE)  # fails if the name exists: an atomic claim
         except FileExistsError:
