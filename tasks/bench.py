@@ -74,11 +74,11 @@ def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tupl
     the floor), with the parts of the generated step's update where it is among them."""
     import mujoco
     from stablebptt import scene
-    from stablebptt.tasks import cartpole, cartpole_equations
-    generated = cartpole.make(cartpole.Config(poles=poles))
-    stages = cartpole.make(cartpole.Config(poles=poles, pipeline="stages"))
+    from stablebptt.tasks import cartpole_equations, mjcf
+    generated = mjcf.make(mjcf.Config(poles=poles))
+    stages = mjcf.make(mjcf.Config(poles=poles, pipeline="stages"))
     with_step = lambda step: dataclasses.replace(stages, dynamics=dataclasses.replace(stages.dynamics, step=step))
-    model = cartpole.load_model(cartpole.Config(poles=poles).model_path)
+    model = mjcf.load_model(mjcf.Config(poles=poles).model_path)
     effects = scene.analyze(model)
 
     def dense():
@@ -88,7 +88,7 @@ def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tupl
 
     build = {"generated": lambda: generated, "stages": lambda: stages,
              "autodiff": lambda: with_step(scene.make_step(scene.lean_model(model, effects), effects, "stages", implicit=False)),
-             "dense": dense, "mjx": lambda: cartpole.make(cartpole.Config(poles=poles, pipeline="mjx")),
+             "dense": dense, "mjx": lambda: mjcf.make(mjcf.Config(poles=poles, pipeline="mjx")),
              "floor": lambda: with_step(cartpole_equations.make_step(0.01))}
     chosen = {name: build[name]() for name in SIMULATORS if name in simulators}
     variants = {SIMULATORS[name]: make_update(task, "R", batch) for name, task in chosen.items()}

@@ -1,4 +1,4 @@
-"""Cart-pole with 1-4 poles through MuJoCo MJX, and any MJCF in its place.
+"""Any MJCF file as a task, simulated through MuJoCo MJX; the cart-poles are its models plus ``--poles``.
 
 The task is read from the MJCF itself (models/README.md documents the
 convention): initial states from keyframe ``init`` plus a spread, the target
@@ -403,7 +403,7 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
         qpos = jax.vmap(lambda d: perturb_qpos(model, spec.init.qpos, d))(dq)
         return State(qpos, spec.init.qvel + dv, jnp.broadcast_to(spec.init.act, (count, model.na)))
 
-    name = "cartpole" if not config.model else path.stem
+    name = path.stem  # run folders and records name the model: cartpole_3, humanoid, ...
     as_list = lambda a: np.asarray(a, dtype=float).tolist()
     resolved = {
         "model_file": str(path.resolve()),
