@@ -77,7 +77,7 @@ def build_controller(args, config: RenderConfig):
     """(task name, task config, train config, task, parameters of one seed, label) of the run or the --model."""
     import jax
     from stablebptt import tasks
-    from stablebptt.tasks.trained import open_trained
+    from stablebptt.apps.trained import open_trained
     from stablebptt.training import TrainConfig
 
     if args.run_dir is None:
@@ -122,7 +122,7 @@ def main(argv: list[str]) -> int:
     except (InputError, TypeError) as error:  # TypeError: a config.json value of the wrong type
         fail(str(error))
 
-    from stablebptt.tasks.trained import first_nonfinite_step, rollouts_from_test_states
+    from stablebptt.apps.trained import first_nonfinite_step, rollouts_from_test_states
     states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
     for index, step in enumerate(first_nonfinite_step(states)):
         if step >= 0:  # a diverged rollout has nothing to draw

@@ -57,7 +57,7 @@ def configure(args, owners):
         if changed or args.out is not None or args.task is not None:
             fail(f"--resume continues a run with its saved configuration; only --epochs may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
         from stablebptt import runs
-        from stablebptt.tasks.trained import configs_of
+        from stablebptt.apps.trained import configs_of
         record = runs.open_run(args.resume)
         task_name = tasks.canonical(record["task"])
         task_config, train_config = configs_of(args.resume, record, given)

@@ -1,7 +1,7 @@
 """The accuracy report: tidy CSVs of the accuracy studies' rows, their tables, figures and summary.md.
 
 Never measures: ``report(out)`` redraws everything from the CSVs and meta.json
-that ``stablebptt.tasks.accuracy``'s studies left in ``out``.
+that ``stablebptt.apps.accuracy``'s studies left in ``out``.
 """
 from __future__ import annotations
 

@@ -249,7 +249,7 @@ def train_prepared(prepared: Prepared, grid: Grid, log: Callable[[str], None],
 def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None:
     """Split a program's rows and parameters into one run folder per (value, mode, clip), seeds as
     rows: config.json, metrics.csv and params.npz of the single-run schema, so every cell renders,
-    plots and reopens (``stablebptt.tasks.trained``) as a single run does."""
+    plots and reopens (``stablebptt.apps.trained``) as a single run does."""
     rows, params = outcome["rows"], outcome["params"]
     groups = {}
     for index, (value, mode, clip, seed) in enumerate(program.cells):

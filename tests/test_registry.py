@@ -100,7 +100,7 @@ def test_runs_recorded_under_the_mjcf_tasks_former_name_reopen(tmp_path):
     import dataclasses
 
     from stablebptt.tasks import mjcf
-    from stablebptt.tasks.trained import configs_of
+    from stablebptt.apps.trained import configs_of
     from stablebptt.training import TrainConfig
     assert tasks.entry("cartpole") is tasks.entry("mjcf") and tasks.canonical("cartpole") == "mjcf"
     record = {"task": "cartpole", "task_config": dataclasses.asdict(mjcf.Config(poles=2)),

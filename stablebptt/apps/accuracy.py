@@ -545,7 +545,7 @@ def contact_study(config: AccuracyConfig, log: Callable, done: list[dict] = (),
     from pathlib import Path
     from stablebptt import scene
     from stablebptt.flows import step_jacobians
-    from stablebptt.tasks.cartpole import load_model
+    from stablebptt.tasks.mjcf import load_model
 
     rows = list(done)
     measured = {(row["model"], row["setting"]) for row in rows}
