@@ -91,7 +91,7 @@ def train(argv: list[str], held: list) -> int:
     from stablebptt.cli import use_compile_cache
     use_compile_cache(args.compile_cache)
     import numpy as np
-    from stablebptt import runs
+    from stablebptt import fitting, runs
     from stablebptt.errors import StorageError
     from stablebptt.training import make_trainer, seed_array
 
@@ -122,7 +122,7 @@ def train(argv: list[str], held: list) -> int:
                              f"{task_label} {train_config.mode}", args.no_progress)
     try:
         with stop_on_signals(progress.write) as should_stop:
-            outcome = in_worker_thread(lambda: runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
+            outcome = in_worker_thread(lambda: fitting.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
                                                                    progress.on_epoch, progress.on_compiled, should_stop,
                                                                    run.owner))
     except StorageError as error:

@@ -202,7 +202,7 @@ def use_compile_cache(enabled: bool = True) -> Path | None:
 class EpochProgress:
     """A progress bar over epochs with the current test loss, and the time to the first update.
 
-    ``on_compiled`` and ``on_epoch`` are ``runs.train_epochs``'s callbacks; ``write``
+    ``on_compiled`` and ``on_epoch`` are ``fitting.train_epochs``'s callbacks; ``write``
     prints a line without breaking the bar.
     """
 

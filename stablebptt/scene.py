@@ -23,7 +23,7 @@ from stablebptt import tree
 from stablebptt import mujoco_log  # noqa: F401  (MuJoCo's warnings to stderr, never to MUJOCO_LOG.TXT)
 from stablebptt.constraint_derivatives import solve_implicitly, traced_differentiably
 from stablebptt.errors import InputError
-from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth, solver, support
+from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth
 from stablebptt.mjx_internals import forward as mjx_forward
 from stablebptt.mjx_internals import types as mjx_types
 from stablebptt.flows import KnownColumns

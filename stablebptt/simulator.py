@@ -9,7 +9,7 @@ line. Tasks, benchmarks and studies take a ``Simulator`` instead of assembling
 these pieces themselves::
 
     sim = simulator.build(mujoco.MjModel.from_xml_path("pendulum.xml"))
-    next_state = sim.step(simulator.initial_state(sim.lean), jnp.zeros(sim.lean.nu))
+    next_state = sim.step(scene.initial_state(sim.lean), jnp.zeros(sim.lean.nu))
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ import mujoco
 from stablebptt import scene
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import KnownColumns
-from stablebptt.scene import SceneEffects, State, initial_state  # noqa: F401 (initial_state: see the example)
+from stablebptt.scene import SceneEffects, State
 
 FORWARD_MODE_MAX_STATE = 64  # numbers in (qpos, qvel, act) up to which step Jacobians are built forward
 # Forward mode pushes every tangent through the constraint solver's implicit derivative; reverse mode

@@ -23,13 +23,13 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stablebptt import models, mujoco_log, scene, simulator
+from stablebptt import models, mujoco_log, simulator
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import Dynamics
 from stablebptt.mjx_internals import mjx
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.scene import State
-from stablebptt.simulator import FORWARD_MODE_MAX_SOLVER_WORK, FORWARD_MODE_MAX_STATE, SimulatorConfig  # noqa: F401
+from stablebptt.simulator import SimulatorConfig
 from stablebptt.training import Task
 
 MODELS = models.DIRECTORY  # package data: found wherever the package is installed

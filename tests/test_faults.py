@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from stablebptt import runs
+from stablebptt import fitting, runs
 from stablebptt.commands import train as train_command
 from stablebptt.errors import InputError
 from stablebptt.tasks import repulsion
@@ -286,7 +286,7 @@ def test_the_epoch_loop_saves_on_its_cadence_at_the_end_and_at_a_stop(checkpoint
         epochs_run.append(state + 1)
         return state + 1, {name: np.full(2, state + 1.0) for name in runs.METRICS}
 
-    status, epoch, state, rows, _ = runs.fit(
+    status, epoch, state, rows, _ = fitting.fit(
         run_epoch, 0, 0, 7, np.zeros((0, len(runs.COLUMNS))), np.arange(2),
         lambda epoch, state, rows: saves.append((epoch, rows[:, 0].tolist())), 3,
         should_stop=lambda: stop_after is not None and len(epochs_run) >= stop_after,
@@ -350,7 +350,7 @@ def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
     def work():
         lock = runs.create_run(tmp_path / "threaded", record)
         trainer = make_trainer(task, config)
-        outcome["value"] = runs.train_epochs(trainer, config, tmp_path / "threaded", trainer.init(seed_array(config)),
+        outcome["value"] = fitting.train_epochs(trainer, config, tmp_path / "threaded", trainer.init(seed_array(config)),
                                              0, runs.empty_rows(), np.asarray(seed_array(config)))
         lock.release()
 
