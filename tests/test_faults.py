@@ -78,6 +78,19 @@ def test_sigterm_saves_like_ctrl_c_and_resume_goes_on(tmp_path, capsys):
     assert epochs_in(run_dir) == list(range(1, len(done) + 2))
 
 
+@pytest.mark.skipif(shutil.which("timeout") is None, reason="GNU timeout is not installed")
+def test_timeout_signalling_the_run_and_then_its_group_still_saves_and_stops_once(tmp_path):
+    """GNU timeout sends SIGTERM to the command and then to its process group: one request to stop."""
+    run_dir = tmp_path / "timed"
+    done = subprocess.run(["timeout", "20"] + TRAIN + SMALL + ["--epochs", "100000", "--out", str(run_dir)],
+                          cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, timeout=300)
+    assert done.returncode == 124, done.stderr  # timeout's own code: the command ended after its signal
+    assert done.stderr.count("SIGTERM: stopping after this epoch") == 1 and "interrupted after epoch" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert not [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]  # no temporary file survives
+    assert epochs_in(run_dir) == list(range(1, len(epochs_in(run_dir)) + 1)) and (run_dir / runs.CHECKPOINT_FILE).exists()
+
+
 @pytest.mark.parametrize("how", ["SIGKILL as the folder is claimed", "SIGTERM while compiling"])
 def test_a_signal_at_any_moment_leaves_a_folder_that_resumes(tmp_path, capsys, how):
     run_dir = tmp_path / "early"
