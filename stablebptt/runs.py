@@ -115,8 +115,8 @@ def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tup
     except FileNotFoundError:
         raise InputError(f"{path} does not exist: the run never finished an epoch; start it again") from None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
-        raise InputError(f"{path} is damaged ({' '.join(str(error).split())}): restore it, or delete it "
-                         "and --resume starts the run again from epoch 0") from None
+        raise InputError(f"{path} is damaged ({' '.join(str(error).split())}): restore it, or delete it with "
+                         f"{PARAMS_FILE} and {METRICS_FILE} and --resume starts the run again from epoch 0") from None
     if owner and saved_owner and saved_owner != owner:
         raise InputError(f"{path} is the checkpoint of another run (another task or settings than "
                          f"{run_dir / CONFIG_FILE}): put the right checkpoint back, or delete it to start from epoch 0")
@@ -324,6 +324,8 @@ class Run:
         start_epoch, state, rows = 0, fresh, empty_rows()
         if (self.directory / CHECKPOINT_FILE).exists():
             start_epoch, state, rows = load_checkpoint(self.directory, fresh, self.owner)
+        elif self.resuming:
+            self._refuse_results_without_checkpoint()
         if config.epochs < start_epoch:
             raise InputError(f"{self.directory} has trained {start_epoch} epochs: --epochs must be at least that to continue")
         if self.resuming and config.epochs > start_epoch and config.epochs != self.record["train"]["epochs"]:
@@ -331,6 +333,21 @@ class Run:
             self.record = {**self.record, "train": dataclasses.asdict(config)}
             write_json(self.directory / CONFIG_FILE, self.record)
         return start_epoch, state, rows
+
+    def _refuse_results_without_checkpoint(self) -> None:
+        """A folder with trained results but no checkpoint cannot continue: training from epoch 0
+        would overwrite them (a sweep cell, or a run whose checkpoint was deleted)."""
+        results = [name for name in (PARAMS_FILE, METRICS_FILE) if (self.directory / name).exists()]
+        if not results:
+            return  # stopped before its first epoch: nothing to lose, it starts from epoch 0
+        try:
+            epochs = len({row["epoch"] for row in read_metrics(self.directory / METRICS_FILE)})
+            held = f"{' and '.join(results)} ({epochs} epoch{'s' if epochs != 1 else ''})"
+        except (OSError, ValueError, KeyError):
+            held = " and ".join(results)
+        raise InputError(f"{self.directory} holds {held} but no {CHECKPOINT_FILE}, so --resume cannot continue it "
+                         f"and would train over them from epoch 0: keep the folder as it is and train anew with "
+                         f"another --out, or move {' and '.join(results)} away to restart it here")
 
     def close(self) -> None:
         self.lock.release()

@@ -78,6 +78,17 @@ def test_sigterm_saves_like_ctrl_c_and_resume_goes_on(tmp_path, capsys):
     assert epochs_in(run_dir) == list(range(1, len(done) + 2))
 
 
+def test_resume_without_a_checkpoint_refuses_to_train_over_the_results_it_holds(finished, tmp_path, capsys):
+    folder = tmp_path / "no-checkpoint"
+    shutil.copytree(finished, folder)
+    (folder / runs.CHECKPOINT_FILE).unlink()  # a sweep cell's folder, or a checkpoint deleted
+    before = snapshot(folder)
+    code, err, _ = train(capsys, "--resume", str(folder), "--no-progress")
+    assert code == 2 and len(err) == 1, err
+    assert "params.npz and metrics.csv (2 epochs) but no checkpoint.npz" in err[0] and "another --out" in err[0]
+    assert snapshot(folder) == before  # nothing trained over, nothing rewritten
+
+
 @pytest.mark.skipif(shutil.which("timeout") is None, reason="GNU timeout is not installed")
 def test_timeout_signalling_the_run_and_then_its_group_still_saves_and_stops_once(tmp_path):
     """GNU timeout sends SIGTERM to the command and then to its process group: one request to stop."""
