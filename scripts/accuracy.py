@@ -34,7 +34,7 @@ from pathlib import Path
 from stablebptt import accuracy_report
 from stablebptt.accuracy_report import STUDIES
 from stablebptt.cli import fail, parse_config
-from stablebptt.tasks.accuracy import TASKS, AccuracyConfig
+from stablebptt.apps.accuracy import TASKS, AccuracyConfig
 
 def parse(argv: list[str]) -> AccuracyConfig:
     config = parse_config(AccuracyConfig, argv, __doc__, "accuracy study")
@@ -74,8 +74,8 @@ def main(argv: list[str]) -> int:
 
     import os
     import jax
-    from stablebptt.runs import write_json
-    from stablebptt.tasks.accuracy import (contact_study, gradient_setups, gradient_study, trajectory_setups,
+    from stablebptt.storage import write_json
+    from stablebptt.apps.accuracy import (contact_study, gradient_setups, gradient_study, trajectory_setups,
                                           trajectory_study, training_study)
 
     started = time.perf_counter()

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from stablebptt.cli import fail, parse_config
-from stablebptt.tasks.bench import SIMULATORS
+from stablebptt.apps.bench import SIMULATORS
 
 TABLES = ("modes", "steps")
 
@@ -65,7 +65,7 @@ def main(argv: list[str]) -> int:
               f"jax {jax.__version__}, batch {config.batch}, median of {config.rounds} rounds.", ""]
     print("\n".join(header), flush=True)
     report = list(header)
-    from stablebptt.tasks.bench import mode_table, pipeline_table
+    from stablebptt.apps.bench import mode_table, pipeline_table
     for name in names:
         module = tasks.load(name)
         if name == "cartpole":
@@ -83,7 +83,7 @@ def main(argv: list[str]) -> int:
         print("\n".join(section), flush=True)
         report += section
         if config.out:  # after every task, so a long benchmark keeps what it measured
-            from stablebptt.runs import atomic_write
+            from stablebptt.storage import atomic_write
             Path(config.out).parent.mkdir(parents=True, exist_ok=True)
             atomic_write(Path(config.out), ("\n".join(report) + "\n").encode())
     return 0

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Render rollouts headless: a trained controller from a run directory, or any MJCF under a zero policy.
 
-    python scripts/render.py runs/cartpole-20261122-101500    # rollout.mp4 and rollout-strip.png in the run
+    python scripts/render.py runs/cartpole_3-20261122-101500    # rollout.mp4 and rollout-strip.png in the run
     python scripts/render.py runs/repulsion-20261122-101500 --gif   # rollout.gif and rollout-paths.png
     python scripts/render.py runs/quantum-20261122-101500     # rollout.mp4 and rollout-density.png
     python scripts/render.py --model models/cartpole_3.xml    # renders/cartpole_3-<time>.mp4 and -strip.png
@@ -77,15 +77,15 @@ def build_controller(args, config: RenderConfig):
     """(task name, task config, train config, task, parameters of one seed, label) of the run or the --model."""
     import jax
     from stablebptt import tasks
-    from stablebptt.tasks.trained import open_trained
+    from stablebptt.apps.trained import open_trained
     from stablebptt.training import TrainConfig
 
     if args.run_dir is None:
-        module = tasks.load("cartpole")  # the MJCF task
+        module = tasks.load(tasks.MJCF_TASK)
         task_config = module.Config(model=str(args.model), steps=config.steps)
         task = module.make(task_config)
         params = task.init_params(jax.random.PRNGKey(0), True)  # a zero output layer: the policy outputs 0
-        return "cartpole", task_config, TrainConfig(), task, params, f"{args.model.name}, zero policy"
+        return tasks.MJCF_TASK, task_config, TrainConfig(), task, params, f"{args.model.name}, zero policy"
     trained = open_trained(args.run_dir)
     params = trained.seed_params(config.seed_index)
     label = f"{trained.label}, seed {trained.train.seed + config.seed_index}"
@@ -95,14 +95,14 @@ def build_controller(args, config: RenderConfig):
 def main(argv: list[str]) -> int:
     args, config = parse(argv)
     with one_line_errors():
+        from stablebptt import tasks
         if args.run_dir is not None:
             from stablebptt import runs  # imports JAX: only once there is a run to read
             task_name = runs.open_run(args.run_dir)["task"]
         else:
             if not args.model.is_file():
                 raise InputError(f"model file {args.model} does not exist")
-            task_name = "cartpole"  # the MJCF task
-        from stablebptt import tasks
+            task_name = tasks.MJCF_TASK
         entry = tasks.entry(task_name)
         if not entry.draw:
             raise InputError(f"the task {task_name} has no drawing (its registry entry gives no draw)")
@@ -122,7 +122,7 @@ def main(argv: list[str]) -> int:
     except (InputError, TypeError) as error:  # TypeError: a config.json value of the wrong type
         fail(str(error))
 
-    from stablebptt.tasks.trained import first_nonfinite_step, rollouts_from_test_states
+    from stablebptt.apps.trained import first_nonfinite_step, rollouts_from_test_states
     states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
     for index, step in enumerate(first_nonfinite_step(states)):
         if step >= 0:  # a diverged rollout has nothing to draw

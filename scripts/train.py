@@ -4,7 +4,7 @@
     python scripts/train.py --poles 3                  # cart-pole with 3 poles (MJX)
     python scripts/train.py --model my_robot.xml       # any MJCF
     python scripts/train.py --task repulsion --rc 0.01 --mode C --seeds 5
-    python scripts/train.py --resume runs/cartpole-20261122-101500
+    python scripts/train.py --resume runs/cartpole_3-20261122-101500
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ RESUMABLE = {"epochs"}  # what --resume may change: extending a finished run
 
 def parse(argv: list[str]):
     parser = Parser(description=__doc__, formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32))
-    parser.add_argument("--task", choices=sorted(tasks.entries()), default=None,
+    parser.add_argument("--task", choices=sorted(tasks.entries()) + sorted(tasks.LEGACY_NAMES), default=None,
                         help=f"which task (default: {tasks.DEFAULT_TASK}, or the task whose options are given)")
     parser.add_argument("--out", type=Path, default=None, help="run directory to create (default: runs/TASK-TIME); never overwritten")
     parser.add_argument("--resume", type=Path, default=None, help="continue the run in this directory from its checkpoint")
@@ -57,12 +57,12 @@ def configure(args, owners):
         if changed or args.out is not None or args.task is not None:
             fail(f"--resume continues a run with its saved configuration; only --epochs may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
         from stablebptt import runs
-        from stablebptt.tasks.trained import configs_of
+        from stablebptt.apps.trained import configs_of
         record = runs.open_run(args.resume)
-        task_name = record["task"]
+        task_name = tasks.canonical(record["task"])
         task_config, train_config = configs_of(args.resume, record, given)
         return task_name, task_config, train_config, args.resume, record
-    task_name = choose_task(args, owners)
+    task_name = tasks.canonical(choose_task(args, owners))
     module = tasks.load(task_name)
     if given.get("model"):  # absolute: the run resumes and renders from any working directory
         given["model"] = str(Path(given["model"]).resolve())
@@ -91,7 +91,7 @@ def train(argv: list[str], held: list) -> int:
     from stablebptt.cli import use_compile_cache
     use_compile_cache(args.compile_cache)
     import numpy as np
-    from stablebptt import runs
+    from stablebptt import fitting, runs
     from stablebptt.errors import StorageError
     from stablebptt.training import make_trainer, seed_array
 
@@ -122,7 +122,7 @@ def train(argv: list[str], held: list) -> int:
                              f"{task_label} {train_config.mode}", args.no_progress)
     try:
         with stop_on_signals(progress.write) as should_stop:
-            outcome = in_worker_thread(lambda: runs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
+            outcome = in_worker_thread(lambda: fitting.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
                                                                    progress.on_epoch, progress.on_compiled, should_stop,
                                                                    run.owner))
     except StorageError as error:

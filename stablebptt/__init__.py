@@ -22,7 +22,7 @@ os.environ.setdefault("PJRT_NPROC", "1")
 from stablebptt.errors import InputError
 from stablebptt.flows import FLOWS, MODES, Dynamics, flow_gradients, select_flow, sign_agreement
 from stablebptt.networks import mlp_apply, mlp_init
-from stablebptt.runs import Trained, TrainingDiverged, train
+from stablebptt.fitting import Trained, TrainingDiverged, train
 from stablebptt.training import Task, TrainConfig, make_trainer
 
 __all__ = ["FLOWS", "MODES", "Dynamics", "InputError", "Task", "TrainConfig", "Trained", "TrainingDiverged",

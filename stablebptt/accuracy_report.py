@@ -1,7 +1,7 @@
 """The accuracy report: tidy CSVs of the accuracy studies' rows, their tables, figures and summary.md.
 
 Never measures: ``report(out)`` redraws everything from the CSVs and meta.json
-that ``stablebptt.tasks.accuracy``'s studies left in ``out``.
+that ``stablebptt.apps.accuracy``'s studies left in ``out``.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ STUDIES = ("trajectory", "gradients", "training", "contact")
 
 def write_csv(path: Path, rows: list[dict]) -> None:
     """A tidy CSV, one row per measurement; floats in full precision."""
-    from stablebptt.runs import atomic_write
+    from stablebptt.storage import atomic_write
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()
@@ -354,7 +354,7 @@ def report(out: Path, draw: tuple[str, ...] = STUDIES) -> list[str]:
     Never measures. Returns the key tables (Markdown lines).
     """
     from stablebptt.plots import render
-    from stablebptt.runs import atomic_write, read_json
+    from stablebptt.storage import atomic_write, read_json
 
     meta = read_json(out / META_FILE)
     summary = ["# What accuracy costs in time", "",

@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterator, NoReturn
 
@@ -120,6 +121,10 @@ def out_of_memory(error: BaseException) -> str | None:
     return f"out of memory on {device.platform} ({device.device_kind}) while training"
 
 
+# A signal of the kind that asked to stop, again within this many seconds, is the same request:
+# GNU timeout sends SIGTERM to the command and then to its whole process group, Slurm to every
+# process of the step. Only a later one (a user's second Ctrl-C) stops at once.
+REPEAT_SECONDS = 1.0
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
@@ -128,16 +133,20 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None) -> I
     """Within the block, Ctrl-C, SIGTERM (timeout, Slurm, Kubernetes, docker stop) and SIGHUP ask to stop.
 
     Yields ``should_stop()``, which the training loop polls between epochs: it
-    saves and stops. A second signal ends the process at once; the run folder
-    still resumes, from its last checkpoint. Main thread only (as Python's signals).
+    saves and stops. A second signal (another kind, or the same one more than
+    ``REPEAT_SECONDS`` later) ends the process at once; the run folder still
+    resumes, from its last checkpoint. Main thread only (as Python's signals).
     """
-    requested: list[int] = []
+    requested: list[tuple[int, float]] = []  # (signal, when)
 
     def handler(signum, frame):
-        if requested:  # the second: stop now
+        now = time.monotonic()
+        if requested and requested[0][0] == signum and now - requested[0][1] < REPEAT_SECONDS:
+            return  # the same request again: timeout and Slurm signal the process, then its group
+        if requested:  # a second request: stop now
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
-        requested.append(signum)
+        requested.append((signum, now))
         announce(f"{signal.Signals(signum).name}: stopping after this epoch (the checkpoint is saved; "
                  "send it again to stop at once)")
 
@@ -202,7 +211,7 @@ def use_compile_cache(enabled: bool = True) -> Path | None:
 class EpochProgress:
     """A progress bar over epochs with the current test loss, and the time to the first update.
 
-    ``on_compiled`` and ``on_epoch`` are ``runs.train_epochs``'s callbacks; ``write``
+    ``on_compiled`` and ``on_epoch`` are ``fitting.train_epochs``'s callbacks; ``write``
     prints a line without breaking the bar.
     """
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 import contextlib
 import importlib
 import math
-from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax

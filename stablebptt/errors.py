@@ -1,7 +1,7 @@
 """The exceptions that mean: say so in one line, no traceback.
 
 Library errors name what a Python user set: a config field (``TrainConfig.lr``,
-``cartpole.Config.dt``) or a ``Dynamics`` field. The command line shows each as
+``mjcf.Config.dt``) or a ``Dynamics`` field. The command line shows each as
 its option (``--lr``, ``--dt``): ``as_options``.
 """
 import re
@@ -12,7 +12,7 @@ _FIELD = re.compile(r"\b(?:[a-z_]\w*\.)?((?:\w*Config|Dynamics)\.([a-z_]\w*))") 
 
 
 def config_field(config, name: str) -> str:
-    """How errors name field ``name`` of a config (class or instance): ``TrainConfig.lr``, ``cartpole.Config.dt``."""
+    """How errors name field ``name`` of a config (class or instance): ``TrainConfig.lr``, ``mjcf.Config.dt``."""
     cls = config if isinstance(config, type) else type(config)
     owner = cls.__name__ if cls.__name__ != "Config" else f"{cls.__module__.rsplit('.', 1)[-1]}.Config"
     return f"{owner}.{name}"

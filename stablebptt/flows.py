@@ -45,7 +45,6 @@ from jax.flatten_util import ravel_pytree
 
 PyTree = Any
 FLOWS = ("R", "M", "S")
-MODES = ("R", "M", "S", "C")
 
 # Which parts of the pulled-back state cotangent each flow keeps:
 # (through the simulator, through the policy's input).
@@ -121,15 +120,47 @@ class Dynamics:
     policy_gradient: str = "batched"
 
 
+@dataclass(frozen=True)
+class Mode:
+    """A training mode: the flows its update needs and how it combines their gradients.
+
+    Attributes:
+      name: the ``--mode`` value.
+      flows: the flows it needs, in canonical order (``FLOWS``).
+      combine: ``combine(gradients) -> update``, ``gradients`` a dict flow -> gradient pytree.
+      description: a few words for help texts.
+    """
+
+    name: str
+    flows: tuple[str, ...]
+    combine: Callable[[dict[str, PyTree]], PyTree]
+    description: str
+
+
+def _only(flow: str) -> Callable[[dict[str, PyTree]], PyTree]:
+    return lambda gradients: gradients[flow]
+
+
+# Every mode, in the paper's order. A new combination of flows is one more row here.
+MODE_TABLE: dict[str, Mode] = {mode.name: mode for mode in (
+    Mode("R", ("R",), _only("R"), "regular BPTT"),
+    Mode("M", ("M",), _only("M"), "the physics path"),
+    Mode("S", ("S",), _only("S"), "one step"),
+    Mode("C", ("R", "M"), lambda gradients: sign_agreement(gradients["M"], gradients["R"]),
+         "combined: g_M where its sign agrees with g_R"),
+)}
+MODES = tuple(MODE_TABLE)
+
+
 def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:
     """The flows a mode's update needs, in canonical order (R, M, S).
 
-    C needs M and R; any mode also computes M and R when the cosine of the two
-    is logged, which is cheap because the forward pass is shared.
+    Any mode also computes M and R when the cosine of the two is logged, which
+    is cheap because the forward pass is shared.
     """
-    if mode not in MODES:
+    if mode not in MODE_TABLE:
         raise ValueError(f"unknown mode {mode!r}: choose one of {', '.join(MODES)}")
-    needed = {"C": {"M", "R"}}.get(mode, {mode})
+    needed = set(MODE_TABLE[mode].flows)
     if with_cosine:
         needed |= {"M", "R"}
     return tuple(f for f in FLOWS if f in needed)
@@ -557,13 +588,9 @@ def select_flow(mode: str, flows: tuple[str, ...]) -> optax.GradientTransformati
     if missing:
         raise ValueError(f"mode {mode} needs flows {needed}, but only {flows} are computed")
 
-    def row(updates, flow):
-        return jax.tree.map(lambda a: a[flows.index(flow)], updates)
-
     def update(updates, state, params=None):
         del params
-        if mode == "C":
-            return sign_agreement(row(updates, "M"), row(updates, "R")), state
-        return row(updates, mode), state
+        rows = {flow: jax.tree.map(lambda a, i=flows.index(flow): a[i], updates) for flow in needed}
+        return MODE_TABLE[mode].combine(rows), state
 
     return optax.GradientTransformation(lambda params: optax.EmptyState(), update)

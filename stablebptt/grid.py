@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt import runs
+from stablebptt import fitting, runs
 from stablebptt.errors import InputError
 from stablebptt.timing import compile_ahead
 from stablebptt.training import CLIP_MODES, MODES, Task, TrainConfig, make_trainer
@@ -237,7 +237,7 @@ def train_prepared(prepared: Prepared, grid: Grid, log: Callable[[str], None],
                 f"{(time.perf_counter() - started) / max(epoch - start, 1):.2f} s/epoch for {count} cells "
                 f"on {len(prepared.devices)} device(s)")
 
-    _, epoch, state, rows, _ = runs.fit(run_epoch, prepared.state, start, grid.epochs, prepared.rows, cell_index, save,
+    _, epoch, state, rows, _ = fitting.fit(run_epoch, prepared.state, start, grid.epochs, prepared.rows, cell_index, save,
                                         grid.checkpoint_every, should_stop, report,
                                         checkpoint_seconds=grid.checkpoint_seconds)
     return {"complexity": program.values, "epochs_done": int(epoch), "cells": count, "unroll": prepared.unroll,
@@ -249,7 +249,7 @@ def train_prepared(prepared: Prepared, grid: Grid, log: Callable[[str], None],
 def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None:
     """Split a program's rows and parameters into one run folder per (value, mode, clip), seeds as
     rows: config.json, metrics.csv and params.npz of the single-run schema, so every cell renders,
-    plots and reopens (``stablebptt.tasks.trained``) as a single run does."""
+    plots and reopens (``stablebptt.apps.trained``) as a single run does."""
     rows, params = outcome["rows"], outcome["params"]
     groups = {}
     for index, (value, mode, clip, seed) in enumerate(program.cells):

@@ -25,7 +25,8 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.errors import InputError
-from stablebptt.runs import CONFIG_FILE, METRICS_FILE, atomic_write, read_json, read_metrics
+from stablebptt.runs import CONFIG_FILE, METRICS_FILE, read_metrics
+from stablebptt.storage import atomic_write, read_json
 
 FIGURE_FILE = "learning_curves.png"
 PAPER_SMOOTH = 30  # the paper smooths its curves over 30 epochs

@@ -28,7 +28,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from stablebptt.errors import InputError
-from stablebptt.runs import atomic_write
+from stablebptt.storage import atomic_write
 
 BACKENDS = ("egl", "osmesa")  # headless, in order of preference: EGL is the faster of the two
 # Debian packages that make each backend work (Mesa's software renderers are enough; no GPU needed).

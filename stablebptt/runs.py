@@ -21,18 +21,17 @@ import hashlib
 import io
 import json
 import os
-import time
 import zipfile
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any
 
 import jax
 import numpy as np
 
 from stablebptt.errors import InputError, StorageError
-from stablebptt.timing import compile_ahead
-from stablebptt.training import METRICS, TrainConfig, Trainer, TrainState, nonfinite_names
+from stablebptt.storage import atomic_write, json_bytes, read_json, write_json, write_temporary  # noqa: F401 (re-exported)
+from stablebptt.training import METRICS, TrainConfig, TrainState
 
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.csv"
@@ -42,55 +41,6 @@ MODEL_COPY_FILE = "model.xml"  # a copy of the MJCF file a run trained on
 MODEL_BINARY_FILE = "model.mjb"  # the same model compiled, with everything it includes
 LOCK_FILE = ".lock"
 COLUMNS = ("epoch", "seed") + METRICS + ("seconds",)
-
-
-def _temporary(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
-
-
-def _write_temporary(path: Path, data: bytes) -> Path:
-    """``data`` in a temporary file beside ``path``, on disk; removed again if anything fails."""
-    temporary = _temporary(path)
-    try:
-        with open(temporary, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-    except OSError as error:
-        temporary.unlink(missing_ok=True)
-        raise StorageError(error.errno, f"cannot write {path}: {error.strerror or error}") from None
-    return temporary
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that readers see the old or the new file, never half of one.
-
-    Raises:
-      StorageError: the file could not be written (e.g. a full disk); no temporary file is left.
-    """
-    temporary = _write_temporary(path, data)
-    try:
-        os.replace(temporary, path)
-    except OSError as error:
-        temporary.unlink(missing_ok=True)
-        raise StorageError(error.errno, f"cannot write {path}: {error.strerror or error}") from None
-
-
-def _json_bytes(payload: Any) -> bytes:
-    return (json.dumps(payload, indent=2, sort_keys=True) + "\n").encode()
-
-
-def write_json(path: Path, payload: Any) -> None:
-    atomic_write(path, _json_bytes(payload))
-
-
-def read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path} does not exist: is this a run directory?") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise InputError(f"{path} is not valid JSON ({error})") from None
 
 
 def write_metrics(path: Path, rows: np.ndarray) -> None:
@@ -165,8 +115,8 @@ def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tup
     except FileNotFoundError:
         raise InputError(f"{path} does not exist: the run never finished an epoch; start it again") from None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
-        raise InputError(f"{path} is damaged ({' '.join(str(error).split())}): restore it, or delete it "
-                         "and --resume starts the run again from epoch 0") from None
+        raise InputError(f"{path} is damaged ({' '.join(str(error).split())}): restore it, or delete it with "
+                         f"{PARAMS_FILE} and {METRICS_FILE} and --resume starts the run again from epoch 0") from None
     if owner and saved_owner and saved_owner != owner:
         raise InputError(f"{path} is the checkpoint of another run (another task or settings than "
                          f"{run_dir / CONFIG_FILE}): put the right checkpoint back, or delete it to start from epoch 0")
@@ -246,7 +196,7 @@ def create_run(path: Path, record: dict) -> RunLock:
     lock = RunLock(path)
     try:
         refuse_if_used()  # again under the lock: another run may have claimed it in between
-        temporary = _write_temporary(path / CONFIG_FILE, _json_bytes(record))
+        temporary = write_temporary(path / CONFIG_FILE, json_bytes(record))
         try:
             os.link(temporary, path / CONFIG_FILE)  # fails if the name exists: an atomic claim
         except FileExistsError:
@@ -374,6 +324,8 @@ class Run:
         start_epoch, state, rows = 0, fresh, empty_rows()
         if (self.directory / CHECKPOINT_FILE).exists():
             start_epoch, state, rows = load_checkpoint(self.directory, fresh, self.owner)
+        elif self.resuming:
+            self._refuse_results_without_checkpoint()
         if config.epochs < start_epoch:
             raise InputError(f"{self.directory} has trained {start_epoch} epochs: --epochs must be at least that to continue")
         if self.resuming and config.epochs > start_epoch and config.epochs != self.record["train"]["epochs"]:
@@ -382,217 +334,28 @@ class Run:
             write_json(self.directory / CONFIG_FILE, self.record)
         return start_epoch, state, rows
 
+    def _refuse_results_without_checkpoint(self) -> None:
+        """A folder with trained results but no checkpoint cannot continue: training from epoch 0
+        would overwrite them (a sweep cell, or a run whose checkpoint was deleted)."""
+        results = [name for name in (PARAMS_FILE, METRICS_FILE) if (self.directory / name).exists()]
+        if not results:
+            return  # stopped before its first epoch: nothing to lose, it starts from epoch 0
+        try:
+            epochs = len({row["epoch"] for row in read_metrics(self.directory / METRICS_FILE)})
+            held = f"{' and '.join(results)} ({epochs} epoch{'s' if epochs != 1 else ''})"
+        except (OSError, ValueError, KeyError):
+            held = " and ".join(results)
+        raise InputError(f"{self.directory} holds {held} but no {CHECKPOINT_FILE}, so --resume cannot continue it "
+                         f"and would train over them from epoch 0: keep the folder as it is and train anew with "
+                         f"another --out, or move {' and '.join(results)} away to restart it here")
+
     def close(self) -> None:
         self.lock.release()
 
 
-class Outcome(NamedTuple):
-    status: str  # "complete", "interrupted" or "diverged"
-    epoch: int  # last epoch whose state is saved
-    state: TrainState
-    rows: np.ndarray
-    message: str
-
-
-def epoch_rows(epoch: int, seeds: np.ndarray, metrics: dict, seconds: float) -> np.ndarray:
-    columns = [np.full(len(seeds), epoch), seeds] + [np.asarray(metrics[m], dtype=np.float64) for m in METRICS]
-    return np.stack(columns + [np.full(len(seeds), seconds)], axis=1)
-
-
-def fit(
-    run_epoch: Callable[[Any], tuple[Any, dict]],
-    state: Any,
-    start_epoch: int,
-    epochs: int,
-    rows: np.ndarray,
-    row_ids: np.ndarray,
-    save: Callable[[int, Any, np.ndarray], None],
-    checkpoint_every: int,
-    should_stop: Callable[[], bool] = lambda: False,
-    on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None,
-    diverged: Callable[[dict], str] = lambda metrics: "",
-    checkpoint_seconds: float = 0.0,
-) -> tuple[str, int, Any, np.ndarray, str]:
-    """The epoch loop: epochs ``start_epoch+1 .. epochs``, checkpointing, stopping and divergence.
-
-    Args:
-      run_epoch: ``run_epoch(state) -> (new state, metrics on the host)``, one per row id.
-      state, start_epoch, rows: where training stands (``rows`` as ``epoch_rows`` makes them).
-      epochs: the epoch to train to.
-      row_ids: the seed (or cell) number of each row an epoch adds.
-      save: ``save(epoch, state, rows)`` writes a checkpoint.
-      checkpoint_every: save every this many epochs, and at the end.
-      checkpoint_seconds: and no sooner than this many seconds after the
-        last save (the end and a stop always save). A checkpoint rewrites
-        every metric row so far: a grid of short epochs saving every few
-        epochs spends much of its time writing.
-      should_stop: polled before and after every epoch; true saves and stops.
-      on_epoch: gets each epoch's metrics, with its wall time under ``"seconds"``.
-      diverged: a message when an epoch's metrics must not be kept (its state is
-        dropped, the last good one saved), else "".
-
-    Returns:
-      (status, last saved epoch, state, rows, message); status "complete",
-      "interrupted" or "diverged".
-    """
-    saved_epoch = start_epoch if start_epoch > 0 else -1  # a start past epoch 0 comes from a checkpoint
-    last_save = time.monotonic()
-    blocks = [rows]  # joined only when saved or returned: appending by concatenation is quadratic
-
-    def all_rows():
-        if len(blocks) > 1:
-            blocks[:] = [np.concatenate(blocks)]
-        return blocks[0]
-
-    def checkpoint(epoch, state):
-        nonlocal saved_epoch, last_save
-        if saved_epoch != epoch:
-            save(epoch, state, all_rows())
-            saved_epoch, last_save = epoch, time.monotonic()
-
-    epoch = start_epoch
-    for epoch in range(start_epoch + 1, epochs + 1):
-        if should_stop():
-            if epoch - 1 > start_epoch:
-                checkpoint(epoch - 1, state)
-            return "interrupted", epoch - 1, state, all_rows(), ""
-        started = time.perf_counter()
-        new_state, metrics = run_epoch(state)
-        seconds = time.perf_counter() - started
-        problem = diverged(metrics)
-        if problem:
-            checkpoint(epoch - 1, state)
-            return "diverged", epoch - 1, state, all_rows(), problem
-        state = new_state
-        blocks.append(epoch_rows(epoch, row_ids, metrics, seconds))
-        stopping = should_stop()
-        due = epoch % checkpoint_every == 0 and time.monotonic() - last_save >= checkpoint_seconds
-        if due or epoch == epochs or stopping:
-            checkpoint(epoch, state)
-        on_epoch(epoch, {**metrics, "seconds": seconds})
-        if stopping:
-            return "interrupted", epoch, state, all_rows(), ""
-    return "complete", epoch, state, all_rows(), ""
-
-
-def train_epochs(
-    trainer: Trainer,
-    config: TrainConfig,
-    run_dir: Path,
-    state: TrainState,
-    start_epoch: int,
-    rows: np.ndarray,
-    seeds: np.ndarray,
-    on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None,
-    on_compiled: Callable[[float], None] = lambda seconds: None,
-    should_stop: Callable[[], bool] = lambda: False,
-    owner: str = "",
-) -> Outcome:
-    """Train one run's seeds to ``config.epochs`` from ``start_epoch``, checkpointing into ``run_dir``.
-
-    Stops early when ``should_stop()`` (after saving; the command line sets it on a
-    signal) or on a non-finite loss or update (keeping the last good checkpoint).
-    ``on_compiled`` gets the seconds the epoch took to compile; ``on_epoch`` the
-    epoch's metrics, with its wall time under ``"seconds"``. Runs in any thread.
-    """
-    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)  # before timing epochs
-    on_compiled(compile_seconds)
-
-    def run_epoch(state):
-        new_state, metrics = epoch_fn(state, *arguments)
-        return new_state, jax.device_get(metrics)
-
-    def save(epoch, state, rows):
-        save_checkpoint(run_dir, epoch, state, rows, owner)
-        save_params(run_dir / PARAMS_FILE, state.params)
-        write_metrics(run_dir / METRICS_FILE, rows)
-
-    def diverged(metrics):
-        if np.all(metrics["finite"]):
-            return ""
-        bad = [int(s) for s, ok in zip(seeds, metrics["finite"]) if not ok]
-        what = nonfinite_names(trainer.flows, int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))))
-        return f"non-finite {', '.join(what)} at epoch {{epoch}} (seed {', '.join(map(str, bad))})"
-
-    status, epoch, state, rows, problem = fit(run_epoch, state, start_epoch, config.epochs, rows, seeds, save,
-                                              config.checkpoint_every, should_stop, on_epoch, diverged)
-    if status == "diverged":
-        message = (f"{problem.format(epoch=epoch + 1)}; stopped, the last good checkpoint (epoch {epoch}) "
-                   f"is kept in {run_dir}")
-    elif status == "interrupted":
-        message = f"interrupted after epoch {epoch}; continue with --resume {run_dir}"
-    else:
-        message = ""
-    return Outcome(status, epoch, state, rows, message)
-
-
-class Trained(NamedTuple):
-    """What ``train`` returns: the parameters and every epoch's metrics, per seed."""
-
-    params: Any  # the trained parameters; every leaf has a leading seed axis
-    metrics: dict[str, np.ndarray]  # METRICS name -> [epochs, seeds]
-    seconds_to_first_update: float  # compiling included
-
-    @property
-    def test_loss(self) -> np.ndarray:
-        """Mean test loss over seeds, per epoch."""
-        return self.metrics["test_loss"].mean(axis=1)
-
-
-class TrainingDiverged(ArithmeticError):
-    """A loss, update or gradient of training went non-finite; the message says which, and when."""
-
-
-def train(task: Any, config: TrainConfig = TrainConfig(),
-          on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None) -> Trained:
-    """Train ``task``'s controller in memory, with no run folder, and return the result.
-
-    Args:
-      task: a ``Task``: dynamics (policy, step, loss, horizon), network initialiser
-        and initial-state sampler.
-      config: a ``TrainConfig`` (gradient flow ``mode``, ``epochs``, sizes, seeds, ...).
-      on_epoch: called after every epoch with its metrics (arrays over seeds).
-
-    Returns:
-      A ``Trained``: parameters with a leading seed axis and metrics ``[epochs, seeds]``.
-
-    Raises:
-      TrainingDiverged: a loss, update or gradient of a computed flow was not finite.
-
-    Example::
-
-      result = stablebptt.train(task, stablebptt.TrainConfig(mode="C", epochs=50))
-      print(result.test_loss[-1])
-    """
-    from stablebptt.training import make_trainer, seed_array
-    started = time.perf_counter()
-    trainer = make_trainer(task, config)
-    seeds = np.asarray(seed_array(config))
-    state = trainer.init(seed_array(config))
-    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    epoch_fn, _ = compile_ahead(trainer.epoch, state, *arguments)
-    first_update = 0.0  # seconds from the call to the end of the first epoch
-
-    def run_epoch(state):
-        nonlocal first_update
-        new_state, metrics = epoch_fn(state, *arguments)
-        metrics = jax.device_get(metrics)
-        first_update = first_update or time.perf_counter() - started
-        return new_state, metrics
-
-    def diverged(metrics):
-        if np.all(metrics["finite"]):
-            return ""
-        what = nonfinite_names(trainer.flows, int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))))
-        return f"non-finite {', '.join(what)}"
-
-    status, epoch, state, rows, problem = fit(run_epoch, state, 0, config.epochs, empty_rows(), seeds,
-                                              lambda *saved: None, config.epochs, on_epoch=on_epoch, diverged=diverged)
-    if status == "diverged":
-        raise TrainingDiverged(f"{task.name}: {problem} at epoch {epoch + 1} (TrainConfig.mode {config.mode!r})")
-    per_epoch = {name: rows[:, COLUMNS.index(name)].reshape(epoch, len(seeds)) for name in METRICS}
-    return Trained(state.params, per_epoch, first_update)
+def empty_rows() -> np.ndarray:
+    """No metric rows yet (``COLUMNS`` wide)."""
+    return np.zeros((0, len(COLUMNS)))
 
 
 def summarize(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float]:
@@ -600,7 +363,3 @@ def summarize(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float
     last = rows[rows[:, 0] == rows[:, 0].max()]
     values = last[:, COLUMNS.index(column)]
     return float(values.mean()), float(values.std()) if len(values) > 1 else 0.0
-
-
-def empty_rows() -> np.ndarray:
-    return np.zeros((0, len(COLUMNS)))

@@ -23,7 +23,7 @@ from stablebptt import tree
 from stablebptt import mujoco_log  # noqa: F401  (MuJoCo's warnings to stderr, never to MUJOCO_LOG.TXT)
 from stablebptt.constraint_derivatives import solve_implicitly, traced_differentiably
 from stablebptt.errors import InputError
-from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth, solver, support
+from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth
 from stablebptt.mjx_internals import forward as mjx_forward
 from stablebptt.mjx_internals import types as mjx_types
 from stablebptt.flows import KnownColumns
@@ -255,10 +255,11 @@ def put_model(model: mujoco.MjModel):
         raise InputError(f"MJX cannot simulate this model: {error}") from None
 
 
-def constraint_rows(model: mujoco.MjModel) -> int:
+def constraint_rows(model) -> int:
     """The rows of MJX's constraint system for ``model`` (every candidate contact's and limit's, active or not):
-    the size of the solver's matrices, and so of its per-step work."""
-    return int(mjx.make_data(put_model(model))._impl.efc_J.shape[0])
+    the size of the solver's matrices, and so of its per-step work. ``model``: a MuJoCo model or one on MJX."""
+    mjx_model = put_model(model) if isinstance(model, mujoco.MjModel) else model
+    return int(mjx.make_data(mjx_model)._impl.efc_J.shape[0])
 
 
 def with_options(model: mujoco.MjModel, integrator: str | None = None, timestep: float | None = None) -> mujoco.MjModel:
@@ -423,7 +424,7 @@ def generated_step_applies(model: mujoco.MjModel, effects: SceneEffects | None) 
 
 
 def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str = "lean",
-              implicit: bool = True) -> Callable[[State, jax.Array], State]:
+              implicit: bool = True, mjx_model=None) -> Callable[[State, jax.Array], State]:
     """``step(state, ctrl) -> state`` through MJX's JAX implementation.
 
     Args:
@@ -437,12 +438,13 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
         ``"mjx"`` calls ``mjx.step`` unchanged (any integrator).
       implicit: False differentiates MJX's stages by plain autodiff through
         the mass matrix and its solve (a baseline for benchmarks and tests).
+      mjx_model: ``model`` already put on MJX (``put_model``), if it is.
     """
     if pipeline == "lean":
         if implicit and generated_step_applies(model, effects):
             return tree.make_step(model)
         pipeline = "stages"
-    mjx_model = put_model(model)
+    mjx_model = put_model(model) if mjx_model is None else mjx_model
     template = mjx.make_data(mjx_model)
     is_euler = int(model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_EULER)
     if pipeline == "stages" and not is_euler:

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import optax
 
 from stablebptt.errors import InputError, config_field
-from stablebptt.flows import (MODES, Dynamics, flow_gradients, flows_needed, reference_loss, reference_losses,
+from stablebptt.flows import (FLOWS, MODE_TABLE, MODES, Dynamics, flow_gradients, flows_needed, reference_loss, reference_losses,
                               select_flow, tree_cosine)
 from stablebptt.memory import MemoryPlan, plan_memory
 
@@ -91,7 +91,7 @@ class Task:
 class TrainConfig:
     """Training options shared by every task; the defaults are the paper's."""
 
-    mode: str = field(default="C", metadata={"help": "gradient flow: R (regular BPTT), M (physics path), S (one-step), C (combined)", "choices": MODES})
+    mode: str = field(default="C", metadata={"help": "gradient flow: " + ", ".join(f"{m.name} ({m.description})" for m in MODE_TABLE.values()), "choices": MODES})
     clip: str = field(default="value", metadata={"help": "gradient clipping: value (each element to +-threshold), norm (global norm), none", "choices": CLIP_MODES})
     clip_threshold: float = field(default=1.0, metadata={"help": "threshold of value and norm clipping"})
     epochs: int = field(default=1000, metadata={"help": "number of passes over the training set"})
@@ -184,7 +184,7 @@ def make_optimizer(config: TrainConfig, flows: tuple[str, ...], per_cell: bool =
 
 def make_grid_optimizer(config: TrainConfig) -> optax.GradientTransformation:
     """``make_optimizer`` for sweep cells: all flows computed, mode and clip mode per cell."""
-    return make_optimizer(config, ("R", "M", "S"), per_cell=True)
+    return make_optimizer(config, FLOWS, per_cell=True)
 
 
 class Trainer(NamedTuple):
@@ -208,7 +208,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     the optimizer of ``make_grid_optimizer`` selects each cell's update, and
     ``epoch`` takes each cell's value of ``task.cell_option`` as its second argument.
     """
-    flows = ("R", "M", "S") if grid else flows_needed(config.mode, config.cosine)
+    flows = FLOWS if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
     train_key, test_key = jax.random.split(jax.random.PRNGKey(config.data_seed))

@@ -27,7 +27,10 @@ from importlib.metadata import entry_points
 from types import ModuleType
 from typing import Any, Callable
 
-DEFAULT_TASK = "cartpole"
+DEFAULT_TASK = "mjcf"
+MJCF_TASK = "mjcf"  # the task of any MJCF file (--model), which render.py draws under a zero policy
+# Names that earlier versions wrote into run folders: they resolve to today's task.
+LEGACY_NAMES = {"cartpole": "mjcf"}
 
 
 def _import(dotted: str) -> Any:
@@ -73,16 +76,16 @@ class Entry:
 
 
 _BUILTIN = (
-    Entry("cartpole", "stablebptt.tasks.cartpole", label=lambda c: c.model_path.name,
+    Entry("mjcf", "stablebptt.tasks.mjcf", label=lambda c: c.model_path.name,
           draw="stablebptt.rendering:draw_mujoco_rollouts", picture="strip", mujoco_frames=True,
           presets={"cartpole": ("poles", (1, 2, 3, 4))}, gpu_unroll=5),
     Entry("repulsion", "stablebptt.tasks.repulsion", label=lambda c: f"repulsion, rc={c.rc:g}",
-          draw="stablebptt.tasks.figures:draw_repulsion", picture="paths",
+          draw="stablebptt.apps.figures:draw_repulsion", picture="paths",
           presets={"repulsion": ("rc", (1.0, 0.1, 0.01, 0.001)),
                    "tiny": ("rc", (1.0, 0.1))},  # the CPU test of the sweep's machinery
           gpu_unroll=10),
     Entry("quantum", "stablebptt.tasks.quantum", label=lambda c: f"quantum, target state {c.target}",
-          draw="stablebptt.tasks.figures:draw_quantum", picture="density",
+          draw="stablebptt.apps.figures:draw_quantum", picture="density",
           presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8),
     Entry("env", "stablebptt.tasks.env", label=lambda c: c.env or "an environment",
           draw="stablebptt.rendering:draw_env_rollouts", picture="strip", mujoco_frames=True),
@@ -115,8 +118,14 @@ def entries() -> dict[str, Entry]:
     return dict(_REGISTRY)
 
 
+def canonical(name: str) -> str:
+    """The registry name of ``name``, which may be a name earlier versions recorded (``LEGACY_NAMES``)."""
+    return LEGACY_NAMES.get(name, name) if name not in entries() else name
+
+
 def entry(name: str) -> Entry:
     from stablebptt.errors import InputError
+    name = canonical(name)
     known = entries()
     if name not in known:
         raise InputError(f"unknown task {name!r}: one of {', '.join(sorted(known))}")

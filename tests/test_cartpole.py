@@ -14,7 +14,7 @@ from conftest import ROOT, float64
 from stablebptt import scene
 from stablebptt.flows import flow_gradients, step_jacobians
 from stablebptt.training import TrainConfig, make_trainer, seed_array
-from stablebptt.tasks import cartpole, cartpole_equations
+from stablebptt.tasks import cartpole_equations, mjcf
 
 TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
 
@@ -23,7 +23,7 @@ def mjx_against_equations(poles, accelerations, dtype_x64):
     """Max deviation of MJX from the closed-form equations over 100 steps under random forces."""
     context = float64() if dtype_x64 else _nothing()
     with context:
-        task = cartpole.make(cartpole.Config(poles=poles))
+        task = mjcf.make(mjcf.Config(poles=poles))
         reference = cartpole_equations.make_step(0.01, accelerations)
         start = jax.tree.map(lambda a: a[0], task.sample_initial_states(jax.random.PRNGKey(poles), 1))
         forces = 5.0 * jax.random.normal(jax.random.PRNGKey(10 + poles), (100, 1))
@@ -62,8 +62,8 @@ def test_parallel_poles_match_the_exact_rigid_body_equations(poles):
 
 def test_the_models_declare_the_paper_set_up():
     for poles in range(1, 5):
-        model = cartpole.load_model(cartpole.MODELS / f"cartpole_{poles}.xml")
-        spec = cartpole.read_spec(model)
+        model = mjcf.load_model(mjcf.MODELS / f"cartpole_{poles}.xml")
+        spec = mjcf.read_spec(model)
         assert (model.nq, model.nu, spec.horizon, spec.loss) == (poles + 1, 1, 100, "final")
         assert model.opt.timestep == 0.01 and model.opt.gravity[2] == -9.8
         np.testing.assert_allclose(model.body_mass[1:], [1.0] + [0.1] * poles)
@@ -74,7 +74,7 @@ def test_the_models_declare_the_paper_set_up():
 
 @pytest.fixture(scope="module")
 def three_pole_task():
-    return cartpole.make(cartpole.Config(poles=3))
+    return mjcf.make(mjcf.Config(poles=3))
 
 
 def test_initial_states_and_loss_follow_the_paper(three_pole_task):
@@ -91,7 +91,7 @@ def test_initial_states_and_loss_follow_the_paper(three_pole_task):
 
 @pytest.mark.parametrize("poles", [2, 4])  # 1 pole: tests/test_smoke.py
 def test_all_flows_give_finite_gradients(poles):
-    task = cartpole.make(cartpole.Config(poles=poles, steps=30))
+    task = mjcf.make(mjcf.Config(poles=poles, steps=30))
     params = task.init_params(jax.random.PRNGKey(0), False)
     batch = task.sample_initial_states(jax.random.PRNGKey(1), 2)
     loss, grads = jax.jit(lambda p, x: flow_gradients(task.dynamics, ("R", "M", "S"), p, x))(params, batch)

@@ -17,7 +17,7 @@ import stablebptt as sb
 from conftest import ROOT, float64
 from envs_for_tests import Cart
 from stablebptt.constraint_derivatives import differentiable_mjx
-from stablebptt.environments import EnvError, env_task, load_env
+from stablebptt.environments import EnvError, env_task
 from stablebptt.flows import flow_gradients, reference_loss
 from stablebptt.mjx_internals import mjx
 

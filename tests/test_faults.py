@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from stablebptt import runs
+from stablebptt import fitting, runs
 from stablebptt.commands import train as train_command
 from stablebptt.errors import InputError
 from stablebptt.tasks import repulsion
@@ -76,6 +76,30 @@ def test_sigterm_saves_like_ctrl_c_and_resume_goes_on(tmp_path, capsys):
     code, err, _ = train(capsys, "--resume", str(run_dir), "--epochs", str(len(done) + 1), "--no-progress")
     assert code == 0, err
     assert epochs_in(run_dir) == list(range(1, len(done) + 2))
+
+
+def test_resume_without_a_checkpoint_refuses_to_train_over_the_results_it_holds(finished, tmp_path, capsys):
+    folder = tmp_path / "no-checkpoint"
+    shutil.copytree(finished, folder)
+    (folder / runs.CHECKPOINT_FILE).unlink()  # a sweep cell's folder, or a checkpoint deleted
+    before = snapshot(folder)
+    code, err, _ = train(capsys, "--resume", str(folder), "--no-progress")
+    assert code == 2 and len(err) == 1, err
+    assert "params.npz and metrics.csv (2 epochs) but no checkpoint.npz" in err[0] and "another --out" in err[0]
+    assert snapshot(folder) == before  # nothing trained over, nothing rewritten
+
+
+@pytest.mark.skipif(shutil.which("timeout") is None, reason="GNU timeout is not installed")
+def test_timeout_signalling_the_run_and_then_its_group_still_saves_and_stops_once(tmp_path):
+    """GNU timeout sends SIGTERM to the command and then to its process group: one request to stop."""
+    run_dir = tmp_path / "timed"
+    done = subprocess.run(["timeout", "20"] + TRAIN + SMALL + ["--epochs", "100000", "--out", str(run_dir)],
+                          cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, timeout=300)
+    assert done.returncode == 124, done.stderr  # timeout's own code: the command ended after its signal
+    assert done.stderr.count("SIGTERM: stopping after this epoch") == 1 and "interrupted after epoch" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert not [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]  # no temporary file survives
+    assert epochs_in(run_dir) == list(range(1, len(epochs_in(run_dir)) + 1)) and (run_dir / runs.CHECKPOINT_FILE).exists()
 
 
 @pytest.mark.parametrize("how", ["SIGKILL as the folder is claimed", "SIGTERM while compiling"])
@@ -286,7 +310,7 @@ def test_the_epoch_loop_saves_on_its_cadence_at_the_end_and_at_a_stop(checkpoint
         epochs_run.append(state + 1)
         return state + 1, {name: np.full(2, state + 1.0) for name in runs.METRICS}
 
-    status, epoch, state, rows, _ = runs.fit(
+    status, epoch, state, rows, _ = fitting.fit(
         run_epoch, 0, 0, 7, np.zeros((0, len(runs.COLUMNS))), np.arange(2),
         lambda epoch, state, rows: saves.append((epoch, rows[:, 0].tolist())), 3,
         should_stop=lambda: stop_after is not None and len(epochs_run) >= stop_after,
@@ -350,7 +374,7 @@ def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
     def work():
         lock = runs.create_run(tmp_path / "threaded", record)
         trainer = make_trainer(task, config)
-        outcome["value"] = runs.train_epochs(trainer, config, tmp_path / "threaded", trainer.init(seed_array(config)),
+        outcome["value"] = fitting.train_epochs(trainer, config, tmp_path / "threaded", trainer.init(seed_array(config)),
                                              0, runs.empty_rows(), np.asarray(seed_array(config)))
         lock.release()
 

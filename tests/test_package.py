@@ -38,7 +38,7 @@ def test_wheel_has_one_top_level_package_with_models_and_command(installed):
     assert {name.split("/")[0] for name in names if not name.split("/")[0].endswith(".dist-info")} == {"stablebptt"}
     for poles in (1, 2, 3, 4):
         assert f"stablebptt/models/cartpole_{poles}.xml" in names
-    for module in ("tasks/cartpole.py", "tasks/quantum.py", "commands/train.py", "commands/main.py", "mjx_internals.py"):
+    for module in ("tasks/mjcf.py", "tasks/quantum.py", "commands/train.py", "commands/main.py", "mjx_internals.py"):
         assert f"stablebptt/{module}" in names
     assert "stablebptt = stablebptt.commands.main:main" in entry_points
 
@@ -51,8 +51,8 @@ def _run_installed(target: Path, cwd: Path, *argv: str) -> subprocess.CompletedP
 
 def test_installed_package_finds_its_models_from_any_directory(installed, tmp_path):
     _, target = installed
-    code = ("from stablebptt.tasks import cartpole; import stablebptt.tasks as t; "
-            "path = cartpole.Config(poles=3).model_path; model = cartpole.load_model(path); "
+    code = ("from stablebptt.tasks import mjcf; import stablebptt.tasks as t; "
+            "path = mjcf.Config(poles=3).model_path; model = mjcf.load_model(path); "
             "print(t.__file__); print(path); print(model.njnt)")
     result = _run_installed(target, tmp_path, sys.executable, "-c", code)
     assert result.returncode == 0, result.stderr

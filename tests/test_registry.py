@@ -93,3 +93,17 @@ def test_a_registered_own_task_trains_and_renders_through_the_command_line(own_t
     assert render_command.main([str(run_dir), "--rollouts", "2", "--no-video"]) == 0
     (picture,) = Path(run_dir).glob("*-text.png")
     assert picture.read_text() == "point mass of 3 kg, mode C, 3 epochs, seed 42: 2 rollouts of 20 steps"
+
+
+def test_runs_recorded_under_the_mjcf_tasks_former_name_reopen(tmp_path):
+    """Run folders written when the MJCF task was named "cartpole" still name a task that resumes and renders."""
+    import dataclasses
+
+    from stablebptt.tasks import mjcf
+    from stablebptt.apps.trained import configs_of
+    from stablebptt.training import TrainConfig
+    assert tasks.entry("cartpole") is tasks.entry("mjcf") and tasks.canonical("cartpole") == "mjcf"
+    record = {"task": "cartpole", "task_config": dataclasses.asdict(mjcf.Config(poles=2)),
+              "train": dataclasses.asdict(TrainConfig(epochs=3))}
+    task_config, train = configs_of(tmp_path, record)
+    assert isinstance(task_config, mjcf.Config) and task_config.poles == 2 and train.epochs == 3

@@ -229,7 +229,7 @@ def test_a_video_needs_a_video_suffix(tmp_path):
 # ---- repulsion and quantum pictures, from made-up rollouts ----
 
 def test_repulsion_paths_and_animation(tmp_path):
-    from stablebptt.tasks import figures
+    from stablebptt.apps import figures
 
     # Six agents on spirals into the origin: [N=2, T+1=9, agents=6, 2].
     time = np.linspace(0, 1, 9)[:, None]
@@ -246,7 +246,8 @@ def test_repulsion_paths_and_animation(tmp_path):
 
 
 def test_quantum_density_and_animation(tmp_path):
-    from stablebptt.tasks import figures, quantum
+    from stablebptt.apps import figures
+    from stablebptt.tasks import quantum
 
     # Eigenstates 1 and 2 in equal parts, each turning at its own frequency: the density sloshes. [N=2, T+1=11, nx, 2]
     physics, dt = quantum.Physics(), 0.0625

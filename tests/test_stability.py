@@ -20,7 +20,7 @@ from conftest import ROOT
 from stablebptt import runs
 from stablebptt.flows import flow_gradients, reference_rollout
 from stablebptt.training import TrainConfig, make_optimizer, make_trainer, seed_array
-from stablebptt.tasks import cartpole, repulsion
+from stablebptt.tasks import mjcf, repulsion
 
 PRECISIONS = (32, 64)
 FLOWS = ("R", "M")
@@ -66,13 +66,13 @@ def four_poles():
     start gives that start's own gradient, with the program's one shape.
     """
     results = {}
-    task = cartpole.make(cartpole.Config(poles=4))
+    task = mjcf.make(mjcf.Config(poles=4))
     params = task.init_params(jax.random.PRNGKey(0), False)  # Glorot output: R differs from M
     start = jax.tree.map(lambda a: a[:1], task.sample_initial_states(jax.random.PRNGKey(3), 1))
     upright = start._replace(qpos=start.qpos.at[:, 1:].add(-jnp.pi))
     for bits in PRECISIONS:
         with jax.enable_x64(bits == 64):
-            task = cartpole.make(cartpole.Config(poles=4))  # MJX fixes the model's precision when it is built
+            task = mjcf.make(mjcf.Config(poles=4))  # MJX fixes the model's precision when it is built
 
             def gradients(params, states, h):
                 def loss_at_h(trajectory, controls):

@@ -22,11 +22,11 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from stablebptt import scene
+from stablebptt import scene, simulator
 from stablebptt.errors import InputError
 from stablebptt.flows import step_jacobians
 from stablebptt.training import TrainConfig, memory_plan
-from stablebptt.tasks import cartpole
+from stablebptt.tasks import mjcf
 
 DM_CONTROL = "dm_control==1.0.50"
 SUITE = ["acrobot", "ball_in_cup", "cartpole", "cheetah", "dog", "finger", "fish", "hopper", "humanoid",
@@ -60,14 +60,14 @@ def suite():
 
 @pytest.mark.parametrize("name", SUITE)
 def test_every_suite_model_becomes_a_task_or_is_refused_in_one_line(suite, name):
-    config = cartpole.Config(model=str(suite / f"{name}.xml"))
+    config = mjcf.Config(model=str(suite / f"{name}.xml"))
     if name in REFUSED:
         with pytest.raises(InputError) as refusal:
-            cartpole.make(config)
+            mjcf.make(config)
         message = str(refusal.value)
         assert message.startswith(f"{name}.xml: ") and REFUSED[name] in message and "\n" not in message, message
         return
-    task = cartpole.make(config)
+    task = mjcf.make(config)
     assert task.name == name and task.summary.startswith(f"{name}.xml: scene: ")
     assert task.resolved["horizon_steps"] == task.dynamics.horizon
     # Diagnostics are skipped and named; the solver line says which solver runs.
@@ -95,7 +95,7 @@ CHECKED = ["pendulum", "acrobot", "reacher", "hopper", "finger"]
 @pytest.mark.parametrize("name", CHECKED)
 def test_the_step_and_its_derivative_agree_with_mujocos_c_step(suite, x64, name):
     path = suite / f"{name}.xml"
-    task = cartpole.make(cartpole.Config(model=str(path)))
+    task = mjcf.make(mjcf.Config(model=str(path)))
     model = mujoco.MjModel.from_xml_path(str(path))
     data = mujoco.MjData(model)
     rng = np.random.default_rng(0)
@@ -172,7 +172,7 @@ def test_a_contact_rollout_follows_mujocos_c_step_with_the_files_own_solver(suit
     """hopper falling onto the floor and kicking for 1 s under random controls: the lean step, as
     training runs it, against MuJoCo's C step with the file's settings, state by state."""
     path = suite / "hopper.xml"
-    task = cartpole.make(cartpole.Config(model=str(path)))
+    task = mjcf.make(mjcf.Config(model=str(path)))
     model = mujoco.MjModel.from_xml_path(str(path))
     controls = np.random.default_rng(2).uniform(-1, 1, (round(1.0 / model.opt.timestep), model.nu))
     data, visited, touching = mujoco.MjData(model), [], 0
@@ -195,7 +195,7 @@ def test_step_jacobians_of_a_contact_model_with_friction_loss_are_finite(suite):
     At zero control (an untrained policy's output) both the one-iteration solver and MJX's
     elliptic cone gave NaN Jacobians; mode C's update then hid them as zeros.
     """
-    task = cartpole.make(cartpole.Config(model=str(suite / "finger.xml")))
+    task = mjcf.make(mjcf.Config(model=str(suite / "finger.xml")))
     states = task.sample_initial_states(jax.random.PRNGKey(0), 4)
     controls = jnp.zeros((4, 2))
     # One pass for every tangent (per_input=False): the same derivative in one copy of the step, compiled
@@ -244,7 +244,7 @@ REACHER_QVEL = [[-0.013969594, -0.0043659396], [-0.00890346, -0.0027836794], [0.
 
 
 def test_a_fixed_iteration_solvers_jacobians_stay_finite_where_the_line_search_direction_vanishes(suite):
-    task = cartpole.make(cartpole.Config(model=str(suite / "reacher.xml"), step_derivative="reverse",
+    task = mjcf.make(mjcf.Config(model=str(suite / "reacher.xml"), step_derivative="reverse",
                                          solver_iterations=1, steps=5))
     states = scene.State(jnp.array(REACHER_QPOS, jnp.float32), jnp.array(REACHER_QVEL, jnp.float32), jnp.zeros((8, 0)))
     flat = lambda s: jnp.concatenate([s.qpos, s.qvel])
@@ -293,12 +293,12 @@ def test_clipping_an_edge_nearly_parallel_to_a_side_plane_keeps_reverse_mode_fin
 def test_auto_takes_reverse_mode_only_where_forward_tangents_would_each_pass_a_large_constraint_system(suite):
     chosen = {}
     for name in ("reacher", "cheetah"):
-        task = cartpole.make(cartpole.Config(model=str(suite / f"{name}.xml"), steps=5))
+        task = mjcf.make(mjcf.Config(model=str(suite / f"{name}.xml"), steps=5))
         chosen[name] = task.resolved["step_derivative"]
-        model = cartpole.load_model(suite / f"{name}.xml")
+        model = mjcf.load_model(suite / f"{name}.xml")
         rows = scene.constraint_rows(scene.lean_model(model, scene.analyze(model)))
         work = (2 * model.nv + model.na + model.nq - model.nv + model.nu) * rows
-        assert (work > cartpole.FORWARD_MODE_MAX_SOLVER_WORK) == (chosen[name] == "reverse"), (name, work)
+        assert (work > simulator.FORWARD_MODE_MAX_SOLVER_WORK) == (chosen[name] == "reverse"), (name, work)
     assert chosen == {"reacher": "forward", "cheetah": "reverse"}
-    assert "constraint rows: cheaper than forward" in cartpole.make(
-        cartpole.Config(model=str(suite / "cheetah.xml"), steps=5)).summary
+    assert "constraint rows: cheaper than forward" in mjcf.make(
+        mjcf.Config(model=str(suite / "cheetah.xml"), steps=5)).summary

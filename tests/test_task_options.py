@@ -13,7 +13,7 @@ import pytest
 
 from stablebptt.errors import InputError
 from stablebptt.scene import State
-from stablebptt.tasks import cartpole
+from stablebptt.tasks import mjcf
 
 # A pendulum of length 1 hanging from the origin (qpos 0: the tip at z = -1), with a site at its
 # tip, a torque limited to [-2, 1], and one keyframe the task convention does not use.
@@ -38,7 +38,7 @@ def pendulum(tmp_path):
 def test_a_task_file_next_to_the_model_sets_the_task_and_the_command_line_wins(pendulum):
     pendulum.with_suffix(".task.json").write_text(json.dumps(
         {"init_pose": "upright", "target_pose": "hinge=1.5", "horizon_seconds": 0.5, "loss": "mean"}))
-    task = cartpole.make(cartpole.Config(model=str(pendulum), target_pose="hinge=-1"))
+    task = mjcf.make(mjcf.Config(model=str(pendulum), target_pose="hinge=-1"))
     resolved = task.resolved
     assert resolved["init"]["qpos"] == pytest.approx([3.14159265])  # from the file, by keyframe name
     assert resolved["target_qpos"] == [-1.0]  # the command line over the file
@@ -48,27 +48,27 @@ def test_a_task_file_next_to_the_model_sets_the_task_and_the_command_line_wins(p
 
 
 def test_unused_keyframes_are_named_in_a_warning(pendulum, capsys):
-    cartpole.make(cartpole.Config(model=str(pendulum)))
+    mjcf.make(mjcf.Config(model=str(pendulum)))
     assert "keyframe upright not used by the task" in capsys.readouterr().err
-    cartpole.make(cartpole.Config(model=str(pendulum), init_pose="upright"))
+    mjcf.make(mjcf.Config(model=str(pendulum), init_pose="upright"))
     assert "not used" not in capsys.readouterr().err
 
 
 def test_reaching_a_point_is_the_squared_distance_of_the_site(pendulum):
-    task = cartpole.make(cartpole.Config(model=str(pendulum), reach="tip=1,0,0"))
+    task = mjcf.make(mjcf.Config(model=str(pendulum), reach="tip=1,0,0"))
     assert task.resolved["reach"] == {"site": "tip", "point": [1.0, 0.0, 0.0]}
     angles = jnp.array([0.0, 0.7, -2.0])
     states = State(angles[:, None], jnp.zeros((3, 1)), jnp.zeros((3, 0)))
     # Hinge about +y: the tip (0, 0, -1) turns to (-sin q, 0, -cos q); without --loss-joints only the distance counts.
     expected = (-np.sin(angles[-1]) - 1.0) ** 2 + np.cos(angles[-1]) ** 2
     np.testing.assert_allclose(float(task.dynamics.loss(states, None)), expected, rtol=1e-5)
-    both = cartpole.make(cartpole.Config(model=str(pendulum), reach="tip=1,0,0", loss_joints="hinge"))
+    both = mjcf.make(mjcf.Config(model=str(pendulum), reach="tip=1,0,0", loss_joints="hinge"))
     pose = 1.0 - np.cos(angles[-1])  # the reference pose is qpos 0
     np.testing.assert_allclose(float(both.dynamics.loss(states, None)), expected + pose, rtol=1e-5)
 
 
 def test_a_limited_actuator_never_leaves_its_range_and_keeps_a_gradient(pendulum):
-    task = cartpole.make(cartpole.Config(model=str(pendulum)))
+    task = mjcf.make(mjcf.Config(model=str(pendulum)))
     params = task.init_params(jax.random.PRNGKey(0), False)
     state = State(jnp.zeros(1), jnp.zeros(1), jnp.zeros(0))
     scaled = lambda factor: jax.tree.map(lambda a: factor * a, params)
@@ -88,14 +88,14 @@ def test_a_limited_actuator_never_leaves_its_range_and_keeps_a_gradient(pendulum
     (dict(reach="tip=1,0"), "NAME=X,Y,Z"),
     (dict(reach="hand=1,0,0"), "no site or body named 'hand'"),
     (dict(loss_joints="none"), "the loss compares nothing"),
-    (dict(horizon_seconds=float("nan")), "cartpole.Config.horizon_seconds"),
+    (dict(horizon_seconds=float("nan")), "mjcf.Config.horizon_seconds"),
     (dict(horizon_seconds=0.001), "less than one step"),
     (dict(loss="sometimes"), "must be final or mean"),
     (dict(task_file="missing.json"), "does not exist"),
 ])
 def test_bad_task_options_are_one_clear_error(pendulum, options, words):
     with pytest.raises(InputError, match=words.replace("(", r"\(")):
-        cartpole.make(cartpole.Config(model=str(pendulum), **options))
+        mjcf.make(mjcf.Config(model=str(pendulum), **options))
 
 
 @pytest.mark.parametrize("content, words", [
@@ -107,4 +107,4 @@ def test_bad_task_options_are_one_clear_error(pendulum, options, words):
 def test_a_bad_task_file_is_one_clear_error(pendulum, content, words):
     pendulum.with_suffix(".task.json").write_text(content)
     with pytest.raises(InputError, match=words):
-        cartpole.make(cartpole.Config(model=str(pendulum)))
+        mjcf.make(mjcf.Config(model=str(pendulum)))

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from stablebptt import runs
+from stablebptt import fitting, runs
 from stablebptt.flows import Dynamics
 from stablebptt.training import Task, TrainConfig, make_trainer, seed_array
 from stablebptt.tasks import repulsion
@@ -101,7 +101,7 @@ def test_an_epoch_compiled_per_update_trains_as_the_epoch_compiled_whole(task, t
     trainer = make_trainer(task, config)
     assert type(trainer.epoch).__name__ == "PerUpdateEpoch"
     # Through the epoch loop of runs, which compiles ahead before timing.
-    outcome = runs.train_epochs(trainer, config, tmp_path, trainer.init(seed_array(config)), 0, runs.empty_rows(),
+    outcome = fitting.train_epochs(trainer, config, tmp_path, trainer.init(seed_array(config)), 0, runs.empty_rows(),
                                 np.asarray(seed_array(config)))
     assert outcome.status == "complete"
     for name in ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine"):
@@ -135,7 +135,7 @@ def test_divergence_stops_with_the_epoch_and_keeps_the_last_good_checkpoint(tmp_
     config = TrainConfig(epochs=50, train_size=16, test_size=8, batch=8, lr=100.0, clip="none", mode="R")
     trainer = make_trainer(exploding_task(), config)
     state = trainer.init(seed_array(config))
-    outcome = runs.train_epochs(trainer, config, tmp_path, state, 0, runs.empty_rows(), np.asarray(seed_array(config)))
+    outcome = fitting.train_epochs(trainer, config, tmp_path, state, 0, runs.empty_rows(), np.asarray(seed_array(config)))
     assert outcome.status == "diverged"
     bad_epoch = outcome.epoch + 1
     assert f"epoch {bad_epoch}" in outcome.message
@@ -163,7 +163,7 @@ def test_a_non_finite_gradient_of_any_flow_stops_training_even_when_the_update_i
     state = trainer.init(seed_array(config))
     _, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
     assert np.isfinite(metrics["update_norm"][0]) and np.isfinite(metrics["test_loss"][0])  # nothing else shows it
-    outcome = runs.train_epochs(trainer, config, tmp_path, state, 0, runs.empty_rows(), np.asarray(seed_array(config)))
+    outcome = fitting.train_epochs(trainer, config, tmp_path, state, 0, runs.empty_rows(), np.asarray(seed_array(config)))
     assert outcome.status == "diverged" and outcome.epoch == 0
     assert "gradient of flow R" in outcome.message and "flow M" not in outcome.message, outcome.message
 

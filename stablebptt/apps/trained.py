@@ -1,7 +1,7 @@
 """A trained run folder (a single run or a sweep cell) reopened: its task rebuilt, its policies
 loaded and rolled out from the run's own test states.
 
-    trained = open_trained(Path("runs/cartpole-20261122-101500"))
+    trained = open_trained(Path("runs/cartpole_3-20261122-101500"))
     states, controls, losses = rollouts_from_test_states(trained.task, trained.train, trained.seed_params(0), 3)
 """
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Any, Callable
 from stablebptt import runs
 from stablebptt.cli import build
 from stablebptt.errors import InputError
-from stablebptt.tasks import entries, entry
+from stablebptt.tasks import canonical, entries, entry
 from stablebptt.training import Task, TrainConfig, compiler_options, large_step
 
 
@@ -59,7 +59,7 @@ def configs_of(run_dir: Path, record: dict, train_changes: dict | None = None,
       InputError: an unknown task, values of the wrong type, or a model file changed since the run.
     """
     source = str(Path(run_dir) / runs.CONFIG_FILE)
-    if record["task"] not in entries():
+    if canonical(record["task"]) not in entries():
         raise InputError(f"{source} names the task {record['task']!r}, which is none of {', '.join(sorted(entries()))}")
     module = entry(record["task"]).load()
     task_values = dict(record["task_config"])
@@ -99,7 +99,7 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     except (OSError, ValueError, KeyError, TypeError):
         epochs = ""
     label = f"{task_entry.label(task_config)}, mode {train.mode}{epochs}"
-    return Trained(run_dir, record["task"], task_config, train, task, params, label)
+    return Trained(run_dir, canonical(record["task"]), task_config, train, task, params, label)
 
 
 def rollouts_from_test_states(task: Task, train: TrainConfig, params: Any, count: int):

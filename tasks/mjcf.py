@@ -1,4 +1,4 @@
-"""Cart-pole with 1-4 poles through MuJoCo MJX, and any MJCF in its place.
+"""Any MJCF file as a task, simulated through MuJoCo MJX; the cart-poles are its models plus ``--poles``.
 
 The task is read from the MJCF itself (models/README.md documents the
 convention): initial states from keyframe ``init`` plus a spread, the target
@@ -23,12 +23,13 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stablebptt import models, mujoco_log, scene
+from stablebptt import models, mujoco_log, simulator
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import Dynamics
 from stablebptt.mjx_internals import mjx
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.scene import State
+from stablebptt.simulator import SimulatorConfig
 from stablebptt.training import Task
 
 MODELS = models.DIRECTORY  # package data: found wherever the package is installed
@@ -36,12 +37,6 @@ DEFAULT_EPOCHS = 1000
 DEFAULT_HORIZON = 100
 DEFAULT_SPREAD = 0.1  # per-dof half-width of the initial-state noise when the MJCF declares none
 MAX_HORIZON = 100_000  # steps; beyond it the rollout's stored states alone outgrow any machine
-FORWARD_MODE_MAX_STATE = 64  # numbers in (qpos, qvel, act) up to which step Jacobians are built forward
-# Forward mode pushes every tangent through the constraint solver's implicit derivative; reverse mode
-# pulls one cotangent through it. Tangents x constraint rows above which reverse mode's epoch is the
-# shorter (docs/performance.md): point_mass (12) and reacher (6) train 2-3x faster forward;
-# ball_in_cup (650), finger (744), cheetah (3,504) and humanoid (23,028) 1.2-12x faster reverse.
-FORWARD_MODE_MAX_SOLVER_WORK = 500
 # Joint types as plain ints: MuJoCo's enums do not compare equal to NumPy integers.
 FREE, BALL, SLIDE, HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL,
                                             mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE))
@@ -52,18 +47,13 @@ TASK_FILE_OPTIONS = ("init_pose", "target_pose", "reach", "loss_joints", "loss",
 
 
 @dataclass(frozen=True)
-class Config:
-    """Options of the cart-pole / MJCF task."""
+class Config(SimulatorConfig):
+    """Options of the MJCF task: the model, the task over what it declares, and (inherited) how it is simulated."""
 
     poles: int = field(default=1, metadata={"help": "number of poles, 1-4 (models/cartpole_N.xml)"})
     model: str = field(default="", metadata={"help": "any MJCF file to control instead of a cart-pole (see models/README.md)"})
     spread: float = field(default=1.0, metadata={"help": "scales the initial-state spread the MJCF declares"})
-    integrator: str = field(default="", metadata={"help": "override the MJCF's integrator: euler, rk4 or implicitfast", "choices": ("", "euler", "rk4", "implicitfast")})
-    dt: float = field(default=0.0, metadata={"help": "override the MJCF's time step; the simulated time stays the same unless --steps is given"})
     steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the MJCF's bptt_horizon, else 100)"})
-    pipeline: str = field(default="lean", metadata={"help": "lean: a step generated body by body for small contact-free trees of hinges and slides, else stages; stages: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": ("lean", "stages", "mjx")})
-    solver_iterations: int = field(default=0, metadata={"help": "constraint solver of scenes with contacts or limits: N runs exactly N Newton iterations (cheaper, different physics); 0 keeps the model's own solver"})
-    step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers whose tangents times constraint rows stay within 500)", "choices": ("auto", "forward", "reverse")})
     # The task, over what the MJCF declares (models/README.md); a task file may set these too.
     task_file: str = field(default="", metadata={"help": "JSON file of task options (keys as these options' names, e.g. {\"init_pose\": \"hinge=3.1416\"}); default: MODEL.task.json next to the model when it exists; none: no file"})
     init_pose: str = field(default="", metadata={"help": "centre of the initial states: a keyframe's name, or JOINT=VALUE,... on the MJCF's own (hinges in radians)"})
@@ -74,14 +64,11 @@ class Config:
     horizon_seconds: float = field(default=0.0, metadata={"help": "horizon in simulated seconds (0: the MJCF's bptt_horizon, else 100 steps); --steps overrides it"})
 
     def __post_init__(self):
+        super().__post_init__()
         if not self.model and not 1 <= self.poles <= 4:
             raise InputError(f"{config_field(self, 'poles')} must be 1, 2, 3 or 4, got {self.poles}; for other systems give {config_field(self, 'model')} (an MJCF file)")
         if not (math.isfinite(self.spread) and self.spread >= 0):
             raise InputError(f"{config_field(self, 'spread')} must be a finite number, zero or positive, got {self.spread}")
-        if not (math.isfinite(self.dt) and self.dt >= 0):
-            raise InputError(f"{config_field(self, 'dt')} must be a finite positive time step (or 0 for the MJCF's own), got {self.dt}")
-        if not 0 <= self.solver_iterations <= 10_000:
-            raise InputError(f"{config_field(self, 'solver_iterations')} must be between 1 and 10000 (or 0 for the model's own), got {self.solver_iterations}")
         if not 0 <= self.steps <= MAX_HORIZON:
             raise InputError(f"{config_field(self, 'steps')} must be between 1 and {MAX_HORIZON} (or 0 for the MJCF's own), got {self.steps}")
         if self.loss not in ("", "final", "mean"):
@@ -359,14 +346,12 @@ def make(config: Config) -> Task:
             print(f"{path.name}: keyframe{'s' if len(spec.unused_keyframes) > 1 else ''} "
                   f"{', '.join(spec.unused_keyframes)} not used by the task (choose one with --init-pose NAME "
                   "or --target-pose NAME)", file=sys.stderr)
-        effects = scene.analyze(model)
-        return _make(config, path, model, spec, effects)
+        return _make(config, path, model, spec)
     except InputError as error:  # every message names the model it is about
         raise InputError(f"{path.name}: {error}") from None
 
 
-def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects: scene.SceneEffects) -> Task:
-    state_size = 2 * model.nv + model.na + (model.nq - model.nv)
+def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task:
     timestep = config.dt or float(model.opt.timestep)
     simulated_time = config.horizon_seconds or spec.horizon * float(model.opt.timestep)
     horizon = config.steps or round(simulated_time / timestep)
@@ -378,31 +363,8 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         raise InputError(f"a time step of {timestep:g} s makes the task's {simulated_time:g} s {horizon:.3g} steps, "
                          f"more than {MAX_HORIZON}: choose a larger {config_field(Config, 'dt')}, or give "
                          f"{config_field(Config, 'steps')}")
-    if config.pipeline == "mjx":  # the baseline: MuJoCo's default flags, only integrator and dt overridden
-        lean = scene.with_options(model, config.integrator or None, config.dt or None)
-        for bit in scene.diagnostics_bits(lean):  # diagnostics change no dynamics, and MJX has none
-            lean.opt.enableflags &= ~bit
-    else:
-        iterations = config.solver_iterations or None  # None: the model's own solver, as the file says
-        lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None, iterations)
-    # mjx.step runs MuJoCo's solver as a while loop of dynamic length: forward mode goes through
-    # it, reverse mode cannot (the other pipelines differentiate the solver at its solution).
-    # Counted once (it builds the MJX model): mjx.step simulates every constraint, the other pipelines the scene's.
-    rows = scene.constraint_rows(lean) if effects.constraints or config.pipeline == "mjx" else 0
-    solver_loop = config.pipeline == "mjx" and rows > 0
-    if solver_loop and config.step_derivative == "reverse":
-        raise InputError(f"{config_field(Config, 'pipeline')} mjx runs MuJoCo's constraint solver as a loop that reverse "
-                         f"mode cannot differentiate: give {config_field(Config, 'step_derivative')} forward, or take "
-                         f"{config_field(Config, 'pipeline')} lean or stages, which differentiate the solver at its solution")
-    derivative = "forward" if solver_loop else config.step_derivative
-    if derivative == "auto":
-        # Forward mode costs one batched pass per state number; reverse mode one
-        # pass through every tiny MJX operation: small states favour forward,
-        # unless every tangent also goes through a large constraint system.
-        tangents = state_size + model.nu
-        derivative = ("forward" if state_size <= FORWARD_MODE_MAX_STATE and tangents * rows <= FORWARD_MODE_MAX_SOLVER_WORK
-                      else "reverse")
-    step = scene.make_step(lean, effects, config.pipeline)
+    sim = simulator.build(model, config)
+    lean = sim.lean
     weights = jnp.asarray(spec.joint_weight / max(spec.joint_weight.sum(), 1e-300))
     target = spec.target_qpos
     sizes = (model.nq + model.nv + model.na, 100, 100, model.nu)
@@ -419,7 +381,7 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
 
     reach = spec.reach
     if reach is not None:
-        kinematics_model = scene.put_model(lean)
+        kinematics_model = sim.mjx_model
         empty = mjx.make_data(kinematics_model)
 
     def state_loss(qpos):
@@ -441,21 +403,7 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         qpos = jax.vmap(lambda d: perturb_qpos(model, spec.init.qpos, d))(dq)
         return State(qpos, spec.init.qvel + dv, jnp.broadcast_to(spec.init.act, (count, model.na)))
 
-    summary = scene.describe(effects, lean, model) + (f"; pipeline: {config.pipeline}" if config.pipeline != "lean" else "")
-    generated = config.pipeline == "lean" and scene.generated_step_applies(lean, effects)
-    if generated:
-        summary += "; step: generated body by body"
-    summary += f"; step gradients: {derivative} mode"
-    if solver_loop and config.step_derivative == "auto":
-        summary += " (mjx.step's solver loop has no reverse mode)"
-    elif config.step_derivative == "auto" and derivative == "reverse" and state_size <= FORWARD_MODE_MAX_STATE:
-        summary += f" ({tangents} tangents x {rows} constraint rows: cheaper than forward)"
-    if generated or (config.pipeline in ("lean", "stages") and scene.implicit_derivative_applies(lean, effects)):
-        summary += " through inverse dynamics"
-    known_columns, symmetric_joints = scene.symmetries(lean, effects)
-    if derivative == "forward" and symmetric_joints:
-        summary += f" (symmetries: no tangent for {', '.join(symmetric_joints)})"
-    name = "cartpole" if not config.model else path.stem
+    name = path.stem  # run folders and records name the model: cartpole_3, humanoid, ...
     as_list = lambda a: np.asarray(a, dtype=float).tolist()
     resolved = {
         "model_file": str(path.resolve()),
@@ -470,17 +418,17 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec, effects
         "target_qpos": as_list(spec.target_qpos),
         "reach": None if reach is None else {reach.kind: reach.name, "point": as_list(reach.point)},
         "task_file": config.task_file if config.task_file != "none" else "",
-        "step_derivative": derivative,
+        "step_derivative": sim.derivative,
         "solver": {"iterations": int(lean.opt.iterations), "tolerance": float(lean.opt.tolerance),
-                   "solver": mujoco.mjtSolver(lean.opt.solver).name} if effects.constraints else None,
+                   "solver": mujoco.mjtSolver(lean.opt.solver).name} if sim.effects.constraints else None,
     }
     return Task(
         name=name,
-        dynamics=Dynamics(step=step, policy=policy, loss=loss, horizon=horizon, step_derivative=derivative,
-                          known_columns=known_columns),
+        dynamics=Dynamics(step=sim.step, policy=policy, loss=loss, horizon=horizon, step_derivative=sim.derivative,
+                          known_columns=sim.known_columns),
         init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
         sample_initial_states=sample_initial_states,
-        summary=f"{path.name}: {summary}; horizon {horizon} steps, {spec.loss}-state loss"
+        summary=f"{path.name}: {sim.summary}; horizon {horizon} steps, {spec.loss}-state loss"
                 + (f" (reaching {reach.name})" if reach is not None else ""),
         resolved=resolved,
     )

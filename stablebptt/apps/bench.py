@@ -10,17 +10,14 @@ import dataclasses
 
 from stablebptt import timing
 
-MODE_FLOWS = {"R": ("R",), "M": ("M",), "S": ("S",), "C": ("R", "M")}
-
-
-def make_update(task, flows, batch_size, plain=False):
+def make_update(task, mode, batch_size, plain=False, with_cosine=False):
     """A jitted update: gradient (one-pass flows, or plain jax.grad), clip, Adam."""
     import jax
     import optax
-    from stablebptt.flows import flow_gradients, reference_loss
+    from stablebptt.flows import flow_gradients, flows_needed, reference_loss
     from stablebptt.training import TrainConfig, make_optimizer
 
-    mode = "C" if flows == ("R", "M") else flows[0]
+    flows = flows_needed(mode, with_cosine)
     optimizer = make_optimizer(TrainConfig(mode=mode), flows)
 
     def update(params, opt_state, batch):
@@ -53,9 +50,10 @@ def time_variants(variants: dict, rounds: int) -> dict[str, tuple[float, float]]
 
 
 def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
-    variants = {"R plain": make_update(task, ("R",), batch, plain=True)}
-    variants.update({mode: make_update(task, flows, batch) for mode, flows in MODE_FLOWS.items()})
-    variants["R + cosine"] = make_update(task, ("R", "M"), batch)
+    from stablebptt.flows import MODES
+    variants = {"R plain": make_update(task, "R", batch, plain=True)}
+    variants.update({mode: make_update(task, mode, batch) for mode in MODES})
+    variants["R + cosine"] = make_update(task, "R", batch, with_cosine=True)
     times = time_variants(variants, rounds)
     base = times["R plain"][0]
     lines = [f"### {title}", "", "| update | ms (median) | / R plain | compile s |", "|---|---:|---:|---:|"]
@@ -76,11 +74,11 @@ def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tupl
     the floor), with the parts of the generated step's update where it is among them."""
     import mujoco
     from stablebptt import scene
-    from stablebptt.tasks import cartpole, cartpole_equations
-    generated = cartpole.make(cartpole.Config(poles=poles))
-    stages = cartpole.make(cartpole.Config(poles=poles, pipeline="stages"))
+    from stablebptt.tasks import cartpole_equations, mjcf
+    generated = mjcf.make(mjcf.Config(poles=poles))
+    stages = mjcf.make(mjcf.Config(poles=poles, pipeline="stages"))
     with_step = lambda step: dataclasses.replace(stages, dynamics=dataclasses.replace(stages.dynamics, step=step))
-    model = cartpole.load_model(cartpole.Config(poles=poles).model_path)
+    model = mjcf.load_model(mjcf.Config(poles=poles).model_path)
     effects = scene.analyze(model)
 
     def dense():
@@ -90,13 +88,13 @@ def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tupl
 
     build = {"generated": lambda: generated, "stages": lambda: stages,
              "autodiff": lambda: with_step(scene.make_step(scene.lean_model(model, effects), effects, "stages", implicit=False)),
-             "dense": dense, "mjx": lambda: cartpole.make(cartpole.Config(poles=poles, pipeline="mjx")),
+             "dense": dense, "mjx": lambda: mjcf.make(mjcf.Config(poles=poles, pipeline="mjx")),
              "floor": lambda: with_step(cartpole_equations.make_step(0.01))}
     chosen = {name: build[name]() for name in SIMULATORS if name in simulators}
-    variants = {SIMULATORS[name]: make_update(task, ("R",), batch) for name, task in chosen.items()}
+    variants = {SIMULATORS[name]: make_update(task, "R", batch) for name, task in chosen.items()}
     for name in ("generated", "floor"):
         if name in chosen:
-            variants[SIMULATORS[name] + ", C"] = make_update(chosen[name], ("R", "M"), batch)
+            variants[SIMULATORS[name] + ", C"] = make_update(chosen[name], "C", batch)
     times = time_variants(variants, rounds)
     base, lowest = (times.get(SIMULATORS[name], (None,))[0] for name in ("mjx", "floor"))
     ratio = lambda ms, reference: f"{ms / reference:.2f}" if reference else ""

@@ -167,11 +167,11 @@ def rollout_program(step: Callable, steps: int) -> Callable:
 
 
 def cartpole_setup(poles: int, quick: bool) -> TrajectorySetup:
-    from stablebptt.tasks import cartpole, cartpole_equations
+    from stablebptt.tasks import cartpole_equations, mjcf
     reference_dt = 1e-4
 
     def make_task(integrator, dt):
-        return cartpole.make(cartpole.Config(poles=poles, integrator=integrator, dt=dt))
+        return mjcf.make(mjcf.Config(poles=poles, integrator=integrator, dt=dt))
 
     def controls(rng, batch):
         return rng.uniform(-2.0, 2.0, (batch, 1))  # a constant force on the cart, in newtons
@@ -342,7 +342,7 @@ class GradientSetup:
 
 
 def gradient_setups(config: AccuracyConfig) -> list[GradientSetup]:
-    from stablebptt.tasks import cartpole, quantum, repulsion
+    from stablebptt.tasks import mjcf, quantum, repulsion
 
     def upright(states):
         # Angles 0 +- 30 degrees instead of pi +- 30: the poles fall and tumble, a chaotic motion.
@@ -354,7 +354,7 @@ def gradient_setups(config: AccuracyConfig) -> list[GradientSetup]:
     setups = {
         "cartpole": GradientSetup(
             "cartpole", f"cart-pole, {config.gradient_poles} poles, MJX Euler",
-            lambda: cartpole.make(cartpole.Config(poles=config.gradient_poles)), 0.01,
+            lambda: mjcf.make(mjcf.Config(poles=config.gradient_poles)), 0.01,
             (20, 60) if quick else (100, 200, 300, 500, 1000, 2000, 3000),
             {"hanging (paper)": lambda s: s, "upright": upright}),
         "repulsion": GradientSetup(
@@ -545,7 +545,7 @@ def contact_study(config: AccuracyConfig, log: Callable, done: list[dict] = (),
     from pathlib import Path
     from stablebptt import scene
     from stablebptt.flows import step_jacobians
-    from stablebptt.tasks.cartpole import load_model
+    from stablebptt.tasks.mjcf import load_model
 
     rows = list(done)
     measured = {(row["model"], row["setting"]) for row in rows}

@@ -1,0 +1,9 @@
+"""The application layer: what is built on tasks, above them in the import order.
+
+- ``trained``: reopen a run folder or sweep cell, rebuild its task, roll out its policy.
+- ``figures``: the pictures of the tasks without a MuJoCo scene (repulsion's paths, quantum's densities).
+- ``bench``: the benchmark's measurements (``scripts/bench.py``).
+- ``accuracy``: the accuracy studies (``scripts/accuracy.py``; ``stablebptt.accuracy_report`` writes their report).
+
+The library below (flows, training, runs, scene, simulator, ...) never imports these or ``stablebptt.tasks``.
+"""
