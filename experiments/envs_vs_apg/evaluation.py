@@ -1,0 +1,130 @@
+"""Shared evaluation for every policy in the envs-vs-APG benchmark.
+
+Protocol (both the Brax APG half and the stablebptt half use it unchanged):
+  * env: the Playground env as shipped, `registry.load(name, config_overrides={"impl": "jax"})`,
+    unwrapped (no Brax training wrappers, so no auto-reset and no action repeat);
+  * reset keys: `jax.random.split(jax.random.PRNGKey(EVAL_SEED), num_envs)`, the same for all runs;
+  * policy: deterministic, `apply(params, obs) -> action`, obs is the env's raw flat observation
+    (any normalisation belongs to the policy), the action is clipped to [-1, 1] here;
+  * length: the env config's `episode_length` (1000 for the DM Control Suite);
+  * return: sum of rewards up to and including the step at which `done` first becomes 1, later
+    rewards masked to 0; the score is the mean over the envs.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+
+EVAL_SEED = 1234
+NUM_EVAL_ENVS = 64
+
+
+def load_env(name: str, **overrides):
+    """The env as the benchmark defines it: Playground's, with MJX's JAX implementation."""
+    from mujoco_playground import registry
+
+    return registry.load(name, config_overrides={"impl": "jax", **overrides})
+
+
+def eval_keys(num_envs: int = NUM_EVAL_ENVS, seed: int = EVAL_SEED) -> jax.Array:
+    return jax.random.split(jax.random.PRNGKey(seed), num_envs)
+
+
+def make_evaluator(
+    env,
+    apply: Callable[[Any, jax.Array], jax.Array],
+    num_envs: int = NUM_EVAL_ENVS,
+    seed: int = EVAL_SEED,
+    episode_length: int | None = None,
+) -> Callable[[Any], dict]:
+    """Returns a jitted `evaluate(params) -> dict` for one env and one policy family.
+
+    Params are an argument (not closed over) so one compilation serves every evaluation of a run.
+    """
+    if episode_length is None:
+        episode_length = int(env._config.episode_length)
+    keys = eval_keys(num_envs, seed)
+
+    def rollout(params, key):
+        state = env.reset(key)
+
+        def body(carry, _):
+            state, ret, alive = carry
+            action = jnp.clip(apply(params, state.obs), -1.0, 1.0)
+            state = env.step(state, action)
+            # where(), not multiplication: a diverged env may report a NaN reward.
+            ret = ret + jnp.where(alive, state.reward, 0.0)
+            alive = alive & (state.done == 0)
+            return (state, ret, alive), None
+
+        init = (state, jnp.zeros(()), jnp.ones((), bool))
+        (_, ret, alive), _ = jax.lax.scan(body, init, None, length=episode_length)
+        return ret, alive
+
+    @jax.jit
+    def evaluate_device(params):
+        rets, alive = jax.vmap(rollout, in_axes=(None, 0))(params, keys)
+        return rets, alive
+
+    def evaluate(params) -> dict:
+        rets, alive = jax.device_get(evaluate_device(params))
+        return {
+            "mean_return": float(rets.mean()),
+            "std_return": float(rets.std()),
+            "num_envs": int(num_envs),
+            "episode_length": int(episode_length),
+            "num_done_early": int((~alive).sum()),
+        }
+
+    return evaluate
+
+
+def make_seed_evaluator(
+    env,
+    apply: Callable[[Any, jax.Array], jax.Array],
+    num_envs: int = NUM_EVAL_ENVS,
+    seed: int = EVAL_SEED,
+    episode_length: int | None = None,
+) -> Callable[[Any], list]:
+    """``make_evaluator`` for params with a leading seed axis: every seed gets the same protocol
+    (the same reset keys, the same rollout), all seeds in one compiled program; returns one dict
+    per seed, as ``make_evaluator``'s."""
+    if episode_length is None:
+        episode_length = int(env._config.episode_length)
+    keys = eval_keys(num_envs, seed)
+
+    def rollout(params, key):
+        state = env.reset(key)
+
+        def body(carry, _):
+            state, ret, alive = carry
+            action = jnp.clip(apply(params, state.obs), -1.0, 1.0)
+            state = env.step(state, action)
+            ret = ret + jnp.where(alive, state.reward, 0.0)
+            alive = alive & (state.done == 0)
+            return (state, ret, alive), None
+
+        init = (state, jnp.zeros(()), jnp.ones((), bool))
+        (_, ret, alive), _ = jax.lax.scan(body, init, None, length=episode_length)
+        return ret, alive
+
+    @jax.jit
+    def evaluate_device(params):
+        per_seed = jax.vmap(rollout, in_axes=(None, 0))
+        return jax.vmap(per_seed, in_axes=(0, None))(params, keys)
+
+    def evaluate(params) -> list:
+        rets, alive = jax.device_get(evaluate_device(params))
+        return [{"mean_return": float(r.mean()), "std_return": float(r.std()), "num_envs": int(num_envs),
+                 "episode_length": int(episode_length), "num_done_early": int((~a).sum())}
+                for r, a in zip(rets, alive)]
+
+    return evaluate
+
+
+def evaluate(env, act: Callable[[jax.Array], jax.Array], **kwargs) -> float:
+    """One-off form: mean episode return of a parameter-free `act(obs)`."""
+    return make_evaluator(env, lambda _, obs: act(obs), **kwargs)(None)["mean_return"]
