@@ -8,14 +8,17 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from dataclasses import dataclass, field
+import numbers
+from dataclasses import dataclass, field, fields
 from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.extend
 import jax.numpy as jnp
+import numpy as np
 import optax
 
+from stablebptt.checks import check_task
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import (FLOWS, MODE_TABLE, MODES, Dynamics, flow_gradients, flows_needed, reference_loss, reference_losses,
                               select_flow, tree_cosine)
@@ -111,6 +114,14 @@ class TrainConfig:
     epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations", "choices": EPOCH_PROGRAMS})
 
     def __post_init__(self):
+        for item in fields(self):  # from Python anything can arrive: 2.5 epochs, lr "0.1", batch None
+            value, kind = getattr(self, item.name), item.type if isinstance(item.type, str) else item.type.__name__
+            fits = {"int": isinstance(value, numbers.Integral) and not isinstance(value, bool),
+                    "float": isinstance(value, numbers.Real) and not isinstance(value, bool),
+                    "str": isinstance(value, str), "bool": isinstance(value, (bool, np.bool_))}[kind]
+            if not fits:
+                raise InputError(f"{config_field(self, item.name)} must be {'a whole number' if kind == 'int' else kind}, "
+                                 f"got {value!r}")
         if self.mode not in MODES:
             raise InputError(f"unknown mode {self.mode!r}: choose one of {', '.join(MODES)}")
         if self.clip not in CLIP_MODES:
@@ -208,6 +219,13 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     the optimizer of ``make_grid_optimizer`` selects each cell's update, and
     ``epoch`` takes each cell's value of ``task.cell_option`` as its second argument.
     """
+    if not isinstance(config, TrainConfig):
+        raise InputError(f"expected a stablebptt.TrainConfig, got {type(config).__name__}")
+    if config.x64 and not jax.config.jax_enable_x64:
+        raise InputError(f"{config_field(config, 'x64')} asks for float64, but JAX runs in float32: call "
+                         "jax.config.update('jax_enable_x64', True) before building the task (arrays made before "
+                         "stay float32), as the command line's --x64 does")
+    check_task(task, config.zero_output)
     flows = FLOWS if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 

@@ -109,3 +109,86 @@ def test_bad_command_line_is_one_line_and_exit_code_2(train_main, tmp_path, caps
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert exit_.value.code == 2 and len(lines) == 1 and lines[0].startswith("error: "), lines
     assert not out.exists()
+
+
+# The README's pendulum, as a Python user builds it: each case spoils one field.
+def _pendulum():
+    import jax
+    import jax.numpy as jnp
+
+    import stablebptt as sb
+
+    def step(state, torque):
+        angle, speed = state
+        speed = speed + 0.05 * (-9.81 * jnp.sin(angle) + torque[0])
+        return angle + 0.05 * speed, speed
+
+    dynamics = sb.Dynamics(step=step, policy=lambda p, s: sb.mlp_apply(p, jnp.stack([jnp.sin(s[0]), s[1]])),
+                           loss=lambda states, torques: 1 + jnp.cos(states[0][-1]), horizon=5)
+    return sb.Task(name="pendulum", dynamics=dynamics,
+                   init_params=lambda key, zero_output: sb.mlp_init(key, (2, 8, 1), zero_output),
+                   sample_initial_states=lambda key, n: (jax.random.uniform(key, (n,)), jnp.zeros(n)))
+
+
+def _spoiled(case):
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    import stablebptt as sb
+    task = _pendulum()
+    d = task.dynamics
+    change = {
+        "horizon 0": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, horizon=0)),
+        "horizon -3": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, horizon=-3)),
+        "horizon 2.5": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, horizon=2.5)),
+        "step_derivative bogus": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, step_derivative="bogus")),
+        "policy_gradient bogus": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, policy_gradient="bogus")),
+        "step changes structure": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(
+            d, step=lambda s, u: {"angle": s[0], "speed": s[1]})),
+        "vector loss": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(
+            d, loss=lambda states, torques: 1 + jnp.cos(states[0]))),
+        "wrong control shape": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(
+            d, policy=lambda p, s: jnp.zeros((3, 2)))),
+        "sampler size": lambda: dataclasses.replace(task, sample_initial_states=lambda key, n: (jnp.zeros(n + 1), jnp.zeros(n + 1))),
+        "integer parameters": lambda: dataclasses.replace(task, init_params=lambda key, zero_output: [jnp.zeros(3, int)]),
+    }[case]
+    return sb, change()
+
+
+TASK_CASES = {
+    "horizon 0": "Dynamics.horizon must be a positive whole number of steps, got 0",
+    "horizon -3": "Dynamics.horizon must be a positive whole number of steps, got -3",
+    "horizon 2.5": "Dynamics.horizon must be a positive whole number of steps, got 2.5",
+    "step_derivative bogus": "Dynamics.step_derivative must be one of reverse, forward, got 'bogus'",
+    "policy_gradient bogus": "Dynamics.policy_gradient must be one of batched, per-step, got 'bogus'",
+    "step changes structure": "Dynamics.step must return a state like the one it is given",
+    "vector loss": "Dynamics.loss must return one float for a trajectory",
+    "wrong control shape": "Dynamics.step must return a state like the one it is given",  # it broadcast the control
+    "sampler size": "Task.sample_initial_states(key, 2) must return 2 states",
+    "integer parameters": "Task.init_params must return float parameters",
+}
+
+
+@pytest.mark.parametrize("case", sorted(TASK_CASES))
+def test_the_python_api_names_what_is_wrong_with_a_task_before_compiling(case):
+    from stablebptt.checks import TaskError
+    sb, task = _spoiled(case)
+    with pytest.raises(TaskError, match=TASK_CASES[case].replace("(", r"\(").replace(")", r"\)")):
+        sb.make_trainer(task, sb.TrainConfig(epochs=1, train_size=8, test_size=8))
+
+
+@pytest.mark.parametrize("field, value", [("epochs", 2.5), ("lr", "0.1"), ("batch", None), ("seeds", True),
+                                          ("clip", 1), ("x64", "yes")])
+def test_a_train_config_field_of_the_wrong_type_is_named(field, value):
+    import stablebptt as sb
+    with pytest.raises(sb.InputError, match=f"TrainConfig.{field} must be"):
+        sb.TrainConfig(**{field: value})
+
+
+def test_a_dict_for_the_train_config_and_x64_without_float64_are_named():
+    import stablebptt as sb
+    with pytest.raises(sb.InputError, match="expected a stablebptt.TrainConfig, got dict"):
+        sb.train(_pendulum(), {"epochs": 1})
+    with pytest.raises(sb.InputError, match="TrainConfig.x64 asks for float64"):
+        sb.train(_pendulum(), sb.TrainConfig(epochs=1, x64=True))

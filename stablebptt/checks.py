@@ -1,0 +1,106 @@
+"""What a user hands the library, checked once before anything compiles.
+
+``check_task`` traces a ``Task`` with shapes only (``jax.eval_shape``: nothing
+runs): the initial-state sampler's leading size, float parameters, a control
+the step accepts, a step that returns the state's own structure, a scalar
+loss, and every enumerated ``Dynamics`` field. Each failure is a ``TaskError``
+that names the field and what was found, instead of an error deep inside JAX.
+"""
+from __future__ import annotations
+
+import numbers
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from stablebptt.errors import InputError
+
+STEP_DERIVATIVES = ("reverse", "forward")
+POLICY_GRADIENTS = ("batched", "per-step")
+
+
+class TaskError(InputError):
+    """A ``Task`` or its ``Dynamics`` that cannot train: the message names the field."""
+
+
+def _whole(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _describe(tree: Any) -> str:
+    leaves = jax.tree.leaves(tree)
+    shown = ", ".join(f"{leaf.dtype}{list(leaf.shape)}" for leaf in leaves[:4])
+    return f"{jax.tree.structure(tree)} with leaves {shown}{', ...' if len(leaves) > 4 else ''}"
+
+
+def _first_line(error: Exception) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0] if text else ''}"
+
+
+def check_dynamics(dynamics: Any) -> None:
+    """The fields of a ``Dynamics`` that need no tracing: horizon, enumerations, counts."""
+    if not _whole(dynamics.horizon) or dynamics.horizon < 1:
+        raise TaskError(f"Dynamics.horizon must be a positive whole number of steps, got {dynamics.horizon!r}")
+    if dynamics.step_derivative not in STEP_DERIVATIVES:
+        raise TaskError(f"Dynamics.step_derivative must be one of {', '.join(STEP_DERIVATIVES)}, got {dynamics.step_derivative!r}")
+    if dynamics.policy_gradient not in POLICY_GRADIENTS:
+        raise TaskError(f"Dynamics.policy_gradient must be one of {', '.join(POLICY_GRADIENTS)}, got {dynamics.policy_gradient!r}")
+    if not _whole(dynamics.unroll) or dynamics.unroll < 1:
+        raise TaskError(f"Dynamics.unroll must be a positive whole number, got {dynamics.unroll!r}")
+    if dynamics.jacobian_chunk is not None and (not _whole(dynamics.jacobian_chunk) or dynamics.jacobian_chunk < 1):
+        raise TaskError(f"Dynamics.jacobian_chunk must be None or a positive whole number, got {dynamics.jacobian_chunk!r}")
+    for name in ("step", "policy", "loss"):
+        if not callable(getattr(dynamics, name)):
+            raise TaskError(f"Dynamics.{name} must be a function, got {getattr(dynamics, name)!r}")
+
+
+def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
+    """Trace ``task`` with shapes only and raise ``TaskError`` naming the first field that does not fit."""
+    from stablebptt.training import Task
+    if not isinstance(task, Task):
+        raise TaskError(f"expected a stablebptt.Task, got {type(task).__name__}")
+    dynamics = task.dynamics
+    check_dynamics(dynamics)
+    key = jax.random.PRNGKey(0)
+    try:
+        params = jax.eval_shape(lambda k: task.init_params(k, zero_output), key)
+    except Exception as error:  # noqa: BLE001 - the user's function failed: one line naming it
+        raise TaskError(f"Task.init_params(key, zero_output) fails: {_first_line(error)}") from None
+    not_float = [leaf for leaf in jax.tree.leaves(params) if not jnp.issubdtype(leaf.dtype, jnp.floating)]
+    if not jax.tree.leaves(params) or not_float:
+        raise TaskError(f"Task.init_params must return float parameters to train, got {_describe(params)}")
+    try:
+        states = jax.eval_shape(lambda k: task.sample_initial_states(k, count), key)
+    except Exception as error:  # noqa: BLE001
+        raise TaskError(f"Task.sample_initial_states(key, {count}) fails: {_first_line(error)}") from None
+    sizes = {leaf.shape[0] if leaf.ndim else None for leaf in jax.tree.leaves(states)}
+    if sizes != {count}:
+        raise TaskError(f"Task.sample_initial_states(key, {count}) must return {count} states (every leaf's leading "
+                        f"axis {count}), got {_describe(states)}")
+    state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype), states)
+    try:
+        control = jax.eval_shape(dynamics.policy, params, state)
+    except Exception as error:  # noqa: BLE001
+        raise TaskError(f"Dynamics.policy(params, state) fails on one sampled state: {_first_line(error)}") from None
+    try:
+        reached = jax.eval_shape(dynamics.step, state, control)
+    except Exception as error:  # noqa: BLE001
+        raise TaskError(f"Dynamics.step(state, control) fails on one sampled state and the policy's control "
+                        f"({_describe(control)}): {_first_line(error)}") from None
+    same = (jax.tree.structure(reached) == jax.tree.structure(state)
+            and all(a.shape == b.shape and a.dtype == b.dtype
+                    for a, b in zip(jax.tree.leaves(reached), jax.tree.leaves(state))))
+    if not same:
+        raise TaskError(f"Dynamics.step must return a state like the one it is given ({_describe(state)}), "
+                        f"got {_describe(reached)}")
+    over_time = lambda tree: jax.tree.map(  # noqa: E731
+        lambda leaf: jax.ShapeDtypeStruct((dynamics.horizon,) + leaf.shape, leaf.dtype), tree)
+    try:
+        loss = jax.eval_shape(dynamics.loss, over_time(state), over_time(control))
+    except Exception as error:  # noqa: BLE001
+        raise TaskError(f"Dynamics.loss(states, controls) fails on a rollout of {dynamics.horizon} steps: "
+                        f"{_first_line(error)}") from None
+    if not (hasattr(loss, "shape") and loss.shape == () and jnp.issubdtype(loss.dtype, jnp.floating)):
+        raise TaskError(f"Dynamics.loss must return one float for a trajectory, got {_describe(loss)}")
