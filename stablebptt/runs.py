@@ -230,11 +230,17 @@ def open_run(path: Path) -> dict:
 
 
 def copy_model(run_dir: Path, model_file: str | Path) -> None:
-    """Keep the model file in the run folder, as given (``model.xml``) and compiled (``model.mjb``)."""
+    """Keep the model file in the run folder, as given (``model.xml``) and compiled (``model.mjb``).
+
+    A model given compiled (``.mjb``, such as another run's copy) is kept as ``model.mjb`` alone.
+    """
     import mujoco
 
     from stablebptt import mujoco_log
     model_file = Path(model_file)
+    if model_file.suffix == ".mjb":
+        atomic_write(run_dir / MODEL_BINARY_FILE, model_file.read_bytes())
+        return
     atomic_write(run_dir / MODEL_COPY_FILE, model_file.read_bytes())
     with mujoco_log.collected():  # the task reported them when it loaded the file
         model = mujoco.MjModel.from_xml_path(str(model_file))

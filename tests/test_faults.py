@@ -363,6 +363,14 @@ def test_a_run_remembers_its_model_resumes_and_renders_after_the_file_moved(tmp_
     assert render.returncode == 0, render.stderr
     assert list(run_dir.glob("*.png"))
 
+    # The run's compiled copy (.mjb) is a model file like any other: it trains, and is kept as it is.
+    again = tmp_path / "from-mjb"
+    code, err, _ = train(capsys, "--model", str(run_dir / runs.MODEL_BINARY_FILE), "--epochs", "1", "--out", str(again),
+                         *options)
+    assert code == 0, err
+    assert (again / runs.MODEL_BINARY_FILE).read_bytes() == (run_dir / runs.MODEL_BINARY_FILE).read_bytes()
+    assert not (again / runs.MODEL_COPY_FILE).exists()
+
 
 def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
     config = TrainConfig(epochs=2, train_size=16, test_size=16, seeds=1)
