@@ -276,6 +276,44 @@ def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None
         runs.save_params(directory / runs.PARAMS_FILE, jax.tree.map(lambda leaf: np.asarray(leaf)[indices], params))
 
 
+# What a cell's config.json says of the grid that filled it; a grid may rewrite only its own cells.
+CELL_IDENTITY = ("mode", "clip", "epochs", "seed", "seeds", "train_size", "test_size")
+
+
+def _cell_identities(program: Program, grid: Grid, root: Path) -> dict[Path, dict]:
+    """Each cell folder this program writes -> what its config.json will say of the grid."""
+    groups: dict[tuple, list[int]] = {}
+    for value, mode, clip, seed in program.cells:
+        groups.setdefault((value, mode, clip), []).append(seed)
+    return {root / cell_name(grid.task_name, grid.option, value, mode, clip): {
+        "task": grid.task_name, "task_config": dataclasses.asdict(grid.task_config(value)), "sweep": grid.name,
+        "train": {"mode": mode, "clip": clip, "epochs": grid.epochs, "seed": seeds[0], "seeds": len(seeds),
+                  "train_size": grid.train_size, "test_size": grid.test_size}}
+        for (value, mode, clip), seeds in groups.items()}
+
+
+def check_cells_are_this_grids(programs: list[Program], grid: Grid, root: Path) -> None:
+    """Refuse, before anything trains, to write over cells that another grid filled (other epochs,
+    seeds or task options): their results would be lost."""
+    foreign = []
+    for program in programs:
+        if (program.directory / "cells.json").exists():
+            continue  # this grid's own checkpoint (check_resumable matched it): it resumes, or trains further
+        for directory, mine in _cell_identities(program, grid, root).items():
+            if not (directory / runs.CONFIG_FILE).exists():
+                continue
+            theirs = runs.read_json(directory / runs.CONFIG_FILE)
+            found = {"task": theirs.get("task"), "task_config": theirs.get("task_config"), "sweep": theirs.get("sweep"),
+                     "train": {name: theirs.get("train", {}).get(name) for name in CELL_IDENTITY}}
+            if found != mine:
+                differs = [name for name in CELL_IDENTITY if found["train"][name] != mine["train"][name]]
+                differs += [name for name in ("task", "task_config", "sweep") if found[name] != mine[name]]
+                foreign.append(f"{directory.name} ({', '.join(differs)})")
+    if foreign:
+        raise InputError(f"{root} holds {len(foreign)} cell(s) another grid filled, which this one would overwrite: "
+                         f"{'; '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}: choose another --out")
+
+
 def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: False,
              log: Callable[[str], None] = print) -> list[dict]:
     """Train this process's share of the grid into ``root``, resuming from checkpoints; runs in any thread.
@@ -291,6 +329,7 @@ def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: F
     programs = plan(grid, root)
     for program in programs:
         check_resumable(program, grid)
+    check_cells_are_this_grids(programs, grid, root)
     placement = place(programs, jax.devices(), jax.process_index())
     failed = threading.Event()
     stop = lambda: failed.is_set() or should_stop()

@@ -250,3 +250,15 @@ def test_paired_bootstrap_intervals_decide_only_what_the_seeds_support(tmp_path)
     (tmp_path / "test_loss.csv").write_text("\n".join(lines) + "\n")
     row = claim_intervals(tmp_path / "test_loss.csv", "rc")[2]
     assert row.startswith("| 0.1 | none | 5 | -0.5 [-0.5, -0.5] | C better |") and row.endswith("| not resolved |"), row
+
+
+def test_a_sweep_never_writes_over_cells_another_grid_filled(tiny, tmp_path):
+    """Rerunning part of a grid (other values, so other programs) with other --epochs is refused, cells untouched."""
+    import shutil
+    shutil.copytree(tiny, tmp_path / "tiny", ignore=shutil.ignore_patterns("_programs"))
+    before = {cell: (tmp_path / "tiny" / cell / runs.METRICS_FILE).read_bytes() for cell in CELLS}
+    refused = sweep(*TINY, "--epochs", "1", "--out", str(tmp_path))
+    lines = [line for line in refused.stderr.splitlines() if line.strip()]
+    assert refused.returncode == 2 and len(lines) == 1 and "another grid filled" in lines[0], refused.stderr
+    assert "(epochs)" in lines[0]
+    assert before == {cell: (tmp_path / "tiny" / cell / runs.METRICS_FILE).read_bytes() for cell in CELLS}
