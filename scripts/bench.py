@@ -43,8 +43,8 @@ class BenchConfig:
 def main(argv: list[str]) -> int:
     config = parse_config(BenchConfig, argv, __doc__, "benchmark")
     from stablebptt import tasks
-    names = [t for t in config.tasks.split(",") if t]
-    unknown = [t for t in names if t not in tasks.entries()]
+    names = [t for t in config.tasks.split(",") if t]  # "cartpole": the MJCF task's cart-poles (--poles)
+    unknown = [t for t in names if tasks.canonical(t) not in tasks.entries()]
     if unknown:
         fail(f"unknown task {unknown[0]!r}: choose from {', '.join(sorted(tasks.entries()))}")
     try:
@@ -68,7 +68,7 @@ def main(argv: list[str]) -> int:
     from stablebptt.apps.bench import mode_table, pipeline_table
     for name in names:
         module = tasks.load(name)
-        if name == "cartpole":
+        if tasks.canonical(name) == tasks.MJCF_TASK:
             section = []
             for count in poles:
                 if "modes" in tables:

@@ -294,7 +294,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                   "or a reward of your own")
         if diagnosis.kind == "zero":
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
-                           f"(a step function, such as a tolerance with margin 0): BPTT has nothing to follow; {advice}")
+                           f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")
         if diagnosis.kind == "nan":
             raise EnvError(f"{label}: the reward's gradient is NaN at {diagnosis.nan_at_random:.0%} of sampled states "
                            f"with random actions{' even after repairing ' + reward_repairs if reward_repairs else ''}: "

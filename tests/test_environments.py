@@ -63,7 +63,17 @@ def run_script(*args, env=None):
                           env={**os.environ, **(env or {})})
 
 
-def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_in_one_line(tmp_path):
+def train_in_process(capsys, *argv):
+    """scripts/train.py's main in this process: (exit code, stderr lines)."""
+    from stablebptt.commands import train as train_command
+    try:
+        code = train_command.main(list(argv))
+    except SystemExit as exit_:
+        code = exit_.code
+    return code, [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+
+
+def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_in_one_line(tmp_path, capsys):
     on_path = {"PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     done = run_script("scripts/train.py", "--env", "envs_for_tests:make_cart", "--steps", "6", "--epochs", "2",
                       "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
@@ -76,9 +86,9 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
                            (["--env", "no_such_module:env"], "cannot import no_such_module"),
                            (["--env", "envs_for_tests:nothing"], "has no attribute 'nothing'"),
                            (["--env", "envs_for_tests:make_cart", "--discount", "0"], "--discount must be in (0, 1]")):
-        refused = run_script("scripts/train.py", *args, "--epochs", "1", "--out", str(tmp_path / "refused"), env=on_path)
-        assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
-        assert expected in refused.stderr and not (tmp_path / "refused").exists()
+        code, err = train_in_process(capsys, *args, "--epochs", "1", "--out", str(tmp_path / "refused"))
+        assert code == 2 and len(err) == 1 and expected in err[0], err
+        assert not (tmp_path / "refused").exists()
 
 
 # A hinge pressed past its limit and a ball in sliding contact with the floor; the model's own
@@ -145,7 +155,7 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
 
 
 @needs_playground
-def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_path):
+def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_path, capsys):
     run = tmp_path / "cartpole"
     done = run_script("scripts/train.py", "--env", "CartpoleSwingup", "--steps", "8", "--episode-length", "8",
                       "--epochs", "1", "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
@@ -155,6 +165,6 @@ def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_p
     rendered = run_script("scripts/render.py", str(run), "--rollouts", "1", "--no-video")
     assert rendered.returncode == 0, rendered.stderr
     assert (run / "rollout-strip.png").stat().st_size > 1000
-    refused = run_script("scripts/train.py", "--env", "cartpoleswingup", "--out", str(tmp_path / "no"))
-    assert refused.returncode == 2 and "did you mean CartpoleSwingup?" in refused.stderr
-    assert refused.stderr.count("\n") == 1 and not (tmp_path / "no").exists()
+    code, err = train_in_process(capsys, "--env", "cartpoleswingup", "--out", str(tmp_path / "no"))
+    assert code == 2 and len(err) == 1 and "did you mean CartpoleSwingup?" in err[0], err
+    assert not (tmp_path / "no").exists()

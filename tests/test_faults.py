@@ -93,7 +93,7 @@ def test_resume_without_a_checkpoint_refuses_to_train_over_the_results_it_holds(
 def test_timeout_signalling_the_run_and_then_its_group_still_saves_and_stops_once(tmp_path):
     """GNU timeout sends SIGTERM to the command and then to its process group: one request to stop."""
     run_dir = tmp_path / "timed"
-    done = subprocess.run(["timeout", "20"] + TRAIN + SMALL + ["--epochs", "100000", "--out", str(run_dir)],
+    done = subprocess.run(["timeout", "25"] + TRAIN + SMALL + ["--epochs", "100000", "--out", str(run_dir)],
                           cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, timeout=300)
     assert done.returncode == 124, done.stderr  # timeout's own code: the command ended after its signal
     assert done.stderr.count("SIGTERM: stopping after this epoch") == 1 and "interrupted after epoch" in done.stderr
