@@ -301,9 +301,9 @@ def _command(argv: list[str]) -> str:
     return shlex.join(prefix + [python, script] + argv)
 
 
-def _process_group_rss_mb(group: int) -> float:
-    """Resident memory of every process in process group ``group`` (Linux /proc)."""
-    total = 0
+def _process_group_usage(group: int) -> tuple[float, float]:
+    """Resident memory (MB) and CPU seconds of every process in process group ``group`` (Linux /proc)."""
+    rss, ticks = 0, 0
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
@@ -311,12 +311,13 @@ def _process_group_rss_mb(group: int) -> float:
             fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
             if int(fields[2]) != group:  # pgrp, the 5th field of stat
                 continue
+            ticks += int(fields[11]) + int(fields[12])  # utime, stime
             for line in (entry / "status").read_text().splitlines():
                 if line.startswith("VmRSS:"):
-                    total += int(line.split()[1])
+                    rss += int(line.split()[1])
         except (OSError, IndexError, ValueError):
             continue
-    return total / 1024
+    return rss / 1024, ticks / os.sysconf("SC_CLK_TCK")
 
 
 def _stop_group(process: subprocess.Popen) -> None:
@@ -342,12 +343,13 @@ def survey_one(name: str, args, log_dir: Path) -> dict:
     command += [f"--{key.replace('_', '-')}={value}" for key, value in _settings(args).items()]
     library = _library_version()
     started = time.perf_counter()
-    stop, peak_mb = None, 0.0
+    stop, peak_mb, cpu_s = None, 0.0, 0.0
     with open(log, "w") as stream:
         process = subprocess.Popen(command, stdout=stream, stderr=subprocess.STDOUT, cwd=ROOT, start_new_session=True)
         while process.poll() is None:
             elapsed = time.perf_counter() - started
-            peak_mb = max(peak_mb, _process_group_rss_mb(process.pid))
+            rss_mb, seconds = _process_group_usage(process.pid)
+            peak_mb, cpu_s = max(peak_mb, rss_mb), max(cpu_s, seconds)
             if elapsed > args.timeout:
                 stop = ("timeout", f"timeout after {elapsed:.0f} s")
             elif peak_mb > args.max_rss_gb * 1024:
@@ -362,6 +364,7 @@ def survey_one(name: str, args, log_dir: Path) -> dict:
     except (OSError, ValueError):
         record = {"env": name, "phase": "starting", "times": {}}
     record.update(wall_s=wall, returncode=process.returncode, parent_peak_rss_mb=peak_mb, library=library,
+                  parent_cpu_s=cpu_s,
                   finished=datetime.now(timezone.utc).isoformat(timespec="seconds"))
     if stop:
         trained = max(0, len(record.get("epochs", [])) - 1)
@@ -542,10 +545,17 @@ def render(payload: dict, names: list[str]) -> str:
         peak = max(record.get("peak_rss_mb", 0.0), record.get("parent_peak_rss_mb", 0.0)) / 1024
         lines.append(f"| {name} | " + " | ".join(_number(times.get(k)) for k in (
             "import_s", "load_s", "task_s", "setup_s", "compile_s", "eval_compile_s", "first_epoch_s"))
-            + f" | {_number(record.get('wall_s'))} | {_number(record.get('cpu_s'))} | {peak:.1f} | "
+            + f" | {_number(record.get('wall_s'))} | {_number(_cpu(record))} | {peak:.1f} | "
             f"{record.get('epoch_program', '-')} | {record.get('phase', '-')} |")
     lines.append("")
     return "\n".join(lines)
+
+
+def _cpu(record: dict) -> float | None:
+    """The worker's CPU seconds: its own count at its end, else what the survey saw of it (before it was stopped)."""
+    if record.get("phase") == "done" or record.get("outcome") == "error":
+        return max(record.get("cpu_s", 0.0), record.get("parent_cpu_s", 0.0))
+    return record.get("parent_cpu_s")  # a stopped worker's own count is that of its last phase's start
 
 
 def _library_line(records: dict, order: list[str]) -> str:
@@ -576,6 +586,11 @@ def survey(args, argv: list[str]) -> int:
         names = list(dm_control_suite.ALL_ENVS)
     settings = _settings(args)
     invocation = {"command": _command(argv), "started": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    if args.render_only:
+        payload = json.loads(json_path.read_text())
+        _write_atomic(md_path, render(payload, names))
+        print(f"wrote {md_path}")
+        return 0
     if json_path.exists():
         payload = json.loads(json_path.read_text())
         if payload["settings"] != settings:
@@ -629,6 +644,7 @@ def main(argv: list[str]) -> int:
                         help="path of the results without suffix: OUT.json and OUT.md")
     parser.add_argument("--log-dir", default=os.path.join(tempfile.gettempdir(), "env_survey_logs"),
                         help="each worker's output and last record")
+    parser.add_argument("--render-only", action="store_true", help="only render OUT.md from OUT.json")
     parser.add_argument("--worker", default="", help=argparse.SUPPRESS)
     parser.add_argument("--worker-out", default="", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
