@@ -369,3 +369,11 @@ def summarize(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float
     last = rows[rows[:, 0] == rows[:, 0].max()]
     values = last[:, COLUMNS.index(column)]
     return float(values.mean()), float(values.std()) if len(values) > 1 else 0.0
+
+
+def __getattr__(name: str):
+    # The epoch loop lived here before stablebptt.fitting: code that reaches it through runs keeps working.
+    if name in ("fit", "train_epochs", "train", "Trained", "TrainingDiverged", "Outcome", "epoch_rows"):
+        from stablebptt import fitting
+        return getattr(fitting, name)
+    raise AttributeError(f"module 'stablebptt.runs' has no attribute {name!r}")
