@@ -197,11 +197,6 @@ def rollout_loss(discount: float) -> Callable:
     return loss
 
 
-@contextlib.contextmanager
-def _no_context():
-    yield
-
-
 def load_env(spec: str) -> Any:
     """The environment ``spec`` names: ``package.module:attribute`` (an environment, or a class or
     factory called without arguments), else a name in MuJoCo Playground's registry."""
@@ -261,7 +256,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if episode_length is None:
         episode_length = int(getattr(getattr(env, "_config", None), "episode_length", 1000))
     if reward_context is None:
-        reward_context, reward_repairs = _no_context, reward_repairs
+        reward_context = contextlib.nullcontext
         if _is_playground(env):
             from stablebptt import playground
             reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
