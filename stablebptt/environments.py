@@ -17,7 +17,7 @@ PRNG key, a step counter), plus ``env.observation_size`` and
   differentiated implicitly (``constraint_derivatives``), so solvers of any
   iteration count pass reverse mode.
 
-Before training, ``diagnose_reward`` looks at the reward's gradient at sampled
+Before training, ``diagnose_env`` looks at the reward's gradient at sampled
 states: a reward whose gradient is zero everywhere (a step function) is
 refused, a NaN derivative of a known form is repaired, and a NaN at exactly
 zero action is avoided by starting the policy's output layer small instead of
@@ -101,14 +101,10 @@ class RewardDiagnosis(NamedTuple):
                 "zero": "reward gradient: zero at every sampled state"}[self.kind]
 
 
-def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> RewardDiagnosis:
-    """The gradient of one step's reward with respect to the state's floats and the action.
-
-    Args:
-      step: the environment's step.
-      states: a batch of states (leading axis), e.g. resets and states a few random steps on.
-      actions: random actions, one per state; zero actions are tried too.
-    """
+def _gradient_checks(step: Callable) -> Callable:
+    """``checks(states, actions)``: per state, whether the reward's gradient is finite and its largest
+    finite entry, at zero action and at ``actions``: one vmapped gradient over both halves, so a
+    program holds one copy of the step's derivative."""
     def gradient(state, action):
         parts = split(state)
         grads = jax.grad(lambda floats, a: step(join(parts, floats), a).reward, argnums=(0, 1))(parts.floats, action)
@@ -118,12 +114,19 @@ def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> Rewar
                                   for leaf in leaves]))
         return finite, size
 
-    both = jax.jit(jax.vmap(gradient))
-    finite_zero, size_zero = both(states, jnp.zeros_like(actions))
-    finite_random, size_random = both(states, actions)
-    nan_at_zero = float(1 - np.mean(np.asarray(finite_zero)))
-    nan_at_random = float(1 - np.mean(np.asarray(finite_random)))
-    zero = not (np.any(np.asarray(size_zero) > 0) or np.any(np.asarray(size_random) > 0))
+    def checks(states, actions):
+        twice = jax.tree.map(lambda a: jnp.concatenate([a, a]), states)
+        finite, size = jax.vmap(gradient)(twice, jnp.concatenate([jnp.zeros_like(actions), actions]))
+        count = actions.shape[0]
+        return finite[:count], size[:count], finite[count:], size[count:]
+
+    return checks
+
+
+def _classify(finite_zero, size_zero, finite_random, size_random) -> RewardDiagnosis:
+    nan_at_zero = float(1 - np.mean(finite_zero))
+    nan_at_random = float(1 - np.mean(finite_random))
+    zero = not (np.any(size_zero > 0) or np.any(size_random > 0))
     if nan_at_random > 0:
         kind = "nan"
     elif nan_at_zero > 0:
@@ -135,8 +138,27 @@ def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> Rewar
     return RewardDiagnosis(kind, nan_at_zero, nan_at_random, zero)
 
 
+def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> RewardDiagnosis:
+    """The gradient of one step's reward with respect to the state's floats and the action.
+
+    Args:
+      step: the environment's step.
+      states: a batch of states (leading axis), e.g. resets and states a few random steps on.
+      actions: random actions, one per state; zero actions are tried too.
+    """
+    return _classify(*jax.device_get(jax.jit(_gradient_checks(step))(states, actions)))
+
+
+def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
+    """``diagnose_reward`` at states sampled from ``env`` (resets and a few random steps on), the
+    sampling and the gradients compiled as ONE program: no operation runs eagerly, which on a GPU
+    would compile each one apart."""
+    checks = _gradient_checks(step)
+    return _classify(*jax.device_get(jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)))(key)))
+
+
 def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
-    """Resets and the states a few random actions lead to, with a random action for each."""
+    """Resets and the states a few random actions lead to, with a random action for each (traceable)."""
     reset_key, action_key = jax.random.split(key)
 
     def visit(key):
@@ -150,7 +172,7 @@ def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyT
         last, visited = jax.lax.scan(advance, state, keys[:-1])
         return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), visited, last)
 
-    states = jax.jit(jax.vmap(visit))(jax.random.split(reset_key, DIAGNOSIS_STATES))
+    states = jax.vmap(visit)(jax.random.split(reset_key, DIAGNOSIS_STATES))
     states = jax.tree.map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), states)
     count = jax.tree.leaves(states)[0].shape[0]
     actions = jax.random.uniform(action_key, (count, env.action_size), minval=-1.0, maxval=1.0)
@@ -268,6 +290,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         raise EnvError(f"discount must be in (0, 1], got {discount}")
     label = name or type(env).__name__
 
+    @jax.jit  # traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python
     def step(state, action):
         with differentiable_mjx(implicit_solver=True), reward_context():
             return env.step(state, action)
@@ -284,7 +307,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     diagnosis = None
     start_off_zero = False
     if diagnose:
-        diagnosis = diagnose_reward(step, *_sample_for_diagnosis(env, step, jax.random.PRNGKey(diagnosis_seed)))
+        diagnosis = diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed))
         advice = ("give a dense reward (a variant without 'Sparse'; a tolerance with a margin > 0) "
                   "or a reward of your own")
         if diagnosis.kind == "zero":

@@ -232,7 +232,9 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     train_key, test_key = jax.random.split(jax.random.PRNGKey(config.data_seed))
     train_states = task.sample_initial_states(train_key, config.train_size)
     test_states = task.sample_initial_states(test_key, config.test_size)
-    example_state = jax.tree.map(lambda a: a[0], train_states)
+    # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
+    # which on a GPU compiles one program per leaf shape.
+    example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
     plan = memory_plan(task, config, example_state)
     large = large_step(task, config, example_state)
     jit = functools.partial(jax.jit, compiler_options=compiler_options(large))
@@ -241,7 +243,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     for_this_run = lambda dynamics: dataclasses.replace(dynamics, unroll=config.unroll, jacobian_chunk=plan.jacobian_chunk,
                                                        rematerialize=plan.rematerialize, jacobian_per_input=not large)
     # Fixed order, no shuffling: minibatch i is always the same states.
-    batches = jax.tree.map(lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), train_states)
+    batches = jax.jit(lambda states: jax.tree.map(  # one program, not one eager reshape per leaf
+        lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), states))(train_states)
 
     def init(seed):
         params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)

@@ -18,7 +18,6 @@ e.g. iter1+saferew. Every variant is scored on the shipped env.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import os

@@ -16,6 +16,7 @@ import json
 import math
 import os
 import statistics
+import sys
 
 import numpy as np
 
@@ -245,6 +246,8 @@ def main(argv=None):
     p.add_argument("--out", default="results/envs")
     p.add_argument("--name", default="apg_vs_stablebptt", help="stem of the files written into --out")
     p.add_argument("--notes", default=None, help="a markdown file appended as the section 'Not in the table'")
+    p.add_argument("--apg-seeds", choices=("sequential", "concurrent"), default="sequential",
+                   help="how the calls ran APG's seeds: one after another, or all at once on the one GPU")
     a = p.parse_args(argv)
     runs, throughput = load(a.raw)
     rows = rows_of(runs)
@@ -279,9 +282,8 @@ def main(argv=None):
     lines = [
         "# Brax APG against stablebptt's flows R and C on MuJoCo Playground (one H100, same wall-clock budget)",
         "",
-        "Written by `python experiments/envs_vs_apg/report.py --raw results/envs/raw --out results/envs "
-        "--notes results/envs/apg_vs_stablebptt_notes.md` from the "
-        "records in `results/envs/raw/<call>/` (one folder per device call; `CALL.json` there holds the call's command).",
+        f"Written by `python experiments/envs_vs_apg/report.py {' '.join(argv if argv is not None else sys.argv[1:])}` from the "
+        f"records in `{a.raw}/<call>/` (one folder per device call; `CALL.json` there holds the call's command).",
         "",
         "Protocol. Every policy is scored by `experiments/envs_vs_apg/evaluation.py`: the env as shipped "
         "(`registry.load(name, config_overrides={\"impl\": \"jax\"})`), 64 fixed resets (seed 1234), 1000 steps, "
@@ -289,11 +291,14 @@ def main(argv=None):
         "The training clock starts before the method's own set-up (APG: `apg.train`, its env wrapping and jits; "
         "stablebptt: `env_task` with its reward diagnosis, `make_trainer`, `init`, the update's compile) and "
         "counts compile. Brax APG: `apg.train`'s own defaults (horizon 32, 1 env, lr 1e-4, Adam b=(0.7, 0.95), "
-        "lr decay 0.997, value clip 1.0, policy 4x32 MLP), seeds one after another, each in its own `apg.train`; "
+        "lr decay 0.997, value clip 1.0, policy 4x32 MLP), " + (
+            "seeds one after another, each in its own `apg.train`; " if a.apg_seeds == "sequential" else
+            "the three seeds of an env at the same time, each in its own process and `apg.train` on the one GPU "
+            "(as stablebptt's three seeds share it in one program); ") + (
         "scored at the end of an epoch of 20 updates once 30 s of training time passed. stablebptt: horizon "
         "100, batch 64 of 512 fixed `env.reset` states, Adam lr 1e-3, clip by global norm 1.0, tanh(MLP 64-64) "
         "policy starting at zero output, seeds 0-2 vmapped in ONE compiled update program per flow, no "
-        "persistent compilation cache.",
+        "persistent compilation cache."),
         "",
         "Columns. *at budget*: the return of the policy as it stood when the budget ran out (the last "
         f"evaluation at a training time <= budget + {BUDGET_SLACK_S:g} s; where the compile outlasted the budget, "
