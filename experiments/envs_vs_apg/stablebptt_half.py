@@ -69,6 +69,7 @@ def build(env, a, mode, seeds, horizon, batch):
     task = env_task(env, horizon, discount=a.discount, episode_length=a.trainer_episode_length,
                     hidden=tuple(a.hidden), name=env.__class__.__name__)
     PHASES["env_task_s"] = time.perf_counter() - b0
+    print(f"  env_task {PHASES['env_task_s']:.1f}s", flush=True)  # a run cut during its set-up still says how far it got
     config = TrainConfig(mode=mode, clip=a.clip, clip_threshold=a.clip_threshold, lr=a.lr, batch=batch,
                          # test_size = train_size: one compile of the batched reset serves both samples.
                          train_size=batch * a.train_batches, test_size=batch * a.train_batches, seeds=seeds, seed=a.seed0,
@@ -77,6 +78,7 @@ def build(env, a, mode, seeds, horizon, batch):
     b0 = time.perf_counter()
     trainer = make_trainer(task, config)
     PHASES["make_trainer_s"] = time.perf_counter() - b0
+    print(f"  make_trainer {PHASES['make_trainer_s']:.1f}s", flush=True)
     assert isinstance(trainer.epoch, PerUpdateEpoch)
     return task, config, trainer, trainer.epoch.update
 
