@@ -40,6 +40,12 @@ def _cmd(argv):
     return "python " + " ".join(argv) if argv else "?"
 
 
+def _apg_label(record):
+    """How the call ran APG's seeds on the GPU (CALL.json's "apg_seeds"), where it says."""
+    how = record["call"].get("apg_seeds")
+    return f", {how}" if how else ""
+
+
 def load(raw):
     runs, throughput = [], []
     for call_dir in sorted(glob.glob(os.path.join(raw, "*"))):
@@ -86,7 +92,7 @@ def rows_of(runs):
         if r.get("throughput_run"):
             continue
         if r.get("algo") == "brax_apg":
-            key = (r["env"], f"Brax APG ({r['variant']})")
+            key = (r["env"], f"Brax APG ({r['variant']}{_apg_label(r)})")
         else:
             key = (r["env"], f"stablebptt {r['mode']}")
         groups.setdefault(key, []).append(r)
@@ -202,7 +208,8 @@ def figure(env, runs, path):
     for r in runs:
         if r["env"] != env or not r.get("points"):
             continue
-        label = f"Brax APG (trained on: {r['variant']})" if r.get("algo") == "brax_apg" else f"stablebptt {r['mode']}"
+        label = (f"Brax APG (trained on: {r['variant']}{_apg_label(r)})" if r.get("algo") == "brax_apg"
+                 else f"stablebptt {r['mode']}")
         if r.get("status") == "error":
             label += f", {r.get('error_type', 'error')} at its first update"
         groups.setdefault(label, []).append(r)
@@ -348,7 +355,7 @@ def main(argv=None):
         if r["update_ms"] is None:
             continue
         rec = next(x for x in runs if x["env"] == r["env"] and (
-            (x.get("algo") == "brax_apg" and r["method"] == f"Brax APG ({x['variant']})")
+            (x.get("algo") == "brax_apg" and r["method"] == f"Brax APG ({x['variant']}{_apg_label(x)})")
             or (x.get("mode") and r["method"] == f"stablebptt {x['mode']}")))
         if rec.get("algo") == "brax_apg":
             hp = rec["hyperparams"]
