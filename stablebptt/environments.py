@@ -265,7 +265,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       reward_context: a context manager entered whenever the step is traced (a
         repair of the reward's derivative; ``reward_repairs`` names it for the summary).
         None: for MuJoCo Playground's environments ``playground.repaired_rewards``, else none.
-      diagnose: look at the reward's gradient before training (``diagnose_reward``);
+      diagnose: look at the reward's gradient before training (``diagnose_env``);
         a reward with no usable gradient raises ``EnvError``.
 
     Example::
