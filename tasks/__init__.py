@@ -77,7 +77,7 @@ class Entry:
 
 _BUILTIN = (
     Entry("mjcf", "stablebptt.tasks.mjcf", label=lambda c: c.model_path.name,
-          draw="stablebptt.rendering:draw_mujoco_rollouts", picture="strip", mujoco_frames=True,
+          draw="stablebptt.drawing:draw_mujoco_rollouts", picture="strip", mujoco_frames=True,
           presets={"cartpole": ("poles", (1, 2, 3, 4))}, gpu_unroll=5),
     Entry("repulsion", "stablebptt.tasks.repulsion", label=lambda c: f"repulsion, rc={c.rc:g}",
           draw="stablebptt.apps.figures:draw_repulsion", picture="paths",
@@ -88,7 +88,7 @@ _BUILTIN = (
           draw="stablebptt.apps.figures:draw_quantum", picture="density",
           presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8),
     Entry("env", "stablebptt.tasks.env", label=lambda c: c.env or "an environment",
-          draw="stablebptt.rendering:draw_env_rollouts", picture="strip", mujoco_frames=True),
+          draw="stablebptt.drawing:draw_env_rollouts", picture="strip", mujoco_frames=True),
 )
 _REGISTRY: dict[str, Entry] = {}
 _discovered = False

@@ -3,7 +3,7 @@
 Every function takes NumPy rollouts with the initial state first (``[N, T+1, ...]``
 for N rollouts of T steps) and draws on matplotlib's Agg canvas: no pyplot, no
 display. ``*_paths`` / ``*_density`` write a PNG; ``*_frames`` return the frames of
-an animation, uint8 [T+1, H, W, 3], for ``stablebptt.rendering.write_video``.
+an animation, uint8 [T+1, H, W, 3], for ``stablebptt.media.write_video``.
 
     repulsion_paths(positions, "paths.png", physics=repulsion.Physics())
     frames = quantum_frames(states, controls, dt=0.0625, target=3)
@@ -22,7 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from stablebptt.plots import render
-from stablebptt.rendering import figure_pixels
+from stablebptt.media import figure_pixels, write_video
 from stablebptt.tasks import quantum, repulsion
 
 # Okabe-Ito colours (readable with colour blindness), as the learning curves use.
@@ -323,7 +323,6 @@ def quantum_frames(states: np.ndarray, controls: np.ndarray, dt: float, target: 
 
 def draw_repulsion(task_config, states, controls, titles, label, settings, video: Path | None, picture: Path) -> list[Path]:
     """The registry's drawer for repulsion: an animation of the agents and their paths."""
-    from stablebptt.rendering import write_video
     written = []
     if video is not None:
         frames = repulsion_frames(states.position, repulsion.Physics().duration, (settings.width, settings.height), titles)
@@ -334,7 +333,6 @@ def draw_repulsion(task_config, states, controls, titles, label, settings, video
 
 def draw_quantum(task_config, states, controls, titles, label, settings, video: Path | None, picture: Path) -> list[Path]:
     """The registry's drawer for quantum control: the density's animation and its picture over time."""
-    from stablebptt.rendering import write_video
     written = []
     if video is not None:
         frames = quantum_frames(states, controls, task_config.dt, task_config.target, (settings.width, settings.height), titles)
