@@ -3,7 +3,9 @@
 - ``trained``: reopen a run folder or sweep cell, rebuild its task, roll out its policy.
 - ``figures``: the pictures of the tasks without a MuJoCo scene (repulsion's paths, quantum's densities).
 - ``bench``: the benchmark's measurements (``scripts/bench.py``).
-- ``accuracy``: the accuracy studies (``scripts/accuracy.py``; ``stablebptt.accuracy_report`` writes their report).
+- ``accuracy``: the accuracy studies' options (``scripts/accuracy.py``; ``stablebptt.accuracy_report`` writes their
+  report); each study in its own module (``trajectory_study``, ``gradient_study``, ``training_study``,
+  ``contact_study``), what they share in ``measuring``.
 
 The library below (flows, training, runs, scene, simulator, ...) never imports these or ``stablebptt.tasks``.
 """
