@@ -123,6 +123,7 @@ def main(argv: list[str]) -> int:
         fail(str(error))
 
     from stablebptt.apps.trained import first_nonfinite_step, rollouts_from_test_states
+    from stablebptt.drawing import DrawRequest, DrawSettings
     states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
     for index, step in enumerate(first_nonfinite_step(states)):
         if step >= 0:  # a diverged rollout has nothing to draw
@@ -134,7 +135,9 @@ def main(argv: list[str]) -> int:
     video = video if config.video else None
     picture.parent.mkdir(parents=True, exist_ok=True)  # renders/ for --model
     try:
-        written = entry.drawer()(task_config, states, controls, titles, label, config, video, picture)
+        settings = DrawSettings(width=config.width, height=config.height, fps=config.fps,
+                                strip_states=config.strip_states)
+        written = entry.drawer()(DrawRequest(task_config, states, controls, titles, label, settings, video, picture))
     except InputError as error:
         fail(str(error))
     except OSError as error:  # a full disk, a directory without write permission

@@ -22,6 +22,7 @@ package's pyproject.toml (the value is a module defining ``ENTRY``)::
 from __future__ import annotations
 
 import importlib
+import inspect
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from types import ModuleType
@@ -48,9 +49,13 @@ class Entry:
       name: the ``--task`` value.
       module: import path of the module with ``Config``, ``make`` and ``DEFAULT_EPOCHS``.
       label: a configuration in a few words, for titles (``label(config) -> str``).
-      draw: ``"module:function"`` (or the function) drawing rollouts:
-        ``draw(task_config, states, controls, titles, label, settings, video, picture) -> [written paths]``,
-        with ``settings`` render.py's options (width, height, fps, strip_states). Empty: not drawable.
+      draw: ``"module:function"`` (or the function) drawing rollouts, ``draw(request) -> [written paths]``
+        with ``request`` a ``stablebptt.drawing.DrawRequest``: the task config, the rollouts' states
+        [N, T+1, ...] and controls [N, T, ...] (NumPy), a title per rollout, a label, the
+        ``DrawSettings`` (panel width and height, fps, strip_states), and the video (None: none)
+        and picture to write. Empty: not drawable. A function of the earlier eight positional
+        arguments (``task_config, states, controls, titles, label, settings, video, picture``)
+        is still called that way.
       picture: suffix of the picture file ``draw`` writes (``rollout-<picture>.png``).
       mujoco_frames: ``draw`` renders with MuJoCo's OpenGL (a backend is chosen before MuJoCo loads).
       presets: sweep grids: preset name -> (the option that sets the complexity, its values).
@@ -72,7 +77,22 @@ class Entry:
         return importlib.import_module(self.module)
 
     def drawer(self) -> Callable:
-        return _import(self.draw) if isinstance(self.draw, str) else self.draw
+        """``draw(request) -> [written paths]``; a drawer of the earlier eight arguments is adapted."""
+        draw = _import(self.draw) if isinstance(self.draw, str) else self.draw
+        return _adapt_positional(draw)
+
+
+def _adapt_positional(draw: Callable) -> Callable:
+    """A drawer written for the eight positional arguments earlier versions passed, called with a request."""
+    try:
+        parameters = inspect.signature(draw).parameters.values()
+    except (TypeError, ValueError):  # no signature to read (a builtin): call it as the protocol says
+        return draw
+    positional = [p for p in parameters if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    if len(positional) < 8:
+        return draw
+    return lambda request: draw(request.task_config, request.states, request.controls, request.titles, request.label,
+                                request.settings, request.video, request.picture)
 
 
 _BUILTIN = (
