@@ -49,18 +49,29 @@ def time_variants(variants: dict, rounds: int) -> dict[str, tuple[float, float]]
     return {name: (1e3 * medians[name], compile_seconds[name]) for name in variants}
 
 
+def combined_modes() -> list[str]:
+    """The modes that combine several flows (``flows.MODE_TABLE``), which share one forward rollout."""
+    from stablebptt.flows import MODE_TABLE
+    return [mode.name for mode in MODE_TABLE.values() if len(mode.flows) > 1]
+
+
 def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
-    from stablebptt.flows import MODES
-    variants = {"R plain": make_update(task, "R", batch, plain=True)}
+    from stablebptt.flows import MODE_TABLE, MODES
+    regular = MODES[0]  # regular BPTT, the baseline of every ratio
+    variants = {f"{regular} plain": make_update(task, regular, batch, plain=True)}
     variants.update({mode: make_update(task, mode, batch) for mode in MODES})
-    variants["R + cosine"] = make_update(task, "R", batch, with_cosine=True)
+    variants[f"{regular} + cosine"] = make_update(task, regular, batch, with_cosine=True)
     times = time_variants(variants, rounds)
-    base = times["R plain"][0]
-    lines = [f"### {title}", "", "| update | ms (median) | / R plain | compile s |", "|---|---:|---:|---:|"]
+    base = times[f"{regular} plain"][0]
+    lines = [f"### {title}", "", f"| update | ms (median) | / {regular} plain | compile s |", "|---|---:|---:|---:|"]
     for name, (ms, compile_s) in times.items():
         lines.append(f"| {name} | {ms:.2f} | {ms / base:.2f} | {compile_s:.1f} |")
-    lines.append(f"\nC / R = {times['C'][0] / times['R'][0]:.2f} (C needs g_M and g_R, both from one forward rollout).\n")
-    return lines
+    lines.append("")
+    for mode in combined_modes():
+        needs = " and ".join(f"g_{flow}" for flow in MODE_TABLE[mode].flows)
+        lines.append(f"{mode} / {regular} = {times[mode][0] / times[regular][0]:.2f} "
+                     f"({mode} needs {needs}, all from one forward rollout).")
+    return lines + [""]
 
 
 # The cart-pole simulators of the steps table: option name -> row label.
@@ -74,6 +85,7 @@ def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tupl
     the floor), with the parts of the generated step's update where it is among them."""
     import mujoco
     from stablebptt import scene
+    from stablebptt.flows import MODES
     from stablebptt.tasks import cartpole_equations, mjcf
     generated = mjcf.make(mjcf.Config(poles=poles))
     stages = mjcf.make(mjcf.Config(poles=poles, pipeline="stages"))
@@ -91,22 +103,22 @@ def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tupl
              "dense": dense, "mjx": lambda: mjcf.make(mjcf.Config(poles=poles, pipeline="mjx")),
              "floor": lambda: with_step(cartpole_equations.make_step(0.01))}
     chosen = {name: build[name]() for name in SIMULATORS if name in simulators}
-    variants = {SIMULATORS[name]: make_update(task, "R", batch) for name, task in chosen.items()}
-    for name in ("generated", "floor"):
+    regular = MODES[0]
+    variants = {(SIMULATORS[name], regular): make_update(task, regular, batch) for name, task in chosen.items()}
+    for name in ("generated", "floor"):  # the combined modes too, on the default step and the floor
         if name in chosen:
-            variants[SIMULATORS[name] + ", C"] = make_update(chosen[name], "C", batch)
+            variants.update({(SIMULATORS[name], mode): make_update(chosen[name], mode, batch) for mode in combined_modes()})
     times = time_variants(variants, rounds)
-    base, lowest = (times.get(SIMULATORS[name], (None,))[0] for name in ("mjx", "floor"))
+    base, lowest = (times.get((SIMULATORS[name], regular), (None,))[0] for name in ("mjx", "floor"))
     ratio = lambda ms, reference: f"{ms / reference:.2f}" if reference else ""
     lines = [f"### Cart-pole, {poles} pole{'s' if poles > 1 else ''}: where the time goes", "",
-             "| simulator | mode | ms (median) | / mjx.step default | / floor (R) | compile s |",
+             f"| simulator | mode | ms (median) | / mjx.step default | / floor ({regular}) | compile s |",
              "|---|---|---:|---:|---:|---:|"]
-    for name, (ms, compile_s) in times.items():
-        label, c_row, _ = name.partition(", C")
-        lines.append(f"| {label} | {'C' if c_row else 'R'} | {ms:.2f} | {ratio(ms, base)} | {ratio(ms, lowest)} | {compile_s:.1f} |")
+    for (label, mode), (ms, compile_s) in times.items():
+        lines.append(f"| {label} | {mode} | {ms:.2f} | {ratio(ms, base)} | {ratio(ms, lowest)} | {compile_s:.1f} |")
     if "generated" not in chosen:
         return lines + [""]
-    return lines + [""] + parts_table(generated, poles, batch, rounds, variants[SIMULATORS["generated"]])
+    return lines + [""] + parts_table(generated, poles, batch, rounds, variants[SIMULATORS["generated"], regular])
 
 
 def parts_table(task, poles: int, batch: int, rounds: int, whole_update) -> list[str]:
