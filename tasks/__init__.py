@@ -61,6 +61,10 @@ class Entry:
       presets: sweep grids: preset name -> (the option that sets the complexity, its values).
       gpu_unroll: rollout steps per loop iteration for sweeps on a GPU (chosen per task by
         measurement; beyond it compile time grows faster than the gain).
+      studies: import path of the module with the task's side of the accuracy studies and the
+        benchmark (``trajectory_setup``, ``gradient_setup``, ``training_config``, ``bench_cases``,
+        each optional: ``stablebptt.apps.studies``). Empty: the studies that need a set-up refuse
+        the task; the training study and the benchmark's modes table take its defaults.
     """
 
     name: str
@@ -71,6 +75,7 @@ class Entry:
     mujoco_frames: bool = False
     presets: dict[str, tuple[str, tuple]] = field(default_factory=dict)
     gpu_unroll: int = 1
+    studies: str = ""
 
     def load(self) -> ModuleType:
         """The task's module, imported now."""
@@ -98,15 +103,15 @@ def _adapt_positional(draw: Callable) -> Callable:
 _BUILTIN = (
     Entry("mjcf", "stablebptt.tasks.mjcf", label=lambda c: c.model_path.name,
           draw="stablebptt.drawing:draw_mujoco_rollouts", picture="strip", mujoco_frames=True,
-          presets={"cartpole": ("poles", (1, 2, 3, 4))}, gpu_unroll=5),
+          presets={"cartpole": ("poles", (1, 2, 3, 4))}, gpu_unroll=5, studies="stablebptt.apps.studies.cartpole"),
     Entry("repulsion", "stablebptt.tasks.repulsion", label=lambda c: f"repulsion, rc={c.rc:g}",
           draw="stablebptt.apps.figures:draw_repulsion", picture="paths",
           presets={"repulsion": ("rc", (1.0, 0.1, 0.01, 0.001)),
                    "tiny": ("rc", (1.0, 0.1))},  # the CPU test of the sweep's machinery
-          gpu_unroll=10),
+          gpu_unroll=10, studies="stablebptt.apps.studies.repulsion"),
     Entry("quantum", "stablebptt.tasks.quantum", label=lambda c: f"quantum, target state {c.target}",
           draw="stablebptt.apps.figures:draw_quantum", picture="density",
-          presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8),
+          presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8, studies="stablebptt.apps.studies.quantum"),
     Entry("env", "stablebptt.tasks.env", label=lambda c: c.env or "an environment",
           draw="stablebptt.drawing:draw_env_rollouts", picture="strip", mujoco_frames=True),
 )

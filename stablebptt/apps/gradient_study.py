@@ -7,19 +7,17 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 from stablebptt.apps.measuring import PRECISIONS, cast, compile_call, policy_params, precision, run_once, to_numpy, tree_norm
-from stablebptt.apps.trajectory_study import REPULSION_DURATION
 
 if TYPE_CHECKING:
     from stablebptt.apps.accuracy import AccuracyConfig
 
 
-
 @dataclass(frozen=True)
 class GradientSetup:
-    """One task's side of the gradient study.
+    """One task's side of the gradient study (a task's studies module makes it: ``stablebptt.apps.studies``).
 
     Attributes:
-      task: registry name.
+      task: the name its rows carry.
       label: the set-up in words (for tables and plots).
       make_task: ``make_task() -> Task`` at the paper's time step; call inside the precision wanted.
       dt: its time step.
@@ -36,29 +34,9 @@ class GradientSetup:
 
 
 def gradient_setups(config: AccuracyConfig) -> list[GradientSetup]:
-    from stablebptt.tasks import mjcf, quantum, repulsion
-
-    def upright(states):
-        # Angles 0 +- 30 degrees instead of pi +- 30: the poles fall and tumble, a chaotic motion.
-        qpos = states.qpos.copy()
-        qpos[:, 1:] -= 3.141592653589793
-        return states._replace(qpos=qpos)
-
-    quick = config.quick
-    setups = {
-        "cartpole": GradientSetup(
-            "cartpole", f"cart-pole, {config.gradient_poles} poles, MJX Euler",
-            lambda: mjcf.make(mjcf.Config(poles=config.gradient_poles)), 0.01,
-            (20, 60) if quick else (100, 200, 300, 500, 1000, 2000, 3000),
-            {"hanging (paper)": lambda s: s, "upright": upright}),
-        "repulsion": GradientSetup(
-            "repulsion", "repulsion, explicit Euler", lambda: repulsion.make(repulsion.Config()), REPULSION_DURATION / 60,
-            (20, 60) if quick else (100, 300, 1000), {"paper": lambda s: s}),
-        "quantum": GradientSetup(
-            "quantum", "quantum, Crank-Nicolson", lambda: quantum.make(quantum.Config()), 0.0625,
-            (20, 60) if quick else (100, 300, 1000), {"paper": lambda s: s}),
-    }
-    return [setups[name] for name in config.task_list]
+    """Each task's set-up, from its studies module (``gradient_setup``); a task without one is refused."""
+    from stablebptt.apps.studies import required_hook
+    return [required_hook(name, "gradient_setup", "gradient")(config) for name in config.task_list]
 
 
 def gradient_study(setup: GradientSetup, config: AccuracyConfig, log: Callable) -> list[dict]:

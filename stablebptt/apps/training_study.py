@@ -11,12 +11,20 @@ if TYPE_CHECKING:
     from stablebptt.apps.accuracy import AccuracyConfig
 
 
+def training_task_config(name: str):
+    """The training study's configuration of the task ``name``: its studies module's ``training_config``, else
+    the defaults."""
+    from stablebptt import tasks
+    from stablebptt.apps.studies import hook
+    module = tasks.load(name)
+    configure = hook(name, "training_config")
+    return configure(module) if configure is not None else module.Config()
+
 
 def training_task(name: str):
-    """The training study's task: repulsion at rc 0.01 (where the paper's modes differ most), else the defaults."""
+    """The training study's task (``training_task_config``)."""
     from stablebptt import tasks
-    module = tasks.load(name)
-    return module.make(module.Config(rc=0.01) if name == "repulsion" else module.Config())
+    return tasks.load(name).make(training_task_config(name))
 
 
 def training_study(config: AccuracyConfig, log: Callable) -> list[dict]:
@@ -34,7 +42,9 @@ def training_study(config: AccuracyConfig, log: Callable) -> list[dict]:
     def upcast(tree):  # inside precision(64)
         return jax.tree.map(lambda a: jnp.asarray(a, jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a, tree)
 
+    from stablebptt import tasks
     epochs, size = config.epochs, config.train_size
+    setup = tasks.entry(config.train_task).label(training_task_config(config.train_task))  # e.g. "repulsion, rc=0.01"
     runs, rows = {}, []
     for mode in MODES:
         # --no-cosine: each mode computes only the flows it needs, so the times are the modes' own.
@@ -51,7 +61,7 @@ def training_study(config: AccuracyConfig, log: Callable) -> list[dict]:
             with precision(bits):
                 untrained = float(trainer.evaluate(state.params, data[2])[0])
             runs[mode, bits] = {"epoch": epoch.function, "state": state, "data": data, "seconds": 0.0, "compile_s": compile_seconds}
-            rows.append({"task": config.train_task, "mode": mode, "precision": f"float{bits}", "epoch": 0, "seconds": 0.0,
+            rows.append({"task": config.train_task, "setup": setup, "mode": mode, "precision": f"float{bits}", "epoch": 0, "seconds": 0.0,
                          "test_loss": untrained, "train_loss": float("nan"), "finite": True, "compile_s": compile_seconds})
             log(f"  training {mode} float{bits}: compiled in {compile_seconds:.1f} s")
     for number in range(1, epochs + 1):
@@ -62,7 +72,7 @@ def training_study(config: AccuracyConfig, log: Callable) -> list[dict]:
                 metrics = jax.device_get(metrics)
                 run["seconds"] += time.perf_counter() - started
             run["state"] = state
-            rows.append({"task": config.train_task, "mode": mode, "precision": f"float{bits}", "epoch": number,
+            rows.append({"task": config.train_task, "setup": setup, "mode": mode, "precision": f"float{bits}", "epoch": number,
                          "seconds": run["seconds"], "test_loss": float(np.asarray(metrics["test_loss"])[0]),
                          "train_loss": float(np.asarray(metrics["train_loss"])[0]),
                          "finite": bool(np.asarray(metrics["finite"])[0]), "compile_s": run["compile_s"]})
