@@ -37,16 +37,8 @@ FORMATS = (".png", ".pdf", ".svg")
 # Okabe-Ito colours (distinguishable with colour blindness), given to the modes in MODE_TABLE's order.
 PALETTE = ("#0072B2", "#E69F00", "#CC79A7", "#009E73", "#D55E00", "#56B4E9", "#F0E442", "#000000")
 MODE_COLORS = dict(zip(MODES, PALETTE))
-
-
-def _figure_position(mode: str) -> tuple[int, int]:
-    """A mode's place in a legend: after the last flow it needs, a combination after the plain flow (R, M, C, S)."""
-    flows = MODE_TABLE[mode].flows
-    return max(FLOWS.index(flow) for flow in flows), len(flows)
-
-
-# The paper's figures' order, derived from the table.
-MODE_ORDER = tuple(sorted(MODES, key=_figure_position))
+# The paper's figures' order (R, M, C, S), from the table: a mode after the last flow it needs, a combination after it.
+MODE_ORDER = tuple(sorted(MODES, key=lambda m: (max(map(FLOWS.index, MODE_TABLE[m].flows)), len(MODE_TABLE[m].flows))))
 CLIP_STYLES = {"value": "-", "norm": "--", "none": ":"}
 REQUIRED_COLUMNS = ("epoch", "seed", "test_loss", "update_norm")
 
