@@ -45,7 +45,7 @@ def gradient_study(setup: GradientSetup, config: AccuracyConfig, log: Callable) 
     import numpy as np
     from stablebptt.flows import flow_gradients
 
-    flows = ("R", "M")
+    flows = ("R", "M")  # the study's subject, not a list of modes: how g_R grows against g_M, the physics path
     with precision(64):
         base = setup.make_task()
         sampled = to_numpy(base.sample_initial_states(jax.random.PRNGKey(config.seed + 1), config.batch))
