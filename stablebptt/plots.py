@@ -25,6 +25,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.errors import InputError
+from stablebptt.flows import FLOWS, MODE_TABLE, MODES
 from stablebptt.runs import CONFIG_FILE, METRICS_FILE, read_metrics
 from stablebptt.storage import atomic_write, read_json
 
@@ -33,9 +34,11 @@ PAPER_SMOOTH = 30  # the paper smooths its curves over 30 epochs
 BANDS = ("minmax", "std")
 FORMATS = (".png", ".pdf", ".svg")
 
-# The paper's order and one fixed colour per flow (Okabe-Ito: distinguishable with colour blindness).
-MODE_ORDER = ("R", "M", "C", "S")
-MODE_COLORS = {"R": "#0072B2", "M": "#E69F00", "C": "#009E73", "S": "#CC79A7"}
+# Okabe-Ito colours (distinguishable with colour blindness), given to the modes in MODE_TABLE's order.
+PALETTE = ("#0072B2", "#E69F00", "#CC79A7", "#009E73", "#D55E00", "#56B4E9", "#F0E442", "#000000")
+MODE_COLORS = dict(zip(MODES, PALETTE))
+# The paper's figures' order (R, M, C, S), from the table: a mode after the last flow it needs, a combination after it.
+MODE_ORDER = tuple(sorted(MODES, key=lambda m: (max(map(FLOWS.index, MODE_TABLE[m].flows)), len(MODE_TABLE[m].flows))))
 CLIP_STYLES = {"value": "-", "norm": "--", "none": ":"}
 REQUIRED_COLUMNS = ("epoch", "seed", "test_loss", "update_norm")
 

@@ -28,7 +28,7 @@ from stablebptt.errors import InputError, config_field
 from stablebptt.flows import Dynamics
 from stablebptt.mjx_internals import mjx
 from stablebptt.networks import mlp_apply, mlp_init
-from stablebptt.scene import State
+from stablebptt.lean_step import State
 from stablebptt.simulator import SimulatorConfig
 from stablebptt.training import Task
 
