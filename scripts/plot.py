@@ -46,7 +46,8 @@ def main(argv: list[str]) -> int:
     if out.is_dir():
         out = out / plots.FIGURE_FILE
     try:
-        path = plots.learning_curves(args.run_dirs, out, smooth=args.smooth, band=args.band)
+        path = plots.learning_curves(args.run_dirs, out, smooth=args.smooth, band=args.band,
+                                     note=lambda line: print(line, file=sys.stderr))
     except InputError as error:
         fail(str(error))
     print(f"wrote {path}")

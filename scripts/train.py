@@ -109,6 +109,8 @@ def train(argv: list[str], held: list) -> int:
     with one_line_errors():
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
     task_label, resuming = run.name, run.resuming
+    if run.repaired:
+        print(f"rewrote {' and '.join(run.repaired)} of {run_dir} from its checkpoint (epoch {start_epoch})", file=sys.stderr)
 
     if task.summary:
         print(task.summary)

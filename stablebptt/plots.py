@@ -15,7 +15,7 @@ import io
 import warnings
 from collections import Counter
 from pathlib import Path
-from typing import Iterable, NamedTuple, Sequence
+from typing import Callable, Iterable, NamedTuple, Sequence
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -25,7 +25,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.errors import InputError
-from stablebptt.runs import CONFIG_FILE, METRICS_FILE, read_metrics
+from stablebptt.runs import CONFIG_FILE, METRICS_FILE, run_metrics
 from stablebptt.storage import atomic_write, read_json
 
 FIGURE_FILE = "learning_curves.png"
@@ -59,6 +59,7 @@ class Run(NamedTuple):
       epochs: sorted epoch numbers, shape (E,).
       seeds: sorted seeds, shape (N,).
       metrics: column name -> array (E, N); NaN where a value was not logged.
+      note: what was read instead of a damaged ``metrics.csv`` (``runs.run_metrics``), else "".
     """
 
     path: Path
@@ -66,6 +67,7 @@ class Run(NamedTuple):
     epochs: np.ndarray
     seeds: np.ndarray
     metrics: dict
+    note: str = ""
 
     @property
     def mode(self) -> str:
@@ -94,25 +96,14 @@ def load_run(run_dir: str | Path) -> Run:
     if not path.is_dir():
         raise InputError(f"{path} is not a directory: give a run directory written by scripts/train.py")
     metrics_path = path / METRICS_FILE
-    if not metrics_path.is_file():
-        raise InputError(f"{path} has no {METRICS_FILE}: not a run directory, or its run has not finished an epoch yet")
     config = read_json(path / CONFIG_FILE)
     if not (isinstance(config, dict) and all(isinstance(config.get(key, {}), dict) for key in ("train", "task_config"))):
         raise InputError(f"{path / CONFIG_FILE} is not a run configuration (expected 'train' and 'task_config' objects)")
-    try:
-        rows = read_metrics(metrics_path)
-    except OSError as error:
-        raise InputError(f"cannot read {metrics_path}: {error.strerror}") from None
-    except (ValueError, TypeError):
-        # float() of an empty, missing or non-numeric cell; a resume rewrites the file from the checkpoint.
-        raise InputError(f"{metrics_path} has a missing or non-numeric value: regenerate it with "
-                         f"scripts/train.py --resume {path}") from None
-    if not rows:
-        raise InputError(f"{metrics_path} has no rows: the run has not finished an epoch yet")
+    rows, note = run_metrics(path)
     missing = [column for column in REQUIRED_COLUMNS if column not in rows[0]]
     if missing:
         raise InputError(f"{metrics_path} lacks the column {missing[0]!r}: is it a metrics.csv of scripts/train.py?")
-    return Run(path, config, *_pivot(rows, metrics_path))
+    return Run(path, config, *_pivot(rows, metrics_path), note)
 
 
 def _pivot(rows: list[dict[str, float]], source: Path) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -406,7 +397,8 @@ def render(figure: Figure, out_path: Path, dpi: int = 150) -> Path:
 
 
 def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth: int | None = 0, band: str = "minmax",
-                    title: str | None = None, dpi: int = 150) -> Path:
+                    title: str | None = None, dpi: int = 150,
+                    note: Callable[[str], None] = lambda line: None) -> Path:
     """Draw the learning curves of some run directories into one figure file.
 
     Args:
@@ -417,6 +409,7 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
       band: ``"minmax"`` (band spans all seeds) or ``"std"`` (mean +- one standard deviation).
       title: figure title; by default the shared task settings and what line and band show.
       dpi: resolution of a PNG.
+      note: told where a run's metrics were read from elsewhere than its ``metrics.csv``.
 
     Returns:
       The path written.
@@ -430,6 +423,9 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
     if not unique:
         raise InputError("no run directory given")
     runs = [load_run(run_dir) for run_dir in unique.values()]
+    for run in runs:
+        if run.note:
+            note(run.note)
     if smooth is None:
         smooth = default_smooth(max(len(run.epochs) for run in runs))
     figure = draw(runs, smooth=smooth, band=band, title=title)

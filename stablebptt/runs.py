@@ -58,6 +58,63 @@ def read_metrics(path: Path) -> list[dict[str, float]]:
         return [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)]
 
 
+def _metrics_problem(path: Path) -> tuple[list[dict[str, float]], str]:
+    """(rows, what is wrong with ``path`` or ""). A last line without its newline was cut mid-line
+    (``write_metrics`` ends every line): it is left out, as a number cut short still parses."""
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        return [], "missing"
+    except OSError as error:
+        return [], f"unreadable ({error.strerror})"
+    cut = bool(text) and not text.endswith("\n")
+    if cut:
+        text = text[:text.rfind("\n") + 1]
+    try:
+        rows = [{key: float(value) for key, value in row.items()} for row in csv.DictReader(io.StringIO(text))]
+    except (ValueError, TypeError):  # float() of an empty, missing or non-numeric cell
+        return [], "damaged (a missing or non-numeric value)"
+    if cut:
+        return rows, "cut mid-line"
+    return rows, "" if rows else "empty"
+
+
+def checkpoint_rows(run_dir: Path) -> np.ndarray | None:
+    """The metric rows a run's checkpoint holds (``COLUMNS`` wide), or None without a readable one."""
+    try:
+        with np.load(Path(run_dir) / CHECKPOINT_FILE) as data:
+            rows = np.array(data["metrics"])
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+    return rows if rows.ndim == 2 and rows.shape[1] == len(COLUMNS) else None
+
+
+def run_metrics(run_dir: Path) -> tuple[list[dict[str, float]], str]:
+    """(every metric row of a run, a note for the user or ""): ``metrics.csv``, or where it is missing,
+    empty, cut or damaged, the rows of the checkpoint, which ``--resume`` writes back into it.
+
+    Raises:
+      InputError: no rows to read, with what can be done about it.
+    """
+    path = Path(run_dir) / METRICS_FILE
+    rows, problem = _metrics_problem(path)
+    if not problem:
+        return rows, ""
+    saved = checkpoint_rows(run_dir)
+    if saved is not None and len(saved) >= len(rows) and len(saved):
+        epochs = int(saved[:, 0].max())
+        return ([dict(zip(COLUMNS, map(float, row))) for row in saved],
+                f"{path} is {problem}: read {epochs} epochs from {CHECKPOINT_FILE} instead "
+                f"(--resume {run_dir} writes them back into {METRICS_FILE})")
+    if problem == "cut mid-line" and rows:
+        return rows, f"{path} is cut mid-line: its last line is left out"
+    if problem in ("missing", "empty", "cut mid-line"):
+        raise InputError(f"{path} is {problem if problem != 'cut mid-line' else 'cut in its first row'} and "
+                         f"{run_dir} has no {CHECKPOINT_FILE} with metrics: not a run directory, or its run "
+                         "has not finished an epoch yet")
+    raise InputError(f"{path} is {problem} and {run_dir} has no {CHECKPOINT_FILE} to read the metrics from")
+
+
 def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
@@ -295,6 +352,7 @@ class Run:
 
     def __init__(self, directory: Path, record: dict, lock: RunLock, resuming: bool):
         self.directory, self.record, self.lock, self.resuming = Path(directory), record, lock, resuming
+        self.repaired: list[str] = []  # results ``start`` rewrote from the checkpoint
 
     @classmethod
     def create(cls, directory: Path, record: dict) -> "Run":
@@ -338,7 +396,24 @@ class Run:
             import dataclasses
             self.record = {**self.record, "train": dataclasses.asdict(config)}
             write_json(self.directory / CONFIG_FILE, self.record)
+        if self.resuming and start_epoch > 0:
+            self.repaired = self._repair(state, rows)
         return start_epoch, state, rows
+
+    def _repair(self, state: TrainState, rows: np.ndarray) -> list[str]:
+        """Rewrite from the checkpoint the results that are missing, cut or damaged (a run that is done
+        already would otherwise keep them so); returns the names of the files rewritten."""
+        repaired = []
+        saved, problem = _metrics_problem(self.directory / METRICS_FILE)
+        if problem or len(saved) != len(rows):
+            write_metrics(self.directory / METRICS_FILE, rows)
+            repaired.append(METRICS_FILE)
+        try:
+            load_params(self.directory / PARAMS_FILE, state.params)
+        except InputError:
+            save_params(self.directory / PARAMS_FILE, state.params)
+            repaired.append(PARAMS_FILE)
+        return repaired
 
     def _refuse_results_without_checkpoint(self) -> None:
         """A folder with trained results but no checkpoint cannot continue: training from epoch 0

@@ -245,6 +245,34 @@ def test_resume_given_a_file_or_fewer_epochs_changes_nothing(finished, capsys):
     assert snapshot(finished) == before
 
 
+@pytest.mark.parametrize("damage", ["cut mid-line", "empty", "missing"])
+def test_plot_reads_a_damaged_metrics_file_from_the_checkpoint_and_resume_rewrites_it(finished, tmp_path, capsys, damage):
+    from stablebptt import plots
+    folder = tmp_path / "damaged"
+    shutil.copytree(finished, folder)
+    metrics = folder / runs.METRICS_FILE
+    whole = metrics.read_bytes()
+    if damage == "missing":
+        metrics.unlink()
+    else:
+        metrics.write_bytes(whole[:-5] if damage == "cut mid-line" else b"")
+    drawn = plots.load_run(folder)
+    assert list(drawn.epochs) == [1, 2] and damage in drawn.note and f"--resume {folder}" in drawn.note
+    np.testing.assert_array_equal(drawn.metrics["test_loss"], plots.load_run(finished).metrics["test_loss"])
+    code, err, out = train(capsys, "--resume", str(folder), "--no-progress")  # what the note advises
+    assert code == 0 and "done already" in out and len(err) == 1 and runs.METRICS_FILE in err[0], err
+    assert metrics.read_bytes() == whole and plots.load_run(folder).note == ""
+
+
+def test_resume_rewrites_damaged_parameters_from_the_checkpoint(finished, tmp_path, capsys):
+    folder = tmp_path / "damaged"
+    shutil.copytree(finished, folder)
+    (folder / runs.PARAMS_FILE).write_bytes(b"not a zip")
+    code, err, out = train(capsys, "--resume", str(folder), "--no-progress")
+    assert code == 0 and "done already" in out and len(err) == 1 and runs.PARAMS_FILE in err[0], err
+    assert (folder / runs.PARAMS_FILE).read_bytes() == (finished / runs.PARAMS_FILE).read_bytes()
+
+
 def test_a_full_disk_gets_one_line_leaves_no_temporary_and_the_run_resumes(tmp_path, capsys, monkeypatch):
     run_dir = tmp_path / "full"
     real_fsync, calls = os.fsync, []
