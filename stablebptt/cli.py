@@ -196,16 +196,71 @@ def compile_cache_dir() -> Path | None:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "stablebptt" / "jax"
 
 
-def use_compile_cache(enabled: bool = True) -> Path | None:
+def use_compile_cache(enabled: bool = True,
+                      note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> Path | None:
     """Turn on JAX's persistent compilation cache (before the first compile): a second identical run
-    loads its programs instead of compiling them. Returns the directory, or None when off."""
+    loads its programs instead of compiling them. Returns the directory, or None when off.
+
+    A directory that cannot be written is left off with one line to ``note`` (JAX would warn at every
+    program); a damaged entry (a process killed while JAX wrote it) is compiled again and replaced,
+    with one line to ``note`` for the first (JAX would warn and recompile it in every run).
+    """
     directory = compile_cache_dir() if enabled else None
     if directory is None:
+        return None
+    import tempfile
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as error:
+        note(f"note: compiled programs are not kept between runs: cannot write to the compile cache {directory} "
+             f"({error.strerror or error}); set {COMPILE_CACHE_ENV} to a writable directory, or to off")
         return None
     import jax
     jax.config.update("jax_compilation_cache_dir", str(directory))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # tiny programs recompile faster than they load
+    _replace_damaged_entries(directory, note)
     return directory
+
+
+_cache_state: dict[str, Any] = {}  # the directory and note of the latest use_compile_cache, and whether told
+
+
+def _replace_damaged_entries(directory: Path, note: Callable[[str], None]) -> None:
+    """Make a cache entry that cannot be read a miss that is compiled and written anew.
+
+    JAX warns of such an entry and compiles, but never writes over a key that exists
+    (and writes entries in place, so a killed process leaves half of one): every later
+    run would warn and compile again.
+    """
+    from jax._src import compilation_cache
+    _cache_state.update(directory=directory, note=note, told=False)
+    read = compilation_cache.get_executable_and_time
+    if getattr(read, "replaces_damaged_entries", False):
+        return
+    from jax._src.lru_cache import _CACHE_SUFFIX
+
+    def get_executable_and_time(cache_key, *args, **kwargs):
+        try:
+            return read(cache_key, *args, **kwargs)
+        except compilation_cache.CacheVerificationError:
+            raise
+        except Exception as error:  # noqa: BLE001 - any unreadable entry: JAX's own answer is to compile
+            entry = Path(_cache_state["directory"]) / f"{cache_key}{_CACHE_SUFFIX}"
+            try:
+                entry.unlink(missing_ok=True)
+            except OSError:
+                pass
+            if not _cache_state["told"]:
+                _cache_state["told"] = True
+                _cache_state["note"](f"note: a damaged entry of the compile cache {_cache_state['directory']} "
+                                     f"({type(error).__name__}: {str(error).splitlines()[0][:80] if str(error) else ''}) "
+                                     "is compiled again and replaced")
+            return None, None
+
+    get_executable_and_time.replaces_damaged_entries = True
+    compilation_cache.get_executable_and_time = get_executable_and_time
 
 
 class EpochProgress:

@@ -421,3 +421,53 @@ def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
     from stablebptt.plots import plot_run
     figure = plot_run(tmp_path / "threaded")
     assert Path(figure).is_file()
+
+
+def test_a_compile_cache_that_cannot_be_written_is_one_line_and_left_off(tmp_path, monkeypatch):
+    from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+    before = jax.config.jax_compilation_cache_dir
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv(COMPILE_CACHE_ENV, str(tmp_path / "a-file" / "cache"))
+    notes = []
+    assert use_compile_cache(note=notes.append) is None
+    assert len(notes) == 1 and "cannot write to the compile cache" in notes[0] and COMPILE_CACHE_ENV in notes[0], notes
+    assert jax.config.jax_compilation_cache_dir == before
+
+
+def test_a_damaged_compile_cache_entry_is_compiled_again_and_replaced_with_one_line(tmp_path):
+    import warnings
+
+    import jax.numpy as jnp
+    from jax._src import compilation_cache
+
+    from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+    session_cache, minimum = os.environ[COMPILE_CACHE_ENV], jax.config.jax_persistent_cache_min_compile_time_secs
+    cache, notes = tmp_path / "cache", []
+    program = lambda x: jnp.tanh(x) * 3.25 - 7.5  # noqa: E731
+
+    def run_without_warnings():
+        jax.clear_caches()  # not in memory: the next call looks in the cache directory
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            return jax.jit(program)(jnp.ones(5))
+
+    os.environ[COMPILE_CACHE_ENV] = str(cache)
+    try:
+        compilation_cache.reset_cache()
+        assert use_compile_cache(note=notes.append) == cache
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+        expected = run_without_warnings()
+        entries = sorted(cache.glob("*-cache"))
+        assert entries
+        for entry in entries:
+            entry.write_bytes(entry.read_bytes()[:7])  # as a process killed while JAX wrote it leaves one
+        for _ in range(2):  # replaced, so the second run reads it without a word
+            np.testing.assert_array_equal(run_without_warnings(), expected)
+        assert len(notes) == 1 and "damaged entry" in notes[0] and "replaced" in notes[0], notes
+        for entry in entries:
+            compilation_cache.decompress_executable(entry.read_bytes())  # whole again
+    finally:
+        os.environ[COMPILE_CACHE_ENV] = session_cache
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", minimum)
+        compilation_cache.reset_cache()
+        use_compile_cache()
