@@ -276,17 +276,39 @@ def read_spec(model: mujoco.MjModel, config: Config | None = None) -> Spec:
         jnp.asarray(velocity_from.act if velocity_from is not None else np.zeros(model.na)),
     )
     used = {key.name for key in (init_key, target_key, chosen_init, chosen_target) if key is not None}
+    qpos_spread = _numeric(model, "bptt_qpos_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD))
+    qvel_spread = _numeric(model, "bptt_qvel_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD))
+    _check_spread(config.spread, (init_qpos, qpos_spread, "positions"), (init.qvel, qvel_spread, "velocities"))
     return Spec(
         horizon=int(horizon[0]),
         loss=loss,
         joint_weight=weights,
         init=init,
-        qpos_spread=config.spread * _numeric(model, "bptt_qpos_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
-        qvel_spread=config.spread * _numeric(model, "bptt_qvel_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
+        qpos_spread=config.spread * qpos_spread,
+        qvel_spread=config.spread * qvel_spread,
         target_qpos=target_qpos,
         reach=reach,
         unused_keyframes=tuple(model.key(k).name or f"#{k}" for k in range(model.nkey) if model.key(k).name not in used),
     )
+
+
+def _check_spread(spread: float, *parts: tuple) -> None:
+    """Refuse a spread whose initial states square past the largest number of the run's precision.
+
+    The step squares velocities (centrifugal and Coriolis forces, kinetic energy) and the
+    loss squares slide positions; a state above the square root of the largest float makes
+    them infinite in the first epoch, whatever is trained. ``parts``: (centre, declared
+    half-widths per dof, what they are).
+    """
+    dtype = jnp.result_type(float)  # float32, or float64 under --x64
+    largest = float(np.sqrt(np.finfo(dtype).max))
+    for centre, widths, what in parts:
+        centre, width = float(np.max(np.abs(centre), initial=0.0)), float(np.max(widths, initial=0.0))
+        if width > 0 and centre + spread * width > largest:
+            raise InputError(f"{config_field(Config, 'spread')} {spread:g} spreads the initial {what} up to "
+                             f"{centre + spread * width:.3g}, past {largest:.3g}, above which their squares "
+                             f"(in the dynamics and the loss) overflow {np.dtype(dtype).name}: give at most "
+                             f"{(largest - centre) / width:.3g}")
 
 
 def _quat_multiply(a, b):

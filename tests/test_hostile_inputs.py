@@ -36,6 +36,7 @@ CASES = {
     "--dt leaving no step": ({}, ["--dt", "1e6"], "less than one step"),
     "--dt leaving too many steps": ({}, ["--dt", "1e-300"], "steps"),
     "NaN --spread": ({}, ["--spread", "nan"], "--spread"),
+    "--spread overflowing float32": ({}, ["--spread", "1e305"], "--spread"),
     "negative --steps": ({}, ["--steps", "-1"], "--steps"),
     "huge --data-seed": ({}, ["--data-seed", str(2**70)], "--data-seed"),
     "negative --seed": ({}, ["--seed", "-1"], "--seed"),
