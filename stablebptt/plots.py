@@ -17,6 +17,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Callable, Iterable, NamedTuple, Sequence
 
+import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgb
@@ -293,6 +294,18 @@ class _PlainLogFormatter(LogFormatter):
         return f"{x:g}" if super().__call__(x, pos) else ""
 
 
+# Text falls back, character by character, to installed fonts of wide coverage, and last to matplotlib's
+# own Last Resort font (a box naming the character's block): run paths and model names may be in any script.
+FALLBACK_FONTS = ("Noto Sans", "Noto Sans CJK JP", "Noto Sans CJK SC", "WenQuanYi Zen Hei", "Droid Sans Fallback",
+                  "Arial Unicode MS", "Last Resort High-Efficiency")
+
+
+def _font_families() -> list[str]:
+    from matplotlib import font_manager
+    installed = {font.name for font in font_manager.fontManager.ttflist}
+    return ["DejaVu Sans"] + [name for name in FALLBACK_FONTS if name in installed]
+
+
 def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str | None = None) -> Figure:
     """The learning-curve figure of some runs (not yet saved).
 
@@ -305,6 +318,11 @@ def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str 
     Returns:
       A matplotlib ``Figure`` on the Agg canvas (no display needed).
     """
+    with matplotlib.rc_context({"font.family": _font_families()}):  # fonts are chosen as texts are made
+        return _draw(runs, smooth, band, title)
+
+
+def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None) -> Figure:
     if not runs:
         raise InputError("no run to draw: give at least one run directory")
     if smooth < 0:
@@ -388,7 +406,10 @@ def render(figure: Figure, out_path: Path, dpi: int = 150) -> Path:
     if not out_path.parent.is_dir():
         raise InputError(f"cannot write {out_path}: the directory {out_path.parent} does not exist")
     buffer = io.BytesIO()
-    figure.savefig(buffer, format=out_path.suffix.lower()[1:], dpi=dpi)
+    with warnings.catch_warnings():
+        # A character no installed font has is drawn as a box; matplotlib's warning of it says no more.
+        warnings.filterwarnings("ignore", message="Glyph .* missing from font")
+        figure.savefig(buffer, format=out_path.suffix.lower()[1:], dpi=dpi)
     try:
         atomic_write(out_path, buffer.getvalue())
     except OSError as error:

@@ -213,6 +213,18 @@ def test_a_metrics_file_cut_mid_line_loses_only_its_cut_row(tmp_path):
     np.testing.assert_array_equal(cut.metrics["test_loss"], whole.metrics["test_loss"][:4])
 
 
+def test_run_paths_and_models_in_any_script_draw_without_a_warning(tmp_path):
+    runs = [write_run(tmp_path / "运行 глиф" / f"𝔘☃-{mode}", mode=mode, task="mjcf",
+                      task_config={"model": f"/模型/机器人-{mode}.xml"}) for mode in ("R", "C")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for suffix in (".png", ".pdf", ".svg"):
+            out = plots.learning_curves(runs, tmp_path / f"labels{suffix}")
+            assert out.stat().st_size > 0
+    legend = plots.run_labels([plots.load_run(run) for run in runs])
+    assert all("机器人" in label for label in legend)  # the names are drawn, not dropped
+
+
 def test_a_file_or_a_directory_without_config_is_not_a_run(tmp_path):
     (tmp_path / "file").write_text("")
     with pytest.raises(InputError, match="not a directory"):
