@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stablebptt import models, mujoco_log, simulator
+from stablebptt import models, mujoco_log, runs, simulator
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import Dynamics
 from stablebptt.mjx_internals import mjx
@@ -110,15 +110,17 @@ class Config(SimulatorConfig):
 
 
 def load_model(path: Path) -> mujoco.MjModel:
-    """Load an MJCF (or a compiled ``.mjb``, as runs keep); any failure becomes one clear InputError line."""
+    """Load an MJCF (or a compiled ``.mjb``, or ``.mjb.gz`` as runs keep it); any failure becomes one clear InputError line."""
     if not path.is_file():
         raise InputError(f"model file {path} does not exist")
     try:
         with mujoco_log.collected() as warnings:
-            if path.suffix == ".mjb":
-                model = mujoco.MjModel.from_binary_path(str(path))
+            if path.suffix in (".mjb", ".gz"):
+                model = runs.load_compiled_model(path)
             else:
                 model = mujoco.MjModel.from_xml_path(str(path))
+    except InputError:
+        raise
     except ValueError as error:
         detail = " ".join(str(error).split())
         raise InputError(f"cannot load {path}: {detail}") from None
@@ -425,7 +427,7 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
         qpos = jax.vmap(lambda d: perturb_qpos(model, spec.init.qpos, d))(dq)
         return State(qpos, spec.init.qvel + dv, jnp.broadcast_to(spec.init.act, (count, model.na)))
 
-    name = path.stem  # run folders and records name the model: cartpole_3, humanoid, ...
+    name = path.name.removesuffix(".gz").rsplit(".", 1)[0]  # runs name the model: cartpole_3, humanoid, ...
     as_list = lambda a: np.asarray(a, dtype=float).tolist()
     resolved = {
         "model_file": str(path.resolve()),

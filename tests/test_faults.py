@@ -369,7 +369,7 @@ def test_a_run_remembers_its_model_resumes_and_renders_after_the_file_moved(tmp_
     code, err, _ = train(capsys, "--model", "arm.xml", "--epochs", "1", "--out", str(tmp_path / "run"), *options)
     assert code == 0, err
     run_dir = tmp_path / "run"
-    assert (run_dir / runs.MODEL_BINARY_FILE).is_file()
+    assert (run_dir / runs.MODEL_PACKED_FILE).is_file() and not (run_dir / runs.MODEL_BINARY_FILE).exists()
 
     (source / "arm_body.xml").write_text(ARM_BODY)  # rewritten unchanged: still the same model
     (source / "arm.xml").write_text(ARM.replace('gear="2"', 'gear="3"'))
@@ -391,13 +391,58 @@ def test_a_run_remembers_its_model_resumes_and_renders_after_the_file_moved(tmp_
     assert render.returncode == 0, render.stderr
     assert list(run_dir.glob("*.png"))
 
-    # The run's compiled copy (.mjb) is a model file like any other: it trains, and is kept as it is.
-    again = tmp_path / "from-mjb"
-    code, err, _ = train(capsys, "--model", str(run_dir / runs.MODEL_BINARY_FILE), "--epochs", "1", "--out", str(again),
-                         *options)
-    assert code == 0, err
-    assert (again / runs.MODEL_BINARY_FILE).read_bytes() == (run_dir / runs.MODEL_BINARY_FILE).read_bytes()
-    assert not (again / runs.MODEL_COPY_FILE).exists()
+    # The run's compiled copy (.mjb.gz) is a model file like any other, and so is it unpacked (.mjb):
+    # each trains, and is kept as the same compiled model.
+    unpacked = tmp_path / "arm.mjb"
+    unpacked.write_bytes(runs.compiled_model(run_dir / runs.MODEL_PACKED_FILE))
+    for given, again in ((run_dir / runs.MODEL_PACKED_FILE, tmp_path / "from-gz"), (unpacked, tmp_path / "from-mjb")):
+        code, err, _ = train(capsys, "--model", str(given), "--epochs", "1", "--out", str(again), *options)
+        assert code == 0, err
+        assert (again / runs.MODEL_PACKED_FILE).read_bytes() == (run_dir / runs.MODEL_PACKED_FILE).read_bytes()
+        assert not (again / runs.MODEL_COPY_FILE).exists()
+
+
+SKY = """<mujoco><asset><texture type="skybox" builtin="gradient" rgb1="0.4 0.6 0.8" rgb2="0 0 0" width="256"
+  height="256"/></asset>""" + ARM.split("<mujoco model=\"arm\">", 1)[1]
+
+
+def test_a_grid_keeps_one_compressed_model_for_all_its_cells_and_each_cell_reopens_it(tmp_path):
+    (tmp_path / "arm.xml").write_text(SKY)
+    (tmp_path / "arm_body.xml").write_text(ARM_BODY)
+    binary = runs.compiled_model(tmp_path / "arm.xml")  # the skybox: 256 x 256 x 6 faces x RGB
+    grid = tmp_path / "grid"
+    cells = [grid / f"cell-{k}" for k in range(3)]
+    for cell in cells:
+        cell.mkdir(parents=True)
+        runs.keep_model(cell, tmp_path / "arm.xml", shared=grid)
+    shared = list((grid / runs.SHARED_MODELS).iterdir())
+    assert len(shared) == 1 and shared[0].stat().st_size < len(binary) / 10  # one copy, compressed
+    record = {"resolved_task": {"model_file": str(tmp_path / "gone.xml")}}
+    for cell in cells:
+        assert sorted(p.name for p in cell.iterdir()) == [runs.MODEL_LINK_FILE, runs.MODEL_COPY_FILE]
+        path, note = runs.model_to_reopen(cell, record)  # the model file is gone: the grid's copy
+        assert Path(path) == cell / ".." / runs.SHARED_MODELS / shared[0].name and "is gone" in note
+        assert runs.compiled_model(path) == binary
+    moved = tmp_path / "moved"
+    shutil.move(grid, moved)  # the grid moves as a whole: its cells still find their model
+    assert runs.compiled_model(runs.model_to_reopen(moved / "cell-0", record)[0]) == binary
+    shutil.rmtree(moved / runs.SHARED_MODELS)
+    with pytest.raises(InputError, match="does not exist: the grid's models folder"):
+        runs.model_to_reopen(moved / "cell-0", record)
+
+
+def test_a_run_folder_of_an_earlier_version_reopens_its_uncompressed_model(tmp_path):
+    (tmp_path / "arm.xml").write_text(ARM)
+    (tmp_path / "arm_body.xml").write_text(ARM_BODY)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / runs.MODEL_BINARY_FILE).write_bytes(runs.compiled_model(tmp_path / "arm.xml"))
+    path, _ = runs.model_to_reopen(old, {"resolved_task": {"model_file": str(tmp_path / "gone.xml")}})
+    assert path == str(old / runs.MODEL_BINARY_FILE)
+    assert runs.load_compiled_model(path).nv == 1
+    (old / "damaged.mjb.gz").write_bytes(b"not gzip")
+    with pytest.raises(InputError, match="damaged"):
+        runs.load_compiled_model(old / "damaged.mjb.gz")
 
 
 def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
