@@ -68,6 +68,8 @@ def configure(args, owners):
         given["model"] = str(Path(given["model"]).resolve())
     task_config = build(module.Config, given)
     train_config = build(TrainConfig, {"epochs": module.DEFAULT_EPOCHS, **given})
+    from stablebptt.checks import check_options
+    check_options(train_config, task_config)  # a resumed run keeps what it recorded
     return task_name, task_config, train_config, args.out, None
 
 

@@ -204,8 +204,11 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
       result = stablebptt.train(task, stablebptt.TrainConfig(mode="C", epochs=50))
       print(result.test_loss[-1])
     """
+    from stablebptt.checks import check_options
     from stablebptt.training import make_trainer, seed_array
     started = time.perf_counter()
+    if isinstance(config, TrainConfig):  # anything else make_trainer names
+        check_options(config)
     trainer = make_trainer(task, config)
     seeds = np.asarray(seed_array(config))
     state = trainer.init(seed_array(config))

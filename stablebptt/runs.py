@@ -408,9 +408,16 @@ def model_to_reopen(run_dir: Path, record: dict) -> tuple[str | None, str]:
 
 
 def new_record(task_name: str, task_config: Any, task: Any, train_config: TrainConfig) -> dict:
-    """The config.json of a new run: the task as configured and as resolved, training, versions, device."""
+    """The config.json of a new run: the task as configured and as resolved, training, versions, device.
+
+    Raises:
+      InputError: options set together where one makes the other meaningless (``checks.check_options``).
+    """
     import dataclasses
     import platform
+
+    from stablebptt.checks import check_options
+    check_options(train_config, task_config)
     return {
         "task": task_name,
         "task_config": dataclasses.asdict(task_config),

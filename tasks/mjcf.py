@@ -77,6 +77,22 @@ class Config(SimulatorConfig):
             raise InputError(f"{config_field(self, 'horizon_seconds')} must be a finite positive time (or 0 for the MJCF's own), got {self.horizon_seconds}")
         self._merge_task_file()
 
+    def conflicts(self) -> list[str]:
+        """Options set together where one makes the other meaningless (``checks.check_options``)."""
+        field = lambda name: config_field(self, name)  # noqa: E731
+        problems = super().conflicts()
+        if self.model and self.poles != 1:
+            problems.append(f"{field('poles')} {self.poles} picks a cart-pole model, and {field('model')} gives "
+                            f"another: drop one")
+        if self.steps and self.horizon_seconds:
+            problems.append(f"{field('steps')} {self.steps} overrides {field('horizon_seconds')} "
+                            f"{self.horizon_seconds:g}: give one")
+        if self.target_pose and (self.loss_joints == "none" or (self.reach and not self.loss_joints)):
+            problems.append(f"{field('target_pose')} sets the target of the pose loss, which compares no joint "
+                            f"({field('loss_joints')} none, or {field('reach')} alone): drop it, or name the joints "
+                            f"with {field('loss_joints')}")
+        return problems
+
     def _merge_task_file(self) -> None:
         """Fill the task options still at their defaults from the task file, and record which file that was."""
         if self.task_file == "none" or not (self.task_file or self.model):
