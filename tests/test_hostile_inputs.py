@@ -229,9 +229,28 @@ def test_a_train_config_field_of_the_wrong_type_is_named(field, value):
         sb.TrainConfig(**{field: value})
 
 
-def test_a_dict_for_the_train_config_and_x64_without_float64_are_named():
+def test_a_dict_for_the_train_config_and_a_float64_trainer_made_in_float32_are_named():
     import stablebptt as sb
     with pytest.raises(sb.InputError, match="expected a stablebptt.TrainConfig, got dict"):
         sb.train(_pendulum(), {"epochs": 1})
-    with pytest.raises(sb.InputError, match="TrainConfig.x64 asks for float64"):
-        sb.train(_pendulum(), sb.TrainConfig(epochs=1, x64=True))
+    with pytest.raises(sb.InputError, match="TrainConfig.x64 asks for float64.*jax.enable_x64"):
+        sb.make_trainer(_pendulum(), sb.TrainConfig(epochs=1, x64=True))
+
+
+def test_x64_from_python_trains_in_float64_as_the_command_line_and_leaves_jax_in_float32():
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import stablebptt as sb
+    from conftest import float64
+    config = sb.TrainConfig(epochs=2, train_size=8, test_size=8, x64=True)
+    assert not jax.config.jax_enable_x64
+    scoped = sb.train(_pendulum(), config)
+    assert not jax.config.jax_enable_x64 and jnp.ones(1).dtype == jnp.float32  # the user's setting is kept
+    assert {leaf.dtype for leaf in jax.tree.leaves(scoped.params)} == {np.dtype(np.float64)}
+    with float64():  # as the command line's --x64: JAX in float64 from the start
+        whole = sb.train(_pendulum(), config)
+    for a, b in zip(jax.tree.leaves(scoped.params), jax.tree.leaves(whole.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(scoped.metrics["test_loss"], whole.metrics["test_loss"])
