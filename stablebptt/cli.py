@@ -203,7 +203,8 @@ def use_compile_cache(enabled: bool = True,
 
     A directory that cannot be written is left off with one line to ``note`` (JAX would warn at every
     program); a damaged entry (a process killed while JAX wrote it) is compiled again and replaced,
-    with one line to ``note`` for the first (JAX would warn and recompile it in every run).
+    and an entry that cannot be written (a full disk) skipped, with one line to ``note`` for the first
+    of each (JAX would warn at every program, and recompile a damaged entry in every run).
     """
     directory = compile_cache_dir() if enabled else None
     if directory is None:
@@ -220,47 +221,60 @@ def use_compile_cache(enabled: bool = True,
     import jax
     jax.config.update("jax_compilation_cache_dir", str(directory))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # tiny programs recompile faster than they load
-    _replace_damaged_entries(directory, note)
+    _handle_cache_faults(directory, note)
     return directory
 
 
-_cache_state: dict[str, Any] = {}  # the directory and note of the latest use_compile_cache, and whether told
+_cache_state: dict[str, Any] = {}  # the directory and note of the latest use_compile_cache, and what it told
 
 
-def _replace_damaged_entries(directory: Path, note: Callable[[str], None]) -> None:
-    """Make a cache entry that cannot be read a miss that is compiled and written anew.
+def _handle_cache_faults(directory: Path, note: Callable[[str], None]) -> None:
+    """A cache entry that cannot be read becomes a miss, compiled and written anew; an entry that
+    cannot be written (a full disk) is skipped. Each kind of fault is told once, in one line.
 
-    JAX warns of such an entry and compiles, but never writes over a key that exists
-    (and writes entries in place, so a killed process leaves half of one): every later
-    run would warn and compile again.
+    JAX warns of every such entry, and never writes over a key that exists (it writes entries
+    in place, so a killed process leaves half of one): every later run would warn and compile again.
     """
+    import jax
     from jax._src import compilation_cache
-    _cache_state.update(directory=directory, note=note, told=False)
-    read = compilation_cache.get_executable_and_time
-    if getattr(read, "replaces_damaged_entries", False):
+    _cache_state.update(directory=directory, note=note, told=set())
+    if getattr(compilation_cache.get_executable_and_time, "handled_by_stablebptt", False):
         return
     from jax._src.lru_cache import _CACHE_SUFFIX
+    read, write = compilation_cache.get_executable_and_time, compilation_cache.put_executable_and_time
+
+    def tell(kind: str, error: Exception, what: str) -> None:
+        if kind not in _cache_state["told"]:
+            _cache_state["told"].add(kind)
+            detail = (str(error).splitlines() or [""])[0][:80]
+            _cache_state["note"](f"note: {what} the compile cache {_cache_state['directory']} "
+                                 f"({type(error).__name__}: {detail})")
 
     def get_executable_and_time(cache_key, *args, **kwargs):
         try:
             return read(cache_key, *args, **kwargs)
-        except compilation_cache.CacheVerificationError:
-            raise
         except Exception as error:  # noqa: BLE001 - any unreadable entry: JAX's own answer is to compile
-            entry = Path(_cache_state["directory"]) / f"{cache_key}{_CACHE_SUFFIX}"
+            if jax.config.jax_raise_persistent_cache_errors or isinstance(error, compilation_cache.CacheVerificationError):
+                raise
             try:
-                entry.unlink(missing_ok=True)
+                (Path(_cache_state["directory"]) / f"{cache_key}{_CACHE_SUFFIX}").unlink(missing_ok=True)
             except OSError:
                 pass
-            if not _cache_state["told"]:
-                _cache_state["told"] = True
-                _cache_state["note"](f"note: a damaged entry of the compile cache {_cache_state['directory']} "
-                                     f"({type(error).__name__}: {str(error).splitlines()[0][:80] if str(error) else ''}) "
-                                     "is compiled again and replaced")
+            tell("read", error, "a damaged entry is compiled again and replaced in")
             return None, None
 
-    get_executable_and_time.replaces_damaged_entries = True
+    def put_executable_and_time(*args, **kwargs):
+        try:
+            return write(*args, **kwargs)
+        except Exception as error:  # noqa: BLE001 - the program is compiled and runs; only keeping it failed
+            if jax.config.jax_raise_persistent_cache_errors:
+                raise
+            tell("write", error, "compiled programs are not all kept: cannot write to")
+
+    for wrapper in (get_executable_and_time, put_executable_and_time):
+        wrapper.handled_by_stablebptt = True
     compilation_cache.get_executable_and_time = get_executable_and_time
+    compilation_cache.put_executable_and_time = put_executable_and_time
 
 
 class EpochProgress:

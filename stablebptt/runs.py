@@ -333,8 +333,7 @@ def keep_model(run_dir: Path, model_file: str | Path, shared: Path | None = None
     """Keep in ``run_dir`` what reopening its model needs after the file moved: the file as given
     (``model.xml``, an MJCF's own text) and the model compiled, includes and meshes inside, compressed.
 
-    The compiled model (a skybox texture alone can make it megabytes: 11.8 MB for dm_control's
-    pendulum) goes into ``model.mjb.gz``; with ``shared`` (a grid's root, its cells the run folders)
+    The compiled model (a skybox texture alone can make it megabytes) goes into ``model.mjb.gz``; with ``shared`` (a grid's root, its cells the run folders)
     into ``shared/models/<SHA-256>.mjb.gz`` instead, written once for every cell of the same model,
     and the cell keeps ``model.json``, which names that file relative to the cell.
     """

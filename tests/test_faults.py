@@ -479,11 +479,11 @@ def test_a_compile_cache_that_cannot_be_written_is_one_line_and_left_off(tmp_pat
     assert jax.config.jax_compilation_cache_dir == before
 
 
-def test_a_damaged_compile_cache_entry_is_compiled_again_and_replaced_with_one_line(tmp_path):
+def test_a_damaged_compile_cache_entry_is_compiled_again_and_replaced_with_one_line(tmp_path, monkeypatch):
     import warnings
 
     import jax.numpy as jnp
-    from jax._src import compilation_cache
+    from jax._src import compilation_cache, lru_cache
 
     from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
     session_cache, minimum = os.environ[COMPILE_CACHE_ENV], jax.config.jax_persistent_cache_min_compile_time_secs
@@ -511,6 +511,15 @@ def test_a_damaged_compile_cache_entry_is_compiled_again_and_replaced_with_one_l
         assert len(notes) == 1 and "damaged entry" in notes[0] and "replaced" in notes[0], notes
         for entry in entries:
             compilation_cache.decompress_executable(entry.read_bytes())  # whole again
+
+        def full_disk(self, key, value):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        monkeypatch.setattr(lru_cache.LRUCache, "put", full_disk)
+        program = lambda x: jnp.tanh(x) * 1.5 + 2.5  # noqa: E731 - another program, to be written
+        for _ in range(2):
+            np.testing.assert_allclose(run_without_warnings(), np.tanh(1.0) * 1.5 + 2.5, rtol=1e-6)
+        assert len(notes) == 2 and "cannot write to the compile cache" in notes[1], notes
     finally:
         os.environ[COMPILE_CACHE_ENV] = session_cache
         jax.config.update("jax_persistent_cache_min_compile_time_secs", minimum)
