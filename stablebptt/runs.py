@@ -107,7 +107,7 @@ def run_metrics(run_dir: Path) -> tuple[list[dict[str, float]], str]:
     if saved is not None and len(saved) >= len(rows) and len(saved):
         epochs = int(saved[:, 0].max())
         return ([dict(zip(COLUMNS, map(float, row))) for row in saved],
-                f"{path} is {problem}: read {epochs} epochs from {CHECKPOINT_FILE} instead "
+                f"{path} is {problem}: read {epochs} epoch{'s' if epochs != 1 else ''} from {CHECKPOINT_FILE} instead "
                 f"(--resume {run_dir} writes them back into {METRICS_FILE})")
     if problem == "cut mid-line" and rows:
         return rows, f"{path} is cut mid-line: its last line is left out"
