@@ -5,8 +5,8 @@ seed), ``params.npz`` (final or latest parameters, leading axis = seed) and
 ``checkpoint.npz`` (parameters, optimizer state and all metrics so far), and
 for an MJCF task ``model.xml`` and ``model.mjb.gz``, the model file as given and as
 compiled (self-contained: includes and meshes inside; compressed), so the run can go on
-after the file moved. A grid's cells share one compressed copy per model (``keep_model``). The checkpoint is the source of truth: resuming reads it
-and rewrites the rest.
+after the file moved; a grid's cells share one compressed copy per model (``keep_model``).
+The checkpoint is the source of truth: resuming reads it and rewrites the rest.
 
 Every state of a folder can go on: ``config.json`` is written first and claims
 the folder (atomically: of two runs given one folder, one gets it); a folder
@@ -333,9 +333,10 @@ def keep_model(run_dir: Path, model_file: str | Path, shared: Path | None = None
     """Keep in ``run_dir`` what reopening its model needs after the file moved: the file as given
     (``model.xml``, an MJCF's own text) and the model compiled, includes and meshes inside, compressed.
 
-    The compiled model (a skybox texture alone can make it megabytes) goes into ``model.mjb.gz``; with ``shared`` (a grid's root, its cells the run folders)
-    into ``shared/models/<SHA-256>.mjb.gz`` instead, written once for every cell of the same model,
-    and the cell keeps ``model.json``, which names that file relative to the cell.
+    The compiled model (a skybox texture alone can make it megabytes) goes into ``model.mjb.gz``;
+    with ``shared`` (a grid's root, its cells the run folders) into ``shared/models/<SHA-256>.mjb.gz``
+    instead, written once for every cell of the same model, and the cell keeps ``model.json``, which
+    names that file relative to the cell (a grid moved as a whole still reopens).
     """
     run_dir, model_file = Path(run_dir), Path(model_file)
     if model_file.suffix not in (".mjb", ".gz"):
