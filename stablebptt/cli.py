@@ -240,7 +240,8 @@ def _handle_cache_faults(directory: Path, note: Callable[[str], None]) -> None:
     _cache_state.update(directory=directory, note=note, told=set())
     if getattr(compilation_cache.get_executable_and_time, "handled_by_stablebptt", False):
         return
-    from jax._src.lru_cache import _CACHE_SUFFIX
+    from jax._src import lru_cache
+    suffix = getattr(lru_cache, "_CACHE_SUFFIX", "-cache")  # how JAX names an entry's file after its key
     read, write = compilation_cache.get_executable_and_time, compilation_cache.put_executable_and_time
 
     def tell(kind: str, error: Exception, what: str) -> None:
@@ -257,7 +258,7 @@ def _handle_cache_faults(directory: Path, note: Callable[[str], None]) -> None:
             if jax.config.jax_raise_persistent_cache_errors or isinstance(error, compilation_cache.CacheVerificationError):
                 raise
             try:
-                (Path(_cache_state["directory"]) / f"{cache_key}{_CACHE_SUFFIX}").unlink(missing_ok=True)
+                (Path(_cache_state["directory"]) / f"{cache_key}{suffix}").unlink(missing_ok=True)
             except OSError:
                 pass
             tell("read", error, "a damaged entry is compiled again and replaced in")
