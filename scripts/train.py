@@ -49,7 +49,10 @@ def configure(args, owners):
         return task_name, task_config, train_config, args.resume, record
     task_name = task_options.choose_task(args, owners, "train")
     train_config = build(TrainConfig, {"epochs": tasks.load(task_name).DEFAULT_EPOCHS, **given})
-    return task_name, task_options.task_config(task_name, given), train_config, args.out, None
+    task_config = task_options.task_config(task_name, given)
+    from stablebptt.checks import check_options
+    check_options(train_config, task_config)  # a resumed run keeps what it recorded
+    return task_name, task_config, train_config, args.out, None
 
 
 def main(argv: list[str]) -> int:
@@ -90,6 +93,8 @@ def train(argv: list[str], held: list) -> int:
     with one_line_errors():
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
     task_label, resuming = run.name, run.resuming
+    if run.repaired:
+        print(f"rewrote {' and '.join(run.repaired)} of {run_dir} from its checkpoint (epoch {start_epoch})", file=sys.stderr)
 
     if task.summary:
         print(task.summary)

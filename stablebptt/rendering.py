@@ -54,7 +54,7 @@ def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), ba
     offscreen framebuffer is enlarged to ``framebuffer`` when it is smaller.
 
     Args:
-      path: the MJCF file, or a compiled ``.mjb`` (a run's copy; drawn without the backdrop).
+      path: the MJCF file, or a compiled ``.mjb`` or ``.mjb.gz`` (a run's copy; drawn without the backdrop).
       framebuffer: (width, height) of the largest render, supersampling included.
       background: RGB in [0, 1] of the backdrop.
 
@@ -66,8 +66,9 @@ def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), ba
     path = Path(path)
     if not path.is_file():
         raise InputError(f"model file {path} does not exist")
-    if path.suffix == ".mjb":  # a run's compiled copy: no skybox can be added, the rest applies
-        model = mujoco.MjModel.from_binary_path(str(path))
+    if path.suffix in (".mjb", ".gz"):  # a run's compiled copy: no skybox can be added, the rest applies
+        from stablebptt.runs import load_compiled_model
+        model = load_compiled_model(path)
         brighten_headlight(model.vis.headlight)
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, int(framebuffer[0]))
         model.vis.global_.offheight = max(model.vis.global_.offheight, int(framebuffer[1]))

@@ -56,6 +56,13 @@ class SimulatorConfig:
             if getattr(self, name) not in allowed:
                 raise InputError(f"{config_field(self, name)} must be one of {', '.join(a or repr(a) for a in allowed)}, got {getattr(self, name)!r}")
 
+    def conflicts(self) -> list[str]:
+        """Options set together where one makes the other meaningless (``checks.check_options``)."""
+        if self.pipeline == "mjx" and self.solver_iterations:
+            return [f"{config_field(self, 'solver_iterations')} {self.solver_iterations} sets the solver of the lean "
+                    f"and stages pipelines; {config_field(self, 'pipeline')} mjx keeps MuJoCo's own: drop one"]
+        return []
+
 
 @dataclass(frozen=True)
 class Simulator:
