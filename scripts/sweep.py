@@ -149,6 +149,8 @@ def plan_grid(config: SweepConfig, task_name: str | None, given: dict) -> Plan:
         fail(f"--lrs takes positive learning rates, got {config.lrs}")
     with one_line_errors():
         fixed = task_options.task_config(task_name, given)
+        from stablebptt.checks import check_options
+        check_options(TrainConfig(), fixed)  # task options that make each other meaningless
         task = tasks.load(task_name).make(fixed)  # built once: the learning rate does not change it
     return Plan(task_name, "lr", values, "lr", lambda value: task, lambda value: fixed, task.name,
                 SCORES.get(task_name, LOSS))

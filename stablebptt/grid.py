@@ -288,18 +288,25 @@ def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None
         assert seeds == list(range(seeds[0], seeds[0] + len(seeds)))  # as TrainConfig's seed and seeds name them
         train = dataclasses.replace(outcome["train_config"], mode=mode, clip=clip, seeds=len(members), seed=seeds[0],
                                     epochs=grid.epochs, **grid.train_overrides(value))
+        task = grid.make_task(value)
         record = {"task": grid.task_name, "task_config": dataclasses.asdict(grid.task_config(value)),
-                  "train": dataclasses.asdict(train), "sweep": grid.name}
+                  "resolved_task": {"name": task.name, **task.resolved}, "train": dataclasses.asdict(train),
+                  "sweep": grid.name}
         indices = np.array([index for index, _ in members])
-        write_cell(directory, record, table, jax.tree.map(lambda leaf: np.asarray(leaf)[indices], params))
+        write_cell(directory, record, table, jax.tree.map(lambda leaf: np.asarray(leaf)[indices], params),
+                   task.resolved.get("model_file"))
 
 
-def write_cell(directory: Path, record: dict, rows: np.ndarray, params) -> None:
-    """One cell's run folder: config.json, metrics.csv and params.npz (seeds stacked on the leaves' first axis)."""
+def write_cell(directory: Path, record: dict, rows: np.ndarray, params, model_file: str | Path | None = None) -> None:
+    """One cell's run folder: config.json, metrics.csv and params.npz (seeds stacked on the leaves' first
+    axis); and what reopens ``model_file`` after it moved, its compiled copy shared by the grid's cells
+    (``runs.keep_model``: one file per model in ``<grid root>/models``)."""
     directory.mkdir(parents=True, exist_ok=True)
     runs.write_json(directory / runs.CONFIG_FILE, record)
     runs.write_metrics(directory / runs.METRICS_FILE, rows)
     runs.save_params(directory / runs.PARAMS_FILE, params)
+    if model_file:
+        runs.keep_model(directory, model_file, shared=directory.parent)
 
 
 def describe(grid: Grid, first_seed: int, seeds: int) -> dict:

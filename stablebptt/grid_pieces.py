@@ -144,4 +144,10 @@ def merge_cell(folders: list[Path], name: str, destination: Path, write_cell) ->
     record = records[0]
     record["train"] = {**record["train"], "seed": records[0]["train"]["seed"],
                        "seeds": sum(r["train"]["seeds"] for r in records)}
-    write_cell(destination / name, record, rows, params)
+    first = folders[0] / name
+    # The model the piece kept: its compiled copy, shared again in the merged grid's root.
+    link = first / runs.MODEL_LINK_FILE
+    compiled = first / runs.read_json(link)["compiled"] if link.is_file() else None
+    write_cell(destination / name, record, rows, params, compiled)
+    if (first / runs.MODEL_COPY_FILE).is_file():
+        runs.atomic_write(destination / name / runs.MODEL_COPY_FILE, (first / runs.MODEL_COPY_FILE).read_bytes())

@@ -366,6 +366,11 @@ def test_a_grid_over_an_mjcf_file_and_over_an_environment_reports_intervals(suit
     assert intervals[0].startswith("| lr | clip | seeds | C - R") and intervals[2].startswith("| 0.001 | norm | 2 | ")
     record = runs.open_run(tmp_path / "pendulum" / "mjcf-lr0.001-C-norm")
     assert record["task_config"]["init_pose"] == "hinge=3.14159" and record["task_config"]["horizon_seconds"] == 0.2
+    # The cells keep one compressed copy of the model between them, which each reopens.
+    assert len(list((tmp_path / "pendulum" / "models").glob("*.mjb.gz"))) == 1
+    for cell in (tmp_path / "pendulum").glob("mjcf-lr*-norm"):
+        kept = cell / runs.read_json(cell / "model.json")["compiled"]
+        assert kept.is_file() and (cell / "model.xml").read_bytes() == (suite / "pendulum.xml").read_bytes()
     assert sweep_command.main(["--env", "envs_for_tests:make_cart", "--steps", "6", "--episode-length", "8", *tiny_sizes]) == 0
     out = capsys.readouterr().out
     assert "best " in out and "(episode return " in out, out
