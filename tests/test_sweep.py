@@ -102,10 +102,14 @@ def test_a_sweep_resumes_from_its_checkpoints(tiny, tmp_path):
 
 
 def test_bad_sweep_input_gets_one_line_and_exit_code_2():
-    for arguments in (["--preset", "pendulum"], ["--modes", "X"], ["--seeds", "0"], ["--complexity", "7"]):
-        result = sweep(*arguments)
-        lines = [line for line in result.stderr.splitlines() if line.strip()]
-        assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, result.stderr)
+    """In this process: every refusal comes before anything compiles."""
+    for arguments in (["--preset", "pendulum"], ["--modes", "X"], ["--seeds", "0"], ["--complexity", "7"],
+                      ["--preset", "tiny", "--rc", "0.5"], ["--lrs", "0.01"], ["--task", "repulsion", "--complexity", "1"],
+                      ["--task", "repulsion", "--lrs", "-1"], ["--seed-range", "3:2"], ["--seed-range", "0:1", "--merge"],
+                      ["--task", "repulsion", "--steps", "5", "--task-steps", "5"], ["--preset", "repulsion", "--poles", "2"]):
+        code, stderr = sweep_in_process(*arguments)
+        lines = [line for line in stderr.splitlines() if line.strip()]
+        assert code == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, stderr)
 
 
 def test_running_out_of_device_memory_ends_a_sweep_in_one_line(tmp_path, capsys, monkeypatch):
@@ -220,8 +224,8 @@ def test_two_processes_under_jax_distributed_give_the_results_of_one(tmp_path):
 
 def test_distributed_options_go_together():
     for arguments in (["--coordinator", "localhost:1"], ["--num-processes", "2", "--process-id", "2", "--coordinator", "h:1"]):
-        result = sweep(*TINY, *arguments)
-        assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+        code, stderr = sweep_in_process(*TINY, *arguments)
+        assert code == 2 and len(stderr.strip().splitlines()) == 1, stderr
 
 
 def test_a_cell_is_a_run_folder_that_renders(tiny, tmp_path):
