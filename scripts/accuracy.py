@@ -34,16 +34,18 @@ from pathlib import Path
 from stablebptt import accuracy_report
 from stablebptt.accuracy_report import STUDIES
 from stablebptt.cli import fail, parse_config
-from stablebptt.apps.accuracy import TASKS, AccuracyConfig
+from stablebptt.apps.accuracy import AccuracyConfig, check_tasks
+from stablebptt.errors import InputError
 
 def parse(argv: list[str]) -> AccuracyConfig:
     config = parse_config(AccuracyConfig, argv, __doc__, "accuracy study")
-    for name in config.task_list:
-        if name not in TASKS:
-            fail(f"unknown task {name!r} in --tasks: choose from {', '.join(TASKS)}")
     for name in config.study_list:
         if name not in STUDIES:
             fail(f"unknown study {name!r} in --studies: choose from {', '.join(STUDIES)}")
+    try:
+        check_tasks(config)
+    except InputError as error:
+        fail(str(error))
     if "contact" in config.study_list and not Path(config.suite, "hopper.xml").is_file():
         fail("the contact study needs --suite: the folder of dm_control's suite/*.xml (pip download dm_control, unzip)")
     if not (1 <= config.poles <= 4 and 1 <= config.gradient_poles <= 4):

@@ -21,43 +21,30 @@ from __future__ import annotations
 import os
 import platform
 import sys
-from dataclasses import dataclass, field
 from pathlib import Path
 
+from stablebptt.apps.bench import TABLES, BenchConfig
 from stablebptt.cli import fail, parse_config
-from stablebptt.apps.bench import SIMULATORS
-
-TABLES = ("modes", "steps")
-
-@dataclass(frozen=True)
-class BenchConfig:
-    tasks: str = field(default="repulsion,cartpole,quantum", metadata={"help": "comma-separated tasks"})
-    poles: str = field(default="1,3", metadata={"help": "comma-separated pole counts for the cart-pole"})
-    batch: int = field(default=8, metadata={"help": "initial states per update"})
-    rounds: int = field(default=20, metadata={"help": "timed rounds per variant (median reported)"})
-    out: str = field(default="", metadata={"help": "also write the tables to this Markdown file"})
-    tables: str = field(default="modes,steps", metadata={"help": "tables to time: modes (an update per mode, every task), steps (the cart-pole's simulators against the closed-form floor, and the parts of its update)"})
-    simulators: str = field(default=",".join(SIMULATORS), metadata={"help": "the cart-pole simulators of the steps table"})
+from stablebptt.errors import InputError
 
 
 def main(argv: list[str]) -> int:
     config = parse_config(BenchConfig, argv, __doc__, "benchmark")
     from stablebptt import tasks
-    names = [t for t in config.tasks.split(",") if t]  # "cartpole": the MJCF task's cart-poles (--poles)
+    names = config.task_list  # "cartpole": the MJCF task's cart-poles (--poles)
     unknown = [t for t in names if tasks.canonical(t) not in tasks.entries()]
     if unknown:
         fail(f"unknown task {unknown[0]!r}: choose from {', '.join(sorted(tasks.entries()))}")
-    try:
-        poles = [int(p) for p in config.poles.split(",") if p]
-    except ValueError:
-        fail(f"--poles takes comma-separated integers, got {config.poles!r}")
     if config.rounds <= 0 or config.batch <= 0:
         fail("--rounds and --batch must be positive")
-    tables = [t for t in config.tables.split(",") if t]
-    simulators = tuple(s for s in config.simulators.split(",") if s)
-    for option, chosen, known in (("--tables", tables, TABLES), ("--simulators", simulators, tuple(SIMULATORS))):
-        if not chosen or any(name not in known for name in chosen):
-            fail(f"{option} takes a comma-separated subset of {', '.join(known)}, got {','.join(chosen) or 'nothing'}")
+    tables = config.table_list
+    if not tables or any(name not in TABLES for name in tables):
+        fail(f"--tables takes a comma-separated subset of {', '.join(TABLES)}, got {','.join(tables) or 'nothing'}")
+    from stablebptt.apps.bench import bench_cases, mode_table
+    try:  # every task's cases before anything is timed: a bad option is refused at once
+        cases = {name: bench_cases(name, config) for name in names}
+    except InputError as error:
+        fail(str(error))
     import jax
     header = [f"Measured by `python scripts/bench.py {' '.join(argv)}`".rstrip()
               + f" on {platform.machine()} ({jax.devices()[0].platform}, {jax.device_count()} device, "
@@ -65,20 +52,15 @@ def main(argv: list[str]) -> int:
               f"jax {jax.__version__}, batch {config.batch}, median of {config.rounds} rounds.", ""]
     print("\n".join(header), flush=True)
     report = list(header)
-    from stablebptt.apps.bench import mode_table, pipeline_table
     for name in names:
         module = tasks.load(name)
-        if tasks.canonical(name) == tasks.MJCF_TASK:
-            section = []
-            for count in poles:
-                if "modes" in tables:
-                    task = module.make(module.Config(poles=count))
-                    section += mode_table(f"Cart-pole (MJX), {count} pole{'s' if count > 1 else ''}", task, config.batch, config.rounds)
-                if "steps" in tables:
-                    section += pipeline_table(count, config.batch, config.rounds, simulators)
-        elif "modes" in tables:
-            section = mode_table(name.capitalize(), module.make(module.Config()), config.batch, config.rounds)
-        else:
+        section = []
+        for case in cases[name]:
+            if "modes" in tables:
+                section += mode_table(case.title, module.make(case.task_config), config.batch, config.rounds)
+            if "steps" in tables and case.steps is not None:
+                section += case.steps()
+        if not section:
             continue
         print("\n".join(section), flush=True)
         report += section

@@ -406,7 +406,7 @@ def _returns(record: dict) -> dict:
     return result
 
 
-def summarize(record: dict) -> dict:
+def summary_numbers(record: dict) -> dict:
     """The numbers a row shows, also stored in the JSON."""
     times = record.get("times", {})
     later = [e["seconds"] for e in (record.get("epochs") or [])[2:]]
@@ -612,7 +612,7 @@ def survey(args, argv: list[str]) -> int:
     for index, name in enumerate(todo, 1):
         print(f"[{index}/{len(todo)}] {name} ...", flush=True)
         record = survey_one(name, args, log_dir)
-        record["summary_numbers"] = summarize(record)
+        record["summary_numbers"] = summary_numbers(record)
         payload["envs"][name] = record
         _write_json(json_path, payload)
         _write_atomic(md_path, render(payload, names))

@@ -9,7 +9,9 @@ One run directory: the figure goes to learning_curves.png inside it (the file
 stablebptt.plots.plot_run writes at the end of a run) unless --out says otherwise. Several run directories: the
 comparison needs --out, so that it never lands in one run's directory. The
 figure is derived from config.json and metrics.csv, so it is replaced
-(atomically) whenever it is drawn again. Smoothing defaults to the paper's
+(atomically) whenever it is drawn again. A metrics.csv that is missing, empty or
+cut mid-line is read from the run's checkpoint.npz instead (one line on stderr
+says so; --resume writes it back); without a checkpoint a cut last line is left out. Smoothing defaults to the paper's
 30 epochs for runs of at least 90 epochs and none for shorter ones.
 """
 from __future__ import annotations
@@ -46,7 +48,8 @@ def main(argv: list[str]) -> int:
     if out.is_dir():
         out = out / plots.FIGURE_FILE
     try:
-        path = plots.learning_curves(args.run_dirs, out, smooth=args.smooth, band=args.band)
+        path = plots.learning_curves(args.run_dirs, out, smooth=args.smooth, band=args.band,
+                                     note=lambda line: print(line, file=sys.stderr))
     except InputError as error:
         fail(str(error))
     print(f"wrote {path}")

@@ -8,7 +8,7 @@
 
 The controller is rolled out from the run's first test initial states, one video
 frame per step, the rollouts side by side (how MuJoCo scenes are drawn:
-stablebptt/rendering.py). Existing files are never overwritten: default names
+stablebptt/rendering.py, stablebptt/drawing.py). Existing files are never overwritten: default names
 get a suffix -2, -3, ...; an existing --out is refused.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from datetime import datetime
 from pathlib import Path
 
 from stablebptt.cli import Parser, add_options, build, fail, one_line_errors
-from stablebptt.rendering import fresh_outputs
+from stablebptt.media import fresh_outputs
 from stablebptt.errors import InputError
 
 RENDERS_ROOT = Path("renders")
@@ -111,7 +111,7 @@ def main(argv: list[str]) -> int:
         video, picture = fresh_outputs(args.out, default_stem, entry.picture, config.gif, config.video)
         if entry.mujoco_frames:
             # Before mujoco is imported: it reads MUJOCO_GL once.
-            from stablebptt.rendering import select_gl_backend
+            from stablebptt.gl_backend import select_gl_backend
             select_gl_backend()
 
     from stablebptt.cli import use_compile_cache
@@ -123,6 +123,7 @@ def main(argv: list[str]) -> int:
         fail(str(error))
 
     from stablebptt.apps.trained import first_nonfinite_step, rollouts_from_test_states
+    from stablebptt.drawing import DrawRequest, DrawSettings
     states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
     for index, step in enumerate(first_nonfinite_step(states)):
         if step >= 0:  # a diverged rollout has nothing to draw
@@ -134,7 +135,9 @@ def main(argv: list[str]) -> int:
     video = video if config.video else None
     picture.parent.mkdir(parents=True, exist_ok=True)  # renders/ for --model
     try:
-        written = entry.drawer()(task_config, states, controls, titles, label, config, video, picture)
+        settings = DrawSettings(width=config.width, height=config.height, fps=config.fps,
+                                strip_states=config.strip_states)
+        written = entry.drawer()(DrawRequest(task_config, states, controls, titles, label, settings, video, picture))
     except InputError as error:
         fail(str(error))
     except OSError as error:  # a full disk, a directory without write permission

@@ -1,26 +1,36 @@
 #!/usr/bin/env python3
-"""Run a grid (task x complexity x mode x clip mode x seeds) as few compiled programs, side by side on the devices.
+"""Run a grid (task x complexity or learning rate x mode x clip mode x seeds) as few compiled programs.
 
     python scripts/sweep.py --preset cartpole                 # 1-4 poles x R/M/C/S x value/norm/none x 5 seeds
     python scripts/sweep.py --preset repulsion --epochs 200
     python scripts/sweep.py --preset quantum --time-limit 540 # stop and checkpoint before 9 minutes; rerun resumes
+    python scripts/sweep.py --model pendulum.xml --init-pose hinge=3.14159 --horizon-seconds 7 --modes R,M,C --clips norm
+    python scripts/sweep.py --env CartpoleSwingup --steps 50 --lrs 0.001,0.003 --seeds 5
+    python scripts/sweep.py --preset quantum --seeds 20 --seed-range 0:5   # one piece; --merge joins the pieces
 
-What shares a program, how programs spread over devices and hosts, and what each cell
-leaves: stablebptt/grid.py. Results land in OUT/PRESET/: one run folder per (complexity,
-mode, clip) with the seeds as rows, summary.csv, test_loss.csv, table.md, learning-curve
-figures, and sweeps/<time>-<complexities>.json per call with wall times and devices.
+A preset varies a task's complexity; any other task (--model, --env, --task and its
+options, as train.py takes them) varies the learning rate (--lrs). What shares a
+program, how programs spread over devices and hosts, and what each cell leaves:
+stablebptt/grid.py; pieces: stablebptt/grid_pieces.py. Results land in OUT/NAME/
+(NAME: the preset, or the task's name, e.g. the model file's): one run folder per
+(value, mode, clip) with the seeds as rows, summary.csv, test_loss.csv, table.md,
+intervals.md (C - R and C - M with 95% bootstrap intervals), verdicts.txt,
+learning-curve figures, and sweeps/<time>-<values>.json per call.
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
+import typing
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from stablebptt import tasks
-from stablebptt.cli import build, fail, in_worker_thread, out_of_memory, parse_config, stop_on_signals
+from stablebptt.cli import Parser, add_options, build, fail, in_worker_thread, one_line_errors, option_name, out_of_memory, stop_on_signals
+from stablebptt.commands import task_options
 from stablebptt.errors import InputError
 
 # preset -> (task, the option that sets the complexity, its values): from the task registry
@@ -29,8 +39,9 @@ PRESETS = tasks.presets()
 
 @dataclass(frozen=True)
 class SweepConfig:
-    preset: str = field(default="cartpole", metadata={"help": "which grid", "choices": tuple(PRESETS)})
+    preset: str = field(default="", metadata={"help": "a built-in grid over a task's complexity (default: cartpole, unless --model, --env or --task is given)", "choices": ("",) + tuple(PRESETS)})
     complexity: str = field(default="", metadata={"help": "comma-separated subset of the preset's complexities (poles, rc or target)"})
+    lrs: str = field(default="", metadata={"help": "comma-separated learning rates, the grid's axis for --model, --env or --task (default: the training default, 0.001)"})
     modes: str = field(default="R,M,C,S", metadata={"help": "comma-separated gradient flows"})
     clips: str = field(default="value,norm,none", metadata={"help": "comma-separated clip modes"})
     seeds: int = field(default=5, metadata={"help": "seeds per cell (the same seeds in every cell)"})
@@ -49,7 +60,9 @@ class SweepConfig:
     process_id: int = field(default=-1, metadata={"help": "several hosts: this process's number, 0 to --num-processes - 1"})
     group_values: bool = field(default=True, metadata={"help": "vmap a task's complexities into one program where it can (fewer compiles); --no-group-values: a program each, to spread over devices or hosts"})
     compile_cache: bool = field(default=True, metadata={"help": "keep compiled programs between calls (in $STABLEBPTT_COMPILE_CACHE or ~/.cache/stablebptt)"})
-    report: bool = field(default=False, metadata={"help": "train nothing: rebuild summary.csv, table.md, intervals.md and figures from the run directories in OUT/PRESET (without them: intervals.md from its test_loss.csv)"})
+    report: bool = field(default=False, metadata={"help": "train nothing: rebuild summary.csv, table.md, intervals.md and figures from the run directories in OUT/NAME (without them: intervals.md from its test_loss.csv)"})
+    seed_range: str = field(default="", metadata={"help": "START:STOP: train only seeds START to STOP-1 (counted from 0) of the --seeds, as a piece in OUT/NAME/pieces/ that resumes on its own (one cluster job each)"})
+    merge: bool = field(default=False, metadata={"help": "train nothing: merge the pieces in OUT/NAME/pieces/ (the same command without --seed-range) into the grid's cells and report"})
 
 
 def parse_list(text: str, allowed, name: str, kind=str) -> list:
@@ -57,17 +70,10 @@ def parse_list(text: str, allowed, name: str, kind=str) -> list:
         values = [kind(v) for v in text.split(",") if v.strip()]
     except ValueError:
         fail(f"--{name} takes comma-separated values, got {text!r}")
-    bad = [v for v in values if v not in allowed]
+    bad = [v for v in values if allowed is not None and v not in allowed]
     if bad or not values:
         fail(f"--{name}: {bad[0] if bad else 'nothing'} is not one of {', '.join(map(str, allowed))}")
     return values
-
-
-def task_config(task_name: str, option: str, value, config: SweepConfig):
-    task_options = {option: value}
-    if config.task_steps:
-        task_options["steps"] = config.task_steps
-    return build(tasks.load(task_name).Config, task_options)
 
 
 def start_processes(config: SweepConfig) -> None:
@@ -86,11 +92,77 @@ def start_processes(config: SweepConfig) -> None:
         jax.distributed.initialize()
 
 
-def main(argv: list[str]) -> int:
-    config = parse_config(SweepConfig, argv, __doc__, "sweep")
-    task_name, option, complexities = PRESETS[config.preset]
+def parse(argv: list[str]) -> tuple[SweepConfig, str | None, dict]:
+    """(the sweep's options, the task named by --task or implied by its options or None, the task options given)."""
+    parser = Parser(description=__doc__, formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32))
+    owners = {name: {"sweep"} for name in add_options(parser, SweepConfig, "sweep")}
+    task_options.add_task_options(parser, owners)
+    args = parser.parse_args(argv)
+    with one_line_errors():
+        config = build(SweepConfig, vars(args))
+    given = task_options.task_options_given(args, owners, "sweep")
+    if config.preset:
+        task_name = PRESETS[config.preset][0]
+        if args.task is not None and tasks.canonical(args.task) != task_name:
+            fail(f"--preset {config.preset} is a grid of --task {task_name}, not of --task {args.task}")
+        args.task = task_name  # the preset's task takes the options given
+    custom = args.task is not None or bool(given)
+    task_name = task_options.choose_task(args, owners, "sweep") if custom else None
+    return config, task_name, given
+
+
+class Plan(typing.NamedTuple):
+    """What a sweep call varies and where its cells go."""
+
+    task_name: str
+    option: str  # the axis: a task option (a preset's complexity) or a training option ("lr")
+    values: list
+    train_option: str  # "lr" when the axis is a training option, else ""
+    make_task: typing.Callable
+    task_config: typing.Callable
+    name: str  # OUT/NAME
+    score: tuple[str, float]  # how the report reads the test loss
+
+
+def plan_grid(config: SweepConfig, task_name: str | None, given: dict) -> Plan:
+    """The grid's axis and task from the options: a preset's complexities, or learning rates of any task."""
+    if config.task_steps and "steps" in given:
+        fail("--task-steps and --steps set the same horizon: give one")
+    if config.task_steps:
+        given = {**given, "steps": config.task_steps}
+    preset = config.preset or ("" if task_name else "cartpole")
+    if preset:
+        task_name, option, complexities = PRESETS[preset]
+        if option in given:
+            fail(f"{option_name(option)} is the axis of --preset {preset}: choose its values with --complexity")
+        if config.lrs:
+            fail(f"--lrs is the axis of a grid over --model, --env or --task; --preset {preset} varies {option_name(option)}")
+        values = parse_list(config.complexity, complexities, "complexity", type(complexities[0])) if config.complexity else list(complexities)
+        build_config = lambda value: task_options.task_config(task_name, {**given, option: value})
+        make_task = lambda value: tasks.load(task_name).make(build_config(value))
+        return Plan(task_name, option, values, "", make_task, build_config, preset, SCORES.get(task_name, LOSS))
     if config.complexity:
-        complexities = parse_list(config.complexity, complexities, "complexity", type(complexities[0]))
+        fail("--complexity chooses among a preset's complexities; a grid over --model, --env or --task varies --lrs")
+    from stablebptt.training import TrainConfig
+    values = parse_list(config.lrs, None, "lrs", float) if config.lrs else [TrainConfig.lr]
+    if not all(math.isfinite(v) and v > 0 for v in values):
+        fail(f"--lrs takes positive learning rates, got {config.lrs}")
+    with one_line_errors():
+        fixed = task_options.task_config(task_name, given)
+        from stablebptt.checks import check_options
+        check_options(TrainConfig(), fixed)  # task options that make each other meaningless
+        task = tasks.load(task_name).make(fixed)  # built once: the learning rate does not change it
+    return Plan(task_name, "lr", values, "lr", lambda value: task, lambda value: fixed, task.name,
+                SCORES.get(task_name, LOSS))
+
+
+LOSS = ("test loss", 1.0)
+# Tasks whose test loss reads better as a score: the environment task's is the negative episode return.
+SCORES = {"env": ("episode return", -1.0)}
+
+
+def main(argv: list[str]) -> int:
+    config, task_name, given = parse(argv)
     from stablebptt.training import CLIP_MODES, MODES
     modes = parse_list(config.modes, MODES, "modes")
     clips = parse_list(config.clips, CLIP_MODES, "clips")
@@ -102,31 +174,52 @@ def main(argv: list[str]) -> int:
     for name in ("checkpoint_seconds", "time_limit"):
         if not (math.isfinite(getattr(config, name)) and getattr(config, name) >= 0):
             fail(f"--{name.replace('_', '-')} must be a number of seconds, 0 or more, got {getattr(config, name)}")
-    root = Path(config.out) / config.preset
+    if config.seed_range and (config.merge or config.report):
+        fail("--seed-range trains a piece; --merge and --report train nothing: give one")
+    from stablebptt.grid_pieces import parse_seed_range
+    with one_line_errors():
+        start, stop = parse_seed_range(config.seed_range, config.seeds) if config.seed_range else (0, config.seeds)
+    plan = plan_grid(config, task_name, given)
+    root = Path(config.out) / plan.name
     from stablebptt import grid as grids
+    from stablebptt import grid_pieces, grid_report
+
+    identity = {"task_steps": config.task_steps, **({"task_options": given} if given else {})}
+    grid = grids.Grid(
+        plan.task_name, plan.option, tuple(plan.values), make_task=plan.make_task, task_config=plan.task_config,
+        modes=tuple(modes), clips=tuple(clips), seeds=tuple(FIRST_SEED + s for s in range(start, stop)),
+        epochs=config.epochs, train_size=config.train_size, test_size=config.test_size,
+        checkpoint_every=config.checkpoint_every, checkpoint_seconds=config.checkpoint_seconds, unroll=config.unroll,
+        gpu_unroll=tasks.entry(plan.task_name).gpu_unroll, group_values=config.group_values, name=plan.name,
+        identity=identity, train_option=plan.train_option)
+    report = lambda: grid_report.write_report(root, grid_report.run_directories(root, plan.task_name, plan.option),
+                                              plan.task_name, plan.option, plan.values, modes, clips, plan.score)
 
     if config.report:
-        directories = grids.run_directories(root, task_name, option)
+        directories = grid_report.run_directories(root, plan.task_name, plan.option)
         if not directories and (root / "test_loss.csv").is_file():  # only the tidy CSV ships in results/
-            print("\n".join(grids.write_intervals(root, option)))
+            print("\n".join(grid_report.write_intervals(root, plan.option)))
             return 0
         if not directories:
-            fail(f"no run directories of preset {config.preset} in {root}")
-        print("\n".join(grids.write_report(root, directories, task_name, option, complexities, modes, clips)))
+            fail(f"no run directories of {plan.name} in {root}")
+        print("\n".join(report()))
+        return 0
+    if config.merge:
+        with one_line_errors():
+            merged = merge(grid, grids, root, config.seeds)
+        print("\n".join(report()))
+        print(f"merged {merged} pieces into {root}")
         return 0
 
     start_processes(config)
     import jax
     from tqdm import tqdm
-    root.mkdir(parents=True, exist_ok=True)
-    grid = grids.Grid(
-        task_name, option, tuple(complexities),
-        make_task=lambda value: tasks.load(task_name).make(task_config(task_name, option, value, config)),
-        task_config=lambda value: task_config(task_name, option, value, config),
-        modes=tuple(modes), clips=tuple(clips), seeds=tuple(42 + s for s in range(config.seeds)),
-        epochs=config.epochs, train_size=config.train_size, test_size=config.test_size,
-        checkpoint_every=config.checkpoint_every, checkpoint_seconds=config.checkpoint_seconds, unroll=config.unroll, gpu_unroll=tasks.entry(task_name).gpu_unroll,
-        group_values=config.group_values, name=config.preset, identity={"task_steps": config.task_steps})
+    where = grid_pieces.piece_root(root, start, stop) if config.seed_range else root
+    where.mkdir(parents=True, exist_ok=True)
+    if config.seed_range:
+        with one_line_errors():
+            grid_pieces.write_manifest(where, grids.describe(grid, FIRST_SEED, config.seeds),
+                                       start, stop)
     wall = time.perf_counter()
     deadline = time.monotonic() + config.time_limit if config.time_limit else None
     log = lambda message: tqdm.write(message, file=sys.stderr)
@@ -134,8 +227,8 @@ def main(argv: list[str]) -> int:
     # after its current epoch and stops.
     with stop_on_signals(log) as interrupted:
         try:
-            stop = lambda: interrupted() or (deadline is not None and time.monotonic() > deadline)
-            report = in_worker_thread(lambda: grids.run_grid(grid, root, stop, log))
+            stop_now = lambda: interrupted() or (deadline is not None and time.monotonic() > deadline)
+            outcome = in_worker_thread(lambda: grids.run_grid(grid, where, stop_now, log))
         except InputError as error:
             fail(str(error))
         except jax.errors.JaxRuntimeError as error:
@@ -146,15 +239,35 @@ def main(argv: list[str]) -> int:
     if interrupted():
         print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
         return 130
-    finished = all(r["epochs_done"] == config.epochs for r in report)
-    record = grids.write_record(root, {"preset": config.preset, "option": option, "config": dataclasses.asdict(config),
-                                       "finished": finished, "wall_seconds_this_call": time.perf_counter() - wall}, report)
-    if jax.process_index() == 0:
-        # The report covers every run directory of the preset, also those of earlier or parallel calls.
-        print("\n".join(grids.write_report(root, grids.run_directories(root, task_name, option), task_name, option,
-                                            PRESETS[config.preset][2], modes, clips)))
-    print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: {root} (record: {record.name})")
+    finished = all(r["epochs_done"] == config.epochs for r in outcome)
+    record = grids.write_record(where, {"preset": plan.name, "option": plan.option, "config": dataclasses.asdict(config),
+                                        "finished": finished, "wall_seconds_this_call": time.perf_counter() - wall}, outcome)
+    if jax.process_index() == 0 and not config.seed_range:
+        # The report covers every run directory of the grid, also those of earlier or parallel calls.
+        print("\n".join(report()))
+    if config.seed_range:
+        print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: piece {where} "
+              f"(record: {record.name}); once every piece is done, the same command with --merge instead of "
+              f"--seed-range joins them")
+    else:
+        print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: {root} (record: {record.name})")
     return 0
+
+
+FIRST_SEED = 42  # the grid's seeds are FIRST_SEED, FIRST_SEED + 1, ...
+
+
+def merge(grid, grids, root: Path, seeds: int) -> int:
+    """The pieces under ``root`` -> the grid's cells in ``root``; returns how many pieces were merged."""
+    from stablebptt import grid_pieces, grid_report
+    whole = dataclasses.replace(grid, seeds=tuple(FIRST_SEED + s for s in range(seeds)))
+    names = [grid_report.cell_name(grid.task_name, grid.option, value, mode, clip)
+             for value in grid.values for mode in grid.modes for clip in grid.clips]
+    folders = grid_pieces.check_pieces(root, grids.describe(grid, FIRST_SEED, seeds), names)
+    grids.check_cells_are_this_grids(grids.plan(whole, root), whole, root)
+    for name in names:
+        grid_pieces.merge_cell(folders, name, root, grids.write_cell)
+    return len(folders)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from stablebptt import tasks
 from stablebptt.cli import Parser, add_options, build, fail, one_line_errors, option_name
+from stablebptt.commands import task_options
 from stablebptt.training import TrainConfig
 
 RUNS_ROOT = Path("runs")
@@ -23,8 +24,6 @@ RESUMABLE = {"epochs"}  # what --resume may change: extending a finished run
 
 def parse(argv: list[str]):
     parser = Parser(description=__doc__, formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32))
-    parser.add_argument("--task", choices=sorted(tasks.entries()) + sorted(tasks.LEGACY_NAMES), default=None,
-                        help=f"which task (default: {tasks.DEFAULT_TASK}, or the task whose options are given)")
     parser.add_argument("--out", type=Path, default=None, help="run directory to create (default: runs/TASK-TIME); never overwritten")
     parser.add_argument("--resume", type=Path, default=None, help="continue the run in this directory from its checkpoint")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs and CI)")
@@ -32,21 +31,8 @@ def parse(argv: list[str]):
                         help="keep compiled programs between runs (in $STABLEBPTT_COMPILE_CACHE or ~/.cache/stablebptt; default: on)")
     # owners: option -> the configs that have it ("train" or task names)
     owners = {name: {"train"} for name in add_options(parser, TrainConfig, "training")}
-    for task_name in sorted(tasks.entries()):
-        for name in add_options(parser, tasks.load(task_name).Config, f"task {task_name}", set(owners)):
-            owners.setdefault(name, set()).add(task_name)
+    task_options.add_task_options(parser, owners)
     return parser.parse_args(argv), owners
-
-
-def choose_task(args, owners) -> str:
-    """--task, else the only task whose options are all given, else the default."""
-    task_options = [owners[name] for name in vars(args) if name in owners and "train" not in owners[name]]
-    candidates = set.intersection(*task_options) if task_options else set()
-    task_name = args.task or (candidates.pop() if len(candidates) == 1 else tasks.DEFAULT_TASK)
-    foreign = sorted(name for name in vars(args) if name in owners and not owners[name] & {"train", task_name})
-    if foreign:
-        fail(f"{option_name(foreign[0])} is an option of --task {'/'.join(sorted(owners[foreign[0]]))}, not of --task {task_name}")
-    return task_name
 
 
 def configure(args, owners):
@@ -62,12 +48,11 @@ def configure(args, owners):
         task_name = tasks.canonical(record["task"])
         task_config, train_config = configs_of(args.resume, record, given)
         return task_name, task_config, train_config, args.resume, record
-    task_name = tasks.canonical(choose_task(args, owners))
-    module = tasks.load(task_name)
-    if given.get("model"):  # absolute: the run resumes and renders from any working directory
-        given["model"] = str(Path(given["model"]).resolve())
-    task_config = build(module.Config, given)
-    train_config = build(TrainConfig, {"epochs": module.DEFAULT_EPOCHS, **given})
+    task_name = task_options.choose_task(args, owners, "train")
+    train_config = build(TrainConfig, {"epochs": tasks.load(task_name).DEFAULT_EPOCHS, **given})
+    task_config = task_options.task_config(task_name, given)
+    from stablebptt.checks import check_options
+    check_options(train_config, task_config)  # a resumed run keeps what it recorded
     return task_name, task_config, train_config, args.out, None
 
 
@@ -109,6 +94,8 @@ def train(argv: list[str], held: list) -> int:
     with one_line_errors():
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
     task_label, resuming = run.name, run.resuming
+    if run.repaired:
+        print(f"rewrote {' and '.join(run.repaired)} of {run_dir} from its checkpoint (epoch {start_epoch})", file=sys.stderr)
 
     if task.summary:
         print(task.summary)

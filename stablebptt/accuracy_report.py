@@ -397,9 +397,9 @@ def report(out: Path, draw: tuple[str, ...] = STUDIES) -> list[str]:
             render(training_figure(rows), out / "training.png")
         table = training_table(rows)
         epochs = max(r["epoch"] for r in rows)
-        task = rows[0]["task"]
+        setup = rows[0].get("setup") or rows[0]["task"]  # rows written before the set-up was recorded name the task
         summary += ["## Training: test loss against wall-clock time", "",
-                    f"{task}{' (rc 0.01)' if task == 'repulsion' else ''}: {epochs} epochs of {meta['train_size']} "
+                    f"{setup}: {epochs} epochs of {meta['train_size']} "
                     "training states (batch 8), tested on as many, one seed; float64 starts from the float32 run's "
                     "data and parameters. Each mode computes only the flows it needs (--no-cosine); epochs are "
                     "timed round-robin, compilation excluded.", ""]

@@ -5,9 +5,12 @@ runs): the initial-state sampler's leading size, float parameters, a control
 the step accepts, a step that returns the state's own structure, a scalar
 loss, and every enumerated ``Dynamics`` field. Each failure is a ``TaskError``
 that names the field and what was found, instead of an error deep inside JAX.
+``check_options`` refuses options given together where one makes the other
+meaningless, before a run records both as if they applied.
 """
 from __future__ import annotations
 
+import dataclasses
 import numbers
 from typing import Any
 
@@ -104,3 +107,41 @@ def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
                         f"{_first_line(error)}") from None
     if not (hasattr(loss, "shape") and loss.shape == () and jnp.issubdtype(loss.dtype, jnp.floating)):
         raise TaskError(f"Dynamics.loss must return one float for a trajectory, got {_describe(loss)}")
+
+
+def _given(config: Any, name: str) -> bool:
+    """Whether field ``name`` of a dataclass config differs from its default (was set by the user)."""
+    field = next(f for f in dataclasses.fields(config) if f.name == name)
+    return getattr(config, name) != field.default
+
+
+def train_conflicts(config: Any) -> list[str]:
+    """The ``TrainConfig`` options set together where one makes the other meaningless, one message each."""
+    from stablebptt.errors import config_field
+    from stablebptt.flows import flows_needed
+    field = lambda name: config_field(config, name)  # noqa: E731
+    problems = []
+    if config.clip == "none" and _given(config, "clip_threshold"):
+        problems.append(f"{field('clip_threshold')} {config.clip_threshold:g} has no effect with {field('clip')} none: "
+                        f"drop it, or clip by value or norm")
+    if config.seeds == 1 and _given(config, "seed_batching"):
+        problems.append(f"{field('seed_batching')} {config.seed_batching} says how seeds share a program, and "
+                        f"{field('seeds')} is 1: drop it, or train several seeds")
+    if not config.cosine and {"M", "R"} <= set(flows_needed(config.mode, with_cosine=False)):
+        problems.append(f"{field('cosine')} is off, but mode {config.mode} computes g_M and g_R anyway and logs "
+                        f"their cosine: leave {field('cosine')} on")
+    return problems
+
+
+def check_options(train_config: Any, task_config: Any = None) -> None:
+    """Refuse options set together where one makes the other meaningless (a new run would record
+    both as if they applied): ``train_conflicts`` and the task config's own ``conflicts()``.
+
+    Raises:
+      InputError: naming the options and what to do, the first conflict found.
+    """
+    problems = train_conflicts(train_config)
+    if task_config is not None and hasattr(task_config, "conflicts"):
+        problems += task_config.conflicts()
+    if problems:
+        raise InputError(problems[0])

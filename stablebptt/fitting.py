@@ -191,6 +191,10 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
       task: a ``Task``: dynamics (policy, step, loss, horizon), network initialiser
         and initial-state sampler.
       config: a ``TrainConfig`` (gradient flow ``mode``, ``epochs``, sizes, seeds, ...).
+        With ``x64`` the call trains in float64 while JAX runs in float32 elsewhere
+        (``jax.enable_x64`` for the call alone; the parameters come back as float64
+        NumPy arrays). Arrays the task made before are float32 and used as such:
+        for float64 physics constants too, build the task under ``jax.enable_x64(True)``.
       on_epoch: called after every epoch with its metrics (arrays over seeds).
 
     Returns:
@@ -198,12 +202,25 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
 
     Raises:
       TrainingDiverged: a loss, update or gradient of a computed flow was not finite.
+      InputError: a config that is not a ``TrainConfig``, options that make each other
+        meaningless (``checks.check_options``), or a task that cannot train (``checks.TaskError``).
 
     Example::
 
       result = stablebptt.train(task, stablebptt.TrainConfig(mode="C", epochs=50))
       print(result.test_loss[-1])
     """
+    from stablebptt.checks import check_options
+    if isinstance(config, TrainConfig):  # anything else make_trainer names
+        check_options(config)
+        if config.x64 and not jax.config.jax_enable_x64:
+            with jax.enable_x64(True):  # the user's own setting is back when the call ends
+                trained = _train(task, config, on_epoch)
+                return trained._replace(params=jax.device_get(trained.params))
+    return _train(task, config, on_epoch)
+
+
+def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]) -> Trained:
     from stablebptt.training import make_trainer, seed_array
     started = time.perf_counter()
     trainer = make_trainer(task, config)

@@ -8,13 +8,14 @@ the model (cart-pole's poles) makes one program per value. Programs spread over
 the devices (``place``): each takes a group of devices and runs beside the
 others, its cells sharded over its group; under jax.distributed each host runs
 the programs placed on its own devices. Every cell ends as a run folder of the
-single-run schema (``stablebptt.runs``), and ``write_report`` rebuilds the grid's
+single-run schema (``stablebptt.runs``), and ``stablebptt.grid_report`` rebuilds the grid's
 tables and figures from those folders.
 """
 from __future__ import annotations
 
 import dataclasses
 import itertools
+import json
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -28,6 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt import fitting, runs
+from stablebptt.grid_pieces import code_digest
+from stablebptt.grid_report import cell_name
 from stablebptt.errors import InputError
 from stablebptt.timing import compile_ahead
 from stablebptt.training import CLIP_MODES, MODES, Task, TrainConfig, make_trainer
@@ -47,8 +50,11 @@ class Grid:
         and a stop always save).
       unroll: rollout steps per loop iteration (0: ``gpu_unroll`` on GPUs, 1 on CPUs).
       group_values: vmap the values into one program where the task takes them per cell.
-      name: recorded in each cell's config.json (the sweep's preset).
+      name: recorded in each cell's config.json (the sweep's preset, or the task's name).
       identity: more of what a program's checkpoint belongs to (e.g. a horizon override).
+      train_option: the grid varies this ``TrainConfig`` field (one of ``PER_CELL_TRAINING``, e.g.
+        ``"lr"``) instead of a task option; ``make_task`` and ``task_config`` then ignore the value,
+        and every value trains in one program, as a per-cell hyperparameter of the optimizer.
     """
 
     task_name: str
@@ -69,6 +75,16 @@ class Grid:
     group_values: bool = True
     name: str = ""
     identity: dict = field(default_factory=dict)
+    train_option: str = ""
+
+    def train_overrides(self, value) -> dict:
+        """What ``value`` sets in a cell's TrainConfig."""
+        return {self.train_option: value} if self.train_option else {}
+
+
+# TrainConfig fields a grid can vary per cell inside one program -> the optimizer hyperparameter
+# that holds them (``make_optimizer`` injects both).
+PER_CELL_TRAINING = {"lr": "learning_rate", "clip_threshold": "clip_threshold"}
 
 
 @dataclass
@@ -78,7 +94,7 @@ class Program:
     values: list  # the values this program trains
     cells: list  # (value, mode, clip, seed) per cell
     directory: Path
-    per_cell: bool  # the values enter as per-cell inputs of one program (Task.cell_option)
+    per_cell: bool  # the values enter as per-cell inputs of one program (Task.cell_option or the optimizer)
 
 
 def write_record(root: Path, record: dict, report: list[dict]) -> Path:
@@ -98,17 +114,13 @@ def write_record(root: Path, record: dict, report: list[dict]) -> Path:
     return path
 
 
-def cell_name(task_name, option, value, mode, clip) -> str:
-    return f"{task_name}-{option}{value}-{mode}-{clip}"
-
-
 def takes_per_cell(task: Task, option: str) -> bool:
     return task.cell_option is not None and task.cell_option.name == option
 
 
 def plan(grid: Grid, root: Path) -> list[Program]:
     """One program for all values where the task takes them per cell (and ``group_values``), else one per value."""
-    per_cell = grid.group_values and takes_per_cell(grid.make_task(grid.values[0]), grid.option)
+    per_cell = bool(grid.train_option) or (grid.group_values and takes_per_cell(grid.make_task(grid.values[0]), grid.option))
     groups = [list(grid.values)] if per_cell else [[value] for value in grid.values]
     return [Program(group, [(v, m, c, s) for v, m, c, s in itertools.product(group, grid.modes, grid.clips, grid.seeds)],
                     root / "_programs" / f"{grid.option}{'_'.join(map(str, group))}", per_cell) for group in groups]
@@ -190,6 +202,9 @@ def prepare(program: Program, grid: Grid, devices: list) -> Prepared:
     hyper = dict(state.opt_state.hyperparams)
     hyper["mode_index"] = jnp.array([MODES.index(mode) for _, mode, _, _ in cells], dtype=hyper["mode_index"].dtype)
     hyper["clip_index"] = jnp.array([CLIP_MODES.index(clip) for _, _, clip, _ in cells], dtype=hyper["clip_index"].dtype)
+    if grid.train_option:
+        name = PER_CELL_TRAINING[grid.train_option]
+        hyper[name] = jnp.array([value for value, _, _, _ in cells], dtype=hyper[name].dtype)
     state = state._replace(opt_state=state.opt_state._replace(hyperparams=hyper))
     program.directory.mkdir(parents=True, exist_ok=True)
     runs.write_json(program.directory / "cells.json", _identity(program, grid))
@@ -200,7 +215,8 @@ def prepare(program: Program, grid: Grid, devices: list) -> Prepared:
     else:
         start, rows = 0, runs.empty_rows()
     state = shard(state)
-    values = shard(jnp.asarray([value for value, _, _, _ in cells])) if program.per_cell else None
+    takes_values = program.per_cell and not grid.train_option  # the task's cell option
+    values = shard(jnp.asarray([value for value, _, _, _ in cells])) if takes_values else None
     arguments = (values, trainer.batches, trainer.train_states, trainer.test_states)
     epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)
     return Prepared(program, devices, epoch_fn, arguments, state, start, rows, train_config, unroll, len(cells),
@@ -246,17 +262,21 @@ def train_prepared(prepared: Prepared, grid: Grid, log: Callable[[str], None],
             "compile_seconds": prepared.compile_seconds, "train_seconds": time.perf_counter() - started, "rows": rows}
 
 
+def cell_groups(program: Program) -> dict[tuple, list[tuple[int, int]]]:
+    """(value, mode, clip) -> its (index in the program, seed) pairs: one run folder each."""
+    groups: dict[tuple, list[tuple[int, int]]] = {}
+    for index, (value, mode, clip, seed) in enumerate(program.cells):
+        groups.setdefault((value, mode, clip), []).append((index, seed))
+    return groups
+
+
 def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None:
     """Split a program's rows and parameters into one run folder per (value, mode, clip), seeds as
     rows: config.json, metrics.csv and params.npz of the single-run schema, so every cell renders,
     plots and reopens (``stablebptt.apps.trained``) as a single run does."""
     rows, params = outcome["rows"], outcome["params"]
-    groups = {}
-    for index, (value, mode, clip, seed) in enumerate(program.cells):
-        groups.setdefault((value, mode, clip), []).append((index, seed))
-    for (value, mode, clip), members in groups.items():
+    for (value, mode, clip), members in cell_groups(program).items():
         directory = root / cell_name(grid.task_name, grid.option, value, mode, clip)
-        directory.mkdir(parents=True, exist_ok=True)
         selected = []
         for index, seed in members:
             part = rows[rows[:, 1] == index].copy()
@@ -267,29 +287,52 @@ def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None
         seeds = [seed for _, seed in members]
         assert seeds == list(range(seeds[0], seeds[0] + len(seeds)))  # as TrainConfig's seed and seeds name them
         train = dataclasses.replace(outcome["train_config"], mode=mode, clip=clip, seeds=len(members), seed=seeds[0],
-                                    epochs=grid.epochs)
-        runs.write_json(directory / runs.CONFIG_FILE, {
-            "task": grid.task_name, "task_config": dataclasses.asdict(grid.task_config(value)),
-            "train": dataclasses.asdict(train), "sweep": grid.name})
-        runs.write_metrics(directory / runs.METRICS_FILE, table)
+                                    epochs=grid.epochs, **grid.train_overrides(value))
+        task = grid.make_task(value)
+        record = {"task": grid.task_name, "task_config": dataclasses.asdict(grid.task_config(value)),
+                  "resolved_task": {"name": task.name, **task.resolved}, "train": dataclasses.asdict(train),
+                  "sweep": grid.name}
         indices = np.array([index for index, _ in members])
-        runs.save_params(directory / runs.PARAMS_FILE, jax.tree.map(lambda leaf: np.asarray(leaf)[indices], params))
+        write_cell(directory, record, table, jax.tree.map(lambda leaf: np.asarray(leaf)[indices], params),
+                   task.resolved.get("model_file"))
+
+
+def write_cell(directory: Path, record: dict, rows: np.ndarray, params, model_file: str | Path | None = None) -> None:
+    """One cell's run folder: config.json, metrics.csv and params.npz (seeds stacked on the leaves' first
+    axis); and what reopens ``model_file`` after it moved, its compiled copy shared by the grid's cells
+    (``runs.keep_model``: one file per model in ``<grid root>/models``)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    runs.write_json(directory / runs.CONFIG_FILE, record)
+    runs.write_metrics(directory / runs.METRICS_FILE, rows)
+    runs.save_params(directory / runs.PARAMS_FILE, params)
+    if model_file:
+        runs.keep_model(directory, model_file, shared=directory.parent)
+
+
+def describe(grid: Grid, first_seed: int, seeds: int) -> dict:
+    """What makes the cells of several calls one grid, as JSON: every axis, setting and task option
+    (``seeds`` seeds from ``first_seed``), and the code's digest."""
+    description = {"name": grid.name, "task": grid.task_name, "option": grid.option, "values": list(grid.values),
+                   "train_option": grid.train_option, "modes": list(grid.modes), "clips": list(grid.clips),
+                   "first_seed": first_seed, "seeds": seeds, "epochs": grid.epochs, "train_size": grid.train_size,
+                   "test_size": grid.test_size, "identity": grid.identity,
+                   "task_configs": [dataclasses.asdict(grid.task_config(value)) for value in grid.values],
+                   "code": code_digest()}
+    return json.loads(json.dumps(description))
 
 
 # What a cell's config.json says of the grid that filled it; a grid may rewrite only its own cells.
-CELL_IDENTITY = ("mode", "clip", "epochs", "seed", "seeds", "train_size", "test_size")
+CELL_IDENTITY = ("mode", "clip", "epochs", "seed", "seeds", "train_size", "test_size", "lr", "clip_threshold")
 
 
 def _cell_identities(program: Program, grid: Grid, root: Path) -> dict[Path, dict]:
     """Each cell folder this program writes -> what its config.json will say of the grid."""
-    groups: dict[tuple, list[int]] = {}
-    for value, mode, clip, seed in program.cells:
-        groups.setdefault((value, mode, clip), []).append(seed)
     return {root / cell_name(grid.task_name, grid.option, value, mode, clip): {
         "task": grid.task_name, "task_config": dataclasses.asdict(grid.task_config(value)), "sweep": grid.name,
-        "train": {"mode": mode, "clip": clip, "epochs": grid.epochs, "seed": seeds[0], "seeds": len(seeds),
-                  "train_size": grid.train_size, "test_size": grid.test_size}}
-        for (value, mode, clip), seeds in groups.items()}
+        "train": {"mode": mode, "clip": clip, "epochs": grid.epochs, "seed": members[0][1], "seeds": len(members),
+                  "train_size": grid.train_size, "test_size": grid.test_size, "lr": TrainConfig.lr,
+                  "clip_threshold": TrainConfig.clip_threshold, **grid.train_overrides(value)}}
+        for (value, mode, clip), members in cell_groups(program).items()}
 
 
 def check_cells_are_this_grids(programs: list[Program], grid: Grid, root: Path) -> None:
@@ -363,123 +406,3 @@ def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: F
         while futures_wait(futures, timeout=0.5).not_done:
             pass
         return [outcome for future in futures for outcome in future.result()]
-
-
-def summarize(root: Path, directories: list[Path]) -> list[str]:
-    """summary.csv and a Markdown table: final test loss, mean +- std over seeds, per cell."""
-    lines = ["| cell | epochs | final test loss (mean +- std over seeds) | diverged seeds |", "|---|---:|---:|---:|"]
-    csv_lines = ["cell,epochs,test_loss_mean,test_loss_std,diverged_seeds"]
-    for directory in sorted(directories):
-        rows = runs.read_metrics(directory / runs.METRICS_FILE)
-        last = max(row["epoch"] for row in rows)
-        final = np.array([row["test_loss"] for row in rows if row["epoch"] == last])
-        diverged = int(np.sum(~np.isfinite(final)))
-        finite = final[np.isfinite(final)]
-        mean, std = (float(finite.mean()), float(finite.std())) if len(finite) else (float("nan"), float("nan"))
-        lines.append(f"| {directory.name} | {int(last)} | {mean:.4g} +- {std:.2g} | {diverged} |")
-        csv_lines.append(f"{directory.name},{int(last)},{mean!r},{std!r},{diverged}")
-    runs.atomic_write(root / "summary.csv", ("\n".join(csv_lines) + "\n").encode())
-    return lines
-
-
-def mode_table(directories: list[Path], task_name: str, option: str, complexities, modes, clips) -> list[str]:
-    """Final test loss, mean +- std over seeds: one row per complexity and clip mode, one column per mode."""
-    lines = [f"| {option} | clip | epochs | " + " | ".join(modes) + " |", "|---|---|---:|" + "---:|" * len(modes)]
-    for value in complexities:
-        for clip in clips:
-            cells, epochs = [], ""
-            for mode in modes:
-                directory = next((d for d in directories if d.name == cell_name(task_name, option, value, mode, clip)), None)
-                if directory is None:
-                    cells.append("-")
-                    continue
-                rows = runs.read_metrics(directory / runs.METRICS_FILE)
-                last = max(r["epoch"] for r in rows)
-                final = np.array([r["test_loss"] for r in rows if r["epoch"] == last])
-                epochs = str(int(last))
-                cells.append(f"{np.nanmean(final):.3g} +- {np.nanstd(final):.2g}" if np.isfinite(final).any() else "diverged")
-            lines.append(f"| {value} | {clip} | {epochs} | " + " | ".join(cells) + " |")
-    return lines
-
-
-def tidy_test_loss(root: Path, directories: list[Path], option: str, every: int = 10) -> None:
-    """test_loss.csv: one row per cell, seed and every tenth epoch (and the last), small enough for git."""
-    lines = [f"{option},mode,clip,seed,epoch,test_loss"]
-    for directory in sorted(directories):
-        config = runs.read_json(directory / runs.CONFIG_FILE)
-        value, train = config["task_config"][option], config["train"]
-        rows = runs.read_metrics(directory / runs.METRICS_FILE)
-        last = max(row["epoch"] for row in rows)
-        lines += [f"{value},{train['mode']},{train['clip']},{int(row['seed'])},{int(row['epoch'])},{row['test_loss']:.7g}"
-                  for row in rows if row["epoch"] % every == 0 or row["epoch"] == last]
-    runs.atomic_write(root / "test_loss.csv", ("\n".join(lines) + "\n").encode())
-
-
-BOOTSTRAP_RESAMPLES = 10_000
-BOOTSTRAP_SEED = 0  # the intervals are reproducible to the digit
-
-
-def paired_bootstrap(differences: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
-    """Mean of per-seed ``differences`` and its ``level`` percentile-bootstrap interval (seeds resampled)."""
-    rng = np.random.default_rng(BOOTSTRAP_SEED)
-    means = differences[rng.integers(0, len(differences), (BOOTSTRAP_RESAMPLES, len(differences)))].mean(axis=1)
-    tail = 100 * (1 - level) / 2
-    return float(differences.mean()), float(np.percentile(means, tail)), float(np.percentile(means, 100 - tail))
-
-
-def claim_intervals(test_loss_csv: Path, option: str) -> list[str]:
-    """Per complexity and clip mode: final test loss of C minus R and of C minus M, mean over seeds with its
-    95% paired bootstrap interval, and whether the interval supports "C is better" (it lies below 0).
-
-    Seeds pair the runs: a seed gives every mode the same data and initial parameters.
-    """
-    import csv
-    with open(test_loss_csv, newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    last = max(int(r["epoch"]) for r in rows)
-    final = {(r[option], r["clip"], r["mode"], r["seed"]): float(r["test_loss"]) for r in rows if int(r["epoch"]) == last}
-    seeds = sorted({key[3] for key in final}, key=int)
-    lines = [f"| {option} | clip | seeds | C - R: mean [95% interval] | verdict | C - M: mean [95% interval] | verdict |",
-             "|---|---|---:|---:|---|---:|---|"]
-    verdict = lambda low, high: "C better" if high < 0 else ("C worse" if low > 0 else "not resolved")
-    for value, clip in dict.fromkeys((key[0], key[1]) for key in final):
-        cells = []
-        for other in ("R", "M"):
-            pairs = [(final.get((value, clip, "C", s)), final.get((value, clip, other, s))) for s in seeds]
-            differences = np.array([c - o for c, o in pairs if c is not None and o is not None])
-            if len(differences) < 2 or not np.all(np.isfinite(differences)):
-                cells += ["-", "-"]
-                continue
-            mean, low, high = paired_bootstrap(differences)
-            cells += [f"{mean:+.3g} [{low:+.3g}, {high:+.3g}]", verdict(low, high)]
-        lines.append(f"| {value} | {clip} | {len(seeds)} | " + " | ".join(cells) + " |")
-    return lines
-
-
-def write_intervals(root: Path, option: str) -> list[str]:
-    """intervals.md from the preset's test_loss.csv (kept with the tables, so it needs no run directories)."""
-    table = claim_intervals(root / "test_loss.csv", option)
-    runs.atomic_write(root / "intervals.md", ("\n".join(table) + "\n").encode())
-    return table
-
-
-def write_report(root: Path, directories: list[Path], task_name, option, complexities, modes, clips) -> list[str]:
-    """summary.csv, test_loss.csv, table.md and one learning-curve figure per complexity, from the run
-    directories; returns the table (Markdown lines)."""
-    from stablebptt.plots import learning_curves
-    summarize(root, directories)
-    tidy_test_loss(root, directories, option)
-    table = mode_table(directories, task_name, option, complexities, modes, clips)
-    runs.atomic_write(root / "table.md", ("\n".join(table) + "\n").encode())
-    write_intervals(root, option)
-    for value in complexities:
-        members = [d for d in directories if d.name.startswith(f"{task_name}-{option}{value}-")]
-        if members:
-            learning_curves(members, root / f"{task_name}-{option}{value}.png", smooth=None)
-    return table
-
-
-def run_directories(root: Path, task_name: str, option: str) -> list[Path]:
-    return sorted(d for d in root.glob(f"{task_name}-{option}*") if (d / runs.METRICS_FILE).exists())
-
-

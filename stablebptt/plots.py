@@ -15,8 +15,9 @@ import io
 import warnings
 from collections import Counter
 from pathlib import Path
-from typing import Iterable, NamedTuple, Sequence
+from typing import Callable, Iterable, NamedTuple, Sequence
 
+import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgb
@@ -25,7 +26,8 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.errors import InputError
-from stablebptt.runs import CONFIG_FILE, METRICS_FILE, read_metrics
+from stablebptt.flows import FLOWS, MODE_TABLE, MODES
+from stablebptt.runs import CONFIG_FILE, METRICS_FILE, run_metrics
 from stablebptt.storage import atomic_write, read_json
 
 FIGURE_FILE = "learning_curves.png"
@@ -33,9 +35,11 @@ PAPER_SMOOTH = 30  # the paper smooths its curves over 30 epochs
 BANDS = ("minmax", "std")
 FORMATS = (".png", ".pdf", ".svg")
 
-# The paper's order and one fixed colour per flow (Okabe-Ito: distinguishable with colour blindness).
-MODE_ORDER = ("R", "M", "C", "S")
-MODE_COLORS = {"R": "#0072B2", "M": "#E69F00", "C": "#009E73", "S": "#CC79A7"}
+# Okabe-Ito colours (distinguishable with colour blindness), given to the modes in MODE_TABLE's order.
+PALETTE = ("#0072B2", "#E69F00", "#CC79A7", "#009E73", "#D55E00", "#56B4E9", "#F0E442", "#000000")
+MODE_COLORS = dict(zip(MODES, PALETTE))
+# The paper's figures' order (R, M, C, S), from the table: a mode after the last flow it needs, a combination after it.
+MODE_ORDER = tuple(sorted(MODES, key=lambda m: (max(map(FLOWS.index, MODE_TABLE[m].flows)), len(MODE_TABLE[m].flows))))
 CLIP_STYLES = {"value": "-", "norm": "--", "none": ":"}
 REQUIRED_COLUMNS = ("epoch", "seed", "test_loss", "update_norm")
 
@@ -59,6 +63,7 @@ class Run(NamedTuple):
       epochs: sorted epoch numbers, shape (E,).
       seeds: sorted seeds, shape (N,).
       metrics: column name -> array (E, N); NaN where a value was not logged.
+      note: what was read instead of a damaged ``metrics.csv`` (``runs.run_metrics``), else "".
     """
 
     path: Path
@@ -66,6 +71,7 @@ class Run(NamedTuple):
     epochs: np.ndarray
     seeds: np.ndarray
     metrics: dict
+    note: str = ""
 
     @property
     def mode(self) -> str:
@@ -94,25 +100,14 @@ def load_run(run_dir: str | Path) -> Run:
     if not path.is_dir():
         raise InputError(f"{path} is not a directory: give a run directory written by scripts/train.py")
     metrics_path = path / METRICS_FILE
-    if not metrics_path.is_file():
-        raise InputError(f"{path} has no {METRICS_FILE}: not a run directory, or its run has not finished an epoch yet")
     config = read_json(path / CONFIG_FILE)
     if not (isinstance(config, dict) and all(isinstance(config.get(key, {}), dict) for key in ("train", "task_config"))):
         raise InputError(f"{path / CONFIG_FILE} is not a run configuration (expected 'train' and 'task_config' objects)")
-    try:
-        rows = read_metrics(metrics_path)
-    except OSError as error:
-        raise InputError(f"cannot read {metrics_path}: {error.strerror}") from None
-    except (ValueError, TypeError):
-        # float() of an empty, missing or non-numeric cell; a resume rewrites the file from the checkpoint.
-        raise InputError(f"{metrics_path} has a missing or non-numeric value: regenerate it with "
-                         f"scripts/train.py --resume {path}") from None
-    if not rows:
-        raise InputError(f"{metrics_path} has no rows: the run has not finished an epoch yet")
+    rows, note = run_metrics(path)
     missing = [column for column in REQUIRED_COLUMNS if column not in rows[0]]
     if missing:
         raise InputError(f"{metrics_path} lacks the column {missing[0]!r}: is it a metrics.csv of scripts/train.py?")
-    return Run(path, config, *_pivot(rows, metrics_path))
+    return Run(path, config, *_pivot(rows, metrics_path), note)
 
 
 def _pivot(rows: list[dict[str, float]], source: Path) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -302,6 +297,18 @@ class _PlainLogFormatter(LogFormatter):
         return f"{x:g}" if super().__call__(x, pos) else ""
 
 
+# Text falls back, character by character, to installed fonts of wide coverage, and last to matplotlib's
+# own Last Resort font (a box naming the character's block): run paths and model names may be in any script.
+FALLBACK_FONTS = ("Noto Sans", "Noto Sans CJK JP", "Noto Sans CJK SC", "WenQuanYi Zen Hei", "Droid Sans Fallback",
+                  "Arial Unicode MS", "Last Resort High-Efficiency")
+
+
+def _font_families() -> list[str]:
+    from matplotlib import font_manager
+    installed = {font.name for font in font_manager.fontManager.ttflist}
+    return ["DejaVu Sans"] + [name for name in FALLBACK_FONTS if name in installed]
+
+
 def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str | None = None) -> Figure:
     """The learning-curve figure of some runs (not yet saved).
 
@@ -314,6 +321,11 @@ def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str 
     Returns:
       A matplotlib ``Figure`` on the Agg canvas (no display needed).
     """
+    with matplotlib.rc_context({"font.family": _font_families()}):  # fonts are chosen as texts are made
+        return _draw(runs, smooth, band, title)
+
+
+def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None) -> Figure:
     if not runs:
         raise InputError("no run to draw: give at least one run directory")
     if smooth < 0:
@@ -397,7 +409,10 @@ def render(figure: Figure, out_path: Path, dpi: int = 150) -> Path:
     if not out_path.parent.is_dir():
         raise InputError(f"cannot write {out_path}: the directory {out_path.parent} does not exist")
     buffer = io.BytesIO()
-    figure.savefig(buffer, format=out_path.suffix.lower()[1:], dpi=dpi)
+    with warnings.catch_warnings():
+        # A character no installed font has is drawn as a box; matplotlib's warning of it says no more.
+        warnings.filterwarnings("ignore", message="Glyph .* missing from font")
+        figure.savefig(buffer, format=out_path.suffix.lower()[1:], dpi=dpi)
     try:
         atomic_write(out_path, buffer.getvalue())
     except OSError as error:
@@ -406,7 +421,8 @@ def render(figure: Figure, out_path: Path, dpi: int = 150) -> Path:
 
 
 def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth: int | None = 0, band: str = "minmax",
-                    title: str | None = None, dpi: int = 150) -> Path:
+                    title: str | None = None, dpi: int = 150,
+                    note: Callable[[str], None] = lambda line: None) -> Path:
     """Draw the learning curves of some run directories into one figure file.
 
     Args:
@@ -417,6 +433,7 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
       band: ``"minmax"`` (band spans all seeds) or ``"std"`` (mean +- one standard deviation).
       title: figure title; by default the shared task settings and what line and band show.
       dpi: resolution of a PNG.
+      note: told where a run's metrics were read from elsewhere than its ``metrics.csv``.
 
     Returns:
       The path written.
@@ -430,6 +447,9 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
     if not unique:
         raise InputError("no run directory given")
     runs = [load_run(run_dir) for run_dir in unique.values()]
+    for run in runs:
+        if run.note:
+            note(run.note)
     if smooth is None:
         smooth = default_smooth(max(len(run.epochs) for run in runs))
     figure = draw(runs, smooth=smooth, band=band, title=title)

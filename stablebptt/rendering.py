@@ -1,145 +1,46 @@
-"""Headless rendering of rollouts: the OpenGL backend, MuJoCo frames framed on a rollout, frame strips, videos.
+"""MuJoCo frames of rollouts, rendered headless: a backdrop, a camera framed on the rollout, frame strips.
 
-    select_gl_backend()                    # first: before anything imports mujoco
+    select_gl_backend()                    # first: before anything imports mujoco (stablebptt.gl_backend)
     model = render_model("models/cartpole_1.xml")
     camera = frame_camera(model, *rollout_extent(model, qpos), 320, 240)   # qpos: [T, nq]
     frames, _ = render_frames(model, qpos, camera, 320, 240)
-    write_video("rollout.mp4", frames, fps=30)
+    write_video("rollout.mp4", frames, fps=30)                            # stablebptt.media
     picks = strip_indices(len(qpos), 8)
     frames, masks = render_frames(model, qpos[picks], camera, 320, 240, supersample=2, with_masks=True)
     write_png("strip.png", frame_strip(frames, masks))
 
-MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` once, when it is first
-imported, so nothing here imports mujoco at import time: ``select_gl_backend``
-tries EGL and then OSMesa in short subprocesses and sets ``MUJOCO_GL`` to the
-first that renders. The other functions import mujoco when called.
+Nothing here imports mujoco at import time (it reads ``MUJOCO_GL`` once, when
+first imported); the functions import it when called. The backend choice
+(``stablebptt.gl_backend``) and the files written (``stablebptt.media``) live
+in their own modules; their names are importable from here too.
 """
 from __future__ import annotations
 
-import contextlib
-import ctypes.util
-import os
-import subprocess
-import sys
-import warnings
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from stablebptt.errors import InputError
-from stablebptt.storage import atomic_write
+# Importable from here, where they lived before: code and tests written against stablebptt.rendering keep working.
+from stablebptt.gl_backend import (BACKENDS, INSTALL, LIBRARIES, PROBE_TIMEOUT, NoHeadlessGL, probe_gl_backend,
+                                   select_gl_backend)
+from stablebptt.media import VIDEO_FORMATS, figure_pixels, fresh_outputs, tile, write_png, write_video
 
-BACKENDS = ("egl", "osmesa")  # headless, in order of preference: EGL is the faster of the two
-# Debian packages that make each backend work (Mesa's software renderers are enough; no GPU needed).
-INSTALL = {
-    "egl": "apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0",
-    "osmesa": "apt-get install libosmesa6",
-}
-# The shared libraries each backend loads first: when one is missing, say so rather than show a traceback's last line.
-LIBRARIES = {"egl": ("EGL", "OpenGL"), "osmesa": ("OSMesa",)}
-PROBE_TIMEOUT = 60.0
-VIDEO_FORMATS = (".mp4", ".gif")
+__all__ = [  # the frames made here, and the names re-exported above
+    "BACKGROUND", "AZIMUTH", "ELEVATION", "SUPERSAMPLE", "brighten_headlight", "render_model", "rollout_extent",
+    "frame_camera", "render_frames", "strip_indices", "frame_strip", "crop",
+    "BACKENDS", "INSTALL", "LIBRARIES", "PROBE_TIMEOUT", "NoHeadlessGL", "probe_gl_backend", "select_gl_backend",
+    "VIDEO_FORMATS", "figure_pixels", "fresh_outputs", "tile", "write_png", "write_video",
+]
+
 BACKGROUND = (1.0, 1.0, 1.0)  # plain white behind models without a skybox of their own: print-friendly
 AZIMUTH = 90.0  # look along +y: a planar system moving in the x-z plane (the MJCF convention) faces the camera
 ELEVATION = -15.0  # slightly from above, so depth still reads
 SUPERSAMPLE = 2  # render at 2x and average: smooth edges in the masks that frame strips blend with
 
-# Rendered in the probe subprocess: a lit red sphere must not come out blank.
-_PROBE = """
-import mujoco
-model = mujoco.MjModel.from_xml_string(
-    '<mujoco><worldbody><light pos="0 0 3"/><geom size=".5" rgba="1 0 0 1"/></worldbody></mujoco>')
-data = mujoco.MjData(model)
-mujoco.mj_forward(model, data)
-with mujoco.Renderer(model, 32, 32) as renderer:
-    renderer.update_scene(data)
-    pixels = renderer.render()
-assert pixels.std() > 0, "it rendered a blank image"
-"""
 
-
-@contextlib.contextmanager
-def _child_processes():
-    """Silence JAX's warning about fork in a threaded process: the children here exec at once (ffmpeg, a probe)."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
-        yield
-
-
-class NoHeadlessGL(InputError):
-    """No OpenGL backend renders here; the message names the system package to install."""
-
-
-def probe_gl_backend(backend: str, timeout: float = PROBE_TIMEOUT) -> str | None:
-    """Try MuJoCo's offscreen renderer with ``MUJOCO_GL=backend`` in a fresh Python process.
-
-    Args:
-      backend: ``"egl"``, ``"osmesa"`` or ``"glfw"``.
-      timeout: seconds before the attempt counts as failed.
-
-    Returns:
-      None when a frame was rendered, else a short reason (the last line the attempt printed).
-    """
-    env = dict(os.environ, MUJOCO_GL=backend)
-    if backend in BACKENDS:
-        env["PYOPENGL_PLATFORM"] = backend  # PyOpenGL must load the same platform library as MuJoCo
-    try:
-        with _child_processes():
-            result = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True,
-                                    timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return f"no frame within {timeout:g} s"
-    if result.returncode == 0:
-        return None
-    missing = [f"lib{name}" for name in LIBRARIES.get(backend, ()) if ctypes.util.find_library(name) is None]
-    if missing:
-        return f"{' and '.join(missing)} not found"
-    lines = [line.strip() for line in result.stderr.splitlines() if line.strip()]
-    reason = lines[-1] if lines else f"exit code {result.returncode}"
-    return reason if len(reason) <= 80 else reason[:77] + "..."
-
-
-def select_gl_backend(backends: Sequence[str] = BACKENDS,
-                      probe: Callable[[str], str | None] = probe_gl_backend) -> str:
-    """Find a headless OpenGL backend that renders and set ``MUJOCO_GL`` to it.
-
-    Call it before anything imports mujoco, which reads ``MUJOCO_GL`` once. A
-    ``MUJOCO_GL`` already set by the user is the only backend tried.
-
-    Args:
-      backends: backends to try, in order.
-      probe: ``probe(backend) -> None or reason``; ``probe_gl_backend`` by default.
-
-    Returns:
-      The backend now in ``MUJOCO_GL``.
-
-    Raises:
-      NoHeadlessGL: no backend renders; the message says which package to install.
-      RuntimeError: mujoco was imported before, with no backend chosen.
-    """
-    requested = os.environ.get("MUJOCO_GL", "").strip().lower()
-    if not requested and "mujoco" in sys.modules:
-        raise RuntimeError("mujoco was imported before select_gl_backend() chose MUJOCO_GL: call it first")
-    candidates = (requested,) if requested else tuple(backends)
-    reasons = {}
-    for backend in candidates:
-        reason = probe(backend)
-        if reason is None:
-            os.environ["MUJOCO_GL"] = backend
-            if backend in BACKENDS:
-                os.environ["PYOPENGL_PLATFORM"] = backend
-            return backend
-        reasons[backend] = reason
-    if requested:
-        fix = INSTALL.get(requested, f"unset MUJOCO_GL to try {' and '.join(BACKENDS)}")
-        raise NoHeadlessGL(f"MUJOCO_GL={requested} cannot render here ({reasons[requested]}): {fix}")
-    tried = "; ".join(f"{backend.upper()}: {reason}" for backend, reason in reasons.items())
-    install = " or ".join(f"'{INSTALL[backend]}'" for backend in candidates if backend in INSTALL)
-    raise NoHeadlessGL(f"no headless OpenGL for MuJoCo ({tried}): install it with {install}")
-
-
-def _brighten_headlight(headlight) -> None:
+def brighten_headlight(headlight) -> None:
     if np.allclose(headlight.ambient, 0.1) and np.allclose(headlight.diffuse, 0.4):
         # MuJoCo's defaults, made for a dark background, leave colours murky on white.
         headlight.ambient, headlight.diffuse = [0.35] * 3, [0.55] * 3
@@ -153,7 +54,7 @@ def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), ba
     offscreen framebuffer is enlarged to ``framebuffer`` when it is smaller.
 
     Args:
-      path: the MJCF file, or a compiled ``.mjb`` (a run's copy; drawn without the backdrop).
+      path: the MJCF file, or a compiled ``.mjb`` or ``.mjb.gz`` (a run's copy; drawn without the backdrop).
       framebuffer: (width, height) of the largest render, supersampling included.
       background: RGB in [0, 1] of the backdrop.
 
@@ -165,9 +66,10 @@ def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), ba
     path = Path(path)
     if not path.is_file():
         raise InputError(f"model file {path} does not exist")
-    if path.suffix == ".mjb":  # a run's compiled copy: no skybox can be added, the rest applies
-        model = mujoco.MjModel.from_binary_path(str(path))
-        _brighten_headlight(model.vis.headlight)
+    if path.suffix in (".mjb", ".gz"):  # a run's compiled copy: no skybox can be added, the rest applies
+        from stablebptt.runs import load_compiled_model
+        model = load_compiled_model(path)
+        brighten_headlight(model.vis.headlight)
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, int(framebuffer[0]))
         model.vis.global_.offheight = max(model.vis.global_.offheight, int(framebuffer[1]))
         return model
@@ -179,7 +81,7 @@ def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), ba
         spec.add_texture(name="stablebptt_backdrop", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
                          builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT, rgb1=list(background), rgb2=list(background),
                          width=8, height=8)
-    _brighten_headlight(spec.visual.headlight)
+    brighten_headlight(spec.visual.headlight)
     visual = spec.visual.global_
     visual.offwidth = max(visual.offwidth, int(framebuffer[0]))
     visual.offheight = max(visual.offheight, int(framebuffer[1]))
@@ -366,157 +268,10 @@ def crop(image: np.ndarray, keep: np.ndarray, margin: float = 0.05) -> np.ndarra
     return image[top:bottom, left:right]
 
 
-def figure_pixels(figure) -> np.ndarray:
-    """The RGB pixels of a matplotlib figure on an Agg canvas, uint8 [H, W, 3] (one animation frame)."""
-    figure.canvas.draw()
-    return np.array(figure.canvas.buffer_rgba())[..., :3]
 
-
-def tile(images: Sequence[np.ndarray], columns: int | None = None, gap: int = 2,
-         colour: Sequence[int] = (200, 200, 200)) -> np.ndarray:
-    """Images of one size side by side (``columns`` per row), separated by ``gap`` pixels.
-
-    Works on single images [H, W, 3] and on frame stacks [T, H, W, 3] alike.
-    """
-    images = [np.asarray(image) for image in images]
-    columns = columns or len(images)
-    rows = -(-len(images) // columns)
-    *lead, h, w, c = images[0].shape
-    canvas = np.empty((*lead, rows * h + (rows - 1) * gap, columns * w + (columns - 1) * gap, c), dtype=images[0].dtype)
-    canvas[...] = np.asarray(colour, dtype=images[0].dtype)
-    for index, image in enumerate(images):
-        r, col = divmod(index, columns)
-        canvas[..., r * (h + gap):r * (h + gap) + h, col * (w + gap):col * (w + gap) + w, :] = image
-    return canvas
-
-
-def _even(frames: np.ndarray) -> np.ndarray:
-    """Pad to even height and width with the edge colour: H.264 in yuv420p needs both even."""
-    pad_h, pad_w = frames.shape[1] % 2, frames.shape[2] % 2
-    if not (pad_h or pad_w):
-        return frames
-    return np.pad(frames, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
-
-
-def write_png(path: str | Path, image: np.ndarray) -> Path:
-    """Write an RGB(A) uint8 image as PNG, atomically."""
-    import imageio.v3 as iio
-
-    path = Path(path)
-    atomic_write(path, iio.imwrite("<bytes>", np.asarray(image, dtype=np.uint8), extension=".png"))
-    return path
-
-
-def write_video(path: str | Path, frames: np.ndarray, fps: float = 30.0) -> Path:
-    """Write frames [T, H, W, 3] uint8 as an MP4 (H.264) or a GIF, chosen by the suffix, atomically.
-
-    The video is written to a temporary file next to ``path`` and renamed, so a
-    reader never sees half a video and an interrupted run leaves no broken file.
-
-    Args:
-      path: ``*.mp4`` or ``*.gif``.
-      frames: the frames, all of one size.
-      fps: frames per second.
-
-    Returns:
-      ``path``.
-    """
-    import imageio.v2 as imageio
-    import imageio.v3 as iio
-
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in VIDEO_FORMATS:
-        raise InputError(f"{path}: a video must end in {' or '.join(VIDEO_FORMATS)}")
-    frames = np.asarray(frames, dtype=np.uint8)
-    if suffix == ".gif":
-        # GIF delays count in hundredths of a second; loop forever.
-        data = iio.imwrite("<bytes>", frames, extension=".gif", duration=round(1000 / fps, -1), loop=0)
-        atomic_write(path, data)
-        return path
-    # ffmpeg picks the container from the name, so the temporary file keeps the suffix.
-    temporary = path.with_name(f".{path.stem}.{os.getpid()}.tmp{suffix}")
-    try:
-        writer = imageio.get_writer(temporary, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
-                                    pixelformat="yuv420p", macro_block_size=2, ffmpeg_log_level="error",
-                                    output_params=["-movflags", "+faststart"])
-        with _child_processes(), writer:
-            for frame in _even(frames):
-                writer.append_data(frame)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
-    return path
-
-
-
-def draw_mujoco_rollouts(task_config, states, controls, titles, label, settings, video: Path | None,
-                         strip: Path) -> list[Path]:
-    """An MJCF task's rollouts (``task_config.model_path``): a video of them side by side and the
-    frame strip of the first. ``settings`` has width, height (of a video panel), fps and strip_states."""
-    strip_size = (2 * settings.width, 2 * settings.height)  # a picture for print: twice the video panel
-    model = render_model(task_config.model_path, framebuffer=(SUPERSAMPLE * strip_size[0], SUPERSAMPLE * strip_size[1]))
-    return _draw_qpos(model, states.qpos, settings, video, strip)
-
-
-def draw_env_rollouts(task_config, states, controls, titles, label, settings, video: Path | None,
-                      strip: Path) -> list[Path]:
-    """An environment's rollouts, drawn from its own ``mj_model`` and the positions in its states'
-    ``data`` (an ``mjx.Data``, as MuJoCo Playground's)."""
-    from stablebptt.environments import load_env
-    env = load_env(task_config.env)
-    model = getattr(env, "mj_model", None)
-    qpos = getattr(getattr(states, "data", None), "qpos", None)
-    if model is None or qpos is None:
-        raise InputError(f"{task_config.env} has no mj_model or its states no data.qpos: nothing to draw it from")
-    strip_size = (2 * settings.width, 2 * settings.height)
-    _brighten_headlight(model.vis.headlight)
-    model.vis.global_.offwidth = max(model.vis.global_.offwidth, SUPERSAMPLE * strip_size[0])
-    model.vis.global_.offheight = max(model.vis.global_.offheight, SUPERSAMPLE * strip_size[1])
-    return _draw_qpos(model, np.asarray(qpos), settings, video, strip)
-
-
-def _draw_qpos(model, qpos: np.ndarray, settings, video: Path | None, strip: Path) -> list[Path]:
-    """Rollouts given as positions [N, T+1, nq]: the video side by side and the strip of the first."""
-    strip_size = (2 * settings.width, 2 * settings.height)
-    written = []
-    cameras = [frame_camera(model, *rollout_extent(model, q), settings.width, settings.height) for q in qpos]
-    if video is not None:
-        panels = [render_frames(model, q, camera, settings.width, settings.height)[0] for q, camera in zip(qpos, cameras)]
-        written.append(write_video(video, tile(panels), settings.fps))
-    picks = strip_indices(len(qpos[0]), settings.strip_states)
-    frames, masks = render_frames(model, qpos[0][picks], cameras[0], *strip_size, supersample=SUPERSAMPLE, with_masks=True)
-    written.append(write_png(strip, frame_strip(frames, masks)))
-    return written
-
-
-def _named_path(stem: Path, ending: str) -> Path:
-    """``stem`` with ``ending`` appended (not ``with_suffix``, which would eat a dot inside a model's name)."""
-    return stem.with_name(stem.name + ending)
-
-
-def fresh_outputs(out: Path | None, default_stem: Path, picture: str, gif: bool, video: bool) -> tuple[Path, Path]:
-    """(video, picture) paths that do not exist yet.
-
-    With ``out`` (a video file name; the picture is named after it) an existing file is an
-    error; otherwise ``default_stem`` + ``.mp4``/``.gif`` and ``-<picture>.png``, with a
-    suffix -2, -3, ... until neither exists.
-    """
-    suffix = ".gif" if gif else ".mp4"
-    if out is not None:
-        if out.suffix.lower() not in (".mp4", ".gif"):
-            raise InputError(f"--out {out}: give a video file name ending in .mp4 or .gif")
-        if gif and out.suffix.lower() != ".gif":
-            raise InputError(f"--gif writes a GIF, but --out {out} ends in {out.suffix}: drop one of the two")
-        if not out.parent.is_dir():
-            raise InputError(f"cannot write {out}: the directory {out.parent} does not exist")
-        picture_path = _named_path(out.with_suffix(""), f"-{picture}.png")
-        for path in (out, picture_path) if video else (picture_path,):
-            if path.exists():
-                raise InputError(f"{path} already exists: choose another --out (render.py never overwrites)")
-        return out, picture_path
-    candidate, number = default_stem, 1
-    while (video and _named_path(candidate, suffix).exists()) or _named_path(candidate, f"-{picture}.png").exists():
-        number += 1
-        candidate = _named_path(default_stem, f"-{number}")
-    return _named_path(candidate, suffix), _named_path(candidate, f"-{picture}.png")
+def __getattr__(name: str):
+    # The drawers moved to stablebptt.drawing, which imports this module: resolved on first use.
+    if name in ("draw_mujoco_rollouts", "draw_env_rollouts"):
+        from stablebptt import drawing
+        return getattr(drawing, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

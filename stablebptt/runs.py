@@ -3,10 +3,10 @@
 A run directory holds ``config.json``, ``metrics.csv`` (one row per epoch and
 seed), ``params.npz`` (final or latest parameters, leading axis = seed) and
 ``checkpoint.npz`` (parameters, optimizer state and all metrics so far), and
-for an MJCF task ``model.xml`` and ``model.mjb``, the model file as given and as
-compiled (self-contained: includes and meshes inside), so the run can go on
-after the file moved. The checkpoint is the source of truth: resuming reads it
-and rewrites the rest.
+for an MJCF task ``model.xml`` and ``model.mjb.gz``, the model file as given and as
+compiled (self-contained: includes and meshes inside; compressed), so the run can go on
+after the file moved; a grid's cells share one compressed copy per model (``keep_model``).
+The checkpoint is the source of truth: resuming reads it and rewrites the rest.
 
 Every state of a folder can go on: ``config.json`` is written first and claims
 the folder (atomically: of two runs given one folder, one gets it); a folder
@@ -38,7 +38,10 @@ METRICS_FILE = "metrics.csv"
 PARAMS_FILE = "params.npz"
 CHECKPOINT_FILE = "checkpoint.npz"
 MODEL_COPY_FILE = "model.xml"  # a copy of the MJCF file a run trained on
-MODEL_BINARY_FILE = "model.mjb"  # the same model compiled, with everything it includes
+MODEL_PACKED_FILE = "model.mjb.gz"  # the same model compiled, with everything it includes, gzip-compressed
+MODEL_LINK_FILE = "model.json"  # in a grid's cell: where the one compressed copy its grid keeps lies
+MODEL_BINARY_FILE = "model.mjb"  # the compiled copy as earlier versions kept it (uncompressed); still read
+SHARED_MODELS = "models"  # a grid root's folder of compressed models, each named by its content's SHA-256
 LOCK_FILE = ".lock"
 COLUMNS = ("epoch", "seed") + METRICS + ("seconds",)
 
@@ -56,6 +59,63 @@ def write_metrics(path: Path, rows: np.ndarray) -> None:
 def read_metrics(path: Path) -> list[dict[str, float]]:
     with open(path, newline="") as handle:
         return [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)]
+
+
+def _metrics_problem(path: Path) -> tuple[list[dict[str, float]], str]:
+    """(rows, what is wrong with ``path`` or ""). A last line without its newline was cut mid-line
+    (``write_metrics`` ends every line): it is left out, as a number cut short still parses."""
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        return [], "missing"
+    except OSError as error:
+        return [], f"unreadable ({error.strerror})"
+    cut = bool(text) and not text.endswith("\n")
+    if cut:
+        text = text[:text.rfind("\n") + 1]
+    try:
+        rows = [{key: float(value) for key, value in row.items()} for row in csv.DictReader(io.StringIO(text))]
+    except (ValueError, TypeError):  # float() of an empty, missing or non-numeric cell
+        return [], "damaged (a missing or non-numeric value)"
+    if cut:
+        return rows, "cut mid-line"
+    return rows, "" if rows else "empty"
+
+
+def checkpoint_rows(run_dir: Path) -> np.ndarray | None:
+    """The metric rows a run's checkpoint holds (``COLUMNS`` wide), or None without a readable one."""
+    try:
+        with np.load(Path(run_dir) / CHECKPOINT_FILE) as data:
+            rows = np.array(data["metrics"])
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+    return rows if rows.ndim == 2 and rows.shape[1] == len(COLUMNS) else None
+
+
+def run_metrics(run_dir: Path) -> tuple[list[dict[str, float]], str]:
+    """(every metric row of a run, a note for the user or ""): ``metrics.csv``, or where it is missing,
+    empty, cut or damaged, the rows of the checkpoint, which ``--resume`` writes back into it.
+
+    Raises:
+      InputError: no rows to read, with what can be done about it.
+    """
+    path = Path(run_dir) / METRICS_FILE
+    rows, problem = _metrics_problem(path)
+    if not problem:
+        return rows, ""
+    saved = checkpoint_rows(run_dir)
+    if saved is not None and len(saved) >= len(rows) and len(saved):
+        epochs = int(saved[:, 0].max())
+        return ([dict(zip(COLUMNS, map(float, row))) for row in saved],
+                f"{path} is {problem}: read {epochs} epoch{'s' if epochs != 1 else ''} from {CHECKPOINT_FILE} instead "
+                f"(--resume {run_dir} writes them back into {METRICS_FILE})")
+    if problem == "cut mid-line" and rows:
+        return rows, f"{path} is cut mid-line: its last line is left out"
+    if problem in ("missing", "empty", "cut mid-line"):
+        raise InputError(f"{path} is {problem if problem != 'cut mid-line' else 'cut in its first row'} and "
+                         f"{run_dir} has no {CHECKPOINT_FILE} with metrics: not a run directory, or its run "
+                         "has not finished an epoch yet")
+    raise InputError(f"{path} is {problem} and {run_dir} has no {CHECKPOINT_FILE} to read the metrics from")
 
 
 def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
@@ -229,24 +289,98 @@ def open_run(path: Path) -> dict:
     return record
 
 
-def copy_model(run_dir: Path, model_file: str | Path) -> None:
-    """Keep the model file in the run folder, as given (``model.xml``) and compiled (``model.mjb``).
-
-    A model given compiled (``.mjb``, such as another run's copy) is kept as ``model.mjb`` alone.
-    """
+def compiled_model(model_file: str | Path) -> bytes:
+    """The MuJoCo binary (``.mjb``) of a model file: an MJCF compiled, includes and meshes inside;
+    a compiled file (``.mjb``, or ``.mjb.gz`` as runs keep it) as it is."""
     import mujoco
 
     from stablebptt import mujoco_log
     model_file = Path(model_file)
-    if model_file.suffix == ".mjb":
-        atomic_write(run_dir / MODEL_BINARY_FILE, model_file.read_bytes())
-        return
-    atomic_write(run_dir / MODEL_COPY_FILE, model_file.read_bytes())
+    if model_file.suffix in (".mjb", ".gz"):
+        return _unpacked(model_file)
     with mujoco_log.collected():  # the task reported them when it loaded the file
         model = mujoco.MjModel.from_xml_path(str(model_file))
     binary = np.zeros(mujoco.mj_sizeModel(model), dtype=np.uint8)
     mujoco.mj_saveModel(model, None, binary)
-    atomic_write(run_dir / MODEL_BINARY_FILE, binary.tobytes())
+    return binary.tobytes()
+
+
+def _unpacked(path: Path) -> bytes:
+    """The bytes of a compiled model file, uncompressed if it is ``.gz``."""
+    import gzip
+    import zlib
+    data = path.read_bytes()
+    if path.suffix != ".gz":
+        return data
+    try:
+        return gzip.decompress(data)
+    except (OSError, EOFError, zlib.error) as error:  # gzip.BadGzipFile is an OSError
+        raise InputError(f"cannot load {path}: it is damaged ({error})") from None
+
+
+def load_compiled_model(path: str | Path):
+    """A ``mujoco.MjModel`` from a compiled model file: ``.mjb``, or ``.mjb.gz`` as runs keep it."""
+    import mujoco
+    path = Path(path)
+    name = path.name.removesuffix(".gz")
+    try:
+        return mujoco.MjModel.from_binary_path(name, assets={name: _unpacked(path)})
+    except ValueError as error:
+        raise InputError(f"cannot load {path}: {' '.join(str(error).split())}") from None
+
+
+def keep_model(run_dir: Path, model_file: str | Path, shared: Path | None = None) -> None:
+    """Keep in ``run_dir`` what reopening its model needs after the file moved: the file as given
+    (``model.xml``, an MJCF's own text) and the model compiled, includes and meshes inside, compressed.
+
+    The compiled model (a skybox texture alone can make it megabytes) goes into ``model.mjb.gz``;
+    with ``shared`` (a grid's root, its cells the run folders) into ``shared/models/<SHA-256>.mjb.gz``
+    instead, written once for every cell of the same model, and the cell keeps ``model.json``, which
+    names that file relative to the cell (a grid moved as a whole still reopens).
+    """
+    run_dir, model_file = Path(run_dir), Path(model_file)
+    if model_file.suffix not in (".mjb", ".gz"):
+        atomic_write(run_dir / MODEL_COPY_FILE, model_file.read_bytes())
+    binary = compiled_model(model_file)
+    import gzip
+    pack = lambda: gzip.compress(binary, compresslevel=6, mtime=0)  # noqa: E731 - the same model, the same bytes
+    if shared is None:
+        atomic_write(run_dir / MODEL_PACKED_FILE, pack())
+        return
+    digest = hashlib.sha256(binary).hexdigest()
+    target = Path(shared) / SHARED_MODELS / f"{digest}.mjb.gz"
+    if not target.is_file():  # written atomically: one that exists is whole
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise StorageError(error.errno, f"cannot create {target.parent}: {error.strerror}") from None
+        atomic_write(target, pack())
+    write_json(run_dir / MODEL_LINK_FILE, {"compiled": os.path.relpath(target, run_dir), "sha256": digest})
+
+
+def copy_model(run_dir: Path, model_file: str | Path) -> None:
+    """``keep_model`` into the run folder alone (a single run)."""
+    keep_model(run_dir, model_file)
+
+
+def kept_model(run_dir: Path) -> Path | None:
+    """The compiled copy of its model a run folder keeps (``keep_model``; an earlier version's
+    ``model.mjb``), or None when it keeps none."""
+    run_dir = Path(run_dir)
+    for name in (MODEL_PACKED_FILE, MODEL_BINARY_FILE):
+        if (run_dir / name).is_file():
+            return run_dir / name
+    link = run_dir / MODEL_LINK_FILE
+    if not link.is_file():
+        return None
+    pointer = read_json(link)
+    if not (isinstance(pointer, dict) and isinstance(pointer.get("compiled"), str)):
+        raise InputError(f"{link} does not name a compiled model ('compiled': a path)")
+    target = run_dir / pointer["compiled"]
+    if not target.is_file():
+        raise InputError(f"{link} names {target}, which does not exist: the grid's {SHARED_MODELS} folder was "
+                         "moved or deleted; move the grid as a whole, or put the file back")
+    return target
 
 
 def model_to_reopen(run_dir: Path, record: dict) -> tuple[str | None, str]:
@@ -266,16 +400,24 @@ def model_to_reopen(run_dir: Path, record: dict) -> tuple[str | None, str]:
             raise InputError(f"{original} changed since the run in {run_dir} started: restore it (the run's copy is "
                              f"{run_dir / MODEL_COPY_FILE}), or start a new run with the changed file")
         return str(original), ""
-    copy = run_dir / MODEL_BINARY_FILE
-    if not copy.is_file():
-        raise InputError(f"{original} does not exist any more and {run_dir} has no {MODEL_BINARY_FILE}: put the file back")
+    copy = kept_model(run_dir)
+    if copy is None:
+        raise InputError(f"{original} does not exist any more and {run_dir} keeps no compiled copy of it "
+                         f"({MODEL_PACKED_FILE}): put the file back")
     return str(copy), f"{original} is gone: using the run's own copy, {copy}"
 
 
 def new_record(task_name: str, task_config: Any, task: Any, train_config: TrainConfig) -> dict:
-    """The config.json of a new run: the task as configured and as resolved, training, versions, device."""
+    """The config.json of a new run: the task as configured and as resolved, training, versions, device.
+
+    Raises:
+      InputError: options set together where one makes the other meaningless (``checks.check_options``).
+    """
     import dataclasses
     import platform
+
+    from stablebptt.checks import check_options
+    check_options(train_config, task_config)
     return {
         "task": task_name,
         "task_config": dataclasses.asdict(task_config),
@@ -295,6 +437,7 @@ class Run:
 
     def __init__(self, directory: Path, record: dict, lock: RunLock, resuming: bool):
         self.directory, self.record, self.lock, self.resuming = Path(directory), record, lock, resuming
+        self.repaired: list[str] = []  # results ``start`` rewrote from the checkpoint
 
     @classmethod
     def create(cls, directory: Path, record: dict) -> "Run":
@@ -338,7 +481,24 @@ class Run:
             import dataclasses
             self.record = {**self.record, "train": dataclasses.asdict(config)}
             write_json(self.directory / CONFIG_FILE, self.record)
+        if self.resuming and start_epoch > 0:
+            self.repaired = self._repair(state, rows)
         return start_epoch, state, rows
+
+    def _repair(self, state: TrainState, rows: np.ndarray) -> list[str]:
+        """Rewrite from the checkpoint the results that are missing, cut or damaged (a run that is done
+        already would otherwise keep them so); returns the names of the files rewritten."""
+        repaired = []
+        saved, problem = _metrics_problem(self.directory / METRICS_FILE)
+        if problem or len(saved) != len(rows):
+            write_metrics(self.directory / METRICS_FILE, rows)
+            repaired.append(METRICS_FILE)
+        try:
+            load_params(self.directory / PARAMS_FILE, state.params)
+        except InputError:
+            save_params(self.directory / PARAMS_FILE, state.params)
+            repaired.append(PARAMS_FILE)
+        return repaired
 
     def _refuse_results_without_checkpoint(self) -> None:
         """A folder with trained results but no checkpoint cannot continue: training from epoch 0

@@ -9,7 +9,7 @@ line. Tasks, benchmarks and studies take a ``Simulator`` instead of assembling
 these pieces themselves::
 
     sim = simulator.build(mujoco.MjModel.from_xml_path("pendulum.xml"))
-    next_state = sim.step(scene.initial_state(sim.lean), jnp.zeros(sim.lean.nu))
+    next_state = sim.step(lean_step.initial_state(sim.lean), jnp.zeros(sim.lean.nu))
 """
 from __future__ import annotations
 
@@ -20,10 +20,11 @@ from typing import Any, Callable
 import jax
 import mujoco
 
-from stablebptt import scene
+from stablebptt import lean_step, mjx_support, scene, symmetries
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import KnownColumns
-from stablebptt.scene import SceneEffects, State
+from stablebptt.lean_step import State
+from stablebptt.scene import SceneEffects
 
 FORWARD_MODE_MAX_STATE = 64  # numbers in (qpos, qvel, act) up to which step Jacobians are built forward
 # Forward mode pushes every tangent through the constraint solver's implicit derivative; reverse mode
@@ -51,9 +52,16 @@ class SimulatorConfig:
         if not 0 <= self.solver_iterations <= 10_000:
             raise InputError(f"{config_field(self, 'solver_iterations')} must be between 1 and 10000 (or 0 for the model's own), got {self.solver_iterations}")
         for name, allowed in (("pipeline", PIPELINES), ("step_derivative", STEP_DERIVATIVES),
-                              ("integrator", ("", *scene.INTEGRATORS))):
+                              ("integrator", ("", *mjx_support.INTEGRATORS))):
             if getattr(self, name) not in allowed:
                 raise InputError(f"{config_field(self, name)} must be one of {', '.join(a or repr(a) for a in allowed)}, got {getattr(self, name)!r}")
+
+    def conflicts(self) -> list[str]:
+        """Options set together where one makes the other meaningless (``checks.check_options``)."""
+        if self.pipeline == "mjx" and self.solver_iterations:
+            return [f"{config_field(self, 'solver_iterations')} {self.solver_iterations} sets the solver of the lean "
+                    f"and stages pipelines; {config_field(self, 'pipeline')} mjx keeps MuJoCo's own: drop one"]
+        return []
 
 
 @dataclass(frozen=True)
@@ -103,9 +111,9 @@ def build(model: mujoco.MjModel, config: SimulatorConfig = SimulatorConfig()) ->
     else:
         iterations = config.solver_iterations or None  # None: the model's own solver, as the file says
         lean = scene.lean_model(model, effects, config.integrator or None, config.dt or None, iterations)
-    mjx_model = scene.put_model(lean)
+    mjx_model = mjx_support.put_model(lean)
     # mjx.step simulates every constraint, the other pipelines the scene's.
-    rows = scene.constraint_rows(mjx_model) if effects.constraints or config.pipeline == "mjx" else 0
+    rows = mjx_support.constraint_rows(mjx_model) if effects.constraints or config.pipeline == "mjx" else 0
     # mjx.step runs MuJoCo's solver as a while loop of dynamic length: forward mode goes through
     # it, reverse mode cannot (the other pipelines differentiate the solver at its solution).
     solver_loop = config.pipeline == "mjx" and rows > 0
@@ -122,10 +130,10 @@ def build(model: mujoco.MjModel, config: SimulatorConfig = SimulatorConfig()) ->
         # unless every tangent also goes through a large constraint system.
         derivative = ("forward" if state_size <= FORWARD_MODE_MAX_STATE and tangents * rows <= FORWARD_MODE_MAX_SOLVER_WORK
                       else "reverse")
-    step = scene.make_step(lean, effects, config.pipeline, mjx_model=mjx_model)
+    step = lean_step.make_step(lean, effects, config.pipeline, mjx_model=mjx_model)
 
     summary = scene.describe(effects, lean, model) + (f"; pipeline: {config.pipeline}" if config.pipeline != "lean" else "")
-    generated = config.pipeline == "lean" and scene.generated_step_applies(lean, effects)
+    generated = config.pipeline == "lean" and lean_step.generated_step_applies(lean, effects)
     if generated:
         summary += "; step: generated body by body"
     summary += f"; step gradients: {derivative} mode"
@@ -133,9 +141,9 @@ def build(model: mujoco.MjModel, config: SimulatorConfig = SimulatorConfig()) ->
         summary += " (mjx.step's solver loop has no reverse mode)"
     elif config.step_derivative == "auto" and derivative == "reverse" and state_size <= FORWARD_MODE_MAX_STATE:
         summary += f" ({tangents} tangents x {rows} constraint rows: cheaper than forward)"
-    if generated or (config.pipeline in ("lean", "stages") and scene.implicit_derivative_applies(lean, effects)):
+    if generated or (config.pipeline in ("lean", "stages") and lean_step.implicit_derivative_applies(lean, effects)):
         summary += " through inverse dynamics"
-    known_columns, symmetric_joints = scene.symmetries(lean, effects)
+    known_columns, symmetric_joints = symmetries.symmetries(lean, effects)
     if derivative == "forward" and symmetric_joints:
         summary += f" (symmetries: no tangent for {', '.join(symmetric_joints)})"
     return Simulator(model=model, lean=lean, effects=effects, mjx_model=mjx_model, step=step, derivative=derivative,

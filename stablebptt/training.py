@@ -222,9 +222,9 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     if not isinstance(config, TrainConfig):
         raise InputError(f"expected a stablebptt.TrainConfig, got {type(config).__name__}")
     if config.x64 and not jax.config.jax_enable_x64:
-        raise InputError(f"{config_field(config, 'x64')} asks for float64, but JAX runs in float32: call "
-                         "jax.config.update('jax_enable_x64', True) before building the task (arrays made before "
-                         "stay float32), as the command line's --x64 does")
+        raise InputError(f"{config_field(config, 'x64')} asks for float64, but JAX runs in float32: stablebptt.train "
+                         "trains such a config in float64 by itself; with make_trainer, build the trainer and call "
+                         "its functions under `with jax.enable_x64(True):`")
     check_task(task, config.zero_output)
     flows = FLOWS if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)

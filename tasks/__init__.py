@@ -22,6 +22,7 @@ package's pyproject.toml (the value is a module defining ``ENTRY``)::
 from __future__ import annotations
 
 import importlib
+import inspect
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from types import ModuleType
@@ -48,14 +49,22 @@ class Entry:
       name: the ``--task`` value.
       module: import path of the module with ``Config``, ``make`` and ``DEFAULT_EPOCHS``.
       label: a configuration in a few words, for titles (``label(config) -> str``).
-      draw: ``"module:function"`` (or the function) drawing rollouts:
-        ``draw(task_config, states, controls, titles, label, settings, video, picture) -> [written paths]``,
-        with ``settings`` render.py's options (width, height, fps, strip_states). Empty: not drawable.
+      draw: ``"module:function"`` (or the function) drawing rollouts, ``draw(request) -> [written paths]``
+        with ``request`` a ``stablebptt.drawing.DrawRequest``: the task config, the rollouts' states
+        [N, T+1, ...] and controls [N, T, ...] (NumPy), a title per rollout, a label, the
+        ``DrawSettings`` (panel width and height, fps, strip_states), and the video (None: none)
+        and picture to write. Empty: not drawable. A function of the earlier eight positional
+        arguments (``task_config, states, controls, titles, label, settings, video, picture``)
+        is still called that way.
       picture: suffix of the picture file ``draw`` writes (``rollout-<picture>.png``).
       mujoco_frames: ``draw`` renders with MuJoCo's OpenGL (a backend is chosen before MuJoCo loads).
       presets: sweep grids: preset name -> (the option that sets the complexity, its values).
       gpu_unroll: rollout steps per loop iteration for sweeps on a GPU (chosen per task by
         measurement; beyond it compile time grows faster than the gain).
+      studies: import path of the module with the task's side of the accuracy studies and the
+        benchmark (``trajectory_setup``, ``gradient_setup``, ``training_config``, ``bench_cases``,
+        each optional: ``stablebptt.apps.studies``). Empty: the studies that need a set-up refuse
+        the task; the training study and the benchmark's modes table take its defaults.
     """
 
     name: str
@@ -66,29 +75,45 @@ class Entry:
     mujoco_frames: bool = False
     presets: dict[str, tuple[str, tuple]] = field(default_factory=dict)
     gpu_unroll: int = 1
+    studies: str = ""
 
     def load(self) -> ModuleType:
         """The task's module, imported now."""
         return importlib.import_module(self.module)
 
     def drawer(self) -> Callable:
-        return _import(self.draw) if isinstance(self.draw, str) else self.draw
+        """``draw(request) -> [written paths]``; a drawer of the earlier eight arguments is adapted."""
+        draw = _import(self.draw) if isinstance(self.draw, str) else self.draw
+        return _adapt_positional(draw)
+
+
+def _adapt_positional(draw: Callable) -> Callable:
+    """A drawer written for the eight positional arguments earlier versions passed, called with a request."""
+    try:
+        parameters = inspect.signature(draw).parameters.values()
+    except (TypeError, ValueError):  # no signature to read (a builtin): call it as the protocol says
+        return draw
+    positional = [p for p in parameters if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    if len(positional) < 8:
+        return draw
+    return lambda request: draw(request.task_config, request.states, request.controls, request.titles, request.label,
+                                request.settings, request.video, request.picture)
 
 
 _BUILTIN = (
     Entry("mjcf", "stablebptt.tasks.mjcf", label=lambda c: c.model_path.name,
-          draw="stablebptt.rendering:draw_mujoco_rollouts", picture="strip", mujoco_frames=True,
-          presets={"cartpole": ("poles", (1, 2, 3, 4))}, gpu_unroll=5),
+          draw="stablebptt.drawing:draw_mujoco_rollouts", picture="strip", mujoco_frames=True,
+          presets={"cartpole": ("poles", (1, 2, 3, 4))}, gpu_unroll=5, studies="stablebptt.apps.studies.cartpole"),
     Entry("repulsion", "stablebptt.tasks.repulsion", label=lambda c: f"repulsion, rc={c.rc:g}",
           draw="stablebptt.apps.figures:draw_repulsion", picture="paths",
           presets={"repulsion": ("rc", (1.0, 0.1, 0.01, 0.001)),
                    "tiny": ("rc", (1.0, 0.1))},  # the CPU test of the sweep's machinery
-          gpu_unroll=10),
+          gpu_unroll=10, studies="stablebptt.apps.studies.repulsion"),
     Entry("quantum", "stablebptt.tasks.quantum", label=lambda c: f"quantum, target state {c.target}",
           draw="stablebptt.apps.figures:draw_quantum", picture="density",
-          presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8),
+          presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8, studies="stablebptt.apps.studies.quantum"),
     Entry("env", "stablebptt.tasks.env", label=lambda c: c.env or "an environment",
-          draw="stablebptt.rendering:draw_env_rollouts", picture="strip", mujoco_frames=True),
+          draw="stablebptt.drawing:draw_env_rollouts", picture="strip", mujoco_frames=True),
 )
 _REGISTRY: dict[str, Entry] = {}
 _discovered = False

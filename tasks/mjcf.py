@@ -23,12 +23,12 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stablebptt import models, mujoco_log, simulator
+from stablebptt import models, mujoco_log, runs, simulator
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import Dynamics
 from stablebptt.mjx_internals import mjx
 from stablebptt.networks import mlp_apply, mlp_init
-from stablebptt.scene import State
+from stablebptt.lean_step import State
 from stablebptt.simulator import SimulatorConfig
 from stablebptt.training import Task
 
@@ -77,6 +77,22 @@ class Config(SimulatorConfig):
             raise InputError(f"{config_field(self, 'horizon_seconds')} must be a finite positive time (or 0 for the MJCF's own), got {self.horizon_seconds}")
         self._merge_task_file()
 
+    def conflicts(self) -> list[str]:
+        """Options set together where one makes the other meaningless (``checks.check_options``)."""
+        field = lambda name: config_field(self, name)  # noqa: E731
+        problems = super().conflicts()
+        if self.model and self.poles != 1:
+            problems.append(f"{field('poles')} {self.poles} picks a cart-pole model, and {field('model')} gives "
+                            f"another: drop one")
+        if self.steps and self.horizon_seconds:
+            problems.append(f"{field('steps')} {self.steps} overrides {field('horizon_seconds')} "
+                            f"{self.horizon_seconds:g}: give one")
+        if self.target_pose and (self.loss_joints == "none" or (self.reach and not self.loss_joints)):
+            problems.append(f"{field('target_pose')} sets the target of the pose loss, which compares no joint "
+                            f"({field('loss_joints')} none, or {field('reach')} alone): drop it, or name the joints "
+                            f"with {field('loss_joints')}")
+        return problems
+
     def _merge_task_file(self) -> None:
         """Fill the task options still at their defaults from the task file, and record which file that was."""
         if self.task_file == "none" or not (self.task_file or self.model):
@@ -110,15 +126,17 @@ class Config(SimulatorConfig):
 
 
 def load_model(path: Path) -> mujoco.MjModel:
-    """Load an MJCF (or a compiled ``.mjb``, as runs keep); any failure becomes one clear InputError line."""
+    """Load an MJCF (or a compiled ``.mjb``, or ``.mjb.gz`` as runs keep it); any failure becomes one clear InputError line."""
     if not path.is_file():
         raise InputError(f"model file {path} does not exist")
     try:
         with mujoco_log.collected() as warnings:
-            if path.suffix == ".mjb":
-                model = mujoco.MjModel.from_binary_path(str(path))
+            if path.suffix in (".mjb", ".gz"):
+                model = runs.load_compiled_model(path)
             else:
                 model = mujoco.MjModel.from_xml_path(str(path))
+    except InputError:
+        raise
     except ValueError as error:
         detail = " ".join(str(error).split())
         raise InputError(f"cannot load {path}: {detail}") from None
@@ -276,17 +294,39 @@ def read_spec(model: mujoco.MjModel, config: Config | None = None) -> Spec:
         jnp.asarray(velocity_from.act if velocity_from is not None else np.zeros(model.na)),
     )
     used = {key.name for key in (init_key, target_key, chosen_init, chosen_target) if key is not None}
+    qpos_spread = _numeric(model, "bptt_qpos_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD))
+    qvel_spread = _numeric(model, "bptt_qvel_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD))
+    _check_spread(config.spread, (init_qpos, qpos_spread, "positions"), (init.qvel, qvel_spread, "velocities"))
     return Spec(
         horizon=int(horizon[0]),
         loss=loss,
         joint_weight=weights,
         init=init,
-        qpos_spread=config.spread * _numeric(model, "bptt_qpos_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
-        qvel_spread=config.spread * _numeric(model, "bptt_qvel_spread", model.nv, np.full(model.nv, DEFAULT_SPREAD)),
+        qpos_spread=config.spread * qpos_spread,
+        qvel_spread=config.spread * qvel_spread,
         target_qpos=target_qpos,
         reach=reach,
         unused_keyframes=tuple(model.key(k).name or f"#{k}" for k in range(model.nkey) if model.key(k).name not in used),
     )
+
+
+def _check_spread(spread: float, *parts: tuple) -> None:
+    """Refuse a spread whose initial states square past the largest number of the run's precision.
+
+    The step squares velocities (centrifugal and Coriolis forces, kinetic energy) and the
+    loss squares slide positions; a state above the square root of the largest float makes
+    them infinite in the first epoch, whatever is trained. ``parts``: (centre, declared
+    half-widths per dof, what they are).
+    """
+    dtype = jnp.result_type(float)  # float32, or float64 under --x64
+    largest = float(np.sqrt(np.finfo(dtype).max))
+    for centre, widths, what in parts:
+        centre, width = float(np.max(np.abs(centre), initial=0.0)), float(np.max(widths, initial=0.0))
+        if width > 0 and centre + spread * width > largest:
+            raise InputError(f"{config_field(Config, 'spread')} {spread:g} spreads the initial {what} up to "
+                             f"{centre + spread * width:.3g}, past {largest:.3g}, above which their squares "
+                             f"(in the dynamics and the loss) overflow {np.dtype(dtype).name}: give at most "
+                             f"{(largest - centre) / width:.3g}")
 
 
 def _quat_multiply(a, b):
@@ -403,7 +443,7 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
         qpos = jax.vmap(lambda d: perturb_qpos(model, spec.init.qpos, d))(dq)
         return State(qpos, spec.init.qvel + dv, jnp.broadcast_to(spec.init.act, (count, model.na)))
 
-    name = path.stem  # run folders and records name the model: cartpole_3, humanoid, ...
+    name = path.name.removesuffix(".gz").rsplit(".", 1)[0]  # runs name the model: cartpole_3, humanoid, ...
     as_list = lambda a: np.asarray(a, dtype=float).tolist()
     resolved = {
         "model_file": str(path.resolve()),

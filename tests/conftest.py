@@ -6,7 +6,10 @@ import atexit
 import contextlib
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
+import zipfile
 from pathlib import Path
 
 import jax
@@ -51,3 +54,24 @@ def float64():
 def x64():
     with float64():
         yield
+
+
+DM_CONTROL = "dm_control==1.0.50"  # the DeepMind Control Suite's MJCF files, as users find them
+
+
+@pytest.fixture(scope="session")
+def suite():
+    """The folder of dm_control's suite/*.xml (with common/ and the dog's assets), fetched once from the
+    package index into the checkout's .cache (dm_control itself is not installed)."""
+    cache = ROOT / ".cache" / DM_CONTROL.replace("==", "-")
+    folder = cache / "dm_control" / "suite"
+    if not (folder / "walker.xml").is_file():
+        cache.mkdir(parents=True, exist_ok=True)
+        download = subprocess.run([sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--dest",
+                                   str(cache), DM_CONTROL], capture_output=True, text=True)
+        assert download.returncode == 0, f"cannot fetch {DM_CONTROL} from the package index: {download.stderr}"
+        wheel = next(cache.glob("dm_control-*.whl"))
+        with zipfile.ZipFile(wheel) as archive:
+            archive.extractall(cache, [n for n in archive.namelist() if n.startswith("dm_control/suite/")])
+        wheel.unlink()
+    return folder

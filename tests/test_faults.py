@@ -245,6 +245,34 @@ def test_resume_given_a_file_or_fewer_epochs_changes_nothing(finished, capsys):
     assert snapshot(finished) == before
 
 
+@pytest.mark.parametrize("damage", ["cut mid-line", "empty", "missing"])
+def test_plot_reads_a_damaged_metrics_file_from_the_checkpoint_and_resume_rewrites_it(finished, tmp_path, capsys, damage):
+    from stablebptt import plots
+    folder = tmp_path / "damaged"
+    shutil.copytree(finished, folder)
+    metrics = folder / runs.METRICS_FILE
+    whole = metrics.read_bytes()
+    if damage == "missing":
+        metrics.unlink()
+    else:
+        metrics.write_bytes(whole[:-5] if damage == "cut mid-line" else b"")
+    drawn = plots.load_run(folder)
+    assert list(drawn.epochs) == [1, 2] and damage in drawn.note and f"--resume {folder}" in drawn.note
+    np.testing.assert_array_equal(drawn.metrics["test_loss"], plots.load_run(finished).metrics["test_loss"])
+    code, err, out = train(capsys, "--resume", str(folder), "--no-progress")  # what the note advises
+    assert code == 0 and "done already" in out and len(err) == 1 and runs.METRICS_FILE in err[0], err
+    assert metrics.read_bytes() == whole and plots.load_run(folder).note == ""
+
+
+def test_resume_rewrites_damaged_parameters_from_the_checkpoint(finished, tmp_path, capsys):
+    folder = tmp_path / "damaged"
+    shutil.copytree(finished, folder)
+    (folder / runs.PARAMS_FILE).write_bytes(b"not a zip")
+    code, err, out = train(capsys, "--resume", str(folder), "--no-progress")
+    assert code == 0 and "done already" in out and len(err) == 1 and runs.PARAMS_FILE in err[0], err
+    assert (folder / runs.PARAMS_FILE).read_bytes() == (finished / runs.PARAMS_FILE).read_bytes()
+
+
 def test_a_full_disk_gets_one_line_leaves_no_temporary_and_the_run_resumes(tmp_path, capsys, monkeypatch):
     run_dir = tmp_path / "full"
     real_fsync, calls = os.fsync, []
@@ -341,7 +369,7 @@ def test_a_run_remembers_its_model_resumes_and_renders_after_the_file_moved(tmp_
     code, err, _ = train(capsys, "--model", "arm.xml", "--epochs", "1", "--out", str(tmp_path / "run"), *options)
     assert code == 0, err
     run_dir = tmp_path / "run"
-    assert (run_dir / runs.MODEL_BINARY_FILE).is_file()
+    assert (run_dir / runs.MODEL_PACKED_FILE).is_file() and not (run_dir / runs.MODEL_BINARY_FILE).exists()
 
     (source / "arm_body.xml").write_text(ARM_BODY)  # rewritten unchanged: still the same model
     (source / "arm.xml").write_text(ARM.replace('gear="2"', 'gear="3"'))
@@ -363,13 +391,58 @@ def test_a_run_remembers_its_model_resumes_and_renders_after_the_file_moved(tmp_
     assert render.returncode == 0, render.stderr
     assert list(run_dir.glob("*.png"))
 
-    # The run's compiled copy (.mjb) is a model file like any other: it trains, and is kept as it is.
-    again = tmp_path / "from-mjb"
-    code, err, _ = train(capsys, "--model", str(run_dir / runs.MODEL_BINARY_FILE), "--epochs", "1", "--out", str(again),
-                         *options)
-    assert code == 0, err
-    assert (again / runs.MODEL_BINARY_FILE).read_bytes() == (run_dir / runs.MODEL_BINARY_FILE).read_bytes()
-    assert not (again / runs.MODEL_COPY_FILE).exists()
+    # The run's compiled copy (.mjb.gz) is a model file like any other, and so is it unpacked (.mjb):
+    # each trains, and is kept as the same compiled model.
+    unpacked = tmp_path / "arm.mjb"
+    unpacked.write_bytes(runs.compiled_model(run_dir / runs.MODEL_PACKED_FILE))
+    for given, again in ((run_dir / runs.MODEL_PACKED_FILE, tmp_path / "from-gz"), (unpacked, tmp_path / "from-mjb")):
+        code, err, _ = train(capsys, "--model", str(given), "--epochs", "1", "--out", str(again), *options)
+        assert code == 0, err
+        assert (again / runs.MODEL_PACKED_FILE).read_bytes() == (run_dir / runs.MODEL_PACKED_FILE).read_bytes()
+        assert not (again / runs.MODEL_COPY_FILE).exists()
+
+
+SKY = """<mujoco><asset><texture type="skybox" builtin="gradient" rgb1="0.4 0.6 0.8" rgb2="0 0 0" width="256"
+  height="256"/></asset>""" + ARM.split("<mujoco model=\"arm\">", 1)[1]
+
+
+def test_a_grid_keeps_one_compressed_model_for_all_its_cells_and_each_cell_reopens_it(tmp_path):
+    (tmp_path / "arm.xml").write_text(SKY)
+    (tmp_path / "arm_body.xml").write_text(ARM_BODY)
+    binary = runs.compiled_model(tmp_path / "arm.xml")  # the skybox: 256 x 256 x 6 faces x RGB
+    grid = tmp_path / "grid"
+    cells = [grid / f"cell-{k}" for k in range(3)]
+    for cell in cells:
+        cell.mkdir(parents=True)
+        runs.keep_model(cell, tmp_path / "arm.xml", shared=grid)
+    shared = list((grid / runs.SHARED_MODELS).iterdir())
+    assert len(shared) == 1 and shared[0].stat().st_size < len(binary) / 10  # one copy, compressed
+    record = {"resolved_task": {"model_file": str(tmp_path / "gone.xml")}}
+    for cell in cells:
+        assert sorted(p.name for p in cell.iterdir()) == [runs.MODEL_LINK_FILE, runs.MODEL_COPY_FILE]
+        path, note = runs.model_to_reopen(cell, record)  # the model file is gone: the grid's copy
+        assert Path(path) == cell / ".." / runs.SHARED_MODELS / shared[0].name and "is gone" in note
+        assert runs.compiled_model(path) == binary
+    moved = tmp_path / "moved"
+    shutil.move(grid, moved)  # the grid moves as a whole: its cells still find their model
+    assert runs.compiled_model(runs.model_to_reopen(moved / "cell-0", record)[0]) == binary
+    shutil.rmtree(moved / runs.SHARED_MODELS)
+    with pytest.raises(InputError, match="does not exist: the grid's models folder"):
+        runs.model_to_reopen(moved / "cell-0", record)
+
+
+def test_a_run_folder_of_an_earlier_version_reopens_its_uncompressed_model(tmp_path):
+    (tmp_path / "arm.xml").write_text(ARM)
+    (tmp_path / "arm_body.xml").write_text(ARM_BODY)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / runs.MODEL_BINARY_FILE).write_bytes(runs.compiled_model(tmp_path / "arm.xml"))
+    path, _ = runs.model_to_reopen(old, {"resolved_task": {"model_file": str(tmp_path / "gone.xml")}})
+    assert path == str(old / runs.MODEL_BINARY_FILE)
+    assert runs.load_compiled_model(path).nv == 1
+    (old / "damaged.mjb.gz").write_bytes(b"not gzip")
+    with pytest.raises(InputError, match="damaged"):
+        runs.load_compiled_model(old / "damaged.mjb.gz")
 
 
 def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
@@ -393,3 +466,62 @@ def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
     from stablebptt.plots import plot_run
     figure = plot_run(tmp_path / "threaded")
     assert Path(figure).is_file()
+
+
+def test_a_compile_cache_that_cannot_be_written_is_one_line_and_left_off(tmp_path, monkeypatch):
+    from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+    before = jax.config.jax_compilation_cache_dir
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv(COMPILE_CACHE_ENV, str(tmp_path / "a-file" / "cache"))
+    notes = []
+    assert use_compile_cache(note=notes.append) is None
+    assert len(notes) == 1 and "cannot write to the compile cache" in notes[0] and COMPILE_CACHE_ENV in notes[0], notes
+    assert jax.config.jax_compilation_cache_dir == before
+
+
+def test_a_damaged_compile_cache_entry_is_compiled_again_and_replaced_with_one_line(tmp_path, monkeypatch):
+    import warnings
+
+    import jax.numpy as jnp
+    from jax._src import compilation_cache, lru_cache
+
+    from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+    session_cache, minimum = os.environ[COMPILE_CACHE_ENV], jax.config.jax_persistent_cache_min_compile_time_secs
+    cache, notes = tmp_path / "cache", []
+    program = lambda x: jnp.tanh(x) * 3.25 - 7.5  # noqa: E731
+
+    def run_without_warnings():
+        jax.clear_caches()  # not in memory: the next call looks in the cache directory
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            return jax.jit(program)(jnp.ones(5))
+
+    os.environ[COMPILE_CACHE_ENV] = str(cache)
+    try:
+        compilation_cache.reset_cache()
+        assert use_compile_cache(note=notes.append) == cache
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+        expected = run_without_warnings()
+        entries = sorted(cache.glob("*-cache"))
+        assert entries
+        for entry in entries:
+            entry.write_bytes(entry.read_bytes()[:7])  # as a process killed while JAX wrote it leaves one
+        for _ in range(2):  # replaced, so the second run reads it without a word
+            np.testing.assert_array_equal(run_without_warnings(), expected)
+        assert len(notes) == 1 and "damaged entry" in notes[0] and "replaced" in notes[0], notes
+        for entry in entries:
+            compilation_cache.decompress_executable(entry.read_bytes())  # whole again
+
+        def full_disk(self, key, value):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        monkeypatch.setattr(lru_cache.LRUCache, "put", full_disk)
+        program = lambda x: jnp.tanh(x) * 1.5 + 2.5  # noqa: E731 - another program, to be written
+        for _ in range(2):
+            np.testing.assert_allclose(run_without_warnings(), np.tanh(1.0) * 1.5 + 2.5, rtol=1e-6)
+        assert len(notes) == 2 and "cannot write to the compile cache" in notes[1], notes
+    finally:
+        os.environ[COMPILE_CACHE_ENV] = session_cache
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", minimum)
+        compilation_cache.reset_cache()
+        use_compile_cache()

@@ -36,6 +36,7 @@ CASES = {
     "--dt leaving no step": ({}, ["--dt", "1e6"], "less than one step"),
     "--dt leaving too many steps": ({}, ["--dt", "1e-300"], "steps"),
     "NaN --spread": ({}, ["--spread", "nan"], "--spread"),
+    "--spread overflowing float32": ({}, ["--spread", "1e305"], "--spread"),
     "negative --steps": ({}, ["--steps", "-1"], "--steps"),
     "huge --data-seed": ({}, ["--data-seed", str(2**70)], "--data-seed"),
     "negative --seed": ({}, ["--seed", "-1"], "--seed"),
@@ -97,10 +98,23 @@ BAD_COMMAND_LINES = [
                                           "<actuator><motor joint='j'/></actuator><custom><numeric name='bptt_qpos_spread' data='1 2'/></custom></mujoco>"),
 ]
 
+# Options given together where one makes the other meaningless: (arguments, the options the line names).
+CONFLICTS = [
+    (["--task", "repulsion", "--clip", "none", "--clip-threshold", "0.5"], ("--clip-threshold", "--clip none")),
+    (["--task", "repulsion", "--seed-batching", "vmap"], ("--seed-batching", "--seeds")),
+    (["--task", "repulsion", "--mode", "C", "--no-cosine"], ("--cosine", "mode C")),
+    (["--poles", "3", "--model", "{models}/cartpole_2.xml"], ("--poles", "--model")),
+    (["--poles", "2", "--steps", "50", "--horizon-seconds", "2"], ("--steps", "--horizon-seconds")),
+    (["--poles", "2", "--pipeline", "mjx", "--solver-iterations", "3"], ("--solver-iterations", "--pipeline mjx")),
+    (["--poles", "2", "--target-pose", "slider=0.5", "--loss-joints", "none"], ("--target-pose", "--loss-joints")),
+]
+BAD_COMMAND_LINES += [(arguments, None) for arguments, _ in CONFLICTS]
+
 
 @pytest.mark.parametrize("arguments, content", BAD_COMMAND_LINES, ids=[" ".join(a) for a, _ in BAD_COMMAND_LINES])
 def test_bad_command_line_is_one_line_and_exit_code_2(train_main, tmp_path, capsys, arguments, content):
-    arguments = [a.format(dir=tmp_path) for a in arguments]
+    from stablebptt import models
+    arguments = [a.format(dir=tmp_path, models=models.DIRECTORY) for a in arguments]
     if content is not None:
         (tmp_path / arguments[-1].split("/")[-1]).write_text(content)
     out = tmp_path / "run"
@@ -109,6 +123,35 @@ def test_bad_command_line_is_one_line_and_exit_code_2(train_main, tmp_path, caps
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert exit_.value.code == 2 and len(lines) == 1 and lines[0].startswith("error: "), lines
     assert not out.exists()
+    for conflict, named in CONFLICTS:
+        if conflict == arguments:
+            assert all(option in lines[0] for option in named), lines[0]
+
+
+def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_takes_each_alone():
+    import stablebptt as sb
+    from stablebptt import runs
+    from stablebptt.checks import check_options
+    from stablebptt.tasks import mjcf
+    train_cases = {"TrainConfig.clip_threshold 0.5 has no effect": dict(clip="none", clip_threshold=0.5),
+                   "TrainConfig.seed_batching vmap": dict(seed_batching="vmap"),
+                   "TrainConfig.cosine is off, but mode C": dict(mode="C", cosine=False)}
+    for words, fields in train_cases.items():
+        with pytest.raises(sb.InputError, match=words):
+            sb.train(_pendulum(), sb.TrainConfig(epochs=1, **fields))  # refused before anything compiles
+    task_cases = {"mjcf.Config.poles 3 picks": dict(poles=3, model=str(mjcf.MODELS / "cartpole_2.xml")),
+                  "mjcf.Config.steps 50 overrides": dict(steps=50, horizon_seconds=2.0),
+                  "mjcf.Config.solver_iterations 3": dict(pipeline="mjx", solver_iterations=3),
+                  "mjcf.Config.target_pose": dict(target_pose="slider=0.5", reach="pole_1=0,0,1")}
+    for words, fields in task_cases.items():
+        with pytest.raises(sb.InputError, match=words):
+            runs.new_record("mjcf", mjcf.Config(**fields), None, sb.TrainConfig())  # before a run records them
+    # Each option alone, or with what gives it a meaning, is taken.
+    for fields in (dict(clip="norm", clip_threshold=0.5), dict(seeds=3, seed_batching="vmap"), dict(mode="R", cosine=False)):
+        check_options(sb.TrainConfig(**fields))
+    for fields in (dict(model=str(mjcf.MODELS / "cartpole_2.xml")), dict(poles=3, steps=50), dict(horizon_seconds=2.0),
+                   dict(pipeline="mjx"), dict(solver_iterations=3), dict(target_pose="slider=0.5", loss_joints="slider")):
+        check_options(sb.TrainConfig(), mjcf.Config(**fields))
 
 
 # The README's pendulum, as a Python user builds it: each case spoils one field.
@@ -186,9 +229,28 @@ def test_a_train_config_field_of_the_wrong_type_is_named(field, value):
         sb.TrainConfig(**{field: value})
 
 
-def test_a_dict_for_the_train_config_and_x64_without_float64_are_named():
+def test_a_dict_for_the_train_config_and_a_float64_trainer_made_in_float32_are_named():
     import stablebptt as sb
     with pytest.raises(sb.InputError, match="expected a stablebptt.TrainConfig, got dict"):
         sb.train(_pendulum(), {"epochs": 1})
-    with pytest.raises(sb.InputError, match="TrainConfig.x64 asks for float64"):
-        sb.train(_pendulum(), sb.TrainConfig(epochs=1, x64=True))
+    with pytest.raises(sb.InputError, match="TrainConfig.x64 asks for float64.*jax.enable_x64"):
+        sb.make_trainer(_pendulum(), sb.TrainConfig(epochs=1, x64=True))
+
+
+def test_x64_from_python_trains_in_float64_as_the_command_line_and_leaves_jax_in_float32():
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import stablebptt as sb
+    from conftest import float64
+    config = sb.TrainConfig(epochs=2, train_size=8, test_size=8, x64=True)
+    assert not jax.config.jax_enable_x64
+    scoped = sb.train(_pendulum(), config)
+    assert not jax.config.jax_enable_x64 and jnp.ones(1).dtype == jnp.float32  # the user's setting is kept
+    assert {leaf.dtype for leaf in jax.tree.leaves(scoped.params)} == {np.dtype(np.float64)}
+    with float64():  # as the command line's --x64: JAX in float64 from the start
+        whole = sb.train(_pendulum(), config)
+    for a, b in zip(jax.tree.leaves(scoped.params), jax.tree.leaves(whole.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(scoped.metrics["test_loss"], whole.metrics["test_loss"])

@@ -190,8 +190,9 @@ def test_plot_run_writes_into_the_run_directory_and_handles_a_single_epoch(tmp_p
 
 
 @pytest.mark.parametrize("content, message", [
-    ("", "no rows"),
-    (",".join(COLUMNS) + "\n", "no rows"),
+    ("", "empty .* not finished an epoch"),
+    (",".join(COLUMNS) + "\n", "empty .* not finished an epoch"),
+    (",".join(COLUMNS) + "\n1,42,0.", "cut in its first row"),
     (",".join(COLUMNS) + "\n1,42,x\n", "non-numeric"),
     ("epoch,seed,batch_loss\n1,42,0.5\n", "lacks the column 'test_loss'"),
 ])
@@ -200,6 +201,28 @@ def test_unusable_metrics_are_input_errors(tmp_path, content, message):
     (run / "metrics.csv").write_text(content)
     with pytest.raises(InputError, match=message):
         plots.load_run(run)
+
+
+def test_a_metrics_file_cut_mid_line_loses_only_its_cut_row(tmp_path):
+    run = write_run(tmp_path / "run", epochs=5, seeds=(42,))
+    whole = plots.load_run(run)
+    text = (run / "metrics.csv").read_text()
+    (run / "metrics.csv").write_text(text[:-4])  # the last value cut short still parses as a number
+    cut = plots.load_run(run)
+    assert "cut mid-line" in cut.note and list(cut.epochs) == [1, 2, 3, 4]
+    np.testing.assert_array_equal(cut.metrics["test_loss"], whole.metrics["test_loss"][:4])
+
+
+def test_run_paths_and_models_in_any_script_draw_without_a_warning(tmp_path):
+    runs = [write_run(tmp_path / "运行 глиф" / f"𝔘☃-{mode}", mode=mode, task="mjcf",
+                      task_config={"model": f"/模型/机器人-{mode}.xml"}) for mode in ("R", "C")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for suffix in (".png", ".pdf"):  # raster and embedded fonts
+            out = plots.learning_curves(runs, tmp_path / f"labels{suffix}")
+            assert out.stat().st_size > 0
+    legend = plots.run_labels([plots.load_run(run) for run in runs])
+    assert all("机器人" in label for label in legend)  # the names are drawn, not dropped
 
 
 def test_a_file_or_a_directory_without_config_is_not_a_run(tmp_path):

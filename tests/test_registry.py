@@ -47,9 +47,9 @@ def make(config: Config) -> Task:
                 init_params=lambda key, zero_output: mlp_init(key, (4, 16, 2), zero_output))
 
 
-def draw(task_config, states, controls, titles, label, settings, video, picture):
-    picture.write_text(f"{label}: {len(titles)} rollouts of {controls.shape[1]} steps")
-    return [picture]
+def draw(request):
+    request.picture.write_text(f"{request.label}: {len(request.titles)} rollouts of {request.controls.shape[1]} steps")
+    return [request.picture]
 '''
 
 
@@ -93,6 +93,24 @@ def test_a_registered_own_task_trains_and_renders_through_the_command_line(own_t
     assert render_command.main([str(run_dir), "--rollouts", "2", "--no-video"]) == 0
     (picture,) = Path(run_dir).glob("*-text.png")
     assert picture.read_text() == "point mass of 3 kg, mode C, 3 epochs, seed 42: 2 rollouts of 20 steps"
+
+
+def test_a_drawer_of_the_earlier_eight_arguments_gets_them_from_the_request(tmp_path):
+    from stablebptt.drawing import DrawRequest, DrawSettings
+    received = []
+
+    def legacy(task_config, states, controls, titles, label, settings, video, picture):
+        received.append((task_config, states, controls, titles, label, settings, video, picture))
+        return [picture]
+
+    settings = DrawSettings(width=32, height=24, fps=10.0, strip_states=3)
+    request = DrawRequest("config", "states", "controls", ["a", "b"], "label", settings, None, tmp_path / "p.png")
+    assert tasks.Entry(name="legacy", module="unused", draw=legacy).drawer()(request) == [tmp_path / "p.png"]
+    assert received == [("config", "states", "controls", ["a", "b"], "label", settings, None, tmp_path / "p.png")]
+    new_style = lambda request: [request.picture]
+    assert tasks.Entry(name="new", module="unused", draw=new_style).drawer() is new_style
+    with pytest.raises(InputError, match="16x16"):
+        DrawSettings(width=8)
 
 
 def test_runs_recorded_under_the_mjcf_tasks_former_name_reopen(tmp_path):

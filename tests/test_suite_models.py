@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import zipfile
 
 import jax
 import jax.numpy as jnp
@@ -28,7 +27,6 @@ from stablebptt.flows import step_jacobians
 from stablebptt.training import TrainConfig, memory_plan
 from stablebptt.tasks import mjcf
 
-DM_CONTROL = "dm_control==1.0.50"
 SUITE = ["acrobot", "ball_in_cup", "cartpole", "cheetah", "dog", "finger", "fish", "hopper", "humanoid",
          "humanoid_CMU", "lqr", "manipulator", "pendulum", "point_mass", "quadruped", "reacher", "stacker",
          "swimmer", "walker"]
@@ -39,23 +37,6 @@ REFUSED = {
     "lqr": "no joints",  # dm_control adds the bodies in code: the file is a template
     "swimmer": "no actuators",  # likewise
 }
-
-
-@pytest.fixture(scope="session")
-def suite():
-    """The folder of dm_control's suite/*.xml (with common/ and the dog's assets)."""
-    cache = ROOT / ".cache" / DM_CONTROL.replace("==", "-")
-    folder = cache / "dm_control" / "suite"
-    if not (folder / "walker.xml").is_file():
-        cache.mkdir(parents=True, exist_ok=True)
-        download = subprocess.run([sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--dest",
-                                   str(cache), DM_CONTROL], capture_output=True, text=True)
-        assert download.returncode == 0, f"cannot fetch {DM_CONTROL} from the package index: {download.stderr}"
-        wheel = next(cache.glob("dm_control-*.whl"))
-        with zipfile.ZipFile(wheel) as archive:
-            archive.extractall(cache, [n for n in archive.namelist() if n.startswith("dm_control/suite/")])
-        wheel.unlink()
-    return folder
 
 
 @pytest.mark.parametrize("name", SUITE)

@@ -102,10 +102,14 @@ def test_a_sweep_resumes_from_its_checkpoints(tiny, tmp_path):
 
 
 def test_bad_sweep_input_gets_one_line_and_exit_code_2():
-    for arguments in (["--preset", "pendulum"], ["--modes", "X"], ["--seeds", "0"], ["--complexity", "7"]):
-        result = sweep(*arguments)
-        lines = [line for line in result.stderr.splitlines() if line.strip()]
-        assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, result.stderr)
+    """In this process: every refusal comes before anything compiles."""
+    for arguments in (["--preset", "pendulum"], ["--modes", "X"], ["--seeds", "0"], ["--complexity", "7"],
+                      ["--preset", "tiny", "--rc", "0.5"], ["--lrs", "0.01"], ["--task", "repulsion", "--complexity", "1"],
+                      ["--task", "repulsion", "--lrs", "-1"], ["--seed-range", "3:2"], ["--seed-range", "0:1", "--merge"],
+                      ["--task", "repulsion", "--steps", "5", "--task-steps", "5"], ["--preset", "repulsion", "--poles", "2"]):
+        code, stderr = sweep_in_process(*arguments)
+        lines = [line for line in stderr.splitlines() if line.strip()]
+        assert code == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, stderr)
 
 
 def test_running_out_of_device_memory_ends_a_sweep_in_one_line(tmp_path, capsys, monkeypatch):
@@ -220,8 +224,8 @@ def test_two_processes_under_jax_distributed_give_the_results_of_one(tmp_path):
 
 def test_distributed_options_go_together():
     for arguments in (["--coordinator", "localhost:1"], ["--num-processes", "2", "--process-id", "2", "--coordinator", "h:1"]):
-        result = sweep(*TINY, *arguments)
-        assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+        code, stderr = sweep_in_process(*TINY, *arguments)
+        assert code == 2 and len(stderr.strip().splitlines()) == 1, stderr
 
 
 def test_a_cell_is_a_run_folder_that_renders(tiny, tmp_path):
@@ -237,7 +241,7 @@ def test_a_cell_is_a_run_folder_that_renders(tiny, tmp_path):
 
 
 def test_paired_bootstrap_intervals_decide_only_what_the_seeds_support(tmp_path):
-    from stablebptt.grid import claim_intervals, paired_bootstrap
+    from stablebptt.grid_report import claim_intervals, paired_bootstrap, verdicts
     mean, low, high = paired_bootstrap(np.array([-0.3, -0.2, -0.25, -0.35, -0.28]))
     assert low <= mean <= high < 0
     mean, low, high = paired_bootstrap(np.array([-1.0, 1.0, -0.5, 0.5, 0.1]))
@@ -250,6 +254,11 @@ def test_paired_bootstrap_intervals_decide_only_what_the_seeds_support(tmp_path)
     (tmp_path / "test_loss.csv").write_text("\n".join(lines) + "\n")
     row = claim_intervals(tmp_path / "test_loss.csv", "rc")[2]
     assert row.startswith("| 0.1 | none | 5 | -0.5 [-0.5, -0.5] | C better |") and row.endswith("| not resolved |"), row
+    # M's mean loss (0.496) is the lowest; read as a score (minus the loss) it is the highest.
+    said = verdicts(tmp_path / "test_loss.csv", "rc")[1]
+    assert said == "rc=0.1, clip none: best M (test loss 0.496); C - R: C better; C - M: not resolved", said
+    said = verdicts(tmp_path / "test_loss.csv", "rc", ("return", -1.0))[1]
+    assert said.startswith("rc=0.1, clip none: best M (return -0.496);"), said
 
 
 def test_a_sweep_never_writes_over_cells_another_grid_filled(tiny, tmp_path):
@@ -262,3 +271,112 @@ def test_a_sweep_never_writes_over_cells_another_grid_filled(tiny, tmp_path):
     assert refused.returncode == 2 and len(lines) == 1 and "another grid filled" in lines[0], refused.stderr
     assert "(epochs)" in lines[0]
     assert before == {cell: (tmp_path / "tiny" / cell / runs.METRICS_FILE).read_bytes() for cell in CELLS}
+
+
+def read_rows(cell):
+    return [{k: v for k, v in row.items() if k != "seconds"} for row in runs.read_metrics(cell / runs.METRICS_FILE)]
+
+
+def assert_same_cells(a, b, cells):
+    """Equal to float32 rounding: cells vmapped in batches of other sizes may fuse differently."""
+    for cell in cells:
+        rows_a, rows_b = read_rows(a / cell), read_rows(b / cell)
+        assert [(r["epoch"], r["seed"]) for r in rows_a] == [(r["epoch"], r["seed"]) for r in rows_b], cell
+        for x, y in zip(rows_a, rows_b):
+            for name in ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine"):
+                assert np.isclose(x[name], y[name], rtol=1e-5, atol=1e-7), (cell, name, x, y)
+        with np.load(a / cell / runs.PARAMS_FILE) as pa, np.load(b / cell / runs.PARAMS_FILE) as pb:
+            assert pa.files == pb.files
+            for leaf in pa.files:
+                np.testing.assert_allclose(pa[leaf], pb[leaf], rtol=1e-4, atol=1e-6)
+
+
+def sweep_in_process(*args) -> tuple[int, str]:
+    """The sweep command in this process (sharing its compiled programs): (exit code, stderr)."""
+    import contextlib
+    import io
+    from stablebptt.commands import sweep as sweep_command
+    stderr = io.StringIO()
+    with contextlib.redirect_stderr(stderr):
+        try:
+            code = sweep_command.main(list(args))
+        except SystemExit as exit_:
+            code = exit_.code
+    return code, stderr.getvalue()
+
+
+def refused_in_one_line(outcome, text) -> bool:
+    code, stderr = outcome
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    return code == 2 and len(lines) == 1 and text in lines[0]
+
+
+def test_a_grid_in_seed_pieces_merges_into_the_grid_run_whole(tiny, tmp_path):
+    """Two pieces of one seed each, trained apart, merge into the cells the whole grid wrote; no pieces,
+    a missing piece, a piece of another grid and a piece that has not finished are refused in one line."""
+    piece = lambda *more: sweep_in_process(*TINY, "--epochs", "2", "--out", str(tmp_path), *more)
+    assert refused_in_one_line(piece("--merge"), "no pieces")
+    assert piece("--seed-range", "0:1")[0] == 0
+    assert refused_in_one_line(piece("--merge"), "seeds without a piece yet: run --seed-range 1:2")
+    assert refused_in_one_line(piece("--seed-range", "0:1", "--clips", "none"), "holds a piece of another grid")
+    assert piece("--seed-range", "1:2")[0] == 0
+    pieces = tmp_path / "tiny" / "pieces"
+    manifest = pieces / "seeds1-1" / "piece.json"
+    original = manifest.read_text()
+    changed = json.loads(original)
+    changed["grid"]["epochs"] = 3
+    manifest.write_text(json.dumps(changed))
+    assert refused_in_one_line(piece("--merge"), "is a piece of another grid (epochs: 3 there, 2 here)")
+    manifest.write_text(original)
+    metrics = pieces / "seeds1-1" / CELLS[0] / runs.METRICS_FILE
+    whole = metrics.read_text()
+    metrics.write_text("\n".join(whole.splitlines()[:2]) + "\n")  # the header and epoch 1 only
+    assert refused_in_one_line(piece("--merge"), "has trained 1 of 2 epochs")
+    metrics.write_text(whole)
+    assert piece("--merge")[0] == 0
+    assert_same_cells(tiny, tmp_path / "tiny", CELLS)
+    for cell in CELLS:
+        record = runs.open_run(tmp_path / "tiny" / cell)
+        assert (record["train"]["seed"], record["train"]["seeds"]) == (42, 2)
+    assert "C - R" in (tmp_path / "tiny" / "intervals.md").read_text()
+
+
+def test_a_grid_over_any_task_varies_the_learning_rate_per_cell(tiny, tmp_path):
+    """--task with its options and --lrs: the cell at the default learning rate is the preset's cell of the
+    same task options; the cell at ten times that rate trained differently."""
+    code, stderr = sweep_in_process("--task", "repulsion", "--rc", "0.1", "--steps", "20", "--lrs", "0.001,0.01",
+                                    "--modes", "C,R", "--clips", "value", "--seeds", "2", "--train-size", "16",
+                                    "--test-size", "16", "--epochs", "2", "--out", str(tmp_path))
+    assert code == 0, stderr
+    root = tmp_path / "repulsion"
+    for mode in ("C", "R"):
+        (root / f"repulsion-rc0.1-{mode}-value").symlink_to(root / f"repulsion-lr0.001-{mode}-value")
+    assert_same_cells(tiny, root, [f"repulsion-rc0.1-{mode}-value" for mode in ("C", "R")])
+    slow, fast = (read_rows(root / f"repulsion-lr{lr}-C-value")[-1]["train_loss"] for lr in ("0.001", "0.01"))
+    assert not np.isclose(slow, fast, rtol=1e-3)
+    assert runs.open_run(root / "repulsion-lr0.01-C-value")["train"]["lr"] == 0.01
+    assert (root / "repulsion-lr0.01.png").is_file() and "lr=0.01, clip value: best " in (root / "verdicts.txt").read_text()
+
+
+def test_a_grid_over_an_mjcf_file_and_over_an_environment_reports_intervals(suite, tmp_path, capsys):
+    """The issue's two commands at tiny sizes: dm_control's pendulum from the hanging pose, and an
+    environment, whose report speaks of episode returns."""
+    from stablebptt.commands import sweep as sweep_command
+    tiny_sizes = ["--modes", "R,M,C", "--clips", "norm", "--seeds", "2", "--epochs", "1", "--train-size", "8",
+                  "--test-size", "8", "--out", str(tmp_path)]
+    assert sweep_command.main(["--model", str(suite / "pendulum.xml"), "--init-pose", "hinge=3.14159",
+                               "--horizon-seconds", "0.2", *tiny_sizes]) == 0
+    intervals = (tmp_path / "pendulum" / "intervals.md").read_text().splitlines()
+    assert intervals[0].startswith("| lr | clip | seeds | C - R") and intervals[2].startswith("| 0.001 | norm | 2 | ")
+    record = runs.open_run(tmp_path / "pendulum" / "mjcf-lr0.001-C-norm")
+    assert record["task_config"]["init_pose"] == "hinge=3.14159" and record["task_config"]["horizon_seconds"] == 0.2
+    # The cells keep one compressed copy of the model between them, which each reopens.
+    assert len(list((tmp_path / "pendulum" / "models").glob("*.mjb.gz"))) == 1
+    for cell in (tmp_path / "pendulum").glob("mjcf-lr*-norm"):
+        kept = cell / runs.read_json(cell / "model.json")["compiled"]
+        assert kept.is_file() and (cell / "model.xml").read_bytes() == (suite / "pendulum.xml").read_bytes()
+    assert sweep_command.main(["--env", "envs_for_tests:make_cart", "--steps", "6", "--episode-length", "8", *tiny_sizes]) == 0
+    out = capsys.readouterr().out
+    assert "best " in out and "(episode return " in out, out
+    cells = sorted(p.name for p in (tmp_path / "make_cart").glob("env-lr*") if p.is_dir())
+    assert cells == ["env-lr0.001-C-norm", "env-lr0.001-M-norm", "env-lr0.001-R-norm"], cells

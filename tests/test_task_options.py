@@ -108,3 +108,20 @@ def test_a_bad_task_file_is_one_clear_error(pendulum, content, words):
     pendulum.with_suffix(".task.json").write_text(content)
     with pytest.raises(InputError, match=words):
         mjcf.make(mjcf.Config(model=str(pendulum)))
+
+
+def test_a_spread_whose_states_square_past_the_largest_float_is_refused_before_compiling(pendulum):
+    model = mjcf.load_model(pendulum)
+    largest = float(np.sqrt(np.finfo(np.float32).max))  # the run's precision: float32 here
+    at_most = largest / mjcf.DEFAULT_SPREAD  # the pendulum hangs at 0 and declares no spread of its own
+    below = mjcf.read_spec(model, mjcf.Config(model=str(pendulum), spread=0.99 * at_most))
+    with np.errstate(over="ignore"):
+        assert np.isfinite(np.float32(below.qvel_spread.max()) ** 2)  # its squares are still numbers
+        assert np.isinf(np.float32(1.01 * at_most * mjcf.DEFAULT_SPREAD) ** 2)  # above, they are not
+    with pytest.raises(InputError, match=r"mjcf.Config.spread .* overflow float32: give at most"):
+        mjcf.read_spec(model, mjcf.Config(model=str(pendulum), spread=1.01 * at_most))
+
+
+def test_float64_takes_a_spread_float32_cannot(pendulum, x64):
+    spec = mjcf.read_spec(mjcf.load_model(pendulum), mjcf.Config(model=str(pendulum), spread=1e30))
+    assert spec.qvel_spread.max() == pytest.approx(1e29)

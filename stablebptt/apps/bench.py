@@ -1,14 +1,80 @@
-"""The benchmark's measurements: update times per mode, the cart-pole's MJX pipelines against the
-closed-form floor, and the parts of an update, as Markdown tables (scripts/bench.py prints them).
+"""The benchmark's measurements: update times per mode of any registered task, and each task's own
+tables, as Markdown (scripts/bench.py prints them).
 
-Variants of one table are timed round-robin (``stablebptt.timing``), so drift of the
-machine hits all of them alike; compare times within one table only.
+What a task is timed as comes from its studies module (``bench_cases``, see
+``stablebptt.apps.studies``): the cart-pole's pole counts and its steps table (its MJX
+pipelines against the closed-form floor, and the parts of an update); any other
+task is timed with its defaults. Variants of one table are timed round-robin
+(``stablebptt.timing``), so drift of the machine hits all of them alike; compare
+times within one table only.
 """
 from __future__ import annotations
 
-import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Callable
 
 from stablebptt import timing
+from stablebptt.errors import InputError
+
+TABLES = ("modes", "steps")
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """Options of the benchmark."""
+
+    tasks: str = field(default="repulsion,cartpole,quantum", metadata={"help": "comma-separated tasks"})
+    poles: str = field(default="1,3", metadata={"help": "comma-separated pole counts for the cart-pole"})
+    batch: int = field(default=8, metadata={"help": "initial states per update"})
+    rounds: int = field(default=20, metadata={"help": "timed rounds per variant (median reported)"})
+    out: str = field(default="", metadata={"help": "also write the tables to this Markdown file"})
+    tables: str = field(default="modes,steps", metadata={"help": "tables to time: modes (an update per mode, every task), steps (a task's own table where it has one: the cart-pole's simulators against the closed-form floor, and the parts of its update)"})
+    simulators: str = field(default="", metadata={"help": "the simulators of the cart-pole's steps table (default: every one): generated, stages, autodiff, dense, mjx, floor"})
+
+    @property
+    def task_list(self) -> list[str]:
+        return [name for name in self.tasks.split(",") if name]
+
+    @property
+    def table_list(self) -> list[str]:
+        return [name for name in self.tables.split(",") if name]
+
+    @property
+    def simulator_list(self) -> tuple[str, ...]:
+        return tuple(name for name in self.simulators.split(",") if name)
+
+    @property
+    def pole_list(self) -> list[int]:
+        try:
+            return [int(count) for count in self.poles.split(",") if count]
+        except ValueError:
+            raise InputError(f"--poles takes comma-separated integers, got {self.poles!r}") from None
+
+
+@dataclass(frozen=True)
+class BenchCase:
+    """One configuration of a task the benchmark times.
+
+    Attributes:
+      title: the heading of its modes table.
+      task_config: the task's ``Config``.
+      steps: ``steps() -> Markdown lines``, the task's own table (``--tables steps``), if it has one.
+    """
+
+    title: str
+    task_config: Any
+    steps: Callable[[], list[str]] | None = None
+
+
+def bench_cases(task: str, config: BenchConfig) -> list[BenchCase]:
+    """What the benchmark times of ``task``: its studies module's ``bench_cases``, else its defaults."""
+    from stablebptt import tasks
+    from stablebptt.apps.studies import hook
+    module = tasks.load(task)
+    cases = hook(task, "bench_cases")
+    if cases is not None:
+        return cases(module, config)
+    return [BenchCase(tasks.canonical(task).capitalize(), module.Config())]
 
 def make_update(task, mode, batch_size, plain=False, with_cosine=False):
     """A jitted update: gradient (one-pass flows, or plain jax.grad), clip, Adam."""
@@ -49,103 +115,34 @@ def time_variants(variants: dict, rounds: int) -> dict[str, tuple[float, float]]
     return {name: (1e3 * medians[name], compile_seconds[name]) for name in variants}
 
 
+def combined_modes() -> list[str]:
+    """The modes that combine several flows (``flows.MODE_TABLE``), which share one forward rollout."""
+    from stablebptt.flows import MODE_TABLE
+    return [mode.name for mode in MODE_TABLE.values() if len(mode.flows) > 1]
+
+
 def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
-    from stablebptt.flows import MODES
-    variants = {"R plain": make_update(task, "R", batch, plain=True)}
+    from stablebptt.flows import MODE_TABLE, MODES
+    regular = MODES[0]  # regular BPTT, the baseline of every ratio
+    variants = {f"{regular} plain": make_update(task, regular, batch, plain=True)}
     variants.update({mode: make_update(task, mode, batch) for mode in MODES})
-    variants["R + cosine"] = make_update(task, "R", batch, with_cosine=True)
+    variants[f"{regular} + cosine"] = make_update(task, regular, batch, with_cosine=True)
     times = time_variants(variants, rounds)
-    base = times["R plain"][0]
-    lines = [f"### {title}", "", "| update | ms (median) | / R plain | compile s |", "|---|---:|---:|---:|"]
+    base = times[f"{regular} plain"][0]
+    lines = [f"### {title}", "", f"| update | ms (median) | / {regular} plain | compile s |", "|---|---:|---:|---:|"]
     for name, (ms, compile_s) in times.items():
         lines.append(f"| {name} | {ms:.2f} | {ms / base:.2f} | {compile_s:.1f} |")
-    lines.append(f"\nC / R = {times['C'][0] / times['R'][0]:.2f} (C needs g_M and g_R, both from one forward rollout).\n")
-    return lines
-
-
-# The cart-pole simulators of the steps table: option name -> row label.
-SIMULATORS = {"generated": "generated step, body by body (the default)", "stages": "MJX stages (scene analysis)",
-              "autodiff": "MJX stages, autodiff through M and its solve", "dense": "MJX stages, dense mass matrix",
-              "mjx": "mjx.step, MuJoCo default flags", "floor": "closed-form equations (floor)"}
-
-
-def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tuple(SIMULATORS)) -> list[str]:
-    """R updates of the cart-pole through each simulator in ``simulators`` (C too for the generated step and
-    the floor), with the parts of the generated step's update where it is among them."""
-    import mujoco
-    from stablebptt import scene
-    from stablebptt.tasks import cartpole_equations, mjcf
-    generated = mjcf.make(mjcf.Config(poles=poles))
-    stages = mjcf.make(mjcf.Config(poles=poles, pipeline="stages"))
-    with_step = lambda step: dataclasses.replace(stages, dynamics=dataclasses.replace(stages.dynamics, step=step))
-    model = mjcf.load_model(mjcf.Config(poles=poles).model_path)
-    effects = scene.analyze(model)
-
-    def dense():
-        dense_model = scene.lean_model(model, effects)
-        dense_model.opt.jacobian = mujoco.mjtJacobian.mjJAC_DENSE  # what lean_model replaces by the sparse path
-        return with_step(scene.make_step(dense_model, effects, "stages"))
-
-    build = {"generated": lambda: generated, "stages": lambda: stages,
-             "autodiff": lambda: with_step(scene.make_step(scene.lean_model(model, effects), effects, "stages", implicit=False)),
-             "dense": dense, "mjx": lambda: mjcf.make(mjcf.Config(poles=poles, pipeline="mjx")),
-             "floor": lambda: with_step(cartpole_equations.make_step(0.01))}
-    chosen = {name: build[name]() for name in SIMULATORS if name in simulators}
-    variants = {SIMULATORS[name]: make_update(task, "R", batch) for name, task in chosen.items()}
-    for name in ("generated", "floor"):
-        if name in chosen:
-            variants[SIMULATORS[name] + ", C"] = make_update(chosen[name], "C", batch)
-    times = time_variants(variants, rounds)
-    base, lowest = (times.get(SIMULATORS[name], (None,))[0] for name in ("mjx", "floor"))
-    ratio = lambda ms, reference: f"{ms / reference:.2f}" if reference else ""
-    lines = [f"### Cart-pole, {poles} pole{'s' if poles > 1 else ''}: where the time goes", "",
-             "| simulator | mode | ms (median) | / mjx.step default | / floor (R) | compile s |",
-             "|---|---|---:|---:|---:|---:|"]
-    for name, (ms, compile_s) in times.items():
-        label, c_row, _ = name.partition(", C")
-        lines.append(f"| {label} | {'C' if c_row else 'R'} | {ms:.2f} | {ratio(ms, base)} | {ratio(ms, lowest)} | {compile_s:.1f} |")
-    if "generated" not in chosen:
-        return lines + [""]
-    return lines + [""] + parts_table(generated, poles, batch, rounds, variants[SIMULATORS["generated"]])
-
-
-def parts_table(task, poles: int, batch: int, rounds: int, whole_update) -> list[str]:
-    """The lean R update split: the rollout alone, and every step's Jacobian in one batched call.
-
-    ``whole_update`` (the pipeline table's compiled lean R update and its
-    setup, not compiled again) is timed in the same round-robin, so the rest
-    by difference does not mix two tables' machine states.
-    """
-    import jax
-    import jax.random as random
-    from stablebptt.flows import reference_loss, reference_rollout, step_jacobians
-
-    dynamics = task.dynamics
-    params = task.init_params(random.PRNGKey(0), False)
-    starts = task.sample_initial_states(random.PRNGKey(1), batch)
-    # The (state, control) pairs of one rollout, all steps and examples in one batch.
-    visited = jax.jit(jax.vmap(lambda x0: reference_rollout(dynamics, params, x0)))(starts)
-    merge = lambda tree: jax.tree.map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), tree)
-    pairs = (merge(visited.states), merge(visited.controls))
-
-    def jacobians(states, controls):
-        return jax.tree.map(lambda a: a.sum(), step_jacobians(dynamics.step, states, controls, dynamics.known_columns))
-
-    whole = "whole R update"
-    times = time_variants({"rollout only (policy and lean step, no derivatives)": (
-                               jax.jit(lambda p, x: reference_loss(dynamics, p, x)), lambda: (params, starts)),
-                           f"every step's Jacobian, one batched call ({dynamics.horizon} x {batch} examples)": (
-                               jax.jit(jacobians), lambda: pairs),
-                           whole: whole_update}, rounds)
-    whole_ms = times.pop(whole)[0]
-    lines = [f"### Cart-pole, {poles} pole{'s' if poles > 1 else ''}: parts of the default R update", "",
-             "| part | ms (median) | / whole R update | compile s |", "|---|---:|---:|---:|"]
-    for name, (ms, compile_s) in times.items():
-        lines.append(f"| {name} | {ms:.2f} | {ms / whole_ms:.2f} | {compile_s:.1f} |")
-    rest = whole_ms - sum(ms for ms, _ in times.values())
-    lines.append(f"| the rest, by difference (adjoint recurrence, policy Jacobians and pullback, Adam) | {rest:.2f} | "
-                 f"{rest / whole_ms:.2f} | |")
-    lines.append(f"| whole R update (timed with the parts) | {whole_ms:.2f} | 1.00 | |")
+    lines.append("")
+    for mode in combined_modes():
+        needs = " and ".join(f"g_{flow}" for flow in MODE_TABLE[mode].flows)
+        lines.append(f"{mode} / {regular} = {times[mode][0] / times[regular][0]:.2f} "
+                     f"({mode} needs {needs}, all from one forward rollout).")
     return lines + [""]
 
 
+def __getattr__(name: str):
+    # The cart-pole's steps table lived here before stablebptt.apps.studies.cartpole.
+    if name in ("SIMULATORS", "pipeline_table", "parts_table"):
+        from stablebptt.apps.studies import cartpole
+        return getattr(cartpole, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

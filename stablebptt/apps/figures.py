@@ -3,7 +3,7 @@
 Every function takes NumPy rollouts with the initial state first (``[N, T+1, ...]``
 for N rollouts of T steps) and draws on matplotlib's Agg canvas: no pyplot, no
 display. ``*_paths`` / ``*_density`` write a PNG; ``*_frames`` return the frames of
-an animation, uint8 [T+1, H, W, 3], for ``stablebptt.rendering.write_video``.
+an animation, uint8 [T+1, H, W, 3], for ``stablebptt.media.write_video``.
 
     repulsion_paths(positions, "paths.png", physics=repulsion.Physics())
     frames = quantum_frames(states, controls, dt=0.0625, target=3)
@@ -22,7 +22,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from stablebptt.plots import render
-from stablebptt.rendering import figure_pixels
+from stablebptt.drawing import DrawRequest
+from stablebptt.media import figure_pixels, write_video
 from stablebptt.tasks import quantum, repulsion
 
 # Okabe-Ito colours (readable with colour blindness), as the learning curves use.
@@ -321,23 +322,25 @@ def quantum_frames(states: np.ndarray, controls: np.ndarray, dt: float, target: 
         return np.stack(frames)
 
 
-def draw_repulsion(task_config, states, controls, titles, label, settings, video: Path | None, picture: Path) -> list[Path]:
+def draw_repulsion(request: DrawRequest) -> list[Path]:
     """The registry's drawer for repulsion: an animation of the agents and their paths."""
-    from stablebptt.rendering import write_video
+    settings, positions = request.settings, request.states.position
     written = []
-    if video is not None:
-        frames = repulsion_frames(states.position, repulsion.Physics().duration, (settings.width, settings.height), titles)
-        written.append(write_video(video, frames, settings.fps))
-    written.append(repulsion_paths(states.position, picture, titles, title=label))
+    if request.video is not None:
+        frames = repulsion_frames(positions, repulsion.Physics().duration, (settings.width, settings.height), request.titles)
+        written.append(write_video(request.video, frames, settings.fps))
+    written.append(repulsion_paths(positions, request.picture, request.titles, title=request.label))
     return written
 
 
-def draw_quantum(task_config, states, controls, titles, label, settings, video: Path | None, picture: Path) -> list[Path]:
+def draw_quantum(request: DrawRequest) -> list[Path]:
     """The registry's drawer for quantum control: the density's animation and its picture over time."""
-    from stablebptt.rendering import write_video
+    settings, config = request.settings, request.task_config
     written = []
-    if video is not None:
-        frames = quantum_frames(states, controls, task_config.dt, task_config.target, (settings.width, settings.height), titles)
-        written.append(write_video(video, frames, settings.fps))
-    written.append(quantum_density(states, controls, task_config.dt, task_config.target, picture, titles, title=label))
+    if request.video is not None:
+        frames = quantum_frames(request.states, request.controls, config.dt, config.target,
+                                (settings.width, settings.height), request.titles)
+        written.append(write_video(request.video, frames, settings.fps))
+    written.append(quantum_density(request.states, request.controls, config.dt, config.target, request.picture,
+                                   request.titles, title=request.label))
     return written

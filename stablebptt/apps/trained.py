@@ -20,8 +20,8 @@ from stablebptt.training import Task, TrainConfig, compiler_options, large_step
 
 
 @dataclass(frozen=True)
-class Trained:
-    """What a run folder holds, ready to use.
+class ReopenedRun:
+    """A run folder reopened: what it holds, ready to use (``open_trained``'s answer).
 
     Attributes:
       run_dir: the folder.
@@ -48,6 +48,10 @@ class Trained:
         return jax.tree.map(lambda leaf: np.asarray(leaf)[seed_index], self.params)
 
 
+# The name this class had before; ``stablebptt.Trained`` is what ``train`` returns (stablebptt.fitting).
+Trained = ReopenedRun
+
+
 def configs_of(run_dir: Path, record: dict, train_changes: dict | None = None,
                note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> tuple[Any, TrainConfig]:
     """(task config, train config) of the run in ``run_dir`` whose config.json is ``record``.
@@ -72,7 +76,7 @@ def configs_of(run_dir: Path, record: dict, train_changes: dict | None = None,
             build(TrainConfig, {**record["train"], **(train_changes or {})}, source))
 
 
-def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> Trained:
+def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> ReopenedRun:
     """Reopen a run folder: config checked, task rebuilt, parameters loaded. Switches JAX to the
     run's precision (``train.x64``), so call it before creating arrays of your own.
 
@@ -99,7 +103,7 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     except (OSError, ValueError, KeyError, TypeError):
         epochs = ""
     label = f"{task_entry.label(task_config)}, mode {train.mode}{epochs}"
-    return Trained(run_dir, canonical(record["task"]), task_config, train, task, params, label)
+    return ReopenedRun(run_dir, canonical(record["task"]), task_config, train, task, params, label)
 
 
 def rollouts_from_test_states(task: Task, train: TrainConfig, params: Any, count: int):

@@ -1,0 +1,54 @@
+"""Task options on the command line, shared by ``train`` and ``sweep``.
+
+Every registered task's ``Config`` fields become options; the options given
+choose the task (``--model`` the MJCF task, ``--env`` the environment task)
+unless ``--task`` names it.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from stablebptt import tasks
+from stablebptt.cli import add_options, build, fail, option_name
+
+
+def add_task_options(parser: argparse.ArgumentParser, owners: dict[str, set[str]]) -> dict[str, set[str]]:
+    """``--task`` and one option per field of every task's Config, beside the command's own options.
+
+    ``owners`` maps each option the command already has to the configs that have it (the command's
+    own config by its name); the task options are added to it: option -> the task names that have it.
+    """
+    parser.add_argument("--task", choices=sorted(tasks.entries()) + sorted(tasks.LEGACY_NAMES), default=None,
+                        help=f"which task (default: {tasks.DEFAULT_TASK}, or the task whose options are given)")
+    for task_name in sorted(tasks.entries()):
+        for name in add_options(parser, tasks.load(task_name).Config, f"task {task_name}", set(owners)):
+            owners.setdefault(name, set()).add(task_name)
+    return owners
+
+
+def task_options_given(args: argparse.Namespace, owners: dict[str, set[str]], command: str) -> dict:
+    """The task options on the command line (those no config of the command itself has)."""
+    return {name: value for name, value in vars(args).items() if name in owners and command not in owners[name]}
+
+
+def choose_task(args: argparse.Namespace, owners: dict[str, set[str]], command: str) -> str:
+    """--task, else the only task whose options are all given, else the default; its registry name.
+
+    An option of another task is refused in one line."""
+    given = task_options_given(args, owners, command)
+    candidates = set.intersection(*(owners[name] for name in given)) if given else set()
+    task_name = args.task or (candidates.pop() if len(candidates) == 1 else tasks.DEFAULT_TASK)
+    foreign = sorted(name for name in given if task_name not in owners[name] and tasks.canonical(task_name) not in owners[name])
+    if foreign:
+        fail(f"{option_name(foreign[0])} is an option of --task {'/'.join(sorted(owners[foreign[0]]))}, not of --task {task_name}")
+    return tasks.canonical(task_name)
+
+
+def task_config(task_name: str, values: dict):
+    """The task's Config from option values; a model path made absolute, so that the run resumes and
+    renders from any working directory. Validation errors propagate (InputError)."""
+    values = dict(values)
+    if values.get("model"):
+        values["model"] = str(Path(values["model"]).resolve())
+    return build(tasks.load(task_name).Config, values)
