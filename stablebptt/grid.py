@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt import fitting, runs
+from stablebptt import fitting, run_models, runs
 from stablebptt.grid_pieces import code_digest
 from stablebptt.grid_report import cell_name
 from stablebptt.errors import InputError
@@ -300,13 +300,13 @@ def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None
 def write_cell(directory: Path, record: dict, rows: np.ndarray, params, model_file: str | Path | None = None) -> None:
     """One cell's run folder: config.json, metrics.csv and params.npz (seeds stacked on the leaves' first
     axis); and what reopens ``model_file`` after it moved, its compiled copy shared by the grid's cells
-    (``runs.keep_model``: one file per model in ``<grid root>/models``)."""
+    (``run_models.keep_model``: one file per model in ``<grid root>/models``)."""
     directory.mkdir(parents=True, exist_ok=True)
     runs.write_json(directory / runs.CONFIG_FILE, record)
     runs.write_metrics(directory / runs.METRICS_FILE, rows)
     runs.save_params(directory / runs.PARAMS_FILE, params)
     if model_file:
-        runs.keep_model(directory, model_file, shared=directory.parent)
+        run_models.keep_model(directory, model_file, shared=directory.parent)
 
 
 def describe(grid: Grid, first_seed: int, seeds: int) -> dict:

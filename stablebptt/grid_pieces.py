@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stablebptt import runs
+from stablebptt import run_models, runs
 from stablebptt.errors import InputError
 
 PIECES_FOLDER = "pieces"
@@ -146,8 +146,8 @@ def merge_cell(folders: list[Path], name: str, destination: Path, write_cell) ->
                        "seeds": sum(r["train"]["seeds"] for r in records)}
     first = folders[0] / name
     # The model the piece kept: its compiled copy, shared again in the merged grid's root.
-    link = first / runs.MODEL_LINK_FILE
+    link = first / run_models.MODEL_LINK_FILE
     compiled = first / runs.read_json(link)["compiled"] if link.is_file() else None
     write_cell(destination / name, record, rows, params, compiled)
-    if (first / runs.MODEL_COPY_FILE).is_file():
-        runs.atomic_write(destination / name / runs.MODEL_COPY_FILE, (first / runs.MODEL_COPY_FILE).read_bytes())
+    if (first / run_models.MODEL_COPY_FILE).is_file():
+        runs.atomic_write(destination / name / run_models.MODEL_COPY_FILE, (first / run_models.MODEL_COPY_FILE).read_bytes())

@@ -130,6 +130,11 @@ def claim_intervals(test_loss_csv: Path, option: str) -> list[str]:
     return lines
 
 
+# Below this many seeds a percentile bootstrap has few distinct resamples (2 seeds: 3 means) and
+# its interval is too narrow to trust; the verdicts say so.
+ROUGH_BELOW = 5
+
+
 def verdicts(test_loss_csv: Path, option: str, score: tuple[str, float] = ("test loss", 1.0)) -> list[str]:
     """One line per value and clip mode: the flow with the best mean final score, and whether the
     intervals of C - R and C - M say C is better. ``score``: (its name, its sign times the test loss),
@@ -138,6 +143,8 @@ def verdicts(test_loss_csv: Path, option: str, score: tuple[str, float] = ("test
     final = _final_losses(test_loss_csv, option)
     seeds = len({key[3] for key in final})
     lines = [f"which flow wins ({name} at the last epoch, mean over {seeds} seed(s); C - X: 95% paired bootstrap interval of the test loss)"]
+    if seeds < ROUGH_BELOW:
+        lines[0] += f"; with fewer than {ROUGH_BELOW} seeds an interval is rough: give --seeds {ROUGH_BELOW} or more before relying on it"
     for (value, clip), against in _comparisons(final).items():
         means = {mode: np.mean([sign * loss for (v, c, m, _), loss in final.items() if (v, c, m) == (value, clip, mode)])
                  for mode in dict.fromkeys(key[2] for key in final if key[:2] == (value, clip))}

@@ -67,7 +67,7 @@ def render_model(path: str | Path, framebuffer: tuple[int, int] = (640, 480), ba
     if not path.is_file():
         raise InputError(f"model file {path} does not exist")
     if path.suffix in (".mjb", ".gz"):  # a run's compiled copy: no skybox can be added, the rest applies
-        from stablebptt.runs import load_compiled_model
+        from stablebptt.run_models import load_compiled_model
         model = load_compiled_model(path)
         brighten_headlight(model.vis.headlight)
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, int(framebuffer[0]))

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stablebptt import models, mujoco_log, runs, simulator
+from stablebptt import models, mujoco_log, run_models, simulator
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import Dynamics
 from stablebptt.mjx_internals import mjx
@@ -132,7 +132,7 @@ def load_model(path: Path) -> mujoco.MjModel:
     try:
         with mujoco_log.collected() as warnings:
             if path.suffix in (".mjb", ".gz"):
-                model = runs.load_compiled_model(path)
+                model = run_models.load_compiled_model(path)
             else:
                 model = mujoco.MjModel.from_xml_path(str(path))
     except InputError:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from stablebptt import runs
+from stablebptt import run_models, runs
 from stablebptt.cli import build
 from stablebptt.errors import InputError
 from stablebptt.tasks import canonical, entries, entry
@@ -67,7 +67,7 @@ def configs_of(run_dir: Path, record: dict, train_changes: dict | None = None,
         raise InputError(f"{source} names the task {record['task']!r}, which is none of {', '.join(sorted(entries()))}")
     module = entry(record["task"]).load()
     task_values = dict(record["task_config"])
-    model_file, moved = runs.model_to_reopen(Path(run_dir), record)
+    model_file, moved = run_models.model_to_reopen(Path(run_dir), record)
     if model_file is not None and "model" in task_values:
         task_values["model"] = model_file
         if moved:
