@@ -4,6 +4,7 @@
     python scripts/bench.py                          # every task, poles 1 and 3
     python scripts/bench.py --tasks cartpole --poles 1,2,3,4 --out results/bench_cpu.md
     python scripts/bench.py --tasks cartpole --tables steps --simulators generated,floor   # the floor ratio alone
+    python scripts/bench.py --startup --suite .cache/dm_control-1.0.50/dm_control/suite --out results/startup/cpu.md
 
 Per task, one update (gradient of a batch-8 rollout, then clip and Adam) per mode:
 R, M, S and C through the one-pass flows, and "R plain": jax.grad of the plain
@@ -15,12 +16,22 @@ with MJX's dense mass matrix, mjx.step with MuJoCo's default flags, and
 closed-form cart-pole equations as the floor; and the parts of the default R update (the rollout alone, and every step's
 Jacobian built in one batched call, as the update builds them). Variants of one table are timed round-robin, so drift of
 the machine hits all of them alike; tables are timed one after another.
+
+With --startup, the start-up table instead (stablebptt/apps/startup.py): per model, fresh
+`scripts/train.py --model M` processes timed to their first update, with an empty compile cache
+and again with the cache that run filled.
 """
 from __future__ import annotations
 
+import json
 import os
 import platform
+import shlex
+import signal
+import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 from stablebptt.apps.bench import TABLES, BenchConfig
@@ -30,6 +41,8 @@ from stablebptt.errors import InputError
 
 def main(argv: list[str]) -> int:
     config = parse_config(BenchConfig, argv, __doc__, "benchmark")
+    if config.startup:
+        return startup(config, argv)
     from stablebptt import tasks
     names = config.task_list  # "cartpole": the MJCF task's cart-poles (--poles)
     unknown = [t for t in names if tasks.canonical(t) not in tasks.entries()]
@@ -68,6 +81,101 @@ def main(argv: list[str]) -> int:
             from stablebptt.storage import atomic_write
             Path(config.out).parent.mkdir(parents=True, exist_ok=True)
             atomic_write(Path(config.out), ("\n".join(report) + "\n").encode())
+    return 0
+
+
+# Runs scripts/train.py as its own process would, recording the progress callbacks' times (the numbers
+# train.py prints, unrounded) against this process's start: one line "startup-record {json}".
+_PROBE = """
+import json, os, runpy, sys, time
+started = time.perf_counter()
+sys.argv = sys.argv[1:]
+sys.path[0] = os.path.dirname(sys.argv[0])  # as `python scripts/train.py` would have it
+from stablebptt import cli
+
+class Recorded(cli.EpochProgress):
+    def on_epoch(self, epoch, metrics):
+        if epoch == self.initial + 1:
+            ready = self.started + self.compiled["ready"] - started
+            epoch_s = metrics["seconds"] / self.updates
+            print("startup-record " + json.dumps({"setup_s": ready - self.compiled["seconds"],
+                  "compile_s": self.compiled["seconds"], "epoch_s": epoch_s, "first_update_s": ready + epoch_s,
+                  "reported_first_update_s": self.compiled["ready"] + epoch_s}), flush=True)
+        super().on_epoch(epoch, metrics)
+
+cli.EpochProgress = Recorded
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
+    """One fresh training process with ``cache`` as its compile cache: its times, or why there are none."""
+    environment = dict(os.environ, STABLEBPTT_COMPILE_CACHE=str(cache))
+    started = time.perf_counter()
+    # A session of its own, so that a timeout stops the process and every thread and child it started.
+    process = subprocess.Popen([sys.executable, "-c", _PROBE] + command, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, env=environment, start_new_session=True)
+    try:
+        stdout, stderr = process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.communicate()
+        return {"status": f"timeout after {timeout:.0f} s", "wall_s": time.perf_counter() - started}
+    record = {"wall_s": time.perf_counter() - started}
+    found = [line.split(" ", 1)[1] for line in stdout.splitlines() if line.startswith("startup-record ")]
+    if process.returncode != 0 or not found:
+        last = (stderr.strip().splitlines() or ["no output"])[-1]
+        return dict(record, status=f"failed (exit {process.returncode})", error=last)
+    return dict(record, status="ok", **json.loads(found[0]))
+
+
+def startup(config, argv: list[str]) -> int:
+    """The start-up table (``--startup``): cold and warm fresh processes per model, a row at a time."""
+    from stablebptt.apps.startup import machine, resolve_models, table
+    from stablebptt.errors import InputError
+    from stablebptt.storage import atomic_write
+    try:
+        models = resolve_models(config.model_list, config.suite)
+    except InputError as error:
+        fail(str(error))
+    if config.timeout <= 0:
+        fail("--timeout must be positive")
+    train_args = shlex.split(config.train_args)
+    if any(argument in ("--model", "--out", "--resume") or argument.startswith(("--model=", "--out=")) for argument in train_args):
+        fail("--train-args must not hold --model, --out or --resume: the benchmark sets them")
+    import jax
+    description = machine()
+    header = [f"Measured by `python scripts/bench.py {shlex.join(argv)}` on {description}, jax {jax.__version__}: "
+              f"per model, `python scripts/train.py --model M {config.train_args}` in a fresh process, "
+              f"cold (an empty compile cache) then warm (the same command again, with the cache the cold run filled). "
+              f"Seconds from the process's start: set-up (imports, model, scene analysis, tracing) to the start of "
+              f"compiling, compiling, the first epoch's share of one update; the load average (1 min) beside them "
+              f"says how busy the machine was.", ""]
+    print("\n".join(header), flush=True)
+    out = Path(config.out) if config.out else None
+    record = {"command": f"python scripts/bench.py {shlex.join(argv)}", "machine": description,
+              "jax": jax.__version__, "python": platform.python_version(), "timeout_s": config.timeout, "rows": []}
+    train = str(Path(__file__).resolve().parent / "train.py")
+    with tempfile.TemporaryDirectory(prefix="startup-") as scratch:
+        for name, path in models:
+            cache, runs_dir = Path(scratch) / name / "cache", Path(scratch) / name / "runs"
+            row = {"model": name, "file": str(path), "load": {"start": os.getloadavg()}}
+            for kind in ("cold", "warm"):
+                command = [train, "--model", str(path), *train_args, "--no-progress", "--out", str(runs_dir / kind)]
+                row[f"{kind}_command"] = (f"STABLEBPTT_COMPILE_CACHE={cache} python scripts/train.py "
+                                          + shlex.join(command[1:]))
+                if kind == "warm" and row["cold"]["status"] != "ok":
+                    row[kind] = {"status": "not run"}  # nothing in the cache to start warm from
+                    continue
+                row[kind] = _time_run(command, cache, config.timeout)
+            row["load"]["end"] = os.getloadavg()
+            record["rows"].append(row)
+            lines = table(record["rows"])
+            print(lines[-1] if len(record["rows"]) > 1 else "\n".join(lines), flush=True)
+            if out:  # after every model, so a long table keeps what it measured
+                out.parent.mkdir(parents=True, exist_ok=True)
+                atomic_write(out, ("\n".join(header + lines) + "\n").encode())
+                atomic_write(out.with_suffix(".json"), (json.dumps(record, indent=1) + "\n").encode())
     return 0
 
 

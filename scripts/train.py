@@ -31,7 +31,7 @@ def parse(argv: list[str]):
                         help="keep compiled programs between runs (in $STABLEBPTT_COMPILE_CACHE or ~/.cache/stablebptt; default: on)")
     # owners: option -> the configs that have it ("train" or task names)
     owners = {name: {"train"} for name in add_options(parser, TrainConfig, "training")}
-    task_options.add_task_options(parser, owners)
+    owners = task_options.add_task_options(parser, owners)  # before parsing: the task options are options too
     return parser.parse_args(argv), owners
 
 

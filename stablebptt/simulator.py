@@ -22,7 +22,7 @@ import mujoco
 
 from stablebptt import lean_step, mjx_support, scene, symmetries
 from stablebptt.errors import InputError, config_field
-from stablebptt.flows import KnownColumns
+from stablebptt.dynamics import KnownColumns
 from stablebptt.lean_step import State
 from stablebptt.scene import SceneEffects
 

@@ -1,7 +1,7 @@
 """Columns of a step's state Jacobian that a scene's symmetries fix: translation and Galilean boost.
 
 Forward-mode step derivatives push no tangent through the simulator for them
-(``flows.KnownColumns``); ``symmetries(model, effects)`` finds them from the
+(``dynamics.KnownColumns``); ``symmetries(model, effects)`` finds them from the
 model's structure alone.
 """
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from stablebptt.flows import KnownColumns
+from stablebptt.dynamics import KnownColumns
 
 if TYPE_CHECKING:
     from stablebptt.scene import SceneEffects

@@ -277,3 +277,37 @@ def test_bench_command_writes_the_tables_it_is_asked_for(tmp_path):
                           ("generated step, body by body (the default)", "C"), ("closed-form equations (floor)", "C")]
     floor_row = next(row for row in rows if row[:2] == ["closed-form equations (floor)", "R"])
     assert floor_row[3] == "" and floor_row[4] == "1.00"  # no mjx.step row to divide by; the floor over itself
+
+
+def test_bench_startup_times_a_cold_and_a_warm_fresh_process_per_model(tmp_path, capsys):
+    """`bench --startup`: per model, two fresh train.py processes sharing one compile cache that starts empty;
+    the table and its record hold each run's parts, the exact commands and the load average."""
+    import json
+    from stablebptt.commands import bench as bench_command
+    out = tmp_path / "startup.md"
+    model = ROOT / "models" / "cartpole_1.xml"
+    with pytest.raises(SystemExit) as refused:
+        bench_command.main(["--startup", "--models", f"{model},no_such_model", "--out", str(out)])
+    assert refused.value.code == 2 and len(capsys.readouterr().err.strip().splitlines()) == 1 and not out.exists()
+
+    assert bench_command.main(["--startup", "--models", str(model), "--train-args",
+                               "--epochs 1 --train-size 8 --test-size 8 --batch 8 --steps 2", "--out", str(out)]) == 0
+    record = json.loads(out.with_suffix(".json").read_text())
+    (row,) = record["rows"]
+    assert row["model"] == "cartpole_1" and record["machine"] and record["command"].startswith("python scripts/bench.py --startup")
+    cache = row["cold_command"].split()[0]
+    assert cache.startswith("STABLEBPTT_COMPILE_CACHE=") and row["warm_command"].split()[0] == cache  # warm reuses it
+    for kind in ("cold", "warm"):
+        run = row[kind]
+        assert f"python scripts/train.py --model {model} --epochs 1" in row[f"{kind}_command"]
+        assert run["status"] == "ok" and all(run[part] >= 0 for part in ("setup_s", "compile_s", "epoch_s"))
+        assert math.isclose(run["first_update_s"], run["setup_s"] + run["compile_s"] + run["epoch_s"], rel_tol=1e-9)
+        assert run["first_update_s"] <= run["wall_s"]  # the process lives on past its first update
+    assert all(len(row["load"][moment]) == 3 for moment in ("start", "end"))
+
+    lines = [line for line in out.read_text().splitlines() if line.startswith("| ")]
+    header, cells = [c.strip() for c in lines[0].split("|")[1:-1]], [c.strip() for c in lines[1].split("|")[1:-1]]
+    assert len(header) == len(cells) == 11 and header[0] == "model" and header[9] == "warm <= cold"
+    assert cells[0] == "cartpole_1" and [float(c) for c in cells[1:9]] == [
+        round(row[kind][part], 1) for kind in ("cold", "warm") for part in ("setup_s", "compile_s", "epoch_s", "first_update_s")]
+    assert cells[9] == ("yes" if row["warm"]["first_update_s"] <= row["cold"]["first_update_s"] else "no")
