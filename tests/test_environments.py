@@ -157,11 +157,12 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
 @needs_playground
 def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_path, capsys):
     run = tmp_path / "cartpole"
-    done = run_script("scripts/train.py", "--env", "CartpoleSwingup", "--steps", "8", "--episode-length", "8",
-                      "--epochs", "1", "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
-                      "--out", str(run))
-    assert done.returncode == 0, done.stderr
-    assert "repaired: Playground's reward tolerance" in done.stdout and "reward gradient: usable" in done.stdout
+    from stablebptt.commands import train as train_command  # in this process: the installed command's main
+    assert train_command.main(["--env", "CartpoleSwingup", "--steps", "8", "--episode-length", "8", "--epochs", "1",
+                               "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
+                               "--out", str(run)]) == 0
+    printed = capsys.readouterr().out
+    assert "repaired: Playground's reward tolerance" in printed and "reward gradient: usable" in printed, printed
     rendered = run_script("scripts/render.py", str(run), "--rollouts", "1", "--no-video")
     assert rendered.returncode == 0, rendered.stderr
     assert (run / "rollout-strip.png").stat().st_size > 1000
