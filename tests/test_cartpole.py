@@ -197,7 +197,9 @@ def test_implicit_step_derivative_equals_autodiff_through_the_mass_matrix(x64, s
     state = scene.State(jnp.array(qpos), jnp.array(rng.normal(size=model.nv)), jnp.zeros(0))
     control = jnp.array(rng.normal(size=model.nu))
     expected = jax.jit(jax.jacfwd(autodiff, argnums=(0, 1)))(state, control)
-    for jacobian in (jax.jacfwd, jax.jacrev):
+    # Both directions on the cart-pole; reverse alone on the free body, whose float64 compiles are the
+    # costly ones (forward mode goes through the same implicit solve).
+    for jacobian in (jax.jacfwd, jax.jacrev) if source == "cartpole_3" else (jax.jacrev,):
         got = jax.jit(jacobian(implicit, argnums=(0, 1)))(state, control)
         for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-11)
