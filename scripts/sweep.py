@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import math
 import typing
 import sys
@@ -139,7 +140,8 @@ def plan_grid(config: SweepConfig, task_name: str | None, given: dict) -> Plan:
             fail(f"--lrs is the axis of a grid over --model, --env or --task; --preset {preset} varies {option_name(option)}")
         values = parse_list(config.complexity, complexities, "complexity", type(complexities[0])) if config.complexity else list(complexities)
         build_config = lambda value: task_options.task_config(task_name, {**given, option: value})
-        make_task = lambda value: tasks.load(task_name).make(build_config(value))
+        # Built once per value: planning, each program and each cell's record ask for it.
+        make_task = functools.lru_cache(maxsize=None)(lambda value: tasks.load(task_name).make(build_config(value)))
         return Plan(task_name, option, values, "", make_task, build_config, preset, SCORES.get(task_name, LOSS))
     if config.complexity:
         fail("--complexity chooses among a preset's complexities; a grid over --model, --env or --task varies --lrs")
