@@ -18,9 +18,13 @@ $(INSTALLED): pyproject.toml constraints.txt
 train: $(INSTALLED)
 	$(BIN)/python scripts/train.py --poles 3 --epochs 60
 
+# Compiling dominates the tests and XLA compiles a program on one core: one worker per core (at most
+# four), each test module on one worker so that its shared compiled functions are built once.
+PARALLEL := --numprocesses=auto --maxprocesses=4 --dist=loadscope
+
 test: $(INSTALLED)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q $(PARALLEL)
 
 # Closed forms, invariants and every task's gradients at a tiny horizon: under 2 minutes.
 test-fast: $(INSTALLED)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -m "not slow" $(PARALLEL)

@@ -21,9 +21,10 @@ def test_an_evader_is_pushed_away_from_a_driver():
 def test_coincident_agents_give_finite_forces_and_gradients():
     physics = Physics()
     state = State(jnp.zeros((6, 2)), jnp.zeros((6, 2)))  # everyone at the origin
-    forces = accelerations(physics, state, jnp.ones((2, 2)))
+    # Jitted: run eagerly, every operation would be compiled apart.
+    forces = jax.jit(lambda s: accelerations(physics, s, jnp.ones((2, 2))))(state)
     assert np.all(np.isfinite(forces))
-    jacobian = jax.jacobian(lambda p: accelerations(physics, State(p, state.velocity), jnp.ones((2, 2))))(state.position)
+    jacobian = jax.jit(jax.jacobian(lambda p: accelerations(physics, State(p, state.velocity), jnp.ones((2, 2)))))(state.position)
     assert np.all(np.isfinite(jacobian))
 
 

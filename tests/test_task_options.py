@@ -61,10 +61,11 @@ def test_reaching_a_point_is_the_squared_distance_of_the_site(pendulum):
     states = State(angles[:, None], jnp.zeros((3, 1)), jnp.zeros((3, 0)))
     # Hinge about +y: the tip (0, 0, -1) turns to (-sin q, 0, -cos q); without --loss-joints only the distance counts.
     expected = (-np.sin(angles[-1]) - 1.0) ** 2 + np.cos(angles[-1]) ** 2
-    np.testing.assert_allclose(float(task.dynamics.loss(states, None)), expected, rtol=1e-5)
+    # Jitted: run eagerly, MJX's kinematics would compile operation by operation.
+    np.testing.assert_allclose(float(jax.jit(task.dynamics.loss)(states, None)), expected, rtol=1e-5)
     both = mjcf.make(mjcf.Config(model=str(pendulum), reach="tip=1,0,0", loss_joints="hinge"))
     pose = 1.0 - np.cos(angles[-1])  # the reference pose is qpos 0
-    np.testing.assert_allclose(float(both.dynamics.loss(states, None)), expected + pose, rtol=1e-5)
+    np.testing.assert_allclose(float(jax.jit(both.dynamics.loss)(states, None)), expected + pose, rtol=1e-5)
 
 
 def test_a_limited_actuator_never_leaves_its_range_and_keeps_a_gradient(pendulum):
