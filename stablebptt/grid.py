@@ -289,9 +289,7 @@ def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None
         train = dataclasses.replace(outcome["train_config"], mode=mode, clip=clip, seeds=len(members), seed=seeds[0],
                                     epochs=grid.epochs, **grid.train_overrides(value))
         task = grid.make_task(value)
-        record = {"task": grid.task_name, "task_config": dataclasses.asdict(grid.task_config(value)),
-                  "resolved_task": {"name": task.name, **task.resolved}, "train": dataclasses.asdict(train),
-                  "sweep": grid.name}
+        record = runs.run_record(grid.task_name, grid.task_config(value), train, task, sweep=grid.name)
         indices = np.array([index for index, _ in members])
         write_cell(directory, record, table, jax.tree.map(lambda leaf: np.asarray(leaf)[indices], params),
                    task.resolved.get("model_file"))
@@ -302,7 +300,7 @@ def write_cell(directory: Path, record: dict, rows: np.ndarray, params, model_fi
     axis); and what reopens ``model_file`` after it moved, its compiled copy shared by the grid's cells
     (``run_models.keep_model``: one file per model in ``<grid root>/models``)."""
     directory.mkdir(parents=True, exist_ok=True)
-    runs.write_json(directory / runs.CONFIG_FILE, record)
+    runs.write_config(directory, record)
     runs.write_metrics(directory / runs.METRICS_FILE, rows)
     runs.save_params(directory / runs.PARAMS_FILE, params)
     if model_file:

@@ -287,24 +287,40 @@ def open_run(path: Path) -> dict:
     return record
 
 
+def run_record(task_name: str, task_config: Any, train_config: Any, task: Any = None, **extra: Any) -> dict:
+    """A run folder's ``config.json``: the one schema of single runs, grid cells and test folders.
+
+    Args:
+      task_name: the registry's name of the task.
+      task_config: the task's options (a dataclass; a dict where it is one already).
+      train_config: the ``TrainConfig`` (a dict where it is one already).
+      task: the task built from them; when given, it is recorded as resolved (``resolved_task``).
+      **extra: further top-level entries: the ``environment`` of a single run, the ``sweep`` of a grid cell.
+    """
+    import dataclasses
+
+    as_dict = lambda config: config if isinstance(config, dict) else dataclasses.asdict(config)  # noqa: E731
+    resolved = {} if task is None else {"resolved_task": {"name": task.name, **task.resolved}}
+    return {"task": task_name, "task_config": as_dict(task_config), **resolved, "train": as_dict(train_config), **extra}
+
+
+def write_config(directory: Path, record: dict) -> None:
+    """Write (or replace) a run folder's ``config.json``; ``create_run`` claims a fresh folder with it instead."""
+    write_json(Path(directory) / CONFIG_FILE, record)
+
+
 def new_record(task_name: str, task_config: Any, task: Any, train_config: TrainConfig) -> dict:
     """The config.json of a new run: the task as configured and as resolved, training, versions, device.
 
     Raises:
       InputError: options set together where one makes the other meaningless (``checks.check_options``).
     """
-    import dataclasses
     import platform
 
     from stablebptt.checks import check_options
     check_options(train_config, task_config)
-    return {
-        "task": task_name,
-        "task_config": dataclasses.asdict(task_config),
-        "resolved_task": {"name": task.name, **task.resolved},
-        "train": dataclasses.asdict(train_config),
-        "environment": {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])},
-    }
+    environment = {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])}
+    return run_record(task_name, task_config, train_config, task, environment=environment)
 
 
 class Run:
@@ -360,7 +376,7 @@ class Run:
         if self.resuming and config.epochs > start_epoch and config.epochs != self.record["train"]["epochs"]:
             import dataclasses
             self.record = {**self.record, "train": dataclasses.asdict(config)}
-            write_json(self.directory / CONFIG_FILE, self.record)
+            write_config(self.directory, self.record)
         if self.resuming and start_epoch > 0:
             self.repaired = self._repair(state, rows)
         return start_epoch, state, rows
