@@ -17,8 +17,8 @@ def cell_name(task_name, option, value, mode, clip) -> str:
     return f"{task_name}-{option}{value}-{mode}-{clip}"
 
 
-def summarize(root: Path, directories: list[Path]) -> list[str]:
-    """summary.csv and a Markdown table: final test loss, mean +- std over seeds, per cell."""
+def write_summary(root: Path, directories: list[Path]) -> list[str]:
+    """Write summary.csv and return it as a Markdown table: final test loss, mean +- std over seeds, per cell."""
     lines = ["| cell | epochs | final test loss (mean +- std over seeds) | diverged seeds |", "|---|---:|---:|---:|"]
     csv_lines = ["cell,epochs,test_loss_mean,test_loss_std,diverged_seeds"]
     for directory in sorted(directories):
@@ -169,7 +169,7 @@ def write_report(root: Path, directories: list[Path], task_name, option, complex
     """summary.csv, test_loss.csv, table.md, intervals.md, verdicts.txt and one learning-curve figure per
     complexity, from the run directories; returns the table (Markdown lines) and the verdicts (``verdicts``)."""
     from stablebptt.plots import learning_curves
-    summarize(root, directories)
+    write_summary(root, directories)
     tidy_test_loss(root, directories, option)
     table = mode_table(directories, task_name, option, complexities, modes, clips)
     runs.atomic_write(root / "table.md", ("\n".join(table) + "\n").encode())

@@ -420,7 +420,7 @@ def empty_rows() -> np.ndarray:
     return np.zeros((0, len(COLUMNS)))
 
 
-def summarize(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float]:
+def final_mean_std(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float]:
     """Mean and standard deviation over seeds of ``column`` at the last epoch."""
     last = rows[rows[:, 0] == rows[:, 0].max()]
     values = last[:, COLUMNS.index(column)]
@@ -432,4 +432,6 @@ def __getattr__(name: str):
     if name in ("fit", "train_epochs", "train", "Trained", "TrainingDiverged", "Outcome", "epoch_rows"):
         from stablebptt import fitting
         return getattr(fitting, name)
+    if name == "summarize":  # final_mean_std's former name
+        return final_mean_std
     raise AttributeError(f"module 'stablebptt.runs' has no attribute {name!r}")
