@@ -29,7 +29,7 @@ from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.curves import BANDS, Run, aggregate, default_smooth, effective_window, load_run, moving_average
 from stablebptt.errors import InputError
-from stablebptt.flows import FLOWS, MODE_TABLE, MODES
+from stablebptt.flows import MODE_ORDER, MODES
 from stablebptt.storage import atomic_write
 
 FIGURE_FILE = "learning_curves.png"
@@ -38,8 +38,6 @@ FORMATS = (".png", ".pdf", ".svg")
 # Okabe-Ito colours (distinguishable with colour blindness), given to the modes in MODE_TABLE's order.
 PALETTE = ("#0072B2", "#E69F00", "#CC79A7", "#009E73", "#D55E00", "#56B4E9", "#F0E442", "#000000")
 MODE_COLORS = dict(zip(MODES, PALETTE))
-# The paper's figures' order (R, M, C, S), from the table: a mode after the last flow it needs, a combination after it.
-MODE_ORDER = tuple(sorted(MODES, key=lambda m: (max(map(FLOWS.index, MODE_TABLE[m].flows)), len(MODE_TABLE[m].flows))))
 CLIP_STYLES = {"value": "-", "norm": "--", "none": ":"}
 
 # Train options that do not change what a curve means (or show on the axes anyway): never in a label.
