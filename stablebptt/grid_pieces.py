@@ -136,10 +136,7 @@ def merge_cell(folders: list[Path], name: str, destination: Path, write_cell) ->
     rows = np.concatenate([np.array([[row[c] for c in runs.COLUMNS] for row in runs.read_metrics(folder / name / runs.METRICS_FILE)])
                            for folder in folders])
     rows = rows[np.lexsort((rows[:, 1], rows[:, 0]))]
-    leaves = []
-    for folder in folders:
-        with np.load(folder / name / runs.PARAMS_FILE) as data:
-            leaves.append([data[f"leaf_{i:03d}"] for i in range(len(data.files))])
+    leaves = [runs.load_param_leaves(folder / name / runs.PARAMS_FILE) for folder in folders]
     params = [np.concatenate(per_leaf) for per_leaf in zip(*leaves)]
     record = records[0]
     record["train"] = {**record["train"], "seed": records[0]["train"]["seed"],

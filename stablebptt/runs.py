@@ -123,20 +123,34 @@ def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
 
 
 def save_params(path: Path, params: Any) -> None:
-    leaves = jax.tree.leaves(jax.device_get(params))
-    atomic_write(path, _npz_bytes({f"leaf_{i:03d}": leaf for i, leaf in enumerate(leaves)}))
+    atomic_write(path, _npz_bytes(_named_leaves(params)))
 
 
-def load_params(path: Path, template: Any) -> Any:
-    """Parameters saved by ``save_params``, in the structure of ``template``."""
+def load_param_leaves(path: Path) -> list[np.ndarray]:
+    """The leaves of parameters saved by ``save_params``, in ``jax.tree.leaves`` order (seeds on their first
+    axis): no template needed, e.g. to stack the seeds of several folders."""
     try:
         with np.load(path) as data:
-            leaves = [data[f"leaf_{i:03d}"] for i in range(len(data.files))]
+            return _read_leaves(data, len(data.files))  # nothing but leaves: any other array is foreign
     except FileNotFoundError:
         raise InputError(f"{path} does not exist: the run has not finished an epoch yet") from None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
         raise InputError(f"{path} is damaged ({' '.join(str(error).split())})") from None
-    return _unflatten_like(template, leaves, path)
+
+
+def load_params(path: Path, template: Any) -> Any:
+    """Parameters saved by ``save_params``, in the structure of ``template``."""
+    return _unflatten_like(template, load_param_leaves(path), path)
+
+
+def _named_leaves(tree: Any) -> dict[str, np.ndarray]:
+    """A pytree's leaves as an npz's arrays: ``leaf_000``, ``leaf_001``, ... in ``jax.tree.leaves`` order."""
+    return {f"leaf_{i:03d}": leaf for i, leaf in enumerate(jax.tree.leaves(jax.device_get(tree)))}
+
+
+def _read_leaves(data: Any, count: int) -> list[np.ndarray]:
+    """The ``count`` leaves ``_named_leaves`` wrote into an open npz, in order; KeyError where one is missing."""
+    return [data[f"leaf_{i:03d}"] for i in range(count)]
 
 
 def _unflatten_like(template: Any, leaves: list[np.ndarray], path: Path) -> Any:
@@ -155,10 +169,8 @@ def identity(record: dict) -> str:
 
 def save_checkpoint(run_dir: Path, epoch: int, state: TrainState, rows: np.ndarray, owner: str = "") -> None:
     """Parameters, optimizer state and metrics after ``epoch``; ``owner`` is the run's ``identity``."""
-    leaves = jax.tree.leaves(jax.device_get(state))
-    arrays = {f"leaf_{i:03d}": leaf for i, leaf in enumerate(leaves)}
     atomic_write(run_dir / CHECKPOINT_FILE, _npz_bytes({"epoch": np.array(epoch), "metrics": rows,
-                                                        "owner": np.array(owner), **arrays}))
+                                                        "owner": np.array(owner), **_named_leaves(state)}))
 
 
 def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tuple[int, TrainState, np.ndarray]:
@@ -169,7 +181,7 @@ def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tup
             epoch = int(data["epoch"])
             rows = np.array(data["metrics"])
             saved_owner = str(data["owner"]) if "owner" in data.files else ""
-            leaves = [data[f"leaf_{i:03d}"] for i in range(sum(name.startswith("leaf_") for name in data.files))]
+            leaves = _read_leaves(data, sum(name.startswith("leaf_") for name in data.files))
     except FileNotFoundError:
         raise InputError(f"{path} does not exist: the run never finished an epoch; start it again") from None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
