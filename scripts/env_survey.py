@@ -634,8 +634,10 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--train-size", type=int, default=16)
     parser.add_argument("--test-size", type=int, default=16)
     parser.add_argument("--batch", type=int, default=8)
-    parser.add_argument("--mode", default="C", choices=("R", "M", "S", "C"))
-    parser.add_argument("--clip", default="norm", choices=("value", "norm", "none"))
+    # The modes and clips are checked after parsing, from the library's tables: a worker must not import
+    # stablebptt before it times that import.
+    parser.add_argument("--mode", default="C", help="gradient flow, as train.py --mode")
+    parser.add_argument("--clip", default="norm", help="gradient clipping, as train.py --clip")
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--seed", type=int, default=42, help="network seed")
     parser.add_argument("--timeout", type=float, default=480, help="seconds per environment")
@@ -650,6 +652,11 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if args.worker:
         return worker(args)
+    from stablebptt.modes import MODES
+    from stablebptt.training import CLIP_MODES
+    for option, value, choices in (("--mode", args.mode, MODES), ("--clip", args.clip, CLIP_MODES)):
+        if value not in choices:
+            parser.error(f"{option} {value!r}: choose one of {', '.join(choices)}")
     if args.train_size % args.batch:
         parser.error("--batch must divide --train-size")
     return survey(args, argv)

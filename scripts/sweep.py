@@ -261,14 +261,15 @@ FIRST_SEED = 42  # the grid's seeds are FIRST_SEED, FIRST_SEED + 1, ...
 
 def merge(grid, grids, root: Path, seeds: int) -> int:
     """The pieces under ``root`` -> the grid's cells in ``root``; returns how many pieces were merged."""
-    from stablebptt import grid_pieces, grid_report
+    from stablebptt import grid_pieces, grid_report, run_models
     whole = dataclasses.replace(grid, seeds=tuple(FIRST_SEED + s for s in range(seeds)))
     names = [grid_report.cell_name(grid.task_name, grid.option, value, mode, clip)
              for value in grid.values for mode in grid.modes for clip in grid.clips]
     folders = grid_pieces.check_pieces(root, grids.describe(grid, FIRST_SEED, seeds), names)
     grids.check_cells_are_this_grids(grids.plan(whole, root), whole, root)
+    shared = run_models.SharedModels(root)  # each model compiled and kept once for all the cells
     for name in names:
-        grid_pieces.merge_cell(folders, name, root, grids.write_cell)
+        grid_pieces.merge_cell(folders, name, root, grids.write_cell, shared)
     return len(folders)
 
 

@@ -100,7 +100,7 @@ def train(argv: list[str], held: list) -> int:
     if task.summary:
         print(task.summary)
     if start_epoch == train_config.epochs and resuming:
-        mean, std = runs.summarize(rows) if len(rows) else (float("nan"), 0.0)
+        mean, std = runs.final_mean_std(rows) if len(rows) else (float("nan"), 0.0)
         print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
         return 0
 
@@ -129,7 +129,7 @@ def train(argv: list[str], held: list) -> int:
         return 130
     from stablebptt.plots import plot_run
     plot_run(run_dir)
-    mean, std = runs.summarize(outcome.rows)
+    mean, std = runs.final_mean_std(outcome.rows)
     spread = f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
     print(f"done: {task_label}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")
     return 0

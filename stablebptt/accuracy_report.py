@@ -215,7 +215,8 @@ def gradient_figure(rows: list[dict], fits: list[dict]):
 def training_figure(rows: list[dict]):
     """Test loss against cumulative wall-clock seconds per mode (colour) and precision (line style)."""
     import numpy as np
-    from stablebptt.plots import MODE_COLORS, MODE_ORDER
+    from stablebptt.flows import MODE_ORDER
+    from stablebptt.plots import MODE_COLORS
 
     figure = _figure(7.8, 5.2)
     ax = figure.subplots()

@@ -47,11 +47,11 @@ from stablebptt.adjoint_step import multi_adjoint_step
 from stablebptt.dynamics import (Dynamics, KnownColumns, Parts, PyTree, differentiable, first_copy, join,
                                  ravel_examples, split, split_cotangent, stack_copies)
 from stablebptt.linearized import linearized_gradients, policy_gradients, step_jacobians
-from stablebptt.modes import (FLOWS, KEEPS, MODE_TABLE, MODES, Mode, flows_needed, select_flow,
+from stablebptt.modes import (FLOWS, KEEPS, MODE_ORDER, MODE_TABLE, MODES, Mode, flows_needed, select_flow,
                               sign_agreement, tree_cosine)
 
 # ``from stablebptt.flows import X`` keeps working for every public name that lived here.
-__all__ = ["FLOWS", "KEEPS", "MODES", "MODE_TABLE", "Dynamics", "KnownColumns", "Mode", "Parts", "PyTree",
+__all__ = ["FLOWS", "KEEPS", "MODES", "MODE_ORDER", "MODE_TABLE", "Dynamics", "KnownColumns", "Mode", "Parts", "PyTree",
            "Trajectory", "differentiable", "flow_gradients", "flow_losses", "flows_needed", "join", "reference_loss",
            "reference_losses", "reference_rollout", "select_flow", "sign_agreement", "split", "split_cotangent",
            "step_jacobians", "tree_cosine"]

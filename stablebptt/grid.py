@@ -270,7 +270,7 @@ def cell_groups(program: Program) -> dict[tuple, list[tuple[int, int]]]:
     return groups
 
 
-def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None:
+def write_cells(program: Program, outcome: dict, grid: Grid, root: Path, shared: run_models.SharedModels) -> None:
     """Split a program's rows and parameters into one run folder per (value, mode, clip), seeds as
     rows: config.json, metrics.csv and params.npz of the single-run schema, so every cell renders,
     plots and reopens (``stablebptt.apps.trained``) as a single run does."""
@@ -289,24 +289,24 @@ def write_cells(program: Program, outcome: dict, grid: Grid, root: Path) -> None
         train = dataclasses.replace(outcome["train_config"], mode=mode, clip=clip, seeds=len(members), seed=seeds[0],
                                     epochs=grid.epochs, **grid.train_overrides(value))
         task = grid.make_task(value)
-        record = {"task": grid.task_name, "task_config": dataclasses.asdict(grid.task_config(value)),
-                  "resolved_task": {"name": task.name, **task.resolved}, "train": dataclasses.asdict(train),
-                  "sweep": grid.name}
+        record = runs.run_record(grid.task_name, grid.task_config(value), train, task, sweep=grid.name)
         indices = np.array([index for index, _ in members])
         write_cell(directory, record, table, jax.tree.map(lambda leaf: np.asarray(leaf)[indices], params),
-                   task.resolved.get("model_file"))
+                   task.resolved.get("model_file"), shared)
 
 
-def write_cell(directory: Path, record: dict, rows: np.ndarray, params, model_file: str | Path | None = None) -> None:
+def write_cell(directory: Path, record: dict, rows: np.ndarray, params, model_file: str | Path | None = None,
+               shared: run_models.SharedModels | None = None) -> None:
     """One cell's run folder: config.json, metrics.csv and params.npz (seeds stacked on the leaves' first
     axis); and what reopens ``model_file`` after it moved, its compiled copy shared by the grid's cells
-    (``run_models.keep_model``: one file per model in ``<grid root>/models``)."""
+    (one file per model in ``<grid root>/models``, compiled once per grid by ``shared``)."""
     directory.mkdir(parents=True, exist_ok=True)
-    runs.write_json(directory / runs.CONFIG_FILE, record)
+    runs.write_config(directory, record)
     runs.write_metrics(directory / runs.METRICS_FILE, rows)
     runs.save_params(directory / runs.PARAMS_FILE, params)
     if model_file:
-        run_models.keep_model(directory, model_file, shared=directory.parent)
+        shared = shared or run_models.SharedModels(directory.parent)
+        run_models.link_model(directory, model_file, shared(model_file))
 
 
 def describe(grid: Grid, first_seed: int, seeds: int) -> dict:
@@ -374,6 +374,7 @@ def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: F
         check_resumable(program, grid)
     check_cells_are_this_grids(programs, grid, root)
     placement = place(programs, jax.devices(), jax.process_index())
+    shared = run_models.SharedModels(root)  # each model compiled and kept once for all the grid's cells
     failed = threading.Event()
     stop = lambda: failed.is_set() or should_stop()
 
@@ -393,7 +394,7 @@ def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: F
                 failed.set()  # the other groups checkpoint and stop instead of running to their end
                 raise
             if len(outcome["rows"]):
-                write_cells(program, outcome, grid, root)
+                write_cells(program, outcome, grid, root, shared)
             for name in ("rows", "params", "train_config"):  # what the record does not keep
                 outcome.pop(name)
             outcomes.append(outcome)

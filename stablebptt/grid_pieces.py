@@ -129,17 +129,15 @@ def check_pieces(root: Path, grid_description: dict, cell_names: list[str]) -> l
     return [folder for folder, _ in found]
 
 
-def merge_cell(folders: list[Path], name: str, destination: Path, write_cell) -> None:
+def merge_cell(folders: list[Path], name: str, destination: Path, write_cell,
+               shared: run_models.SharedModels | None = None) -> None:
     """One cell of every piece -> one cell of all their seeds, written by ``write_cell(directory, record,
-    rows, params)`` (the grid's own cell writer)."""
+    rows, params, model_file, shared)`` (the grid's own cell writer; ``shared``: the merged grid's models)."""
     records = [runs.read_json(folder / name / runs.CONFIG_FILE) for folder in folders]
     rows = np.concatenate([np.array([[row[c] for c in runs.COLUMNS] for row in runs.read_metrics(folder / name / runs.METRICS_FILE)])
                            for folder in folders])
     rows = rows[np.lexsort((rows[:, 1], rows[:, 0]))]
-    leaves = []
-    for folder in folders:
-        with np.load(folder / name / runs.PARAMS_FILE) as data:
-            leaves.append([data[f"leaf_{i:03d}"] for i in range(len(data.files))])
+    leaves = [runs.load_param_leaves(folder / name / runs.PARAMS_FILE) for folder in folders]
     params = [np.concatenate(per_leaf) for per_leaf in zip(*leaves)]
     record = records[0]
     record["train"] = {**record["train"], "seed": records[0]["train"]["seed"],
@@ -148,6 +146,6 @@ def merge_cell(folders: list[Path], name: str, destination: Path, write_cell) ->
     # The model the piece kept: its compiled copy, shared again in the merged grid's root.
     link = first / run_models.MODEL_LINK_FILE
     compiled = first / runs.read_json(link)["compiled"] if link.is_file() else None
-    write_cell(destination / name, record, rows, params, compiled)
+    write_cell(destination / name, record, rows, params, compiled, shared)
     if (first / run_models.MODEL_COPY_FILE).is_file():
         runs.atomic_write(destination / name / run_models.MODEL_COPY_FILE, (first / run_models.MODEL_COPY_FILE).read_bytes())

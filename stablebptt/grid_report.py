@@ -17,8 +17,8 @@ def cell_name(task_name, option, value, mode, clip) -> str:
     return f"{task_name}-{option}{value}-{mode}-{clip}"
 
 
-def summarize(root: Path, directories: list[Path]) -> list[str]:
-    """summary.csv and a Markdown table: final test loss, mean +- std over seeds, per cell."""
+def write_summary(root: Path, directories: list[Path]) -> list[str]:
+    """Write summary.csv and return it as a Markdown table: final test loss, mean +- std over seeds, per cell."""
     lines = ["| cell | epochs | final test loss (mean +- std over seeds) | diverged seeds |", "|---|---:|---:|---:|"]
     csv_lines = ["cell,epochs,test_loss_mean,test_loss_std,diverged_seeds"]
     for directory in sorted(directories):
@@ -136,9 +136,10 @@ ROUGH_BELOW = 5
 
 
 def verdicts(test_loss_csv: Path, option: str, score: tuple[str, float] = ("test loss", 1.0)) -> list[str]:
-    """One line per value and clip mode: the flow with the best mean final score, and whether the
-    intervals of C - R and C - M say C is better. ``score``: (its name, its sign times the test loss),
-    e.g. ("episode return", -1.0) for an environment, whose loss is the negative return."""
+    """One line per value and clip mode: the flow with the lowest mean final test loss, and whether the
+    intervals of C - R and C - M say C is better. ``score``: how the line shows that loss (its name, and
+    +1 or -1 times the test loss), e.g. ("episode return", -1.0) for an environment, whose loss is the
+    negative return."""
     name, sign = score
     final = _final_losses(test_loss_csv, option)
     seeds = len({key[3] for key in final})
@@ -146,13 +147,13 @@ def verdicts(test_loss_csv: Path, option: str, score: tuple[str, float] = ("test
     if seeds < ROUGH_BELOW:
         lines[0] += f"; with fewer than {ROUGH_BELOW} seeds an interval is rough: give --seeds {ROUGH_BELOW} or more before relying on it"
     for (value, clip), against in _comparisons(final).items():
-        means = {mode: np.mean([sign * loss for (v, c, m, _), loss in final.items() if (v, c, m) == (value, clip, mode)])
+        means = {mode: np.mean([loss for (v, c, m, _), loss in final.items() if (v, c, m) == (value, clip, mode)])
                  for mode in dict.fromkeys(key[2] for key in final if key[:2] == (value, clip))}
         finite = {mode: mean for mode, mean in means.items() if np.isfinite(mean)}
-        best = (max if sign < 0 else min)(finite, key=finite.get) if finite else None
+        best = min(finite, key=finite.get) if finite else None
         said = [f"C - {other}: {_verdict(*against[other][1:])}" if against[other] else f"C - {other}: -"
                 for other in ("R", "M")]
-        lead = f"{option}={value}, clip {clip}: " + (f"best {best} ({name} {finite[best]:.4g})" if best else "every mode diverged")
+        lead = f"{option}={value}, clip {clip}: " + (f"best {best} ({name} {sign * finite[best]:.4g})" if best else "every mode diverged")
         lines.append(f"{lead}; " + "; ".join(said))
     return lines
 
@@ -169,7 +170,7 @@ def write_report(root: Path, directories: list[Path], task_name, option, complex
     """summary.csv, test_loss.csv, table.md, intervals.md, verdicts.txt and one learning-curve figure per
     complexity, from the run directories; returns the table (Markdown lines) and the verdicts (``verdicts``)."""
     from stablebptt.plots import learning_curves
-    summarize(root, directories)
+    write_summary(root, directories)
     tidy_test_loss(root, directories, option)
     table = mode_table(directories, task_name, option, complexities, modes, clips)
     runs.atomic_write(root / "table.md", ("\n".join(table) + "\n").encode())

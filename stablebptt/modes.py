@@ -1,7 +1,8 @@
 """The gradient flows by name, where each cuts the backward pass, and the modes that combine them.
 
 ``FLOWS`` and ``KEEPS`` define the flows (the table in ``stablebptt.flows``); ``MODE_TABLE`` is the
-one list of training modes: the flows each needs and how its update combines their gradients.
+one list of training modes: the flows each needs and how its update combines their gradients;
+``MODE_ORDER`` is the order figures and tables show them in.
 Every consumer (training, plots, the benchmark, sweeps) iterates over these.
 """
 from __future__ import annotations
@@ -52,6 +53,8 @@ MODE_TABLE: dict[str, Mode] = {mode.name: mode for mode in (
          "combined: g_M where its sign agrees with g_R"),
 )}
 MODES = tuple(MODE_TABLE)
+# The paper's figures' order (R, M, C, S), from the table: a mode after the last flow it needs, a combination after it.
+MODE_ORDER = tuple(sorted(MODES, key=lambda m: (max(map(FLOWS.index, MODE_TABLE[m].flows)), len(MODE_TABLE[m].flows))))
 
 
 def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:

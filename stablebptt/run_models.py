@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -70,27 +71,62 @@ def keep_model(run_dir: Path, model_file: str | Path, shared: Path | None = None
 
     The compiled model (a skybox texture alone can make it megabytes) goes into ``model.mjb.gz``;
     with ``shared`` (a grid's root, its cells the run folders) into ``shared/models/<SHA-256>.mjb.gz``
-    instead, written once for every cell of the same model, and the cell keeps ``model.json``, which
-    names that file relative to the cell (a grid moved as a whole still reopens).
+    instead (``share_model``), and the cell keeps ``model.json`` naming it (``link_model``). A grid
+    writing many cells of one model compiles it once with ``SharedModels``.
     """
-    run_dir, model_file = Path(run_dir), Path(model_file)
-    if model_file.suffix not in (".mjb", ".gz"):
-        atomic_write(run_dir / MODEL_COPY_FILE, model_file.read_bytes())
-    binary = compiled_model(model_file)
-    import gzip
-    pack = lambda: gzip.compress(binary, compresslevel=6, mtime=0)  # noqa: E731 - the same model, the same bytes
-    if shared is None:
-        atomic_write(run_dir / MODEL_PACKED_FILE, pack())
+    if shared is not None:
+        link_model(run_dir, model_file, share_model(shared, model_file))
         return
-    digest = hashlib.sha256(binary).hexdigest()
-    target = Path(shared) / SHARED_MODELS / f"{digest}.mjb.gz"
-    if not target.is_file():  # written atomically: one that exists is whole
+    _copy_text(Path(run_dir), Path(model_file))
+    atomic_write(Path(run_dir) / MODEL_PACKED_FILE, _pack(compiled_model(model_file)))
+
+
+def share_model(root: Path, model_file: str | Path) -> Path:
+    """The model compiled and compressed in a grid root, ``root/models/<SHA-256>.mjb.gz``: written
+    when not there yet (atomically: one that exists is whole); returns its path."""
+    binary = compiled_model(model_file)
+    target = Path(root) / SHARED_MODELS / f"{hashlib.sha256(binary).hexdigest()}.mjb.gz"
+    if not target.is_file():
         try:
             target.parent.mkdir(parents=True, exist_ok=True)
         except OSError as error:
             raise StorageError(error.errno, f"cannot create {target.parent}: {error.strerror}") from None
-        atomic_write(target, pack())
+        atomic_write(target, _pack(binary))
+    return target
+
+
+def link_model(run_dir: Path, model_file: str | Path, target: Path) -> None:
+    """A grid cell's model: the file as given (``model.xml``) and ``model.json``, which names the grid's
+    compiled copy ``target`` (``share_model``) relative to the cell, so a grid moved as a whole reopens."""
+    run_dir = Path(run_dir)
+    _copy_text(run_dir, Path(model_file))
+    digest = Path(target).name.removesuffix(".mjb.gz")
     write_json(run_dir / MODEL_LINK_FILE, {"compiled": os.path.relpath(target, run_dir), "sha256": digest})
+
+
+class SharedModels:
+    """``share_model`` into one grid root, each model file compiled once however many cells keep it
+    (cells are written from several threads)."""
+
+    def __init__(self, root: Path):
+        self.root, self._kept, self._lock = Path(root), {}, threading.Lock()
+
+    def __call__(self, model_file: str | Path) -> Path:
+        with self._lock:
+            if str(model_file) not in self._kept:
+                self._kept[str(model_file)] = share_model(self.root, model_file)
+            return self._kept[str(model_file)]
+
+
+def _copy_text(run_dir: Path, model_file: Path) -> None:
+    """``model.xml``: an MJCF file's own text, as given (a compiled file has none to keep)."""
+    if model_file.suffix not in (".mjb", ".gz"):
+        atomic_write(run_dir / MODEL_COPY_FILE, model_file.read_bytes())
+
+
+def _pack(binary: bytes) -> bytes:
+    import gzip
+    return gzip.compress(binary, compresslevel=6, mtime=0)  # no time stamp: the same model, the same bytes
 
 
 def copy_model(run_dir: Path, model_file: str | Path) -> None:

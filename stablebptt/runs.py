@@ -123,20 +123,34 @@ def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
 
 
 def save_params(path: Path, params: Any) -> None:
-    leaves = jax.tree.leaves(jax.device_get(params))
-    atomic_write(path, _npz_bytes({f"leaf_{i:03d}": leaf for i, leaf in enumerate(leaves)}))
+    atomic_write(path, _npz_bytes(_named_leaves(params)))
 
 
-def load_params(path: Path, template: Any) -> Any:
-    """Parameters saved by ``save_params``, in the structure of ``template``."""
+def load_param_leaves(path: Path) -> list[np.ndarray]:
+    """The leaves of parameters saved by ``save_params``, in ``jax.tree.leaves`` order (seeds on their first
+    axis): no template needed, e.g. to stack the seeds of several folders."""
     try:
         with np.load(path) as data:
-            leaves = [data[f"leaf_{i:03d}"] for i in range(len(data.files))]
+            return _read_leaves(data, len(data.files))  # nothing but leaves: any other array is foreign
     except FileNotFoundError:
         raise InputError(f"{path} does not exist: the run has not finished an epoch yet") from None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
         raise InputError(f"{path} is damaged ({' '.join(str(error).split())})") from None
-    return _unflatten_like(template, leaves, path)
+
+
+def load_params(path: Path, template: Any) -> Any:
+    """Parameters saved by ``save_params``, in the structure of ``template``."""
+    return _unflatten_like(template, load_param_leaves(path), path)
+
+
+def _named_leaves(tree: Any) -> dict[str, np.ndarray]:
+    """A pytree's leaves as an npz's arrays: ``leaf_000``, ``leaf_001``, ... in ``jax.tree.leaves`` order."""
+    return {f"leaf_{i:03d}": leaf for i, leaf in enumerate(jax.tree.leaves(jax.device_get(tree)))}
+
+
+def _read_leaves(data: Any, count: int) -> list[np.ndarray]:
+    """The ``count`` leaves ``_named_leaves`` wrote into an open npz, in order; KeyError where one is missing."""
+    return [data[f"leaf_{i:03d}"] for i in range(count)]
 
 
 def _unflatten_like(template: Any, leaves: list[np.ndarray], path: Path) -> Any:
@@ -155,10 +169,8 @@ def identity(record: dict) -> str:
 
 def save_checkpoint(run_dir: Path, epoch: int, state: TrainState, rows: np.ndarray, owner: str = "") -> None:
     """Parameters, optimizer state and metrics after ``epoch``; ``owner`` is the run's ``identity``."""
-    leaves = jax.tree.leaves(jax.device_get(state))
-    arrays = {f"leaf_{i:03d}": leaf for i, leaf in enumerate(leaves)}
     atomic_write(run_dir / CHECKPOINT_FILE, _npz_bytes({"epoch": np.array(epoch), "metrics": rows,
-                                                        "owner": np.array(owner), **arrays}))
+                                                        "owner": np.array(owner), **_named_leaves(state)}))
 
 
 def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tuple[int, TrainState, np.ndarray]:
@@ -169,7 +181,7 @@ def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tup
             epoch = int(data["epoch"])
             rows = np.array(data["metrics"])
             saved_owner = str(data["owner"]) if "owner" in data.files else ""
-            leaves = [data[f"leaf_{i:03d}"] for i in range(sum(name.startswith("leaf_") for name in data.files))]
+            leaves = _read_leaves(data, sum(name.startswith("leaf_") for name in data.files))
     except FileNotFoundError:
         raise InputError(f"{path} does not exist: the run never finished an epoch; start it again") from None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
@@ -287,24 +299,40 @@ def open_run(path: Path) -> dict:
     return record
 
 
+def run_record(task_name: str, task_config: Any, train_config: Any, task: Any = None, **extra: Any) -> dict:
+    """A run folder's ``config.json``: the one schema of single runs, grid cells and test folders.
+
+    Args:
+      task_name: the registry's name of the task.
+      task_config: the task's options (a dataclass; a dict where it is one already).
+      train_config: the ``TrainConfig`` (a dict where it is one already).
+      task: the task built from them; when given, it is recorded as resolved (``resolved_task``).
+      **extra: further top-level entries: the ``environment`` of a single run, the ``sweep`` of a grid cell.
+    """
+    import dataclasses
+
+    as_dict = lambda config: config if isinstance(config, dict) else dataclasses.asdict(config)  # noqa: E731
+    resolved = {} if task is None else {"resolved_task": {"name": task.name, **task.resolved}}
+    return {"task": task_name, "task_config": as_dict(task_config), **resolved, "train": as_dict(train_config), **extra}
+
+
+def write_config(directory: Path, record: dict) -> None:
+    """Write (or replace) a run folder's ``config.json``; ``create_run`` claims a fresh folder with it instead."""
+    write_json(Path(directory) / CONFIG_FILE, record)
+
+
 def new_record(task_name: str, task_config: Any, task: Any, train_config: TrainConfig) -> dict:
     """The config.json of a new run: the task as configured and as resolved, training, versions, device.
 
     Raises:
       InputError: options set together where one makes the other meaningless (``checks.check_options``).
     """
-    import dataclasses
     import platform
 
     from stablebptt.checks import check_options
     check_options(train_config, task_config)
-    return {
-        "task": task_name,
-        "task_config": dataclasses.asdict(task_config),
-        "resolved_task": {"name": task.name, **task.resolved},
-        "train": dataclasses.asdict(train_config),
-        "environment": {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])},
-    }
+    environment = {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])}
+    return run_record(task_name, task_config, train_config, task, environment=environment)
 
 
 class Run:
@@ -360,7 +388,7 @@ class Run:
         if self.resuming and config.epochs > start_epoch and config.epochs != self.record["train"]["epochs"]:
             import dataclasses
             self.record = {**self.record, "train": dataclasses.asdict(config)}
-            write_json(self.directory / CONFIG_FILE, self.record)
+            write_config(self.directory, self.record)
         if self.resuming and start_epoch > 0:
             self.repaired = self._repair(state, rows)
         return start_epoch, state, rows
@@ -404,7 +432,7 @@ def empty_rows() -> np.ndarray:
     return np.zeros((0, len(COLUMNS)))
 
 
-def summarize(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float]:
+def final_mean_std(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float]:
     """Mean and standard deviation over seeds of ``column`` at the last epoch."""
     last = rows[rows[:, 0] == rows[:, 0].max()]
     values = last[:, COLUMNS.index(column)]
@@ -416,4 +444,6 @@ def __getattr__(name: str):
     if name in ("fit", "train_epochs", "train", "Trained", "TrainingDiverged", "Outcome", "epoch_rows"):
         from stablebptt import fitting
         return getattr(fitting, name)
+    if name == "summarize":  # final_mean_std's former name
+        return final_mean_std
     raise AttributeError(f"module 'stablebptt.runs' has no attribute {name!r}")

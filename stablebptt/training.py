@@ -276,7 +276,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
             return task.evaluation(params, both)
         return reference_losses(dynamics, params, both)
 
-    def summarize(state, per_update, losses_of_both):
+    def epoch_metrics(state, per_update, losses_of_both):
         """The epoch's metrics from its updates' outputs ([updates] each) and every state's loss."""
         losses, update_norms, cosines, flows_finite = per_update
         train_loss, test_loss = losses_of_both[:config.train_size].mean(), losses_of_both[config.train_size:].mean()
@@ -296,7 +296,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
 
     def epoch(state, batches, train_states, test_states, dynamics=for_this_run(task.dynamics)):
         state, per_update = jax.lax.scan(lambda s, b: update(dynamics, s, b), state, batches)
-        return state, summarize(state, per_update, evaluate_both(state.params, train_states, test_states, dynamics))
+        return state, epoch_metrics(state, per_update, evaluate_both(state.params, train_states, test_states, dynamics))
 
     def grid_epoch(state, value, batches, train_states, test_states):
         dynamics = task.dynamics if value is None else task.cell_option.dynamics(value)
@@ -318,7 +318,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     else:
         dynamics = for_this_run(task.dynamics)
         epoch_program = PerUpdateEpoch(jit(over_seeds(functools.partial(update, dynamics))),
-                                       jit(over_seeds(evaluate_both)), jit(over_seeds(summarize, mapped=3)))
+                                       jit(over_seeds(evaluate_both)), jit(over_seeds(epoch_metrics, mapped=3)))
     return Trainer(
         flows=flows,
         init=jit(over_seeds(init)),
@@ -331,7 +331,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
 
 
 class PerUpdateEpoch:
-    """An epoch as a Python loop over separately compiled programs: one update, one evaluation, one summary.
+    """An epoch as a Python loop over separately compiled programs: one update, one evaluation, its metrics.
 
     Called like the one-program epoch, ``(states, batches, train, test) -> (states,
     metrics)``, with the same metrics; ``lower(...).compile()`` compiles every
@@ -340,8 +340,8 @@ class PerUpdateEpoch:
     holding them all.
     """
 
-    def __init__(self, update: Callable, evaluate: Callable, summarize: Callable):
-        self.update, self.evaluate, self.summarize = update, evaluate, summarize
+    def __init__(self, update: Callable, evaluate: Callable, epoch_metrics: Callable):
+        self.update, self.evaluate, self.epoch_metrics = update, evaluate, epoch_metrics
 
     def __call__(self, state, batches, train_states, test_states):
         outputs = []
@@ -349,7 +349,7 @@ class PerUpdateEpoch:
             state, output = self.update(state, jax.tree.map(lambda a, i=index: a[i], batches))
             outputs.append(output)
         per_update = jax.tree.map(lambda *each: jnp.stack(each, axis=1), *outputs)  # [seeds, updates]
-        return state, self.summarize(state, per_update, self.evaluate(state.params, train_states, test_states))
+        return state, self.epoch_metrics(state, per_update, self.evaluate(state.params, train_states, test_states))
 
     def lower(self, state, batches, train_states, test_states):
         return _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states))
@@ -367,8 +367,8 @@ class _LoweredPerUpdateEpoch(NamedTuple):
                                   update.out_info[1])
         evaluate = self.epoch.evaluate.lower(state.params, train_states, test_states)
         losses = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), evaluate.out_info)
-        summarize = self.epoch.summarize.lower(state, per_update, losses)
-        return PerUpdateEpoch(update.compile(), evaluate.compile(), summarize.compile())
+        metrics = self.epoch.epoch_metrics.lower(state, per_update, losses)
+        return PerUpdateEpoch(update.compile(), evaluate.compile(), metrics.compile())
 
 
 def _updates(batches: PyTree) -> int:

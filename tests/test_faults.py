@@ -195,9 +195,9 @@ def _truncate_checkpoint(folder: Path) -> None:
 
 def _edit_config(change):
     def damage(folder: Path) -> None:
-        record = json.loads((folder / runs.CONFIG_FILE).read_text())
+        record = runs.read_json(folder / runs.CONFIG_FILE)
         change(record)
-        (folder / runs.CONFIG_FILE).write_text(json.dumps(record))
+        runs.write_config(folder, record)
     return damage
 
 

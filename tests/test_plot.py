@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import csv
-import json
 import subprocess
 import sys
 import warnings
@@ -12,7 +11,7 @@ import numpy as np
 import pytest
 from matplotlib.colors import to_rgb
 
-from stablebptt import plots
+from stablebptt import plots, runs
 from stablebptt.errors import InputError
 from stablebptt.runs import COLUMNS
 
@@ -27,9 +26,8 @@ def write_run(path: Path, mode: str = "C", clip: str = "value", rc: float = 0.1,
     """A run directory as scripts/train.py writes it, with made-up, known metrics."""
     path.mkdir(parents=True)
     task_config = {"rc": rc, "steps": 60, "integrator": "euler"} if task_config is None else task_config
-    config = {"task": task, "task_config": task_config,
-              "train": {"mode": mode, "clip": clip, "epochs": epochs, "seeds": len(seeds), "lr": 0.001}}
-    (path / "config.json").write_text(json.dumps(config))
+    train = {"mode": mode, "clip": clip, "epochs": epochs, "seeds": len(seeds), "lr": 0.001}
+    runs.write_config(path, runs.run_record(task, task_config, train))
     with open(path / "metrics.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(COLUMNS)

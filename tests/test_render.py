@@ -6,9 +6,7 @@ subprocess that chooses the backend first (as scripts/render.py does).
 """
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
-import json
 import os
 import subprocess
 import sys
@@ -59,8 +57,7 @@ def write_run(path: Path, task_name: str, task_config: dict, seeds: int = 1, **t
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
     params = jax.vmap(lambda key: task.init_params(key, False))(keys)  # Glorot output: the controls move things
     path.mkdir(parents=True)
-    runs.write_json(path / runs.CONFIG_FILE, {"task": task_name, "task_config": dataclasses.asdict(module.Config(**task_config)),
-                                              "train": dataclasses.asdict(config)})
+    runs.write_config(path, runs.run_record(task_name, module.Config(**task_config), config))
     runs.save_params(path / runs.PARAMS_FILE, params)
     return path
 
@@ -347,7 +344,7 @@ def bad_inputs(root: Path, repulsion_run: Path, tmp_path: Path) -> dict[str, lis
         (tmp_path / name).mkdir()
         (tmp_path / name / "config.json").write_text(config)
     (tmp_path / "broken-params" / "params.npz").write_bytes(b"not an npz")
-    (tmp_path / "other-task" / "config.json").write_text(json.dumps({"task": "pendulum", "task_config": {}, "train": {}}))
+    runs.write_config(tmp_path / "other-task", runs.run_record("pendulum", {}, {}))
     (tmp_path / "not-json").mkdir()
     (tmp_path / "not-json" / "config.json").write_text("{")
     return {

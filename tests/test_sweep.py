@@ -355,10 +355,13 @@ def test_a_grid_over_any_task_varies_the_learning_rate_per_cell(tiny, tmp_path):
     assert (root / "repulsion-lr0.01.png").is_file() and "lr=0.01, clip value: best " in (root / "verdicts.txt").read_text()
 
 
-def test_a_grid_over_an_mjcf_file_and_over_an_environment_reports_intervals(suite, tmp_path, capsys):
+def test_a_grid_over_an_mjcf_file_and_over_an_environment_reports_intervals(suite, tmp_path, capsys, monkeypatch):
     """The issue's two commands at tiny sizes: dm_control's pendulum from the hanging pose, and an
     environment, whose report speaks of episode returns."""
+    from stablebptt import run_models
     from stablebptt.commands import sweep as sweep_command
+    compile_model, compiled = run_models.compiled_model, []
+    monkeypatch.setattr(run_models, "compiled_model", lambda path: compiled.append(path) or compile_model(path))
     tiny_sizes = ["--modes", "R,M,C", "--clips", "norm", "--seeds", "2", "--epochs", "1", "--train-size", "8",
                   "--test-size", "8", "--out", str(tmp_path)]
     assert sweep_command.main(["--model", str(suite / "pendulum.xml"), "--init-pose", "hinge=3.14159",
@@ -367,8 +370,8 @@ def test_a_grid_over_an_mjcf_file_and_over_an_environment_reports_intervals(suit
     assert intervals[0].startswith("| lr | clip | seeds | C - R") and intervals[2].startswith("| 0.001 | norm | 2 | ")
     record = runs.open_run(tmp_path / "pendulum" / "mjcf-lr0.001-C-norm")
     assert record["task_config"]["init_pose"] == "hinge=3.14159" and record["task_config"]["horizon_seconds"] == 0.2
-    # The cells keep one compressed copy of the model between them, which each reopens.
-    assert len(list((tmp_path / "pendulum" / "models").glob("*.mjb.gz"))) == 1
+    # The cells keep one compressed copy of the model between them, which each reopens; it was compiled once.
+    assert len(list((tmp_path / "pendulum" / "models").glob("*.mjb.gz"))) == 1 and len(compiled) == 1, compiled
     for cell in (tmp_path / "pendulum").glob("mjcf-lr*-norm"):
         kept = cell / runs.read_json(cell / "model.json")["compiled"]
         assert kept.is_file() and (cell / "model.xml").read_bytes() == (suite / "pendulum.xml").read_bytes()
