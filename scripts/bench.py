@@ -5,6 +5,7 @@
     python scripts/bench.py --tasks cartpole --poles 1,2,3,4 --out results/bench_cpu.md
     python scripts/bench.py --tasks cartpole --tables steps --simulators generated,floor   # the floor ratio alone
     python scripts/bench.py --startup --suite .cache/dm_control-1.0.50/dm_control/suite --out results/startup/cpu.md
+    python scripts/bench.py --startup --models models/cartpole_1.xml --envs CartpoleSwingup --out /tmp/startup.md
 
 Per task, one update (gradient of a batch-8 rollout, then clip and Adam) per mode:
 R, M, S and C through the one-pass flows, and "R plain": jax.grad of the plain
@@ -17,9 +18,9 @@ closed-form cart-pole equations as the floor; and the parts of the default R upd
 Jacobian built in one batched call, as the update builds them). Variants of one table are timed round-robin, so drift of
 the machine hits all of them alike; tables are timed one after another.
 
-With --startup, the start-up table instead (stablebptt/apps/startup.py): per model, fresh
-`scripts/train.py --model M` processes timed to their first update, with an empty compile cache
-and again with the cache that run filled.
+With --startup, the start-up table instead (stablebptt/apps/startup.py): per model (--models) and
+environment (--envs), fresh `scripts/train.py --model M` or `--env E` processes timed to their first
+update, with an empty compile cache and again with the cache that run filled.
 """
 from __future__ import annotations
 
@@ -98,9 +99,11 @@ class Recorded(cli.EpochProgress):
         if epoch == self.initial + 1:
             ready = self.started + self.compiled["ready"] - started
             epoch_s = metrics["seconds"] / self.updates
+            import jax
             print("startup-record " + json.dumps({"setup_s": ready - self.compiled["seconds"],
                   "compile_s": self.compiled["seconds"], "epoch_s": epoch_s, "first_update_s": ready + epoch_s,
-                  "reported_first_update_s": self.compiled["ready"] + epoch_s}), flush=True)
+                  "reported_first_update_s": self.compiled["ready"] + epoch_s,
+                  "device": jax.devices()[0].device_kind}), flush=True)
         super().on_epoch(epoch, metrics)
 
 cli.EpochProgress = Recorded
@@ -130,38 +133,54 @@ def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
 
 
 def startup(config, argv: list[str]) -> int:
-    """The start-up table (``--startup``): cold and warm fresh processes per model, a row at a time."""
-    from stablebptt.apps.startup import machine, resolve_models, table
+    """The start-up table (``--startup``): cold and warm fresh processes per model and environment, a row at a time."""
+    from stablebptt.apps.startup import machine, resolve_envs, resolve_models, table
     from stablebptt.errors import InputError
     from stablebptt.storage import atomic_write
-    try:
-        models = resolve_models(config.model_list, config.suite)
+    try:  # the default models only where neither models nor environments are named
+        models = resolve_models(config.model_list, config.suite) if config.model_list or not config.env_list else []
+        envs = resolve_envs(config.env_list)
     except InputError as error:
         fail(str(error))
     if config.timeout <= 0:
         fail("--timeout must be positive")
-    train_args = shlex.split(config.train_args)
-    if any(argument in ("--model", "--out", "--resume") or argument.startswith(("--model=", "--out=")) for argument in train_args):
-        fail("--train-args must not hold --model, --out or --resume: the benchmark sets them")
+    options = {"--model": shlex.split(config.train_args), "--env": shlex.split(config.env_args)}
+    for flag, name in (("--model", "--train-args"), ("--env", "--env-args")):
+        if any(argument in (flag, "--out", "--resume") or argument.startswith((f"{flag}=", "--out=", "--resume="))
+               for argument in options[flag]):
+            fail(f"{name} must not hold {flag}, --out or --resume: the benchmark sets them")
+    # (name, train.py's options) per row: the models, then the environments
+    entries = [(name, ["--model", str(path), *options["--model"]]) for name, path in models]
+    entries += [(name.rpartition(":")[2], ["--env", name, *options["--env"]]) for name in envs]
     import jax
     description = machine()
-    header = [f"Measured by `python scripts/bench.py {shlex.join(argv)}` on {description}, jax {jax.__version__}: "
-              f"per model, `python scripts/train.py --model M {config.train_args}` in a fresh process, "
-              f"cold (an empty compile cache) then warm (the same command again, with the cache the cold run filled). "
-              f"Seconds from the process's start: set-up (imports, model, scene analysis, tracing) to the start of "
-              f"compiling, compiling, the first epoch's share of one update; the load average (1 min) beside them "
-              f"says how busy the machine was.", ""]
-    print("\n".join(header), flush=True)
+    commands = " and ".join(command for command, present in (
+        (f"`python scripts/train.py --model M {config.train_args}`", models),
+        (f"`python scripts/train.py --env E {config.env_args}`", envs)) if present)
     out = Path(config.out) if config.out else None
     record = {"command": f"python scripts/bench.py {shlex.join(argv)}", "machine": description,
               "jax": jax.__version__, "python": platform.python_version(), "timeout_s": config.timeout, "rows": []}
+
+    def header() -> list[str]:
+        devices = ", ".join(sorted({row[kind]["device"] for row in record["rows"] for kind in ("cold", "warm")
+                                    if "device" in row[kind]}))  # as the training processes saw it
+        return [f"Measured by `python scripts/bench.py {shlex.join(argv)}` on {description}"
+                f"{f', JAX device {devices}' if devices else ''}, jax {jax.__version__}: "
+                f"per row, {commands} in a fresh process, "
+                f"cold (an empty compile cache) then warm (the same command again, with the cache the cold run filled). "
+                f"Seconds from the process's start: set-up (imports, model, scene analysis, tracing) to the start of "
+                f"compiling, compiling, the first epoch's share of one update; the load average (1 min) beside them "
+                f"says how busy the machine was.", ""]
+
+    print("\n".join(header()), flush=True)
     train = str(Path(__file__).resolve().parent / "train.py")
     with tempfile.TemporaryDirectory(prefix="startup-") as scratch:
-        for name, path in models:
+        for name, arguments in entries:
             cache, runs_dir = Path(scratch) / name / "cache", Path(scratch) / name / "runs"
-            row = {"model": name, "file": str(path), "load": {"start": os.getloadavg()}}
+            row = {"model": name, ("env" if arguments[0] == "--env" else "file"): arguments[1],
+                   "load": {"start": os.getloadavg()}}
             for kind in ("cold", "warm"):
-                command = [train, "--model", str(path), *train_args, "--no-progress", "--out", str(runs_dir / kind)]
+                command = [train, *arguments, "--no-progress", "--out", str(runs_dir / kind)]
                 row[f"{kind}_command"] = (f"STABLEBPTT_COMPILE_CACHE={cache} python scripts/train.py "
                                           + shlex.join(command[1:]))
                 if kind == "warm" and row["cold"]["status"] != "ok":
@@ -172,9 +191,9 @@ def startup(config, argv: list[str]) -> int:
             record["rows"].append(row)
             lines = table(record["rows"])
             print(lines[-1] if len(record["rows"]) > 1 else "\n".join(lines), flush=True)
-            if out:  # after every model, so a long table keeps what it measured
+            if out:  # after every row, so a long table keeps what it measured
                 out.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write(out, ("\n".join(header + lines) + "\n").encode())
+                atomic_write(out, ("\n".join(header() + lines) + "\n").encode())
                 atomic_write(out.with_suffix(".json"), (json.dumps(record, indent=1) + "\n").encode())
     return 0
 

@@ -160,6 +160,7 @@ def worker(args) -> int:
 
         timed("import_s", import_all)
         import jax
+        record["device"] = jax.devices()[0].device_kind  # "cpu", or the GPU's name
         import numpy as np
         from stablebptt import training
         from stablebptt.environments import env_task, load_env
@@ -443,8 +444,18 @@ def render(payload: dict, names: list[str]) -> str:
     settings, machine = payload["settings"], payload["machine"]
     records = payload["envs"]
     order = [n for n in names if n in records] + [n for n in records if n not in names]
+    gpus = sorted({r["device"] for r in records.values() if r.get("device", "cpu") != "cpu"})
+    device = machine.get("device") or ", ".join(gpus)  # the GPU the environments trained on, if any
+    if device:
+        where = (f"- Machine: one {device} (JAX's device), {machine['cpu']} with {machine['cores']} cores "
+                 f"(CPUs {machine['cpus']}); times are wall times.")
+    else:
+        where = (f"- CPU: {machine['cpu']}; the survey ran on ONE core (CPU {machine['cpus']}, nice {machine['nice']}) "
+                 "beside other work: other work ran on the machine at the same time (not pinned, so at "
+                 "times on this core too). Times are wall times of a loaded machine; 'process CPU' against 'process wall' "
+                 "in the last table shows the share of the core each environment got.")
     lines = [
-        "# MuJoCo Playground's DeepMind Control Suite through stablebptt on a CPU",
+        f"# MuJoCo Playground's DeepMind Control Suite through stablebptt on {'one ' + device if device else 'a CPU'}",
         "",
         "Produced by (from the repository root; "
         + ("one invocation" if len(payload["invocations"]) == 1 else
@@ -455,10 +466,7 @@ def render(payload: dict, names: list[str]) -> str:
         lines += ["```", invocation["command"], "```", f"started {invocation['started']}", ""]
     total = sum(records[n].get("wall_s", 0.0) for n in order)
     lines += [
-        f"- CPU: {machine['cpu']}; the survey ran on ONE core (CPU {machine['cpus']}, nice {machine['nice']}) "
-        "beside other work: other work ran on the machine at the same time (not pinned, so at "
-        "times on this core too). Times are wall times of a loaded machine; 'process CPU' against 'process wall' "
-        "in the last table shows the share of the core each environment got.",
+        where,
         f"- Versions: {', '.join(f'{k} {v}' for k, v in payload['versions'].items() if k != 'stablebptt')}.",
         _library_line(records, order),
         f"- Settings: horizon {settings['steps']} steps (BPTT rollout), evaluation episodes of "
@@ -470,6 +478,7 @@ def render(payload: dict, names: list[str]) -> str:
         f"{settings['max_rss_gb']:g} GB each; cold compiles (no persistent compilation cache).",
         f"- Wall time of the environments' processes together: {total / 60:.1f} min.",
     ] + ([f"- Note: {payload['removed_note']}."] if payload.get("removed_note") else []) + [
+        f"- Note: {note}" for note in payload.get("notes", [])] + [
 
         "",
         "| env | solver iterations | contacts / limits | outcome / why | load s | first update s | compile s "

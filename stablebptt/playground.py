@@ -46,13 +46,19 @@ def suite_names() -> tuple[str, ...]:
     return tuple(dm_control_suite.ALL_ENVS)
 
 
-def load(name: str) -> Any:
-    """The environment ``name`` of Playground's registry, simulated by MJX's JAX implementation."""
+def check_name(name: str) -> Any:
+    """Playground's registry module, once ``name`` is known to be in it (nothing loaded, no device touched)."""
     known = registry()
     if name not in known.ALL_ENVS:
         close = [env for env in known.ALL_ENVS if env.lower() == name.lower()]
         hint = f"did you mean {close[0]}?" if close else "python -c 'from mujoco_playground import registry; print(registry.ALL_ENVS)' lists them"
         raise InputError(f"unknown environment {name!r}: not in MuJoCo Playground's registry ({hint})")
+    return known
+
+
+def load(name: str) -> Any:
+    """The environment ``name`` of Playground's registry, simulated by MJX's JAX implementation."""
+    known = check_name(name)
     config = known.get_default_config(name)
     if "impl" not in config:
         raise InputError(f"{name} has no 'impl' setting: it runs on MuJoCo Warp only, which has no gradients")

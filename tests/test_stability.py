@@ -289,6 +289,9 @@ def test_bench_startup_times_a_cold_and_a_warm_fresh_process_per_model(tmp_path,
     with pytest.raises(SystemExit) as refused:
         bench_command.main(["--startup", "--models", f"{model},no_such_model", "--out", str(out)])
     assert refused.value.code == 2 and len(capsys.readouterr().err.strip().splitlines()) == 1 and not out.exists()
+    with pytest.raises(SystemExit) as refused:  # checked before any process starts (or the extra is missing)
+        bench_command.main(["--startup", "--models", str(model), "--envs", "NoSuchEnv", "--out", str(out)])
+    assert refused.value.code == 2 and len(capsys.readouterr().err.strip().splitlines()) == 1 and not out.exists()
 
     assert bench_command.main(["--startup", "--models", str(model), "--train-args",
                                "--epochs 1 --train-size 8 --test-size 8 --batch 8 --steps 2", "--out", str(out)]) == 0
@@ -301,13 +304,14 @@ def test_bench_startup_times_a_cold_and_a_warm_fresh_process_per_model(tmp_path,
         run = row[kind]
         assert f"python scripts/train.py --model {model} --epochs 1" in row[f"{kind}_command"]
         assert run["status"] == "ok" and all(run[part] >= 0 for part in ("setup_s", "compile_s", "epoch_s"))
+        assert run["device"] == jax.devices()[0].device_kind  # the device the training process ran on
         assert math.isclose(run["first_update_s"], run["setup_s"] + run["compile_s"] + run["epoch_s"], rel_tol=1e-9)
         assert run["first_update_s"] <= run["wall_s"]  # the process lives on past its first update
     assert all(len(row["load"][moment]) == 3 for moment in ("start", "end"))
 
     lines = [line for line in out.read_text().splitlines() if line.startswith("| ")]
     header, cells = [c.strip() for c in lines[0].split("|")[1:-1]], [c.strip() for c in lines[1].split("|")[1:-1]]
-    assert len(header) == len(cells) == 11 and header[0] == "model" and header[9] == "warm <= cold"
+    assert len(header) == len(cells) == 11 and header[0] == "model or env" and header[9] == "warm <= cold"
     assert cells[0] == "cartpole_1" and [float(c) for c in cells[1:9]] == [
         round(row[kind][part], 1) for kind in ("cold", "warm") for part in ("setup_s", "compile_s", "epoch_s", "first_update_s")]
     assert cells[9] == ("yes" if row["warm"]["first_update_s"] <= row["cold"]["first_update_s"] else "no")

@@ -1,12 +1,12 @@
-"""The start-up table: per model, the time a fresh training process takes to its first update.
+"""The start-up table: per model or environment, the time a fresh training process takes to its first update.
 
-Each model is trained twice, each time in a fresh process (what a user waits for): COLD, with an
+Each model (``train.py --model``) or environment (``train.py --env``) is trained twice, each time in a fresh process (what a user waits for): COLD, with an
 empty compile cache, then WARM, the same command again with the cache the cold run filled. The
 times come from the command's own progress callbacks (``stablebptt.cli.EpochProgress``): set-up
 (from the process's start to the start of compiling: imports, the model, the scene analysis,
 tracing), compiling (``fitting.train_epochs``'s ahead-of-time compile of the epoch) and the first
 epoch's share of one update. ``scripts/bench.py --startup`` runs the processes; this module names
-the models and writes the table and its record.
+the models and environments and writes the table and its record.
 """
 from __future__ import annotations
 
@@ -44,6 +44,16 @@ def resolve_models(names: list[str], suite: str) -> list[tuple[str, Path]]:
     return models
 
 
+def resolve_envs(names: list[str]) -> list[str]:
+    """The environments as given, a MuJoCo Playground name checked against its registry (package.module:attribute
+    is imported only by the training process)."""
+    from stablebptt import playground
+    for name in names:
+        if ":" not in name:
+            playground.check_name(name)
+    return names
+
+
 def machine() -> str:
     """The machine in words: architecture, processor, cores this process may use."""
     model = ""
@@ -63,12 +73,12 @@ def _seconds(run: dict, part: str) -> str:
 
 
 def table(rows: list[dict]) -> list[str]:
-    """The Markdown table of ``rows`` (one per model: ``{"model", "cold", "warm", "load"}``).
+    """The Markdown table of ``rows`` (one per model or environment: ``{"model", "cold", "warm", "load"}``).
 
     A run's entry holds the parts in seconds (``PARTS``) and ``status``: "ok", "timeout after N s",
     "failed (exit N)" or "not run". ``warm <= cold`` compares the times to the first update.
     """
-    lines = ["| model | cold: set-up | compile | first epoch | first update | warm: set-up | compile | first epoch "
+    lines = ["| model or env | cold: set-up | compile | first epoch | first update | warm: set-up | compile | first epoch "
              "| first update | warm <= cold | load average (start -> end) |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|:---:|---|"]
     for row in rows:
