@@ -48,10 +48,10 @@ def test_a_driver_through_an_evader_keeps_states_and_gradients_finite():
     velocity = jnp.zeros((6, 2)).at[0].set(jnp.array([8.0, 0.0]))
     start = State(position, velocity)
     params = task.init_params(jax.random.PRNGKey(0), False)
-    trajectory = reference_rollout(task.dynamics, params, start)
+    trajectory = jax.jit(lambda p, s: reference_rollout(task.dynamics, p, s))(params, start)
     assert np.all(np.isfinite(trajectory.states.position))
     batch = jax.tree.map(lambda a: a[None], start)
-    _, grads = flow_gradients(task.dynamics, ("R", "M", "S"), params, batch)
+    _, grads = jax.jit(lambda p, s: flow_gradients(task.dynamics, ("R", "M", "S"), p, s))(params, batch)
     assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(grads))
 
 

@@ -5,6 +5,7 @@ test_quantum.py: test_norm_preserved_float32/64, test_long_evolution_gradient_is
 and test_all_flows_finite_over_a_long_evolution.
 """
 import csv
+import functools
 import math
 import re
 import subprocess
@@ -45,6 +46,7 @@ def in_precision(tree, bits):
     return jax.tree.map(lambda a: jnp.asarray(np.asarray(a), jnp.float64 if bits == 64 else jnp.float32), tree)
 
 
+@functools.partial(jax.jit, static_argnums=0)  # optax's tree arithmetic in one program, not op by op
 def updates(mode, grads, params):
     """The optimizer's update for ``mode`` from stacked (R, M) gradients, unclipped: the rawest case."""
     optimizer = make_optimizer(TrainConfig(mode=mode, clip="none"), FLOWS)
