@@ -2,7 +2,7 @@
 
 The public API: describe a system as a ``Task`` (a ``Dynamics`` of policy, step,
 loss and horizon; a network initialiser; an initial-state sampler) and ``train``
-it with a ``TrainConfig``. The gradient flows R, M, S and their combination C
+it with a ``TrainConfig``; how the engine differentiates it is a ``Plan`` it chooses. The gradient flows R, M, S and their combination C
 live in ``stablebptt.flows``; run folders in ``stablebptt.runs``; MuJoCo scene
 analysis in ``stablebptt.scene``; the built-in tasks in ``stablebptt.tasks``.
 ``env_task`` turns an environment in Brax's protocol (MuJoCo Playground's, a
@@ -20,12 +20,12 @@ import os
 os.environ.setdefault("PJRT_NPROC", "1")
 
 from stablebptt.errors import InputError
-from stablebptt.flows import FLOWS, MODES, Dynamics, flow_gradients, select_flow, sign_agreement
+from stablebptt.flows import FLOWS, MODES, Dynamics, Plan, flow_gradients, select_flow, sign_agreement
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.fitting import Trained, TrainingDiverged, train
 from stablebptt.training import Task, TrainConfig, make_trainer
 
-__all__ = ["FLOWS", "MODES", "Dynamics", "InputError", "Task", "TrainConfig", "Trained", "TrainingDiverged",
+__all__ = ["FLOWS", "MODES", "Dynamics", "InputError", "Plan", "Task", "TrainConfig", "Trained", "TrainingDiverged",
            "env_task", "flow_gradients", "make_trainer", "mlp_apply", "mlp_init", "select_flow", "sign_agreement",
            "train"]
 

@@ -1,4 +1,4 @@
-"""The reverse-mode step of several flows at once (``Dynamics.step_derivative == "reverse"``).
+"""The reverse-mode step of several flows at once (``Plan.step_derivative == "reverse"``).
 
 Every step of the rollout is a ``custom_vjp`` that stores the simulator's and the policy's pullbacks
 once, for the whole batch, and in the reverse pass pulls back one cotangent per flow through them
@@ -10,11 +10,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.dynamics import Dynamics, first_copy, join, split, split_cotangent, stack_copies
+from stablebptt.dynamics import Dynamics, Plan, first_copy, join, split, split_cotangent, stack_copies
 from stablebptt.modes import KEEPS
 
 
-def multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
+def multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...], plan: Plan = Plan()):
     """One simulator step of a whole batch whose reverse pass carries one adjoint per flow (``"reverse"``).
 
     ``step(params, state_copies, control_offsets)``: states hold ``len(flows)``
@@ -25,7 +25,7 @@ def multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
 
     The controls are ``policy(params, x) + control_offsets`` (the offsets are
     zeros), so the offsets' cotangent is each flow's adjoint of every control.
-    With ``Dynamics.policy_gradient == "batched"`` the reverse pass returns no
+    With ``plan.policy_gradient == "batched"`` the reverse pass returns no
     parameter cotangent: the parameter gradient is one batched pullback over
     all visited states afterwards (``policy_gradients``), and the policy is
     pulled back per step only for the flows whose state cotangent passes
@@ -37,7 +37,7 @@ def multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
     # over by the custom_vjp.
     keep_sim = np.array([KEEPS[f][0] for f in flows])
     through_net = [index for index, f in enumerate(flows) if KEEPS[f][1]]
-    per_step = dynamics.policy_gradient == "per-step"
+    per_step = plan.policy_gradient == "per-step"
     batch_policy = jax.vmap(dynamics.policy, in_axes=(None, 0))
     batch_step = jax.vmap(dynamics.step)
 
@@ -71,12 +71,12 @@ def multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...]):
     def step_fwd(params, state_copies, control_offsets):
         states = first_copy(state_copies)
         next_states, controls, pullbacks = forward(params_of(params), states)
-        residuals = (params_of(params), states) if dynamics.rematerialize else pullbacks
+        residuals = (params_of(params), states) if plan.rematerialize else pullbacks
         return outputs(next_states, controls, control_offsets), (residuals, params)
 
     def step_bwd(saved, cotangents):
         residuals, params = saved
-        policy_pullback, step_pullback = forward(*residuals)[2] if dynamics.rematerialize else residuals
+        policy_pullback, step_pullback = forward(*residuals)[2] if plan.rematerialize else residuals
         next_state_ct, control_ct = cotangents
         # Leaves without a derivative get float0 cotangents, which mark them here.
         parts = split_cotangent(next_state_ct)

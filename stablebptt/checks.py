@@ -3,8 +3,9 @@
 ``check_task`` traces a ``Task`` with shapes only (``jax.eval_shape``: nothing
 runs): the initial-state sampler's leading size, float parameters, a control
 the step accepts, a step that returns the state's own structure, a scalar
-loss, and every enumerated ``Dynamics`` field. Each failure is a ``TaskError``
-that names the field and what was found, instead of an error deep inside JAX.
+loss, and a ``Plan`` as the task's plan (a ``Plan`` checks its own fields when
+it is made). Each failure is a ``TaskError`` that names the field and what was
+found, instead of an error deep inside JAX.
 ``check_options`` refuses options given together where one makes the other
 meaningless, before a run records both as if they applied.
 """
@@ -17,10 +18,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from stablebptt.dynamics import Plan
 from stablebptt.errors import InputError
-
-STEP_DERIVATIVES = ("reverse", "forward")
-POLICY_GRADIENTS = ("batched", "per-step")
 
 
 class TaskError(InputError):
@@ -43,17 +42,9 @@ def _first_line(error: Exception) -> str:
 
 
 def check_dynamics(dynamics: Any) -> None:
-    """The fields of a ``Dynamics`` that need no tracing: horizon, enumerations, counts."""
+    """The fields of a ``Dynamics`` that need no tracing: the horizon, and functions where functions belong."""
     if not _whole(dynamics.horizon) or dynamics.horizon < 1:
         raise TaskError(f"Dynamics.horizon must be a positive whole number of steps, got {dynamics.horizon!r}")
-    if dynamics.step_derivative not in STEP_DERIVATIVES:
-        raise TaskError(f"Dynamics.step_derivative must be one of {', '.join(STEP_DERIVATIVES)}, got {dynamics.step_derivative!r}")
-    if dynamics.policy_gradient not in POLICY_GRADIENTS:
-        raise TaskError(f"Dynamics.policy_gradient must be one of {', '.join(POLICY_GRADIENTS)}, got {dynamics.policy_gradient!r}")
-    if not _whole(dynamics.unroll) or dynamics.unroll < 1:
-        raise TaskError(f"Dynamics.unroll must be a positive whole number, got {dynamics.unroll!r}")
-    if dynamics.jacobian_chunk is not None and (not _whole(dynamics.jacobian_chunk) or dynamics.jacobian_chunk < 1):
-        raise TaskError(f"Dynamics.jacobian_chunk must be None or a positive whole number, got {dynamics.jacobian_chunk!r}")
     for name in ("step", "policy", "loss"):
         if not callable(getattr(dynamics, name)):
             raise TaskError(f"Dynamics.{name} must be a function, got {getattr(dynamics, name)!r}")
@@ -66,6 +57,8 @@ def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
         raise TaskError(f"expected a stablebptt.Task, got {type(task).__name__}")
     dynamics = task.dynamics
     check_dynamics(dynamics)
+    if not isinstance(task.plan, Plan):
+        raise TaskError(f"Task.plan must be a stablebptt.Plan, got {type(task.plan).__name__}")
     key = jax.random.PRNGKey(0)
     try:
         params = jax.eval_shape(lambda k: task.init_params(k, zero_output), key)

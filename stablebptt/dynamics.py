@@ -1,4 +1,4 @@
-"""What BPTT differentiates (``Dynamics``) and how its state's leaves are laid out.
+"""What BPTT differentiates (``Dynamics``), how (``Plan``) and how its state's leaves are laid out.
 
 A state is any pytree. Its float and complex leaves carry derivatives; the others (a step counter,
 a contact index, a PRNG key) ride along a rollout untouched: ``split`` and ``join`` separate and
@@ -8,13 +8,16 @@ those batches.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import numbers
+from dataclasses import dataclass, fields, replace
 from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
+
+from stablebptt.errors import InputError
 
 PyTree = Any
 
@@ -31,16 +34,22 @@ class KnownColumns(NamedTuple):
     columns: np.ndarray  # [state, known]
 
 
-@dataclass(frozen=True)
-class Dynamics:
-    """What BPTT differentiates: a policy, a simulator step and a trajectory loss.
+STEP_DERIVATIVES = ("reverse", "forward")
+POLICY_GRADIENTS = ("batched", "per-step")
+
+
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """How the engine differentiates a ``Dynamics``: the same gradients, computed another way.
+
+    ``make_trainer`` chooses one per run (``Trainer.plan``) from what the task
+    knows (``Task.plan``), the memory the gradient path needs, the size of one
+    step and ``TrainConfig.unroll``; the fields a user's plan sets to other
+    than their defaults (``given``) win over all of these.
+    The engine's functions (``flow_gradients`` and the rest) take one too,
+    ``Plan()`` where none is given.
 
     Attributes:
-      step: ``step(state, control) -> state``; a pytree of float arrays.
-      policy: ``policy(params, state) -> control``; observation included.
-      loss: ``loss(states, controls) -> scalar`` for ONE trajectory, where
-        ``states`` stacks x_1..x_T and ``controls`` stacks u_0..u_{T-1}.
-      horizon: number of steps T.
       step_derivative: how the reverse pass differentiates ``step``:
         ``"reverse"`` pulls cotangents back through it step by step (best for
         large states); ``"forward"`` builds every step's full Jacobian by
@@ -75,10 +84,6 @@ class Dynamics:
         policy's batched backward pass is slow: XLA's CPU convolutions).
     """
 
-    step: Callable[[PyTree, PyTree], PyTree]
-    policy: Callable[[PyTree, PyTree], PyTree]
-    loss: Callable[[PyTree, PyTree], jax.Array]
-    horizon: int
     step_derivative: str = "reverse"
     unroll: int = 1
     known_columns: KnownColumns | None = None
@@ -87,6 +92,61 @@ class Dynamics:
     jacobian_per_input: bool = True
     policy_gradient: str = "batched"
 
+    def __post_init__(self):
+        whole = lambda value: isinstance(value, numbers.Integral) and not isinstance(value, bool)  # noqa: E731
+        for name, allowed in (("step_derivative", STEP_DERIVATIVES), ("policy_gradient", POLICY_GRADIENTS)):
+            if getattr(self, name) not in allowed:
+                raise InputError(f"Plan.{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+        if not whole(self.unroll) or self.unroll < 1:
+            raise InputError(f"Plan.unroll must be a positive whole number, got {self.unroll!r}")
+        if self.jacobian_chunk is not None and (not whole(self.jacobian_chunk) or self.jacobian_chunk < 1):
+            raise InputError(f"Plan.jacobian_chunk must be None or a positive whole number, got {self.jacobian_chunk!r}")
+        for name in ("rematerialize", "jacobian_per_input"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise InputError(f"Plan.{name} must be True or False, got {getattr(self, name)!r}")
+        if self.known_columns is not None and not isinstance(self.known_columns, KnownColumns):
+            raise InputError(f"Plan.known_columns must be None or a KnownColumns, got {type(self.known_columns).__name__}")
+
+    def given(self) -> dict:
+        """The fields set to other than their defaults: what this plan says over another."""
+        return {item.name: getattr(self, item.name) for item in fields(self)
+                if getattr(self, item.name) is not item.default and getattr(self, item.name) != item.default}
+
+    def over(self, base: Plan) -> Plan:
+        """``base`` with the fields this plan gives (``given``) replaced."""
+        return replace(base, **self.given())
+
+
+@dataclass(frozen=True, init=False)
+class Dynamics:
+    """What BPTT differentiates: a policy, a simulator step and a trajectory loss.
+
+    How the engine differentiates it is a ``Plan``, apart.
+
+    Attributes:
+      step: ``step(state, control) -> state``; a pytree of float arrays.
+      policy: ``policy(params, state) -> control``; observation included.
+      loss: ``loss(states, controls) -> scalar`` for ONE trajectory, where
+        ``states`` stacks x_1..x_T and ``controls`` stacks u_0..u_{T-1}.
+      horizon: number of steps T.
+    """
+
+    step: Callable[[PyTree, PyTree], PyTree]
+    policy: Callable[[PyTree, PyTree], PyTree]
+    loss: Callable[[PyTree, PyTree], jax.Array]
+    horizon: int
+
+    def __init__(self, step: Callable, policy: Callable, loss: Callable, horizon: int, **settings):
+        # The engine settings Dynamics once carried: named, so a caller learns where they went.
+        unknown = sorted(set(settings) - {item.name for item in fields(Plan)})
+        if unknown:
+            raise TypeError(f"Dynamics() got an unexpected keyword argument {unknown[0]!r}")
+        if settings:
+            raise InputError(f"Dynamics takes step, policy, loss and horizon only: {', '.join(sorted(settings))} "
+                             f"belong{'s' if len(settings) == 1 else ''} to stablebptt.Plan; pass a Plan as "
+                             "make_trainer's or flow_gradients' plan argument")
+        for name, value in (("step", step), ("policy", policy), ("loss", loss), ("horizon", horizon)):
+            object.__setattr__(self, name, value)
 
 
 def differentiable(leaf) -> bool:

@@ -1,14 +1,14 @@
 """The exceptions that mean: say so in one line, no traceback.
 
 Library errors name what a Python user set: a config field (``TrainConfig.lr``,
-``mjcf.Config.dt``) or a ``Dynamics`` field. The command line shows each as
-its option (``--lr``, ``--dt``): ``as_options``.
+``mjcf.Config.dt``), a ``Dynamics`` or a ``Plan`` field. The command line shows
+each as its option (``--lr``, ``--dt``): ``as_options``.
 """
 import re
 
 # A field the command line sets under another name.
 _OPTION_OF = {"Dynamics.horizon": "steps"}
-_FIELD = re.compile(r"\b(?:[a-z_]\w*\.)?((?:\w*Config|Dynamics)\.([a-z_]\w*))")  # (owner.field, field)
+_FIELD = re.compile(r"\b(?:[a-z_]\w*\.)?((?:\w*Config|Dynamics|Plan)\.([a-z_]\w*))")  # (owner.field, field)
 
 
 def config_field(config, name: str) -> str:
@@ -19,7 +19,7 @@ def config_field(config, name: str) -> str:
 
 
 def as_options(message: str) -> str:
-    """``message`` with every config or Dynamics field named as its command-line option."""
+    """``message`` with every config, Dynamics or Plan field named as its command-line option."""
     return _FIELD.sub(lambda match: "--" + _OPTION_OF.get(match.group(1), match.group(2)).replace("_", "-"), message)
 
 

@@ -16,7 +16,7 @@ S     stop_gradient(x_t)          stop_gradient(x_t)           one-step only
 The combined update C keeps g_M where it agrees in sign with g_R, else 0.
 
 All flows a training step needs come from ONE forward rollout, in one of two
-ways (``Dynamics.step_derivative``):
+ways (``Plan.step_derivative``):
 
 - ``"reverse"``: every step is a ``custom_vjp`` that stores the simulator's
   and the policy's pullbacks once and, in the reverse pass, pulls back one
@@ -32,7 +32,7 @@ ways (``Dynamics.step_derivative``):
 kept as the definition both paths are tested against.
 
 The parts live in modules of their own, each importing only those named before it: ``dynamics``
-(the contract and the state's leaves), ``modes`` (the flows by name and the modes that combine
+(the contract, the plan of how to differentiate it, and the state's leaves), ``modes`` (the flows by name and the modes that combine
 them), ``adjoint_step`` (the reverse-mode step) and ``linearized`` (step Jacobians, the
 forward-mode path). This module puts them together and re-exports every name.
 """
@@ -44,29 +44,29 @@ import jax
 import jax.numpy as jnp
 
 from stablebptt.adjoint_step import multi_adjoint_step
-from stablebptt.dynamics import (Dynamics, KnownColumns, Parts, PyTree, differentiable, first_copy, join,
+from stablebptt.dynamics import (Dynamics, KnownColumns, Parts, Plan, PyTree, differentiable, first_copy, join,
                                  ravel_examples, split, split_cotangent, stack_copies)
 from stablebptt.linearized import linearized_gradients, policy_gradients, step_jacobians
 from stablebptt.modes import (FLOWS, KEEPS, MODE_ORDER, MODE_TABLE, MODES, Mode, flows_needed, select_flow,
                               sign_agreement, tree_cosine)
 
 # ``from stablebptt.flows import X`` keeps working for every public name that lived here.
-__all__ = ["FLOWS", "KEEPS", "MODES", "MODE_ORDER", "MODE_TABLE", "Dynamics", "KnownColumns", "Mode", "Parts", "PyTree",
+__all__ = ["FLOWS", "KEEPS", "MODES", "MODE_ORDER", "MODE_TABLE", "Dynamics", "KnownColumns", "Mode", "Parts", "Plan", "PyTree",
            "Trajectory", "differentiable", "flow_gradients", "flow_losses", "flows_needed", "join", "reference_loss",
            "reference_losses", "reference_rollout", "select_flow", "sign_agreement", "split", "split_cotangent",
            "step_jacobians", "tree_cosine"]
 
 
 def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
-                control_offsets: PyTree):
+                control_offsets: PyTree, plan: Plan = Plan()):
     """Mean batch loss once per flow copy (identical values, distinct gradients), and the visited states.
 
     ``params`` holds one copy per flow (leading axis) where
-    ``dynamics.policy_gradient`` is ``"per-step"``. Differentiated with respect
+    ``plan.policy_gradient`` is ``"per-step"``. Differentiated with respect
     to ``control_offsets`` (zeros added to the controls, [T, copies, batch, ...]),
     it gives every flow's adjoint of every control. Returns ``(losses [copies], x_0..x_{T-1})``.
     """
-    step = multi_adjoint_step(dynamics, flows)
+    step = multi_adjoint_step(dynamics, flows, plan)
     copies = len(flows)
 
     def body(state_copies, offsets):
@@ -74,13 +74,14 @@ def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, init
         return next_copies, (first_copy(state_copies), next_copies, control_copies)
 
     _, (visited, states, controls) = jax.lax.scan(body, stack_copies(initial_states, copies), control_offsets,
-                                                  unroll=dynamics.unroll)
+                                                  unroll=plan.unroll)
     # scan stacks time first, [T, copies, batch, ...]; the loss wants one trajectory's [T, ...].
     per_trajectory = jax.vmap(jax.vmap(dynamics.loss, in_axes=(1, 1)), in_axes=(1, 1))(states, controls)
     return per_trajectory.mean(axis=1), visited
 
 
-def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree):
+def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
+                   plan: Plan = Plan()):
     """Mean batch loss and the gradient of every flow from one forward rollout.
 
     Args:
@@ -88,20 +89,21 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
       flows: names from ``FLOWS``, e.g. ``("R", "M")``.
       params: policy parameters.
       initial_states: a batch of initial states (leading axis = batch).
+      plan: how to differentiate ``dynamics`` (a task's own: ``Task.plan``; a run's: ``Trainer.plan``).
 
     Returns:
       ``(loss, grads)`` where each leaf of ``grads`` has a leading axis of
       length ``len(flows)`` in the order of ``flows``.
     """
-    if dynamics.step_derivative == "forward":
-        return linearized_gradients(dynamics, flows, params, initial_states)
+    if plan.step_derivative == "forward":
+        return linearized_gradients(dynamics, flows, params, initial_states, plan)
 
     control = jax.eval_shape(jax.vmap(dynamics.policy, in_axes=(None, 0)), params, initial_states)
     offsets = jax.tree.map(lambda a: jnp.zeros((dynamics.horizon, len(flows)) + a.shape, a.dtype), control)
-    per_step = dynamics.policy_gradient == "per-step"
+    per_step = plan.policy_gradient == "per-step"
 
     def total(params, offsets):
-        per_flow, visited = flow_losses(dynamics, flows, params, initial_states, offsets)
+        per_flow, visited = flow_losses(dynamics, flows, params, initial_states, offsets, plan)
         return per_flow.sum(), (per_flow[0], visited)
 
     (params_grads, control_adjoints), (loss, visited) = jax.grad(total, argnums=(0, 1), has_aux=True)(
@@ -116,8 +118,9 @@ class Trajectory(NamedTuple):
     controls: PyTree  # u_0..u_{T-1}
 
 
-def reference_rollout(dynamics: Dynamics, params: PyTree, initial_state: PyTree, flow: str = "R") -> Trajectory:
-    """The rollout with stop_gradient placed literally as in the table above."""
+def reference_rollout(dynamics: Dynamics, params: PyTree, initial_state: PyTree, flow: str = "R",
+                      plan: Plan = Plan()) -> Trajectory:
+    """The rollout with stop_gradient placed literally as in the table above (of ``plan``, only ``unroll`` applies)."""
     cut_sim = not KEEPS[flow][0]
     cut_net = not KEEPS[flow][1]
 
@@ -126,19 +129,21 @@ def reference_rollout(dynamics: Dynamics, params: PyTree, initial_state: PyTree,
         next_state = dynamics.step(jax.lax.stop_gradient(state) if cut_sim else state, control)
         return next_state, (next_state, control)
 
-    _, (states, controls) = jax.lax.scan(body, initial_state, None, length=dynamics.horizon, unroll=dynamics.unroll)
+    _, (states, controls) = jax.lax.scan(body, initial_state, None, length=dynamics.horizon, unroll=plan.unroll)
     return Trajectory(states, controls)
 
 
-def reference_losses(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R") -> jax.Array:
+def reference_losses(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R",
+                     plan: Plan = Plan()) -> jax.Array:
     """The loss of each trajectory from a batch of initial states."""
     def one(x0):
-        trajectory = reference_rollout(dynamics, params, x0, flow)
+        trajectory = reference_rollout(dynamics, params, x0, flow, plan)
         return dynamics.loss(trajectory.states, trajectory.controls)
 
     return jax.vmap(one)(initial_states)
 
 
-def reference_loss(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R") -> jax.Array:
+def reference_loss(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R",
+                   plan: Plan = Plan()) -> jax.Array:
     """Mean loss over a batch of initial states; differentiate it for the flow's gradient."""
-    return reference_losses(dynamics, params, initial_states, flow).mean()
+    return reference_losses(dynamics, params, initial_states, flow, plan).mean()

@@ -1,4 +1,4 @@
-"""Step Jacobians by forward mode and the flows from them (``Dynamics.step_derivative == "forward"``).
+"""Step Jacobians by forward mode and the flows from them (``Plan.step_derivative == "forward"``).
 
 The rollout stores only states and controls. A step's Jacobian depends on nothing but its own
 (x_t, u_t), so the Jacobians of ALL steps are built afterwards in one batched forward-mode pass
@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from stablebptt.dynamics import (Dynamics, KnownColumns, PyTree, join, merge_axes, ravel_examples, split,
+from stablebptt.dynamics import (Dynamics, KnownColumns, Plan, PyTree, join, merge_axes, ravel_examples, split,
                                  stack_copies)
 from stablebptt.modes import KEEPS
 
@@ -86,7 +86,8 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
 
 
 
-def linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree):
+def linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
+                         plan: Plan = Plan()):
     """``flow_gradients`` by rollout, batched step Jacobians and an adjoint recurrence (``"forward"``)."""
     horizon, batch_size = dynamics.horizon, jax.tree.leaves(initial_states)[0].shape[0]
     batch_policy = jax.vmap(dynamics.policy, in_axes=(None, 0))
@@ -96,7 +97,7 @@ def linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyT
         controls = batch_policy(params, states)
         return batch_step(states, controls), (states, controls)
 
-    final, (visited, controls) = jax.lax.scan(advance, initial_states, None, length=horizon, unroll=dynamics.unroll)
+    final, (visited, controls) = jax.lax.scan(advance, initial_states, None, length=horizon, unroll=plan.unroll)
     # visited holds x_0..x_{T-1}, [T, batch, ...]; the loss sees x_1..x_T.
     reached = jax.tree.map(lambda past, last: jnp.concatenate([past[1:], last[None]]), visited, final)
 
@@ -110,8 +111,8 @@ def linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyT
 
     # Every step's Jacobians in one batched pass over [T * batch] examples.
     state_jacobian, control_jacobian = step_jacobians(dynamics.step, merge_axes(visited, 2), merge_axes(controls, 2),
-                                                       dynamics.known_columns, dynamics.jacobian_chunk,
-                                                       dynamics.jacobian_per_input)
+                                                       plan.known_columns, plan.jacobian_chunk,
+                                                       plan.jacobian_per_input)
     unmerge = lambda a: a.reshape((horizon, batch_size) + a.shape[1:])
     state_jacobian, control_jacobian = unmerge(state_jacobian), unmerge(control_jacobian)
 
@@ -159,7 +160,7 @@ def linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyT
     _, control_adjoints = jax.lax.scan(
         pull_back, stack_copies(state_grad[-1], copies),
         (state_jacobian, control_jacobian, policy_jacobian, direct_state, control_grad),
-        reverse=True, unroll=dynamics.unroll)  # [T, copies, batch, control]
+        reverse=True, unroll=plan.unroll)  # [T, copies, batch, control]
 
     return loss, policy_gradients(dynamics, params, visited, control_adjoints)
 

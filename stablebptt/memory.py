@@ -99,7 +99,7 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
       step: ``step(state, control) -> state``.
       state, control: one example of each (no batch axis).
       horizon, batch: the rollout's steps and examples per update.
-      step_derivative: ``"forward"`` or ``"reverse"`` (``Dynamics.step_derivative``).
+      step_derivative: ``"forward"`` or ``"reverse"`` (``Plan.step_derivative``).
       tangents: forward-mode tangents pushed per example (Jacobian columns computed).
       budget: bytes the path may use; default a fraction of the available memory.
 
@@ -114,7 +114,7 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
         per_example = per_tangent * max(tangents, 1)
         if per_example > budget:
             raise InputError(f"one example's step Jacobian needs up to {_gigabytes(per_example)}, more than the "
-                             f"{_gigabytes(budget)} this machine can give it: set Dynamics.step_derivative to 'reverse'")
+                             f"{_gigabytes(budget)} this machine can give it: set Plan.step_derivative to 'reverse'")
         fitting = budget // per_example
         if fitting >= examples:
             return MemoryPlan(None, False, per_example * examples)

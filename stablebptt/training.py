@@ -1,7 +1,8 @@
 """The training engine: one compiled epoch, seeds vmapped into one program.
 
-``make_trainer(task, config)`` does the static set-up (flows, optimizer, data)
-and returns pure functions; ``stablebptt.runs`` drives them epoch by epoch.
+``make_trainer(task, config)`` does the static set-up (flows, optimizer, data,
+the plan of how to differentiate the task) and returns pure functions;
+``stablebptt.runs`` drives them epoch by epoch.
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import optax
 
 from stablebptt.checks import check_task
 from stablebptt.errors import InputError, config_field
-from stablebptt.flows import (FLOWS, MODE_TABLE, MODES, Dynamics, flow_gradients, flows_needed, reference_loss, reference_losses,
+from stablebptt.flows import (FLOWS, MODE_TABLE, MODES, Dynamics, Plan, flow_gradients, flows_needed, reference_loss, reference_losses,
                               select_flow, tree_cosine)
 from stablebptt.memory import MemoryPlan, plan_memory
 
@@ -78,6 +79,9 @@ class Task:
       evaluation: ``evaluation(params, initial_states) -> losses [n]``, what the
         train and test losses of an epoch report (an environment's negative
         episode return); None: the loss of ``dynamics``' rollout from each state.
+      plan: what the task knows of how to differentiate its step (a simulator's
+        derivative and known Jacobian columns, a policy's gradient path);
+        ``make_trainer`` completes it into the run's plan.
     """
 
     name: str
@@ -88,6 +92,7 @@ class Task:
     cell_option: CellOption | None = None
     resolved: dict = field(default_factory=dict)
     evaluation: Callable[[PyTree, PyTree], jax.Array] | None = None
+    plan: Plan = Plan()
 
 
 @dataclass(frozen=True)
@@ -108,7 +113,7 @@ class TrainConfig:
     zero_output: bool = field(default=True, metadata={"help": "start the output layer at zero as the original run scripts do (--no-zero-output: Glorot)"})
     cosine: bool = field(default=True, metadata={"help": "also compute g_M and g_R in every mode to log their cosine (--no-cosine: only the flows the mode needs)"})
     x64: bool = field(default=False, metadata={"help": "run everything in float64"})
-    unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Dynamics.unroll)"})
+    unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Plan.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: faster per seed, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
     epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations", "choices": EPOCH_PROGRAMS})
@@ -210,14 +215,16 @@ class Trainer(NamedTuple):
     train_states: PyTree
     test_states: PyTree
     batches: PyTree
+    plan: Plan  # how every function differentiates and rolls out the task
 
 
-def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer:
-    """Static set-up of a run: data, flows, optimizer; returns jitted pure functions.
+def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan | None = None) -> Trainer:
+    """Static set-up of a run: data, flows, optimizer, plan; returns jitted pure functions.
 
     With ``grid=True`` every seed slot is a sweep cell: all flows are computed,
     the optimizer of ``make_grid_optimizer`` selects each cell's update, and
     ``epoch`` takes each cell's value of ``task.cell_option`` as its second argument.
+    The plan (``Trainer.plan``) is ``run_plan``'s: the fields ``plan`` gives win.
     """
     if not isinstance(config, TrainConfig):
         raise InputError(f"expected a stablebptt.TrainConfig, got {type(config).__name__}")
@@ -226,6 +233,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
                          "trains such a config in float64 by itself; with make_trainer, build the trainer and call "
                          "its functions under `with jax.enable_x64(True):`")
     check_task(task, config.zero_output)
+    if plan is not None and not isinstance(plan, Plan):
+        raise InputError(f"make_trainer's plan must be a stablebptt.Plan or None, got {type(plan).__name__}")
     flows = FLOWS if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
@@ -235,13 +244,9 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
     # which on a GPU compiles one program per leaf shape.
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
-    plan = memory_plan(task, config, example_state)
     large = large_step(task, config, example_state)
     jit = functools.partial(jax.jit, compiler_options=compiler_options(large))
-    # The loop unrolling, the memory plan and a large step's single Jacobian pass are the run's,
-    # applied to whichever dynamics an epoch uses.
-    for_this_run = lambda dynamics: dataclasses.replace(dynamics, unroll=config.unroll, jacobian_chunk=plan.jacobian_chunk,
-                                                       rematerialize=plan.rematerialize, jacobian_per_input=not large)
+    plan = run_plan(task, config, example_state, large, plan)  # one plan for whichever dynamics an epoch uses
     # Fixed order, no shuffling: minibatch i is always the same states.
     batches = jax.jit(lambda states: jax.tree.map(  # one program, not one eager reshape per leaf
         lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), states))(train_states)
@@ -250,13 +255,13 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)
         return TrainState(params, optimizer.init(params))
 
-    def evaluate(params, initial_states, dynamics=for_this_run(task.dynamics)):
+    def evaluate(params, initial_states, dynamics=task.dynamics):
         if task.evaluation is not None:
             return task.evaluation(params, initial_states).mean()
-        return reference_loss(dynamics, params, initial_states)
+        return reference_loss(dynamics, params, initial_states, plan=plan)
 
     def update(dynamics, state, batch):
-        loss, grads = flow_gradients(dynamics, flows, state.params, batch)
+        loss, grads = flow_gradients(dynamics, flows, state.params, batch, plan)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         if "M" in flows and "R" in flows:
@@ -269,12 +274,12 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])
         return TrainState(params, opt_state), (loss, optax.tree.norm(updates), cosine, flows_finite)
 
-    def evaluate_both(params, train_states, test_states, dynamics=for_this_run(task.dynamics)):
+    def evaluate_both(params, train_states, test_states, dynamics=task.dynamics):
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
         both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), train_states, test_states)
         if task.evaluation is not None:
             return task.evaluation(params, both)
-        return reference_losses(dynamics, params, both)
+        return reference_losses(dynamics, params, both, plan=plan)
 
     def epoch_metrics(state, per_update, losses_of_both):
         """The epoch's metrics from its updates' outputs ([updates] each) and every state's loss."""
@@ -294,13 +299,13 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
             "nonfinite": failed,  # bit set per failed check, in the order of nonfinite_names(flows)
         }
 
-    def epoch(state, batches, train_states, test_states, dynamics=for_this_run(task.dynamics)):
+    def epoch(state, batches, train_states, test_states, dynamics=task.dynamics):
         state, per_update = jax.lax.scan(lambda s, b: update(dynamics, s, b), state, batches)
         return state, epoch_metrics(state, per_update, evaluate_both(state.params, train_states, test_states, dynamics))
 
     def grid_epoch(state, value, batches, train_states, test_states):
         dynamics = task.dynamics if value is None else task.cell_option.dynamics(value)
-        return epoch(state, batches, train_states, test_states, for_this_run(dynamics))
+        return epoch(state, batches, train_states, test_states, dynamics)
 
     def over_seeds(function, mapped=1):
         """Map ``function(*per_seed, *shared)`` over the leading seed axis of its first ``mapped`` arguments."""
@@ -316,8 +321,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
     elif config.epoch_program == "whole" or config.epoch_program == "auto" and not large:
         epoch_program = jit(over_seeds(epoch))
     else:
-        dynamics = for_this_run(task.dynamics)
-        epoch_program = PerUpdateEpoch(jit(over_seeds(functools.partial(update, dynamics))),
+        epoch_program = PerUpdateEpoch(jit(over_seeds(functools.partial(update, task.dynamics))),
                                        jit(over_seeds(evaluate_both)), jit(over_seeds(epoch_metrics, mapped=3)))
     return Trainer(
         flows=flows,
@@ -327,6 +331,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False) -> Trainer
         train_states=train_states,
         test_states=test_states,
         batches=batches,
+        plan=plan,
     )
 
 
@@ -402,14 +407,26 @@ def step_operations(task: Task, config: TrainConfig, initial_state: PyTree) -> i
     return _operations(jax.make_jaxpr(task.dynamics.step)(initial_state, control).jaxpr)
 
 
-def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree) -> MemoryPlan:
-    """The settings that fit ``task``'s gradient path, at ``config.batch`` examples per update, into memory."""
-    dynamics = task.dynamics
+def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Plan | None = None) -> MemoryPlan:
+    """The settings that fit ``task``'s gradient path (the derivative of ``plan``, default the task's own),
+    at ``config.batch`` examples per update, into memory."""
+    dynamics, plan = task.dynamics, task.plan if plan is None else plan
     control = _example_control(task, config, initial_state)
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
-    known = 0 if dynamics.known_columns is None else len(dynamics.known_columns.indices)
-    return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, dynamics.step_derivative,
+    known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
+    return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, plan.step_derivative,
                        tangents=size(initial_state) + size(control) - known)
+
+
+def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, given: Plan | None = None) -> Plan:
+    """How a run differentiates ``task``: the task's own plan, completed by the memory plan (Jacobian
+    chunks or recomputed steps), a large step's single Jacobian pass and ``config.unroll``; the fields
+    ``given`` sets (``Plan.given``) win over all of these."""
+    hints = task.plan if given is None else given.over(task.plan)  # the memory a derivative needs is its own
+    memory = memory_plan(task, config, initial_state, hints)
+    chosen = dataclasses.replace(hints, unroll=config.unroll, jacobian_chunk=memory.jacobian_chunk,
+                                 rematerialize=memory.rematerialize, jacobian_per_input=not large)
+    return chosen if given is None else given.over(chosen)
 
 
 def _all_finite(tree: PyTree) -> jax.Array:

@@ -27,7 +27,7 @@ import numpy as np
 
 from stablebptt import models, simulator
 from stablebptt.errors import InputError, config_field
-from stablebptt.flows import Dynamics
+from stablebptt.flows import Dynamics, Plan
 from stablebptt.mjx_internals import mjx
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.lean_step import State
@@ -267,8 +267,8 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
     }
     return Task(
         name=name,
-        dynamics=Dynamics(step=sim.step, policy=policy, loss=loss, horizon=horizon, step_derivative=sim.derivative,
-                          known_columns=sim.known_columns),
+        dynamics=Dynamics(step=sim.step, policy=policy, loss=loss, horizon=horizon),
+        plan=Plan(step_derivative=sim.derivative, known_columns=sim.known_columns),
         init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
         sample_initial_states=sample_initial_states,
         summary=f"{path.name}: {sim.summary}; horizon {horizon} steps, {spec.loss}-state loss"

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.errors import InputError, config_field
-from stablebptt.flows import Dynamics
+from stablebptt.flows import Dynamics, Plan
 from stablebptt.networks import glorot_uniform
 from stablebptt.training import CellOption, Task
 
@@ -272,8 +272,7 @@ def make(config: Config, physics: Physics = Physics()) -> Task:
             del controls
             return jnp.sum(1.0 - fidelity(states, jnp.asarray(targets, states.dtype)[target]))
 
-        return Dynamics(step=step, policy=network_apply, loss=loss, horizon=config.steps,
-                        policy_gradient=policy_gradient)
+        return Dynamics(step=step, policy=network_apply, loss=loss, horizon=config.steps)
 
     return Task(
         name="quantum",
@@ -281,4 +280,5 @@ def make(config: Config, physics: Physics = Physics()) -> Task:
         init_params=lambda key, zero_output: network_init(key, physics, zero_output),
         sample_initial_states=lambda key, count: sample_initial_states(physics, key, count),
         cell_option=CellOption("target", dynamics_with),
+        plan=Plan(policy_gradient=policy_gradient),
     )

@@ -94,7 +94,7 @@ def test_all_flows_give_finite_gradients(poles):
     task = mjcf.make(mjcf.Config(poles=poles, steps=30))
     params = task.init_params(jax.random.PRNGKey(0), False)
     batch = task.sample_initial_states(jax.random.PRNGKey(1), 2)
-    loss, grads = jax.jit(lambda p, x: flow_gradients(task.dynamics, ("R", "M", "S"), p, x))(params, batch)
+    loss, grads = jax.jit(lambda p, x: flow_gradients(task.dynamics, ("R", "M", "S"), p, x, task.plan))(params, batch)
     assert np.isfinite(loss)
     assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(grads))
 

@@ -1,5 +1,4 @@
 """The gradient flows R, M, S and the combination C: closed forms, definitions, invariants."""
-from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
@@ -8,7 +7,7 @@ import optax
 import pytest
 
 from stablebptt.errors import InputError
-from stablebptt.flows import (Dynamics, flow_gradients, flows_needed, reference_loss, reference_rollout,
+from stablebptt.flows import (Dynamics, Plan, flow_gradients, flows_needed, reference_loss, reference_rollout,
                               select_flow, sign_agreement, tree_cosine)
 from stablebptt.memory import plan_memory
 
@@ -39,8 +38,7 @@ def closed_forms(theta, x0):
 def test_flows_match_closed_forms(x64, theta, step_derivative):
     x0 = jnp.array([1.3])
     expected = closed_forms(theta, 1.3)
-    dynamics = replace(linear_dynamics(), step_derivative=step_derivative)
-    loss, grads = flow_gradients(dynamics, ("R", "M", "S"), jnp.array(theta), x0)
+    loss, grads = flow_gradients(linear_dynamics(), ("R", "M", "S"), jnp.array(theta), x0, Plan(step_derivative=step_derivative))
     assert np.isclose(loss, 0.5 * (1.3 * (A + B * theta) ** T) ** 2, rtol=1e-12)
     for index, flow in enumerate(("R", "M", "S")):
         assert np.isclose(grads[index], expected[flow], rtol=1e-12), flow
@@ -111,16 +109,14 @@ def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, 
         policy=lambda p, s: jnp.tanh(jnp.concatenate(s) @ p["w"]) @ p["v"],
         loss=lambda states, controls: jnp.mean(states[0] ** 2) + jnp.mean(states[1][-1] ** 2) + 0.3 * jnp.mean(controls**2),
         horizon=12,
-        step_derivative=step_derivative,
-        unroll=unroll,
-        **memory,
     )
+    plan = Plan(step_derivative=step_derivative, unroll=unroll, **memory)
     key_w, key_v, key_x = jax.random.split(jax.random.PRNGKey(3), 3)
     params = {"w": jax.random.normal(key_w, (4, 5)), "v": jax.random.normal(key_v, (5, 2))}
     x0 = tuple(jax.random.normal(key_x, (2, 4, 2)))
-    _, grads = flow_gradients(dynamics, ("R", "M", "S"), params, x0)
+    _, grads = flow_gradients(dynamics, ("R", "M", "S"), params, x0, plan)
     for index, flow in enumerate(("R", "M", "S")):
-        expected = jax.grad(reference_loss, argnums=1)(replace(dynamics, unroll=1, rematerialize=False), params, x0, flow)
+        expected = jax.grad(reference_loss, argnums=1)(dynamics, params, x0, flow)
         for fast, slow in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
             np.testing.assert_allclose(fast[index], slow, rtol=1e-10, atol=1e-12)
 
@@ -144,7 +140,7 @@ def test_the_memory_plan_chunks_recomputes_or_refuses_as_the_budget_shrinks():
     one_example = plenty.estimate // 80
     chunked = plan_memory(step, state, control, 10, 8, "forward", 18, budget=int(7.5 * one_example))
     assert chunked.jacobian_chunk == 5  # the largest divisor of 80 examples that fits 7.5 of them
-    with pytest.raises(InputError, match="Dynamics.step_derivative to 'reverse'"):
+    with pytest.raises(InputError, match="Plan.step_derivative to 'reverse'"):
         plan_memory(step, state, control, 10, 8, "forward", 18, budget=one_example - 1)
     stored = plan_memory(step, state, control, 10, 8, "reverse", 18, budget=2**40)
     assert not stored.rematerialize
@@ -153,7 +149,7 @@ def test_the_memory_plan_chunks_recomputes_or_refuses_as_the_budget_shrinks():
         plan_memory(step, state, control, 10, 8, "reverse", 18, budget=1)
 
 
-def counted_dynamics(step_derivative):
+def counted_dynamics():
     """x carries a step counter, a PRNG key and a flag beside its floats: an environment's state in small."""
     def step(state, u):
         noise = 0.01 * jax.random.normal(jax.random.fold_in(state["key"], state["count"]), (2,))
@@ -162,18 +158,18 @@ def counted_dynamics(step_derivative):
 
     return Dynamics(step=step, policy=lambda theta, s: jnp.tanh(theta @ s["x"]) * (1 + 0.1 * s["count"]),
                     loss=lambda states, controls: jnp.sum(states["x"] ** 2) + 0.1 * jnp.sum(controls ** 2),
-                    horizon=T, step_derivative=step_derivative)
+                    horizon=T)
 
 
 @pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
 @pytest.mark.parametrize("policy_gradient", ["batched", "per-step"])
 def test_states_with_integer_bool_and_key_leaves(x64, step_derivative, policy_gradient):
     """Such leaves pass through untouched; every flow still equals its stop_gradient definition."""
-    dynamics = replace(counted_dynamics(step_derivative), policy_gradient=policy_gradient)
+    dynamics, plan = counted_dynamics(), Plan(step_derivative=step_derivative, policy_gradient=policy_gradient)
     theta = jnp.array([[0.3, -0.2], [0.1, 0.4]])
     states = {"x": jax.random.normal(jax.random.PRNGKey(0), (3, 2)), "count": jnp.arange(3, dtype=jnp.int32),
               "key": jax.random.split(jax.random.key(7), 3), "flag": jnp.array([True, False, True])}
-    loss, grads = flow_gradients(dynamics, ("R", "M", "S"), theta, states)
+    loss, grads = flow_gradients(dynamics, ("R", "M", "S"), theta, states, plan)
     assert np.isclose(loss, reference_loss(dynamics, theta, states), rtol=1e-12)
     for index, flow in enumerate(("R", "M", "S")):
         np.testing.assert_allclose(grads[index], jax.grad(reference_loss, argnums=1)(dynamics, theta, states, flow),

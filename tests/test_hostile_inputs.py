@@ -185,8 +185,7 @@ def _spoiled(case):
         "horizon 0": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, horizon=0)),
         "horizon -3": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, horizon=-3)),
         "horizon 2.5": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, horizon=2.5)),
-        "step_derivative bogus": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, step_derivative="bogus")),
-        "policy_gradient bogus": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, policy_gradient="bogus")),
+        "plan a string": lambda: dataclasses.replace(task, plan="forward"),
         "step changes structure": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(
             d, step=lambda s, u: {"angle": s[0], "speed": s[1]})),
         "vector loss": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(
@@ -203,8 +202,7 @@ TASK_CASES = {
     "horizon 0": "Dynamics.horizon must be a positive whole number of steps, got 0",
     "horizon -3": "Dynamics.horizon must be a positive whole number of steps, got -3",
     "horizon 2.5": "Dynamics.horizon must be a positive whole number of steps, got 2.5",
-    "step_derivative bogus": "Dynamics.step_derivative must be one of reverse, forward, got 'bogus'",
-    "policy_gradient bogus": "Dynamics.policy_gradient must be one of batched, per-step, got 'bogus'",
+    "plan a string": "Task.plan must be a stablebptt.Plan, got str",
     "step changes structure": "Dynamics.step must return a state like the one it is given",
     "vector loss": "Dynamics.loss must return one float for a trajectory",
     "wrong control shape": "Dynamics.step must return a state like the one it is given",  # it broadcast the control
@@ -219,6 +217,24 @@ def test_the_python_api_names_what_is_wrong_with_a_task_before_compiling(case):
     sb, task = _spoiled(case)
     with pytest.raises(TaskError, match=TASK_CASES[case].replace("(", r"\(").replace(")", r"\)")):
         sb.make_trainer(task, sb.TrainConfig(epochs=1, train_size=8, test_size=8))
+
+
+def test_a_plan_names_its_wrong_field_and_dynamics_sends_engine_settings_to_plan():
+    import stablebptt as sb
+    for field, value, message in [
+            ("step_derivative", "bogus", "Plan.step_derivative must be one of reverse, forward, got 'bogus'"),
+            ("policy_gradient", "bogus", "Plan.policy_gradient must be one of batched, per-step, got 'bogus'"),
+            ("unroll", 0, "Plan.unroll must be a positive whole number, got 0"),
+            ("jacobian_chunk", 2.5, "Plan.jacobian_chunk must be None or a positive whole number, got 2.5"),
+            ("rematerialize", "yes", "Plan.rematerialize must be True or False, got 'yes'")]:
+        with pytest.raises(sb.InputError, match=message):
+            sb.Plan(**{field: value})
+    physics = {name: getattr(_pendulum().dynamics, name) for name in ("step", "policy", "loss", "horizon")}
+    with pytest.raises(sb.InputError, match="^Dynamics takes step, policy, loss and horizon only: step_derivative, "
+                                            "unroll belong to stablebptt.Plan; pass a Plan"):
+        sb.Dynamics(**physics, unroll=5, step_derivative="forward")
+    with pytest.raises(sb.InputError, match="make_trainer's plan must be a stablebptt.Plan or None, got dict"):
+        sb.make_trainer(_pendulum(), sb.TrainConfig(epochs=1, train_size=8, test_size=8), plan={"unroll": 5})
 
 
 @pytest.mark.parametrize("field, value", [("epochs", 2.5), ("lr", "0.1"), ("batch", None), ("seeds", True),

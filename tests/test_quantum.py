@@ -201,7 +201,7 @@ def test_loss_gradient_matches_finite_differences(params, states):
             # is nearly orthogonal to g, and relative to itself the test would measure rounding.
             assert abs(analytic - finite_difference) < 1e-6 * grad_norm
         # The engine's R flow is this same gradient.
-        _, flows = jax.jit(lambda p: flow_gradients(task.dynamics, ("R",), p, states))(params)
+        _, flows = jax.jit(lambda p: flow_gradients(task.dynamics, ("R",), p, states, task.plan))(params)
         for a, b in zip(jax.tree.leaves(flows), jax.tree.leaves(grad)):
             np.testing.assert_allclose(a[0], b, rtol=1e-9, atol=1e-12)
 
@@ -225,7 +225,7 @@ def test_long_evolution_gradient_is_finite_and_balanced(task, states):
 
 def test_all_flows_finite_over_a_long_evolution(params, states):
     task = quantum.make(quantum.Config(steps=LONG))
-    loss, grads = jax.jit(lambda p, x: flow_gradients(task.dynamics, FLOWS, p, x))(params, states[:1])
+    loss, grads = jax.jit(lambda p, x: flow_gradients(task.dynamics, FLOWS, p, x, task.plan))(params, states[:1])
     assert 0.0 <= float(loss) <= LONG
     assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(grads))
 

@@ -30,7 +30,7 @@ def test_every_task_gives_finite_flows_equal_to_their_definition(name):
 
     def both(p, s):  # one program: the one-pass flows and the literal definitions of R and M
         literal = [jax.grad(lambda p: reference_loss(dynamics, p, s, flow))(p) for flow in CHECKED]
-        return flow_gradients(dynamics, FLOWS, p, s), literal
+        return flow_gradients(dynamics, FLOWS, p, s, task.plan), literal
 
     (loss, grads), literals = jax.jit(both)(params, states)
     assert np.isfinite(float(loss))

@@ -81,7 +81,7 @@ def four_poles():
                     final = jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, h - 1, 1), trajectory)
                     return task.dynamics.loss(final, controls)  # a final-state loss: it reads the last state given
                 dynamics = replace(task.dynamics, loss=loss_at_h, horizon=LONG)
-                return flow_gradients(dynamics, FLOWS, params, states)
+                return flow_gradients(dynamics, FLOWS, params, states, task.plan)
 
             program = jax.jit(gradients)
             # The float32 numbers in both precisions, so that the precisions differ in rounding only.

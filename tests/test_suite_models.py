@@ -59,10 +59,10 @@ def test_every_suite_model_becomes_a_task_or_is_refused_in_one_line(suite, name)
         assert "constraint solver: " in task.summary
     # The memory of the gradient path fits this machine, or is made to fit.
     initial = jax.tree.map(lambda a: a[0], task.sample_initial_states(jax.random.PRNGKey(0), 1))
-    plan = memory_plan(task, TrainConfig(), initial)
-    assert plan.estimate > 0
-    if task.dynamics.step_derivative == "forward" and plan.jacobian_chunk is not None:
-        assert (task.dynamics.horizon * TrainConfig().batch) % plan.jacobian_chunk == 0
+    memory = memory_plan(task, TrainConfig(), initial)
+    assert memory.estimate > 0
+    if task.plan.step_derivative == "forward" and memory.jacobian_chunk is not None:
+        assert (task.dynamics.horizon * TrainConfig().batch) % memory.jacobian_chunk == 0
 
 
 # Models whose differentiated step is checked against MuJoCo's C step: the energy flag (pendulum),

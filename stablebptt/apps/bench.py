@@ -106,7 +106,7 @@ def make_update(task, mode, batch_size, plain=False, with_cosine=False):
             loss, grad = jax.value_and_grad(reference_loss, argnums=1)(task.dynamics, params, batch)
             grads = jax.tree.map(lambda g: g[None], grad)
         else:
-            loss, grads = flow_gradients(task.dynamics, flows, params, batch)
+            loss, grads = flow_gradients(task.dynamics, flows, params, batch, task.plan)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 

@@ -57,7 +57,7 @@ def gradient_study(setup: GradientSetup, config: AccuracyConfig, log: Callable) 
             with precision(bits):
                 task = setup.make_task()
                 dynamics = dataclasses.replace(task.dynamics, horizon=horizon)
-                program = jax.jit(lambda p, x, d=dynamics: flow_gradients(d, flows, p, x))
+                program = jax.jit(lambda p, x, d=dynamics, plan=task.plan: flow_gradients(d, flows, p, x, plan))
                 arguments = {regime: (cast(params, bits), cast(states, bits)) for regime, states in regimes.items()}
             compiled = None
             for regime, regime_arguments in arguments.items():

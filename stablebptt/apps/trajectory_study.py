@@ -74,7 +74,7 @@ def trajectory_study(setup: TrajectorySetup, config: AccuracyConfig, log: Callab
                 call, compile_seconds = compile_call(rollout_program(task.dynamics.step, steps), arguments, bits)
                 if dt == setup.paper[1]:
                     # What a training update costs: the task's own loss, horizon and policy.
-                    grad = jax.jit(lambda p, x, d=task.dynamics: flow_gradients(d, ("R",), p, x))
+                    grad = jax.jit(lambda p, x, d=task.dynamics, plan=task.plan: flow_gradients(d, ("R",), p, x, plan))
                     gradient[key] = compile_call(grad, gradient_arguments, bits)[0]
                 final = run_once(call)[0]
                 error = float(np.max(np.abs(flat_states(final) - reference)))

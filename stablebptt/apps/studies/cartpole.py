@@ -153,7 +153,7 @@ def parts_table(task, poles: int, batch: int, rounds: int, whole_update) -> list
     pairs = (merge(visited.states), merge(visited.controls))
 
     def jacobians(states, controls):
-        return jax.tree.map(lambda a: a.sum(), step_jacobians(dynamics.step, states, controls, dynamics.known_columns))
+        return jax.tree.map(lambda a: a.sum(), step_jacobians(dynamics.step, states, controls, task.plan.known_columns))
 
     whole = "whole R update"
     times = time_variants({"rollout only (policy and lean step, no derivatives)": (
