@@ -311,8 +311,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     start_off_zero = False
     if diagnose:
         diagnosis = diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed))
-        advice = (f"train {dense_variant}, its dense variant, or give the reward a slope" if dense_variant
-                  else "give the reward a slope") + " (a tolerance with a margin > 0) or train a reward of your own"
+        advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
+            "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
         if diagnosis.kind == "zero":
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
                            f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")

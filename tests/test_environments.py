@@ -47,7 +47,7 @@ def test_an_environment_trains_and_flow_r_is_the_gradient_of_the_plain_rollout()
 def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_starts_off_zero():
     with pytest.raises(EnvError, match="gradient is zero at every sampled state") as refusal:
         env_task(Cart("step"), horizon=5, dense_variant="SmoothCart")
-    assert "train SmoothCart, its dense variant, or give the reward a slope" in str(refusal.value)
+    assert "train SmoothCart, its dense variant; or give the reward a slope" in str(refusal.value)
     with pytest.raises(EnvError, match=r"gradient is NaN at \d+% of sampled states"):
         env_task(Cart("root"), horizon=5)
     task = env_task(Cart("norm"), horizon=5)
