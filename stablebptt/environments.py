@@ -250,7 +250,8 @@ def _is_playground(env: Any) -> bool:
 
 def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,
              hidden: Sequence[int] = (64, 64), name: str = "", reward_context: Callable | None = None,
-             reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0) -> Task:
+             reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0,
+             dense_variant: str = "") -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -267,6 +268,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         None: for MuJoCo Playground's environments ``playground.repaired_rewards``, else none.
       diagnose: look at the reward's gradient before training (``diagnose_env``);
         a reward with no usable gradient raises ``EnvError``.
+      dense_variant: the name of an environment with the same task and a dense reward,
+        which the refusal of a reward without a gradient then suggests.
 
     Example::
 
@@ -308,8 +311,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     start_off_zero = False
     if diagnose:
         diagnosis = diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed))
-        advice = ("give a dense reward (a variant without 'Sparse'; a tolerance with a margin > 0) "
-                  "or a reward of your own")
+        advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
+            "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
         if diagnosis.kind == "zero":
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
                            f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")

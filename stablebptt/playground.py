@@ -46,6 +46,12 @@ def suite_names() -> tuple[str, ...]:
     return tuple(dm_control_suite.ALL_ENVS)
 
 
+def dense_variant(name: str) -> str:
+    """The registry's dense-reward counterpart of a sparse one (CartpoleSwingupSparse -> CartpoleSwingup), else ""."""
+    dense = name.removesuffix("Sparse")
+    return dense if dense != name and dense in names() else ""
+
+
 def check_name(name: str) -> Any:
     """Playground's registry module, once ``name`` is known to be in it (nothing loaded, no device touched)."""
     known = registry()

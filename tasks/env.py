@@ -46,5 +46,9 @@ def make(config: Config) -> Task:
     if not config.env:
         raise InputError(f"give {config_field(config, 'env')}: a MuJoCo Playground name or package.module:attribute")
     env = load_env(config.env)
+    dense = ""
+    if ":" not in config.env:  # a name of MuJoCo Playground's registry (load_env has imported it)
+        from stablebptt import playground
+        dense = playground.dense_variant(config.env)
     return env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
-                    episode_length=config.episode_length or None, name=run_name(config))
+                    episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense)

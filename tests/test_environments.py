@@ -45,8 +45,9 @@ def test_an_environment_trains_and_flow_r_is_the_gradient_of_the_plain_rollout()
 
 
 def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_starts_off_zero():
-    with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
-        env_task(Cart("step"), horizon=5)
+    with pytest.raises(EnvError, match="gradient is zero at every sampled state") as refusal:
+        env_task(Cart("step"), horizon=5, dense_variant="SmoothCart")
+    assert "train SmoothCart, its dense variant; or give the reward a slope" in str(refusal.value)
     with pytest.raises(EnvError, match=r"gradient is NaN at \d+% of sampled states"):
         env_task(Cart("root"), horizon=5)
     task = env_task(Cart("norm"), horizon=5)
@@ -153,6 +154,9 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
                 np.testing.assert_allclose(slope[finite], their_slope[finite], atol=1e-5)
                 repaired += int((~finite).sum())
     assert repaired > 0  # the infinite upper bound's NaN is there to repair
+    # A refusal suggests the dense variant only where the registry has one.
+    from stablebptt.playground import dense_variant
+    assert dense_variant("CartpoleSwingupSparse") == "CartpoleSwingup" and dense_variant("PendulumSwingup") == ""
 
 
 @needs_playground
