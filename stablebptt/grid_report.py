@@ -11,6 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from stablebptt import runs
+from stablebptt.modes import MODE_TABLE
+
+COMPARED = MODE_TABLE["C"].flows  # C is judged against each flow it combines (R and M)
 
 
 def cell_name(task_name, option, value, mode, clip) -> str:
@@ -100,7 +103,7 @@ def _comparisons(final: dict[tuple, float]) -> dict[tuple, dict[str, tuple | Non
     result = {}
     for value, clip in dict.fromkeys((key[0], key[1]) for key in final):
         result[(value, clip)] = {}
-        for other in ("R", "M"):
+        for other in COMPARED:
             pairs = [(final.get((value, clip, "C", s)), final.get((value, clip, other, s))) for s in seeds]
             differences = np.array([c - o for c, o in pairs if c is not None and o is not None])
             ok = len(differences) >= 2 and np.all(np.isfinite(differences))
@@ -120,7 +123,7 @@ def claim_intervals(test_loss_csv: Path, option: str) -> list[str]:
              "|---|---|---:|---:|---|---:|---|"]
     for (value, clip), against in _comparisons(final).items():
         cells = []
-        for other in ("R", "M"):
+        for other in COMPARED:
             if against[other] is None:
                 cells += ["-", "-"]
                 continue
@@ -152,7 +155,7 @@ def verdicts(test_loss_csv: Path, option: str, score: tuple[str, float] = ("test
         finite = {mode: mean for mode, mean in means.items() if np.isfinite(mean)}
         best = min(finite, key=finite.get) if finite else None
         said = [f"C - {other}: {_verdict(*against[other][1:])}" if against[other] else f"C - {other}: -"
-                for other in ("R", "M")]
+                for other in COMPARED]
         lead = f"{option}={value}, clip {clip}: " + (f"best {best} ({name} {sign * finite[best]:.4g})" if best else "every mode diverged")
         lines.append(f"{lead}; " + "; ".join(said))
     return lines

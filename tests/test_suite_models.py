@@ -38,6 +38,9 @@ REFUSED = {
 }
 
 
+PLANNED = ("pendulum", "hopper", "humanoid_CMU")
+
+
 @pytest.mark.parametrize("name", SUITE)
 def test_every_suite_model_becomes_a_task_or_is_refused_in_one_line(suite, name):
     config = mjcf.Config(model=str(suite / f"{name}.xml"))
@@ -57,7 +60,11 @@ def test_every_suite_model_becomes_a_task_or_is_refused_in_one_line(suite, name)
     effects = scene.analyze(original)
     if effects.constraints:
         assert "constraint solver: " in task.summary
-    # The memory of the gradient path fits this machine, or is made to fit.
+    # The memory of the gradient path fits this machine, or is made to fit: on models that span the
+    # plans (forward mode, reverse mode with contacts, the largest tree), since tracing a large step's
+    # derivative for the plan takes seconds per model.
+    if name not in PLANNED:
+        return
     initial = jax.tree.map(lambda a: a[0], task.sample_initial_states(jax.random.PRNGKey(0), 1))
     memory = memory_plan(task, TrainConfig(), initial)
     assert memory.estimate > 0
