@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -44,8 +44,9 @@ class Plan:
 
     ``make_trainer`` chooses one per run (``Trainer.plan``) from what the task
     knows (``Task.plan``), the memory the gradient path needs, the size of one
-    step and ``TrainConfig.unroll``; the fields a user's plan sets to other
-    than their defaults (``given``) win over all of these.
+    step and ``TrainConfig.unroll``; a plan passed to it is taken whole instead
+    (``dataclasses.replace(trainer.plan, ...)`` changes one choice and keeps
+    the others).
     The engine's functions (``flow_gradients`` and the rest) take one too,
     ``Plan()`` where none is given.
 
@@ -106,15 +107,6 @@ class Plan:
                 raise InputError(f"Plan.{name} must be True or False, got {getattr(self, name)!r}")
         if self.known_columns is not None and not isinstance(self.known_columns, KnownColumns):
             raise InputError(f"Plan.known_columns must be None or a KnownColumns, got {type(self.known_columns).__name__}")
-
-    def given(self) -> dict:
-        """The fields set to other than their defaults: what this plan says over another."""
-        return {item.name: getattr(self, item.name) for item in fields(self)
-                if getattr(self, item.name) is not item.default and getattr(self, item.name) != item.default}
-
-    def over(self, base: Plan) -> Plan:
-        """``base`` with the fields this plan gives (``given``) replaced."""
-        return replace(base, **self.given())
 
 
 @dataclass(frozen=True, init=False)

@@ -65,18 +65,14 @@ def load_compiled_model(path: str | Path):
         raise InputError(f"cannot load {path}: {' '.join(str(error).split())}") from None
 
 
-def keep_model(run_dir: Path, model_file: str | Path, shared: Path | None = None) -> None:
+def keep_model(run_dir: Path, model_file: str | Path) -> None:
     """Keep in ``run_dir`` what reopening its model needs after the file moved: the file as given
-    (``model.xml``, an MJCF's own text) and the model compiled, includes and meshes inside, compressed.
+    (``model.xml``, an MJCF's own text) and the model compiled, includes and meshes inside, compressed
+    (``model.mjb.gz``; a skybox texture alone can make it megabytes).
 
-    The compiled model (a skybox texture alone can make it megabytes) goes into ``model.mjb.gz``;
-    with ``shared`` (a grid's root, its cells the run folders) into ``shared/models/<SHA-256>.mjb.gz``
-    instead (``share_model``), and the cell keeps ``model.json`` naming it (``link_model``). A grid
-    writing many cells of one model compiles it once with ``SharedModels``.
+    A grid's cells share one compressed copy in the grid's root instead (``share_model``), each
+    cell keeping ``model.json`` naming it (``link_model``); ``SharedModels`` compiles it once.
     """
-    if shared is not None:
-        link_model(run_dir, model_file, share_model(shared, model_file))
-        return
     _copy_text(Path(run_dir), Path(model_file))
     atomic_write(Path(run_dir) / MODEL_PACKED_FILE, _pack(compiled_model(model_file)))
 

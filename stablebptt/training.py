@@ -224,7 +224,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     With ``grid=True`` every seed slot is a sweep cell: all flows are computed,
     the optimizer of ``make_grid_optimizer`` selects each cell's update, and
     ``epoch`` takes each cell's value of ``task.cell_option`` as its second argument.
-    The plan (``Trainer.plan``) is ``run_plan``'s: the fields ``plan`` gives win.
+    The plan (``Trainer.plan``) is ``run_plan``'s, or ``plan`` whole where one is given.
     """
     if not isinstance(config, TrainConfig):
         raise InputError(f"expected a stablebptt.TrainConfig, got {type(config).__name__}")
@@ -246,7 +246,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
     large = large_step(task, config, example_state)
     jit = functools.partial(jax.jit, compiler_options=compiler_options(large))
-    plan = run_plan(task, config, example_state, large, plan)  # one plan for whichever dynamics an epoch uses
+    plan = run_plan(task, config, example_state, large) if plan is None else plan  # one for every dynamics an epoch uses
     # Fixed order, no shuffling: minibatch i is always the same states.
     batches = jax.jit(lambda states: jax.tree.map(  # one program, not one eager reshape per leaf
         lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), states))(train_states)
@@ -418,15 +418,12 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
                        tangents=size(initial_state) + size(control) - known)
 
 
-def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, given: Plan | None = None) -> Plan:
+def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool) -> Plan:
     """How a run differentiates ``task``: the task's own plan, completed by the memory plan (Jacobian
-    chunks or recomputed steps), a large step's single Jacobian pass and ``config.unroll``; the fields
-    ``given`` sets (``Plan.given``) win over all of these."""
-    hints = task.plan if given is None else given.over(task.plan)  # the memory a derivative needs is its own
-    memory = memory_plan(task, config, initial_state, hints)
-    chosen = dataclasses.replace(hints, unroll=config.unroll, jacobian_chunk=memory.jacobian_chunk,
-                                 rematerialize=memory.rematerialize, jacobian_per_input=not large)
-    return chosen if given is None else given.over(chosen)
+    chunks or recomputed steps), a large step's single Jacobian pass and ``config.unroll``."""
+    memory = memory_plan(task, config, initial_state)
+    return dataclasses.replace(task.plan, unroll=config.unroll, jacobian_chunk=memory.jacobian_chunk,
+                               rematerialize=memory.rematerialize, jacobian_per_input=not large)
 
 
 def _all_finite(tree: PyTree) -> jax.Array:

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from stablebptt import fitting, runs
+from stablebptt import fitting, run_models, runs
 from stablebptt.commands import train as train_command
 from stablebptt.errors import InputError
 from stablebptt.tasks import repulsion
@@ -419,7 +419,7 @@ def test_a_grid_keeps_one_compressed_model_for_all_its_cells_and_each_cell_reope
     cells = [grid / f"cell-{k}" for k in range(3)]
     for cell in cells:
         cell.mkdir(parents=True)
-        runs.keep_model(cell, tmp_path / "arm.xml", shared=grid)
+        run_models.link_model(cell, tmp_path / "arm.xml", run_models.share_model(grid, tmp_path / "arm.xml"))
     shared = list((grid / runs.SHARED_MODELS).iterdir())
     assert len(shared) == 1 and shared[0].stat().st_size < len(binary) / 10  # one copy, compressed
     record = {"resolved_task": {"model_file": str(tmp_path / "gone.xml")}}

@@ -76,16 +76,18 @@ def test_unroll_reaches_every_rollout_loop_and_leaves_the_numbers(task, grid):
         np.testing.assert_allclose(unrolled[name], rolled[name], rtol=1e-5)
 
 
-def test_the_run_plan_completes_the_task_plan_and_the_fields_a_user_gives_win(task):
+def test_the_run_plan_completes_the_task_plan_and_a_plan_a_user_gives_is_taken_whole(task):
     """Trainer.plan: the task's own plan, completed by the run (unroll, memory, one step's size); a
-    plan passed to make_trainer overrides the fields it sets and keeps the rest."""
+    plan passed to make_trainer is used as given, its defaults too (they override the task's hints)."""
     config = replace(SMALL, epochs=1, unroll=3)
     hinted = replace(task, plan=Plan(policy_gradient="per-step"))
     chosen = make_trainer(hinted, config).plan
     assert (chosen.policy_gradient, chosen.unroll, chosen.step_derivative) == ("per-step", 3, "reverse")
     assert chosen.jacobian_per_input and not chosen.rematerialize  # a small step whose path fits in memory
-    given = make_trainer(hinted, config, plan=Plan(unroll=2, step_derivative="forward")).plan
-    assert (given.policy_gradient, given.unroll, given.step_derivative) == ("per-step", 2, "forward")
+    given = Plan(unroll=2, step_derivative="forward")
+    assert make_trainer(hinted, config, plan=given).plan is given  # policy_gradient "batched", the default
+    changed = replace(chosen, step_derivative="forward")
+    assert make_trainer(hinted, config, plan=changed).plan is changed
 
 
 def test_mapped_seeds_equal_the_same_seeds_trained_alone(task, three_seeds):
