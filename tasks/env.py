@@ -10,7 +10,7 @@ and Brax report it (``stablebptt.environments``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from stablebptt.environments import env_task, load_env
 from stablebptt.errors import InputError, config_field
@@ -27,6 +27,7 @@ class Config:
     steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the task's own)"})
     discount: float = field(default=1.0, metadata={"help": "per-step discount of the training rollout's return, in (0, 1]"})
     episode_length: int = field(default=0, metadata={"help": "steps of the evaluation episodes whose return every epoch logs (0: the environment's own)"})
+    reward_check: bool = field(default=True, metadata={"help": "before training, look at the reward's gradient at sampled states and refuse a reward that has none (--no-reward-check skips it: a quicker start, no refusal)"})
 
     def __post_init__(self):
         if not 0 <= self.steps <= MAX_STEPS:
@@ -51,4 +52,11 @@ def make(config: Config) -> Task:
         from stablebptt import playground
         dense = playground.dense_variant(config.env)
     return env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
-                    episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense)
+                    episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
+                    diagnose=config.reward_check)
+
+
+def for_reopening(config: Config) -> Config:
+    """A trained run's task needs no reward check: it was made before training, and a rendering or
+    a study of the run would otherwise compile the check's program again."""
+    return replace(config, reward_check=False)

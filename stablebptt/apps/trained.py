@@ -94,7 +94,8 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     if not (run_dir / runs.PARAMS_FILE).is_file():
         raise InputError(f"{run_dir} has no {runs.PARAMS_FILE}: the run has not finished an epoch yet")
     jax.config.update("jax_enable_x64", train.x64)  # before any array, as the run was trained
-    task = task_entry.load().make(task_config)
+    module = task_entry.load()
+    task = module.make(getattr(module, "for_reopening", lambda config: config)(task_config))
     keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)
     template = jax.vmap(lambda key: task.init_params(key, train.zero_output))(keys)
     params = runs.load_params(run_dir / runs.PARAMS_FILE, template)
