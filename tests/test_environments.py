@@ -171,6 +171,8 @@ def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_p
     rendered = run_script("scripts/render.py", str(run), "--rollouts", "1", "--no-video")
     assert rendered.returncode == 0, rendered.stderr
     assert (run / "rollout-strip.png").stat().st_size > 1000
+    from stablebptt.apps.trained import open_trained
+    assert open_trained(run).task.resolved["reward_gradient"] == "not checked"  # reopened: checked before training
     code, err = train_in_process(capsys, "--env", "cartpoleswingup", "--out", str(tmp_path / "no"))
     assert code == 2 and len(err) == 1 and "did you mean CartpoleSwingup?" in err[0], err
     assert not (tmp_path / "no").exists()
