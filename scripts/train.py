@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -91,6 +92,9 @@ def train(argv: list[str], held: list) -> int:
     with one_line_errors(f"{run.name}: "):  # the memory plan may refuse the scene
         trainer = make_trainer(task, train_config)
     seeds = np.asarray(seed_array(train_config))
+    inputs = getattr(tasks.load(task_name), "program_inputs", lambda config: None)(task_config)
+    program_key = None if inputs is None else {"task": task_name, "task_config": dataclasses.asdict(task_config),
+                                               "train": dataclasses.asdict(train_config), "inputs": inputs}
     with one_line_errors():
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
     task_label, resuming = run.name, run.resuming
@@ -111,7 +115,7 @@ def train(argv: list[str], held: list) -> int:
         with stop_on_signals(progress.write) as should_stop:
             outcome = in_worker_thread(lambda: fitting.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
                                                                    progress.on_epoch, progress.on_compiled, should_stop,
-                                                                   run.owner))
+                                                                   run.owner, program_key))
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     except jax.errors.JaxRuntimeError as error:

@@ -15,6 +15,7 @@ import numpy as np
 
 from stablebptt.runs import (COLUMNS, METRICS_FILE, PARAMS_FILE, empty_rows, save_checkpoint, save_params,
                              write_metrics)
+from stablebptt.program_store import compile_epoch
 from stablebptt.timing import compile_ahead
 from stablebptt.training import METRICS, TrainConfig, Trainer, TrainState, nonfinite_names
 
@@ -128,16 +129,21 @@ def train_epochs(
     on_compiled: Callable[[float], None] = lambda seconds: None,
     should_stop: Callable[[], bool] = lambda: False,
     owner: str = "",
+    program_key: dict | None = None,
 ) -> Outcome:
     """Train one run's seeds to ``config.epochs`` from ``start_epoch``, checkpointing into ``run_dir``.
 
     Stops early when ``should_stop()`` (after saving; the command line sets it on a
     signal) or on a non-finite loss or update (keeping the last good checkpoint).
     ``on_compiled`` gets the seconds the epoch took to compile; ``on_epoch`` the
-    epoch's metrics, with its wall time under ``"seconds"``. Runs in any thread.
+    epoch's metrics, with its wall time under ``"seconds"``. Runs in any thread. With ``program_key``
+    (everything that decides the epoch's program: ``program_store``) and JAX's compile cache on, the
+    traced epoch is kept there, and a run with the same key skips tracing it.
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)  # before timing epochs
+    cache = jax.config.jax_compilation_cache_dir
+    epoch_fn, compile_seconds = compile_epoch(trainer.epoch, (state, *arguments), program_key,
+                                              Path(cache) if cache else None, trainer.compiler_options)  # before timing epochs
     on_compiled(compile_seconds)
 
     def run_epoch(state):

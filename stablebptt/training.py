@@ -216,6 +216,7 @@ class Trainer(NamedTuple):
     test_states: PyTree
     batches: PyTree
     plan: Plan  # how every function differentiates and rolls out the task
+    compiler_options: dict | None = None  # XLA options every program of the trainer is compiled with
 
 
 def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan | None = None) -> Trainer:
@@ -332,6 +333,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         test_states=test_states,
         batches=batches,
         plan=plan,
+        compiler_options=compiler_options(large),
     )
 
 
@@ -359,21 +361,25 @@ class PerUpdateEpoch:
     def lower(self, state, batches, train_states, test_states):
         return _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states))
 
+    def compile_pieces(self, arguments: tuple, compile_one: Callable) -> PerUpdateEpoch:
+        """The three programs compiled for the epoch's ``arguments`` by ``compile_one(program,
+        arguments, name)``; each compiled program knows its outputs' shapes: nothing is traced twice."""
+        state, batches, train_states, test_states = arguments
+        update = compile_one(self.update, (state, jax.tree.map(lambda a: a[0], batches)), "update")
+        per_update = jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], _updates(batches)) + a.shape[1:], a.dtype),
+                                  update.out_info[1])
+        evaluate = compile_one(self.evaluate, (state.params, train_states, test_states), "evaluate")
+        losses = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), evaluate.out_info)
+        metrics = compile_one(self.epoch_metrics, (state, per_update, losses), "epoch_metrics")
+        return PerUpdateEpoch(update, evaluate, metrics)
+
 
 class _LoweredPerUpdateEpoch(NamedTuple):
     epoch: PerUpdateEpoch
     arguments: tuple
 
     def compile(self) -> PerUpdateEpoch:
-        state, batches, train_states, test_states = self.arguments
-        # Each lowered program knows its outputs' shapes: nothing is traced twice.
-        update = self.epoch.update.lower(state, jax.tree.map(lambda a: a[0], batches))
-        per_update = jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], _updates(batches)) + a.shape[1:], a.dtype),
-                                  update.out_info[1])
-        evaluate = self.epoch.evaluate.lower(state.params, train_states, test_states)
-        losses = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), evaluate.out_info)
-        metrics = self.epoch.epoch_metrics.lower(state, per_update, losses)
-        return PerUpdateEpoch(update.compile(), evaluate.compile(), metrics.compile())
+        return self.epoch.compile_pieces(self.arguments, lambda program, arguments, name: program.lower(*arguments).compile())
 
 
 def _updates(batches: PyTree) -> int:

@@ -3,7 +3,9 @@
 A task is a module with ``Config`` (a typed dataclass: its command-line
 options), ``make(config) -> stablebptt.training.Task`` and ``DEFAULT_EPOCHS``
 (optionally ``for_reopening(config) -> config``: the configuration that rebuilds
-a trained run's task, checks that only matter before training left out),
+a trained run's task, checks that only matter before training left out; and
+``program_inputs(config) -> dict | None``: what its compiled programs read besides
+the library and the config, so that ``stablebptt.program_store`` may keep them),
 described by an ``Entry``: how to name a configuration, how to draw its
 rollouts, which grids the sweep offers. Entries import nothing: a task's module
 (and MuJoCo with it) is imported only when the task is used, so rendering can

@@ -60,3 +60,10 @@ def for_reopening(config: Config) -> Config:
     """A trained run's task needs no reward check: it was made before training, and a rendering or
     a study of the run would otherwise compile the check's program again."""
     return replace(config, reward_check=False)
+
+
+def program_inputs(config: Config) -> dict | None:
+    """What the task's compiled programs read besides the library and ``config``: a Playground env is
+    its registry name and the package's version (in every key); an env of the user's own package
+    could change unseen (None: traced every run)."""
+    return None if ":" in config.env else {}

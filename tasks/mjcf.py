@@ -275,3 +275,10 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
                 + (f" (reaching {reach.name})" if reach is not None else ""),
         resolved=resolved,
     )
+
+
+def program_inputs(config: Config) -> dict:
+    """What the task's compiled programs read besides the library and ``config``: the model, compiled
+    (its includes and meshes inside)."""
+    from stablebptt.run_models import compiled_model
+    return {"model": hashlib.sha256(compiled_model(config.model_path)).hexdigest()}

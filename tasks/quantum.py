@@ -282,3 +282,8 @@ def make(config: Config, physics: Physics = Physics()) -> Task:
         cell_option=CellOption("target", dynamics_with),
         plan=Plan(policy_gradient=policy_gradient),
     )
+
+
+def program_inputs(config: Config) -> dict:
+    """What the task's compiled programs read besides the library and ``config``: nothing."""
+    return {}

@@ -149,3 +149,8 @@ def make(config: Config, physics: Physics = Physics()) -> Task:
         sample_initial_states=lambda key, count: sample_initial_states(physics, key, count),
         cell_option=CellOption("rc", dynamics_with),
     )
+
+
+def program_inputs(config: Config) -> dict:
+    """What the task's compiled programs read besides the library and ``config``: nothing."""
+    return {}

@@ -90,6 +90,38 @@ def test_the_run_plan_completes_the_task_plan_and_a_plan_a_user_gives_is_taken_w
     assert make_trainer(hinted, config, plan=changed).plan is changed
 
 
+def test_a_kept_traced_epoch_computes_what_the_traced_one_does_and_a_changed_key_traces_anew(task, tmp_path, monkeypatch):
+    """program_store: the first compile traces, exports and keeps the epoch; the second loads it without
+    tracing and gives the same numbers bit for bit; a damaged file is traced anew; the key follows
+    everything it is given (the task's inputs, the arguments' shapes)."""
+    from stablebptt import program_store
+    config = replace(SMALL, epochs=1, epoch_program="per-update")  # a PerUpdateEpoch: three programs kept
+    trainer = make_trainer(task, config)
+    arguments = (trainer.init(seed_array(config)), trainer.batches, trainer.train_states, trainer.test_states)
+    key = {"task": "repulsion", "inputs": {}}
+    plain = jax.device_get(trainer.epoch.lower(*arguments).compile()(*arguments))
+    first, _ = program_store.compile_epoch(trainer.epoch, arguments, key, tmp_path, trainer.compiler_options)
+    kept = sorted((tmp_path / program_store.FOLDER).iterdir())
+    assert len(kept) == 3
+    monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("traced although kept"))
+    second, _ = program_store.compile_epoch(trainer.epoch, arguments, key, tmp_path, trainer.compiler_options)
+    for result in (first, second):
+        for ours, theirs in zip(jax.tree.leaves(jax.device_get(result(*arguments))), jax.tree.leaves(plain)):
+            np.testing.assert_array_equal(ours, theirs)
+    monkeypatch.undo()
+    kept[0].write_bytes(b"damaged")
+    program_store.compile_epoch(trainer.epoch, arguments, key, tmp_path, trainer.compiler_options)
+    assert kept[0].read_bytes() != b"damaged"  # replaced
+    other = program_store.program_key({**key, "inputs": {"model": "0" * 64}}, arguments)
+    assert other != program_store.program_key(key, arguments) != program_store.program_key(key, arguments[:2])
+    from stablebptt.tasks import env, mjcf
+    assert env.program_inputs(env.Config(env="my_lab.envs:arm")) is None  # code outside the library: not kept
+    models = [tmp_path / f"{name}.xml" for name in ("a", "b")]
+    for path, size in zip(models, (0.1, 0.2)):
+        path.write_text(f'<mujoco><worldbody><body><joint type="hinge"/><geom size="{size}"/></body></worldbody></mujoco>')
+    assert len({mjcf.program_inputs(mjcf.Config(model=str(path)))["model"] for path in models}) == 2
+
+
 def test_mapped_seeds_equal_the_same_seeds_trained_alone(task, three_seeds):
     state, history = three_seeds
     config = replace(SMALL, seeds=1, seed=8)  # the middle seed of 7, 8, 9

@@ -1,0 +1,145 @@
+"""Traced programs kept between runs: a second identical run skips tracing as well as compiling.
+
+JAX's persistent cache (``cli.use_compile_cache``) keeps what XLA compiled, but it is keyed by the
+lowered program, so every run still traces and differentiates the step first: for a scene with
+contacts, most of a warm start. Here the traced and lowered epoch is kept too, serialized with
+``jax.export``, under a key of everything that decides it:
+
+    epoch, seconds, kept = compile_epoch(trainer.epoch, arguments, key_parts)
+
+``key_parts`` must name all of it beyond the library's source, the package versions, the device and
+the argument shapes, which are added here: the task and its options, the training config, and what
+the task reads from outside the library (a model file's compiled contents). Where a task cannot
+say (``None``: an environment imported from the user's own package), the epoch is traced as usual.
+The key also decides the program compiled for a kept epoch, so a run and its repetition compute the
+same numbers.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+import time
+from pathlib import Path
+from typing import Callable
+
+from stablebptt.storage import atomic_write
+from stablebptt.timing import compile_ahead
+
+FOLDER = "traced"  # inside the compile cache's directory
+SUFFIX = ".jaxexport"
+PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "playground", "brax", "optax", "numpy")
+
+
+def program_key(key_parts: dict, arguments: tuple) -> str:
+    """SHA-256 of ``key_parts``, the library's source, package versions, device, flags and the
+    arguments' shapes and types."""
+    import jax
+    from importlib.metadata import PackageNotFoundError, version
+
+    from stablebptt.grid_pieces import code_digest
+
+    def installed(name: str) -> str:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return ""
+
+    shapes = jax.tree.map(lambda a: f"{getattr(a, 'shape', ())}:{getattr(a, 'dtype', type(a).__name__)}", arguments)
+    everything = {
+        "parts": key_parts, "code": code_digest(), "packages": {name: installed(name) for name in PACKAGES},
+        "device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
+        "x64": bool(jax.config.jax_enable_x64), "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "arguments": str(jax.tree.structure(arguments)), "shapes": jax.tree.leaves(shapes),
+    }
+    return hashlib.sha256(json.dumps(everything, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def compile_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache_dir: Path | None,
+                  compiler_options: dict | None = None) -> tuple[Callable, float]:
+    """A trainer's ``epoch`` compiled for ``arguments``, and the seconds that took (tracing included).
+
+    With ``key_parts`` and ``cache_dir``, each of its programs (one, or a ``PerUpdateEpoch``'s three)
+    comes from the traced program kept in ``cache_dir`` under the key, or is traced, kept and compiled;
+    ``compiler_options`` are the trainer's. Otherwise, or for a program that cannot be exported (a
+    host callback), it is compiled as usual.
+    """
+    if key_parts is None or cache_dir is None:
+        return compile_ahead(epoch, *arguments)
+    started = time.perf_counter()
+
+    def compile_one(program: Callable, program_arguments: tuple, name: str):
+        return _compile_kept(program, program_arguments, {**key_parts, "program": name},
+                             Path(cache_dir) / FOLDER, compiler_options)
+
+    if hasattr(epoch, "compile_pieces"):
+        compiled = epoch.compile_pieces(arguments, compile_one)
+    else:
+        compiled = compile_one(epoch, arguments, "epoch")
+    return compiled, time.perf_counter() - started
+
+
+def _compile_kept(program: Callable, arguments: tuple, key_parts: dict, folder: Path, compiler_options: dict | None):
+    import jax
+
+    path = folder / f"{program_key(key_parts, arguments)}{SUFFIX}"
+    kept = _read(path) if path.is_file() else None
+    if kept is None:
+        kept = _traced(program, arguments)
+        if kept is None:  # not exportable: the plain program serves
+            return program.lower(*arguments).compile()
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            atomic_write(path, _serialized(*kept))
+        except (OSError, ImportError, ValueError):
+            pass  # not kept (a full disk, a program export cannot write): the next run traces again
+    exported, out_tree = kept
+
+    def call(*given):
+        return jax.tree.unflatten(out_tree, exported.call(*jax.tree.leaves(given)))
+
+    # The kept program is compiled the same way in the run that traced it and in every later one.
+    return jax.jit(call, compiler_options=compiler_options).lower(*arguments).compile()
+
+
+def _traced(program: Callable, arguments: tuple):
+    """(``jax.export.Exported`` of ``program`` over the arguments' leaves, the result's tree), or None.
+
+    The program is exported over flat lists of arrays: ``jax.export`` serializes only the trees of
+    its own types, and the states here are the user's, optax's and MJX's classes.
+    """
+    import jax
+    from jax import export
+
+    leaves, in_tree = jax.tree.flatten(arguments)
+    out_tree = []
+    function = getattr(program, "__wrapped__", program)  # a jit with compiler options may not be nested
+
+    def flat(*given):
+        result, tree = jax.tree.flatten(function(*jax.tree.unflatten(in_tree, given)))
+        out_tree.append(tree)
+        return result
+
+    try:
+        return export.export(jax.jit(flat))(*leaves), out_tree[0]
+    except Exception:  # noqa: BLE001 - a host callback, an effect: export refuses, tracing stays
+        return None
+
+
+def _serialized(exported, out_tree) -> bytes:
+    # The result's tree is pickled: its node classes are importable, as they were when it was traced.
+    tree = pickle.dumps(out_tree)
+    return len(tree).to_bytes(8, "little") + tree + bytes(exported.serialize())
+
+
+def _read(path: Path):
+    """(exported, result tree) from a kept file, or None when it cannot be read (damaged, another
+    version's): the program is then traced anew and the file replaced."""
+    from jax import export
+    try:
+        data = path.read_bytes()
+        size = int.from_bytes(data[:8], "little")
+        return export.deserialize(bytearray(data[8 + size:])), pickle.loads(data[8:8 + size])
+    except Exception:  # noqa: BLE001 - any unreadable entry
+        return None
