@@ -20,6 +20,7 @@ import hashlib
 import json
 import os
 import pickle
+import re
 import time
 from pathlib import Path
 from typing import Callable
@@ -51,9 +52,18 @@ def program_key(key_parts: dict, arguments: tuple) -> str:
         "parts": key_parts, "code": code_digest(), "packages": {name: installed(name) for name in PACKAGES},
         "device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
         "x64": bool(jax.config.jax_enable_x64), "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "arguments": str(jax.tree.structure(arguments)), "shapes": jax.tree.leaves(shapes),
+        "arguments": _tree_digest(jax.tree.structure(arguments)), "shapes": jax.tree.leaves(shapes),
     }
     return hashlib.sha256(json.dumps(everything, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _tree_digest(tree) -> str:
+    """The arguments' tree, the same in every run: its text shows some static leaves by address (MJX's
+    contact data), so it is pickled, node data and all; where that fails, its text without addresses."""
+    try:
+        return hashlib.sha256(pickle.dumps(tree)).hexdigest()
+    except Exception:  # noqa: BLE001 - a node whose data does not pickle
+        return re.sub(r" at 0x[0-9a-fA-F]+", "", str(tree))
 
 
 def compile_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache_dir: Path | None,

@@ -90,6 +90,20 @@ def test_the_run_plan_completes_the_task_plan_and_a_plan_a_user_gives_is_taken_w
     assert make_trainer(hinted, config, plan=changed).plan is changed
 
 
+class StaticData:
+    """A pytree node whose static data is a NumPy array, printed by address (as MJX wraps such data)."""
+
+    def __init__(self, values):
+        self.values = values
+
+    def __repr__(self):
+        return f"<StaticData at {hex(id(self))}>"
+
+
+jax.tree_util.register_pytree_node(StaticData, lambda node: ((0,), StaticData(node.values)),
+                                   lambda data, children: StaticData(data.values))
+
+
 def test_a_kept_traced_epoch_computes_what_the_traced_one_does_and_a_changed_key_traces_anew(task, tmp_path, monkeypatch):
     """program_store: the first compile traces, exports and keeps the epoch; the second loads it without
     tracing and gives the same numbers bit for bit; a damaged file is traced anew; the key follows
@@ -112,6 +126,10 @@ def test_a_kept_traced_epoch_computes_what_the_traced_one_does_and_a_changed_key
     kept[0].write_bytes(b"damaged")
     program_store.compile_epoch(trainer.epoch, arguments, key, tmp_path, trainer.compiler_options)
     assert kept[0].read_bytes() != b"damaged"  # replaced
+    # Static node data shown by address (as MJX's contact data is) keys the same in every process.
+    same = [jax.tree.structure(jax.tree_util.tree_unflatten(jax.tree.structure(StaticData(np.arange(3))), [0]))
+            for _ in range(2)]
+    assert str(same[0]) != str(same[1]) and program_store._tree_digest(same[0]) == program_store._tree_digest(same[1])
     other = program_store.program_key({**key, "inputs": {"model": "0" * 64}}, arguments)
     assert other != program_store.program_key(key, arguments) != program_store.program_key(key, arguments[:2])
     from stablebptt.tasks import env, mjcf
