@@ -5,14 +5,14 @@ lowered program, so every run still traces and differentiates the step first: fo
 contacts, most of a warm start. Here the traced and lowered epoch is kept too, serialized with
 ``jax.export``, under a key of everything that decides it:
 
-    epoch, seconds, kept = compile_epoch(trainer.epoch, arguments, key_parts)
+    epoch, seconds = compile_epoch(trainer.epoch, arguments, key_parts, cache_dir, trainer.compiler_options)
 
 ``key_parts`` must name all of it beyond the library's source, the package versions, the device and
 the argument shapes, which are added here: the task and its options, the training config, and what
 the task reads from outside the library (a model file's compiled contents). Where a task cannot
 say (``None``: an environment imported from the user's own package), the epoch is traced as usual.
-The key also decides the program compiled for a kept epoch, so a run and its repetition compute the
-same numbers.
+The run that traces and every later one compile the kept program, so a run and its repetition
+compute the same numbers.
 """
 from __future__ import annotations
 
@@ -34,8 +34,9 @@ PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "playground", "brax", "opta
 
 
 def program_key(key_parts: dict, arguments: tuple) -> str:
-    """SHA-256 of ``key_parts``, the library's source, package versions, device, flags and the
-    arguments' shapes and types."""
+    """SHA-256 of ``key_parts``, the library's source, package versions, device, flags, the JAX
+    settings that change a traced program (float64, matmul precision) and the arguments' tree,
+    shapes and types."""
     import jax
     from importlib.metadata import PackageNotFoundError, version
 
@@ -52,6 +53,7 @@ def program_key(key_parts: dict, arguments: tuple) -> str:
         "parts": key_parts, "code": code_digest(), "packages": {name: installed(name) for name in PACKAGES},
         "device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
         "x64": bool(jax.config.jax_enable_x64), "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "matmul_precision": str(jax.config.jax_default_matmul_precision),
         "arguments": _tree_digest(jax.tree.structure(arguments)), "shapes": jax.tree.leaves(shapes),
     }
     return hashlib.sha256(json.dumps(everything, sort_keys=True, default=str).encode()).hexdigest()
