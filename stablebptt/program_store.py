@@ -104,8 +104,8 @@ def _compile_kept(program: Callable, arguments: tuple, key_parts: dict, folder: 
         try:
             folder.mkdir(parents=True, exist_ok=True)
             atomic_write(path, _serialized(*kept))
-        except (OSError, ImportError, ValueError):
-            pass  # not kept (a full disk, a program export cannot write): the next run traces again
+        except Exception:  # noqa: BLE001 - not kept (a full disk, a tree that does not pickle): the next run traces again
+            pass
     exported, out_tree = kept
 
     def call(*given):
@@ -147,7 +147,8 @@ def _serialized(exported, out_tree) -> bytes:
 
 def _read(path: Path):
     """(exported, result tree) from a kept file, or None when it cannot be read (damaged, another
-    version's): the program is then traced anew and the file replaced."""
+    version's): the program is then traced anew and the file replaced. The file is unpickled: the
+    cache directory is the user's own, as trusted as the executables JAX keeps there."""
     from jax import export
     try:
         data = path.read_bytes()
