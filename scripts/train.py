@@ -89,12 +89,13 @@ def train(argv: list[str], held: list) -> int:
         else:
             run = runs.Run.open(run_dir, record)
     held.append(run)
-    with one_line_errors(f"{run.name}: "):  # the memory plan may refuse the scene
-        trainer = make_trainer(task, train_config)
-    seeds = np.asarray(seed_array(train_config))
+    # Everything beyond the library that decides the run's programs, so that an identical run reuses them.
     inputs = getattr(tasks.load(task_name), "program_inputs", lambda config: None)(task_config)
     program_key = None if inputs is None else {"task": task_name, "task_config": dataclasses.asdict(task_config),
                                                "train": dataclasses.asdict(train_config), "inputs": inputs}
+    with one_line_errors(f"{run.name}: "):  # the memory plan may refuse the scene
+        trainer = make_trainer(task, train_config, keep=program_key)
+    seeds = np.asarray(seed_array(train_config))
     with one_line_errors():
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
     task_label, resuming = run.name, run.resuming

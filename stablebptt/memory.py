@@ -92,7 +92,8 @@ def _gigabytes(count: float) -> str:
 
 
 def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, batch: int, step_derivative: str,
-                tangents: int, budget: int | None = None) -> MemoryPlan:
+                tangents: int, budget: int | None = None,
+                measured: Callable[[str, Callable[[], int]], int] = lambda name, measure: measure()) -> MemoryPlan:
     """Fit the gradient path of ``batch`` rollouts of ``horizon`` steps into ``budget`` bytes.
 
     Args:
@@ -102,6 +103,8 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
       step_derivative: ``"forward"`` or ``"reverse"`` (``Plan.step_derivative``).
       tangents: forward-mode tangents pushed per example (Jacobian columns computed).
       budget: bytes the path may use; default a fraction of the available memory.
+      measured: ``measured(name, measure)`` gives ``measure()``, the bytes of one traced step
+        (``"forward"`` or ``"reverse"``), or the answer kept from an identical earlier run.
 
     Raises:
       InputError: if not even one example fits.
@@ -110,7 +113,8 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
     examples = horizon * batch
     if step_derivative == "forward":
         tangent_of = lambda tree: jax.tree.map(jnp.ones_like, tree)
-        per_tangent = traced_bytes(lambda s, u: jax.jvp(step, (s, u), (tangent_of(s), tangent_of(u))), state, control)
+        per_tangent = measured("forward", lambda: traced_bytes(
+            lambda s, u: jax.jvp(step, (s, u), (tangent_of(s), tangent_of(u))), state, control))
         per_example = per_tangent * max(tangents, 1)
         if per_example > budget:
             raise InputError(f"one example's step Jacobian needs up to {_gigabytes(per_example)}, more than the "
@@ -122,7 +126,7 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
         chunk = max(d for d in range(1, int(fitting) + 1) if examples % d == 0)
         return MemoryPlan(chunk, False, per_example * examples)
     # Reverse mode stores every step's intermediates for the backward pass.
-    per_step = traced_bytes(lambda s, u: jax.vjp(step, s, u)[1], state, control)
+    per_step = measured("reverse", lambda: traced_bytes(lambda s, u: jax.vjp(step, s, u)[1], state, control))
     stored = per_step * examples
     if stored <= budget:
         return MemoryPlan(None, False, stored)

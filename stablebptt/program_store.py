@@ -23,7 +23,7 @@ import pickle
 import re
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from stablebptt.storage import atomic_write
 from stablebptt.timing import compile_ahead
@@ -66,6 +66,28 @@ def _tree_digest(tree) -> str:
         return hashlib.sha256(pickle.dumps(tree)).hexdigest()
     except Exception:  # noqa: BLE001 - a node whose data does not pickle
         return re.sub(r" at 0x[0-9a-fA-F]+", "", str(tree))
+
+
+def kept_answer(key_parts: dict | None, name: str, compute: Callable[[], Any]) -> Any:
+    """``compute()``'s answer (JSON), kept beside the traced programs under ``key_parts`` and ``name``
+    while JAX's compile cache is on: a set-up measurement or check that traces the step (the memory
+    plan's bytes, the task check) is not repeated by an identical later run. ``key_parts`` None: computed."""
+    import jax
+    cache = jax.config.jax_compilation_cache_dir
+    if key_parts is None or not cache:
+        return compute()
+    path = Path(cache) / FOLDER / f"{program_key({**key_parts, 'answer': name}, ())}.json"
+    try:
+        return json.loads(path.read_text())["answer"]
+    except (OSError, ValueError, KeyError, TypeError):
+        pass  # none kept yet, or unreadable: computed and kept anew
+    answer = compute()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, json.dumps({"name": name, "answer": answer}).encode())
+    except OSError:
+        pass
+    return answer
 
 
 def compile_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache_dir: Path | None,

@@ -24,6 +24,7 @@ from stablebptt.errors import InputError, config_field
 from stablebptt.flows import (FLOWS, MODE_TABLE, MODES, Dynamics, Plan, flow_gradients, flows_needed, reference_loss, reference_losses,
                               select_flow, tree_cosine)
 from stablebptt.memory import MemoryPlan, plan_memory
+from stablebptt.program_store import kept_answer
 
 PyTree = Any
 CLIP_MODES = ("value", "norm", "none")
@@ -219,13 +220,16 @@ class Trainer(NamedTuple):
     compiler_options: dict | None = None  # XLA options every program of the trainer is compiled with
 
 
-def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan | None = None) -> Trainer:
+def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan | None = None,
+                 keep: dict | None = None) -> Trainer:
     """Static set-up of a run: data, flows, optimizer, plan; returns jitted pure functions.
 
     With ``grid=True`` every seed slot is a sweep cell: all flows are computed,
     the optimizer of ``make_grid_optimizer`` selects each cell's update, and
     ``epoch`` takes each cell's value of ``task.cell_option`` as its second argument.
     The plan (``Trainer.plan``) is ``run_plan``'s, or ``plan`` whole where one is given.
+    With ``keep`` (everything that decides the run's programs: ``program_store``), the task check's
+    and the memory plan's traced measurements are kept, and an identical later run skips them.
     """
     if not isinstance(config, TrainConfig):
         raise InputError(f"expected a stablebptt.TrainConfig, got {type(config).__name__}")
@@ -233,7 +237,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         raise InputError(f"{config_field(config, 'x64')} asks for float64, but JAX runs in float32: stablebptt.train "
                          "trains such a config in float64 by itself; with make_trainer, build the trainer and call "
                          "its functions under `with jax.enable_x64(True):`")
-    check_task(task, config.zero_output)
+    kept = functools.partial(kept_answer, keep)
+    kept("task checked", lambda: check_task(task, config.zero_output) or True)
     if plan is not None and not isinstance(plan, Plan):
         raise InputError(f"make_trainer's plan must be a stablebptt.Plan or None, got {type(plan).__name__}")
     flows = FLOWS if grid else flows_needed(config.mode, config.cosine)
@@ -247,7 +252,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
     large = large_step(task, config, example_state)
     jit = functools.partial(jax.jit, compiler_options=compiler_options(large))
-    plan = run_plan(task, config, example_state, large) if plan is None else plan  # one for every dynamics an epoch uses
+    measured = lambda name, measure: kept(f"traced bytes, {name}", measure)  # noqa: E731
+    plan = run_plan(task, config, example_state, large, measured) if plan is None else plan  # one for every dynamics an epoch uses
     # Fixed order, no shuffling: minibatch i is always the same states.
     batches = jax.jit(lambda states: jax.tree.map(  # one program, not one eager reshape per leaf
         lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), states))(train_states)
@@ -413,7 +419,8 @@ def step_operations(task: Task, config: TrainConfig, initial_state: PyTree) -> i
     return _operations(jax.make_jaxpr(task.dynamics.step)(initial_state, control).jaxpr)
 
 
-def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Plan | None = None) -> MemoryPlan:
+def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Plan | None = None,
+                measured: Callable | None = None) -> MemoryPlan:
     """The settings that fit ``task``'s gradient path (the derivative of ``plan``, default the task's own),
     at ``config.batch`` examples per update, into memory."""
     dynamics, plan = task.dynamics, task.plan if plan is None else plan
@@ -421,13 +428,14 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
     known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
     return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, plan.step_derivative,
-                       tangents=size(initial_state) + size(control) - known)
+                       tangents=size(initial_state) + size(control) - known,
+                       **({} if measured is None else {"measured": measured}))
 
 
-def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool) -> Plan:
+def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable | None = None) -> Plan:
     """How a run differentiates ``task``: the task's own plan, completed by the memory plan (Jacobian
     chunks or recomputed steps), a large step's single Jacobian pass and ``config.unroll``."""
-    memory = memory_plan(task, config, initial_state)
+    memory = memory_plan(task, config, initial_state, measured=measured)
     return dataclasses.replace(task.plan, unroll=config.unroll, jacobian_chunk=memory.jacobian_chunk,
                                rematerialize=memory.rematerialize, jacobian_per_input=not large)
 

@@ -132,6 +132,15 @@ def test_a_kept_traced_epoch_computes_what_the_traced_one_does_and_a_changed_key
     assert str(same[0]) != str(same[1]) and program_store._tree_digest(same[0]) == program_store._tree_digest(same[1])
     other = program_store.program_key({**key, "inputs": {"model": "0" * 64}}, arguments)
     assert other != program_store.program_key(key, arguments) != program_store.program_key(key, arguments[:2])
+    # The set-up's traced measurements are kept the same way (in the session's compile cache here).
+    calls = []
+    for _ in range(2):
+        assert program_store.kept_answer({**key, "test": str(tmp_path)}, "bytes", lambda: calls.append(1) or 58415) == 58415
+    assert len(calls) == 1
+    kept_key = {**key, "test": str(tmp_path)}
+    fields = lambda plan: vars(plan)  # noqa: E731 - Plan compares by identity
+    assert fields(make_trainer(task, config, keep=kept_key).plan) == fields(make_trainer(task, config, keep=kept_key).plan) \
+        == fields(trainer.plan)
     from stablebptt.tasks import env, mjcf
     assert env.program_inputs(env.Config(env="my_lab.envs:arm")) is None  # code outside the library: not kept
     models = [tmp_path / f"{name}.xml" for name in ("a", "b")]
