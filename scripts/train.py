@@ -9,7 +9,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -79,6 +78,7 @@ def train(argv: list[str], held: list) -> int:
     import numpy as np
     from stablebptt import fitting, runs
     from stablebptt.errors import StorageError
+    from stablebptt.program_store import run_key
     from stablebptt.training import make_trainer, seed_array
 
     with one_line_errors():
@@ -89,10 +89,7 @@ def train(argv: list[str], held: list) -> int:
         else:
             run = runs.Run.open(run_dir, record)
     held.append(run)
-    # Everything beyond the library that decides the run's programs, so that an identical run reuses them.
-    inputs = getattr(tasks.load(task_name), "program_inputs", lambda config: None)(task_config)
-    program_key = None if inputs is None else {"task": task_name, "task_config": dataclasses.asdict(task_config),
-                                               "train": dataclasses.asdict(train_config), "inputs": inputs}
+    program_key = run_key(tasks.load(task_name), task_name, task_config, train_config)  # an identical run reuses its programs
     with one_line_errors(f"{run.name}: "):  # the memory plan may refuse the scene
         trainer = make_trainer(task, train_config, keep=program_key)
     seeds = np.asarray(seed_array(train_config))

@@ -15,7 +15,7 @@ import numpy as np
 
 from stablebptt.runs import (COLUMNS, METRICS_FILE, PARAMS_FILE, empty_rows, save_checkpoint, save_params,
                              write_metrics)
-from stablebptt.program_store import compile_epoch
+from stablebptt.program_store import cache_dir, compile_epoch
 from stablebptt.timing import compile_ahead
 from stablebptt.training import METRICS, TrainConfig, Trainer, TrainState, nonfinite_names
 
@@ -141,9 +141,8 @@ def train_epochs(
     traced epoch is kept there, and a run with the same key skips tracing it.
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    cache = jax.config.jax_compilation_cache_dir
-    epoch_fn, compile_seconds = compile_epoch(trainer.epoch, (state, *arguments), program_key,
-                                              Path(cache) if cache else None, trainer.compiler_options)  # before timing epochs
+    epoch_fn, compile_seconds = compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(),
+                                              trainer.compiler_options)  # before timing epochs
     on_compiled(compile_seconds)
 
     def run_epoch(state):

@@ -16,6 +16,7 @@ rounding (XLA may fuse a batch of 8 cells differently from one of 4).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib
 from pathlib import Path
@@ -47,6 +48,7 @@ def piece_root(root: Path, start: int, stop: int) -> Path:
     return root / PIECES_FOLDER / f"seeds{start}-{stop - 1}"
 
 
+@functools.cache  # the source does not change under a running process; keys read it per program
 def code_digest() -> str:
     """SHA-256 (16 hex digits) of the library's and the tasks' Python source, file names included."""
     digest = hashlib.sha256()

@@ -91,9 +91,14 @@ def _gigabytes(count: float) -> str:
     return f"{count / 2**30:.3g} GB"
 
 
+def measure_now(name: str, measure: Callable[[], int]) -> int:
+    """``plan_memory``'s default ``measured``: every measurement traced now."""
+    return measure()
+
+
 def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, batch: int, step_derivative: str,
                 tangents: int, budget: int | None = None,
-                measured: Callable[[str, Callable[[], int]], int] = lambda name, measure: measure()) -> MemoryPlan:
+                measured: Callable[[str, Callable[[], int]], int] = measure_now) -> MemoryPlan:
     """Fit the gradient path of ``batch`` rollouts of ``horizon`` steps into ``budget`` bytes.
 
     Args:

@@ -9,13 +9,15 @@ contacts, most of a warm start. Here the traced and lowered epoch is kept too, s
 
 ``key_parts`` must name all of it beyond the library's source, the package versions, the device and
 the argument shapes, which are added here: the task and its options, the training config, and what
-the task reads from outside the library (a model file's compiled contents). Where a task cannot
+the task reads from outside the library (a model file's compiled contents); ``run_key`` builds them
+for a registered task. Where a task cannot
 say (``None``: an environment imported from the user's own package), the epoch is traced as usual.
 The run that traces and every later one compile the kept program, so a run and its repetition
 compute the same numbers.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -33,30 +35,54 @@ SUFFIX = ".jaxexport"
 PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "playground", "brax", "optax", "numpy")
 
 
+def run_key(task_module, task_name: str, task_config, train_config) -> dict | None:
+    """The key parts of a run of a registered task: everything beyond the library that decides its
+    programs (the task and its options, the training config, the module's ``program_inputs``), or
+    None where the task cannot say (no ``program_inputs``, or it answers None)."""
+    import dataclasses
+    inputs = getattr(task_module, "program_inputs", lambda config: None)(task_config)
+    if inputs is None:
+        return None
+    return {"task": task_name, "task_config": dataclasses.asdict(task_config),
+            "train": dataclasses.asdict(train_config), "inputs": inputs}
+
+
+def cache_dir() -> Path | None:
+    """JAX's persistent compile cache directory, where the kept programs live beside XLA's; None: off."""
+    import jax
+    directory = jax.config.jax_compilation_cache_dir
+    return Path(directory) if directory else None
+
+
 def program_key(key_parts: dict, arguments: tuple) -> str:
     """SHA-256 of ``key_parts``, the library's source, package versions, device, flags, the JAX
     settings that change a traced program (float64, matmul precision) and the arguments' tree,
     shapes and types."""
     import jax
-    from importlib.metadata import PackageNotFoundError, version
 
     from stablebptt.grid_pieces import code_digest
 
-    def installed(name: str) -> str:
-        try:
-            return version(name)
-        except PackageNotFoundError:
-            return ""
-
     shapes = jax.tree.map(lambda a: f"{getattr(a, 'shape', ())}:{getattr(a, 'dtype', type(a).__name__)}", arguments)
     everything = {
-        "parts": key_parts, "code": code_digest(), "packages": {name: installed(name) for name in PACKAGES},
+        "parts": key_parts, "code": code_digest(), "packages": _versions(),
         "device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
         "x64": bool(jax.config.jax_enable_x64), "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "matmul_precision": str(jax.config.jax_default_matmul_precision),
         "arguments": _tree_digest(jax.tree.structure(arguments)), "shapes": jax.tree.leaves(shapes),
     }
     return hashlib.sha256(json.dumps(everything, sort_keys=True, default=str).encode()).hexdigest()
+
+
+@functools.cache  # installed versions do not change under a running process
+def _versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    def installed(name: str) -> str:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return ""
+    return {name: installed(name) for name in PACKAGES}
 
 
 def _tree_digest(tree) -> str:
@@ -72,11 +98,10 @@ def kept_answer(key_parts: dict | None, name: str, compute: Callable[[], Any]) -
     """``compute()``'s answer (JSON), kept beside the traced programs under ``key_parts`` and ``name``
     while JAX's compile cache is on: a set-up measurement or check that traces the step (the memory
     plan's bytes, the task check) is not repeated by an identical later run. ``key_parts`` None: computed."""
-    import jax
-    cache = jax.config.jax_compilation_cache_dir
-    if key_parts is None or not cache:
+    cache = cache_dir()
+    if key_parts is None or cache is None:
         return compute()
-    path = Path(cache) / FOLDER / f"{program_key({**key_parts, 'answer': name}, ())}.json"
+    path = cache / FOLDER / f"{program_key({**key_parts, 'answer': name}, ())}.json"
     try:
         return json.loads(path.read_text())["answer"]
     except (OSError, ValueError, KeyError, TypeError):

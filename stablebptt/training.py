@@ -23,7 +23,7 @@ from stablebptt.checks import check_task
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import (FLOWS, MODE_TABLE, MODES, Dynamics, Plan, flow_gradients, flows_needed, reference_loss, reference_losses,
                               select_flow, tree_cosine)
-from stablebptt.memory import MemoryPlan, plan_memory
+from stablebptt.memory import MemoryPlan, measure_now, plan_memory
 from stablebptt.program_store import kept_answer
 
 PyTree = Any
@@ -251,7 +251,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     # which on a GPU compiles one program per leaf shape.
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
     large = large_step(task, config, example_state)
-    jit = functools.partial(jax.jit, compiler_options=compiler_options(large))
+    options = compiler_options(large)
+    jit = functools.partial(jax.jit, compiler_options=options)
     measured = lambda name, measure: kept(f"traced bytes, {name}", measure)  # noqa: E731
     plan = run_plan(task, config, example_state, large, measured) if plan is None else plan  # one for every dynamics an epoch uses
     # Fixed order, no shuffling: minibatch i is always the same states.
@@ -339,7 +340,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         test_states=test_states,
         batches=batches,
         plan=plan,
-        compiler_options=compiler_options(large),
+        compiler_options=options,
     )
 
 
@@ -420,7 +421,7 @@ def step_operations(task: Task, config: TrainConfig, initial_state: PyTree) -> i
 
 
 def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Plan | None = None,
-                measured: Callable | None = None) -> MemoryPlan:
+                measured: Callable = measure_now) -> MemoryPlan:
     """The settings that fit ``task``'s gradient path (the derivative of ``plan``, default the task's own),
     at ``config.batch`` examples per update, into memory."""
     dynamics, plan = task.dynamics, task.plan if plan is None else plan
@@ -428,11 +429,10 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
     known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
     return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, plan.step_derivative,
-                       tangents=size(initial_state) + size(control) - known,
-                       **({} if measured is None else {"measured": measured}))
+                       tangents=size(initial_state) + size(control) - known, measured=measured)
 
 
-def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable | None = None) -> Plan:
+def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable = measure_now) -> Plan:
     """How a run differentiates ``task``: the task's own plan, completed by the memory plan (Jacobian
     chunks or recomputed steps), a large step's single Jacobian pass and ``config.unroll``."""
     memory = memory_plan(task, config, initial_state, measured=measured)
