@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from stablebptt import program_store
 from stablebptt.constraint_derivatives import differentiable_mjx
 from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics, join, reference_losses, split
@@ -60,9 +61,15 @@ def observation(state: PyTree) -> jax.Array:
     return obs
 
 
-def check_protocol(env: Any) -> None:
-    """Raise ``EnvError`` naming what ``env`` lacks of Brax's environment protocol."""
-    missing = [name for name in ("reset", "step", "observation_size", "action_size") if not hasattr(env, name)]
+def check_protocol(env: Any) -> int:
+    """The length of ``env``'s observation vector; ``EnvError`` naming what ``env`` lacks of Brax's
+    environment protocol.
+
+    ``observation_size`` is read once: MuJoCo Playground computes it by tracing ``reset``.
+    """
+    # Looked up on the class first, so that a property is not evaluated just to see that it exists.
+    missing = [name for name in ("reset", "step", "observation_size", "action_size")
+               if not (hasattr(type(env), name) or hasattr(env, name))]
     if missing:
         raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: it has no "
                        f"{', '.join(missing)} (reset(key) -> State, step(State, action) -> State, "
@@ -75,11 +82,6 @@ def check_protocol(env: Any) -> None:
         size = size["state"]
     if not (isinstance(size, (int, np.integer)) or (isinstance(size, tuple) and len(size) == 1)):
         raise EnvError(f"{type(env).__name__}'s observation has shape {size}: only vector observations are supported")
-
-
-def observation_size(env: Any) -> int:
-    size = env.observation_size
-    size = size["state"] if isinstance(size, dict) else size
     return int(size[0] if isinstance(size, tuple) else size)
 
 
@@ -251,7 +253,7 @@ def _is_playground(env: Any) -> bool:
 def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,
              hidden: Sequence[int] = (64, 64), name: str = "", reward_context: Callable | None = None,
              reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0,
-             dense_variant: str = "") -> Task:
+             dense_variant: str = "", diagnosis_key: dict | None = None) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -270,6 +272,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         a reward with no usable gradient raises ``EnvError``.
       dense_variant: the name of an environment with the same task and a dense reward,
         which the refusal of a reward without a gradient then suggests.
+      diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its
+        registry name): the diagnosis is then kept under it with the compiled programs
+        (``program_store.kept_answer``) and an identical later run reads it instead of
+        tracing the step's derivative again. None: diagnosed every time.
 
     Example::
 
@@ -277,7 +283,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         task = sb.env_task(env, horizon=100)
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
-    check_protocol(env)
+    observations = check_protocol(env)
     if episode_length is None:
         episode_length = int(getattr(getattr(env, "_config", None), "episode_length", 1000))
     if reward_context is None:
@@ -301,7 +307,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     def policy(params, state):
         return jnp.tanh(mlp_apply(params, observation(state)))
 
-    sizes = (observation_size(env), *hidden, int(env.action_size))
+    sizes = (observations, *hidden, int(env.action_size))
     reset = jax.jit(jax.vmap(env.reset))
 
     def sample_initial_states(key, count):
@@ -310,7 +316,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     diagnosis = None
     start_off_zero = False
     if diagnose:
-        diagnosis = diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed))
+        diagnose_now = lambda: list(diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed)))
+        key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed}
+        diagnosis = RewardDiagnosis(*program_store.kept_answer(key, "reward diagnosis", diagnose_now))
         advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
             "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
         if diagnosis.kind == "zero":

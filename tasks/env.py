@@ -51,9 +51,12 @@ def make(config: Config) -> Task:
     if ":" not in config.env:  # a name of MuJoCo Playground's registry (load_env has imported it)
         from stablebptt import playground
         dense = playground.dense_variant(config.env)
+    # A registry env's name and the package versions say what its reward computes: its diagnosis is
+    # kept for an identical later run, like its programs.
+    keyable = program_inputs(config) is not None
     return env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
-                    diagnose=config.reward_check)
+                    diagnose=config.reward_check, diagnosis_key={"env": config.env} if keyable else None)
 
 
 def for_reopening(config: Config) -> Config:

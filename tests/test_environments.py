@@ -17,6 +17,7 @@ import stablebptt as sb
 from conftest import ROOT, float64
 from envs_for_tests import Cart
 from stablebptt.constraint_derivatives import differentiable_mjx
+from stablebptt import environments
 from stablebptt.environments import EnvError, env_task
 from stablebptt.flows import flow_gradients, reference_loss
 from stablebptt.mjx_internals import mjx
@@ -44,13 +45,21 @@ def test_an_environment_trains_and_flow_r_is_the_gradient_of_the_plain_rollout()
     assert result.test_loss[-1] < result.test_loss[0]  # it learns to hold the cart at the origin
 
 
-def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_starts_off_zero():
-    with pytest.raises(EnvError, match="gradient is zero at every sampled state") as refusal:
-        env_task(Cart("step"), horizon=5, dense_variant="SmoothCart")
+def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_starts_off_zero(tmp_path, monkeypatch):
+    # Under a key (a registry env's name), the diagnosis is kept in the compile cache with the programs.
+    key = lambda reward: {"env": f"Cart {reward} {tmp_path}"}  # noqa: E731
+    for _ in range(2):  # the second time from what the first kept: a refusal is kept too
+        with pytest.raises(EnvError, match="gradient is zero at every sampled state") as refusal:
+            env_task(Cart("step"), horizon=5, dense_variant="SmoothCart", diagnosis_key=key("step"))
+        monkeypatch.setattr(environments, "diagnose_env", lambda *a: pytest.fail("diagnosed although kept"))
+    monkeypatch.undo()
     assert "train SmoothCart, its dense variant; or give the reward a slope" in str(refusal.value)
     with pytest.raises(EnvError, match=r"gradient is NaN at \d+% of sampled states"):
         env_task(Cart("root"), horizon=5)
-    task = env_task(Cart("norm"), horizon=5)
+    task = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
+    monkeypatch.setattr(environments, "diagnose_env", lambda *a: pytest.fail("diagnosed although kept"))
+    assert env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm")).resolved == task.resolved
+    monkeypatch.undo()
     assert task.resolved["reward_gradient"] == "nan at zero action"
     assert task.resolved["policy_output_start"] == "small"
     params = task.init_params(jax.random.PRNGKey(0), True)
