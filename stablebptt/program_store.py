@@ -128,18 +128,20 @@ def compile_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cac
         return compile_ahead(epoch, *arguments)
     started = time.perf_counter()
 
-    def compile_one(program: Callable, program_arguments: tuple, name: str):
-        return _compile_kept(program, program_arguments, {**key_parts, "program": name},
-                             Path(cache_dir) / FOLDER, compiler_options)
+    def lower_one(program: Callable, program_arguments: tuple, name: str):
+        return _lower_kept(program, program_arguments, {**key_parts, "program": name},
+                           Path(cache_dir) / FOLDER, compiler_options)
 
     if hasattr(epoch, "compile_pieces"):
-        compiled = epoch.compile_pieces(arguments, compile_one)
+        compiled = epoch.compile_pieces(arguments, lower_one)
     else:
-        compiled = compile_one(epoch, arguments, "epoch")
+        compiled = lower_one(epoch, arguments, "epoch").compile()
     return compiled, time.perf_counter() - started
 
 
-def _compile_kept(program: Callable, arguments: tuple, key_parts: dict, folder: Path, compiler_options: dict | None):
+def _lower_kept(program: Callable, arguments: tuple, key_parts: dict, folder: Path, compiler_options: dict | None):
+    """``program`` lowered for ``arguments`` from its kept traced program, which is traced and kept
+    first where none is; a program that cannot be exported is lowered as usual."""
     import jax
 
     path = folder / f"{program_key(key_parts, arguments)}{SUFFIX}"
@@ -147,7 +149,7 @@ def _compile_kept(program: Callable, arguments: tuple, key_parts: dict, folder: 
     if kept is None:
         kept = _traced(program, arguments)
         if kept is None:  # not exportable: the plain program serves
-            return program.lower(*arguments).compile()
+            return program.lower(*arguments)
         try:
             folder.mkdir(parents=True, exist_ok=True)
             atomic_write(path, _serialized(*kept))
@@ -159,7 +161,7 @@ def _compile_kept(program: Callable, arguments: tuple, key_parts: dict, folder: 
         return jax.tree.unflatten(out_tree, exported.call(*jax.tree.leaves(given)))
 
     # The kept program is compiled the same way in the run that traced it and in every later one.
-    return jax.jit(call, compiler_options=compiler_options).lower(*arguments).compile()
+    return jax.jit(call, compiler_options=compiler_options).lower(*arguments)
 
 
 def _traced(program: Callable, arguments: tuple):

@@ -6,6 +6,8 @@ the plan of how to differentiate the task) and returns pure functions;
 """
 from __future__ import annotations
 
+import concurrent.futures
+
 import dataclasses
 import functools
 import math
@@ -368,16 +370,21 @@ class PerUpdateEpoch:
     def lower(self, state, batches, train_states, test_states):
         return _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states))
 
-    def compile_pieces(self, arguments: tuple, compile_one: Callable) -> PerUpdateEpoch:
-        """The three programs compiled for the epoch's ``arguments`` by ``compile_one(program,
+    def compile_pieces(self, arguments: tuple, lower_one: Callable) -> PerUpdateEpoch:
+        """The three programs compiled for the epoch's ``arguments``, each lowered by ``lower_one(program,
         arguments, name)``; each compiled program knows its outputs' shapes: nothing is traced twice."""
         state, batches, train_states, test_states = arguments
-        update = compile_one(self.update, (state, jax.tree.map(lambda a: a[0], batches)), "update")
+        update = lower_one(self.update, (state, jax.tree.map(lambda a: a[0], batches)), "update")
+        evaluate = lower_one(self.evaluate, (state.params, train_states, test_states), "evaluate")
+        # XLA lets go of Python while it compiles: with two cores the evaluation compiles beside the update.
+        with concurrent.futures.ThreadPoolExecutor(1) as beside:
+            evaluate = beside.submit(evaluate.compile)
+            update = update.compile()
+            evaluate = evaluate.result()
         per_update = jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], _updates(batches)) + a.shape[1:], a.dtype),
                                   update.out_info[1])
-        evaluate = compile_one(self.evaluate, (state.params, train_states, test_states), "evaluate")
         losses = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), evaluate.out_info)
-        metrics = compile_one(self.epoch_metrics, (state, per_update, losses), "epoch_metrics")
+        metrics = lower_one(self.epoch_metrics, (state, per_update, losses), "epoch_metrics").compile()
         return PerUpdateEpoch(update, evaluate, metrics)
 
 
@@ -386,7 +393,7 @@ class _LoweredPerUpdateEpoch(NamedTuple):
     arguments: tuple
 
     def compile(self) -> PerUpdateEpoch:
-        return self.epoch.compile_pieces(self.arguments, lambda program, arguments, name: program.lower(*arguments).compile())
+        return self.epoch.compile_pieces(self.arguments, lambda program, arguments, name: program.lower(*arguments))
 
 
 def _updates(batches: PyTree) -> int:
