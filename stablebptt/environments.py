@@ -74,7 +74,11 @@ def check_protocol(env: Any) -> int:
         raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: it has no "
                        f"{', '.join(missing)} (reset(key) -> State, step(State, action) -> State, "
                        "observation_size, action_size)")
-    size = env.observation_size
+    try:
+        size, _ = env.observation_size, env.action_size
+    except AttributeError as error:  # a wrapper whose class forwards them to an env that lacks one
+        raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: reading its "
+                       f"observation_size or action_size failed ({error})") from None
     if isinstance(size, dict):
         if "state" not in size:
             raise EnvError(f"{type(env).__name__}'s observation is a dict without a 'state' entry "
@@ -273,9 +277,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       dense_variant: the name of an environment with the same task and a dense reward,
         which the refusal of a reward without a gradient then suggests.
       diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its
-        registry name): the diagnosis is then kept under it with the compiled programs
-        (``program_store.kept_answer``) and an identical later run reads it instead of
-        tracing the step's derivative again. None: diagnosed every time.
+        registry name): while JAX's compile cache is on, the diagnosis is kept under it (with
+        ``reward_repairs``) beside the compiled programs (``program_store.kept_answer``), and an
+        identical later run reads it instead of tracing the step's derivative again. None:
+        diagnosed every time.
 
     Example::
 
@@ -316,8 +321,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     diagnosis = None
     start_off_zero = False
     if diagnose:
-        diagnose_now = lambda: list(diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed)))
-        key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed}
+        diagnose_now = lambda: list(diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed)))  # noqa: E731
+        key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed,
+                                                  "reward_repairs": reward_repairs}
         diagnosis = RewardDiagnosis(*program_store.kept_answer(key, "reward diagnosis", diagnose_now))
         advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
             "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"

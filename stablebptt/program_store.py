@@ -97,7 +97,8 @@ def _tree_digest(tree) -> str:
 def kept_answer(key_parts: dict | None, name: str, compute: Callable[[], Any]) -> Any:
     """``compute()``'s answer (JSON), kept beside the traced programs under ``key_parts`` and ``name``
     while JAX's compile cache is on: a set-up measurement or check that traces the step (the memory
-    plan's bytes, the task check) is not repeated by an identical later run. ``key_parts`` None: computed."""
+    plan's bytes, the task check, the step's size, an environment's reward diagnosis) is not
+    repeated by an identical later run. ``key_parts`` None: computed."""
     cache = cache_dir()
     if key_parts is None or cache is None:
         return compute()

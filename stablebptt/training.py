@@ -7,11 +7,11 @@ the plan of how to differentiate the task) and returns pure functions;
 from __future__ import annotations
 
 import concurrent.futures
-
 import dataclasses
 import functools
 import math
 import numbers
+import os
 from dataclasses import dataclass, field, fields
 from typing import Any, Callable, NamedTuple
 
@@ -230,8 +230,9 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     the optimizer of ``make_grid_optimizer`` selects each cell's update, and
     ``epoch`` takes each cell's value of ``task.cell_option`` as its second argument.
     The plan (``Trainer.plan``) is ``run_plan``'s, or ``plan`` whole where one is given.
-    With ``keep`` (everything that decides the run's programs: ``program_store``), the task check's
-    and the memory plan's traced measurements are kept, and an identical later run skips them.
+    With ``keep`` (everything that decides the run's programs: ``program_store``), the task check's,
+    the step size's and the memory plan's traced measurements are kept, and an identical later run
+    skips them.
     """
     if not isinstance(config, TrainConfig):
         raise InputError(f"expected a stablebptt.TrainConfig, got {type(config).__name__}")
@@ -252,7 +253,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
     # which on a GPU compiles one program per leaf shape.
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
-    large = large_step(task, config, example_state)
+    large = kept("large step", lambda: large_step(task, config, example_state))  # a trace of one step: kept too
     options = compiler_options(large)
     jit = functools.partial(jax.jit, compiler_options=options)
     measured = lambda name, measure: kept(f"traced bytes, {name}", measure)  # noqa: E731
@@ -353,7 +354,8 @@ class PerUpdateEpoch:
     metrics)``, with the same metrics; ``lower(...).compile()`` compiles every
     program ahead, as ``jax.jit``'s does for the whole epoch. XLA compiles the
     pieces apart in a fraction of the time and memory it needs for one program
-    holding them all.
+    holding them all; on a CPU of several cores the update and the evaluation
+    compile side by side.
     """
 
     def __init__(self, update: Callable, evaluate: Callable, epoch_metrics: Callable):
@@ -376,11 +378,13 @@ class PerUpdateEpoch:
         state, batches, train_states, test_states = arguments
         update = lower_one(self.update, (state, jax.tree.map(lambda a: a[0], batches)), "update")
         evaluate = lower_one(self.evaluate, (state.params, train_states, test_states), "evaluate")
-        # XLA lets go of Python while it compiles: with two cores the evaluation compiles beside the update.
-        with concurrent.futures.ThreadPoolExecutor(1) as beside:
-            evaluate = beside.submit(evaluate.compile)
-            update = update.compile()
-            evaluate = evaluate.result()
+        if _compile_side_by_side():
+            with concurrent.futures.ThreadPoolExecutor(1) as beside:
+                evaluate = beside.submit(evaluate.compile)
+                update = update.compile()
+                evaluate = evaluate.result()
+        else:
+            update, evaluate = update.compile(), evaluate.compile()
         per_update = jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], _updates(batches)) + a.shape[1:], a.dtype),
                                   update.out_info[1])
         losses = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), evaluate.out_info)
@@ -394,6 +398,13 @@ class _LoweredPerUpdateEpoch(NamedTuple):
 
     def compile(self) -> PerUpdateEpoch:
         return self.epoch.compile_pieces(self.arguments, lambda program, arguments, name: program.lower(*arguments))
+
+
+def _compile_side_by_side() -> bool:
+    """Whether two programs compile at once: XLA lets go of Python while it compiles, so a CPU of
+    several cores compiles the evaluation beside the update. Not on one core (two compiles' memory
+    for nothing), nor on a GPU, whose kernel autotuning would time candidates against each other."""
+    return jax.default_backend() == "cpu" and len(os.sched_getaffinity(0)) > 1
 
 
 def _updates(batches: PyTree) -> int:

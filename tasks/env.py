@@ -53,10 +53,11 @@ def make(config: Config) -> Task:
         dense = playground.dense_variant(config.env)
     # A registry env's name and the package versions say what its reward computes: its diagnosis is
     # kept for an identical later run, like its programs.
-    keyable = program_inputs(config) is not None
+    inputs = program_inputs(config)
     return env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
-                    diagnose=config.reward_check, diagnosis_key={"env": config.env} if keyable else None)
+                    diagnose=config.reward_check,
+                    diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs})
 
 
 def for_reopening(config: Config) -> Config:

@@ -5,6 +5,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+import types
 from dataclasses import replace
 
 import jax
@@ -16,8 +17,8 @@ import pytest
 import stablebptt as sb
 from conftest import ROOT, float64
 from envs_for_tests import Cart
-from stablebptt.constraint_derivatives import differentiable_mjx
 from stablebptt import environments
+from stablebptt.constraint_derivatives import differentiable_mjx
 from stablebptt.environments import EnvError, env_task
 from stablebptt.flows import flow_gradients, reference_loss
 from stablebptt.mjx_internals import mjx
@@ -66,6 +67,22 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
     assert 0 < float(jnp.max(jnp.abs(params[-1][0]))) < 0.1  # small output weights, not zero
     result = sb.train(task, replace(TINY, epochs=1))
     assert np.isfinite(result.test_loss).all()
+
+
+def test_a_wrapper_of_an_environment_that_lacks_a_size_is_refused_in_one_line():
+    class Wrapper:  # its class has every name of the protocol; reading one reaches the wrapped env
+        def __init__(self, env):
+            self.env = env
+
+        reset = property(lambda self: self.env.reset)
+        step = property(lambda self: self.env.step)
+        observation_size = property(lambda self: self.env.observation_size)
+        action_size = property(lambda self: self.env.action_size)
+
+    cart = Cart()
+    incomplete = types.SimpleNamespace(reset=cart.reset, step=cart.step, action_size=1)  # no observation_size
+    with pytest.raises(EnvError, match="reading its observation_size or action_size failed"):
+        env_task(Wrapper(incomplete), horizon=5)
 
 
 def run_script(*args, env=None):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from stablebptt import fitting, runs
+from stablebptt import fitting, runs, training
 from stablebptt.flows import Dynamics, Plan
 from stablebptt.training import Task, TrainConfig, make_trainer, seed_array
 from stablebptt.tasks import repulsion
@@ -139,8 +139,10 @@ def test_a_kept_traced_epoch_computes_what_the_traced_one_does_and_a_changed_key
     assert len(calls) == 1
     kept_key = {**key, "test": str(tmp_path)}
     fields = lambda plan: vars(plan)  # noqa: E731 - Plan compares by identity
-    assert fields(make_trainer(task, config, keep=kept_key).plan) == fields(make_trainer(task, config, keep=kept_key).plan) \
-        == fields(trainer.plan)
+    first = make_trainer(task, config, keep=kept_key)
+    monkeypatch.setattr(training, "large_step", lambda *a: pytest.fail("the step's size traced although kept"))
+    assert fields(first.plan) == fields(make_trainer(task, config, keep=kept_key).plan) == fields(trainer.plan)
+    monkeypatch.undo()
     from stablebptt.tasks import env, mjcf
     assert env.program_inputs(env.Config(env="my_lab.envs:arm")) is None  # code outside the library: not kept
     models = [tmp_path / f"{name}.xml" for name in ("a", "b")]
