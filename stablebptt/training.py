@@ -404,7 +404,8 @@ def _compile_side_by_side() -> bool:
     """Whether two programs compile at once: XLA lets go of Python while it compiles, so a CPU of
     several cores compiles the evaluation beside the update. Not on one core (two compiles' memory
     for nothing), nor on a GPU, whose kernel autotuning would time candidates against each other."""
-    return jax.default_backend() == "cpu" and len(os.sched_getaffinity(0)) > 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1  # macOS has no affinity
+    return jax.default_backend() == "cpu" and cores > 1
 
 
 def _updates(batches: PyTree) -> int:
