@@ -38,6 +38,7 @@ from pathlib import Path
 from stablebptt.apps.bench import TABLES, BenchConfig
 from stablebptt.cli import fail, parse_config
 from stablebptt.errors import InputError
+from stablebptt.timing import usable_cores
 
 
 def main(argv: list[str]) -> int:
@@ -62,7 +63,7 @@ def main(argv: list[str]) -> int:
     import jax
     header = [f"Measured by `python scripts/bench.py {' '.join(argv)}`".rstrip()
               + f" on {platform.machine()} ({jax.devices()[0].platform}, {jax.device_count()} device, "
-              f"{len(os.sched_getaffinity(0))} of {os.cpu_count()} cores), "
+              f"{usable_cores()} of {os.cpu_count()} cores), "
               f"jax {jax.__version__}, batch {config.batch}, median of {config.rounds} rounds.", ""]
     print("\n".join(header), flush=True)
     report = list(header)

@@ -6,8 +6,17 @@ processes), so ratios measured in one run compare like with like.
 """
 from __future__ import annotations
 
+import os
 import time
 from typing import Any, Callable
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS has one, as Linux does; else
+    the machine's count)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def compile_ahead(function: Callable, *arguments) -> tuple[Callable, float]:

@@ -11,7 +11,6 @@ import dataclasses
 import functools
 import math
 import numbers
-import os
 from dataclasses import dataclass, field, fields
 from typing import Any, Callable, NamedTuple
 
@@ -27,6 +26,7 @@ from stablebptt.flows import (FLOWS, MODE_TABLE, MODES, Dynamics, Plan, flow_gra
                               select_flow, tree_cosine)
 from stablebptt.memory import MemoryPlan, measure_now, plan_memory
 from stablebptt.program_store import kept_answer
+from stablebptt.timing import usable_cores
 
 PyTree = Any
 CLIP_MODES = ("value", "norm", "none")
@@ -404,8 +404,7 @@ def _compile_side_by_side() -> bool:
     """Whether two programs compile at once: XLA lets go of Python while it compiles, so a CPU of
     several cores compiles the evaluation beside the update. Not on one core (two compiles' memory
     for nothing), nor on a GPU, whose kernel autotuning would time candidates against each other."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1  # macOS has no affinity
-    return jax.default_backend() == "cpu" and cores > 1
+    return jax.default_backend() == "cpu" and usable_cores() > 1
 
 
 def _updates(batches: PyTree) -> int:

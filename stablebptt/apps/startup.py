@@ -15,6 +15,7 @@ import platform
 from pathlib import Path
 
 from stablebptt.errors import InputError
+from stablebptt.timing import usable_cores
 
 # dm_control's suite models that train (tests/test_suite_models.py), smallest first.
 SUITE_MODELS = ("pendulum", "acrobot", "point_mass", "hopper", "ball_in_cup", "reacher", "fish", "walker",
@@ -62,7 +63,7 @@ def machine() -> str:
                       if line.startswith("model name")), "")
     except OSError:
         pass
-    return (f"{platform.machine()}{f' ({model})' if model else ''}, {len(os.sched_getaffinity(0))} of "
+    return (f"{platform.machine()}{f' ({model})' if model else ''}, {usable_cores()} of "
             f"{os.cpu_count()} cores, {platform.system()} {platform.release()}")
 
 
