@@ -227,7 +227,10 @@ def rollout_loss(discount: float) -> Callable:
 
 def load_env(spec: str) -> Any:
     """The environment ``spec`` names: ``package.module:attribute`` (an environment, or a class or
-    factory called without arguments), else a name in MuJoCo Playground's registry."""
+    factory called without arguments), else a name in MuJoCo Playground's registry.
+
+    Whether it follows Brax's protocol is ``env_task``'s check, made once where the environment is
+    used: reading ``observation_size`` may trace ``reset``, which a rendering has no need of."""
     if ":" not in spec:
         from stablebptt import playground
         return playground.load(spec)
@@ -246,7 +249,6 @@ def load_env(spec: str) -> Any:
             found = found()
         except Exception as error:  # noqa: BLE001 - the user's factory failed: say so in one line
             raise EnvError(f"environment {spec}: {attribute}() failed ({type(error).__name__}: {error})") from None
-    check_protocol(found)
     return found
 
 
