@@ -5,12 +5,9 @@
 # (--merge), which comes back as $OUT/quantum20_report.tgz.
 #   bash experiments/quantum20/call.sh LIMIT
 LIMIT=${1:-500}
-if [ ! -f /tmp/site/.installed ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-    && touch /tmp/site/.installed || { echo "wheel install failed"; exit 1; }
-fi
+source experiments/install_wheels.sh
 for link in tasks:tasks commands:scripts models:models; do ln -sfn ../${link#*:} stablebptt/${link%%:*}; done
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=disable STABLEBPTT_COMPILE_CACHE=/tmp/q20_cache
+export STABLEBPTT_COMPILE_CACHE=/tmp/q20_cache
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 SWEEP="python3 scripts/sweep.py --preset quantum --seeds 20 --out /tmp/q20"
 for GPU in 0 1; do
