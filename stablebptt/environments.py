@@ -39,7 +39,7 @@ from stablebptt.constraint_derivatives import differentiable_mjx
 from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics, join, reference_losses, split
 from stablebptt.networks import mlp_apply, mlp_init
-from stablebptt.training import Task
+from stablebptt.training import Task, compiler_options
 
 PyTree = Any
 # Output weights of a policy that must not start at exactly zero action: small enough that the
@@ -152,7 +152,7 @@ def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> Rewar
       states: a batch of states (leading axis), e.g. resets and states a few random steps on.
       actions: random actions, one per state; zero actions are tried too.
     """
-    return _classify(*jax.device_get(jax.jit(_gradient_checks(step))(states, actions)))
+    return _classify(*jax.device_get(jax.jit(_gradient_checks(step), compiler_options=compiler_options())(states, actions)))
 
 
 def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
@@ -160,7 +160,8 @@ def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
     sampling and the gradients compiled as ONE program: no operation runs eagerly, which on a GPU
     would compile each one apart."""
     checks = _gradient_checks(step)
-    return _classify(*jax.device_get(jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)))(key)))
+    sample_and_check = jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)), compiler_options=compiler_options())
+    return _classify(*jax.device_get(sample_and_check(key)))
 
 
 def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:

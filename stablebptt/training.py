@@ -11,6 +11,7 @@ import dataclasses
 import functools
 import math
 import numbers
+import os
 from dataclasses import dataclass, field, fields
 from typing import Any, Callable, NamedTuple
 
@@ -248,8 +249,14 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
     train_key, test_key = jax.random.split(jax.random.PRNGKey(config.data_seed))
-    train_states = task.sample_initial_states(train_key, config.train_size)
-    test_states = task.sample_initial_states(test_key, config.test_size)
+    # On a GPU the states come from one program compiled with the GPU's options (an environment's
+    # reset is a large one); on a CPU eagerly, as fused by jit the states of cartpole_3 and quantum
+    # would differ in their last bits from the ones every CPU run so far trained from.
+    setup_options = compiler_options()
+    sample = (jax.jit(task.sample_initial_states, static_argnums=1, compiler_options=setup_options)
+              if setup_options else task.sample_initial_states)
+    train_states = sample(train_key, config.train_size)
+    test_states = sample(test_key, config.test_size)
     # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
     # which on a GPU compiles one program per leaf shape.
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
@@ -422,9 +429,32 @@ def _operations(jaxpr) -> int:
                for equation in jaxpr.eqns)
 
 
-def compiler_options(large: bool) -> dict | None:
-    """XLA options of a program that holds a simulator step; ``large``: ``large_step``'s answer."""
-    return dict(LARGE_STEP_CPU_OPTIONS) if large and jax.default_backend() == "cpu" else None
+def gpu_options() -> dict:
+    """XLA options of every program the trainer compiles for a GPU.
+
+    While it compiles for a GPU, XLA times candidate kernels of its matrix products and fusions
+    ("autotuning") and by default (level 4) also fills their buffers and checks every candidate
+    against a reference. Level 1 times them and checks none; level 0 does not time them at all. And
+    XLA compiles a program's kernels on one thread unless told how many to use. On one H100, the
+    cart-pole grid's four programs (240 cells each) compiled in 53-155 s with the defaults, in
+    9-19 s with level 0 on every core but then trained twice as long, and in 11-22 s with level 1
+    on every core, training as fast as with the defaults
+    (experiments/startup_gpu/grid_compile.sh; results/startup/gpu-grid.md).
+    """
+    return {"xla_gpu_autotune_level": 1, "xla_gpu_force_compilation_parallelism": usable_cores()}
+
+
+def compiler_options(large: bool = False) -> dict | None:
+    """XLA options of a program that holds a simulator step; ``large``: ``large_step``'s answer.
+
+    An option the user set in ``XLA_FLAGS`` (``--xla_gpu_autotune_level=4``: XLA's own checks) is
+    left to it.
+    """
+    backend, flags = jax.default_backend(), os.environ.get("XLA_FLAGS", "")
+    options = dict(LARGE_STEP_CPU_OPTIONS) if large and backend == "cpu" else {}
+    if backend == "gpu":
+        options.update({name: value for name, value in gpu_options().items() if f"--{name}=" not in flags})
+    return options or None
 
 
 def large_step(task: Task, config: TrainConfig, initial_state: PyTree) -> bool:
