@@ -196,6 +196,25 @@ def compile_cache_dir() -> Path | None:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "stablebptt" / "jax"
 
 
+def load_mjx_without_warp() -> None:
+    """Import MJX with its Warp backend left out, before anything else of the command imports it.
+
+    MJX loads its Warp backend at import whenever warp-lang is installed (MuJoCo Playground installs
+    it): 1.2 s of every command's start on this project's CPU, for a backend without gradients that
+    no command runs. Afterwards ``import warp`` works again; only MJX's own Warp backend stays off in
+    this process. A no-op where MJX or Warp is already imported.
+    """
+    if "mujoco.mjx" in sys.modules or "warp" in sys.modules:
+        return
+    import io
+    sys.modules["warp"] = None  # ``import warp`` raises ImportError, which MJX takes for "not installed"
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # MJX prints why it has no Warp
+            import mujoco.mjx  # noqa: F401
+    finally:
+        del sys.modules["warp"]
+
+
 def use_compile_cache(enabled: bool = True,
                       note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> Path | None:
     """Turn on JAX's persistent compilation cache (before the first compile): a second identical run

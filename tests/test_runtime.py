@@ -89,3 +89,27 @@ def test_large_scenes_compile_with_a_loop_emitter_this_xla_accepts_and_the_numbe
     with_loop_emitter = jax.jit(chain, compiler_options=LARGE_STEP_CPU_OPTIONS)(x)
     np.testing.assert_allclose(with_loop_emitter, jax.jit(chain)(x), rtol=1e-5, atol=1e-6)
     assert np.all(np.isfinite(with_loop_emitter)) and np.ptp(with_loop_emitter) > 0
+
+
+def test_commands_load_mjx_without_its_warp_backend_and_warp_stays_importable():
+    """The commands import MJX without its Warp backend (``cli.load_mjx_without_warp``): MJX's JAX
+    implementation still builds and steps a model, nothing is printed, and ``import warp`` works
+    afterwards where warp-lang is installed."""
+    program = textwrap.dedent("""
+        import importlib.util, sys
+        from stablebptt.cli import load_mjx_without_warp
+        load_mjx_without_warp()
+        assert "mujoco.mjx.third_party.mujoco_warp" not in sys.modules
+        import mujoco
+        from mujoco import mjx
+        model = mujoco.MjModel.from_xml_string('<mujoco><worldbody><body><joint type="slide"/><geom size=".1"/></body></worldbody></mujoco>')
+        data = mjx.step(mjx.put_model(model), mjx.make_data(mjx.put_model(model)))
+        assert float(data.qpos[0]) < 0  # it falls along the slide
+        if importlib.util.find_spec("warp") is not None:
+            import warp  # noqa: F401
+        print("ok")
+    """)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    result = subprocess.run([sys.executable, "-c", program], env=env, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == "ok\n", result.stdout
