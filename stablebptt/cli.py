@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import importlib
 import os
 import signal
 import sys
@@ -200,17 +201,15 @@ def load_mjx_without_warp() -> None:
     """Import MJX with its Warp backend left out, before anything else of the command imports it.
 
     MJX loads its Warp backend at import whenever warp-lang is installed (MuJoCo Playground installs
-    it): 1.2 s of every command's start on this project's CPU, for a backend without gradients that
-    no command runs. Afterwards ``import warp`` works again; only MJX's own Warp backend stays off in
-    this process. A no-op where MJX or Warp is already imported.
+    it), and no command runs it (Warp has no gradients): train.py's set-up took 1.1-1.8 s less
+    without it (results/startup/cpu-no-warp-*.md). Afterwards ``import warp`` works again; only MJX's
+    own Warp backend stays off in this process. A no-op where MJX or Warp is already imported.
     """
     if "mujoco.mjx" in sys.modules or "warp" in sys.modules:
         return
-    import io
     sys.modules["warp"] = None  # ``import warp`` raises ImportError, which MJX takes for "not installed"
     try:
-        with contextlib.redirect_stdout(io.StringIO()):  # MJX prints why it has no Warp
-            import mujoco.mjx  # noqa: F401
+        importlib.import_module("stablebptt.mjx_internals")  # imports MJX, keeping its Warp message off stdout
     finally:
         del sys.modules["warp"]
 

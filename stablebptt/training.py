@@ -208,7 +208,12 @@ def make_grid_optimizer(config: TrainConfig) -> optax.GradientTransformation:
 
 
 class Trainer(NamedTuple):
-    """Compiled pieces of a run. Every function maps over a leading seed axis."""
+    """Compiled pieces of a run. Every function maps over a leading seed axis.
+
+    Where ``compiler_options`` is set (on a GPU; on a CPU for a large step) the functions are
+    programs of their own: call, ``lower`` or ``trace`` them, but JAX refuses them inside another
+    jit, ``scan`` or ``make_jaxpr``.
+    """
 
     flows: tuple[str, ...]
     init: Callable[[jax.Array], TrainState]  # seeds [S] -> states
@@ -249,14 +254,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
     train_key, test_key = jax.random.split(jax.random.PRNGKey(config.data_seed))
-    # On a GPU the states come from one program compiled with the GPU's options (an environment's
-    # reset is a large one); on a CPU eagerly, as fused by jit the states of cartpole_3 and quantum
-    # would differ in their last bits from the ones every CPU run so far trained from.
-    setup_options = compiler_options()
-    sample = (jax.jit(task.sample_initial_states, static_argnums=1, compiler_options=setup_options)
-              if setup_options else task.sample_initial_states)
-    train_states = sample(train_key, config.train_size)
-    test_states = sample(test_key, config.test_size)
+    train_states = sample_states(task, train_key, config.train_size)
+    test_states = sample_states(task, test_key, config.test_size)
     # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
     # which on a GPU compiles one program per leaf shape.
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
@@ -430,7 +429,7 @@ def _operations(jaxpr) -> int:
 
 
 def gpu_options() -> dict:
-    """XLA options of every program the trainer compiles for a GPU.
+    """XLA options of the programs that hold a simulator step, compiled for a GPU.
 
     While it compiles for a GPU, XLA times candidate kernels of its matrix products and fusions
     ("autotuning") and by default (level 4) also fills their buffers and checks every candidate
@@ -439,9 +438,21 @@ def gpu_options() -> dict:
     cart-pole grid's four programs (240 cells each) compiled in 53-155 s with the defaults, in
     9-19 s with level 0 on every core but then trained twice as long, and in 11-22 s with level 1
     on every core, training as fast as with the defaults
-    (experiments/startup_gpu/grid_compile.sh; results/startup/gpu-grid.md).
+    (experiments/startup_gpu/grid_compile.sh; results/startup/gpu-side-by-side/grid/).
     """
     return {"xla_gpu_autotune_level": 1, "xla_gpu_force_compilation_parallelism": usable_cores()}
+
+
+def sample_states(task: Task, key: jax.Array, count: int) -> PyTree:
+    """``count`` initial states of ``task`` from ``key``, as every run draws them.
+
+    On a GPU by a program compiled with the GPU's options (an environment's reset is a large one);
+    on a CPU eagerly: fused by jit, the states of cartpole_3 and quantum would differ in their last
+    bits from the ones CPU runs have trained from.
+    """
+    if jax.default_backend() != "gpu":
+        return task.sample_initial_states(key, count)
+    return jax.jit(task.sample_initial_states, static_argnums=1, compiler_options=compiler_options())(key, count)
 
 
 def compiler_options(large: bool = False) -> dict | None:

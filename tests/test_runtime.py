@@ -7,6 +7,7 @@ calls run at once as the pool has threads, every thread waits and nobody runs th
 chunks. ``import stablebptt`` gives the pool one thread (PJRT_NPROC=1), with which
 the kernels run the whole batch in place.
 """
+import importlib.util
 import os
 import subprocess
 import sys
@@ -91,25 +92,30 @@ def test_large_scenes_compile_with_a_loop_emitter_this_xla_accepts_and_the_numbe
     assert np.all(np.isfinite(with_loop_emitter)) and np.ptp(with_loop_emitter) > 0
 
 
-def test_commands_load_mjx_without_its_warp_backend_and_warp_stays_importable():
-    """The commands import MJX without its Warp backend (``cli.load_mjx_without_warp``): MJX's JAX
-    implementation still builds and steps a model, nothing is printed, and ``import warp`` works
-    afterwards where warp-lang is installed."""
+@pytest.mark.skipif(importlib.util.find_spec("warp") is None, reason="warp-lang is not installed: MJX has no Warp backend to leave out")
+def test_train_and_sweep_load_mjx_without_its_warp_backend_and_warp_stays_importable():
+    """train.py and sweep.py import MJX without its Warp backend (``cli.load_mjx_without_warp``) before
+    parsing: MJX's JAX implementation still builds and steps a model, nothing is printed, and
+    ``import warp`` works afterwards."""
     program = textwrap.dedent("""
-        import importlib.util, sys
+        import sys
         from stablebptt.cli import load_mjx_without_warp
         load_mjx_without_warp()
-        assert "mujoco.mjx.third_party.mujoco_warp" not in sys.modules
         import mujoco
         from mujoco import mjx
+        import mujoco.mjx.warp
+        assert "mujoco.mjx.third_party.mujoco_warp" not in sys.modules and not mujoco.mjx.warp.WARP_INSTALLED
+        assert sys.modules.get("warp", False) is not None  # the block is lifted
         model = mujoco.MjModel.from_xml_string('<mujoco><worldbody><body><joint type="slide"/><geom size=".1"/></body></worldbody></mujoco>')
         data = mjx.step(mjx.put_model(model), mjx.make_data(mjx.put_model(model)))
         assert float(data.qpos[0]) < 0  # it falls along the slide
-        if importlib.util.find_spec("warp") is not None:
-            import warp  # noqa: F401
+        import warp  # noqa: F401
         print("ok")
     """)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     result = subprocess.run([sys.executable, "-c", program], env=env, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert result.stdout == "ok\n", result.stdout
+    for script in ("train.py", "sweep.py"):  # first thing in main, before parsing imports the tasks
+        main = (ROOT / "scripts" / script).read_text().split("def main(", 1)[1]
+        assert main.split("\n")[1].strip().startswith("load_mjx_without_warp()"), script

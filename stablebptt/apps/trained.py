@@ -16,7 +16,7 @@ from stablebptt import run_models, runs
 from stablebptt.cli import build
 from stablebptt.errors import InputError
 from stablebptt.tasks import canonical, entries, entry
-from stablebptt.training import Task, TrainConfig, compiler_options, large_step
+from stablebptt.training import Task, TrainConfig, compiler_options, large_step, sample_states
 
 
 @dataclass(frozen=True)
@@ -116,7 +116,7 @@ def rollouts_from_test_states(task: Task, train: TrainConfig, params: Any, count
     from stablebptt.flows import reference_rollout
 
     _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))  # make_trainer's split of the data seed
-    initial = jax.tree.map(lambda a: a[:count], task.sample_initial_states(test_key, train.test_size))
+    initial = jax.tree.map(lambda a: a[:count], sample_states(task, test_key, train.test_size))
     large = large_step(task, train, jax.tree.map(lambda a: a[0], initial))
 
     @functools.partial(jax.jit, compiler_options=compiler_options(large))
