@@ -201,8 +201,8 @@ def load_mjx_without_warp() -> None:
     """Import MJX with its Warp backend left out, before anything else of the command imports it.
 
     MJX loads its Warp backend at import whenever warp-lang is installed (MuJoCo Playground installs
-    it), and no command runs it (Warp has no gradients): train.py's set-up took 1.1-1.8 s less
-    without it (results/startup/cpu-no-warp-*.md). Afterwards ``import warp`` works again; only MJX's
+    it), and no command runs it (Warp has no gradients): a warm train.py's set-up took 0.7-1.8 s
+    less without it (results/startup/cpu-no-warp-*.md). Afterwards ``import warp`` works again; only MJX's
     own Warp backend stays off in this process. A no-op where MJX or Warp is already imported.
     """
     if "mujoco.mjx" in sys.modules or "warp" in sys.modules:
@@ -238,8 +238,8 @@ def use_compile_cache(enabled: bool = True,
         return None
     import jax
     jax.config.update("jax_compilation_cache_dir", str(directory))
-    # Every program, the set-up's tiny ones too: a warm hopper run compiled 31 of them anew (0.9 s
-    # together), and loading them is faster (results/startup/cpu-cache-tiny-*.md).
+    # Every program, the set-up's tiny ones too: loading them is quicker than compiling them anew in
+    # every warm run (hopper 4.3 -> 3.4 s to its first update: results/startup/cpu-cache-tiny-*.md).
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     _handle_cache_faults(directory, note)
     return directory

@@ -6,7 +6,6 @@
 #   bash experiments/quantum20/call.sh LIMIT
 LIMIT=${1:-500}
 source experiments/install_wheels.sh
-for link in tasks:tasks commands:scripts models:models; do ln -sfn ../${link#*:} stablebptt/${link%%:*}; done
 export STABLEBPTT_COMPILE_CACHE=/tmp/q20_cache
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 SWEEP="python3 scripts/sweep.py --preset quantum --seeds 20 --out /tmp/q20"

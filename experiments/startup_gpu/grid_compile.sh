@@ -3,14 +3,11 @@
 # the sweep's record, which comes back as $OUT/grid-{after,before}.json.
 #   [EPOCHS=200] bash experiments/startup_gpu/grid_compile.sh after before
 source experiments/install_wheels.sh
+source experiments/startup_gpu/sides.sh
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-ROOT=$PWD
 for which in "$@"; do
-  dir=$ROOT; [ "$which" = before ] && dir=$ROOT/.baseline
   (
-    cd "$dir"
-    for link in tasks:tasks commands:scripts models:models; do ln -sfn ../${link#*:} stablebptt/${link%%:*}; done
-    export PYTHONPATH=/tmp/site:$dir
+    enter_side "$which"
     python3 scripts/sweep.py --preset cartpole --seeds 20 --epochs ${EPOCHS:-1} --no-compile-cache --out /tmp/grid_$which-${EPOCHS:-1}-$$
   ) > $OUT/grid-$which.log 2>&1
   cp /tmp/grid_$which-${EPOCHS:-1}-$$/cartpole/sweeps/*.json $OUT/grid-$which.json

@@ -6,16 +6,13 @@
 # Models are the repository's cart-poles with the cart-pole grid's settings; envs take train.py's
 # defaults for an environment. Tables and records come back as $OUT/gpu-{WHICH}-{WHAT}-{NAMES}.md/.json.
 source experiments/install_wheels.sh
+source experiments/startup_gpu/sides.sh
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-ROOT=$PWD
 for part in "$@"; do
   IFS=: read -r which what names <<< "$part"
-  dir=$ROOT; [ "$which" = before ] && dir=$ROOT/.baseline
   name=gpu-$which-$what-${names//,/_}
   (
-    cd "$dir"
-    for link in tasks:tasks commands:scripts models:models; do ln -sfn ../${link#*:} stablebptt/${link%%:*}; done
-    export PYTHONPATH=/tmp/site:$dir
+    enter_side "$which"
     if [ "$what" = models ]; then
       list=$(echo "$names" | sed 's/\([0-9]\)/models\/cartpole_\1.xml/g')
       python3 scripts/bench.py --startup --models "$list" --train-args '--epochs 1 --unroll 5' --timeout 150 --out $OUT/$name.md

@@ -4,7 +4,6 @@
 # the epochs give the price in run time.
 #   bash experiments/startup_gpu/xla_gpu_flags.sh [LABEL ...]   (default: the first three below)
 source experiments/install_wheels.sh
-for link in tasks:tasks commands:scripts models:models; do ln -sfn ../${link#*:} stablebptt/${link%%:*}; done
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 run() {  # label, XLA_FLAGS
   echo "== $1: XLA_FLAGS='$2'"

@@ -3,7 +3,6 @@
 #   bash experiments/envs_vs_apg/calls/swimmer.sh CALL
 CALL=$1
 source experiments/envs_vs_apg/device_env.sh
-for link in tasks:tasks commands:scripts models:models; do ln -sfn ../${link#*:} stablebptt/${link%%:*}; done
 O=$OUT/$CALL; mkdir -p $O; sha1sum stablebptt/*.py | sha1sum
 python3 scripts/env_survey.py --envs SwimmerSwimmer6 --steps 50 --episode-length 200 --epochs 16 --train-size 64 \
   --test-size 16 --batch 16 --timeout 500 --out $O/swimmer > $O/out.txt 2>&1

@@ -5,7 +5,6 @@
 #   bash experiments/envs_vs_apg/calls/two_gpus_cheetah_r_and_swimmer.sh CALL
 CALL=$1
 source experiments/envs_vs_apg/device_env.sh
-for link in tasks:tasks commands:scripts models:models; do ln -sfn ../${link#*:} stablebptt/${link%%:*}; done
 D=experiments/envs_vs_apg; O=$OUT/$CALL; mkdir -p $O/stablebptt $O/survey; sha1sum stablebptt/*.py | sha1sum
 CUDA_VISIBLE_DEVICES=0 timeout 560 python3 $D/stablebptt_half.py --envs CheetahRun --modes R --seeds 3 --budget 450 \
   --eval-every 40 --horizon 100 --batch 64 --min-timing-updates 2 --out $O/stablebptt > $O/stablebptt/out.txt 2>&1 &

@@ -1,0 +1,8 @@
+# Sourced by table.sh and grid_compile.sh after install_wheels.sh: enter_side WHICH enters the
+# checkout of one side of a side-by-side measurement, "after" (this one) or "before" (.baseline),
+# with its package laid out and first on the path.
+ROOT=$PWD
+enter_side() {
+  local dir=$ROOT; [ "$1" = before ] && dir=$ROOT/.baseline
+  cd "$dir" && link_package . && export PYTHONPATH=/tmp/site:$dir
+}
