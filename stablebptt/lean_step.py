@@ -1,7 +1,8 @@
 """The lean, differentiable MJX step: only the pipeline stages a scene needs, over (qpos, qvel, act).
 
 ``make_step(lean, effects)`` generates the step body by body where it applies
-(``stablebptt.tree``), else runs MJX's stages the scene analysis
+(``stablebptt.tree``; a scene's contacts, limits and friction loss then come from
+MJX's own stages, fed the generated terms), else runs MJX's stages the scene analysis
 (``stablebptt.scene``) calls for - skipping camera and light poses, sensors,
 tendons, collision and constraint assembly where no flag reaches them - and
 differentiates through inverse dynamics where the mass-matrix solve is exact.
@@ -19,6 +20,7 @@ from stablebptt import tree
 from stablebptt.constraint_derivatives import solve_implicitly, traced_differentiably
 from stablebptt.mjx_internals import collision_driver, constraint, mjx, passive, smooth
 from stablebptt.mjx_internals import forward as mjx_forward
+from stablebptt.mjx_internals import types as mjx_types
 from stablebptt.mjx_support import put_model
 
 if TYPE_CHECKING:
@@ -89,7 +91,7 @@ def implicit_derivative_applies(model: mujoco.MjModel, effects: SceneEffects) ->
 
 
 def generated_step_applies(model: mujoco.MjModel, effects: SceneEffects | None) -> bool:
-    """Whether ``stablebptt.tree`` generates this scene's step: a small contact-free tree of hinges and slides."""
+    """Whether ``stablebptt.tree`` generates this scene's step: a small tree of hinges and slides."""
     return effects is not None and not tree.unsupported(model, effects)
 
 
@@ -101,7 +103,8 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
       model: the (lean or original) MuJoCo model.
       effects: the scene analysis; required for ``pipeline="lean"``.
       pipeline: ``"lean"`` generates the step body by body where
-        ``generated_step_applies`` (``stablebptt.tree``), else is ``"stages"``;
+        ``generated_step_applies`` (``stablebptt.tree``; constraints from MJX's
+        stages fed the generated terms), else is ``"stages"``;
         ``"stages"`` runs only MJX's needed stages (Euler integrator) and,
         where ``implicit_derivative_applies``, differentiates through inverse
         dynamics (a custom JVP, so forward and reverse mode both use it);
@@ -110,11 +113,13 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
         the mass matrix and its solve (a baseline for benchmarks and tests).
       mjx_model: ``model`` already put on MJX (``put_model``), if it is.
     """
-    if pipeline == "lean":
-        if implicit and generated_step_applies(model, effects):
-            return tree.make_step(model)
+    if pipeline == "lean" and not (implicit and generated_step_applies(model, effects)):
         pipeline = "stages"
+    if pipeline == "lean" and not effects.constraints:
+        return tree.make_step(model)
     mjx_model = put_model(model) if mjx_model is None else mjx_model
+    if pipeline == "lean":
+        return _generated_with_mjx_constraints(model, mjx_model)
     template = mjx.make_data(mjx_model)
     is_euler = int(model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_EULER)
     if pipeline == "stages" and not is_euler:
@@ -168,6 +173,41 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
 
     implicit_step.defjvp(implicit_jvp, symbolic_zeros=True)
     return traced_differentiably(implicit_step)
+
+
+def _generated_with_mjx_constraints(model: mujoco.MjModel, mjx_model: mjx.Model) -> Callable[[State, jax.Array], State]:
+    """The generated rigid-body terms (``tree.RigidBody``) through MJX's collision, constraint rows and
+    solver (differentiated implicitly), then MuJoCo's Euler or RK4.
+
+    Without MJX's scans over the tree, XLA compiles far less: hopper's first update comes 36.4 -> 21.4 s
+    after a cold start (``scripts/bench.py --startup``, docs/performance.md). The generated terms are
+    differentiated by plain autodiff, as the stages pipeline differentiates MJX's.
+    """
+    rigid_body = tree.make_rigid_body(model)
+    # The generated mass matrix is dense; MJX reads it as such whatever the file's jacobian option.
+    mjx_model = mjx_model.replace(opt=mjx_model.opt.replace(jacobian=mjx_types.JacobianType.DENSE))
+    template = mjx.make_data(mjx_model)
+
+    def solved(qpos: jax.Array, qvel: jax.Array, ctrl: jax.Array) -> mjx.Data:
+        terms = rigid_body(qpos, qvel, ctrl)
+        data = template.replace(qpos=qpos, qvel=qvel, ctrl=ctrl, xpos=terms.xpos, xmat=terms.xmat,
+                                geom_xpos=terms.geom_xpos, geom_xmat=terms.geom_xmat, subtree_com=terms.subtree_com,
+                                cdof=terms.cdof, qfrc_smooth=terms.qfrc_smooth, qacc_smooth=terms.qacc_smooth)
+        # qLD: the factor MJX's CG solver and its Euler read (XLA drops it where nothing does).
+        data = data.tree_replace({"_impl.M": terms.mass_matrix,
+                                  "_impl.qLD": jax.scipy.linalg.cho_factor(terms.mass_matrix)[0]})
+        data = constraint.make_constraint(mjx_model, collision_driver.collision(mjx_model, data))
+        if data._impl.efc_J.size:
+            return solve_implicitly(mjx_model, data)
+        return data.replace(qacc=data.qacc_smooth)
+
+    if int(model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_EULER):
+        def step(state: State, ctrl: jax.Array) -> State:
+            data = mjx_forward.euler(mjx_model, solved(state.qpos, state.qvel, ctrl).replace(act=state.act))
+            return State(data.qpos, data.qvel, data.act)
+    else:
+        step = tree.runge_kutta_4(float(model.opt.timestep), lambda qpos, qvel, ctrl: solved(qpos, qvel, ctrl).qacc)
+    return traced_differentiably(step)
 
 
 def _is_zero(tangent) -> bool:

@@ -1,11 +1,12 @@
-"""A step generated per scene for small contact-free kinematic trees of hinge and slide joints.
+"""A step generated per scene for small kinematic trees of hinge and slide joints.
 
 MJX runs every stage over all bodies at once: scans over tree levels, gathers
 of parents, a sparse mass-matrix factorisation. For a tree of a few bodies that
-is many tiny dependent operations per step (on a GPU, many tiny kernels). Here
-the rigid-body recursions are written out body by body while tracing, with the
-model's numbers as constants: what remains is straight-line arithmetic on each
-example's scalars, which XLA fuses into few kernels.
+is many tiny dependent operations per step (on a GPU, many tiny kernels) and,
+differentiated, a program XLA takes long to compile. Here the rigid-body
+recursions are written out body by body while tracing, with the model's numbers
+as constants: what remains is straight-line arithmetic on each example's
+scalars, which XLA fuses into few kernels.
 
 The physics is MuJoCo's, term by term (tests compare with ``mujoco.mj_step`` in
 float64): forward kinematics, the composite-rigid-body mass matrix plus
@@ -14,15 +15,18 @@ joint-transmission actuators (fixed gain, affine bias, control and force
 clamps), and the Euler (with its implicit joint damping) or RK4 integrator.
 Spatial vectors are (angular, linear) about the world origin.
 
-Its derivative is the inverse-dynamics one (``scene.implicit_derivative_applies``
-explains it): the acceleration solves M~(q) qacc = f(q, qvel, ctrl), so
-d qacc = -M~^-1 d(ID(q, qvel, qacc) - f) at fixed qacc, and the mass matrix,
-its factorisation and the solve are never differentiated.
+A contact-free scene's derivative is the inverse-dynamics one
+(``scene.implicit_derivative_applies`` explains it): the acceleration solves
+M~(q) qacc = f(q, qvel, ctrl), so d qacc = -M~^-1 d(ID(q, qvel, qacc) - f) at
+fixed qacc, and the mass matrix, its factorisation and the solve are never
+differentiated. A scene with contacts, joint limits or friction loss takes the
+generated terms in MuJoCo's frames (``RigidBody``) into MJX's collision,
+constraint rows and solver (``lean_step``).
 """
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -36,11 +40,15 @@ MAX_DOFS = 12  # the unrolled factorisation grows as nv^3 in traced operations
 
 
 def unsupported(model: mujoco.MjModel, effects) -> str:
-    """Why the generated step does not cover ``model`` ('' when it does); ``effects`` from ``scene.analyze``."""
-    present = [name for name in ("constraints", "tendons", "activation", "gravity_compensation", "fluid")
+    """Why the generated step does not cover ``model`` ('' when it does); ``effects`` from ``scene.analyze``.
+
+    Contacts, joint limits and friction loss are MJX's own stages fed the generated terms; equality
+    constraints (which read frames of sites and orientations) and tendons are not generated.
+    """
+    present = [name for name in ("equality", "tendons", "activation", "gravity_compensation", "fluid")
                if getattr(effects, name)]
     if present:
-        return present[0].replace("_", " ")
+        return "equality constraints" if present[0] == "equality" else present[0].replace("_", " ")
     if model.nv == 0 or model.nv > MAX_DOFS:
         return f"{model.nv} degrees of freedom (covered: 1 to {MAX_DOFS})"
     if not np.all(np.isin(model.jnt_type, (HINGE, SLIDE))):
@@ -215,6 +223,21 @@ def _s_scale(motion, factor):
     return _v_scale(motion[0], factor), _v_scale(motion[1], factor)
 
 
+class RigidBody(NamedTuple):
+    """One example's rigid-body terms, in MuJoCo's names and frames: what MJX's collision, constraint
+    rows and solver read."""
+
+    xpos: jax.Array  # [nbody, 3] body frames, the world's first
+    xmat: jax.Array  # [nbody, 3, 3]
+    geom_xpos: jax.Array  # [ngeom, 3]
+    geom_xmat: jax.Array  # [ngeom, 3, 3]
+    subtree_com: jax.Array  # [nbody, 3]
+    cdof: jax.Array  # [nv, 6] joint motion axes about their tree's centre of mass
+    mass_matrix: jax.Array  # [nv, nv] armature included (not Euler's implicit damping)
+    qfrc_smooth: jax.Array  # [nv] springs, dampers and actuators less the bias forces
+    qacc_smooth: jax.Array  # [nv] the acceleration without constraints
+
+
 class _Scene:
     """The model's numbers, read once; its bodies in MuJoCo's order (parents first)."""
 
@@ -307,6 +330,38 @@ class _Scene:
                 torque[dof] = _s_dot(axis, force[b])
         return torque
 
+    def rigid_body(self, qpos, qvel, ctrl) -> RigidBody:
+        """The terms MJX's constraint stages read, generated (``RigidBody``)."""
+        m = self.model
+        position, rotation, axes = self.kinematics(qpos)
+        inertias = self.inertias(position, rotation)
+        moment = {0: _ZERO3, **{b: inertias[b].moment for b in self.bodies}}
+        for b in reversed(self.bodies):
+            moment[m.body_parentid[b]] = _v_add(moment[m.body_parentid[b]], moment[b])
+        # MuJoCo's subtree centre of mass; a massless subtree keeps its body's inertial frame.
+        subtree_com = {b: _v_scale(moment[b], 1.0 / float(m.body_subtreemass[b])) if m.body_subtreemass[b] >= mujoco.mjMINVAL
+                       else _v_add(position[b], _mv(rotation[b], _constant(m.body_ipos[b]))) for b in moment}
+        cdof = [None] * self.nv
+        for b in self.bodies:
+            centre = subtree_com[m.body_rootid[b]]
+            for dof, (angular, linear) in axes[b]:  # the same motion, its linear part taken at the centre
+                cdof[dof] = angular + _v_add(linear, _cross(angular, centre))
+        geom_frames = [(_v_add(position[b], _mv(rotation[b], _constant(m.geom_pos[g]))),
+                        _mm(rotation[b], _constant(_rotation(m.geom_quat[g])))) for g, b in enumerate(m.geom_bodyid)]
+        placed = (axes, inertias)
+        matrix = self.mass_matrix(placed)
+        for i in range(self.nv):
+            matrix[i][i] = _add(matrix[i][i], float(m.dof_armature[i]))
+        bias = _stack(self.inverse_dynamics(placed, qvel, [0.0] * self.nv), qvel)
+        qfrc_smooth = self.applied_forces(qpos, qvel, ctrl) - bias
+        qacc_smooth = _stack(_cholesky_solve(matrix, [qfrc_smooth[i] for i in range(self.nv)]), qvel)
+        bodies = range(m.nbody)
+        return RigidBody(
+            xpos=_array([position[b] for b in bodies], qvel), xmat=_array([rotation[b] for b in bodies], qvel),
+            geom_xpos=_array([p for p, _ in geom_frames], qvel), geom_xmat=_array([r for _, r in geom_frames], qvel),
+            subtree_com=_array([subtree_com[b] for b in bodies], qvel), cdof=_array(cdof, qvel),
+            mass_matrix=_array(matrix, qvel), qfrc_smooth=qfrc_smooth, qacc_smooth=qacc_smooth)
+
     def mass_matrix(self, placed):
         """Composite rigid bodies: M_ij = s_i . (I_c s_j) for dof i an ancestor of (or before, in its body) dof j."""
         m = self.model
@@ -383,6 +438,18 @@ def _stack(scalars, like):
     return jnp.stack([jnp.full((), x, like.dtype) if isinstance(x, float) else x for x in scalars])
 
 
+def _array(nested, like):
+    """Nested sequences of scalars (constants or traced) as one array of ``like``'s dtype."""
+    if isinstance(nested[0], (tuple, list)):
+        return jnp.stack([_array(item, like) for item in nested])
+    return _stack(nested, like)
+
+
+def make_rigid_body(model: mujoco.MjModel) -> Callable:
+    """``rigid_body(qpos, qvel, ctrl) -> RigidBody`` of one example, differentiated by plain autodiff."""
+    return _Scene(model).rigid_body
+
+
 def make_acceleration(model: mujoco.MjModel) -> Callable:
     """``acceleration(qpos, qvel, ctrl) -> qacc`` of one example, with the inverse-dynamics derivative."""
     scene = _Scene(model)
@@ -424,8 +491,12 @@ def make_step(model: mujoco.MjModel) -> Callable:
             qvel = state.qvel + h * acceleration(state.qpos, state.qvel, ctrl)
             return state._replace(qpos=state.qpos + h * qvel, qvel=qvel)
         return step
+    return runge_kutta_4(h, acceleration)
 
-    def step(state, ctrl):  # MuJoCo's RK4: the classic tableau, control held over the step
+
+def runge_kutta_4(h: float, acceleration: Callable) -> Callable:
+    """MuJoCo's RK4 step of hinges and slides over ``acceleration(qpos, qvel, ctrl) -> qacc``."""
+    def step(state, ctrl):  # the classic tableau, control held over the step
         q, v = state.qpos, state.qvel
         k_vel, k_acc = [v], [acceleration(q, v, ctrl)]
         for weight in (0.5, 0.5, 1.0):

@@ -2,7 +2,10 @@
 
 Trajectories are compared with MuJoCo's C step (mujoco.mj_step) in float64 for
 every model in models/ and for a tree that exercises each term the generator
-writes out; Jacobians with plain autodiff through MJX's own stages.
+writes out; Jacobians with plain autodiff through MJX's own stages. A scene with
+contacts, joint limits and friction loss feeds the generated terms to MJX's
+constraint stages: each of its steps is compared with MuJoCo's from the same
+state, and its Jacobians with those of MJX's stages.
 """
 import jax
 import jax.numpy as jnp
@@ -124,12 +127,86 @@ def test_rk4s_derivative_passes_its_stages(x64):
             np.testing.assert_allclose(block, np.stack(columns, axis=1), rtol=1e-6, atol=1e-8)
 
 
-LIMITED = BRANCHES.format(integrator="Euler").replace('type="hinge" axis="1 0 0"',
-                                                     'type="hinge" axis="1 0 0" limited="true" range="-1 1"')
+# A planar hopper that lands on its capsules: contacts, two limited joints, friction loss on
+# one, a spring, dampers, armature and clamped motors.
+HOPPING = """<mujoco model="hopping">
+  <option timestep="0.005" integrator="{integrator}"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body name="torso" pos="0 0 0.4">
+      <joint name="rootx" type="slide" axis="1 0 0" damping="0.1"/>
+      <joint name="rootz" type="slide" axis="0 0 1"/>
+      <joint name="rooty" type="hinge" axis="0 1 0" frictionloss="0.05"/>
+      <geom type="capsule" fromto="0 0 0 0 0 0.3" size="0.05" mass="2"/>
+      <body name="thigh" euler="0 20 0">
+        <joint name="hip" type="hinge" axis="0 1 0" range="-30 30" damping="0.2" armature="0.01"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.25" size="0.04" mass="1"/>
+        <body name="foot" pos="0 0 -0.25">
+          <joint name="ankle" type="hinge" axis="0 1 0" range="-20 40" stiffness="3"/>
+          <geom type="capsule" fromto="-0.05 0 -0.02 0.15 0 -0.02" size="0.02" mass="0.5"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor joint="hip" gear="5" ctrlrange="-1 1" ctrllimited="true"/>
+    <motor joint="ankle" gear="3" ctrlrange="-1 1" ctrllimited="true"/>
+  </actuator>
+</mujoco>"""
+
+
+@pytest.mark.parametrize("integrator", ["Euler", "RK4"])
+def test_the_generated_step_with_constraints_takes_mujocos_c_steps(x64, integrator):
+    """Every step from the state MuJoCo reached, so that a contact's chaos does not compound the solvers'
+    tolerances: the hopper falls, lands and kicks against its limits."""
+    model = mujoco.MjModel.from_xml_string(HOPPING.format(integrator=integrator))
+    lean, effects = lean_of(model)
+    assert effects.contacts and effects.joint_limits and effects.friction_loss
+    assert scene.generated_step_applies(lean, effects)
+    step = jax.jit(scene.make_step(lean, effects))
+    rng = np.random.default_rng(0)
+    data = mujoco.MjData(model)
+    rows = set()
+    for _ in range(200):
+        data.ctrl[:] = rng.uniform(-2, 2, model.nu)
+        state = step(scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0)), jnp.array(data.ctrl))
+        mujoco.mj_step(model, data)
+        rows |= set(data.efc_type[:data.nefc].tolist())
+        scale = max(1.0, np.abs(data.qvel).max())
+        np.testing.assert_allclose(state.qpos, data.qpos, rtol=0, atol=1e-10 * scale)
+        np.testing.assert_allclose(state.qvel, data.qvel, rtol=0, atol=1e-9 * scale)
+    kinds = mujoco.mjtConstraint
+    assert {int(kinds.mjCNSTR_FRICTION_DOF), int(kinds.mjCNSTR_LIMIT_JOINT)} <= rows
+    assert rows & {int(kinds.mjCNSTR_CONTACT_PYRAMIDAL), int(kinds.mjCNSTR_CONTACT_ELLIPTIC)}
+
+
+def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
+    """In contact and at a limit, reverse mode through the generated terms and the implicit solver gives
+    the Jacobians of forward mode through MJX's stages and the same solver."""
+    model = mujoco.MjModel.from_xml_string(HOPPING.format(integrator="Euler"))
+    lean, effects = lean_of(model)
+    data = mujoco.MjData(model)
+    data.qpos[:] = [0.1, -0.26, 0.2, np.radians(30.2), 0.1]  # the foot on the floor, the hip just past its limit
+    data.qvel[:] = [0.5, -0.3, 0.4, 0.2, -0.1]
+    mujoco.mj_forward(model, data)
+    assert data.ncon > 0 and int(mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT) in data.efc_type[:data.nefc]
+    state = scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
+    control = jnp.array([0.3, -0.2])
+    generated = scene.make_step(lean, effects)
+    stages = scene.make_step(lean, effects, "stages")
+    expected = jax.jit(jax.jacfwd(stages, argnums=(0, 1)))(state, control)
+    got = jax.jit(jax.jacrev(generated, argnums=(0, 1)))(state, control)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
+    assert np.abs(np.asarray(expected.qvel[0].qpos)).max() > 1e-3
+
+
+EQUALITY = BRANCHES.format(integrator="Euler").replace(
+    "</worldbody>", '</worldbody>\n  <equality><joint joint1="hip" joint2="shoulder"/></equality>')
 
 
 @pytest.mark.parametrize("source, edit, reason", [
-    (LIMITED, None, "constraints"),
+    (EQUALITY, None, "equality constraints"),
     (BRANCHES.format(integrator="implicitfast"), None, "mjINT_IMPLICITFAST integrator"),
     (BRANCHES.format(integrator="Euler").replace('type="hinge" axis="1 0 0"', 'type="ball"'), None,
      "free or ball joints"),

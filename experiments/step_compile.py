@@ -1,0 +1,63 @@
+"""How long XLA takes to compile one scene's step, alone and differentiated: where a cold start goes.
+
+    python experiments/step_compile.py S/hopper.xml [S/cheetah.xml ...]
+
+Per model and step (the default one; MJX's stages; the generated rigid-body part alone, its
+constraints left out), three programs over a batch of 8 with the compile cache off: the step, its
+vector-Jacobian product, and the gradient of a 10-step rollout. Seconds to trace, lower and compile.
+"""
+import os
+import sys
+import time
+
+os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "false")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import mujoco  # noqa: E402
+
+from stablebptt import lean_step, simulator, tree  # noqa: E402
+
+BATCH, STEPS = 8, 10
+
+
+def timed(label: str, function, *args) -> None:
+    start = time.perf_counter()
+    traced = jax.jit(function).trace(*args)
+    traced_at = time.perf_counter()
+    lowered = traced.lower()
+    lowered_at = time.perf_counter()
+    lowered.compile()
+    print(f"  {label}: trace {traced_at - start:.1f} s, lower {lowered_at - traced_at:.1f} s, "
+          f"compile {time.perf_counter() - lowered_at:.1f} s", flush=True)
+
+
+def programs(step, state, control) -> None:
+    batched = jax.vmap(step)
+
+    def pullback(state, control):
+        out, pull = jax.vjp(batched, state, control)
+        return pull(out)
+
+    def rollout_gradient(state, control):
+        def final(control):
+            end = jax.lax.scan(lambda s, _: (batched(s, control), None), state, None, length=STEPS)[0]
+            return sum(jnp.sum(leaf ** 2) for leaf in jax.tree.leaves(end))
+        return jax.grad(final)(control)
+
+    timed("step", batched, state, control)
+    timed("its vjp", pullback, state, control)
+    timed(f"gradient of a {STEPS}-step rollout", rollout_gradient, state, control)
+
+
+for path in sys.argv[1:]:
+    sim = simulator.build(mujoco.MjModel.from_xml_path(path))
+    state = jax.tree.map(lambda a: jnp.broadcast_to(a, (BATCH,) + a.shape), lean_step.initial_state(sim.lean))
+    control = jnp.zeros((BATCH, sim.lean.nu))
+    stages = simulator.build(sim.model, simulator.SimulatorConfig(pipeline="stages")).step
+    steps = {"default": sim.step, "stages": stages}
+    if simulator.lean_step.generated_step_applies(sim.lean, sim.effects):
+        steps["generated rigid-body part, no constraints"] = tree.make_step(sim.lean)
+    for name, step in steps.items():
+        print(f"{os.path.basename(path)}, {name}:", flush=True)
+        programs(step, state, control)
