@@ -75,7 +75,9 @@ class Plan:
       jacobian_per_input: for ``"forward"``: one forward pass per input leaf
         (True: each skips the stages its input does not reach) or one pass for
         all (False: one copy of the differentiated step, far quicker to compile
-        for large scenes); see ``step_jacobians``.
+        for large scenes, and for any scene whose every input reaches a costly
+        stage such as a constraint solver); see ``step_jacobians``. Large
+        steps always take one pass.
       policy_gradient: for ``"reverse"``: ``"batched"`` computes each flow's
         parameter gradient after the reverse pass, in one batched pullback over
         every visited state (few large matrix products; the flows that do not

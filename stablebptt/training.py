@@ -493,10 +493,12 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
 
 def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable = measure_now) -> Plan:
     """How a run differentiates ``task``: the task's own plan, completed by the memory plan (Jacobian
-    chunks or recomputed steps), a large step's single Jacobian pass and ``config.unroll``."""
+    chunks or recomputed steps), a large step's single Jacobian pass (the task may ask for it too)
+    and ``config.unroll``."""
     memory = memory_plan(task, config, initial_state, measured=measured)
     return dataclasses.replace(task.plan, unroll=config.unroll, jacobian_chunk=memory.jacobian_chunk,
-                               rematerialize=memory.rematerialize, jacobian_per_input=not large)
+                               rematerialize=memory.rematerialize,
+                               jacobian_per_input=task.plan.jacobian_per_input and not large)
 
 
 def _all_finite(tree: PyTree) -> jax.Array:

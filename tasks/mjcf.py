@@ -268,7 +268,10 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
     return Task(
         name=name,
         dynamics=Dynamics(step=sim.step, policy=policy, loss=loss, horizon=horizon),
-        plan=Plan(step_derivative=sim.derivative, known_columns=sim.known_columns),
+        # Every input's tangent goes through the constraint solver's implicit derivative: one pass for
+        # all of them holds one copy of it (docs/performance.md), where per-input passes hold one each.
+        plan=Plan(step_derivative=sim.derivative, known_columns=sim.known_columns,
+                  jacobian_per_input=not sim.constraint_rows),
         init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
         sample_initial_states=sample_initial_states,
         summary=f"{path.name}: {sim.summary}; horizon {horizon} steps, {spec.loss}-state loss"
