@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from stablebptt import tasks
-from stablebptt.cli import (Parser, add_options, build, fail, in_worker_thread, load_mjx_without_warp, one_line_errors,
+from stablebptt.cli import (Parser, add_options, build, fail, in_worker_thread, leave_out_unused_backends, one_line_errors,
                             option_name, out_of_memory, stop_on_signals)
 from stablebptt.commands import task_options
 from stablebptt.errors import InputError
@@ -165,7 +165,7 @@ SCORES = {"env": ("episode return", -1.0)}
 
 
 def main(argv: list[str]) -> int:
-    load_mjx_without_warp()  # before parsing, which imports the tasks and MJX with them
+    leave_out_unused_backends()  # before parsing, which imports the tasks and MJX with them
     config, task_name, given = parse(argv)
     from stablebptt.training import CLIP_MODES, MODES
     modes = parse_list(config.modes, MODES, "modes")

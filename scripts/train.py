@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from stablebptt import tasks
-from stablebptt.cli import Parser, add_options, build, fail, load_mjx_without_warp, one_line_errors, option_name
+from stablebptt.cli import Parser, add_options, build, fail, leave_out_unused_backends, one_line_errors, option_name
 from stablebptt.commands import task_options
 from stablebptt.training import TrainConfig
 
@@ -57,7 +57,7 @@ def configure(args, owners):
 
 
 def main(argv: list[str]) -> int:
-    load_mjx_without_warp()  # before parsing, which imports the tasks and MJX with them
+    leave_out_unused_backends()  # before parsing, which imports the tasks and MJX with them
     held: list = []  # the run folder in use, its lock released however main ends (in a process, the OS would)
     try:
         return train(argv, held)

@@ -197,21 +197,25 @@ def compile_cache_dir() -> Path | None:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "stablebptt" / "jax"
 
 
-def load_mjx_without_warp() -> None:
-    """Import MJX with its Warp backend left out, before anything else of the command imports it.
+def leave_out_unused_backends() -> None:
+    """Import MJX without its Warp backend, and have MuJoCo Playground, where a command loads one of its
+    environments, imported without PyTorch: backends of dependencies that no command runs. Called
+    first by the commands, before anything else of theirs imports MJX.
 
     MJX loads its Warp backend at import whenever warp-lang is installed (MuJoCo Playground installs
-    it), and no command runs it (Warp has no gradients): a warm train.py's set-up took 0.7-1.8 s
-    less without it (results/startup/cpu-no-warp-*.md). Afterwards ``import warp`` works again; only MJX's
-    own Warp backend stays off in this process. A no-op where MJX or Warp is already imported.
+    it), and Warp has no gradients: a warm train.py's set-up took 0.7-1.8 s less without it
+    (results/startup/cpu-no-warp-*.md). Playground's torch and RSL-RL wrappers import PyTorch
+    wherever it is installed (``playground.UNUSED_BY_COMMANDS``). Afterwards ``import warp`` and
+    ``import torch`` work again; only MJX's Warp backend and Playground's torch wrapper stay off in
+    this process. MJX is left as it is where it or Warp is already imported.
     """
+    from stablebptt import playground
+    from stablebptt.imports import imported_without
+    playground.leave_out_when_imported(playground.UNUSED_BY_COMMANDS)
     if "mujoco.mjx" in sys.modules or "warp" in sys.modules:
         return
-    sys.modules["warp"] = None  # ``import warp`` raises ImportError, which MJX takes for "not installed"
-    try:
+    with imported_without(("warp",)):  # MJX takes the ImportError for "not installed"
         importlib.import_module("stablebptt.mjx_internals")  # imports MJX, keeping its Warp message off stdout
-    finally:
-        del sys.modules["warp"]
 
 
 def use_compile_cache(enabled: bool = True,

@@ -10,26 +10,47 @@ form whose values are the same and whose derivative is never NaN.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
-from typing import Any, Iterator
+import sys
+from typing import Any, Iterable, Iterator
 
 import jax.numpy as jnp
 
 from stablebptt.errors import InputError
+from stablebptt.imports import imported_without
 
 EXTRA = "pip install 'stablebptt[playground]'"
 REPAIRS = "Playground's reward tolerance in a form whose derivative is finite (values unchanged)"
+
+
+# Playground's torch and RSL-RL wrappers import these wherever they are installed; no command runs
+# them, and PyTorch alone took 3.4 s of a GPU machine's cold start (docs/performance.md).
+UNUSED_BY_COMMANDS = ("torch", "tensordict", "rsl_rl")
+_left_out: tuple[str, ...] = ()
 
 
 class PlaygroundMissing(InputError):
     """MuJoCo Playground is not installed."""
 
 
+def leave_out_when_imported(names: Iterable[str]) -> None:
+    """Import Playground, when it is first imported here, without ``names`` (``cli.leave_out_unused_backends``)."""
+    global _left_out
+    _left_out = tuple(names)
+
+
+def _module(name: str) -> Any:
+    """A module of Playground; its first import leaves out what ``leave_out_when_imported`` named."""
+    with imported_without(_left_out if "mujoco_playground" not in sys.modules else ()):
+        return importlib.import_module(name)
+
+
 def registry() -> Any:
     """Playground's registry module; ``PlaygroundMissing`` names the extra to install."""
     try:
         with contextlib.redirect_stdout(io.StringIO()):  # its Warp import notice is not the user's business
-            from mujoco_playground import registry as playground_registry
+            playground_registry = _module("mujoco_playground").registry
     except ImportError as error:
         raise PlaygroundMissing(f"MuJoCo Playground is not installed ({error}): {EXTRA}") from None
     return playground_registry
@@ -42,8 +63,7 @@ def names() -> tuple[str, ...]:
 
 def suite_names() -> tuple[str, ...]:
     """Playground's DeepMind Control Suite environments."""
-    from mujoco_playground import dm_control_suite
-    return tuple(dm_control_suite.ALL_ENVS)
+    return tuple(_module("mujoco_playground").dm_control_suite.ALL_ENVS)
 
 
 def dense_variant(name: str) -> str:

@@ -94,13 +94,13 @@ def test_large_scenes_compile_with_a_loop_emitter_this_xla_accepts_and_the_numbe
 
 @pytest.mark.skipif(importlib.util.find_spec("warp") is None, reason="warp-lang is not installed: MJX has no Warp backend to leave out")
 def test_train_and_sweep_load_mjx_without_its_warp_backend_and_warp_stays_importable():
-    """train.py and sweep.py import MJX without its Warp backend (``cli.load_mjx_without_warp``) before
+    """train.py and sweep.py import MJX without its Warp backend (``cli.leave_out_unused_backends``) before
     parsing: MJX's JAX implementation still builds and steps a model, nothing is printed, and
     ``import warp`` works afterwards."""
     program = textwrap.dedent("""
         import sys
-        from stablebptt.cli import load_mjx_without_warp
-        load_mjx_without_warp()
+        from stablebptt.cli import leave_out_unused_backends
+        leave_out_unused_backends()
         import mujoco
         from mujoco import mjx
         import mujoco.mjx.warp
@@ -118,4 +118,29 @@ def test_train_and_sweep_load_mjx_without_its_warp_backend_and_warp_stays_import
     assert result.stdout == "ok\n", result.stdout
     for script in ("train.py", "sweep.py"):  # first thing in main, before parsing imports the tasks
         main = (ROOT / "scripts" / script).read_text().split("def main(", 1)[1]
-        assert main.split("\n")[1].strip().startswith("load_mjx_without_warp()"), script
+        assert main.split("\n")[1].strip().startswith("leave_out_unused_backends()"), script
+
+
+def test_the_commands_import_playground_without_pytorch_which_stays_importable(tmp_path):
+    """Where PyTorch is installed, Playground's torch wrapper imports it; after ``cli.leave_out_unused_backends``
+    (the commands' first call) Playground's registry loads without it, and ``import torch`` works afterwards.
+    A stand-in ``torch`` module on the path plays the installed one."""
+    pytest.importorskip("mujoco_playground")
+    (tmp_path / "torch.py").write_text("STAND_IN = True\n")
+    program = textwrap.dedent("""
+        import sys
+        from stablebptt.cli import leave_out_unused_backends
+        if sys.argv[1] == "left out":
+            leave_out_unused_backends()
+        from stablebptt import playground
+        assert "CartpoleSwingup" in playground.names()
+        from mujoco_playground._src import wrapper_torch
+        print("torch" in sys.modules, wrapper_torch.torch is not None, end=" ")
+        import torch
+        print(torch.STAND_IN)
+    """)
+    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{tmp_path}")
+    for case, expected in (("left out", "False False True\n"), ("as installed", "True True True\n")):
+        result = subprocess.run([sys.executable, "-c", program, case], env=env, capture_output=True, text=True, timeout=120)
+        assert result.returncode == 0, result.stderr
+        assert result.stdout == expected, (case, result.stdout)
