@@ -64,6 +64,11 @@ def check_supported(model: mujoco.MjModel) -> None:
                 model.geom_margin[g1] + model.geom_margin[g2] > 0):
             refuse(f"a contact margin on a mesh or height field (geoms '{_name(model, geom, g1)}' and "
                    f"'{_name(model, geom, g2)}'): set margin=\"0\"")
+    disabled = lambda bit: bool(model.opt.disableflags & bit)  # noqa: E731
+    dsbl = mujoco.mjtDisableBit
+    if model.opt.noslip_iterations and not disabled(dsbl.mjDSBL_CONSTRAINT) and not (
+            disabled(dsbl.mjDSBL_CONTACT) and disabled(dsbl.mjDSBL_FRICTIONLOSS)):  # where it has friction to act on
+        refuse('the noslip solver: set <option noslip_iterations="0"/>')
     for values, supported, kind, what in (
             (model.actuator_gaintype, mjx_types.GainType, mujoco.mjtGain, "actuator gain"),
             (model.actuator_biastype, mjx_types.BiasType, mujoco.mjtBias, "actuator bias"),

@@ -25,7 +25,8 @@ REPAIRS = "Playground's reward tolerance in a form whose derivative is finite (v
 
 
 # Playground's torch and RSL-RL wrappers import these wherever they are installed; no command runs
-# them, and PyTorch alone took 3.4 s of a GPU machine's cold start (docs/performance.md).
+# them, and PyTorch alone took 3.4 s of a GPU machine's cold start (`bash experiments/startup_gpu/env_phases.sh
+# CartpoleSwingup` on one H200; docs/performance.md).
 UNUSED_BY_COMMANDS = ("torch", "tensordict", "rsl_rl")
 _left_out: tuple[str, ...] = ()
 

@@ -33,6 +33,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from stablebptt import integrators
+
 _DISABLE = mujoco.mjtDisableBit
 HINGE, SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
 EULER, RK4 = int(mujoco.mjtIntegrator.mjINT_EULER), int(mujoco.mjtIntegrator.mjINT_RK4)
@@ -43,7 +45,8 @@ def unsupported(model: mujoco.MjModel, effects) -> str:
     """Why the generated step does not cover ``model`` ('' when it does); ``effects`` from ``scene.analyze``.
 
     Contacts, joint limits and friction loss are MJX's own stages fed the generated terms; equality
-    constraints (which read frames of sites and orientations) and tendons are not generated.
+    constraints (some read site frames and body orientations, which are not generated) and tendons
+    are left to MJX's stages.
     """
     present = [name for name in ("equality", "tendons", "activation", "gravity_compensation", "fluid")
                if getattr(effects, name)]
@@ -349,12 +352,10 @@ class _Scene:
         geom_frames = [(_v_add(position[b], _mv(rotation[b], _constant(m.geom_pos[g]))),
                         _mm(rotation[b], _constant(_rotation(m.geom_quat[g])))) for g, b in enumerate(m.geom_bodyid)]
         placed = (axes, inertias)
-        matrix = self.mass_matrix(placed)
-        for i in range(self.nv):
-            matrix[i][i] = _add(matrix[i][i], float(m.dof_armature[i]))
+        matrix = self.mass_matrix(placed, m.dof_armature)
         bias = _stack(self.inverse_dynamics(placed, qvel, [0.0] * self.nv), qvel)
         qfrc_smooth = self.applied_forces(qpos, qvel, ctrl) - bias
-        qacc_smooth = _stack(_cholesky_solve(matrix, [qfrc_smooth[i] for i in range(self.nv)]), qvel)
+        qacc_smooth = _solve(matrix, qfrc_smooth)
         bodies = range(m.nbody)
         return RigidBody(
             xpos=_array([position[b] for b in bodies], qvel), xmat=_array([rotation[b] for b in bodies], qvel),
@@ -362,8 +363,9 @@ class _Scene:
             subtree_com=_array([subtree_com[b] for b in bodies], qvel), cdof=_array(cdof, qvel),
             mass_matrix=_array(matrix, qvel), qfrc_smooth=qfrc_smooth, qacc_smooth=qacc_smooth)
 
-    def mass_matrix(self, placed):
-        """Composite rigid bodies: M_ij = s_i . (I_c s_j) for dof i an ancestor of (or before, in its body) dof j."""
+    def mass_matrix(self, placed, diagonal=None):
+        """Composite rigid bodies: M_ij = s_i . (I_c s_j) for dof i an ancestor of (or before, in its body) dof j;
+        plus ``diagonal`` (constants per dof: armature, implicit damping), where given."""
         m = self.model
         axes, inertias = placed
         composite = dict(inertias)
@@ -380,6 +382,9 @@ class _Scene:
                 while ancestor >= 0:
                     entries[ancestor][dof] = entries[dof][ancestor] = _s_dot(motion[ancestor], force)
                     ancestor = m.dof_parentid[ancestor]
+        if diagonal is not None:
+            for i in range(self.nv):
+                entries[i][i] = _add(entries[i][i], float(diagonal[i]))
         return entries
 
     def applied_forces(self, qpos, qvel, ctrl):
@@ -434,6 +439,11 @@ def _cholesky_solve(matrix, vector):
     return solution
 
 
+def _solve(matrix, rhs):
+    """``matrix``^-1 ``rhs`` (an array) by the written-out Cholesky solve, as an array."""
+    return _stack(_cholesky_solve(matrix, [rhs[i] for i in range(len(matrix))]), rhs)
+
+
 def _stack(scalars, like):
     return jnp.stack([jnp.full((), x, like.dtype) if isinstance(x, float) else x for x in scalars])
 
@@ -455,10 +465,7 @@ def make_acceleration(model: mujoco.MjModel) -> Callable:
     scene = _Scene(model)
 
     def solve(placed, rhs):
-        matrix = scene.mass_matrix(placed)
-        for i in range(scene.nv):
-            matrix[i][i] = _add(matrix[i][i], float(scene.diagonal[i]))
-        return _stack(_cholesky_solve(matrix, [rhs[i] for i in range(scene.nv)]), rhs)
+        return _solve(scene.mass_matrix(placed, scene.diagonal), rhs)
 
     def residual(qpos, qvel, ctrl, qacc, placed):
         return _stack(scene.inverse_dynamics(placed, qvel, qacc), qvel) - scene.applied_forces(qpos, qvel, ctrl)
@@ -496,13 +503,9 @@ def make_step(model: mujoco.MjModel) -> Callable:
 
 def runge_kutta_4(h: float, acceleration: Callable) -> Callable:
     """MuJoCo's RK4 step of hinges and slides over ``acceleration(qpos, qvel, ctrl) -> qacc``."""
-    def step(state, ctrl):  # the classic tableau, control held over the step
-        q, v = state.qpos, state.qvel
-        k_vel, k_acc = [v], [acceleration(q, v, ctrl)]
-        for weight in (0.5, 0.5, 1.0):
-            stage_q, stage_v = q + weight * h * k_vel[-1], v + weight * h * k_acc[-1]
-            k_vel.append(stage_v)
-            k_acc.append(acceleration(stage_q, stage_v, ctrl))
-        combine = lambda k: (k[0] + 2 * k[1] + 2 * k[2] + k[3]) / 6
-        return state._replace(qpos=q + h * combine(k_vel), qvel=v + h * combine(k_acc))
+    advance = integrators.rk4(lambda position_velocity, ctrl: (position_velocity[1], acceleration(*position_velocity, ctrl)), h)
+
+    def step(state, ctrl):
+        qpos, qvel = advance((state.qpos, state.qvel), ctrl)
+        return state._replace(qpos=qpos, qvel=qvel)
     return step

@@ -44,6 +44,10 @@ CASES = {
     "a collision pair MJX lacks": (dict(extra_body='<body pos="0 0 -3"><freejoint/><geom type="cylinder" size="0.1 0.1"/>'
                                                    '</body><geom type="box" size="1 1 0.1" pos="0 0 -4"/>'),
                                    [], "cylinder-box contacts"),
+    "the noslip solver, which MJX lacks": (dict(timestep='0.01" noslip_iterations="5',
+                                                extra_body='<body pos="0 0 -3"><freejoint/><geom size="0.1"/></body>'
+                                                           '<geom type="plane" size="1 1 0.1" pos="0 0 -4"/>'),
+                                           [], "noslip"),
     "reverse mode through mjx.step's solver loop": (dict(extra_body='<body pos="0 0 -3"><freejoint/><geom size="0.1"/>'
                                                                     '</body><geom type="plane" size="1 1 0.1" pos="0 0 -4"/>'),
                                                     ["--pipeline", "mjx", "--step-derivative", "reverse"], "forward"),

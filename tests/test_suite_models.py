@@ -60,6 +60,8 @@ def test_every_suite_model_becomes_a_task_or_is_refused_in_one_line(suite, name)
     effects = scene.analyze(original)
     if effects.constraints:
         assert "constraint solver: " in task.summary
+    # Every input's tangent passes the solver: forward mode's Jacobians are built in one pass.
+    assert task.plan.jacobian_per_input == (not effects.constraints)
     # The memory of the gradient path fits this machine, or is made to fit: on models that span the
     # plans (forward mode, reverse mode with contacts, the largest tree), since tracing a large step's
     # derivative for the plan takes seconds per model.

@@ -89,6 +89,8 @@ def test_the_run_plan_completes_the_task_plan_and_a_plan_a_user_gives_is_taken_w
     assert make_trainer(hinted, config, plan=given).plan is given  # policy_gradient "batched", the default
     changed = replace(chosen, step_derivative="forward")
     assert make_trainer(hinted, config, plan=changed).plan is changed
+    one_pass = replace(task, plan=Plan(jacobian_per_input=False))  # a task may ask for one Jacobian pass
+    assert not make_trainer(one_pass, config).plan.jacobian_per_input
 
 
 class StaticData:

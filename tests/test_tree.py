@@ -201,6 +201,27 @@ def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
     assert np.abs(np.asarray(expected.qvel[0].qpos)).max() > 1e-3
 
 
+@pytest.mark.parametrize("jacobian", [jax.jacfwd, jax.jacrev])
+def test_rk4_with_constraints_has_the_jacobian_of_central_differences(x64, jacobian):
+    """Four constrained accelerations per step, each through the solver's implicit derivative: in contact
+    and at a limit, forward and reverse mode against central differences of the step itself."""
+    model = mujoco.MjModel.from_xml_string(HOPPING.format(integrator="RK4"))
+    lean, effects = lean_of(model)
+    step = scene.make_step(lean, effects)
+    qpos = jnp.array([0.1, -0.26, 0.2, np.radians(30.2), 0.1])  # as in the Euler test above
+    qvel, control = jnp.array([0.5, -0.3, 0.4, 0.2, -0.1]), jnp.array([0.3, -0.2])
+    flat = jax.jit(lambda q, v, u: jnp.concatenate(jax.tree.leaves(step(scene.State(q, v, jnp.zeros(0)), u))))
+    inputs = (qpos, qvel, control)
+    got = jax.jit(jacobian(flat, argnums=(0, 1, 2)))(*inputs)
+    for argument, block in enumerate(got):
+        columns = []
+        for k in range(inputs[argument].shape[0]):
+            shifted = lambda e: [x + e * (i == argument) * jnp.eye(x.shape[0])[k] for i, x in enumerate(inputs)]
+            columns.append((flat(*shifted(1e-6)) - flat(*shifted(-1e-6))) / 2e-6)
+        np.testing.assert_allclose(block, np.stack(columns, axis=1), rtol=1e-5, atol=1e-6)
+    assert np.abs(np.asarray(got[0])).max() > 0.1
+
+
 EQUALITY = BRANCHES.format(integrator="Euler").replace(
     "</worldbody>", '</worldbody>\n  <equality><joint joint1="hip" joint2="shoulder"/></equality>')
 
