@@ -37,8 +37,9 @@ EPOCH_PROGRAMS = ("auto", "whole", "per-update")
 # compiles it per update, and forward mode pushes all its tangents in one pass. XLA's CPU compiler
 # can take many minutes and gigabytes for a program that inlines a contact model's step many times
 # (updates, rollouts, one Jacobian pass per input, evaluation), where fewer copies compiled apart
-# take a few minutes. The built-in tasks' steps (the cart-poles: about 4,000) are small; the
-# DeepMind Control Suite's models other than pendulum and reacher are large.
+# take a few minutes. The built-in tasks' steps (the cart-poles: about 4,000) are small; so are the
+# DeepMind Control Suite's contact scenes whose step is generated (stablebptt/tree.py), while
+# through MJX's stages they are large.
 LARGE_STEP = 8_000
 # XLA:CPU's default fusion emitters compute each element of a fusion by calling the
 # functions of its operands, so an operand that many elements read is recomputed for each.
@@ -120,7 +121,7 @@ class TrainConfig:
     unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Plan.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: faster per seed, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
-    epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations", "choices": EPOCH_PROGRAMS})
+    epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations, and on a CPU of several cores for steps with a constraint solver (update and evaluation compile side by side)", "choices": EPOCH_PROGRAMS})
 
     def __post_init__(self):
         for item in fields(self):  # from Python anything can arrive: 2.5 epochs, lr "0.1", batch None
@@ -259,7 +260,9 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
     # which on a GPU compiles one program per leaf shape.
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
-    large = kept("large step", lambda: large_step(task, config, example_state))  # a trace of one step: kept too
+    # One trace of one step, kept too: its size, and whether it solves for constraints (a loop).
+    operations, solves = kept("step size", lambda: list(step_size(task, config, example_state)))
+    large = operations > LARGE_STEP
     options = compiler_options(large)
     jit = functools.partial(jax.jit, compiler_options=options)
     measured = lambda name, measure: kept(f"traced bytes, {name}", measure)  # noqa: E731
@@ -335,7 +338,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
 
     if grid:
         epoch_program = jit(over_seeds(grid_epoch, mapped=2))
-    elif config.epoch_program == "whole" or config.epoch_program == "auto" and not large:
+    elif config.epoch_program == "whole" or config.epoch_program == "auto" and not (
+            large or solves and _compile_side_by_side()):
         epoch_program = jit(over_seeds(epoch))
     else:
         epoch_program = PerUpdateEpoch(jit(over_seeds(functools.partial(update, task.dynamics))),
@@ -469,14 +473,28 @@ def compiler_options(large: bool = False) -> dict | None:
 
 
 def large_step(task: Task, config: TrainConfig, initial_state: PyTree) -> bool:
-    """Whether one simulator step has more than ``LARGE_STEP`` operations (``step_operations``)."""
-    return step_operations(task, config, initial_state) > LARGE_STEP
+    """Whether one simulator step has more than ``LARGE_STEP`` operations (``step_size``)."""
+    return step_size(task, config, initial_state).operations > LARGE_STEP
 
 
-def step_operations(task: Task, config: TrainConfig, initial_state: PyTree) -> int:
-    """Operations in one traced simulator step, inner loops' bodies counted once."""
+class StepSize(NamedTuple):
+    """What one traced simulator step holds."""
+
+    operations: int  # inner loops' bodies counted once
+    solves: bool  # a loop of data-dependent length: a constraint solver's iterations
+
+
+def step_size(task: Task, config: TrainConfig, initial_state: PyTree) -> StepSize:
+    """One trace of one simulator step, measured (``StepSize``)."""
     control = _example_control(task, config, initial_state)
-    return _operations(jax.make_jaxpr(task.dynamics.step)(initial_state, control).jaxpr)
+    jaxpr = jax.make_jaxpr(task.dynamics.step)(initial_state, control).jaxpr
+    return StepSize(_operations(jaxpr), _holds_while(jaxpr))
+
+
+def _holds_while(jaxpr) -> bool:
+    return any(equation.primitive.name == "while" or any(_holds_while(inner) for inner in
+                                                          jax.extend.core.jaxprs_in_params(equation.params))
+               for equation in jaxpr.eqns)
 
 
 def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Plan | None = None,

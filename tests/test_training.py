@@ -143,7 +143,7 @@ def test_a_kept_traced_epoch_computes_what_the_traced_one_does_and_a_changed_key
     kept_key = {**key, "test": str(tmp_path)}
     fields = lambda plan: vars(plan)  # noqa: E731 - Plan compares by identity
     first = make_trainer(task, config, keep=kept_key)
-    monkeypatch.setattr(training, "large_step", lambda *a: pytest.fail("the step's size traced although kept"))
+    monkeypatch.setattr(training, "step_size", lambda *a: pytest.fail("the step's size traced although kept"))
     assert fields(first.plan) == fields(make_trainer(task, config, keep=kept_key).plan) == fields(trainer.plan)
     monkeypatch.undo()
     from stablebptt.tasks import env, mjcf
@@ -187,6 +187,27 @@ def test_an_epoch_compiled_per_update_trains_as_the_epoch_compiled_whole(task, t
         np.testing.assert_allclose(per_update, [h[name] for h in history], rtol=1e-5, err_msg=name)
     for whole, split in zip(jax.tree.leaves(state.params), jax.tree.leaves(outcome.state.params)):
         np.testing.assert_allclose(split, whole, rtol=1e-4, atol=1e-7)
+
+
+def test_auto_compiles_a_step_that_solves_apart_on_several_cores_and_a_plain_step_whole(task, monkeypatch):
+    """``epoch_program="auto"``: a step holding a loop of data-dependent length (a constraint solver's)
+    makes the epoch three programs where the CPU compiles them side by side, one program where it
+    cannot; a step without such a loop stays one program."""
+    step = task.dynamics.step
+
+    def solving_step(state, control):  # the step, then a loop that stops after one pass, as a solver converges
+        return jax.lax.while_loop(lambda carry: carry[1] < 1, lambda carry: (carry[0], carry[1] + 1),
+                                  (step(state, control), 0))[0]
+
+    d = task.dynamics
+    solving = replace(task, dynamics=Dynamics(step=solving_step, policy=d.policy, loss=d.loss, horizon=d.horizon))
+    config = replace(SMALL, epochs=1)
+    side_by_side = jax.default_backend() == "cpu" and training.usable_cores() > 1
+    split = lambda trainer: isinstance(trainer.epoch, training.PerUpdateEpoch)  # noqa: E731
+    assert split(make_trainer(solving, config)) == side_by_side
+    assert not split(make_trainer(task, config))
+    monkeypatch.setattr(training, "usable_cores", lambda: 1)
+    assert not split(make_trainer(solving, config))
 
 
 def test_runs_are_bit_reproducible(task, three_seeds):

@@ -72,7 +72,7 @@ def main(argv=None):
             (environments, "diagnose_reward", "env_task: diagnosis gradient"),
             (training, "check_task", "make_trainer: check_task"),
             (training, "memory_plan", "make_trainer: memory plan"),
-            (training, "large_step", "make_trainer: large_step"),
+            (training, "step_size", "make_trainer: step_size"),
             (memory, "traced_bytes", "(memory plan: traced_bytes)")]:
         if hasattr(module, attribute):
             wrap(module, attribute, name)
