@@ -155,17 +155,32 @@ HOPPING = """<mujoco model="hopping">
 </mujoco>"""
 
 
-@pytest.mark.parametrize("integrator", ["Euler", "RK4"])
-def test_the_generated_step_with_constraints_takes_mujocos_c_steps(x64, integrator):
+# The branched tree against a floor and a mocap box: a hand with a limited, offset wrist under
+# friction loss, in bodies of several joints, a welded body and rotated frames.
+BRANCHES_IN_CONTACT = BRANCHES.format(integrator="Euler").replace(
+    '<joint name="wrist" type="hinge" axis="1 0 0"/>',
+    '<joint name="wrist" type="hinge" axis="1 0 0" pos="0 0.02 0" range="-0.5 0.5" frictionloss="0.02"/>'
+    '<geom type="sphere" size="0.06" pos="0 0 0.1"/>').replace(
+    "<worldbody>", '<worldbody><geom type="plane" size="5 5 0.1" pos="0 0 0.55"/>'
+    '<body name="target" mocap="true" pos="0.3 0.1 0.7"><geom type="box" size="0.05 0.05 0.05"/></body>')
+CONSTRAINED = {"hopping, Euler": HOPPING.format(integrator="Euler"), "hopping, RK4": HOPPING.format(integrator="RK4"),
+               "branches in contact": BRANCHES_IN_CONTACT}
+
+
+@pytest.mark.parametrize("name", CONSTRAINED)
+def test_the_generated_step_with_constraints_takes_mujocos_c_steps(x64, name):
     """Every step from the state MuJoCo reached, so that a contact's chaos does not compound the solvers'
-    tolerances: the hopper falls, lands and kicks against its limits."""
-    model = mujoco.MjModel.from_xml_string(HOPPING.format(integrator=integrator))
+    tolerances: the hopper falls, lands and kicks against its limits; the branches swing into the floor."""
+    model = mujoco.MjModel.from_xml_string(CONSTRAINED[name])
     lean, effects = lean_of(model)
     assert effects.contacts and effects.joint_limits and effects.friction_loss
     assert scene.generated_step_applies(lean, effects)
     step = jax.jit(scene.make_step(lean, effects))
     rng = np.random.default_rng(0)
     data = mujoco.MjData(model)
+    if name == "branches in contact":  # moving from the start, as the contact-free test above
+        data.qpos[:] = model.qpos0 + rng.uniform(-1, 1, model.nq)
+        data.qvel[:] = rng.uniform(-2, 2, model.nv)
     rows = set()
     for _ in range(200):
         data.ctrl[:] = rng.uniform(-2, 2, model.nu)
