@@ -115,16 +115,22 @@ def test_rk4s_derivative_passes_its_stages(x64):
     assert scene.generated_step_applies(lean, effects)
     step = scene.make_step(lean, effects)
     state, control = random_point(model, 2)
-    flat = jax.jit(lambda q, v, u: jnp.concatenate(jax.tree.leaves(step(scene.State(q, v, state.act), u))))
-    inputs = (state.qpos, state.qvel, control)
     for jacobian in (jax.jacfwd, jax.jacrev):
-        got = jax.jit(jacobian(flat, argnums=(0, 1, 2)))(*inputs)
-        for argument, block in enumerate(got):
-            columns = []
-            for k in range(inputs[argument].shape[0]):
-                shifted = lambda e: [x + e * (i == argument) * jnp.eye(x.shape[0])[k] for i, x in enumerate(inputs)]
-                columns.append((flat(*shifted(1e-6)) - flat(*shifted(-1e-6))) / 2e-6)
-            np.testing.assert_allclose(block, np.stack(columns, axis=1), rtol=1e-6, atol=1e-8)
+        assert_central_differences(step, (state.qpos, state.qvel, control), jacobian, rtol=1e-6, atol=1e-8)
+
+
+def assert_central_differences(step, inputs, jacobian, rtol, atol):
+    """``jacobian`` (jax.jacfwd or jacrev) of ``step`` at ``inputs`` = (qpos, qvel, ctrl) against central
+    differences of the step itself; returns the Jacobian's blocks."""
+    flat = jax.jit(lambda q, v, u: jnp.concatenate(jax.tree.leaves(step(scene.State(q, v, jnp.zeros(0)), u))))
+    got = jax.jit(jacobian(flat, argnums=(0, 1, 2)))(*inputs)
+    for argument, block in enumerate(got):
+        columns = []
+        for k in range(inputs[argument].shape[0]):
+            shifted = lambda e: [x + e * (i == argument) * jnp.eye(x.shape[0])[k] for i, x in enumerate(inputs)]
+            columns.append((flat(*shifted(1e-6)) - flat(*shifted(-1e-6))) / 2e-6)
+        np.testing.assert_allclose(block, np.stack(columns, axis=1), rtol=rtol, atol=atol)
+    return got
 
 
 # A planar hopper that lands on its capsules: contacts, two limited joints, friction loss on
@@ -195,18 +201,23 @@ def test_the_generated_step_with_constraints_takes_mujocos_c_steps(x64, name):
     assert rows & {int(kinds.mjCNSTR_CONTACT_PYRAMIDAL), int(kinds.mjCNSTR_CONTACT_ELLIPTIC)}
 
 
+# The hopper's foot on the floor and its hip just past its limit, moving, with a control inside the clamps.
+IN_CONTACT_QPOS = [0.1, -0.26, 0.2, np.radians(30.2), 0.1]
+IN_CONTACT_QVEL = [0.5, -0.3, 0.4, 0.2, -0.1]
+IN_CONTACT_CONTROL = [0.3, -0.2]
+
+
 def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
     """In contact and at a limit, reverse mode through the generated terms and the implicit solver gives
     the Jacobians of forward mode through MJX's stages and the same solver."""
     model = mujoco.MjModel.from_xml_string(HOPPING.format(integrator="Euler"))
     lean, effects = lean_of(model)
     data = mujoco.MjData(model)
-    data.qpos[:] = [0.1, -0.26, 0.2, np.radians(30.2), 0.1]  # the foot on the floor, the hip just past its limit
-    data.qvel[:] = [0.5, -0.3, 0.4, 0.2, -0.1]
+    data.qpos[:], data.qvel[:] = IN_CONTACT_QPOS, IN_CONTACT_QVEL
     mujoco.mj_forward(model, data)
     assert data.ncon > 0 and int(mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT) in data.efc_type[:data.nefc]
     state = scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
-    control = jnp.array([0.3, -0.2])
+    control = jnp.array(IN_CONTACT_CONTROL)
     generated = scene.make_step(lean, effects)
     stages = scene.make_step(lean, effects, "stages")
     expected = jax.jit(jax.jacfwd(stages, argnums=(0, 1)))(state, control)
@@ -222,18 +233,8 @@ def test_rk4_with_constraints_has_the_jacobian_of_central_differences(x64, jacob
     and at a limit, forward and reverse mode against central differences of the step itself."""
     model = mujoco.MjModel.from_xml_string(HOPPING.format(integrator="RK4"))
     lean, effects = lean_of(model)
-    step = scene.make_step(lean, effects)
-    qpos = jnp.array([0.1, -0.26, 0.2, np.radians(30.2), 0.1])  # as in the Euler test above
-    qvel, control = jnp.array([0.5, -0.3, 0.4, 0.2, -0.1]), jnp.array([0.3, -0.2])
-    flat = jax.jit(lambda q, v, u: jnp.concatenate(jax.tree.leaves(step(scene.State(q, v, jnp.zeros(0)), u))))
-    inputs = (qpos, qvel, control)
-    got = jax.jit(jacobian(flat, argnums=(0, 1, 2)))(*inputs)
-    for argument, block in enumerate(got):
-        columns = []
-        for k in range(inputs[argument].shape[0]):
-            shifted = lambda e: [x + e * (i == argument) * jnp.eye(x.shape[0])[k] for i, x in enumerate(inputs)]
-            columns.append((flat(*shifted(1e-6)) - flat(*shifted(-1e-6))) / 2e-6)
-        np.testing.assert_allclose(block, np.stack(columns, axis=1), rtol=1e-5, atol=1e-6)
+    inputs = tuple(jnp.array(x) for x in (IN_CONTACT_QPOS, IN_CONTACT_QVEL, IN_CONTACT_CONTROL))
+    got = assert_central_differences(scene.make_step(lean, effects), inputs, jacobian, rtol=1e-5, atol=1e-6)
     assert np.abs(np.asarray(got[0])).max() > 0.1
 
 
