@@ -1,6 +1,11 @@
 """How long XLA takes to compile one scene's step, alone and differentiated: where a cold start goes.
 
     python experiments/step_compile.py S/hopper.xml [S/cheetah.xml ...]
+    python experiments/step_compile.py --forms S/hopper.xml S/humanoid.xml
+
+With --forms, only the generated rigid-body terms (stablebptt/tree.py) in both forms, written out
+and in arrays: traced operations and compile seconds of the terms and of their JVP (the JVP
+written out only up to 12 dofs: beyond, XLA's compile outgrows this machine's memory).
 
 Per model and step (the default one; MJX's stages; the generated rigid-body part alone, its
 constraints left out), three programs over a batch of 8 with the compile cache off: the step, its
@@ -53,6 +58,29 @@ def programs(step, state, control) -> None:
     timed("its vjp", pullback, state, control)
     timed(f"gradient of a {STEPS}-step rollout", rollout_gradient, state, control)
 
+
+def forms(path: str) -> None:
+    model = simulator.build(mujoco.MjModel.from_xml_path(path)).lean
+    inputs = (jnp.broadcast_to(jnp.asarray(model.qpos0, jnp.float32), (BATCH, model.nq)), jnp.zeros((BATCH, model.nv)),
+              jnp.zeros((BATCH, model.nu)))
+    for form in (tree._WrittenOut, tree._Arrays):
+        terms = form(model).rigid_body
+        functions = {"terms": jax.vmap(terms)}
+        if form is tree._Arrays or model.nv <= 12:
+            functions["JVP"] = jax.vmap(lambda q, v, u: jax.jvp(terms, (q, v, u), (q, v, u)))
+        for label, function in functions.items():
+            traced = jax.jit(function).trace(*inputs)
+            lowered = traced.lower()
+            start = time.perf_counter()
+            lowered.compile()
+            print(f"{os.path.basename(path)}, {form.__name__}, {label}: {len(traced.jaxpr.eqns)} operations, "
+                  f"compile {time.perf_counter() - start:.1f} s", flush=True)
+
+
+if sys.argv[1] == "--forms":
+    for path in sys.argv[2:]:
+        forms(path)
+    sys.exit()
 
 for path in sys.argv[1:]:
     sim = simulator.build(mujoco.MjModel.from_xml_path(path))

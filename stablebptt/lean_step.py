@@ -91,7 +91,7 @@ def implicit_derivative_applies(model: mujoco.MjModel, effects: SceneEffects) ->
 
 
 def generated_step_applies(model: mujoco.MjModel, effects: SceneEffects | None) -> bool:
-    """Whether ``stablebptt.tree`` generates this scene's step: a small tree of hinges and slides."""
+    """Whether ``stablebptt.tree`` generates this scene's rigid-body terms (``tree.unsupported`` says why not)."""
     return effects is not None and not tree.unsupported(model, effects)
 
 

@@ -42,7 +42,7 @@ class SimulatorConfig:
 
     integrator: str = field(default="", metadata={"help": "override the MJCF's integrator: euler, rk4 or implicitfast", "choices": ("", "euler", "rk4", "implicitfast")})
     dt: float = field(default=0.0, metadata={"help": "override the MJCF's time step; the simulated time stays the same unless --steps is given"})
-    pipeline: str = field(default="lean", metadata={"help": "lean: a step generated body by body for small trees of hinges and slides (constraints from MJX), else stages; stages: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": PIPELINES})
+    pipeline: str = field(default="lean", metadata={"help": "lean: a step generated body by body for trees of hinge, slide, ball and free joints (constraints from MJX), else stages; stages: only the MJX stages the scene needs; mjx: mjx.step with MuJoCo's default flags", "choices": PIPELINES})
     solver_iterations: int = field(default=0, metadata={"help": "constraint solver of scenes with contacts or limits: N runs exactly N Newton iterations (cheaper, different physics); 0 keeps the model's own solver"})
     step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers whose tangents times constraint rows stay within 500)", "choices": STEP_DERIVATIVES})
 

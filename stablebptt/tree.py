@@ -1,12 +1,20 @@
-"""A step generated per scene for small kinematic trees of hinge and slide joints.
+"""A step generated per scene for kinematic trees of hinge, slide, ball and free joints.
 
-MJX runs every stage over all bodies at once: scans over tree levels, gathers
-of parents, a sparse mass-matrix factorisation. For a tree of a few bodies that
-is many tiny dependent operations per step (on a GPU, many tiny kernels) and,
-differentiated, a program XLA takes long to compile. Here the rigid-body
-recursions are written out body by body while tracing, with the model's numbers
-as constants: what remains is straight-line arithmetic on each example's
-scalars, which XLA fuses into few kernels.
+MJX runs every stage over all bodies at once by scanning over tree levels, with
+gathers of parents and a sparse mass-matrix factorisation: differentiated, a
+program XLA takes long to compile, and on a GPU many tiny kernels. Here the
+rigid-body terms are generated per scene while tracing, the model's numbers as
+constants, in one of two forms of the same physics (``make_scene``):
+
+- ``_WrittenOut``, for trees of a few dofs: every recursion written out body by
+  body, scalar by scalar, with the model's zeros folded away - straight-line
+  arithmetic on each example's scalars, which XLA fuses into few kernels;
+- ``_Arrays``, for larger trees: kinematics body by body on 3-vectors and 3x3
+  matrices, then everything else as one array operation over all bodies and dofs
+  through constant masks of which dof moves which body. Its program grows with
+  the number of joints, not with their arithmetic: written out, humanoid's terms
+  are 21,000 traced operations that XLA compiles in 95 s; in arrays, 900 in 2 s
+  (``experiments/step_compile.py --forms``).
 
 The physics is MuJoCo's, term by term (tests compare with ``mujoco.mj_step`` in
 float64): forward kinematics, the composite-rigid-body mass matrix plus
@@ -21,7 +29,8 @@ M~(q) qacc = f(q, qvel, ctrl), so d qacc = -M~^-1 d(ID(q, qvel, qacc) - f) at
 fixed qacc, and the mass matrix, its factorisation and the solve are never
 differentiated. A scene with contacts, joint limits or friction loss takes the
 generated terms in MuJoCo's frames (``RigidBody``) into MJX's collision,
-constraint rows and solver (``lean_step``).
+constraint rows and solver (``lean_step``), whose Euler step integrates the
+quaternions of free and ball joints.
 """
 from __future__ import annotations
 
@@ -36,9 +45,16 @@ import numpy as np
 from stablebptt import integrators
 
 _DISABLE = mujoco.mjtDisableBit
+FREE, BALL = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
 HINGE, SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
 EULER, RK4 = int(mujoco.mjtIntegrator.mjINT_EULER), int(mujoco.mjtIntegrator.mjINT_RK4)
-MAX_DOFS = 12  # the unrolled factorisation grows as nv^3 in traced operations
+# Up to this many degrees of freedom the terms are written out scalar by scalar (``_WrittenOut``), beyond it
+# in arrays (``_Arrays``), per backend. Side by side (docs/performance.md): on a 2-core CPU arrays reach the
+# first update sooner from hopper's 7 dofs up (cold, humanoid 64.6 -> 34.0 s) and later for the cart-poles
+# (cartpole_3 4.7 -> 6.5 s); on one H200 the written-out cart-pole grid compiles and trains 2-4x faster, and
+# hopper's epochs take 8-10 % less written out.
+WRITTEN_OUT_DOFS = {"cpu": 5}
+WRITTEN_OUT_DOFS_ACCELERATOR = 12
 
 
 def unsupported(model: mujoco.MjModel, effects) -> str:
@@ -46,16 +62,27 @@ def unsupported(model: mujoco.MjModel, effects) -> str:
 
     Contacts, joint limits and friction loss are MJX's own stages fed the generated terms; equality
     constraints (some read site frames and body orientations, which are not generated) and tendons
-    are left to MJX's stages.
+    are left to MJX's stages. Free and ball joints are generated where MJX's stages and its Euler
+    step take over from the generated terms (their quaternions integrate on the sphere).
     """
     present = [name for name in ("equality", "tendons", "activation", "gravity_compensation", "fluid")
                if getattr(effects, name)]
     if present:
         return "equality constraints" if present[0] == "equality" else present[0].replace("_", " ")
-    if model.nv == 0 or model.nv > MAX_DOFS:
-        return f"{model.nv} degrees of freedom (covered: 1 to {MAX_DOFS})"
-    if not np.all(np.isin(model.jnt_type, (HINGE, SLIDE))):
-        return "free or ball joints"
+    turning = np.isin(model.jnt_type, (FREE, BALL))
+    if model.nv == 0:
+        return "no degrees of freedom"
+    if np.any(turning):
+        if not effects.constraints:
+            return "free or ball joints in a scene without contacts, limits or friction loss"
+        if int(model.opt.integrator) != EULER:
+            return "free or ball joints with an integrator other than Euler"
+        if any(model.jnt_type[j] == FREE and model.body_jntnum[model.jnt_bodyid[j]] > 1 for j in range(model.njnt)):
+            return "a free joint beside other joints of its body"
+        if np.any(model.jnt_stiffness[turning]):
+            return "springs on free or ball joints"
+        if model.nu and np.any(turning[model.actuator_trnid[:, 0]]):
+            return "actuators on free or ball joints"
     if int(model.opt.integrator) not in (EULER, RK4):
         return f"the {mujoco.mjtIntegrator(model.opt.integrator).name} integrator"
     if model.opt.enableflags:
@@ -176,6 +203,15 @@ def _mm(a, b):
     return tuple(tuple(_dot(row, column) for column in columns) for row in a)
 
 
+def _quaternion_rotation(quat):
+    """The rotation of a traced quaternion (w, x, y, z), normalised first as MuJoCo's kinematics does."""
+    norm = jnp.sqrt(sum(q * q for q in quat))
+    w, x, y, z = (q / norm for q in quat)
+    return ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+
+
 def _axis_rotation(axis: tuple, angle):
     """Rotation by ``angle`` about the constant unit ``axis``: c (1 - a a^T) + s [a]x + a a^T."""
     cosine, sine = jnp.cos(angle), jnp.sin(angle)
@@ -242,7 +278,8 @@ class RigidBody(NamedTuple):
 
 
 class _Scene:
-    """The model's numbers, read once; its bodies in MuJoCo's order (parents first)."""
+    """The model's numbers, read once; its bodies in MuJoCo's order (parents first). The rigid-body terms
+    come in two forms of the same physics (``make_scene`` picks one): ``_WrittenOut`` and ``_Arrays``."""
 
     def __init__(self, model: mujoco.MjModel):
         self.model = model
@@ -264,28 +301,88 @@ class _Scene:
         self.joints = {b: list(range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b]))
                        for b in self.bodies}
 
+    def applied_forces(self, qpos, qvel, ctrl):
+        """Springs, dampers and actuators: MuJoCo's qfrc_passive + qfrc_actuator."""
+        m = self.model
+        force = jnp.zeros(self.nv, dtype=qvel.dtype)
+        if self.dampers:
+            force = force - jnp.asarray(m.dof_damping) * qvel
+        if self.springs and np.any(m.jnt_stiffness):  # free and ball joints have none (``unsupported``)
+            sprung = np.flatnonzero(m.jnt_stiffness)
+            dofs, addresses = m.jnt_dofadr[sprung], m.jnt_qposadr[sprung]
+            force = force.at[dofs].add(-jnp.asarray(m.jnt_stiffness[sprung]) * (qpos[addresses] - m.qpos_spring[addresses]))
+        if self.actuation:
+            if self.clamp_ctrl and np.any(m.actuator_ctrllimited):
+                limited = np.asarray(m.actuator_ctrllimited, bool)
+                low, high = m.actuator_ctrlrange[:, 0], m.actuator_ctrlrange[:, 1]
+                ctrl = jnp.where(limited, jnp.clip(ctrl, low, high), ctrl)
+            joint = m.actuator_trnid[:, 0]
+            gear = jnp.asarray(m.actuator_gear[:, 0])
+            length = gear * qpos[m.jnt_qposadr[joint]]
+            velocity = gear * qvel[m.jnt_dofadr[joint]]
+            bias = np.asarray(m.actuator_biasprm)
+            actuator = jnp.asarray(m.actuator_gainprm[:, 0]) * ctrl + (
+                bias[:, 0] + bias[:, 1] * length + bias[:, 2] * velocity)
+            if np.any(m.actuator_forcelimited):
+                limited = np.asarray(m.actuator_forcelimited, bool)
+                actuator = jnp.where(limited, jnp.clip(actuator, m.actuator_forcerange[:, 0],
+                                                       m.actuator_forcerange[:, 1]), actuator)
+            generalized = jnp.zeros(self.nv, dtype=qvel.dtype).at[m.jnt_dofadr[joint]].add(gear * actuator)
+            if np.any(m.jnt_actfrclimited):
+                limited = np.asarray(m.jnt_actfrclimited, bool)
+                dofs = m.jnt_dofadr[limited]
+                generalized = generalized.at[dofs].set(jnp.clip(generalized[dofs], m.jnt_actfrcrange[limited, 0],
+                                                                m.jnt_actfrcrange[limited, 1]))
+            force = force + generalized
+        return force
+
+
+
+class _WrittenOut(_Scene):
+    """The terms written out scalar by scalar, the model's zeros folded away while tracing."""
+
     def kinematics(self, qpos):
-        """Per body: position, rotation, and its joints' motion axes [(dof, (angular, linear))]."""
+        """Per body: position, rotation, and its joints' motion axes as groups [[(dof, (angular, linear))]].
+
+        A group's axes move together: a hinge or slide is a group of one, a ball joint's (or a free
+        joint's) three rotations are one group about the body's final axes, as MuJoCo's ``cdof`` has them.
+        """
         m = self.model
         position, rotation, axes = {0: _ZERO3}, {0: _IDENTITY}, {}
         for b in self.bodies:
             parent = m.body_parentid[b]
             x = _v_add(position[parent], _mv(rotation[parent], _constant(m.body_pos[b])))
             r = _mm(rotation[parent], _constant(_rotation(m.body_quat[b])))
-            axes[b] = []
+            axes[b], turning = [], []  # turning: (group, first dof, anchor) of rotations about the final axes
             for j in self.joints[b]:
+                address, dof = m.jnt_qposadr[j], m.jnt_dofadr[j]
+                if m.jnt_type[j] == FREE:  # a body of the world's: qpos holds its frame itself
+                    x = tuple(qpos[address + i] for i in range(3))
+                    r = _quaternion_rotation([qpos[address + 3 + i] for i in range(4)])
+                    axes[b] += [[(dof + i, (_ZERO3, _IDENTITY[i])) for i in range(3)], []]
+                    turning.append((axes[b][-1], dof + 3, x))
+                    continue
+                if m.jnt_type[j] == BALL:
+                    anchor = _v_add(x, _mv(r, _constant(m.jnt_pos[j])))
+                    r = _mm(r, _quaternion_rotation([qpos[address + i] for i in range(4)]))
+                    x = _v_sub(anchor, _mv(r, _constant(m.jnt_pos[j])))
+                    axes[b].append([])
+                    turning.append((axes[b][-1], dof, anchor))
+                    continue
                 axis = _constant(m.jnt_axis[j])
                 world_axis = _mv(r, axis)
-                address = m.jnt_qposadr[j]
                 offset = qpos[address] - float(m.qpos0[address])
                 if m.jnt_type[j] == SLIDE:
                     x = _v_add(x, _v_scale(world_axis, offset))
-                    axes[b].append((m.jnt_dofadr[j], (_ZERO3, world_axis)))
+                    axes[b].append([(dof, (_ZERO3, world_axis))])
                 else:
                     anchor = _v_add(x, _mv(r, _constant(m.jnt_pos[j])))
                     r = _mm(r, _axis_rotation(axis, offset))
                     x = _v_sub(anchor, _mv(r, _constant(m.jnt_pos[j])))
-                    axes[b].append((m.jnt_dofadr[j], (world_axis, _cross(anchor, world_axis))))
+                    axes[b].append([(dof, (world_axis, _cross(anchor, world_axis)))])
+            columns = _transpose(r)
+            for group, first, anchor in turning:
+                group += [(first + i, (columns[i], _cross(anchor, columns[i]))) for i in range(3)]
             position[b], rotation[b] = x, r
         return position, rotation, axes
 
@@ -318,9 +415,11 @@ class _Scene:
         velocity, acceleration, force = {0: (_ZERO3, _ZERO3)}, {0: (_ZERO3, _v_scale(self.gravity, -1.0))}, {}
         for b in self.bodies:
             v, a = velocity[m.body_parentid[b]], acceleration[m.body_parentid[b]]
-            for dof, axis in axes[b]:
-                a = _s_add(a, _s_add(_s_scale(_cross_motion(v, axis), qvel[dof]), _s_scale(axis, qacc[dof])))
-                v = _s_add(v, _s_scale(axis, qvel[dof]))
+            for group in axes[b]:  # a group's axes turn with the velocity before it (MuJoCo's cdof_dot)
+                for dof, axis in group:
+                    a = _s_add(a, _s_add(_s_scale(_cross_motion(v, axis), qvel[dof]), _s_scale(axis, qacc[dof])))
+                for dof, axis in group:
+                    v = _s_add(v, _s_scale(axis, qvel[dof]))
             velocity[b], acceleration[b] = v, a
             force[b] = _s_add(inertias[b].apply(a), _cross_force(v, inertias[b].apply(v)))
         for b in reversed(self.bodies):
@@ -329,9 +428,9 @@ class _Scene:
                 force[parent] = _s_add(force[parent], force[b])
         torque = [0.0] * self.nv
         for b in self.bodies:
-            for dof, axis in axes[b]:
+            for dof, axis in _dofs(axes[b]):
                 torque[dof] = _s_dot(axis, force[b])
-        return torque
+        return _stack(torque, qvel)
 
     def rigid_body(self, qpos, qvel, ctrl) -> RigidBody:
         """The terms MJX's constraint stages read, generated (``RigidBody``)."""
@@ -347,13 +446,13 @@ class _Scene:
         cdof = [None] * self.nv
         for b in self.bodies:
             centre = subtree_com[m.body_rootid[b]]
-            for dof, (angular, linear) in axes[b]:  # the same motion, its linear part taken at the centre
+            for dof, (angular, linear) in _dofs(axes[b]):  # the same motion, its linear part taken at the centre
                 cdof[dof] = angular + _v_add(linear, _cross(angular, centre))
         geom_frames = [(_v_add(position[b], _mv(rotation[b], _constant(m.geom_pos[g]))),
                         _mm(rotation[b], _constant(_rotation(m.geom_quat[g])))) for g, b in enumerate(m.geom_bodyid)]
         placed = (axes, inertias)
         matrix = self.mass_matrix(placed, m.dof_armature)
-        bias = _stack(self.inverse_dynamics(placed, qvel, [0.0] * self.nv), qvel)
+        bias = self.inverse_dynamics(placed, qvel, [0.0] * self.nv)
         qfrc_smooth = self.applied_forces(qpos, qvel, ctrl) - bias
         qacc_smooth = _solve(matrix, qfrc_smooth)
         bodies = range(m.nbody)
@@ -373,10 +472,10 @@ class _Scene:
             parent = m.body_parentid[b]
             if parent:
                 composite[parent] = composite[parent] + composite[b]
-        motion = {dof: axis for b in self.bodies for dof, axis in axes[b]}
+        motion = {dof: axis for b in self.bodies for dof, axis in _dofs(axes[b])}
         entries = [[0.0] * self.nv for _ in range(self.nv)]
         for b in self.bodies:
-            for dof, axis in axes[b]:
+            for dof, axis in _dofs(axes[b]):
                 force = composite[b].apply(axis)
                 ancestor = dof
                 while ancestor >= 0:
@@ -387,39 +486,181 @@ class _Scene:
                 entries[i][i] = _add(entries[i][i], float(diagonal[i]))
         return entries
 
-    def applied_forces(self, qpos, qvel, ctrl):
-        """Springs, dampers and actuators: MuJoCo's qfrc_passive + qfrc_actuator."""
-        m = self.model
-        force = jnp.zeros(self.nv, dtype=qvel.dtype)
-        if self.dampers:
-            force = force - jnp.asarray(m.dof_damping) * qvel
-        if self.springs and np.any(m.jnt_stiffness):
-            dofs, addresses = m.jnt_dofadr, m.jnt_qposadr
-            force = force.at[dofs].add(-jnp.asarray(m.jnt_stiffness) * (qpos[addresses] - m.qpos_spring[addresses]))
-        if self.actuation:
-            if self.clamp_ctrl and np.any(m.actuator_ctrllimited):
-                limited = np.asarray(m.actuator_ctrllimited, bool)
-                low, high = m.actuator_ctrlrange[:, 0], m.actuator_ctrlrange[:, 1]
-                ctrl = jnp.where(limited, jnp.clip(ctrl, low, high), ctrl)
-            joint = m.actuator_trnid[:, 0]
-            gear = jnp.asarray(m.actuator_gear[:, 0])
-            length = gear * qpos[m.jnt_qposadr[joint]]
-            velocity = gear * qvel[m.jnt_dofadr[joint]]
-            bias = np.asarray(m.actuator_biasprm)
-            actuator = jnp.asarray(m.actuator_gainprm[:, 0]) * ctrl + (
-                bias[:, 0] + bias[:, 1] * length + bias[:, 2] * velocity)
-            if np.any(m.actuator_forcelimited):
-                limited = np.asarray(m.actuator_forcelimited, bool)
-                actuator = jnp.where(limited, jnp.clip(actuator, m.actuator_forcerange[:, 0],
-                                                       m.actuator_forcerange[:, 1]), actuator)
-            generalized = jnp.zeros(self.nv, dtype=qvel.dtype).at[m.jnt_dofadr[joint]].add(gear * actuator)
-            if np.any(m.jnt_actfrclimited):
-                limited = np.asarray(m.jnt_actfrclimited, bool)
-                dofs = m.jnt_dofadr[limited]
-                generalized = generalized.at[dofs].set(jnp.clip(generalized[dofs], m.jnt_actfrcrange[limited, 0],
-                                                                m.jnt_actfrcrange[limited, 1]))
-            force = force + generalized
-        return force
+
+def _skew(v):
+    """[v]x of a [..., 3] array: [v]x u = v x u."""
+    zero = jnp.zeros_like(v[..., 0])
+    return jnp.stack([jnp.stack([zero, -v[..., 2], v[..., 1]], -1), jnp.stack([v[..., 2], zero, -v[..., 0]], -1),
+                      jnp.stack([-v[..., 1], v[..., 0], zero], -1)], -2)
+
+
+def _cross_motion_rows(velocity, motion):
+    """Spatial motion cross products of [..., 6] rows (angular, linear)."""
+    w, v, w2, v2 = velocity[..., :3], velocity[..., 3:], motion[..., :3], motion[..., 3:]
+    return jnp.concatenate([jnp.cross(w, w2), jnp.cross(w, v2) + jnp.cross(v, w2)], -1)
+
+
+def _cross_force_rows(velocity, force):
+    w, v, n, f = velocity[..., :3], velocity[..., 3:], force[..., :3], force[..., 3:]
+    return jnp.concatenate([jnp.cross(w, n) + jnp.cross(v, f), jnp.cross(w, f)], -1)
+
+
+def _quaternion_matrix(quat):
+    """The rotation of a traced quaternion [4] (w, x, y, z), normalised first as MuJoCo's kinematics does."""
+    w, x, y, z = quat / jnp.linalg.norm(quat)
+    return jnp.stack([jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
+                      jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
+                      jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])])
+
+
+def _motion_row(angular, point):
+    """The motion row of a rotation about ``angular`` through ``point`` (its linear part at the origin)."""
+    return jnp.concatenate([angular, jnp.cross(point, angular)])
+
+
+class _Arrays(_Scene):
+    """The terms in array operations: kinematics body by body on 3-vectors and 3x3 matrices, everything
+    after it over all bodies and dofs at once through constant masks of which dof moves what. Its traced
+    program grows with the number of joints, not with their arithmetic."""
+
+    def __init__(self, model: mujoco.MjModel):
+        super().__init__(model)
+        m = model
+        lineage = [{0}]  # a body and its ancestors
+        for b in self.bodies:
+            lineage.append(lineage[m.body_parentid[b]] | {b})
+        self.dof_body = np.asarray(m.dof_bodyid)
+        # A dof's group turns together: a hinge or slide alone, a ball's three rotations, a free joint's
+        # translations and its rotations; MuJoCo turns each group's axes with the velocity before it.
+        group = np.zeros(self.nv, int)
+        for j in range(m.njnt):
+            first, width = m.jnt_dofadr[j], {FREE: 3, BALL: 3}.get(int(m.jnt_type[j]), 1)
+            group[first:first + width] = j * 2
+            if m.jnt_type[j] == FREE:
+                group[first + 3:first + 6] = j * 2 + 1
+        dofs, bodies = range(self.nv), range(model.nbody)
+        # moves[b, d]: dof d moves body b; carries[d, e]: dof e moves what dof d's group hangs from;
+        # subtree[b, c]: body c hangs from body b (or is b); chain[d, e]: d is e or on its dof_parentid path.
+        self.moves = np.array([[self.dof_body[d] in lineage[b] for d in dofs] for b in bodies])
+        self.carries = np.array([[self.dof_body[e] in lineage[self.dof_body[d]] and group[e] < group[d]
+                                  for e in dofs] for d in dofs])
+        self.subtree = np.array([[b in lineage[c] for c in bodies] for b in bodies])
+        self.chain = np.zeros((self.nv, self.nv), bool)
+        for e in dofs:
+            d = e
+            while d >= 0:
+                self.chain[d, e], d = True, m.dof_parentid[d]
+        self.inertial_frames = np.array([_rotation(q) for q in m.body_iquat]).reshape(-1, 3, 3)
+        self.geom_frames = np.array([_rotation(q) for q in m.geom_quat]).reshape(-1, 3, 3)
+
+    def kinematics(self, qpos):
+        """Body frames [nbody, 3] and [nbody, 3, 3] (the world's first) and the joints' motion rows [nv, 6]."""
+        m, like = self.model, lambda a: jnp.asarray(a, qpos.dtype)
+        position, rotation, rows = [like(np.zeros(3))], [like(np.eye(3))], [None] * self.nv
+        for b in self.bodies:
+            parent = m.body_parentid[b]
+            x = position[parent] + rotation[parent] @ like(m.body_pos[b])
+            r = rotation[parent] @ like(_rotation(m.body_quat[b]))
+            turning = []  # (first dof, anchor) of rotations about the body's final axes, as MuJoCo's cdof
+            for j in self.joints[b]:
+                address, dof, jpos = m.jnt_qposadr[j], m.jnt_dofadr[j], like(m.jnt_pos[j])
+                if m.jnt_type[j] == FREE:  # a body of the world's: qpos holds its frame itself
+                    x, r = qpos[address:address + 3], _quaternion_matrix(qpos[address + 3:address + 7])
+                    rows[dof:dof + 3] = like(np.eye(6)[3:])
+                    turning.append((dof + 3, x))
+                    continue
+                anchor = x + r @ jpos
+                if m.jnt_type[j] == BALL:
+                    r = r @ _quaternion_matrix(qpos[address:address + 4])
+                    x = anchor - r @ jpos
+                    turning.append((dof, anchor))
+                    continue
+                axis = np.asarray(m.jnt_axis[j], float)
+                world_axis = r @ like(axis)
+                offset = qpos[address] - m.qpos0[address]
+                if m.jnt_type[j] == SLIDE:
+                    x = x + world_axis * offset
+                    rows[dof] = jnp.concatenate([like(np.zeros(3)), world_axis])
+                else:  # Rodrigues: c (1 - a a^T) + s [a]x + a a^T
+                    outer = np.outer(axis, axis)
+                    r = r @ (jnp.cos(offset) * like(np.eye(3) - outer) + jnp.sin(offset) * like(_skew(axis)) + like(outer))
+                    x = anchor - r @ jpos
+                    rows[dof] = _motion_row(world_axis, anchor)
+            for first, anchor in turning:
+                rows[first:first + 3] = [_motion_row(column, anchor) for column in r.T]
+            position.append(x)
+            rotation.append(r)
+        return jnp.stack(position), jnp.stack(rotation), jnp.stack(rows)
+
+    def inertias(self, position, rotation):
+        """Spatial inertias about the origin [nbody, 6, 6] (the world's zero), centres of mass and first moments."""
+        m, like = self.model, lambda a: jnp.asarray(a, position.dtype)
+        centre = position + jnp.einsum("bij,bj->bi", rotation, like(m.body_ipos))
+        frame = rotation @ like(self.inertial_frames)
+        about_centre = jnp.einsum("bij,bj,bkj->bik", frame, like(m.body_inertia), frame)
+        mass = like(m.body_mass)[:, None, None]
+        moment = mass[:, :, 0] * centre
+        # Parallel axes: I_o = I_c + m (|c|^2 1 - c c^T).
+        squared = jnp.sum(centre * centre, -1)[:, None, None]
+        rotational = about_centre + mass * (squared * like(np.eye(3)) - centre[:, :, None] * centre[:, None, :])
+        first = _skew(moment)  # the force (I w + h x v, m v - h x w) of a motion (w, v)
+        spatial = jnp.concatenate([jnp.concatenate([rotational, first], -1),
+                                   jnp.concatenate([-first, mass * like(np.eye(3))], -1)], -2)
+        return spatial, centre, moment
+
+    def place(self, qpos):
+        """What the mass matrix and inverse dynamics share: the joints' motion rows and body inertias at ``qpos``."""
+        position, rotation, motion = self.kinematics(qpos)
+        return motion, self.inertias(position, rotation)[0]
+
+    def inverse_dynamics(self, placed, qvel, qacc):
+        """Recursive Newton-Euler over every body at once: M(q) qacc + c(q, qvel), armature excluded
+        (MuJoCo's qfrc_bias at qacc)."""
+        motion, inertia = placed
+        like = lambda a: jnp.asarray(a, qvel.dtype)
+        qacc = like(qacc)
+        moving = motion * qvel[:, None]
+        velocity = like(self.moves) @ moving
+        turning = _cross_motion_rows(like(self.carries) @ moving, motion)  # cdof_dot: each axis turns with what carries it
+        gravity = jnp.concatenate([like(np.zeros(3)), -like(self.gravity)])
+        acceleration = gravity + like(self.moves) @ (turning * qvel[:, None] + motion * qacc[:, None])
+        momentum = jnp.einsum("bij,bj->bi", inertia, velocity)
+        force = jnp.einsum("bij,bj->bi", inertia, acceleration) + _cross_force_rows(velocity, momentum)
+        return jnp.sum(motion * (like(self.subtree) @ force)[self.dof_body], -1)
+
+    def mass_matrix(self, placed, diagonal=None):
+        """Composite rigid bodies: M_de = s_d . (I_c s_e) for dof d on e's path to the root; plus ``diagonal``
+        (constants per dof: armature, implicit damping), where given."""
+        motion, inertia = placed
+        composite = jnp.einsum("bc,cij->bij", jnp.asarray(self.subtree, inertia.dtype), inertia)
+        force = jnp.einsum("dij,dj->di", composite[self.dof_body], motion)
+        upper = jnp.where(self.chain, motion @ force.T, 0.0)
+        matrix = upper + upper.T - jnp.diag(jnp.diag(upper))
+        return matrix if diagonal is None else matrix + jnp.diag(jnp.asarray(diagonal, matrix.dtype))
+
+    def rigid_body(self, qpos, qvel, ctrl) -> RigidBody:
+        """The terms MJX's constraint stages read, generated (``RigidBody``)."""
+        m, like = self.model, lambda a: jnp.asarray(a, qvel.dtype)
+        position, rotation, motion = self.kinematics(qpos)
+        inertia, centre, moment = self.inertias(position, rotation)
+        # MuJoCo's subtree centre of mass; a massless subtree keeps its body's inertial frame.
+        heavy = m.body_subtreemass >= mujoco.mjMINVAL
+        subtree_com = jnp.where(heavy[:, None], like(self.subtree) @ moment
+                                / like(np.where(heavy, m.body_subtreemass, 1.0))[:, None], centre)
+        root_centre = subtree_com[m.body_rootid[self.dof_body]]  # cdof: the same motion, linear part at the centre
+        cdof = jnp.concatenate([motion[:, :3], motion[:, 3:] + jnp.cross(motion[:, :3], root_centre)], -1)
+        geom_rotation = rotation[m.geom_bodyid]
+        geom_xpos = position[m.geom_bodyid] + jnp.einsum("gij,gj->gi", geom_rotation, like(m.geom_pos))
+        placed = (motion, inertia)
+        matrix = self.mass_matrix(placed, m.dof_armature)
+        qfrc_smooth = self.applied_forces(qpos, qvel, ctrl) - self.inverse_dynamics(placed, qvel, [0.0] * self.nv)
+        return RigidBody(xpos=position, xmat=rotation, geom_xpos=geom_xpos, geom_xmat=geom_rotation @ like(self.geom_frames),
+                         subtree_com=subtree_com, cdof=cdof, mass_matrix=matrix, qfrc_smooth=qfrc_smooth,
+                         qacc_smooth=_solve(matrix, qfrc_smooth))
+
+
+def _dofs(groups):
+    return [entry for group in groups for entry in group]
 
 
 def _cholesky_solve(matrix, vector):
@@ -440,7 +681,10 @@ def _cholesky_solve(matrix, vector):
 
 
 def _solve(matrix, rhs):
-    """``matrix``^-1 ``rhs`` (an array) by the written-out Cholesky solve, as an array."""
+    """``matrix``^-1 ``rhs`` (an array): written out entry by entry for a matrix of scalars (``_WrittenOut``'s),
+    LAPACK's Cholesky solve for an array (``_Arrays``')."""
+    if not isinstance(matrix, (list, tuple)):
+        return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(matrix), rhs)
     return _stack(_cholesky_solve(matrix, [rhs[i] for i in range(len(matrix))]), rhs)
 
 
@@ -455,20 +699,26 @@ def _array(nested, like):
     return _stack(nested, like)
 
 
+def make_scene(model: mujoco.MjModel) -> _Scene:
+    """The rigid-body terms of ``model`` in the form that pays for its size on this backend (``WRITTEN_OUT_DOFS``)."""
+    written_out = WRITTEN_OUT_DOFS.get(jax.default_backend(), WRITTEN_OUT_DOFS_ACCELERATOR)
+    return (_WrittenOut if model.nv <= written_out else _Arrays)(model)
+
+
 def make_rigid_body(model: mujoco.MjModel) -> Callable:
     """``rigid_body(qpos, qvel, ctrl) -> RigidBody`` of one example, differentiated by plain autodiff."""
-    return _Scene(model).rigid_body
+    return make_scene(model).rigid_body
 
 
 def make_acceleration(model: mujoco.MjModel) -> Callable:
     """``acceleration(qpos, qvel, ctrl) -> qacc`` of one example, with the inverse-dynamics derivative."""
-    scene = _Scene(model)
+    scene = make_scene(model)
 
     def solve(placed, rhs):
         return _solve(scene.mass_matrix(placed, scene.diagonal), rhs)
 
     def residual(qpos, qvel, ctrl, qacc, placed):
-        return _stack(scene.inverse_dynamics(placed, qvel, qacc), qvel) - scene.applied_forces(qpos, qvel, ctrl)
+        return scene.inverse_dynamics(placed, qvel, qacc) - scene.applied_forces(qpos, qvel, ctrl)
 
     def forward(qpos, qvel, ctrl, placed):
         return solve(placed, -residual(qpos, qvel, ctrl, [0.0] * scene.nv, placed))

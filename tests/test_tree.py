@@ -169,8 +169,72 @@ BRANCHES_IN_CONTACT = BRANCHES.format(integrator="Euler").replace(
     '<geom type="sphere" size="0.06" pos="0 0 0.1"/>').replace(
     "<worldbody>", '<worldbody><geom type="plane" size="5 5 0.1" pos="0 0 0.55"/>'
     '<body name="target" mocap="true" pos="0.3 0.1 0.7"><geom type="box" size="0.05 0.05 0.05"/></body>')
+# A floating torso on a free joint, an arm on a ball joint with friction loss, a limited elbow, and
+# a hand on a slide and a limited ball joint: quaternions in the kinematics, three-dof groups in
+# Newton-Euler, MJX's Euler integrating on the sphere.
+FLOATING = """<mujoco model="floating">
+  <option timestep="0.005" gravity="0.3 -0.2 -9.81"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body name="torso" pos="0.1 0.2 0.35" quat="0.9 0.1 0.3 0.2">
+      <joint name="root" type="free" damping="0.01"/>
+      <geom type="capsule" fromto="-0.1 0 0 0.1 0 0" size="0.05" mass="2"/>
+      <body name="arm" pos="0.12 0 0" euler="10 20 30">
+        <joint name="shoulder" type="ball" pos="0 0 0.02" damping="0.05" armature="0.01" frictionloss="0.01"/>
+        <geom type="capsule" fromto="0 0 0 0.2 0 0" size="0.03" mass="0.5"/>
+        <body name="forearm" pos="0.2 0 0">
+          <joint name="elbow" type="hinge" axis="0 1 0" range="-30 30"/>
+          <geom type="capsule" fromto="0 0 0 0.15 0 0" size="0.025" mass="0.3"/>
+          <body name="hand" pos="0.15 0 0" euler="0 30 0">
+            <joint name="twist" type="slide" axis="1 0 0" range="-0.02 0.02"/>
+            <joint name="wrist" type="ball" pos="0.01 0 0" range="0 40" damping="0.02"/>
+            <geom type="sphere" size="0.04" pos="0.03 0 0" mass="0.2"/>
+          </body>
+        </body>
+      </body>
+      <body name="leg" pos="-0.1 0 -0.05">
+        <joint name="hip" type="hinge" axis="1 0 0" range="-40 40" stiffness="2" damping="0.1"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.03" mass="0.6"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor joint="elbow" gear="2" ctrlrange="-1 1" ctrllimited="true"/>
+    <motor joint="hip" ctrlrange="-1 1" ctrllimited="true"/>
+  </actuator>
+</mujoco>"""
 CONSTRAINED = {"hopping, Euler": HOPPING.format(integrator="Euler"), "hopping, RK4": HOPPING.format(integrator="RK4"),
-               "branches in contact": BRANCHES_IN_CONTACT}
+               "branches in contact": BRANCHES_IN_CONTACT, "floating": FLOATING}
+
+
+def test_a_cpu_writes_out_the_terms_of_a_few_dofs_and_puts_more_in_arrays():
+    assert jax.default_backend() == "cpu"
+    assert isinstance(tree.make_scene(MODELS["cartpole_4"]()), tree._WrittenOut)  # 5 dofs
+    assert isinstance(tree.make_scene(mujoco.MjModel.from_xml_string(CONSTRAINED["hopping, Euler"])), tree._WrittenOut)
+    assert isinstance(tree.make_scene(MODELS["branches, Euler"]()), tree._Arrays)  # 6 dofs
+
+
+@pytest.mark.parametrize("form", ["_WrittenOut", "_Arrays"])
+@pytest.mark.parametrize("name", ["branches in contact", "floating"])
+def test_both_forms_of_the_rigid_body_terms_are_mujocos(x64, form, name):
+    """Each term MJX's constraint stages read, in either form, against MuJoCo's own at a moving state
+    with turned quaternions (not normalised: the kinematics normalises them as MuJoCo's does)."""
+    model = mujoco.MjModel.from_xml_string(CONSTRAINED[name])
+    rng = np.random.default_rng(3)
+    data = mujoco.MjData(model)
+    data.qpos[:] = model.qpos0 + rng.uniform(-0.5, 0.5, model.nq)
+    data.qvel[:], data.ctrl[:] = rng.uniform(-2, 2, model.nv), rng.uniform(-0.5, 0.5, model.nu)
+    qpos = data.qpos.copy()
+    mujoco.mj_forward(model, data)
+    terms = jax.jit(getattr(tree, form)(model).rigid_body)(jnp.array(qpos), jnp.array(data.qvel), jnp.array(data.ctrl))
+    mass_matrix = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, mass_matrix)
+    expected = {"xpos": data.xpos, "xmat": data.xmat.reshape(-1, 3, 3), "geom_xpos": data.geom_xpos,
+                "geom_xmat": data.geom_xmat.reshape(-1, 3, 3), "subtree_com": data.subtree_com, "cdof": data.cdof,
+                "mass_matrix": mass_matrix, "qfrc_smooth": data.qfrc_smooth, "qacc_smooth": data.qacc_smooth}
+    for field, value in expected.items():
+        np.testing.assert_allclose(getattr(terms, field), value, rtol=1e-10, atol=1e-10, err_msg=field)
+    assert np.abs(data.qacc_smooth).max() > 1.0
 
 
 @pytest.mark.parametrize("name", CONSTRAINED)
@@ -187,6 +251,8 @@ def test_the_generated_step_with_constraints_takes_mujocos_c_steps(x64, name):
     if name == "branches in contact":  # moving from the start, as the contact-free test above
         data.qpos[:] = model.qpos0 + rng.uniform(-1, 1, model.nq)
         data.qvel[:] = rng.uniform(-2, 2, model.nv)
+    if name == "floating":  # faster, a ball limit's row is solved to MJX's tolerance, not MuJoCo's
+        data.qvel[:] = rng.uniform(-1, 1, model.nv)
     rows = set()
     for _ in range(200):
         data.ctrl[:] = rng.uniform(-2, 2, model.nu)
