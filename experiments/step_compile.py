@@ -88,7 +88,7 @@ for path in sys.argv[1:]:
     control = jnp.zeros((BATCH, sim.lean.nu))
     stages = simulator.build(sim.model, simulator.SimulatorConfig(pipeline="stages")).step
     steps = {"default": sim.step, "stages": stages}
-    if lean_step.generated_step_applies(sim.lean, sim.effects):
+    if lean_step.generated_step_applies(sim.lean, sim.effects) and not set(sim.lean.jnt_type) & {tree.FREE, tree.BALL}:
         steps["generated rigid-body part, no constraints"] = tree.make_step(sim.lean)
     for name, step in steps.items():
         print(f"{os.path.basename(path)}, {name}:", flush=True)

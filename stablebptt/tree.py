@@ -46,15 +46,13 @@ from stablebptt import integrators
 
 _DISABLE = mujoco.mjtDisableBit
 FREE, BALL = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
-HINGE, SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
+SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
 EULER, RK4 = int(mujoco.mjtIntegrator.mjINT_EULER), int(mujoco.mjtIntegrator.mjINT_RK4)
-# Up to this many degrees of freedom the terms are written out scalar by scalar (``_WrittenOut``), beyond it
-# in arrays (``_Arrays``), per backend. Side by side (docs/performance.md): on a 2-core CPU arrays reach the
-# first update sooner from hopper's 7 dofs up (cold, humanoid 64.6 -> 34.0 s) and later for the cart-poles
-# (cartpole_3 4.7 -> 6.5 s); on one H200 the written-out cart-pole grid compiles and trains 2-4x faster, and
-# hopper's epochs take 8-10 % less written out.
-WRITTEN_OUT_DOFS = {"cpu": 5}
-WRITTEN_OUT_DOFS_ACCELERATOR = 12
+# Up to this many degrees of freedom, per backend, the terms are written out scalar by scalar
+# (``_WrittenOut``), beyond it in arrays (``_Arrays``). Where each pays was measured side by side
+# (docs/performance.md): on a CPU arrays reach the first update sooner from hopper's 7 dofs up, and
+# later for the cart-poles; on a GPU the written-out cart-pole grid compiles and trains faster.
+WRITTEN_OUT_DOFS = {"cpu": 5, "gpu": 12}
 
 
 def unsupported(model: mujoco.MjModel, effects) -> str:
@@ -77,11 +75,10 @@ def unsupported(model: mujoco.MjModel, effects) -> str:
             return "free or ball joints in a scene without contacts, limits or friction loss"
         if int(model.opt.integrator) != EULER:
             return "free or ball joints with an integrator other than Euler"
-        if any(model.jnt_type[j] == FREE and model.body_jntnum[model.jnt_bodyid[j]] > 1 for j in range(model.njnt)):
-            return "a free joint beside other joints of its body"
         if np.any(model.jnt_stiffness[turning]):
             return "springs on free or ball joints"
-        if model.nu and np.any(turning[model.actuator_trnid[:, 0]]):
+        on_joints = model.actuator_trntype == int(mujoco.mjtTrn.mjTRN_JOINT)
+        if np.any(turning[model.actuator_trnid[on_joints, 0]]):
             return "actuators on free or ball joints"
     if int(model.opt.integrator) not in (EULER, RK4):
         return f"the {mujoco.mjtIntegrator(model.opt.integrator).name} integrator"
@@ -302,40 +299,37 @@ class _Scene:
                        for b in self.bodies}
 
     def applied_forces(self, qpos, qvel, ctrl):
-        """Springs, dampers and actuators: MuJoCo's qfrc_passive + qfrc_actuator."""
-        m = self.model
+        """Springs, dampers and actuators: MuJoCo's qfrc_passive + qfrc_actuator (in ``qvel``'s dtype)."""
+        m, like = self.model, lambda a: jnp.asarray(a, qvel.dtype)
         force = jnp.zeros(self.nv, dtype=qvel.dtype)
         if self.dampers:
-            force = force - jnp.asarray(m.dof_damping) * qvel
+            force = force - like(m.dof_damping) * qvel
         if self.springs and np.any(m.jnt_stiffness):  # free and ball joints have none (``unsupported``)
             sprung = np.flatnonzero(m.jnt_stiffness)
             dofs, addresses = m.jnt_dofadr[sprung], m.jnt_qposadr[sprung]
-            force = force.at[dofs].add(-jnp.asarray(m.jnt_stiffness[sprung]) * (qpos[addresses] - m.qpos_spring[addresses]))
+            force = force.at[dofs].add(-like(m.jnt_stiffness[sprung]) * (qpos[addresses] - like(m.qpos_spring[addresses])))
         if self.actuation:
             if self.clamp_ctrl and np.any(m.actuator_ctrllimited):
                 limited = np.asarray(m.actuator_ctrllimited, bool)
-                low, high = m.actuator_ctrlrange[:, 0], m.actuator_ctrlrange[:, 1]
-                ctrl = jnp.where(limited, jnp.clip(ctrl, low, high), ctrl)
+                ctrl = jnp.where(limited, jnp.clip(ctrl, like(m.actuator_ctrlrange[:, 0]), like(m.actuator_ctrlrange[:, 1])), ctrl)
             joint = m.actuator_trnid[:, 0]
-            gear = jnp.asarray(m.actuator_gear[:, 0])
+            gear = like(m.actuator_gear[:, 0])
             length = gear * qpos[m.jnt_qposadr[joint]]
             velocity = gear * qvel[m.jnt_dofadr[joint]]
-            bias = np.asarray(m.actuator_biasprm)
-            actuator = jnp.asarray(m.actuator_gainprm[:, 0]) * ctrl + (
-                bias[:, 0] + bias[:, 1] * length + bias[:, 2] * velocity)
+            bias = like(m.actuator_biasprm)
+            actuator = like(m.actuator_gainprm[:, 0]) * ctrl + (bias[:, 0] + bias[:, 1] * length + bias[:, 2] * velocity)
             if np.any(m.actuator_forcelimited):
                 limited = np.asarray(m.actuator_forcelimited, bool)
-                actuator = jnp.where(limited, jnp.clip(actuator, m.actuator_forcerange[:, 0],
-                                                       m.actuator_forcerange[:, 1]), actuator)
+                actuator = jnp.where(limited, jnp.clip(actuator, like(m.actuator_forcerange[:, 0]),
+                                                       like(m.actuator_forcerange[:, 1])), actuator)
             generalized = jnp.zeros(self.nv, dtype=qvel.dtype).at[m.jnt_dofadr[joint]].add(gear * actuator)
             if np.any(m.jnt_actfrclimited):
                 limited = np.asarray(m.jnt_actfrclimited, bool)
                 dofs = m.jnt_dofadr[limited]
-                generalized = generalized.at[dofs].set(jnp.clip(generalized[dofs], m.jnt_actfrcrange[limited, 0],
-                                                                m.jnt_actfrcrange[limited, 1]))
+                generalized = generalized.at[dofs].set(jnp.clip(generalized[dofs], like(m.jnt_actfrcrange[limited, 0]),
+                                                                like(m.jnt_actfrcrange[limited, 1])))
             force = force + generalized
         return force
-
 
 
 class _WrittenOut(_Scene):
@@ -505,14 +499,6 @@ def _cross_force_rows(velocity, force):
     return jnp.concatenate([jnp.cross(w, n) + jnp.cross(v, f), jnp.cross(w, f)], -1)
 
 
-def _quaternion_matrix(quat):
-    """The rotation of a traced quaternion [4] (w, x, y, z), normalised first as MuJoCo's kinematics does."""
-    w, x, y, z = quat / jnp.linalg.norm(quat)
-    return jnp.stack([jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
-                      jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
-                      jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])])
-
-
 def _motion_row(angular, point):
     """The motion row of a rotation about ``angular`` through ``point`` (its linear part at the origin)."""
     return jnp.concatenate([angular, jnp.cross(point, angular)])
@@ -565,25 +551,24 @@ class _Arrays(_Scene):
             for j in self.joints[b]:
                 address, dof, jpos = m.jnt_qposadr[j], m.jnt_dofadr[j], like(m.jnt_pos[j])
                 if m.jnt_type[j] == FREE:  # a body of the world's: qpos holds its frame itself
-                    x, r = qpos[address:address + 3], _quaternion_matrix(qpos[address + 3:address + 7])
+                    x, r = qpos[address:address + 3], _array(_quaternion_rotation([qpos[address + 3 + i] for i in range(4)]), qpos)
                     rows[dof:dof + 3] = like(np.eye(6)[3:])
                     turning.append((dof + 3, x))
                     continue
                 anchor = x + r @ jpos
                 if m.jnt_type[j] == BALL:
-                    r = r @ _quaternion_matrix(qpos[address:address + 4])
+                    r = r @ _array(_quaternion_rotation([qpos[address + i] for i in range(4)]), qpos)
                     x = anchor - r @ jpos
                     turning.append((dof, anchor))
                     continue
                 axis = np.asarray(m.jnt_axis[j], float)
                 world_axis = r @ like(axis)
-                offset = qpos[address] - m.qpos0[address]
+                offset = qpos[address] - float(m.qpos0[address])
                 if m.jnt_type[j] == SLIDE:
                     x = x + world_axis * offset
                     rows[dof] = jnp.concatenate([like(np.zeros(3)), world_axis])
                 else:  # Rodrigues: c (1 - a a^T) + s [a]x + a a^T
-                    outer = np.outer(axis, axis)
-                    r = r @ (jnp.cos(offset) * like(np.eye(3) - outer) + jnp.sin(offset) * like(_skew(axis)) + like(outer))
+                    r = r @ _array(_axis_rotation(_constant(axis), offset), qpos)
                     x = anchor - r @ jpos
                     rows[dof] = _motion_row(world_axis, anchor)
             for first, anchor in turning:
@@ -701,7 +686,7 @@ def _array(nested, like):
 
 def make_scene(model: mujoco.MjModel) -> _Scene:
     """The rigid-body terms of ``model`` in the form that pays for its size on this backend (``WRITTEN_OUT_DOFS``)."""
-    written_out = WRITTEN_OUT_DOFS.get(jax.default_backend(), WRITTEN_OUT_DOFS_ACCELERATOR)
+    written_out = WRITTEN_OUT_DOFS.get(jax.default_backend(), WRITTEN_OUT_DOFS["gpu"])
     return (_WrittenOut if model.nv <= written_out else _Arrays)(model)
 
 
@@ -740,6 +725,8 @@ def make_acceleration(model: mujoco.MjModel) -> Callable:
 
 def make_step(model: mujoco.MjModel) -> Callable:
     """``step(state, ctrl) -> state`` of one example (a ``scene.State``), MuJoCo's Euler or RK4."""
+    if np.any(np.isin(model.jnt_type, (FREE, BALL))):  # qpos + h qvel would leave the quaternions' sphere
+        raise ValueError("free and ball joints take MJX's Euler step (tree.unsupported)")
     acceleration = make_acceleration(model)
     h = float(model.opt.timestep)
 

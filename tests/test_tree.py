@@ -63,8 +63,16 @@ def lean_of(model):
     return scene.lean_model(model, effects), effects
 
 
+@pytest.fixture(params=["written out", "in arrays"])
+def form(request, monkeypatch):
+    """Each test that takes it runs with the terms of every size in both forms (``tree.make_scene``)."""
+    most = 1000 if request.param == "written out" else 0
+    monkeypatch.setattr(tree, "WRITTEN_OUT_DOFS", {"cpu": most, "gpu": most})
+    return request.param
+
+
 @pytest.mark.parametrize("name", MODELS)
-def test_the_generated_step_follows_mujocos_c_step(x64, name):
+def test_the_generated_step_follows_mujocos_c_step(x64, form, name):
     model = MODELS[name]()
     lean, effects = lean_of(model)
     assert scene.generated_step_applies(lean, effects)
@@ -91,7 +99,7 @@ def random_point(model, seed):
     return state, jnp.array(rng.uniform(-0.4, 0.4, model.nu))  # inside the clamps: differentiable there
 
 
-def test_the_generated_steps_derivative_is_plain_autodiff_through_mjx(x64):
+def test_the_generated_steps_derivative_is_plain_autodiff_through_mjx(x64, form):
     """Reverse mode through the inverse-dynamics derivative of a branching tree gives MJX's Jacobians
     (forward mode, which differentiates the same inverse dynamics, on the chains of cartpole_3 in
     tests/test_cartpole.py and cartpole_2 with RK4 below)."""
@@ -207,11 +215,12 @@ CONSTRAINED = {"hopping, Euler": HOPPING.format(integrator="Euler"), "hopping, R
                "branches in contact": BRANCHES_IN_CONTACT, "floating": FLOATING}
 
 
-def test_a_cpu_writes_out_the_terms_of_a_few_dofs_and_puts_more_in_arrays():
-    assert jax.default_backend() == "cpu"
+@pytest.mark.parametrize("backend, six_dofs", [("cpu", tree._Arrays), ("gpu", tree._WrittenOut)])
+def test_the_terms_of_a_few_dofs_are_written_out_and_more_in_arrays(monkeypatch, backend, six_dofs):
+    monkeypatch.setattr(jax, "default_backend", lambda: backend)
     assert isinstance(tree.make_scene(MODELS["cartpole_4"]()), tree._WrittenOut)  # 5 dofs
-    assert isinstance(tree.make_scene(mujoco.MjModel.from_xml_string(CONSTRAINED["hopping, Euler"])), tree._WrittenOut)
-    assert isinstance(tree.make_scene(MODELS["branches, Euler"]()), tree._Arrays)  # 6 dofs
+    assert isinstance(tree.make_scene(MODELS["branches, Euler"]()), six_dofs)
+    assert isinstance(tree.make_scene(mujoco.MjModel.from_xml_string(FLOATING)), tree._Arrays)  # 15 dofs
 
 
 @pytest.mark.parametrize("form", ["_WrittenOut", "_Arrays"])
@@ -238,7 +247,7 @@ def test_both_forms_of_the_rigid_body_terms_are_mujocos(x64, form, name):
 
 
 @pytest.mark.parametrize("name", CONSTRAINED)
-def test_the_generated_step_with_constraints_takes_mujocos_c_steps(x64, name):
+def test_the_generated_step_with_constraints_takes_mujocos_c_steps(x64, form, name):
     """Every step from the state MuJoCo reached, so that a contact's chaos does not compound the solvers'
     tolerances: the hopper falls, lands and kicks against its limits; the branches swing into the floor."""
     model = mujoco.MjModel.from_xml_string(CONSTRAINED[name])
@@ -293,6 +302,27 @@ def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
     assert np.abs(np.asarray(expected.qvel[0].qpos)).max() > 1e-3
 
 
+def test_free_and_ball_joints_in_contact_have_mjx_stages_jacobians(x64, form):
+    """Through the quaternions' normalisation and the three-dof groups, in either form: the floating body
+    on the floor, its shoulder turning."""
+    model = mujoco.MjModel.from_xml_string(FLOATING)
+    lean, effects = lean_of(model)
+    data = mujoco.MjData(model)
+    data.qvel[6:9] = [2.0, -1.0, 0.5]
+    for _ in range(200):
+        if data.ncon:
+            break
+        mujoco.mj_step(model, data)
+    assert data.ncon > 0
+    state = scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
+    control = jnp.array(IN_CONTACT_CONTROL)
+    expected = jax.jit(jax.jacfwd(scene.make_step(lean, effects, "stages"), argnums=(0, 1)))(state, control)
+    got = jax.jit(jax.jacrev(scene.make_step(lean, effects), argnums=(0, 1)))(state, control)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
+    assert np.abs(np.asarray(expected.qvel[0].qpos)[6:9, 3:7]).max() > 1e-3  # the shoulder by the torso's turn
+
+
 @pytest.mark.parametrize("jacobian", [jax.jacfwd, jax.jacrev])
 def test_rk4_with_constraints_has_the_jacobian_of_central_differences(x64, jacobian):
     """Four constrained accelerations per step, each through the solver's implicit derivative: in contact
@@ -314,6 +344,13 @@ EQUALITY = BRANCHES.format(integrator="Euler").replace(
     (BRANCHES.format(integrator="Euler").replace('type="hinge" axis="1 0 0"', 'type="ball"'), None,
      "free or ball joints"),
     (BRANCHES.format(integrator="Euler"), lambda m: m.body_gravcomp.__setitem__(2, 1.0), "gravity compensation"),
+    (FLOATING.replace("<option ", '<option integrator="RK4" '), None, "free or ball joints with an integrator"),
+    (FLOATING.replace('name="wrist" type="ball"', 'name="wrist" type="ball" stiffness="1"'), None,
+     "springs on free or ball joints"),
+    (FLOATING.replace('<joint name="root" type="free" damping="0.01"/>',
+                      '<joint name="root" type="free" damping="0.01"/><site name="thrust"/>').replace(
+        "</actuator>", '<general site="thrust" gear="0 0 1 0 0 0"/></actuator>'), None,
+     "actuators other than fixed-gain joint actuators"),
 ])
 def test_scenes_the_generator_does_not_cover_run_through_mjx(source, edit, reason):
     model = mujoco.MjModel.from_xml_string(source)
