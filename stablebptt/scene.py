@@ -81,11 +81,68 @@ _LABELS = {
 }
 
 
+_PLANE, _HFIELD = int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_HFIELD)
+_FREE, _SLIDE = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_SLIDE)
+
+
+def _reach(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, mujoco.MjData]:
+    """Per geom, a ball that holds it in every configuration: centres [ngeom, 3], radii [ngeom] (inf where
+    nothing bounds it: a free joint, an unlimited slide, a mocap body), and the data at qpos0.
+
+    A hinge or ball joint turns what hangs from it about its anchor, so the distance from its anchor to the
+    next joint's anchor down the tree never changes; a limited slide adds at most its travel. So a geom stays
+    within the sum of those distances (at qpos0) and its own bounding radius of its first joint's anchor,
+    which only the world carries. Joint ranges of hinges are not used: the ball is loose, never wrong.
+    """
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    centres, radii = data.geom_xpos.copy(), np.array(model.geom_rbound, dtype=float)
+    for geom in range(model.ngeom):
+        chain, body, bounded = [], int(model.geom_bodyid[geom]), True
+        while body > 0:
+            bounded &= model.body_mocapid[body] < 0
+            chain = list(range(model.body_jntadr[body], model.body_jntadr[body] + model.body_jntnum[body])) + chain
+            body = int(model.body_parentid[body])
+        kinds = model.jnt_type[chain]
+        if not bounded or np.any(kinds == _FREE) or np.any((kinds == _SLIDE) & ~model.jnt_limited[chain].astype(bool)) \
+                or chain and model.geom_type[geom] in (_PLANE, _HFIELD):
+            radii[geom] = np.inf
+            continue
+        if not chain:
+            continue  # fixed in the world
+        anchors = np.vstack([data.xanchor[chain], data.geom_xpos[geom]])
+        travel = sum(np.abs(model.jnt_range[j] - model.qpos0[model.jnt_qposadr[j]]).max() for j in chain
+                     if model.jnt_type[j] == _SLIDE)
+        centres[geom] = anchors[0]
+        radii[geom] += np.linalg.norm(np.diff(anchors, axis=0), axis=1).sum() + travel
+    return centres, radii, data
+
+
+def touchable_pairs(model: mujoco.MjModel) -> list[tuple[int, int]]:
+    """The geom pairs MJX would collide that can ever touch: every explicit ``<pair>``, and each other pair
+    whose balls (``_reach``) come within the two geoms' margins, or a ball within margin of a plane fixed in
+    the world (whose collision is with the whole half-space below it)."""
+    centres, radii, data = _reach(model)
+
+    def can_touch(first, second):
+        margin = model.geom_margin[first] + model.geom_margin[second]
+        for plane, other in ((first, second), (second, first)):
+            if model.geom_type[plane] == _PLANE:
+                if not np.isfinite(radii[plane]) or not np.isfinite(radii[other]):
+                    return True
+                normal = data.geom_xmat[plane].reshape(3, 3)[:, 2]
+                return (centres[other] - centres[plane]) @ normal - radii[other] <= margin
+        return np.linalg.norm(centres[first] - centres[second]) <= radii[first] + radii[second] + margin
+
+    return [(first, second) for first, second, pair in collision_driver.geom_pairs(model)
+            if pair >= 0 or can_touch(first, second)]
+
+
 def analyze(model: mujoco.MjModel) -> SceneEffects:
     """Find the effects ``model`` can produce, from its structure and parameters alone."""
     disabled = lambda bit: bool(model.opt.disableflags & bit)
-    contacts = not disabled(_DISABLE.mjDSBL_CONTACT) and not disabled(_DISABLE.mjDSBL_CONSTRAINT) and (
-        next(iter(collision_driver.geom_pairs(model)), None) is not None)
+    contacts = not disabled(_DISABLE.mjDSBL_CONTACT) and not disabled(_DISABLE.mjDSBL_CONSTRAINT) and bool(
+        touchable_pairs(model))
     constraints_on = not disabled(_DISABLE.mjDSBL_CONSTRAINT)
     return SceneEffects(
         contacts=contacts,
@@ -149,10 +206,12 @@ def lean_model(model: mujoco.MjModel, effects: SceneEffects, integrator: str | N
     # sensor's type, so the copy's become clocks, which it supports.
     lean.opt.disableflags |= _DISABLE.mjDSBL_SENSOR
     lean.sensor_type[:] = mujoco.mjtSensor.mjSENS_CLOCK
-    if not effects.contacts:
-        # No pair can ever touch (or contacts are off): MJX need not know the geoms' collision types.
-        lean.geom_contype[:] = 0
-        lean.geom_conaffinity[:] = 0
+    # A geom that can touch nothing (``touchable_pairs``) is no geom MJX collides: it drops out of the
+    # collision program, which for dm_control's finger was most of what XLA compiled.
+    touching = {geom for pair in touchable_pairs(lean) for geom in pair} if effects.contacts else set()
+    untouchable = np.array([geom not in touching for geom in range(lean.ngeom)], dtype=bool)
+    lean.geom_contype[untouchable] = 0
+    lean.geom_conaffinity[untouchable] = 0
     for name, bit in _FLAGS:
         if bit is not None and not getattr(effects, name):
             lean.opt.disableflags |= bit
@@ -193,8 +252,14 @@ def describe(effects: SceneEffects, model: mujoco.MjModel, original: mujoco.MjMo
 
     ``original``, the user's model, names the diagnostics the simulated copy skips.
     """
-    simulated = [label for name, label in _LABELS.items() if getattr(effects, name)]
-    skipped = [label for name, label in _LABELS.items() if not getattr(effects, name)]
+    labels = dict(_LABELS)
+    if original is not None:
+        pairs, touchable = len(list(collision_driver.geom_pairs(original))), len(touchable_pairs(original))
+        if touchable < pairs:
+            labels["contacts"] = (f"contacts ({touchable} of {pairs} geom pairs can touch)" if touchable
+                                  else "contacts (no geom pair can touch)")
+    simulated = [label for name, label in labels.items() if getattr(effects, name)]
+    skipped = [label for name, label in labels.items() if not getattr(effects, name)]
     skipped += ["sensors"] + [f"{label} diagnostic" for label in diagnostics(original if original is not None else model)]
     integrator = {v: k for k, v in INTEGRATORS.items()}.get(int(model.opt.integrator), str(model.opt.integrator))
     line = (f"scene: {model.nq} qpos, {model.nv} dof, {model.nu} actuators, {integrator} at dt {model.opt.timestep:g}; "

@@ -114,7 +114,7 @@ SCENE = """<mujoco>
   <option timestep="0.01"/>
   <worldbody>
     <geom name="floor" type="plane" size="5 5 0.1" {floor}/>
-    <body pos="0 0 1">
+    <body pos="0 0 0.5">
       <joint name="a" type="hinge" axis="0 1 0" {joint}/>
       <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" {geom}/>
     </body>
@@ -130,7 +130,7 @@ def analyze(floor="", joint="", geom="", motor=""):
 def test_scene_analysis_finds_what_a_scene_can_do():
     bare = analyze(floor='contype="0" conaffinity="0"')
     assert not any([bare.contacts, bare.joint_limits, bare.dampers, bare.springs, bare.control_clamp, bare.constraints])
-    assert analyze().contacts  # a capsule above a plane can touch it
+    assert analyze().contacts  # a capsule that swings down to a plane can touch it
     limited = analyze(floor='contype="0" conaffinity="0"', joint='limited="true" range="-1 1"')
     assert limited.joint_limits and limited.constraints and not limited.contacts
     damped = analyze(floor='contype="0" conaffinity="0"', joint='damping="0.5" stiffness="2"', motor='ctrlrange="-1 1"')

@@ -22,6 +22,7 @@ import pytest
 
 from conftest import ROOT
 from stablebptt import scene, simulator
+from stablebptt.mjx_internals import collision_driver
 from stablebptt.errors import InputError
 from stablebptt.training import TrainConfig, memory_plan
 from stablebptt.tasks import mjcf
@@ -289,3 +290,55 @@ def test_auto_takes_reverse_mode_only_where_forward_tangents_would_each_pass_a_l
     assert chosen == {"reacher": "forward", "cheetah": "reverse"}
     assert "constraint rows: cheaper than forward" in mjcf.make(
         mjcf.Config(model=str(suite / "cheetah.xml"), steps=5)).summary
+
+
+def test_geoms_that_can_touch_nothing_leave_the_collision_program(suite):
+    """finger's floor lies below everything its hinged bodies can reach, and its proximal bone never
+    reaches the spinner: of 15 geom pairs, the fingertip's 3 with the spinner stay. No contact MuJoCo's C
+    step makes, from random joint angles under random controls, is between geoms left out."""
+    model = mujoco.MjModel.from_xml_path(str(suite / "finger.xml"))
+    effects = scene.analyze(model)
+    touchable = set(scene.touchable_pairs(model))
+    lean = scene.lean_model(model, effects)
+    assert len(list(collision_driver.geom_pairs(model))) == 15
+    assert {(first, second) for first, second, _ in collision_driver.geom_pairs(lean)} == touchable
+    assert len(touchable) == 3
+    assert "contacts (3 of 15 geom pairs can touch)" in scene.describe(effects, lean, model)
+    rng = np.random.default_rng(0)
+    data = mujoco.MjData(model)
+    seen = set()
+    for episode in range(20):
+        data.qpos[:] = rng.uniform(-np.pi, np.pi, model.nq)
+        data.qvel[:] = rng.uniform(-5, 5, model.nv)
+        for _ in range(200):
+            data.ctrl[:] = rng.uniform(-1, 1, model.nu)
+            mujoco.mj_step(model, data)
+            seen |= {tuple(sorted((int(c.geom1), int(c.geom2)))) for c in data.contact[:data.ncon]}
+    assert seen and seen <= {tuple(sorted(pair)) for pair in touchable}
+
+
+@pytest.mark.parametrize("height, touches", [(0.54, True), (0.56, False)])
+def test_an_arm_that_can_just_reach_the_floor_keeps_its_contact(height, touches):
+    """A 0.5 m capsule of radius 0.05 hinged at ``height`` above a floor reaches down 0.55 m: the bound
+    is exact for it, and at rest it touches the floor exactly when the contact is kept."""
+    model = mujoco.MjModel.from_xml_string(f"""<mujoco><worldbody><geom type="plane" size="1 1 0.1"/>
+      <body pos="0 0 {height}"><joint type="hinge" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/></body></worldbody></mujoco>""")
+    assert scene.analyze(model).contacts == touches
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    assert (data.ncon > 0) == touches
+
+
+def test_a_mocap_body_keeps_its_contacts_wherever_it_starts():
+    """A mocap body moves wherever its data says: its geom's pairs stay, while the hinged capsule that
+    cannot reach the floor loses its pair with it."""
+    model = mujoco.MjModel.from_xml_string("""<mujoco><worldbody><geom type="plane" size="1 1 0.1"/>
+      <body name="target" mocap="true" pos="0 0 2"><geom type="sphere" size="0.1"/></body>
+      <body pos="0 0 1"><joint type="hinge" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.05"/>
+      </body></worldbody></mujoco>""")
+    assert scene.touchable_pairs(model) == [(0, 1), (1, 2)]
+    data = mujoco.MjData(model)
+    data.mocap_pos[0] = [0.1, 0, 0.7]  # moved onto the capsule
+    mujoco.mj_forward(model, data)
+    assert {(int(c.geom1), int(c.geom2)) for c in data.contact[:data.ncon]} == {(1, 2)}
