@@ -191,8 +191,11 @@ def _generated_with_mjx_constraints(model: mujoco.MjModel, mjx_model: mjx.Model)
     def solved(qpos: jax.Array, qvel: jax.Array, ctrl: jax.Array) -> mjx.Data:
         terms = rigid_body(qpos, qvel, ctrl)
         data = template.replace(qpos=qpos, qvel=qvel, ctrl=ctrl, xpos=terms.xpos, xmat=terms.xmat,
-                                geom_xpos=terms.geom_xpos, geom_xmat=terms.geom_xmat, subtree_com=terms.subtree_com,
+                                geom_xpos=terms.geom_xpos, geom_xmat=terms.geom_xmat, site_xpos=terms.site_xpos,
+                                site_xmat=terms.site_xmat, subtree_com=terms.subtree_com,
                                 cdof=terms.cdof, qfrc_smooth=terms.qfrc_smooth, qacc_smooth=terms.qacc_smooth)
+        if model.ntendon:  # lengths and moments for tendon limits (``tree.unsupported``: no tendon forces)
+            data = smooth.tendon(mjx_model, data)
         # qLD: the factor MJX's CG solver and its Euler read (XLA drops it where nothing does).
         data = data.tree_replace({"_impl.M": terms.mass_matrix,
                                   "_impl.qLD": jax.scipy.linalg.cho_factor(terms.mass_matrix)[0]})

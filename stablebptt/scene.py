@@ -87,12 +87,13 @@ _FREE, _SLIDE = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_SLIDE
 
 def _reach(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, mujoco.MjData]:
     """Per geom, a ball that holds it in every configuration: centres [ngeom, 3], radii [ngeom] (inf where
-    nothing bounds it: a free joint, an unlimited slide, a mocap body), and the data at qpos0.
+    nothing bounds it: a free joint, a slide, a mocap body), and the data at qpos0.
 
     A hinge or ball joint turns what hangs from it about its anchor, so the distance from its anchor to the
-    next joint's anchor down the tree never changes; a limited slide adds at most its travel. So a geom stays
-    within the sum of those distances (at qpos0) and its own bounding radius of its first joint's anchor,
-    which only the world carries. Joint ranges of hinges are not used: the ball is loose, never wrong.
+    next joint's anchor down the tree never changes. So a geom stays within the sum of those distances (at
+    qpos0) and its own bounding radius of its first joint's anchor, which only the world carries. Joint
+    ranges are not used: MuJoCo's limits are soft (a pushed slide passes its range), so a slide bounds
+    nothing either, and the ball is loose, never wrong.
     """
     data = mujoco.MjData(model)
     mujoco.mj_kinematics(model, data)
@@ -104,17 +105,14 @@ def _reach(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, mujoco.MjData
             chain = list(range(model.body_jntadr[body], model.body_jntadr[body] + model.body_jntnum[body])) + chain
             body = int(model.body_parentid[body])
         kinds = model.jnt_type[chain]
-        if not bounded or np.any(kinds == _FREE) or np.any((kinds == _SLIDE) & ~model.jnt_limited[chain].astype(bool)) \
-                or chain and model.geom_type[geom] in (_PLANE, _HFIELD):
+        if not bounded or np.any(np.isin(kinds, (_FREE, _SLIDE))) or chain and model.geom_type[geom] in (_PLANE, _HFIELD):
             radii[geom] = np.inf
             continue
         if not chain:
             continue  # fixed in the world
         anchors = np.vstack([data.xanchor[chain], data.geom_xpos[geom]])
-        travel = sum(np.abs(model.jnt_range[j] - model.qpos0[model.jnt_qposadr[j]]).max() for j in chain
-                     if model.jnt_type[j] == _SLIDE)
         centres[geom] = anchors[0]
-        radii[geom] += np.linalg.norm(np.diff(anchors, axis=0), axis=1).sum() + travel
+        radii[geom] += np.linalg.norm(np.diff(anchors, axis=0), axis=1).sum()
     return centres, radii, data
 
 
@@ -125,7 +123,8 @@ def touchable_pairs(model: mujoco.MjModel) -> list[tuple[int, int]]:
     centres, radii, data = _reach(model)
 
     def can_touch(first, second):
-        margin = model.geom_margin[first] + model.geom_margin[second]
+        # MJX adds the two margins; the slack covers rounding where MJX simulates in float32.
+        margin = model.geom_margin[first] + model.geom_margin[second] + 1e-6 * (1 + min(radii[first], radii[second]))
         for plane, other in ((first, second), (second, first)):
             if model.geom_type[plane] == _PLANE:
                 if not np.isfinite(radii[plane]) or not np.isfinite(radii[other]):
@@ -151,8 +150,11 @@ def analyze(model: mujoco.MjModel) -> SceneEffects:
         equality=constraints_on and bool(model.neq and np.any(model.eq_active0)),
         friction_loss=constraints_on and bool(np.any(model.dof_frictionloss > 0)
                                               or (model.ntendon and np.any(model.tendon_frictionloss > 0))),
-        springs=bool(np.any(model.jnt_stiffness != 0) or (model.ntendon and np.any(model.tendon_stiffness != 0))),
-        dampers=bool(np.any(model.dof_damping != 0) or (model.ntendon and np.any(model.tendon_damping != 0))),
+        # MuJoCo keeps a spring's or damper's higher-order terms apart from its linear coefficient.
+        springs=any(np.any(np.asarray(a) != 0) for a in (model.jnt_stiffness, model.jnt_stiffnesspoly,
+                                                         model.tendon_stiffness, model.tendon_stiffnesspoly)),
+        dampers=any(np.any(np.asarray(a) != 0) for a in (model.dof_damping, model.dof_dampingpoly,
+                                                         model.tendon_damping, model.tendon_dampingpoly)),
         gravity_compensation=bool(np.any(model.body_gravcomp != 0)),
         fluid=bool(model.opt.density > 0 or model.opt.viscosity > 0),
         control_clamp=bool(model.nu and np.any(model.actuator_ctrllimited)),

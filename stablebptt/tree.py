@@ -58,15 +58,20 @@ WRITTEN_OUT_DOFS = {"cpu": 5, "gpu": 12}
 def unsupported(model: mujoco.MjModel, effects) -> str:
     """Why the generated step does not cover ``model`` ('' when it does); ``effects`` from ``scene.analyze``.
 
-    Contacts, joint limits and friction loss are MJX's own stages fed the generated terms; equality
-    constraints (some read site frames and body orientations, which are not generated) and tendons
-    are left to MJX's stages. Free and ball joints are generated where MJX's stages and its Euler
+    Contacts, joint limits, friction loss and tendon limits are MJX's own stages fed the generated terms
+    (a tendon's length and moments are MJX's, from the generated site and geom frames); equality
+    constraints (some read body orientations, which are not generated) and tendons that carry forces of
+    their own are left to MJX's stages. Free and ball joints are generated where MJX's stages and its Euler
     step take over from the generated terms (their quaternions integrate on the sphere).
     """
-    present = [name for name in ("equality", "tendons", "activation", "gravity_compensation", "fluid")
-               if getattr(effects, name)]
+    present = [name for name in ("equality", "activation", "gravity_compensation", "fluid") if getattr(effects, name)]
     if present:
         return "equality constraints" if present[0] == "equality" else present[0].replace("_", " ")
+    if effects.tendons and (any(np.any(np.asarray(a) != 0) for a in (
+            model.tendon_stiffness, model.tendon_stiffnesspoly, model.tendon_springyield, model.tendon_damping,
+            model.tendon_dampingpoly, model.tendon_frictionloss, model.tendon_armature))
+            or np.any(model.tendon_plasticadr >= 0)):
+        return "tendons with stiffness, damping, friction loss or armature"
     turning = np.isin(model.jnt_type, (FREE, BALL))
     if model.nv == 0:
         return "no degrees of freedom"
@@ -267,6 +272,8 @@ class RigidBody(NamedTuple):
     xmat: jax.Array  # [nbody, 3, 3]
     geom_xpos: jax.Array  # [ngeom, 3]
     geom_xmat: jax.Array  # [ngeom, 3, 3]
+    site_xpos: jax.Array  # [nsite, 3] (a tendon's path)
+    site_xmat: jax.Array  # [nsite, 3, 3]
     subtree_com: jax.Array  # [nbody, 3]
     cdof: jax.Array  # [nv, 6] joint motion axes about their tree's centre of mass
     mass_matrix: jax.Array  # [nv, nv] armature included (not Euler's implicit damping)
@@ -442,8 +449,12 @@ class _WrittenOut(_Scene):
             centre = subtree_com[m.body_rootid[b]]
             for dof, (angular, linear) in _dofs(axes[b]):  # the same motion, its linear part taken at the centre
                 cdof[dof] = angular + _v_add(linear, _cross(angular, centre))
-        geom_frames = [(_v_add(position[b], _mv(rotation[b], _constant(m.geom_pos[g]))),
-                        _mm(rotation[b], _constant(_rotation(m.geom_quat[g])))) for g, b in enumerate(m.geom_bodyid)]
+        def frames(bodies, offsets, turns):  # of geoms or sites, fixed in their bodies
+            return ([_v_add(position[b], _mv(rotation[b], _constant(offset))) for b, offset in zip(bodies, offsets)],
+                    [_mm(rotation[b], _constant(_rotation(turn))) for b, turn in zip(bodies, turns)])
+
+        geom_frames = frames(m.geom_bodyid, m.geom_pos, m.geom_quat)
+        site_frames = frames(m.site_bodyid, m.site_pos, m.site_quat)
         placed = (axes, inertias)
         matrix = self.mass_matrix(placed, m.dof_armature)
         bias = self.inverse_dynamics(placed, qvel, [0.0] * self.nv)
@@ -452,7 +463,8 @@ class _WrittenOut(_Scene):
         bodies = range(m.nbody)
         return RigidBody(
             xpos=_array([position[b] for b in bodies], qvel), xmat=_array([rotation[b] for b in bodies], qvel),
-            geom_xpos=_array([p for p, _ in geom_frames], qvel), geom_xmat=_array([r for _, r in geom_frames], qvel),
+            geom_xpos=_frames_array(geom_frames[0], (0, 3), qvel), geom_xmat=_frames_array(geom_frames[1], (0, 3, 3), qvel),
+            site_xpos=_frames_array(site_frames[0], (0, 3), qvel), site_xmat=_frames_array(site_frames[1], (0, 3, 3), qvel),
             subtree_com=_array([subtree_com[b] for b in bodies], qvel), cdof=_array(cdof, qvel),
             mass_matrix=_array(matrix, qvel), qfrc_smooth=qfrc_smooth, qacc_smooth=qacc_smooth)
 
@@ -538,6 +550,7 @@ class _Arrays(_Scene):
                 self.chain[d, e], d = True, m.dof_parentid[d]
         self.inertial_frames = np.array([_rotation(q) for q in m.body_iquat]).reshape(-1, 3, 3)
         self.geom_frames = np.array([_rotation(q) for q in m.geom_quat]).reshape(-1, 3, 3)
+        self.site_frames = np.array([_rotation(q) for q in m.site_quat]).reshape(-1, 3, 3)
 
     def kinematics(self, qpos):
         """Body frames [nbody, 3] and [nbody, 3, 3] (the world's first) and the joints' motion rows [nv, 6]."""
@@ -634,12 +647,14 @@ class _Arrays(_Scene):
                                 / like(np.where(heavy, m.body_subtreemass, 1.0))[:, None], centre)
         root_centre = subtree_com[m.body_rootid[self.dof_body]]  # cdof: the same motion, linear part at the centre
         cdof = jnp.concatenate([motion[:, :3], motion[:, 3:] + jnp.cross(motion[:, :3], root_centre)], -1)
-        geom_rotation = rotation[m.geom_bodyid]
+        geom_rotation, site_rotation = rotation[m.geom_bodyid], rotation[m.site_bodyid]
         geom_xpos = position[m.geom_bodyid] + jnp.einsum("gij,gj->gi", geom_rotation, like(m.geom_pos))
+        site_xpos = position[m.site_bodyid] + jnp.einsum("sij,sj->si", site_rotation, like(m.site_pos))
         placed = (motion, inertia)
         matrix = self.mass_matrix(placed, m.dof_armature)
         qfrc_smooth = self.applied_forces(qpos, qvel, ctrl) - self.inverse_dynamics(placed, qvel, [0.0] * self.nv)
         return RigidBody(xpos=position, xmat=rotation, geom_xpos=geom_xpos, geom_xmat=geom_rotation @ like(self.geom_frames),
+                         site_xpos=site_xpos, site_xmat=site_rotation @ like(self.site_frames),
                          subtree_com=subtree_com, cdof=cdof, mass_matrix=matrix, qfrc_smooth=qfrc_smooth,
                          qacc_smooth=_solve(matrix, qfrc_smooth))
 
@@ -675,6 +690,11 @@ def _solve(matrix, rhs):
 
 def _stack(scalars, like):
     return jnp.stack([jnp.full((), x, like.dtype) if isinstance(x, float) else x for x in scalars])
+
+
+def _frames_array(nested, empty_shape, like):
+    """``_array`` of a list of frames that may be empty (a model without geoms or sites)."""
+    return _array(nested, like) if len(nested) else jnp.zeros(empty_shape, like.dtype)
 
 
 def _array(nested, like):

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from stablebptt import scene, simulator
+from stablebptt import scene, simulator, tree
 from stablebptt.mjx_internals import collision_driver
 from stablebptt.errors import InputError
 from stablebptt.training import TrainConfig, memory_plan
@@ -342,3 +342,28 @@ def test_a_mocap_body_keeps_its_contacts_wherever_it_starts():
     data.mocap_pos[0] = [0.1, 0, 0.7]  # moved onto the capsule
     mujoco.mj_forward(model, data)
     assert {(int(c.geom1), int(c.geom2)) for c in data.contact[:data.ncon]} == {(1, 2)}
+
+
+def test_a_slide_pushed_past_its_range_keeps_its_contact():
+    """MuJoCo's joint limits are soft: a motor holds this sphere past its slide's range, against a wall
+    0.4 mm beyond the range's reach; the pair stays, and MuJoCo's C step does make the contact."""
+    model = mujoco.MjModel.from_xml_string("""<mujoco><option gravity="0 0 0"/><worldbody>
+      <geom type="box" size="0.05 0.5 0.5" pos="0.3504 0 0"/>
+      <body><joint name="slide" type="slide" axis="1 0 0" range="-0.2 0.2"/><geom type="sphere" size="0.1"/></body>
+      </worldbody><actuator><motor joint="slide" gear="100"/></actuator></mujoco>""")
+    assert len(scene.touchable_pairs(model)) == 1 and scene.analyze(model).contacts
+    data = mujoco.MjData(model)
+    data.ctrl[:] = 1.0
+    for _ in range(2000):
+        mujoco.mj_step(model, data)
+    assert data.ncon > 0
+
+
+def test_springs_and_dampers_of_higher_order_are_simulated():
+    """A tendon's quadratic stiffness and a joint's quadratic damping have no linear coefficient."""
+    model = mujoco.MjModel.from_xml_string("""<mujoco><worldbody><body><joint name="a" type="slide" axis="1 0 0"/>
+      <geom type="sphere" size="0.1" contype="0" conaffinity="0"/></body></worldbody>
+      <tendon><fixed stiffness="0 50" damping="0 5"><joint joint="a" coef="1"/></fixed></tendon></mujoco>""")
+    effects = scene.analyze(model)
+    assert effects.springs and effects.dampers
+    assert "tendons with stiffness" in tree.unsupported(model, effects)

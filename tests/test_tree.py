@@ -223,12 +223,60 @@ def test_the_terms_of_a_few_dofs_are_written_out_and_more_in_arrays(monkeypatch,
     assert isinstance(tree.make_scene(mujoco.MjModel.from_xml_string(FLOATING)), tree._Arrays)  # 15 dofs
 
 
+# A ball on slides tethered to a cup on limited slides by a limited spatial tendon, as dm_control's
+# ball_in_cup: the ball falls until the string is taut, and the tendon's limit row holds it.
+TETHERED = """<mujoco model="tethered">
+  <option timestep="0.005"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body name="cup" pos="0 0 0.6">
+      <joint name="cup_x" type="slide" axis="1 0 0" damping="0.5" range="-0.3 0.3"/>
+      <joint name="cup_z" type="slide" axis="0 0 1" damping="0.5" range="-0.2 0.2"/>
+      <geom type="capsule" fromto="-0.05 0 0 0.05 0 0" size="0.02" mass="0.5"/>
+      <site name="cup" pos="0 0 -0.03"/>
+    </body>
+    <body name="ball" pos="0.05 0 0.35">
+      <joint name="ball_x" type="slide" axis="1 0 0"/>
+      <joint name="ball_z" type="slide" axis="0 0 1"/>
+      <geom type="sphere" size="0.03" mass="0.1"/>
+      <site name="ball"/>
+    </body>
+  </worldbody>
+  <tendon><spatial name="string" limited="true" range="0 0.3"><site site="ball"/><site site="cup"/></spatial></tendon>
+  <actuator>
+    <motor joint="cup_x" gear="5" ctrlrange="-1 1" ctrllimited="true"/>
+    <motor joint="cup_z" gear="5" ctrlrange="-1 1" ctrllimited="true"/>
+  </actuator>
+</mujoco>"""
+
+
+def test_a_limited_spatial_tendon_steps_as_mujocos_c_step(x64, form):
+    """The tendon's length and moments are MJX's, from the generated site frames; its limit row is
+    MJX's too. Every step from the state MuJoCo reached, against ``mj_step``."""
+    model = mujoco.MjModel.from_xml_string(TETHERED)
+    lean, effects = lean_of(model)
+    assert effects.tendons and effects.tendon_limits and scene.generated_step_applies(lean, effects)
+    step = jax.jit(scene.make_step(lean, effects))
+    rng = np.random.default_rng(0)
+    data = mujoco.MjData(model)
+    rows = set()
+    for _ in range(200):
+        data.ctrl[:] = rng.uniform(-2, 2, model.nu)
+        state = step(scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0)), jnp.array(data.ctrl))
+        mujoco.mj_step(model, data)
+        rows |= set(data.efc_type[:data.nefc].tolist())
+        scale = max(1.0, np.abs(data.qvel).max())
+        np.testing.assert_allclose(state.qpos, data.qpos, rtol=0, atol=1e-10 * scale)
+        np.testing.assert_allclose(state.qvel, data.qvel, rtol=0, atol=1e-9 * scale)
+    assert int(mujoco.mjtConstraint.mjCNSTR_LIMIT_TENDON) in rows
+
+
 @pytest.mark.parametrize("form", ["_WrittenOut", "_Arrays"])
-@pytest.mark.parametrize("name", ["branches in contact", "floating"])
+@pytest.mark.parametrize("name", ["branches in contact", "floating", "tethered"])
 def test_both_forms_of_the_rigid_body_terms_are_mujocos(x64, form, name):
     """Each term MJX's constraint stages read, in either form, against MuJoCo's own at a moving state
     with turned quaternions (not normalised: the kinematics normalises them as MuJoCo's does)."""
-    model = mujoco.MjModel.from_xml_string(CONSTRAINED[name])
+    model = mujoco.MjModel.from_xml_string({**CONSTRAINED, "tethered": TETHERED}[name])
     rng = np.random.default_rng(3)
     data = mujoco.MjData(model)
     data.qpos[:] = model.qpos0 + rng.uniform(-0.5, 0.5, model.nq)
@@ -239,7 +287,8 @@ def test_both_forms_of_the_rigid_body_terms_are_mujocos(x64, form, name):
     mass_matrix = np.zeros((model.nv, model.nv))
     mujoco.mj_fullM(model, data, mass_matrix)
     expected = {"xpos": data.xpos, "xmat": data.xmat.reshape(-1, 3, 3), "geom_xpos": data.geom_xpos,
-                "geom_xmat": data.geom_xmat.reshape(-1, 3, 3), "subtree_com": data.subtree_com, "cdof": data.cdof,
+                "geom_xmat": data.geom_xmat.reshape(-1, 3, 3), "site_xpos": data.site_xpos,
+                "site_xmat": data.site_xmat.reshape(-1, 3, 3), "subtree_com": data.subtree_com, "cdof": data.cdof,
                 "mass_matrix": mass_matrix, "qfrc_smooth": data.qfrc_smooth, "qacc_smooth": data.qacc_smooth}
     for field, value in expected.items():
         np.testing.assert_allclose(getattr(terms, field), value, rtol=1e-10, atol=1e-10, err_msg=field)
@@ -345,6 +394,7 @@ EQUALITY = BRANCHES.format(integrator="Euler").replace(
      "free or ball joints"),
     (BRANCHES.format(integrator="Euler"), lambda m: m.body_gravcomp.__setitem__(2, 1.0), "gravity compensation"),
     (FLOATING.replace("<option ", '<option integrator="RK4" '), None, "free or ball joints with an integrator"),
+    (TETHERED.replace('range="0 0.3"', 'range="0 0.3" stiffness="10"'), None, "tendons with stiffness"),
     (FLOATING.replace('name="wrist" type="ball"', 'name="wrist" type="ball" stiffness="1"'), None,
      "springs on free or ball joints"),
     (FLOATING.replace('<joint name="root" type="free" damping="0.01"/>',
