@@ -647,14 +647,18 @@ class _Arrays(_Scene):
                                 / like(np.where(heavy, m.body_subtreemass, 1.0))[:, None], centre)
         root_centre = subtree_com[m.body_rootid[self.dof_body]]  # cdof: the same motion, linear part at the centre
         cdof = jnp.concatenate([motion[:, :3], motion[:, 3:] + jnp.cross(motion[:, :3], root_centre)], -1)
-        geom_rotation, site_rotation = rotation[m.geom_bodyid], rotation[m.site_bodyid]
-        geom_xpos = position[m.geom_bodyid] + jnp.einsum("gij,gj->gi", geom_rotation, like(m.geom_pos))
-        site_xpos = position[m.site_bodyid] + jnp.einsum("sij,sj->si", site_rotation, like(m.site_pos))
+
+        def frames(bodies, offsets, turns):  # of geoms or sites, fixed in their bodies
+            return (position[bodies] + jnp.einsum("gij,gj->gi", rotation[bodies], like(offsets)),
+                    rotation[bodies] @ like(turns))
+
+        geom_xpos, geom_xmat = frames(m.geom_bodyid, m.geom_pos, self.geom_frames)
+        site_xpos, site_xmat = frames(m.site_bodyid, m.site_pos, self.site_frames)
         placed = (motion, inertia)
         matrix = self.mass_matrix(placed, m.dof_armature)
         qfrc_smooth = self.applied_forces(qpos, qvel, ctrl) - self.inverse_dynamics(placed, qvel, [0.0] * self.nv)
-        return RigidBody(xpos=position, xmat=rotation, geom_xpos=geom_xpos, geom_xmat=geom_rotation @ like(self.geom_frames),
-                         site_xpos=site_xpos, site_xmat=site_rotation @ like(self.site_frames),
+        return RigidBody(xpos=position, xmat=rotation, geom_xpos=geom_xpos, geom_xmat=geom_xmat,
+                         site_xpos=site_xpos, site_xmat=site_xmat,
                          subtree_com=subtree_com, cdof=cdof, mass_matrix=matrix, qfrc_smooth=qfrc_smooth,
                          qacc_smooth=_solve(matrix, qfrc_smooth))
 

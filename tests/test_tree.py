@@ -250,6 +250,21 @@ TETHERED = """<mujoco model="tethered">
 </mujoco>"""
 
 
+def steps_from_mujocos_states(step, model, data, rng, steps=200):
+    """``steps`` steps of ``step``, each from the state ``mj_step`` reached, so that a contact's chaos does
+    not compound the solvers' tolerances, against ``mj_step``; returns the constraint rows' types seen."""
+    rows = set()
+    for _ in range(steps):
+        data.ctrl[:] = rng.uniform(-2, 2, model.nu)
+        state = step(scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0)), jnp.array(data.ctrl))
+        mujoco.mj_step(model, data)
+        rows |= set(data.efc_type[:data.nefc].tolist())
+        scale = max(1.0, np.abs(data.qvel).max())
+        np.testing.assert_allclose(state.qpos, data.qpos, rtol=0, atol=1e-10 * scale)
+        np.testing.assert_allclose(state.qvel, data.qvel, rtol=0, atol=1e-9 * scale)
+    return rows
+
+
 def test_a_limited_spatial_tendon_steps_as_mujocos_c_step(x64, form):
     """The tendon's length and moments are MJX's, from the generated site frames; its limit row is
     MJX's too. Every step from the state MuJoCo reached, against ``mj_step``."""
@@ -259,15 +274,7 @@ def test_a_limited_spatial_tendon_steps_as_mujocos_c_step(x64, form):
     step = jax.jit(scene.make_step(lean, effects))
     rng = np.random.default_rng(0)
     data = mujoco.MjData(model)
-    rows = set()
-    for _ in range(200):
-        data.ctrl[:] = rng.uniform(-2, 2, model.nu)
-        state = step(scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0)), jnp.array(data.ctrl))
-        mujoco.mj_step(model, data)
-        rows |= set(data.efc_type[:data.nefc].tolist())
-        scale = max(1.0, np.abs(data.qvel).max())
-        np.testing.assert_allclose(state.qpos, data.qpos, rtol=0, atol=1e-10 * scale)
-        np.testing.assert_allclose(state.qvel, data.qvel, rtol=0, atol=1e-9 * scale)
+    rows = steps_from_mujocos_states(step, model, data, rng)
     assert int(mujoco.mjtConstraint.mjCNSTR_LIMIT_TENDON) in rows
 
 
@@ -311,15 +318,7 @@ def test_the_generated_step_with_constraints_takes_mujocos_c_steps(x64, form, na
         data.qvel[:] = rng.uniform(-2, 2, model.nv)
     if name == "floating":  # faster, a ball limit's row is solved to MJX's tolerance, not MuJoCo's
         data.qvel[:] = rng.uniform(-1, 1, model.nv)
-    rows = set()
-    for _ in range(200):
-        data.ctrl[:] = rng.uniform(-2, 2, model.nu)
-        state = step(scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0)), jnp.array(data.ctrl))
-        mujoco.mj_step(model, data)
-        rows |= set(data.efc_type[:data.nefc].tolist())
-        scale = max(1.0, np.abs(data.qvel).max())
-        np.testing.assert_allclose(state.qpos, data.qpos, rtol=0, atol=1e-10 * scale)
-        np.testing.assert_allclose(state.qvel, data.qvel, rtol=0, atol=1e-9 * scale)
+    rows = steps_from_mujocos_states(step, model, data, rng)
     kinds = mujoco.mjtConstraint
     assert {int(kinds.mjCNSTR_FRICTION_DOF), int(kinds.mjCNSTR_LIMIT_JOINT)} <= rows
     assert rows & {int(kinds.mjCNSTR_CONTACT_PYRAMIDAL), int(kinds.mjCNSTR_CONTACT_ELLIPTIC)}
