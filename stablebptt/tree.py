@@ -19,8 +19,8 @@ constants, in one of two forms of the same physics (``make_scene``):
 The physics is MuJoCo's, term by term (tests compare with ``mujoco.mj_step`` in
 float64): forward kinematics, the composite-rigid-body mass matrix plus
 armature, recursive Newton-Euler bias forces with gravity, springs and dampers,
-joint-transmission actuators (fixed gain, affine bias, control and force
-clamps), and the Euler (with its implicit joint damping) or RK4 integrator.
+actuators of joints and fixed tendons (fixed gain, affine bias, control and
+force clamps), and the Euler (with its implicit joint damping) or RK4 integrator.
 Spatial vectors are (angular, linear) about the world origin.
 
 A contact-free scene's derivative is the inverse-dynamics one
@@ -58,15 +58,17 @@ WRITTEN_OUT_DOFS = {"cpu": 5, "gpu": 12}
 def unsupported(model: mujoco.MjModel, effects) -> str:
     """Why the generated step does not cover ``model`` ('' when it does); ``effects`` from ``scene.analyze``.
 
-    Contacts, joint limits, friction loss and tendon limits are MJX's own stages fed the generated terms
-    (a tendon's length and moments are MJX's, from the generated site and geom frames); equality
-    constraints (some read body orientations, which are not generated) and tendons that carry forces of
-    their own are left to MJX's stages. Free and ball joints are generated where MJX's stages and its Euler
+    Contacts, joint limits, friction loss, tendon limits and equality constraints are MJX's own stages fed
+    the generated terms (a tendon's length and moments are MJX's, from the generated site and geom
+    frames); welds (they read body quaternions, which are not generated) and tendons that carry forces of
+    their own are left to MJX's stages. Actuators pull joints or fixed tendons, whose moments are constant. Free and ball joints are generated where MJX's stages and its Euler
     step take over from the generated terms (their quaternions integrate on the sphere).
     """
-    present = [name for name in ("equality", "activation", "gravity_compensation", "fluid") if getattr(effects, name)]
+    present = [name for name in ("activation", "gravity_compensation", "fluid") if getattr(effects, name)]
     if present:
-        return "equality constraints" if present[0] == "equality" else present[0].replace("_", " ")
+        return present[0].replace("_", " ")
+    if effects.equality and np.any(model.eq_type == int(mujoco.mjtEq.mjEQ_WELD)):
+        return "weld equality constraints"
     if effects.tendons and (any(np.any(np.asarray(a) != 0) for a in (
             model.tendon_stiffness, model.tendon_stiffnesspoly, model.tendon_springyield, model.tendon_damping,
             model.tendon_dampingpoly, model.tendon_frictionloss, model.tendon_armature))
@@ -93,13 +95,44 @@ def unsupported(model: mujoco.MjModel, effects) -> str:
                  model.actuator_dampingpoly, model.jnt_actgravcomp]
     if any(np.any(np.asarray(a) != 0) for a in nonlinear) or np.any(model.jnt_plasticadr >= 0):
         return "nonlinear or plastic springs and dampers"
-    if model.nu and not (np.all(model.actuator_trntype == int(mujoco.mjtTrn.mjTRN_JOINT))
+    if model.nu and not (np.all([_transmitted_linearly(model, actuator) for actuator in range(model.nu)])
                          and np.all(model.actuator_dyntype == int(mujoco.mjtDyn.mjDYN_NONE))
                          and np.all(model.actuator_gaintype == int(mujoco.mjtGain.mjGAIN_FIXED))
                          and np.all(np.isin(model.actuator_biastype, (int(mujoco.mjtBias.mjBIAS_NONE),
                                                                       int(mujoco.mjtBias.mjBIAS_AFFINE))))):
-        return "actuators other than fixed-gain joint actuators"
+        return "actuators other than fixed-gain actuators of joints or fixed tendons"
     return ""
+
+
+def _transmitted_linearly(model: mujoco.MjModel, actuator: int) -> bool:
+    """Whether the actuator pulls a joint or a fixed tendon: its length is linear in qpos, its moment constant."""
+    target, kind = int(model.actuator_trnid[actuator, 0]), int(model.actuator_trntype[actuator])
+    if kind == int(mujoco.mjtTrn.mjTRN_JOINT):
+        return True
+    if kind != int(mujoco.mjtTrn.mjTRN_TENDON):
+        return False
+    wraps = slice(model.tendon_adr[target], model.tendon_adr[target] + model.tendon_num[target])
+    return bool(np.all(model.wrap_type[wraps] == int(mujoco.mjtWrap.mjWRAP_JOINT)))
+
+
+def _transmission(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    """Each actuator's length as a linear form in qpos [nu, nq] and its moment arms [nu, nv], gear included:
+    a joint's coordinate, or a fixed tendon's sum of its joints' coordinates times their coefficients
+    (hinges and slides, one coordinate per dof; free and ball joints carry no actuators, ``unsupported``)."""
+    length, moment = np.zeros((model.nu, model.nq)), np.zeros((model.nu, model.nv))
+    for actuator in range(model.nu):
+        target, gear = int(model.actuator_trnid[actuator, 0]), float(model.actuator_gear[actuator, 0])
+        if not _transmitted_linearly(model, actuator):
+            raise ValueError("an actuator pulls neither a joint nor a fixed tendon (tree.unsupported)")
+        if int(model.actuator_trntype[actuator]) == int(mujoco.mjtTrn.mjTRN_JOINT):
+            joints, coefficients = [target], [1.0]
+        else:
+            wraps = range(model.tendon_adr[target], model.tendon_adr[target] + model.tendon_num[target])
+            joints, coefficients = [int(model.wrap_objid[w]) for w in wraps], [float(model.wrap_prm[w]) for w in wraps]
+        for joint, coefficient in zip(joints, coefficients):
+            length[actuator, model.jnt_qposadr[joint]] += gear * coefficient
+            moment[actuator, model.jnt_dofadr[joint]] += gear * coefficient
+    return length, moment
 
 
 def _rotation(quat: np.ndarray) -> np.ndarray:
@@ -301,6 +334,8 @@ class _Scene:
         self.implicit_damping = (self.integrator == EULER and not disabled(_DISABLE.mjDSBL_EULERDAMP)
                                  and bool(np.any(damping > 0)))
         self.diagonal = np.array(model.dof_armature) + (self.timestep * damping if self.implicit_damping else 0.0)
+        self.actuator_length, self.actuator_moment = _transmission(model)
+        self.joints_only = bool(np.all(model.actuator_trntype == int(mujoco.mjtTrn.mjTRN_JOINT)))
         self.bodies = list(range(1, model.nbody))
         self.joints = {b: list(range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b]))
                        for b in self.bodies}
@@ -319,17 +354,20 @@ class _Scene:
             if self.clamp_ctrl and np.any(m.actuator_ctrllimited):
                 limited = np.asarray(m.actuator_ctrllimited, bool)
                 ctrl = jnp.where(limited, jnp.clip(ctrl, like(m.actuator_ctrlrange[:, 0]), like(m.actuator_ctrlrange[:, 1])), ctrl)
-            joint = m.actuator_trnid[:, 0]
-            gear = like(m.actuator_gear[:, 0])
-            length = gear * qpos[m.jnt_qposadr[joint]]
-            velocity = gear * qvel[m.jnt_dofadr[joint]]
+            if self.joints_only:  # gathers and a scatter, the program joint actuators always had
+                joint, gear = m.actuator_trnid[:, 0], like(m.actuator_gear[:, 0])
+                length, velocity = gear * qpos[m.jnt_qposadr[joint]], gear * qvel[m.jnt_dofadr[joint]]
+                to_dofs = lambda actuator: jnp.zeros(self.nv, dtype=qvel.dtype).at[m.jnt_dofadr[joint]].add(gear * actuator)
+            else:
+                length, velocity = like(self.actuator_length) @ qpos, like(self.actuator_moment) @ qvel
+                to_dofs = lambda actuator: actuator @ like(self.actuator_moment)
             bias = like(m.actuator_biasprm)
             actuator = like(m.actuator_gainprm[:, 0]) * ctrl + (bias[:, 0] + bias[:, 1] * length + bias[:, 2] * velocity)
             if np.any(m.actuator_forcelimited):
                 limited = np.asarray(m.actuator_forcelimited, bool)
                 actuator = jnp.where(limited, jnp.clip(actuator, like(m.actuator_forcerange[:, 0]),
                                                        like(m.actuator_forcerange[:, 1])), actuator)
-            generalized = jnp.zeros(self.nv, dtype=qvel.dtype).at[m.jnt_dofadr[joint]].add(gear * actuator)
+            generalized = to_dofs(actuator)
             if np.any(m.jnt_actfrclimited):
                 limited = np.asarray(m.jnt_actfrclimited, bool)
                 dofs = m.jnt_dofadr[limited]

@@ -56,6 +56,11 @@ MODELS = {f"cartpole_{n}": lambda n=n: mujoco.MjModel.from_xml_path(str(ROOT / "
           for n in (1, 2, 3, 4)}
 MODELS["branches, Euler"] = lambda: mujoco.MjModel.from_xml_string(BRANCHES.format(integrator="Euler"))
 MODELS["branches, RK4"] = lambda: mujoco.MjModel.from_xml_string(BRANCHES.format(integrator="RK4"))
+# Its hip motor pulls a fixed tendon of the hip and the shoulder instead.
+MODELS["branches, tendon-driven"] = lambda: mujoco.MjModel.from_xml_string(BRANCHES.format(integrator="Euler").replace(
+    '<motor joint="hip"', '<motor tendon="pull" gear="1.5"').replace(
+    "<actuator>", '<tendon><fixed name="pull"><joint joint="hip" coef="0.5"/><joint joint="shoulder" coef="-0.8"/>'
+    '</fixed></tendon>\n  <actuator>'))
 
 
 def lean_of(model):
@@ -382,12 +387,66 @@ def test_rk4_with_constraints_has_the_jacobian_of_central_differences(x64, jacob
     assert np.abs(np.asarray(got[0])).max() > 0.1
 
 
-EQUALITY = BRANCHES.format(integrator="Euler").replace(
-    "</worldbody>", '</worldbody>\n  <equality><joint joint1="hip" joint2="shoulder"/></equality>')
+# The branches in contact, coupled: a joint equality (a quadratic in the other joint) and a fixed tendon's
+# equality; actuators on fixed tendons beside the joints', one a position servo whose length is the tendon's.
+# As manipulator's grasp and coupling. LOOPED adds a connect that holds the leg's foot to the hand.
+COUPLED = BRANCHES_IN_CONTACT.replace(
+    "<actuator>", """<tendon>
+    <fixed name="pull"><joint joint="hip" coef="0.5"/><joint joint="shoulder" coef="-0.8"/></fixed>
+    <fixed name="couple"><joint joint="twist" coef="1"/><joint joint="knee" coef="2"/></fixed>
+  </tendon>
+  <equality>
+    <joint joint1="wrist" joint2="shoulder" polycoef="0.1 0.5 0.3 0 0"/>
+    <tendon tendon1="couple" solref="0.01 1"/>
+  </equality>
+  <actuator>
+    <position tendon="pull" kp="4" kv="0.3" ctrlrange="-1 1"/>
+    <motor tendon="couple" gear="3" ctrlrange="-1 1" ctrllimited="true"/>""")
+LOOPED = COUPLED.replace("</equality>", '<connect body1="leg" body2="hand" anchor="-0.1 0 0.2"/></equality>')
+
+
+def coupled_scene(source):
+    model = mujoco.MjModel.from_xml_string(source)
+    lean, effects = lean_of(model)
+    assert effects.equality and scene.generated_step_applies(lean, effects)
+    data = mujoco.MjData(model)
+    data.qvel[:] = np.random.default_rng(0).uniform(-1, 1, model.nv)
+    return model, lean, effects, data
+
+
+def test_fixed_tendon_actuators_and_equality_constraints_step_as_mujocos_c_step(x64, form):
+    """The actuators' lengths and moments on fixed tendons are generated; the equality rows are MJX's, fed
+    the generated frames and MJX's tendon lengths. Every step from the state MuJoCo reached, against
+    ``mj_step``."""
+    model, lean, effects, data = coupled_scene(COUPLED)
+    rows = steps_from_mujocos_states(jax.jit(scene.make_step(lean, effects)), model, data, np.random.default_rng(1))
+    assert int(mujoco.mjtConstraint.mjCNSTR_EQUALITY) in rows
+    assert np.abs(data.actuator_force[:2]).min() > 0  # both tendon actuators pulled
+
+
+def test_a_connect_loop_steps_as_mjx_stages_with_their_jacobians(x64):
+    """A connect's rows read the generated body frames. MJX's connect rows are not MuJoCo 4's (their
+    reference accelerations differ by about 0.1%), so the comparison is with MJX's stages: the step and,
+    reverse mode through the generated terms against forward mode through the stages, its Jacobians."""
+    model, lean, effects, data = coupled_scene(LOOPED)
+    state = scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
+    control = jnp.array([0.3, -0.2, 0.1, 0.4, -0.3])
+    generated, stages = scene.make_step(lean, effects), scene.make_step(lean, effects, "stages")
+    for a, b in zip(jax.jit(generated)(state, control), jax.jit(stages)(state, control)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
+    expected = jax.jit(jax.jacfwd(stages, argnums=(0, 1)))(state, control)
+    got = jax.jit(jax.jacrev(generated, argnums=(0, 1)))(state, control)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
+    assert np.abs(np.asarray(expected.qvel[1])[:, 3:]).max() > 1e-3  # d qvel' / d (the tendons' controls)
+
+
+WELDED = BRANCHES.format(integrator="Euler").replace(
+    "</worldbody>", '</worldbody>\n  <equality><weld body1="leg" body2="hand"/></equality>')
 
 
 @pytest.mark.parametrize("source, edit, reason", [
-    (EQUALITY, None, "equality constraints"),
+    (WELDED, None, "weld equality constraints"),
     (BRANCHES.format(integrator="implicitfast"), None, "mjINT_IMPLICITFAST integrator"),
     (BRANCHES.format(integrator="Euler").replace('type="hinge" axis="1 0 0"', 'type="ball"'), None,
      "free or ball joints"),
@@ -396,10 +455,12 @@ EQUALITY = BRANCHES.format(integrator="Euler").replace(
     (TETHERED.replace('range="0 0.3"', 'range="0 0.3" stiffness="10"'), None, "tendons with stiffness"),
     (FLOATING.replace('name="wrist" type="ball"', 'name="wrist" type="ball" stiffness="1"'), None,
      "springs on free or ball joints"),
+    (TETHERED.replace("</actuator>", '<motor tendon="string"/></actuator>'), None,
+     "actuators other than fixed-gain actuators of joints or fixed tendons"),
     (FLOATING.replace('<joint name="root" type="free" damping="0.01"/>',
                       '<joint name="root" type="free" damping="0.01"/><site name="thrust"/>').replace(
         "</actuator>", '<general site="thrust" gear="0 0 1 0 0 0"/></actuator>'), None,
-     "actuators other than fixed-gain joint actuators"),
+     "actuators other than fixed-gain actuators of joints or fixed tendons"),
 ])
 def test_scenes_the_generator_does_not_cover_run_through_mjx(source, edit, reason):
     model = mujoco.MjModel.from_xml_string(source)
