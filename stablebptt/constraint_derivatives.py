@@ -1,6 +1,7 @@
 """Derivatives through MJX's constraint solver and contacts: the implicit solver derivative and MJX's NaN traps.
 
-Everything here changes derivatives only; values stay MJX's own.
+Everything here changes derivatives only; values stay MJX's own, except for the order in which
+the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the same Hessian).
 
 - ``solve_implicitly``: MJX's constraint solver, differentiated at the
   acceleration it finds (implicit function theorem), not through its
@@ -23,6 +24,7 @@ import threading
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from stablebptt import mjx_internals
 from stablebptt.mjx_internals import collision_convex, mjx, solver, support
@@ -129,9 +131,38 @@ def _closest_segment_point_plane_stable(a, b, p0, plane_normal):
 # clipped t is a constant, as its derivative already says, and the quotient is
 # only formed where it lands on the segment; values are unchanged.
 
+_UPDATE_GRADIENT = solver._update_gradient
+
+
+def _update_gradient_by_blocks(model: mjx.Model, data: mjx.Data, ctx: solver.Context) -> solver.Context:
+    """MJX's Newton gradient step, its elliptic-cone Hessian summed block by block.
+
+    MJX adds each contact's cone block into a dense [rows, rows] matrix, one traced update per contact,
+    and then forms J^T (that matrix) J: for manipulator's 281 contacts, 1208 rows, 281 updates of a
+    1208 x 1208 matrix per Newton iteration and per trace. The same Hessian is
+    J^T diag(D active) J + the sum over contacts of J_c^T H_c J_c, J_c the contact's rows: one gather
+    and one contraction per cone dimension. Other solvers and cones are MJX's own.
+    """
+    if not (model.opt.solver == mjx_types.SolverType.NEWTON and model.opt.cone == mjx_types.ConeType.ELLIPTIC):
+        return _UPDATE_GRADIENT(model, data, ctx)
+    grad = ctx.Ma - data.qfrc_smooth - ctx.qfrc_constraint
+    jacobian, contact = data._impl.efc_J, data._impl.contact
+    hessian = (jacobian.T * (data._impl.efc_D * ctx.active)) @ jacobian
+    cones = np.asarray(contact.dim) > 1  # static: the contacts' dimensions and rows are known while tracing
+    dims, addresses = np.asarray(contact.dim)[cones], np.asarray(contact.efc_address)[cones]
+    for dim in sorted(set(dims.tolist())):
+        which = np.flatnonzero(dims == dim)  # ctx.h holds one block per cone contact, in this order
+        rows = jacobian[addresses[which][:, None] + np.arange(dim)]  # [contacts, dim, nv]
+        hessian = hessian + jnp.einsum("cki,ckl,clj->ij", rows, ctx.h[which, :dim, :dim], rows)
+    hessian = support.full_m(model, data) + hessian
+    factor = jax.scipy.linalg.cho_factor((hessian + hessian.T) * 0.5)
+    return ctx.replace(grad=grad, Mgrad=jax.scipy.linalg.cho_solve(factor, grad))
+
+
 # (module, attribute, replacement) of every remedy.
 _REMEDIES = (
     (solver, "jp", _SOLVER_NUMPY),
+    (solver, "_update_gradient", _update_gradient_by_blocks),
     (solver._LSPoint, "create", classmethod(_ls_point_create_stable)),
     (collision_convex, "_closest_segment_point_plane", _closest_segment_point_plane_stable),
 )

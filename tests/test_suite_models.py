@@ -367,3 +367,39 @@ def test_springs_and_dampers_of_higher_order_are_simulated():
     effects = scene.analyze(model)
     assert effects.springs and effects.dampers
     assert "tendons with stiffness" in tree.unsupported(model, effects)
+
+
+# Spheres and a box pressed sliding onto a floor, with elliptic cones of three, four and six dimensions.
+SLIDING = """<mujoco model="sliding">
+  <option cone="elliptic" solver="Newton"/>
+  <worldbody>
+    <geom type="plane" size="5 5 0.1"/>
+    <body pos="0 0 0.1"><freejoint/><geom type="sphere" size="0.1" condim="3"/></body>
+    <body pos="0.5 0 0.1"><freejoint/><geom type="box" size="0.1 0.1 0.1" condim="4"/></body>
+    <body pos="1 0 0.1"><freejoint/><geom type="sphere" size="0.1" condim="6"/></body>
+  </worldbody>
+</mujoco>"""
+
+
+def test_the_elliptic_cones_newton_hessian_summed_by_blocks_is_mjxs(x64):
+    """``_update_gradient_by_blocks`` (manipulator's 281 cone blocks in two contractions, not 281 updates of
+    a dense matrix) against MJX's own, away from the solution and with contacts in the cone's middle zone."""
+    from stablebptt import constraint_derivatives
+    from stablebptt.mjx_internals import mjx, solver
+    model = mujoco.MjModel.from_xml_string(SLIDING)
+    data = mujoco.MjData(model)
+    data.qpos[[2, 9, 16]] = 0.099  # pressed in
+    data.qvel[[0, 6, 13]] = [1.0, -1.0, 0.5]  # sliding
+    data.qvel[[4, 11, 17]] = [2.0, 1.0, -3.0]  # turning: the six-dimensional cone's torsion and rolling
+    mujoco.mj_forward(model, data)
+    assert sorted(set(data.contact.dim[:data.ncon])) == [3, 4, 6]
+    mjx_model, mjx_data = mjx.put_model(model, impl="jax"), mjx.put_data(model, data, impl="jax")
+    mjx_data = jax.jit(mjx.forward)(mjx_model, mjx_data)
+    start = mjx_data.replace(qacc=mjx_data.qacc + jnp.array(np.random.default_rng(0).normal(size=model.nv)))
+    context = jax.jit(lambda d: solver.Context.create(mjx_model, d))(start)
+    assert np.abs(np.asarray(context.h)).max() > 1.0  # cones in their middle zone
+    ours = jax.jit(lambda c: constraint_derivatives._update_gradient_by_blocks(mjx_model, start, c))(context)
+    theirs = jax.jit(lambda c: constraint_derivatives._UPDATE_GRADIENT(mjx_model, start, c))(context)
+    np.testing.assert_allclose(ours.Mgrad, theirs.Mgrad, rtol=1e-12, atol=1e-12 * np.abs(theirs.Mgrad).max())
+    np.testing.assert_allclose(ours.grad, theirs.grad, rtol=0, atol=0)
+    assert np.abs(np.asarray(theirs.Mgrad)).max() > 1e-3
