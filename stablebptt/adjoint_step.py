@@ -65,8 +65,11 @@ def multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...], plan: Plan = 
 
     @jax.custom_vjp
     def step(params, state_copies, control_offsets):
-        next_states, controls, _ = forward(params_of(params), first_copy(state_copies))
-        return outputs(next_states, controls, control_offsets)
+        # The values alone: tracing ``forward`` here would linearize the simulator once more for pullbacks
+        # that are never used (under differentiation only ``step_fwd`` runs).
+        states = first_copy(state_copies)
+        controls = batch_policy(params_of(params), states)
+        return outputs(batch_step(states, controls), controls, control_offsets)
 
     def step_fwd(params, state_copies, control_offsets):
         states = first_copy(state_copies)

@@ -47,8 +47,13 @@ def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
     """
     solved = _SOLVE(model, jax.lax.stop_gradient(data))
     newton = model.replace(opt=model.opt.replace(solver=mjx_types.SolverType.NEWTON))
-    at_solution = solver.Context.create(newton, data.replace(qacc=solved.qacc))
-    correction = -at_solution.Mgrad  # H^-1 g: ~0 in value, the implicit tangent
+    at_solution = solver.Context.create(newton, data.replace(qacc=solved.qacc), grad=False)
+    gradient = at_solution.Ma - data.qfrc_smooth - at_solution.qfrc_constraint
+    # The theorem holds H where the solution is: only g's tangent is taken, not H's (whose term,
+    # H^-1 dH H^-1 g, is the solver's residual g carried along, and which XLA would otherwise compile
+    # through the Hessian's assembly and Cholesky factorisation).
+    hessian = jax.lax.stop_gradient(_newton_hessian(newton, data, at_solution))
+    correction = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(hessian), gradient)  # ~0 in value
     qacc = solved.qacc + correction - jax.lax.stop_gradient(correction)
     # At the minimum M qacc - qfrc_smooth - qfrc_constraint = 0: the constraint force's tangent.
     balance = support.mul_m(model, data, qacc) - data.qfrc_smooth
@@ -146,17 +151,25 @@ def _update_gradient_by_blocks(model: mjx.Model, data: mjx.Data, ctx: solver.Con
     if not (model.opt.solver == mjx_types.SolverType.NEWTON and model.opt.cone == mjx_types.ConeType.ELLIPTIC):
         return _UPDATE_GRADIENT(model, data, ctx)
     grad = ctx.Ma - data.qfrc_smooth - ctx.qfrc_constraint
+    factor = jax.scipy.linalg.cho_factor(_newton_hessian(model, data, ctx))
+    return ctx.replace(grad=grad, Mgrad=jax.scipy.linalg.cho_solve(factor, grad))
+
+
+def _newton_hessian(model: mjx.Model, data: mjx.Data, ctx: solver.Context) -> jax.Array:
+    """The Hessian of the constraint solver's cost in the acceleration, symmetrised as MJX's Newton solver
+    has it: M + J^T diag(D active) J, plus each elliptic cone's J_c^T H_c J_c (``ctx`` from
+    ``solver._update_constraint``)."""
     jacobian, contact = data._impl.efc_J, data._impl.contact
     hessian = (jacobian.T * (data._impl.efc_D * ctx.active)) @ jacobian
-    cones = np.asarray(contact.dim) > 1  # static: the contacts' dimensions and rows are known while tracing
-    dims, addresses = np.asarray(contact.dim)[cones], np.asarray(contact.efc_address)[cones]
-    for dim in sorted(set(dims.tolist())):
-        which = np.flatnonzero(dims == dim)  # ctx.h holds one block per cone contact, in this order
-        rows = jacobian[addresses[which][:, None] + np.arange(dim)]  # [contacts, dim, nv]
-        hessian = hessian + jnp.einsum("cki,ckl,clj->ij", rows, ctx.h[which, :dim, :dim], rows)
+    if model.opt.cone == mjx_types.ConeType.ELLIPTIC:
+        cones = np.asarray(contact.dim) > 1  # static: the contacts' dimensions and rows are known while tracing
+        dims, addresses = np.asarray(contact.dim)[cones], np.asarray(contact.efc_address)[cones]
+        for dim in sorted(set(dims.tolist())):
+            which = np.flatnonzero(dims == dim)  # ctx.h holds one block per cone contact, in this order
+            rows = jacobian[addresses[which][:, None] + np.arange(dim)]  # [contacts, dim, nv]
+            hessian = hessian + jnp.einsum("cki,ckl,clj->ij", rows, ctx.h[which, :dim, :dim], rows)
     hessian = support.full_m(model, data) + hessian
-    factor = jax.scipy.linalg.cho_factor((hessian + hessian.T) * 0.5)
-    return ctx.replace(grad=grad, Mgrad=jax.scipy.linalg.cho_solve(factor, grad))
+    return (hessian + hessian.T) * 0.5
 
 
 # (module, attribute, replacement) of every remedy.

@@ -130,7 +130,10 @@ def build(model: mujoco.MjModel, config: SimulatorConfig = SimulatorConfig()) ->
         # unless every tangent also goes through a large constraint system.
         derivative = ("forward" if state_size <= FORWARD_MODE_MAX_STATE and tangents * rows <= FORWARD_MODE_MAX_SOLVER_WORK
                       else "reverse")
-    step = lean_step.make_step(lean, effects, config.pipeline, mjx_model=mjx_model)
+    # Jitted, the step's Python (MJX's stages, the generated terms) runs once per example shape: every
+    # program a run builds (the update, its vmapped pullbacks, the evaluation, the plan's measurements)
+    # takes the one traced step instead of tracing it anew.
+    step = jax.jit(lean_step.make_step(lean, effects, config.pipeline, mjx_model=mjx_model))
 
     summary = scene.describe(effects, lean, model) + (f"; pipeline: {config.pipeline}" if config.pipeline != "lean" else "")
     generated = config.pipeline == "lean" and lean_step.generated_step_applies(lean, effects)
