@@ -6,6 +6,7 @@ import numpy as np
 import optax
 import pytest
 
+from stablebptt import adjoint_step
 from stablebptt.errors import InputError
 from stablebptt.flows import (Dynamics, Plan, flow_gradients, flows_needed, reference_loss, reference_rollout,
                               select_flow, sign_agreement, tree_cosine)
@@ -104,6 +105,18 @@ def test_one_pass_equals_reference_on_a_nonlinear_system_with_control_cost(x64, 
     memory plan's settings (Jacobians in chunks of 8 of the 48 examples, steps recomputed in the
     backward pass) change no number either, nor does where reverse mode forms the parameter gradient.
     """
+    assert_one_pass_equals_reference(step_derivative, unroll, memory)
+
+
+@pytest.mark.parametrize("memory", [{}, {"policy_gradient": "per-step", "rematerialize": True}])
+def test_flows_pulled_back_batched_give_the_reference_gradients_too(x64, monkeypatch, memory):
+    """A CPU pulls the flows' cotangents back in turn (``adjoint_step.pullbacks_in_turn``), which the test
+    above runs; a GPU batches them over the flows, run here."""
+    monkeypatch.setattr(adjoint_step, "pullbacks_in_turn", lambda: False)
+    assert_one_pass_equals_reference("reverse", 1, memory)
+
+
+def assert_one_pass_equals_reference(step_derivative, unroll, memory):
     dynamics = Dynamics(
         step=lambda s, u: (s[0] + 0.1 * jnp.sin(s[1][::-1]) + 0.2 * u, s[1] + 0.1 * s[0] * jnp.cos(u.sum())),
         policy=lambda p, s: jnp.tanh(jnp.concatenate(s) @ p["w"]) @ p["v"],
