@@ -64,6 +64,9 @@ def check_supported(model: mujoco.MjModel) -> None:
                 model.geom_margin[g1] + model.geom_margin[g2] > 0):
             refuse(f"a contact margin on a mesh or height field (geoms '{_name(model, geom, g1)}' and "
                    f"'{_name(model, geom, g2)}'): set margin=\"0\"")
+    if np.any(model.actuator_damping) or np.any(model.actuator_dampingpoly) or np.any(model.actuator_armature):
+        refuse("an actuator's damping or armature (its damping=, armature= attributes), which MJX's JAX "
+               "implementation ignores: remove them, or give the joint its own damping and armature")
     disabled = lambda bit: bool(model.opt.disableflags & bit)  # noqa: E731
     dsbl = mujoco.mjtDisableBit
     if model.opt.noslip_iterations and not disabled(dsbl.mjDSBL_CONSTRAINT) and not (

@@ -48,6 +48,8 @@ CASES = {
                                                 extra_body='<body pos="0 0 -3"><freejoint/><geom size="0.1"/></body>'
                                                            '<geom type="plane" size="1 1 0.1" pos="0 0 -4"/>'),
                                            [], "noslip"),
+    "an actuator's damping, which MJX ignores": (dict(custom='<actuator><motor joint="hinge" damping="0.5"/></actuator>'),
+                                                  [], "damping"),
     "reverse mode through mjx.step's solver loop": (dict(extra_body='<body pos="0 0 -3"><freejoint/><geom size="0.1"/>'
                                                                     '</body><geom type="plane" size="1 1 0.1" pos="0 0 -4"/>'),
                                                     ["--pipeline", "mjx", "--step-derivative", "reverse"], "forward"),
