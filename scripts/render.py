@@ -114,7 +114,8 @@ def main(argv: list[str]) -> int:
             from stablebptt.gl_backend import select_gl_backend
             select_gl_backend()
 
-    from stablebptt.cli import use_compile_cache
+    from stablebptt.cli import leave_out_unused_backends, use_compile_cache
+    leave_out_unused_backends()  # after the GL backend is chosen: it imports MJX, and MJX mujoco
     use_compile_cache()
 
     try:
