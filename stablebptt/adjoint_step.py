@@ -91,8 +91,8 @@ def multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...], plan: Plan = 
         parts = split_cotangent(next_state_ct)
         # One pullback per flow: in turn on a CPU (each runs as the single-flow program, and the update
         # ran 2-16% faster than batched: experiments/update_program.py), batched over the flows elsewhere.
-        pull_each = (lambda f, xs: jax.lax.map(f, xs)) if pullbacks_in_turn() else (lambda f, xs: jax.vmap(f)(xs))
-        state_ct_sim, control_ct_sim = pull_each(step_pullback, parts.floats)
+        pulled = jax.lax.map(step_pullback, parts.floats) if pullbacks_in_turn() else jax.vmap(step_pullback)(parts.floats)
+        state_ct_sim, control_ct_sim = pulled
         control_ct = jax.tree.map(jnp.add, control_ct, control_ct_sim)
         state_ct = [select(keep_sim, sim) for sim in state_ct_sim]
         if per_step:  # one pullback per flow gives its parameter cotangent and, for R, its state's

@@ -48,12 +48,10 @@ def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
     solved = _SOLVE(model, jax.lax.stop_gradient(data))
     newton = model.replace(opt=model.opt.replace(solver=mjx_types.SolverType.NEWTON))
     at_solution = solver.Context.create(newton, data.replace(qacc=solved.qacc), grad=False)
-    gradient = at_solution.Ma - data.qfrc_smooth - at_solution.qfrc_constraint
     # The theorem holds H where the solution is: only g's tangent is taken, not H's (whose term,
     # H^-1 dH H^-1 g, is the solver's residual g carried along, and which XLA would otherwise compile
     # through the Hessian's assembly and Cholesky factorisation).
-    hessian = jax.lax.stop_gradient(_newton_hessian(newton, data, at_solution))
-    correction = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(hessian), gradient)  # ~0 in value
+    correction = -_newton_direction(newton, data, at_solution, hold_hessian=True)[1]  # ~0 in value
     qacc = solved.qacc + correction - jax.lax.stop_gradient(correction)
     # At the minimum M qacc - qfrc_smooth - qfrc_constraint = 0: the constraint force's tangent.
     balance = support.mul_m(model, data, qacc) - data.qfrc_smooth
@@ -150,9 +148,18 @@ def _update_gradient_by_blocks(model: mjx.Model, data: mjx.Data, ctx: solver.Con
     """
     if not (model.opt.solver == mjx_types.SolverType.NEWTON and model.opt.cone == mjx_types.ConeType.ELLIPTIC):
         return _UPDATE_GRADIENT(model, data, ctx)
+    grad, mgrad = _newton_direction(model, data, ctx)
+    return ctx.replace(grad=grad, Mgrad=mgrad)
+
+
+def _newton_direction(model: mjx.Model, data: mjx.Data, ctx: solver.Context,
+                      hold_hessian: bool = False) -> tuple[jax.Array, jax.Array]:
+    """The solver cost's gradient g in the acceleration and H^-1 g (``hold_hessian``: H without a tangent)."""
     grad = ctx.Ma - data.qfrc_smooth - ctx.qfrc_constraint
-    factor = jax.scipy.linalg.cho_factor(_newton_hessian(model, data, ctx))
-    return ctx.replace(grad=grad, Mgrad=jax.scipy.linalg.cho_solve(factor, grad))
+    hessian = _newton_hessian(model, data, ctx)
+    if hold_hessian:
+        hessian = jax.lax.stop_gradient(hessian)
+    return grad, jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(hessian), grad)
 
 
 def _newton_hessian(model: mjx.Model, data: mjx.Data, ctx: solver.Context) -> jax.Array:

@@ -61,8 +61,9 @@ def unsupported(model: mujoco.MjModel, effects) -> str:
     Contacts, joint limits, friction loss, tendon limits and equality constraints are MJX's own stages fed
     the generated terms (a tendon's length and moments are MJX's, from the generated site and geom
     frames); welds (they read body quaternions, which are not generated) and tendons that carry forces of
-    their own are left to MJX's stages. Actuators pull joints or fixed tendons, whose moments are constant. Free and ball joints are generated where MJX's stages and its Euler
-    step take over from the generated terms (their quaternions integrate on the sphere).
+    their own are left to MJX's stages. Actuators pull joints or fixed tendons, whose moments are
+    constant. Free and ball joints are generated where MJX's stages and its Euler step take over from
+    the generated terms (their quaternions integrate on the sphere).
     """
     present = [name for name in ("activation", "gravity_compensation", "fluid") if getattr(effects, name)]
     if present:
@@ -91,16 +92,15 @@ def unsupported(model: mujoco.MjModel, effects) -> str:
         return f"the {mujoco.mjtIntegrator(model.opt.integrator).name} integrator"
     if model.opt.enableflags:
         return "enabled optional features"
-    nonlinear = [model.dof_dampingpoly, model.jnt_stiffnesspoly, model.jnt_springyield,
-                 model.actuator_dampingpoly, model.jnt_actgravcomp]
+    nonlinear = [model.dof_dampingpoly, model.jnt_stiffnesspoly, model.jnt_springyield, model.jnt_actgravcomp]
     if any(np.any(np.asarray(a) != 0) for a in nonlinear) or np.any(model.jnt_plasticadr >= 0):
         return "nonlinear or plastic springs and dampers"
-    if np.any(model.actuator_damping) or np.any(model.actuator_armature):
+    if np.any(model.actuator_damping) or np.any(model.actuator_dampingpoly) or np.any(model.actuator_armature):
         return "actuator damping or armature"
     pulled = model.actuator_trnid[model.actuator_trntype == int(mujoco.mjtTrn.mjTRN_TENDON), 0]
     if np.any(model.tendon_actfrclimited[pulled]):
         return "actuator force limits on tendons"
-    if model.nu and not (np.all([_transmitted_linearly(model, actuator) for actuator in range(model.nu)])
+    if model.nu and not (all(_joints_pulled(model, actuator) is not None for actuator in range(model.nu))
                          and np.all(model.actuator_dyntype == int(mujoco.mjtDyn.mjDYN_NONE))
                          and np.all(model.actuator_gaintype == int(mujoco.mjtGain.mjGAIN_FIXED))
                          and np.all(np.isin(model.actuator_biastype, (int(mujoco.mjtBias.mjBIAS_NONE),
@@ -109,15 +109,18 @@ def unsupported(model: mujoco.MjModel, effects) -> str:
     return ""
 
 
-def _transmitted_linearly(model: mujoco.MjModel, actuator: int) -> bool:
-    """Whether the actuator pulls a joint or a fixed tendon: its length is linear in qpos, its moment constant."""
+def _joints_pulled(model: mujoco.MjModel, actuator: int) -> list[tuple[int, float]] | None:
+    """(joint, coefficient) of what the actuator pulls where its length is linear in qpos and its moment
+    constant: a joint, or a fixed tendon's joints; None for any other transmission."""
     target, kind = int(model.actuator_trnid[actuator, 0]), int(model.actuator_trntype[actuator])
     if kind == int(mujoco.mjtTrn.mjTRN_JOINT):
-        return True
+        return [(target, 1.0)]
     if kind != int(mujoco.mjtTrn.mjTRN_TENDON):
-        return False
-    wraps = slice(model.tendon_adr[target], model.tendon_adr[target] + model.tendon_num[target])
-    return bool(np.all(model.wrap_type[wraps] == int(mujoco.mjtWrap.mjWRAP_JOINT)))
+        return None
+    wraps = range(model.tendon_adr[target], model.tendon_adr[target] + model.tendon_num[target])
+    if np.any(model.wrap_type[wraps] != int(mujoco.mjtWrap.mjWRAP_JOINT)):
+        return None
+    return [(int(model.wrap_objid[w]), float(model.wrap_prm[w])) for w in wraps]
 
 
 def _transmission(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
@@ -126,15 +129,10 @@ def _transmission(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
     (hinges and slides, one coordinate per dof; free and ball joints carry no actuators, ``unsupported``)."""
     length, moment = np.zeros((model.nu, model.nq)), np.zeros((model.nu, model.nv))
     for actuator in range(model.nu):
-        target, gear = int(model.actuator_trnid[actuator, 0]), float(model.actuator_gear[actuator, 0])
-        if not _transmitted_linearly(model, actuator):
+        pulled, gear = _joints_pulled(model, actuator), float(model.actuator_gear[actuator, 0])
+        if pulled is None:
             raise ValueError("an actuator pulls neither a joint nor a fixed tendon (tree.unsupported)")
-        if int(model.actuator_trntype[actuator]) == int(mujoco.mjtTrn.mjTRN_JOINT):
-            joints, coefficients = [target], [1.0]
-        else:
-            wraps = range(model.tendon_adr[target], model.tendon_adr[target] + model.tendon_num[target])
-            joints, coefficients = [int(model.wrap_objid[w]) for w in wraps], [float(model.wrap_prm[w]) for w in wraps]
-        for joint, coefficient in zip(joints, coefficients):
+        for joint, coefficient in pulled:
             length[actuator, model.jnt_qposadr[joint]] += gear * coefficient
             moment[actuator, model.jnt_dofadr[joint]] += gear * coefficient
     return length, moment

@@ -427,7 +427,7 @@ def test_fixed_tendon_actuators_and_equality_constraints_step_as_mujocos_c_step(
 
 def test_a_connect_loop_steps_as_mjx_stages_with_their_jacobians(x64):
     """A connect's rows read the generated body frames. MJX's connect rows are not MuJoCo 4's (their
-    reference accelerations differ by about 0.1%), so the comparison is with MJX's stages: the step and,
+    reference accelerations differ), so the comparison is with MJX's stages: the step and,
     reverse mode through the generated terms against forward mode through the stages, its Jacobians."""
     model, lean, effects, data = coupled_scene(LOOPED)
     state = scene.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
