@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import math
+import os
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -109,8 +110,9 @@ class RewardDiagnosis(NamedTuple):
 
 def _gradient_checks(step: Callable) -> Callable:
     """``checks(states, actions)``: per state, whether the reward's gradient is finite and its largest
-    finite entry, at zero action and at ``actions``: one vmapped gradient over both halves, so a
-    program holds one copy of the step's derivative."""
+    finite entry, at zero action and at ``actions``: one gradient mapped over both halves, so a
+    program holds one copy of the step's derivative. Mapped in turn, not vmapped: batching the
+    step's derivative costs more tracing than the few states' run would gain."""
     def gradient(state, action):
         parts = split(state)
         grads = jax.grad(lambda floats, a: step(join(parts, floats), a).reward, argnums=(0, 1))(parts.floats, action)
@@ -122,7 +124,7 @@ def _gradient_checks(step: Callable) -> Callable:
 
     def checks(states, actions):
         twice = jax.tree.map(lambda a: jnp.concatenate([a, a]), states)
-        finite, size = jax.vmap(gradient)(twice, jnp.concatenate([jnp.zeros_like(actions), actions]))
+        finite, size = jax.lax.map(lambda pair: gradient(*pair), (twice, jnp.concatenate([jnp.zeros_like(actions), actions])))
         count = actions.shape[0]
         return finite[:count], size[:count], finite[count:], size[count:]
 
@@ -152,16 +154,25 @@ def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> Rewar
       states: a batch of states (leading axis), e.g. resets and states a few random steps on.
       actions: random actions, one per state; zero actions are tried too.
     """
-    return _classify(*jax.device_get(jax.jit(_gradient_checks(step), compiler_options=compiler_options())(states, actions)))
+    return _classify(*jax.device_get(jax.jit(_gradient_checks(step), compiler_options=_diagnosis_options())(states, actions)))
 
 
 def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
     """``diagnose_reward`` at states sampled from ``env`` (resets and a few random steps on), the
     sampling and the gradients compiled as ONE program: no operation runs eagerly, which on a GPU
-    would compile each one apart."""
+    would compile each one apart. States are visited in turn (``lax.map``), as the gradients are."""
     checks = _gradient_checks(step)
-    sample_and_check = jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)), compiler_options=compiler_options())
+    sample_and_check = jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)), compiler_options=_diagnosis_options())
     return _classify(*jax.device_get(sample_and_check(key)))
+
+
+def _diagnosis_options() -> dict | None:
+    """XLA options of the diagnosis: it runs once, on a few states, so on a CPU LLVM does not optimize
+    its kernels (CartpoleSwingup's compiles in 5.0 s instead of 6.6 s, by
+    ``python experiments/diagnosis_compile.py CartpoleSwingup``); a GPU's compile was no quicker so."""
+    if jax.default_backend() == "cpu" and "--xla_backend_optimization_level=" not in os.environ.get("XLA_FLAGS", ""):
+        return {**(compiler_options() or {}), "xla_backend_optimization_level": 0}
+    return compiler_options()
 
 
 def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
@@ -179,7 +190,7 @@ def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyT
         last, visited = jax.lax.scan(advance, state, keys[:-1])
         return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), visited, last)
 
-    states = jax.vmap(visit)(jax.random.split(reset_key, DIAGNOSIS_STATES))
+    states = jax.lax.map(visit, jax.random.split(reset_key, DIAGNOSIS_STATES))
     states = jax.tree.map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), states)
     count = jax.tree.leaves(states)[0].shape[0]
     actions = jax.random.uniform(action_key, (count, env.action_size), minval=-1.0, maxval=1.0)
