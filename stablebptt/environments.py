@@ -293,8 +293,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its
         registry name): while JAX's compile cache is on, the diagnosis is kept under it (with
         ``reward_repairs``) beside the compiled programs (``program_store.kept_answer``), and an
-        identical later run reads it instead of tracing the step's derivative again. None:
-        diagnosed every time.
+        identical later run reads it instead of tracing the step's derivative again; so is the
+        traced reset (``program_store.kept_function``). None: diagnosed and traced every time.
 
     Example::
 
@@ -328,9 +328,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     sizes = (observations, *hidden, int(env.action_size))
     reset = jax.jit(jax.vmap(env.reset))
+    resets = {}  # count -> the reset of that many states, kept under diagnosis_key
 
     def sample_initial_states(key, count):
-        return reset(jax.random.split(key, count))
+        keys = jax.random.split(key, count)
+        if count not in resets:
+            resets[count] = program_store.kept_function(reset, (keys,), diagnosis_key, "reset")
+        return resets[count](keys)
 
     diagnosis = None
     start_off_zero = False

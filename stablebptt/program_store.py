@@ -87,9 +87,11 @@ def _versions() -> dict[str, str]:
 
 def _tree_digest(tree) -> str:
     """The arguments' tree, the same in every run: its text shows some static leaves by address (MJX's
-    contact data), so it is pickled, node data and all; where that fails, its text without addresses."""
+    contact data), so it is pickled, node data and all; where that fails, its text without addresses.
+    Pickled as it pickles once unpickled: a tree read back from a kept program (an environment's
+    states) holds its own copy of each shared object (a NumPy dtype), which pickles otherwise."""
     try:
-        return hashlib.sha256(pickle.dumps(tree)).hexdigest()
+        return hashlib.sha256(pickle.dumps(pickle.loads(pickle.dumps(tree)))).hexdigest()
     except Exception:  # noqa: BLE001 - a node whose data does not pickle
         return re.sub(r" at 0x[0-9a-fA-F]+", "", str(tree))
 
@@ -145,12 +147,40 @@ def _lower_kept(program: Callable, arguments: tuple, key_parts: dict, folder: Pa
     first where none is; a program that cannot be exported is lowered as usual."""
     import jax
 
+    call = _kept_call(program, arguments, key_parts, folder)
+    if call is None:  # not exportable: the plain program serves
+        return program.lower(*arguments)
+    # The kept program is compiled the same way in the run that traced it and in every later one.
+    return jax.jit(call, compiler_options=compiler_options).lower(*arguments)
+
+
+def kept_function(function: Callable, arguments: tuple, key_parts: dict | None, name: str) -> Callable:
+    """``function`` (jitted) for arguments shaped as ``arguments``, read from its traced program kept
+    under ``key_parts`` and ``name`` while JAX's compile cache is on (traced and kept first where none
+    is): an identical later run calls it, eagerly or inside another program, without tracing it.
+    ``key_parts`` None, the cache off, or a function that cannot be exported: ``function`` itself."""
+    import jax
+
+    folder = cache_dir()
+    if key_parts is None or folder is None:
+        return function
+    # Shapes only: the arguments may be another program's tracers.
+    shapes = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=getattr(a, "weak_type", False)), arguments)
+    call = _kept_call(function, shapes, {**key_parts, "program": name}, folder / FOLDER)
+    return function if call is None else jax.jit(call)
+
+
+def _kept_call(program: Callable, arguments: tuple, key_parts: dict, folder: Path) -> Callable | None:
+    """A traceable call of ``program``'s kept traced program for ``arguments``' shapes, traced and kept
+    first where none is; None where it cannot be exported."""
+    import jax
+
     path = folder / f"{program_key(key_parts, arguments)}{SUFFIX}"
     kept = _read(path) if path.is_file() else None
     if kept is None:
         kept = _traced(program, arguments)
-        if kept is None:  # not exportable: the plain program serves
-            return program.lower(*arguments)
+        if kept is None:
+            return None
         try:
             folder.mkdir(parents=True, exist_ok=True)
             atomic_write(path, _serialized(*kept))
@@ -161,8 +191,7 @@ def _lower_kept(program: Callable, arguments: tuple, key_parts: dict, folder: Pa
     def call(*given):
         return jax.tree.unflatten(out_tree, exported.call(*jax.tree.leaves(given)))
 
-    # The kept program is compiled the same way in the run that traced it and in every later one.
-    return jax.jit(call, compiler_options=compiler_options).lower(*arguments)
+    return call
 
 
 def _traced(program: Callable, arguments: tuple):

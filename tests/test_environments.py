@@ -17,7 +17,7 @@ import pytest
 import stablebptt as sb
 from conftest import ROOT, float64
 from envs_for_tests import Cart
-from stablebptt import environments
+from stablebptt import environments, program_store
 from stablebptt.constraint_derivatives import differentiable_mjx
 from stablebptt.environments import EnvError, env_task
 from stablebptt.flows import flow_gradients, reference_loss
@@ -58,8 +58,15 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
     with pytest.raises(EnvError, match=r"gradient is NaN at \d+% of sampled states"):
         env_task(Cart("root"), horizon=5)
     task = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
+    states = task.sample_initial_states(jax.random.PRNGKey(3), 6)  # its reset is traced and kept too
     monkeypatch.setattr(environments, "diagnose_env", lambda *a: pytest.fail("diagnosed although kept"))
-    assert env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm")).resolved == task.resolved
+    monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("traced although kept"))
+    again = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
+    assert again.resolved == task.resolved
+    plain = jax.jit(jax.vmap(Cart("norm").reset))(jax.random.split(jax.random.PRNGKey(3), 6))
+    for kept, traced in zip(jax.tree.leaves(again.sample_initial_states(jax.random.PRNGKey(3), 6)), jax.tree.leaves(plain)):
+        np.testing.assert_array_equal(kept, traced)  # bit for bit, integer and bool leaves alike
+    assert jax.tree.structure(states) == jax.tree.structure(plain)
     monkeypatch.undo()
     assert task.resolved["reward_gradient"] == "nan at zero action"
     assert task.resolved["policy_output_start"] == "small"
