@@ -82,24 +82,17 @@ def train(argv: list[str], held: list) -> int:
     from stablebptt.program_store import run_key
     from stablebptt.training import make_trainer, seed_array
 
-    module = tasks.load(task_name)
     with one_line_errors():
-        # A task may leave a check to run beside compiling (an environment's reward diagnosis).
-        task = getattr(module, "make_deferred", module.make)(task_config)
-        run_dir = run_dir or runs.default_run_dir(RUNS_ROOT, task.name)
-    program_key = run_key(module, task_name, task_config, train_config)  # an identical run reuses its programs
-
-    def trainer_for(task):
-        with one_line_errors(f"{Path(run_dir).name}: "):  # the memory plan may refuse the scene
-            return make_trainer(task, train_config, keep=program_key)
-
-    with one_line_errors():  # a refusal exits before any run folder is made
-        task, trainer, compiling = fitting.checked_beside(task, trainer_for, train_config, program_key)
+        task = tasks.load(task_name).make(task_config)
         if record is None:
+            run_dir = run_dir or runs.default_run_dir(RUNS_ROOT, task.name)
             run = runs.Run.create(run_dir, runs.new_record(task_name, task_config, task, train_config))
         else:
             run = runs.Run.open(run_dir, record)
     held.append(run)
+    program_key = run_key(tasks.load(task_name), task_name, task_config, train_config)  # an identical run reuses its programs
+    with one_line_errors(f"{run.name}: "):  # the memory plan may refuse the scene
+        trainer = make_trainer(task, train_config, keep=program_key)
     seeds = np.asarray(seed_array(train_config))
     with one_line_errors():
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
@@ -121,7 +114,7 @@ def train(argv: list[str], held: list) -> int:
         with stop_on_signals(progress.write) as should_stop:
             outcome = in_worker_thread(lambda: fitting.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
                                                                    progress.on_epoch, progress.on_compiled, should_stop,
-                                                                   run.owner, program_key, compiling))
+                                                                   run.owner, program_key))
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     except jax.errors.JaxRuntimeError as error:

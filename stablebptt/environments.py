@@ -26,7 +26,6 @@ at zero (``RewardDiagnosis``).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import importlib
 import math
 import os
@@ -168,18 +167,12 @@ def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
 
 
 def _diagnosis_options() -> dict | None:
-    """XLA options of the diagnosis: it runs once, on a few states. On a CPU LLVM does not optimize
-    its kernels (CartpoleSwingup's compiles in 5.0 s instead of 6.6 s, by
-    ``python experiments/diagnosis_compile.py CartpoleSwingup``); on a GPU no kernel is timed
-    (autotuning off: compiling beside another program, it runs nothing on the device while that
-    program's autotuning times its kernels), which compiled it no slower there."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    options = compiler_options() or {}
-    if jax.default_backend() == "cpu" and "--xla_backend_optimization_level=" not in flags:
-        options = {**options, "xla_backend_optimization_level": 0}
-    if jax.default_backend() == "gpu" and "--xla_gpu_autotune_level=" not in flags:
-        options = {**options, "xla_gpu_autotune_level": 0}
-    return options or None
+    """XLA options of the diagnosis: it runs once, on a few states, so on a CPU LLVM does not optimize
+    its kernels (CartpoleSwingup's compiles in 4.8 s instead of 6.1 s, by
+    ``python experiments/diagnosis_compile.py CartpoleSwingup``); a GPU's compile was no quicker so."""
+    if jax.default_backend() == "cpu" and "--xla_backend_optimization_level=" not in os.environ.get("XLA_FLAGS", ""):
+        return {**(compiler_options() or {}), "xla_backend_optimization_level": 0}
+    return compiler_options()
 
 
 def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
@@ -278,7 +271,7 @@ def _is_playground(env: Any) -> bool:
 def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,
              hidden: Sequence[int] = (64, 64), name: str = "", reward_context: Callable | None = None,
              reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0,
-             dense_variant: str = "", diagnosis_key: dict | None = None, defer_diagnosis: bool = False) -> Task:
+             dense_variant: str = "", diagnosis_key: dict | None = None) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -295,10 +288,6 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         None: for MuJoCo Playground's environments ``playground.repaired_rewards``, else none.
       diagnose: look at the reward's gradient before training (``diagnose_env``);
         a reward with no usable gradient raises ``EnvError``.
-      defer_diagnosis: return before diagnosing: the task's ``settle`` diagnoses it (and may
-        refuse it), and its parameters wait for that; its steps, sampler and shapes do not, so
-        the epoch may compile beside the diagnosis (``fitting.checked_beside``). A diagnosis kept
-        under ``diagnosis_key`` is read at once instead.
       dense_variant: the name of an environment with the same task and a dense reward,
         which the refusal of a reward without a gradient then suggests.
       diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its
@@ -347,13 +336,25 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             resets[count] = program_store.kept_function(reset, (keys,), diagnosis_key, "reset")
         return resets[count](keys)
 
-    decided: dict[str, bool] = {}  # the diagnosis's choice of the policy's start, once made
+    diagnosis = None
+    start_off_zero = False
+    if diagnose:
+        diagnose_now = lambda: list(diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed)))  # noqa: E731
+        key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed,
+                                                  "reward_repairs": reward_repairs}
+        diagnosis = RewardDiagnosis(*program_store.kept_answer(key, "reward diagnosis", diagnose_now))
+        advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
+            "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
+        if diagnosis.kind == "zero":
+            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
+                           f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")
+        if diagnosis.kind == "nan":
+            raise EnvError(f"{label}: the reward's gradient is NaN at {diagnosis.nan_at_random:.0%} of sampled states "
+                           f"with random actions{' even after repairing ' + reward_repairs if reward_repairs else ''}: "
+                           f"{advice} (a norm taken at zero, a tolerance with an infinite bound and no margin?)")
+        start_off_zero = diagnosis.kind == "nan at zero action"
 
     def init_params(key, zero_output):
-        if "start_off_zero" not in decided and not isinstance(key, jax.core.Tracer):  # shapes need no choice
-            raise EnvError(f"{label}: its reward is not diagnosed yet: call the task's settle() before drawing "
-                           "its parameters (stablebptt.train does)")
-        start_off_zero = decided.get("start_off_zero", False)
         params = mlp_init(key, sizes, zero_output and not start_off_zero)
         if zero_output and start_off_zero:  # small, not zero: the reward's derivative is NaN at zero action
             weights, bias = params[-1]
@@ -367,43 +368,17 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                "constraint solver differentiated at its solution")
     if reward_repairs:
         summary += f"; repaired: {reward_repairs}"
-
-    def task(diagnosis: RewardDiagnosis | None, gradient: str) -> Task:
-        start_off_zero = decided.get("start_off_zero", False)
-        return Task(
-            name=label,
-            dynamics=Dynamics(step=step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
-            init_params=init_params,
-            sample_initial_states=sample_initial_states,
-            summary=summary + (f"; {diagnosis.describe()}" if diagnosis is not None else ""),
-            resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
-                      "hidden": list(hidden), "reward_gradient": gradient,
-                      "reward_repairs": reward_repairs, "policy_output_start": "small" if start_off_zero else "zero"},
-            evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
-                states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
-        )
-
-    key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed,
-                                              "reward_repairs": reward_repairs}
-
-    def settle() -> Task:
-        diagnose_now = lambda: list(diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed)))  # noqa: E731
-        diagnosis = RewardDiagnosis(*program_store.kept_answer(key, "reward diagnosis", diagnose_now))
-        advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
-            "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
-        if diagnosis.kind == "zero":
-            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
-                           f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")
-        if diagnosis.kind == "nan":
-            raise EnvError(f"{label}: the reward's gradient is NaN at {diagnosis.nan_at_random:.0%} of sampled states "
-                           f"with random actions{' even after repairing ' + reward_repairs if reward_repairs else ''}: "
-                           f"{advice} (a norm taken at zero, a tolerance with an infinite bound and no margin?)")
-        decided["start_off_zero"] = diagnosis.kind == "nan at zero action"
-        return task(diagnosis, diagnosis.kind)
-
-    if not diagnose:
-        decided["start_off_zero"] = False
-        return task(None, "not checked")
-    if defer_diagnosis and not program_store.is_kept(key, "reward diagnosis"):  # a kept one is read at once
-        return dataclasses.replace(task(None, "pending"), settle=settle)
-    return settle()
+    if diagnosis is not None:
+        summary += f"; {diagnosis.describe()}"
+    return Task(
+        name=label,
+        dynamics=Dynamics(step=step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
+        init_params=init_params,
+        sample_initial_states=sample_initial_states,
+        summary=summary,
+        resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
+                  "hidden": list(hidden), "reward_gradient": diagnosis.kind if diagnosis else "not checked",
+                  "reward_repairs": reward_repairs, "policy_output_start": "small" if start_off_zero else "zero"},
+        evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
+            states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
+    )

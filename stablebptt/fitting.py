@@ -6,8 +6,6 @@
 """
 from __future__ import annotations
 
-import concurrent.futures
-import threading
 import time
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
@@ -119,54 +117,6 @@ def fit(
     return "complete", epoch, state, all_rows(), ""
 
 
-def beside(call: Callable[[], Any]) -> concurrent.futures.Future:
-    """``call()`` running in a thread of its own while the caller goes on (a task's pending check,
-    ``Task.settle``, or an epoch compiling): XLA lets go of Python while it compiles. The thread is
-    no daemon: a process that ends early (a refusal) ends once it has, since XLA cannot be stopped
-    mid-compile and a daemon thread still inside it aborts the interpreter's exit."""
-    future: concurrent.futures.Future = concurrent.futures.Future()
-    # JAX's settings made with a context manager hold in their own thread only: the caller's come along.
-    x64, precision = jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision
-
-    def run():
-        try:
-            with jax.enable_x64(x64), jax.default_matmul_precision(precision):
-                future.set_result(call())
-        except BaseException as error:  # noqa: BLE001 - handed to whoever waits for the answer
-            future.set_exception(error)
-
-    threading.Thread(target=run, name="stablebptt-beside").start()
-    return future
-
-
-def epoch_compiling(trainer: Trainer, config: TrainConfig, program_key: dict | None = None) -> concurrent.futures.Future:
-    """``trainer``'s epoch compiling beside the caller (``beside``) for the states ``trainer.init``
-    gives, of which it needs only the shapes (traced, never run): the parameters' values may wait for a
-    task's pending check. ``program_key`` as ``train_epochs`` takes it."""
-    from stablebptt.training import seed_array
-    # Shaped through init's Python under a function of its own: JAX keeps a function's trace for the
-    # next jit of it, and init's would fix the parameters' start before the check decides it.
-    init = getattr(trainer.init, "__wrapped__", trainer.init)
-    shapes = jax.eval_shape(lambda seeds: init(seeds), seed_array(config))
-    arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
-    return beside(lambda: compile_epoch(trainer.epoch, arguments, program_key, cache_dir(), trainer.compiler_options))
-
-
-def checked_beside(task: Any, trainer_for: Callable[[Any], Trainer], config: TrainConfig,
-                   program_key: dict | None = None) -> tuple[Any, Trainer, concurrent.futures.Future | None]:
-    """(the task as checked, its trainer, its epoch compiling or None): a task's pending check
-    (``Task.settle``) runs in a thread of its own while ``trainer_for(task)`` builds the trainer; if
-    the check has not answered by then, the epoch compiles beside it. A check that answers first
-    (a reward whose gradient is zero everywhere compiles to almost nothing) refuses the task before
-    any compile starts. A task with nothing pending is returned as it is."""
-    if task.settle is None:
-        return task, trainer_for(task), None
-    checking = beside(task.settle)
-    trainer = trainer_for(task)
-    compiling = None if checking.done() else epoch_compiling(trainer, config, program_key)
-    return checking.result(), trainer, compiling
-
-
 def train_epochs(
     trainer: Trainer,
     config: TrainConfig,
@@ -180,7 +130,6 @@ def train_epochs(
     should_stop: Callable[[], bool] = lambda: False,
     owner: str = "",
     program_key: dict | None = None,
-    compiling: concurrent.futures.Future | None = None,
 ) -> Outcome:
     """Train one run's seeds to ``config.epochs`` from ``start_epoch``, checkpointing into ``run_dir``.
 
@@ -189,15 +138,11 @@ def train_epochs(
     ``on_compiled`` gets the seconds the epoch took to compile; ``on_epoch`` the
     epoch's metrics, with its wall time under ``"seconds"``. Runs in any thread. With ``program_key``
     (everything that decides the epoch's program: ``program_store``) and JAX's compile cache on, the
-    traced epoch is kept there, and a run with the same key skips tracing it. ``compiling``: the
-    epoch already compiling (``epoch_compiling``), for states shaped as ``state``.
+    traced epoch is kept there, and a run with the same key skips tracing it.
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    if compiling is None:
-        epoch_fn, compile_seconds = compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(),
-                                                  trainer.compiler_options)  # before timing epochs
-    else:
-        epoch_fn, compile_seconds = compiling.result()
+    epoch_fn, compile_seconds = compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(),
+                                              trainer.compiler_options)  # before timing epochs
     on_compiled(compile_seconds)
 
     def run_epoch(state):
@@ -283,11 +228,11 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
 def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]) -> Trained:
     from stablebptt.training import make_trainer, seed_array
     started = time.perf_counter()
-    task, trainer, compiling = checked_beside(task, lambda task: make_trainer(task, config), config)
+    trainer = make_trainer(task, config)
     seeds = np.asarray(seed_array(config))
-    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
     state = trainer.init(seed_array(config))
-    epoch_fn, _ = compile_ahead(trainer.epoch, state, *arguments) if compiling is None else compiling.result()
+    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
+    epoch_fn, _ = compile_ahead(trainer.epoch, state, *arguments)
     first_update = 0.0  # seconds from the call to the end of the first epoch
 
     def run_epoch(state):

@@ -13,7 +13,6 @@ import contextlib
 import importlib
 import io
 import sys
-import threading
 from typing import Any, Iterable, Iterator
 
 import jax.numpy as jnp
@@ -141,26 +140,13 @@ def safe_tolerance(x, bounds=(0.0, 0.0), margin=0.0, sigmoid="gaussian", value_a
     return jnp.where(inside, 1.0, _sigmoid(distance, value_at_margin, sigmoid))
 
 
-_repairing = {"depth": 0, "original": None}  # threads inside repaired_rewards, and what it replaced
-_repairing_lock = threading.Lock()
-
-
 @contextlib.contextmanager
 def repaired_rewards() -> Iterator[None]:
-    """Within the block, Playground's rewards use ``safe_tolerance`` (enter it while a step traces).
-
-    Reentrant, and safe across threads (a step may trace in two at once, one compiling the epoch
-    beside the other's reward diagnosis): the original comes back when the last block is left."""
+    """Within the block, Playground's rewards use ``safe_tolerance`` (enter it while a step traces)."""
     from mujoco_playground._src import reward
-    with _repairing_lock:
-        if _repairing["depth"] == 0:
-            _repairing["original"] = reward.tolerance
-            reward.tolerance = safe_tolerance
-        _repairing["depth"] += 1
+    original = reward.tolerance
+    reward.tolerance = safe_tolerance
     try:
         yield
     finally:
-        with _repairing_lock:
-            _repairing["depth"] -= 1
-            if _repairing["depth"] == 0:
-                reward.tolerance = _repairing["original"]
+        reward.tolerance = original

@@ -104,7 +104,7 @@ def kept_answer(key_parts: dict | None, name: str, compute: Callable[[], Any]) -
     cache = cache_dir()
     if key_parts is None or cache is None:
         return compute()
-    path = _answer_path(cache, key_parts, name)
+    path = cache / FOLDER / f"{program_key({**key_parts, 'answer': name}, ())}.json"
     try:
         return json.loads(path.read_text())["answer"]
     except (OSError, ValueError, KeyError, TypeError):
@@ -116,16 +116,6 @@ def kept_answer(key_parts: dict | None, name: str, compute: Callable[[], Any]) -
     except OSError:
         pass
     return answer
-
-
-def is_kept(key_parts: dict | None, name: str) -> bool:
-    """Whether ``kept_answer(key_parts, name, ...)`` would read its answer instead of computing it."""
-    cache = cache_dir()
-    return key_parts is not None and cache is not None and _answer_path(cache, key_parts, name).is_file()
-
-
-def _answer_path(cache: Path, key_parts: dict, name: str) -> Path:
-    return cache / FOLDER / f"{program_key({**key_parts, 'answer': name}, ())}.json"
 
 
 def compile_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache_dir: Path | None,

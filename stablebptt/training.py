@@ -87,11 +87,6 @@ class Task:
       plan: what the task knows of how to differentiate its step (a simulator's
         derivative and known Jacobian columns, a policy's gradient path);
         ``make_trainer`` completes it into the run's plan.
-      settle: a check still to make before the task trains (an environment's reward diagnosis,
-        ``env_task(..., defer_diagnosis=True)``), or None. ``settle()`` makes it and returns the
-        task as checked (its start, ``summary`` and ``resolved``), or raises its refusal. Nothing
-        ``make_trainer`` and compiling need depends on it, so it may run beside them
-        (``fitting.checked_beside``); the parameters' values wait for it.
     """
 
     name: str
@@ -103,7 +98,6 @@ class Task:
     resolved: dict = field(default_factory=dict)
     evaluation: Callable[[PyTree, PyTree], jax.Array] | None = None
     plan: Plan = Plan()
-    settle: Callable[[], "Task"] | None = None
 
 
 @dataclass(frozen=True)

@@ -44,16 +44,6 @@ def run_name(config: Config) -> str:
 
 
 def make(config: Config) -> Task:
-    return _make(config, defer_diagnosis=False)
-
-
-def make_deferred(config: Config) -> Task:
-    """``make``'s task, its reward diagnosis still to run (``Task.settle``): ``scripts/train.py``
-    compiles the epoch beside it."""
-    return _make(config, defer_diagnosis=True)
-
-
-def _make(config: Config, defer_diagnosis: bool) -> Task:
     if not config.env:
         raise InputError(f"give {config_field(config, 'env')}: a MuJoCo Playground name or package.module:attribute")
     env = load_env(config.env)
@@ -66,7 +56,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
     inputs = program_inputs(config)
     return env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
-                    diagnose=config.reward_check, defer_diagnosis=defer_diagnosis,
+                    diagnose=config.reward_check,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs})
 
 

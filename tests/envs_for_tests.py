@@ -71,5 +71,3 @@ def make_cart() -> Cart:
 
 
 step_reward_cart = Cart("step")
-# |action| in the reward: NaN derivative at exactly zero action, so the policy starts small.
-norm_reward_cart = Cart("norm")

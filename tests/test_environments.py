@@ -63,8 +63,6 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
     monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("traced although kept"))
     again = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
     assert again.resolved == task.resolved
-    # A kept diagnosis is read at once: nothing is left to settle beside compiling.
-    assert env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"), defer_diagnosis=True).settle is None
     plain = jax.jit(jax.vmap(Cart("norm").reset))(jax.random.split(jax.random.PRNGKey(3), 6))
     for kept, traced in zip(jax.tree.leaves(again.sample_initial_states(jax.random.PRNGKey(3), 6)), jax.tree.leaves(plain)):
         np.testing.assert_array_equal(kept, traced)  # bit for bit, integer and bool leaves alike
@@ -76,29 +74,6 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
     assert 0 < float(jnp.max(jnp.abs(params[-1][0]))) < 0.1  # small output weights, not zero
     result = sb.train(task, replace(TINY, epochs=1))
     assert np.isfinite(result.test_loss).all()
-
-
-def test_a_deferred_diagnosis_settles_to_the_task_the_diagnosis_would_have_made_while_the_epoch_compiles():
-    """env_task(defer_diagnosis=True): shapes and programs need no diagnosis, the parameters' values do;
-    settle() runs it and gives what the synchronous path gives."""
-    now = env_task(Cart("norm"), horizon=5)
-    pending = env_task(Cart("norm"), horizon=5, defer_diagnosis=True)
-    assert now.settle is None and pending.resolved["reward_gradient"] == "pending"
-    shapes = jax.eval_shape(lambda key: pending.init_params(key, True), jax.random.PRNGKey(0))
-    with pytest.raises(EnvError, match="not diagnosed yet"):
-        pending.init_params(jax.random.PRNGKey(0), True)
-    settled = pending.settle()
-    assert settled.settle is None
-    assert settled.resolved == now.resolved and settled.summary == now.summary
-    for ours, theirs, shape in zip(jax.tree.leaves(pending.init_params(jax.random.PRNGKey(0), True)),
-                                   jax.tree.leaves(now.init_params(jax.random.PRNGKey(0), True)), jax.tree.leaves(shapes)):
-        np.testing.assert_array_equal(ours, theirs)  # the small start the diagnosis chose, in the same shapes
-        assert ours.shape == shape.shape
-    # stablebptt.train settles a pending task while its epoch compiles, and trains what the settled one trains.
-    trained = sb.train(env_task(Cart("norm"), horizon=5, defer_diagnosis=True), replace(TINY, epochs=1))
-    np.testing.assert_array_equal(trained.test_loss, sb.train(now, replace(TINY, epochs=1)).test_loss)
-    with pytest.raises(EnvError, match="gradient is zero"):
-        sb.train(env_task(Cart("step"), horizon=5, defer_diagnosis=True), replace(TINY, epochs=1))
 
 
 def test_a_wrapper_of_an_environment_that_lacks_a_size_is_refused_in_one_line():
@@ -141,13 +116,6 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
     assert "make_cart" in done.stdout and "reward gradient: usable" in done.stdout
     record = sb.runs.read_json(tmp_path / "run" / "config.json")
     assert record["task"] == "env" and record["task_config"]["env"] == "envs_for_tests:make_cart"
-    # The reward is diagnosed while the epoch compiles; the parameters start as the diagnosis says.
-    code, err = train_in_process(capsys, "--env", "envs_for_tests:norm_reward_cart", "--steps", "6", "--epochs", "1",
-                                 "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
-                                 "--out", str(tmp_path / "norm"))
-    assert code == 0, err
-    resolved = sb.runs.read_json(tmp_path / "norm" / "config.json")["resolved_task"]
-    assert resolved["reward_gradient"] == "nan at zero action" and resolved["policy_output_start"] == "small"
     for args, expected in ((["--env", "envs_for_tests:step_reward_cart"], "gradient is zero at every sampled state"),
                            (["--env", "no_such_module:env"], "cannot import no_such_module"),
                            (["--env", "envs_for_tests:nothing"], "has no attribute 'nothing'"),
@@ -222,30 +190,6 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
     # A refusal suggests the dense variant only where the registry has one.
     from stablebptt.playground import dense_variant
     assert dense_variant("CartpoleSwingupSparse") == "CartpoleSwingup" and dense_variant("PendulumSwingup") == ""
-
-
-@needs_playground
-def test_playgrounds_reward_repair_holds_until_the_last_thread_inside_it_leaves():
-    import threading
-
-    from mujoco_playground._src import reward
-    from stablebptt.playground import repaired_rewards, safe_tolerance
-    original = reward.tolerance
-    inside, left = threading.Event(), threading.Event()
-
-    def other_thread():
-        with repaired_rewards():
-            inside.set()
-            left.wait(10)
-
-    thread = threading.Thread(target=other_thread)
-    with repaired_rewards():
-        thread.start()
-        assert inside.wait(10)
-    assert reward.tolerance is safe_tolerance  # the other thread still traces inside it
-    left.set()
-    thread.join(10)
-    assert reward.tolerance is original
 
 
 @needs_playground
