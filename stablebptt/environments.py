@@ -28,7 +28,6 @@ from __future__ import annotations
 import contextlib
 import importlib
 import math
-import os
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -40,7 +39,7 @@ from stablebptt.constraint_derivatives import differentiable_mjx
 from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics, join, reference_losses, split
 from stablebptt.networks import mlp_apply, mlp_init
-from stablebptt.training import Task, compiler_options
+from stablebptt.training import Task, compiler_options, unless_in_xla_flags
 
 PyTree = Any
 # Output weights of a policy that must not start at exactly zero action: small enough that the
@@ -170,8 +169,8 @@ def _diagnosis_options() -> dict | None:
     """XLA options of the diagnosis: it runs once, on a few states, so on a CPU LLVM does not optimize
     its kernels (CartpoleSwingup's compiles in 4.8 s instead of 6.1 s, by
     ``python experiments/diagnosis_compile.py CartpoleSwingup``); a GPU's compile was no quicker so."""
-    if jax.default_backend() == "cpu" and "--xla_backend_optimization_level=" not in os.environ.get("XLA_FLAGS", ""):
-        return {**(compiler_options() or {}), "xla_backend_optimization_level": 0}
+    if jax.default_backend() == "cpu":
+        return {**(compiler_options() or {}), **unless_in_xla_flags({"xla_backend_optimization_level": 0})} or None
     return compiler_options()
 
 

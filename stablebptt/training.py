@@ -465,11 +465,17 @@ def compiler_options(large: bool = False) -> dict | None:
     An option the user set in ``XLA_FLAGS`` (``--xla_gpu_autotune_level=4``: XLA's own checks) is
     left to it.
     """
-    backend, flags = jax.default_backend(), os.environ.get("XLA_FLAGS", "")
+    backend = jax.default_backend()
     options = dict(LARGE_STEP_CPU_OPTIONS) if large and backend == "cpu" else {}
     if backend == "gpu":
-        options.update({name: value for name, value in gpu_options().items() if f"--{name}=" not in flags})
+        options.update(unless_in_xla_flags(gpu_options()))
     return options or None
+
+
+def unless_in_xla_flags(options: dict) -> dict:
+    """``options`` less those the user set in ``XLA_FLAGS``, whose value holds."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {name: value for name, value in options.items() if f"--{name}=" not in flags}
 
 
 def large_step(task: Task, config: TrainConfig, initial_state: PyTree) -> bool:

@@ -95,8 +95,6 @@ def unsupported(model: mujoco.MjModel, effects) -> str:
     nonlinear = [model.dof_dampingpoly, model.jnt_stiffnesspoly, model.jnt_springyield, model.jnt_actgravcomp]
     if any(np.any(np.asarray(a) != 0) for a in nonlinear) or np.any(model.jnt_plasticadr >= 0):
         return "nonlinear or plastic springs and dampers"
-    if np.any(model.actuator_damping) or np.any(model.actuator_dampingpoly) or np.any(model.actuator_armature):
-        return "actuator damping or armature"
     pulled = model.actuator_trnid[model.actuator_trntype == int(mujoco.mjtTrn.mjTRN_TENDON), 0]
     if np.any(model.tendon_actfrclimited[pulled]):
         return "actuator force limits on tendons"
