@@ -82,17 +82,28 @@ def train(argv: list[str], held: list) -> int:
     from stablebptt.program_store import run_key
     from stablebptt.training import make_trainer, seed_array
 
+    module = tasks.load(task_name)
     with one_line_errors():
-        task = tasks.load(task_name).make(task_config)
-        if record is None:
-            run_dir = run_dir or runs.default_run_dir(RUNS_ROOT, task.name)
-            run = runs.Run.create(run_dir, runs.new_record(task_name, task_config, task, train_config))
-        else:
-            run = runs.Run.open(run_dir, record)
-    held.append(run)
-    program_key = run_key(tasks.load(task_name), task_name, task_config, train_config)  # an identical run reuses its programs
-    with one_line_errors(f"{run.name}: "):  # the memory plan may refuse the scene
+        if record is not None:
+            held.append(runs.Run.open(run_dir, record))
+        elif run_dir is not None:
+            runs.refuse_used(run_dir)  # at once; a new run's folder is claimed once its task is settled
+        # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
+        task = getattr(module, "make_deferred", module.make)(task_config)
+    program_key = run_key(module, task_name, task_config, train_config)  # an identical run reuses its programs
+    with one_line_errors(f"{task.name}: "):  # the memory plan may refuse the scene
         trainer = make_trainer(task, train_config, keep=program_key)
+    with one_line_errors():
+        task = task.settled(wait=False)  # a check that has answered by now (a refusal) ends the run here
+    # A new run's epoch is traced here, while XLA may still compile the task's check beside, and
+    # compiled once training starts; a resumed one, which may have nothing left to train, as it starts.
+    lowered = fitting.lowered_epoch(trainer, train_config, program_key) if record is None else None
+    with one_line_errors():
+        task = task.settled()  # a reward without a usable gradient is refused here, before any folder is made
+        if record is None:
+            run_dir = run_dir or runs.default_run_dir(RUNS_ROOT, task.name)  # named as it is claimed
+            held.append(runs.Run.create(run_dir, runs.new_record(task_name, task_config, task, train_config)))
+    run = held[0]
     seeds = np.asarray(seed_array(train_config))
     with one_line_errors():
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
@@ -114,7 +125,7 @@ def train(argv: list[str], held: list) -> int:
         with stop_on_signals(progress.write) as should_stop:
             outcome = in_worker_thread(lambda: fitting.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
                                                                    progress.on_epoch, progress.on_compiled, should_stop,
-                                                                   run.owner, program_key))
+                                                                   run.owner, program_key, lowered))
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     except jax.errors.JaxRuntimeError as error:

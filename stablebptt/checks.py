@@ -11,9 +11,11 @@ meaningless, before a run records both as if they applied.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import numbers
-from typing import Any
+from typing import Any, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +26,34 @@ from stablebptt.errors import InputError
 
 class TaskError(InputError):
     """A ``Task`` or its ``Dynamics`` that cannot train: the message names the field."""
+
+
+_shapes_only = contextvars.ContextVar("stablebptt_shapes_only", default=False)
+
+
+@contextlib.contextmanager
+def tracing_shapes() -> Iterator[None]:
+    """Within the block, ``init_params`` is traced for its parameters' shapes alone: ``shapes_only()``
+    is true, and a task whose parameters' values wait for a check still running (``Task.settle``: an
+    environment's reward diagnosis) gives its shapes without waiting. Trace a function made for the
+    trace (``jax.eval_shape(lambda ...: ...)``): JAX keeps a function's trace, ``eval_shape``'s too,
+    for a later jit of the same function, which would then compute values without waiting."""
+    token = _shapes_only.set(True)
+    try:
+        yield
+    finally:
+        _shapes_only.reset(token)
+
+
+def shapes_only() -> bool:
+    """Whether the caller traces for shapes alone (``tracing_shapes``)."""
+    return _shapes_only.get()
+
+
+def parameter_shapes(task: Any, zero_output: bool) -> Any:
+    """The shapes of ``task.init_params(key, zero_output)``, traced with no values (``tracing_shapes``)."""
+    with tracing_shapes():
+        return jax.eval_shape(lambda key: task.init_params(key, zero_output), jax.random.PRNGKey(0))
 
 
 def _whole(value: Any) -> bool:
@@ -61,7 +91,7 @@ def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
         raise TaskError(f"Task.plan must be a stablebptt.Plan, got {type(task.plan).__name__}")
     key = jax.random.PRNGKey(0)
     try:
-        params = jax.eval_shape(lambda k: task.init_params(k, zero_output), key)
+        params = parameter_shapes(task, zero_output)
     except Exception as error:  # noqa: BLE001 - the user's function failed: one line naming it
         raise TaskError(f"Task.init_params(key, zero_output) fails: {_first_line(error)}") from None
     not_float = [leaf for leaf in jax.tree.leaves(params) if not jnp.issubdtype(leaf.dtype, jnp.floating)]

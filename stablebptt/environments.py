@@ -25,9 +25,12 @@ at zero (``RewardDiagnosis``).
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
+import dataclasses
 import importlib
 import math
+import threading
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -35,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt import program_store
+from stablebptt.checks import shapes_only
 from stablebptt.constraint_derivatives import differentiable_mjx
 from stablebptt.errors import InputError
 from stablebptt.flows import Dynamics, join, reference_losses, split
@@ -160,18 +164,64 @@ def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
     """``diagnose_reward`` at states sampled from ``env`` (resets and a few random steps on), the
     sampling and the gradients compiled as ONE program: no operation runs eagerly, which on a GPU
     would compile each one apart. States are visited in turn (``lax.map``), as the gradients are."""
+    return RewardDiagnosis(*start_diagnosis(env, step, key)())
+
+
+def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnosis":
+    """``diagnose_env`` begun: its program is traced here, then XLA compiles it in a thread of its own
+    while the caller goes on (XLA lets go of Python while it compiles). Calling the result waits for
+    the compile, runs the program and gives the diagnosis (the fields of a ``RewardDiagnosis``).
+
+    Only XLA's compile works beside the caller. The step is traced here, where the reward's repairs
+    and MJX's derivative remedies are in place for this trace alone. The program runs in the
+    caller, once waited for: nothing of it runs on the device while a program the caller compiles
+    meanwhile times its kernels there (a GPU's autotuning), which might then choose others.
+    """
     checks = _gradient_checks(step)
-    sample_and_check = jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)), compiler_options=_diagnosis_options())
-    return _classify(*jax.device_get(sample_and_check(key)))
+    lowered = jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)),
+                      compiler_options=_diagnosis_options()).lower(key)
+    compiled: concurrent.futures.Future = concurrent.futures.Future()
+
+    def compile_beside():
+        try:
+            compiled.set_result(lowered.compile())
+        except BaseException as error:  # noqa: BLE001 - handed to whoever waits for the answer
+            compiled.set_exception(error)
+
+    # No daemon: a process that ends early (a refusal) waits for it to finish, since XLA cannot be
+    # stopped mid-compile and a daemon thread inside it aborts the interpreter's exit.
+    threading.Thread(target=compile_beside, name="stablebptt-reward-diagnosis").start()
+    return PendingDiagnosis(compiled, key)
+
+
+class PendingDiagnosis(NamedTuple):
+    """A reward diagnosis compiling beside the caller (``start_diagnosis``)."""
+
+    compiled: concurrent.futures.Future  # the diagnosis's compiled program
+    key: jax.Array
+
+    def __call__(self) -> list:
+        """Waits for the compile, runs the program: the fields of a ``RewardDiagnosis``."""
+        return list(_classify(*jax.device_get(self.compiled.result()(self.key))))
+
+    def done(self) -> bool:
+        """Whether the compile has ended (calling then waits no longer than the program's run)."""
+        return self.compiled.done()
 
 
 def _diagnosis_options() -> dict | None:
-    """XLA options of the diagnosis: it runs once, on a few states, so on a CPU LLVM does not optimize
+    """XLA options of the diagnosis: it runs once, on a few states. On a CPU LLVM does not optimize
     its kernels (CartpoleSwingup's compiles in 4.8 s instead of 6.1 s, by
-    ``python experiments/diagnosis_compile.py CartpoleSwingup``); a GPU's compile was no quicker so."""
-    if jax.default_backend() == "cpu":
-        return {**(compiler_options() or {}), **unless_in_xla_flags({"xla_backend_optimization_level": 0})} or None
-    return compiler_options()
+    ``python experiments/diagnosis_compile.py CartpoleSwingup``). On a GPU none of its kernels is
+    timed (autotuning level 0): it compiles beside the trainer's set-up (``start_diagnosis``), whose
+    reset program times its own kernels meanwhile, and must choose them undisturbed. On one H100
+    level 0 compiled it in 8.7 s against the training options' 8.9 s for CartpoleSwingup, 7.0 against
+    8.1 s for AcrobotSwingup, each after another compile in the same process, by ``python
+    experiments/diagnosis_compile.py CartpoleSwingup AcrobotSwingup``
+    (results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt)."""
+    backend = jax.default_backend()
+    cheaper = {"cpu": {"xla_backend_optimization_level": 0}, "gpu": {"xla_gpu_autotune_level": 0}}.get(backend, {})
+    return {**(compiler_options() or {}), **unless_in_xla_flags(cheaper)} or None
 
 
 def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
@@ -270,7 +320,7 @@ def _is_playground(env: Any) -> bool:
 def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,
              hidden: Sequence[int] = (64, 64), name: str = "", reward_context: Callable | None = None,
              reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0,
-             dense_variant: str = "", diagnosis_key: dict | None = None) -> Task:
+             dense_variant: str = "", diagnosis_key: dict | None = None, defer_diagnosis: bool = False) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -292,8 +342,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its
         registry name): while JAX's compile cache is on, the diagnosis is kept under it (with
         ``reward_repairs``) beside the compiled programs (``program_store.kept_answer``), and an
-        identical later run reads it instead of tracing the step's derivative again; so is the
-        traced reset (``program_store.kept_function``). None: diagnosed and traced every time.
+        identical later run reads it instead of tracing the step's derivative again; so are the
+        traced reset (``program_store.kept_function``) and the observation's size, which
+        Playground finds by tracing the reset. None: diagnosed and traced every time.
+      defer_diagnosis: return while the diagnosis compiles and runs beside the caller
+        (``start_diagnosis``): the task's ``settled()`` waits for it and refuses a reward with no
+        usable gradient; the parameters' values wait for it too, their shapes do not, so a
+        trainer can be built meanwhile (``scripts/train.py`` does).
 
     Example::
 
@@ -301,7 +356,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         task = sb.env_task(env, horizon=100)
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
-    observations = check_protocol(env)
+    # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
+    observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
     if episode_length is None:
         episode_length = int(getattr(getattr(env, "_config", None), "episode_length", 1000))
     if reward_context is None:
@@ -335,15 +391,22 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             resets[count] = program_store.kept_function(reset, (keys,), diagnosis_key, "reset")
         return resets[count](keys)
 
-    diagnosis = None
-    start_off_zero = False
+    answer_key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed,
+                                                     "reward_repairs": reward_repairs}
+    started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
+
+    def start() -> PendingDiagnosis:
+        started.append(start_diagnosis(env, step, jax.random.PRNGKey(diagnosis_seed)))
+        return started[0]
+
     if diagnose:
-        diagnose_now = lambda: list(diagnose_env(env, step, jax.random.PRNGKey(diagnosis_seed)))  # noqa: E731
-        key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed,
-                                                  "reward_repairs": reward_repairs}
-        diagnosis = RewardDiagnosis(*program_store.kept_answer(key, "reward diagnosis", diagnose_now))
-        advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
-            "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
+        pending = program_store.kept_answer_later(answer_key, "reward diagnosis", start)
+    advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
+        "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
+
+    def diagnosed() -> RewardDiagnosis:
+        """The diagnosis, waited for; ``EnvError`` for a reward with no usable gradient."""
+        diagnosis = RewardDiagnosis(*pending())
         if diagnosis.kind == "zero":
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
                            f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")
@@ -351,11 +414,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             raise EnvError(f"{label}: the reward's gradient is NaN at {diagnosis.nan_at_random:.0%} of sampled states "
                            f"with random actions{' even after repairing ' + reward_repairs if reward_repairs else ''}: "
                            f"{advice} (a norm taken at zero, a tolerance with an infinite bound and no margin?)")
-        start_off_zero = diagnosis.kind == "nan at zero action"
+        return diagnosis
 
     def init_params(key, zero_output):
+        # The start is the diagnosis's choice: the values wait for it, shapes alone need none.
+        start_off_zero = zero_output and diagnose and not shapes_only() and diagnosed().kind == "nan at zero action"
         params = mlp_init(key, sizes, zero_output and not start_off_zero)
-        if zero_output and start_off_zero:  # small, not zero: the reward's derivative is NaN at zero action
+        if start_off_zero:  # small, not zero: the reward's derivative is NaN at zero action
             weights, bias = params[-1]
             params[-1] = (SMALL_OUTPUT_SCALE * weights, bias)
         return params
@@ -367,17 +432,30 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                "constraint solver differentiated at its solution")
     if reward_repairs:
         summary += f"; repaired: {reward_repairs}"
-    if diagnosis is not None:
-        summary += f"; {diagnosis.describe()}"
-    return Task(
-        name=label,
-        dynamics=Dynamics(step=step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
-        init_params=init_params,
-        sample_initial_states=sample_initial_states,
-        summary=summary,
-        resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
-                  "hidden": list(hidden), "reward_gradient": diagnosis.kind if diagnosis else "not checked",
-                  "reward_repairs": reward_repairs, "policy_output_start": "small" if start_off_zero else "zero"},
-        evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
-            states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
-    )
+
+    def task(diagnosis: RewardDiagnosis | None, gradient: str) -> Task:
+        start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
+        return Task(
+            name=label,
+            dynamics=Dynamics(step=step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
+            init_params=init_params,
+            sample_initial_states=sample_initial_states,
+            summary=summary + (f"; {diagnosis.describe()}" if diagnosis is not None else ""),
+            resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
+                      "hidden": list(hidden), "reward_gradient": gradient,
+                      "reward_repairs": reward_repairs, "policy_output_start": start},
+            evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
+                states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
+        )
+
+    def settle(wait: bool = True) -> Task | None:
+        if not wait and started and not started[0].done():
+            return None
+        diagnosis = diagnosed()
+        return task(diagnosis, diagnosis.kind)
+
+    if not diagnose:
+        return task(None, "not checked")
+    if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
+        return dataclasses.replace(task(None, "pending"), settle=settle)
+    return settle()

@@ -15,7 +15,7 @@ import numpy as np
 
 from stablebptt.runs import (COLUMNS, METRICS_FILE, PARAMS_FILE, empty_rows, save_checkpoint, save_params,
                              write_metrics)
-from stablebptt.program_store import cache_dir, compile_epoch
+from stablebptt.program_store import cache_dir, compile_epoch, lower_epoch
 from stablebptt.timing import compile_ahead
 from stablebptt.training import METRICS, TrainConfig, Trainer, TrainState, nonfinite_names
 
@@ -117,6 +117,31 @@ def fit(
     return "complete", epoch, state, all_rows(), ""
 
 
+class LoweredEpoch(NamedTuple):
+    """A trainer's epoch traced and lowered (``lowered_epoch``) for states shaped as ``shapes``."""
+
+    lowered: Any  # its compile() gives the epoch's program
+    shapes: Any  # the states' shapes (jax.ShapeDtypeStruct) it was lowered for
+
+
+def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | None = None) -> LoweredEpoch:
+    """``trainer``'s epoch traced and lowered for the states ``trainer.init`` gives, from their shapes
+    alone: a task's check still running (``Task.settle``: an environment's reward diagnosis, which
+    decides the parameters' start) need not have answered, and XLA compiles that check beside this
+    trace. A ``PerUpdateEpoch`` (a large step; a constraint solver on a CPU of several cores) is
+    traced as it compiles instead: its metrics' program takes its shapes from the update's compiled
+    one. ``program_key`` as ``train_epochs`` takes it."""
+    from stablebptt.checks import tracing_shapes
+    from stablebptt.training import seed_array
+    # init's function, through a function of its own, not its jit: JAX would keep a jit's trace for
+    # the next call, and this one's parameters start before the check has decided how.
+    init = getattr(trainer.init, "__wrapped__", trainer.init)
+    with tracing_shapes():
+        shapes = jax.eval_shape(lambda seeds: init(seeds), seed_array(config))
+    arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
+    return LoweredEpoch(lower_epoch(trainer.epoch, arguments, program_key, cache_dir(), trainer.compiler_options), shapes)
+
+
 def train_epochs(
     trainer: Trainer,
     config: TrainConfig,
@@ -130,6 +155,7 @@ def train_epochs(
     should_stop: Callable[[], bool] = lambda: False,
     owner: str = "",
     program_key: dict | None = None,
+    lowered: LoweredEpoch | None = None,
 ) -> Outcome:
     """Train one run's seeds to ``config.epochs`` from ``start_epoch``, checkpointing into ``run_dir``.
 
@@ -138,11 +164,18 @@ def train_epochs(
     ``on_compiled`` gets the seconds the epoch took to compile; ``on_epoch`` the
     epoch's metrics, with its wall time under ``"seconds"``. Runs in any thread. With ``program_key``
     (everything that decides the epoch's program: ``program_store``) and JAX's compile cache on, the
-    traced epoch is kept there, and a run with the same key skips tracing it.
+    traced epoch is kept there, and a run with the same key skips tracing it. ``lowered``: the epoch
+    lowered already (``lowered_epoch``), used where ``state`` has its shapes; ``on_compiled`` then
+    gets the seconds of XLA's compile alone (and of a ``PerUpdateEpoch``'s tracing).
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    epoch_fn, compile_seconds = compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(),
-                                              trainer.compiler_options)  # before timing epochs
+    if lowered is not None and _shapes_of(state) == jax.tree.map(_shape_of, lowered.shapes):
+        started = time.perf_counter()
+        epoch_fn = lowered.lowered.compile()
+        compile_seconds = time.perf_counter() - started
+    else:
+        epoch_fn, compile_seconds = compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(),
+                                                  trainer.compiler_options)  # before timing epochs
     on_compiled(compile_seconds)
 
     def run_epoch(state):
@@ -169,6 +202,15 @@ def train_epochs(
     else:
         message = ""
     return Outcome(status, epoch, state, rows, message)
+
+
+def _shape_of(leaf) -> tuple:
+    return leaf.shape, leaf.dtype, bool(getattr(leaf, "weak_type", False))
+
+
+def _shapes_of(tree) -> Any:
+    # A checkpoint's arrays carry no weak type where init's may: such a state is lowered anew.
+    return jax.tree.map(lambda leaf: _shape_of(jax.typeof(leaf)), tree)
 
 
 class Trained(NamedTuple):
@@ -229,6 +271,7 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
     from stablebptt.training import make_trainer, seed_array
     started = time.perf_counter()
     trainer = make_trainer(task, config)
+    task = task.settled()  # a check left running (an environment's reward diagnosis) may refuse it here
     seeds = np.asarray(seed_array(config))
     state = trainer.init(seed_array(config))
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)

@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import Any, Callable
 
 from stablebptt.storage import atomic_write
-from stablebptt.timing import compile_ahead
 
 FOLDER = "traced"  # inside the compile cache's directory
 SUFFIX = ".jaxexport"
@@ -99,47 +98,76 @@ def _tree_digest(tree) -> str:
 def kept_answer(key_parts: dict | None, name: str, compute: Callable[[], Any]) -> Any:
     """``compute()``'s answer (JSON), kept beside the traced programs under ``key_parts`` and ``name``
     while JAX's compile cache is on: a set-up measurement or check that traces the step (the memory
-    plan's bytes, the task check, the step's size, an environment's reward diagnosis) is not
-    repeated by an identical later run. ``key_parts`` None: computed."""
+    plan's bytes, the task check, the step's size) is not repeated by an identical later run.
+    ``key_parts`` None: computed."""
+    return kept_answer_later(key_parts, name, lambda: compute)()
+
+
+def kept_answer_later(key_parts: dict | None, name: str, start: Callable[[], Callable[[], Any]]) -> Callable[[], Any]:
+    """``kept_answer`` for an answer computed beside the caller: ``start()`` begins computing it and
+    returns a function that waits for it (an environment's reward diagnosis, compiling while the
+    trainer is built). Returns a function that waits for the answer, keeps it and gives it; a kept
+    answer is given at once, and nothing is started."""
+    path = _answer_path(key_parts, name)
+    if path is not None:
+        try:
+            kept = json.loads(path.read_text())["answer"]
+            return lambda: kept
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # none kept yet, or unreadable: computed and kept anew
+    wait = start()
+
+    @functools.cache  # waited for once, kept once
+    def answer():
+        value = wait()
+        if path is not None:
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                atomic_write(path, json.dumps({"name": name, "answer": value}).encode())
+            except OSError:
+                pass
+        return value
+
+    return answer
+
+
+def _answer_path(key_parts: dict | None, name: str) -> Path | None:
     cache = cache_dir()
     if key_parts is None or cache is None:
-        return compute()
-    path = cache / FOLDER / f"{program_key({**key_parts, 'answer': name}, ())}.json"
-    try:
-        return json.loads(path.read_text())["answer"]
-    except (OSError, ValueError, KeyError, TypeError):
-        pass  # none kept yet, or unreadable: computed and kept anew
-    answer = compute()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(path, json.dumps({"name": name, "answer": answer}).encode())
-    except OSError:
-        pass
-    return answer
+        return None
+    return cache / FOLDER / f"{program_key({**key_parts, 'answer': name}, ())}.json"
 
 
 def compile_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache_dir: Path | None,
                   compiler_options: dict | None = None) -> tuple[Callable, float]:
-    """A trainer's ``epoch`` compiled for ``arguments``, and the seconds that took (tracing included).
+    """A trainer's ``epoch`` compiled for ``arguments``, and the seconds that took (tracing included):
+    ``lower_epoch(...).compile()``."""
+    started = time.perf_counter()
+    compiled = lower_epoch(epoch, arguments, key_parts, cache_dir, compiler_options).compile()
+    return compiled, time.perf_counter() - started
+
+
+def lower_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache_dir: Path | None,
+                compiler_options: dict | None = None):
+    """A trainer's ``epoch`` traced and lowered for ``arguments`` (arrays, or their shapes); its
+    ``compile()`` gives the program.
 
     With ``key_parts`` and ``cache_dir``, each of its programs (one, or a ``PerUpdateEpoch``'s three)
-    comes from the traced program kept in ``cache_dir`` under the key, or is traced, kept and compiled;
+    comes from the traced program kept in ``cache_dir`` under the key, or is traced and kept first;
     ``compiler_options`` are the trainer's. Otherwise, or for a program that cannot be exported (a
-    host callback), it is compiled as usual.
+    host callback), it is lowered as usual. A ``PerUpdateEpoch`` lowers its pieces as it compiles
+    (the metrics' program takes its shapes from the update's compiled program).
     """
     if key_parts is None or cache_dir is None:
-        return compile_ahead(epoch, *arguments)
-    started = time.perf_counter()
+        return epoch.lower(*arguments)
 
     def lower_one(program: Callable, program_arguments: tuple, name: str):
         return _lower_kept(program, program_arguments, {**key_parts, "program": name},
                            Path(cache_dir) / FOLDER, compiler_options)
 
     if hasattr(epoch, "compile_pieces"):
-        compiled = epoch.compile_pieces(arguments, lower_one)
-    else:
-        compiled = lower_one(epoch, arguments, "epoch").compile()
-    return compiled, time.perf_counter() - started
+        return epoch.lower(*arguments, lower_one=lower_one)
+    return lower_one(epoch, arguments, "epoch")
 
 
 def _lower_kept(program: Callable, arguments: tuple, key_parts: dict, folder: Path, compiler_options: dict | None):

@@ -244,6 +244,17 @@ class RunLock:
             self.handle = None
 
 
+def refuse_used(path: Path) -> None:
+    """``InputError`` where ``create_run`` would refuse ``path`` as it stands (a file, or a folder
+    holding anything but hidden files), checked without creating anything: a command refuses a used
+    ``--out`` at once, and claims the folder once its set-up is done."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{path} is a file: give a directory for the run")
+    if path.is_dir() and any(not entry.name.startswith(".") for entry in path.iterdir()):
+        raise InputError(f"{path} already exists and is not empty: choose another --out, or continue it with --resume {path}")
+
+
 def create_run(path: Path, record: dict) -> RunLock:
     """Claim a fresh run folder by writing its ``config.json`` (``record``); returns the folder's lock.
 
@@ -252,20 +263,14 @@ def create_run(path: Path, record: dict) -> RunLock:
     one gets it and the other an ``InputError``.
     """
     path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise InputError(f"{path} is a file: give a directory for the run")
+    refuse_used(path)  # before the lock: a folder that is not ours is left untouched
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise InputError(f"cannot create {path}: {error.strerror}") from None
-    def refuse_if_used():
-        if any(not entry.name.startswith(".") for entry in path.iterdir()):
-            raise InputError(f"{path} already exists and is not empty: choose another --out, or continue it with --resume {path}")
-
-    refuse_if_used()  # before the lock: a folder that is not ours is left untouched
     lock = RunLock(path)
     try:
-        refuse_if_used()  # again under the lock: another run may have claimed it in between
+        refuse_used(path)  # again under the lock: another run may have claimed it in between
         temporary = write_temporary(path / CONFIG_FILE, json_bytes(record))
         try:
             os.link(temporary, path / CONFIG_FILE)  # fails if the name exists: an atomic claim

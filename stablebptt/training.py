@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from stablebptt.checks import check_task
+from stablebptt.checks import check_task, parameter_shapes
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows import (FLOWS, MODE_TABLE, MODES, Dynamics, Plan, flow_gradients, flows_needed, reference_loss, reference_losses,
                               select_flow, tree_cosine)
@@ -87,6 +87,12 @@ class Task:
       plan: what the task knows of how to differentiate its step (a simulator's
         derivative and known Jacobian columns, a policy's gradient path);
         ``make_trainer`` completes it into the run's plan.
+      settle: a check of the task still running beside the caller (an environment's reward
+        diagnosis, ``env_task(defer_diagnosis=True)``), None where none is: ``settled()``
+        waits for it. Until then ``summary`` and ``resolved`` do not tell its answer, and the
+        parameters' values wait for it (their shapes do not): a trainer may be built meanwhile.
+        ``settle(wait)``: the task as checked, or None where ``wait`` is false and the check has
+        not answered yet.
     """
 
     name: str
@@ -98,6 +104,13 @@ class Task:
     resolved: dict = field(default_factory=dict)
     evaluation: Callable[[PyTree, PyTree], jax.Array] | None = None
     plan: Plan = Plan()
+    settle: Callable[[bool], "Task | None"] | None = None
+
+    def settled(self, wait: bool = True) -> "Task":
+        """The task once its pending check has answered (``settle``), which may refuse it; itself where
+        none is pending, or where ``wait`` is false and the check has not answered yet."""
+        answered = None if self.settle is None else self.settle(wait)
+        return self if answered is None else answered
 
 
 @dataclass(frozen=True)
@@ -379,8 +392,11 @@ class PerUpdateEpoch:
         per_update = jax.tree.map(lambda *each: jnp.stack(each, axis=1), *outputs)  # [seeds, updates]
         return state, self.epoch_metrics(state, per_update, self.evaluate(state.params, train_states, test_states))
 
-    def lower(self, state, batches, train_states, test_states):
-        return _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states))
+    def lower(self, state, batches, train_states, test_states, lower_one: Callable | None = None):
+        """The epoch for these arguments; its ``compile()`` lowers and compiles the pieces, each by
+        ``lower_one(program, arguments, name)`` (default: the program's own ``lower``)."""
+        return _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states),
+                                      lower_one or (lambda program, arguments, name: program.lower(*arguments)))
 
     def compile_pieces(self, arguments: tuple, lower_one: Callable) -> PerUpdateEpoch:
         """The three programs compiled for the epoch's ``arguments``, each lowered by ``lower_one(program,
@@ -405,9 +421,10 @@ class PerUpdateEpoch:
 class _LoweredPerUpdateEpoch(NamedTuple):
     epoch: PerUpdateEpoch
     arguments: tuple
+    lower_one: Callable
 
     def compile(self) -> PerUpdateEpoch:
-        return self.epoch.compile_pieces(self.arguments, lambda program, arguments, name: program.lower(*arguments))
+        return self.epoch.compile_pieces(self.arguments, self.lower_one)
 
 
 def _compile_side_by_side() -> bool:
@@ -422,7 +439,7 @@ def _updates(batches: PyTree) -> int:
 
 
 def _example_control(task: Task, config: TrainConfig, initial_state: PyTree) -> PyTree:
-    params = jax.eval_shape(lambda: task.init_params(jax.random.PRNGKey(0), config.zero_output))
+    params = parameter_shapes(task, config.zero_output)
     control = jax.eval_shape(task.dynamics.policy, params, initial_state)
     return jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), control)
 

@@ -44,6 +44,16 @@ def run_name(config: Config) -> str:
 
 
 def make(config: Config) -> Task:
+    return _make(config, defer_diagnosis=False)
+
+
+def make_deferred(config: Config) -> Task:
+    """``make``, returned while the reward diagnosis compiles and runs beside the caller: the task's
+    ``settled()`` waits for it and may refuse the reward (``env_task(defer_diagnosis=True)``)."""
+    return _make(config, defer_diagnosis=True)
+
+
+def _make(config: Config, defer_diagnosis: bool) -> Task:
     if not config.env:
         raise InputError(f"give {config_field(config, 'env')}: a MuJoCo Playground name or package.module:attribute")
     env = load_env(config.env)
@@ -56,7 +66,7 @@ def make(config: Config) -> Task:
     inputs = program_inputs(config)
     return env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
-                    diagnose=config.reward_check,
+                    diagnose=config.reward_check, defer_diagnosis=defer_diagnosis,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs})
 
 

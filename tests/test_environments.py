@@ -17,7 +17,7 @@ import pytest
 import stablebptt as sb
 from conftest import ROOT, float64
 from envs_for_tests import Cart
-from stablebptt import environments, program_store
+from stablebptt import environments, fitting, program_store
 from stablebptt.constraint_derivatives import differentiable_mjx
 from stablebptt.environments import EnvError, env_task
 from stablebptt.flows import flow_gradients, reference_loss
@@ -52,15 +52,16 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
     for _ in range(2):  # the second time from what the first kept: a refusal is kept too
         with pytest.raises(EnvError, match="gradient is zero at every sampled state") as refusal:
             env_task(Cart("step"), horizon=5, dense_variant="SmoothCart", diagnosis_key=key("step"))
-        monkeypatch.setattr(environments, "diagnose_env", lambda *a: pytest.fail("diagnosed although kept"))
+        monkeypatch.setattr(environments, "start_diagnosis", lambda *a: pytest.fail("diagnosed although kept"))
     monkeypatch.undo()
     assert "train SmoothCart, its dense variant; or give the reward a slope" in str(refusal.value)
     with pytest.raises(EnvError, match=r"gradient is NaN at \d+% of sampled states"):
         env_task(Cart("root"), horizon=5)
     task = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
     states = task.sample_initial_states(jax.random.PRNGKey(3), 6)  # its reset is traced and kept too
-    monkeypatch.setattr(environments, "diagnose_env", lambda *a: pytest.fail("diagnosed although kept"))
+    monkeypatch.setattr(environments, "start_diagnosis", lambda *a: pytest.fail("diagnosed although kept"))
     monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("traced although kept"))
+    monkeypatch.setattr(environments, "check_protocol", lambda *a: pytest.fail("observation size read although kept"))
     again = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
     assert again.resolved == task.resolved
     plain = jax.jit(jax.vmap(Cart("norm").reset))(jax.random.split(jax.random.PRNGKey(3), 6))
@@ -74,6 +75,39 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
     assert 0 < float(jnp.max(jnp.abs(params[-1][0]))) < 0.1  # small output weights, not zero
     result = sb.train(task, replace(TINY, epochs=1))
     assert np.isfinite(result.test_loss).all()
+
+
+def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_parameters_until_it_answers(tmp_path, monkeypatch):
+    config, seeds = replace(TINY, epochs=1), sb.training.seed_array(replace(TINY, epochs=1))
+    refused = env_task(Cart("step"), horizon=5, defer_diagnosis=True, diagnosis_key={"env": f"step {tmp_path}"})
+    assert refused.resolved["reward_gradient"] == "pending"
+    trainer = sb.make_trainer(refused, config)  # shapes only: built while the diagnosis compiles
+    with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
+        refused.settled()
+    with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
+        trainer.init(seeds)  # the parameters' values wait for the diagnosis: no silent start
+    with pytest.raises(EnvError, match="gradient is zero at every sampled state"):  # kept: refused at once
+        env_task(Cart("step"), horizon=5, defer_diagnosis=True, diagnosis_key={"env": f"step {tmp_path}"})
+    pending = env_task(Cart("norm"), horizon=5, defer_diagnosis=True)
+    trainer = sb.make_trainer(pending, config)
+    lowered = fitting.lowered_epoch(trainer, config)  # the epoch traced for the parameters' shapes
+    # init traced and run after that, with the seeds train.py gives, before settling: the start is
+    # still the diagnosis's (small, not zero).
+    state = trainer.init(seeds)
+    output_weights = state.params[-1][0]
+    assert 0 < float(jnp.max(jnp.abs(output_weights))) < 0.1
+    settled = pending.settled()
+    assert settled.settle is None and settled.resolved == env_task(Cart("norm"), horizon=5).resolved
+    assert settled.resolved["policy_output_start"] == "small"
+    arguments = (state, trainer.batches, trainer.train_states, trainer.test_states)
+    plain = jax.jit(trainer.epoch)(*arguments)
+    monkeypatch.setattr(fitting, "compile_epoch", lambda *a, **k: pytest.fail("traced again although lowered"))
+    (tmp_path / "run").mkdir()
+    outcome = fitting.train_epochs(trainer, config, tmp_path / "run", state, 0, sb.runs.empty_rows(),
+                                   np.asarray(seeds), lowered=lowered)
+    assert outcome.status == "complete"
+    for early, again in zip(jax.tree.leaves(outcome.state), jax.tree.leaves(plain[0])):
+        np.testing.assert_array_equal(early, again)  # the epoch lowered from shapes computes the same bits
 
 
 def test_a_wrapper_of_an_environment_that_lacks_a_size_is_refused_in_one_line():

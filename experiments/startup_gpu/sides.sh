@@ -5,5 +5,5 @@
 ROOT=$PWD
 enter_side() {
   local dir=$ROOT; [ "$1" = before ] && dir=$ROOT/${BASELINE:-.baseline}
-  cd "$dir" && link_package . && export PYTHONPATH=/tmp/site:$dir
+  cd "$dir" && link_package . && compile_checkout . && export PYTHONPATH=/tmp/site:$dir
 }
