@@ -169,7 +169,7 @@ def train_epochs(
     gets the seconds of XLA's compile alone (and of a ``PerUpdateEpoch``'s tracing).
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    if lowered is not None and _shapes_of(state) == jax.tree.map(_shape_of, lowered.shapes):
+    if lowered is not None and jax.tree.map(_shape_of, state) == jax.tree.map(_shape_of, lowered.shapes):
         started = time.perf_counter()
         epoch_fn = lowered.lowered.compile()
         compile_seconds = time.perf_counter() - started
@@ -205,12 +205,8 @@ def train_epochs(
 
 
 def _shape_of(leaf) -> tuple:
+    # A checkpoint's NumPy arrays carry no weak type where init's may: such a state is lowered anew.
     return leaf.shape, leaf.dtype, bool(getattr(leaf, "weak_type", False))
-
-
-def _shapes_of(tree) -> Any:
-    # A checkpoint's arrays carry no weak type where init's may: such a state is lowered anew.
-    return jax.tree.map(lambda leaf: _shape_of(jax.typeof(leaf)), tree)
 
 
 class Trained(NamedTuple):

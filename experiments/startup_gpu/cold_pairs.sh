@@ -4,13 +4,11 @@
 #   BASELINE=.baseline-5185a6e bash experiments/startup_gpu/cold_pairs.sh CartpoleSwingup 2
 # Logs: $OUT/{after,before}-{round}/; one line per run with train.py's time to the first update.
 source experiments/install_wheels.sh
-ROOT=$PWD
+source experiments/startup_gpu/sides.sh
 for round in $(seq ${2:-2}); do
   for side in after before; do
-    dir=$ROOT; [ $side = before ] && dir=$ROOT/${BASELINE:-.baseline}
-    (cd $dir && link_package . && compile_checkout . && export PYTHONPATH=/tmp/site:$dir \
-      && mkdir -p $OUT/$side-$round && OUT=$OUT/$side-$round RUNS=cold bash $ROOT/experiments/startup_gpu/env_phases.sh "$1" \
-      > $OUT/$side-$round/summary.txt 2>&1
+    (enter_side $side && mkdir -p $OUT/$side-$round \
+      && OUT=$OUT/$side-$round RUNS=cold bash $ROOT/experiments/startup_gpu/env_phases.sh "$1" > $OUT/$side-$round/summary.txt 2>&1
      echo "$side $round: $(grep -E 'first update|wall' $OUT/$side-$round/summary.txt | tr '\n' ' ')")
   done
 done
