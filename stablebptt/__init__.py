@@ -8,25 +8,15 @@ analysis in ``stablebptt.scene``; the built-in tasks in ``stablebptt.tasks``.
 ``env_task`` turns an environment in Brax's protocol (MuJoCo Playground's, a
 lab's own) into a ``Task`` (``stablebptt.environments``).
 """
-import os
-
-# One XLA:CPU intra-op thread, set before JAX creates its CPU client (it reads
-# PJRT_NPROC then). jaxlib's LAPACK kernels (MJX's Newton solver: cholesky and
-# triangular solves, batched over every step's Jacobian) split a large batch into
-# chunks queued on the intra-op pool and block the pool thread that runs them until
-# the chunks are done; when as many such calls run at once as the pool has threads,
-# every thread waits and the program hangs. With one
-# thread the kernels run the batch in place. A user's own PJRT_NPROC is kept.
-os.environ.setdefault("PJRT_NPROC", "1")
-
 from stablebptt.errors import InputError
 from stablebptt.flows import FLOWS, MODES, Dynamics, Plan, flow_gradients, select_flow, sign_agreement
 from stablebptt.networks import mlp_apply, mlp_init
+from stablebptt.runtime import one_cpu_thread
 from stablebptt.fitting import Trained, TrainingDiverged, train
 from stablebptt.training import Task, TrainConfig, make_trainer
 
 __all__ = ["FLOWS", "MODES", "Dynamics", "InputError", "Plan", "Task", "TrainConfig", "Trained", "TrainingDiverged",
-           "env_task", "flow_gradients", "make_trainer", "mlp_apply", "mlp_init", "select_flow", "sign_agreement",
+           "env_task", "flow_gradients", "make_trainer", "mlp_apply", "mlp_init", "one_cpu_thread", "select_flow", "sign_agreement",
            "train"]
 
 

@@ -1,7 +1,7 @@
 """MuJoCo frames of rollouts, rendered headless: a backdrop, a camera framed on the rollout, frame strips.
 
     select_gl_backend()                    # first: before anything imports mujoco (stablebptt.gl_backend)
-    model = render_model("models/cartpole_1.xml")
+    model = render_model("stablebptt/models/cartpole_1.xml")
     camera = frame_camera(model, *rollout_extent(model, qpos), 320, 240)   # qpos: [T, nq]
     frames, _ = render_frames(model, qpos, camera, 320, 240)
     write_video("rollout.mp4", frames, fps=30)                            # stablebptt.media

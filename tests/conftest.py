@@ -22,7 +22,9 @@ from pathlib import Path
 import jax
 import pytest
 
-import stablebptt  # noqa: F401  (its XLA:CPU set-up must precede JAX's CPU client)
+import stablebptt
+
+stablebptt.one_cpu_thread()  # XLA:CPU's set-up, before JAX creates its CPU client
 from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
 
 # One compilation cache for the session, the command lines the tests start included: a program

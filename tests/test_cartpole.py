@@ -184,7 +184,7 @@ def test_implicit_step_derivative_equals_autodiff_through_the_mass_matrix(x64, s
     if source == "floating_ball_and_spring":  # quaternions (nq != nv), a spring, two actuators, no cart
         model = mujoco.MjModel.from_xml_string(FLOATING_BALL_AND_SPRING)
     else:
-        model = mujoco.MjModel.from_xml_path(str(ROOT / "models" / f"{source}.xml"))
+        model = mujoco.MjModel.from_xml_path(str(ROOT / "stablebptt" / "models" / f"{source}.xml"))
     effects = scene.analyze(model)
     lean = scene.lean_model(model, effects)
     assert scene.implicit_derivative_applies(lean, effects)
@@ -279,7 +279,7 @@ def test_symmetries_are_claimed_only_where_nothing_ties_the_tree_to_the_world(op
 @pytest.mark.parametrize("integrator", ["rk4", "implicitfast"])
 def test_symmetry_columns_hold_for_the_other_integrators(x64, integrator):
     """Every integrator advances positions with the velocities it reaches: the boost column is e_v + dt e_q."""
-    model = mujoco.MjModel.from_xml_path(str(ROOT / "models" / "cartpole_1.xml"))
+    model = mujoco.MjModel.from_xml_path(str(ROOT / "stablebptt" / "models" / "cartpole_1.xml"))
     effects = scene.analyze(model)
     lean = scene.lean_model(model, effects, integrator=integrator, timestep=0.02)
     step = scene.make_step(lean, effects)

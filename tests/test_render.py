@@ -24,7 +24,7 @@ from stablebptt.training import TrainConfig
 ROOT = Path(__file__).resolve().parent.parent
 RENDER = ROOT / "scripts" / "render.py"
 TRAIN = ROOT / "scripts" / "train.py"
-MODEL = ROOT / "models" / "cartpole_1.xml"
+MODEL = ROOT / "stablebptt" / "models" / "cartpole_1.xml"
 # Children here exec at once (python, ffmpeg): JAX's warning about fork in a threaded process does not apply.
 pytestmark = pytest.mark.filterwarnings(r"ignore:os\.fork\(\) was called:RuntimeWarning")
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

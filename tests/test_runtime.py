@@ -4,8 +4,9 @@ jaxlib 0.10.2's LAPACK kernels (cholesky, triangular solve; MJX's Newton solver)
 split a batch of at least ~200k flops into chunks queued on XLA's intra-op pool and
 block the pool thread that runs them until the chunks are done. When as many such
 calls run at once as the pool has threads, every thread waits and nobody runs the
-chunks. ``import stablebptt`` gives the pool one thread (PJRT_NPROC=1), with which
-the kernels run the whole batch in place.
+chunks. ``stablebptt.one_cpu_thread()`` (every command calls it as it starts) gives the pool one thread
+(PJRT_NPROC=1), with which the kernels run the whole batch in place; ``import stablebptt`` alone
+changes nothing in the process.
 """
 import importlib.util
 import os
@@ -21,7 +22,8 @@ from conftest import ROOT
 # (hopper's step-Jacobian solves, smaller batch): with a 2-thread pool this hangs
 # within the first calls on a 2-core machine; fixed, 300 calls take about a second.
 PROGRAM = textwrap.dedent("""
-    import stablebptt  # the library's runtime set-up, before JAX starts its CPU client
+    import stablebptt
+    stablebptt.one_cpu_thread()  # before JAX starts its CPU client
     import jax, jax.numpy as jnp
     key = jax.random.PRNGKey(0)
     chol = jnp.tril(jax.random.normal(key, (100, 7, 7))) + 21 * jnp.eye(7)
@@ -117,7 +119,7 @@ def test_train_and_sweep_load_mjx_without_its_warp_backend_and_warp_stays_import
     assert result.returncode == 0, result.stderr
     assert result.stdout == "ok\n", result.stdout
     for script in ("train.py", "sweep.py"):  # first thing in main, before parsing imports the tasks
-        main = (ROOT / "scripts" / script).read_text().split("def main(", 1)[1]
+        main = (ROOT / "stablebptt" / "commands" / script).read_text().split("def main(", 1)[1]
         assert main.split("\n")[1].strip().startswith("leave_out_unused_backends()"), script
 
 
@@ -144,3 +146,12 @@ def test_the_commands_import_playground_without_pytorch_which_stays_importable(t
         result = subprocess.run([sys.executable, "-c", program, case], env=env, capture_output=True, text=True, timeout=120)
         assert result.returncode == 0, result.stderr
         assert result.stdout == expected, (case, result.stdout)
+
+
+def test_importing_the_package_leaves_the_process_environment_as_it_was():
+    program = ("import os; before = dict(os.environ); import stablebptt, stablebptt.tasks, stablebptt.runs; "
+               "print(sorted(set(os.environ.items()) ^ set(before.items())))")
+    env = {k: v for k, v in os.environ.items() if k not in ("PJRT_NPROC", "NPROC")}
+    result = subprocess.run([sys.executable, "-c", program], env=env, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]", result.stdout

@@ -287,7 +287,7 @@ def test_bench_startup_times_a_cold_and_a_warm_fresh_process_per_model(tmp_path,
     import json
     from stablebptt.commands import bench as bench_command
     out = tmp_path / "startup.md"
-    model = ROOT / "models" / "cartpole_1.xml"
+    model = ROOT / "stablebptt" / "models" / "cartpole_1.xml"
     with pytest.raises(SystemExit) as refused:
         bench_command.main(["--startup", "--models", f"{model},no_such_model", "--out", str(out)])
     assert refused.value.code == 2 and len(capsys.readouterr().err.strip().splitlines()) == 1 and not out.exists()

@@ -195,7 +195,7 @@ def test_a_contact_rollout_follows_mujocos_c_step_with_the_files_own_solver(suit
 
 
 def test_a_suite_model_trains_and_renders_from_the_command_line(suite, tmp_path):
-    """models/README.md's worked example, shortened: dm_control's pendulum, file untouched, swung up from
+    """stablebptt/models/README.md's worked example, shortened: dm_control's pendulum, file untouched, swung up from
     hanging by a task file; the suite's energy flag off, the model's name in every message and record."""
     run, task_file = tmp_path / "run", tmp_path / "swing_up.task.json"
     task_file.write_text('{"init_pose": "hinge=3.14159", "horizon_seconds": 7}')

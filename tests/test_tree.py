@@ -52,7 +52,7 @@ BRANCHES = """<mujoco model="branches">
   </actuator>
 </mujoco>"""
 
-MODELS = {f"cartpole_{n}": lambda n=n: mujoco.MjModel.from_xml_path(str(ROOT / "models" / f"cartpole_{n}.xml"))
+MODELS = {f"cartpole_{n}": lambda n=n: mujoco.MjModel.from_xml_path(str(ROOT / "stablebptt" / "models" / f"cartpole_{n}.xml"))
           for n in (1, 2, 3, 4)}
 MODELS["branches, Euler"] = lambda: mujoco.MjModel.from_xml_string(BRANCHES.format(integrator="Euler"))
 MODELS["branches, RK4"] = lambda: mujoco.MjModel.from_xml_string(BRANCHES.format(integrator="RK4"))

@@ -7,7 +7,7 @@ source experiments/install_wheels.sh
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 run() {  # label, XLA_FLAGS
   echo "== $1: XLA_FLAGS='$2'"
-  XLA_FLAGS="$2" JAX_LOG_COMPILES=1 python3 scripts/train.py --model models/cartpole_4.xml --epochs 3 --unroll 5 \
+  XLA_FLAGS="$2" JAX_LOG_COMPILES=1 python3 scripts/train.py --model stablebptt/models/cartpole_4.xml --epochs 3 --unroll 5 \
     --no-compile-cache --no-progress --out /tmp/xf_$1 > $OUT/$1.log 2>&1
   grep -E "XLA compilation of|Finished tracing" $OUT/$1.log | sed 's/.*Finished/Finished/' \
     | awk '{ if ($(NF-1) + 0 > 1.0) print }'

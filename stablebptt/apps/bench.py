@@ -31,7 +31,7 @@ class BenchConfig:
     tables: str = field(default="modes,steps", metadata={"help": "tables to time: modes (an update per mode, every task), steps (a task's own table where it has one: the cart-pole's simulators against the closed-form floor, and the parts of its update)"})
     simulators: str = field(default="", metadata={"help": "the simulators of the cart-pole's steps table (default: every one): generated, stages, autodiff, dense, mjx, floor"})
     startup: bool = field(default=False, metadata={"help": "time the start-up instead: per model, a fresh scripts/train.py process to its first update, set-up, compiling and first epoch, with an empty compile cache (cold) and again with the cache it filled (warm); --out also gets a .json record"})
-    models: str = field(default="", metadata={"help": "for --startup: comma-separated MJCF files or names of dm_control's suite models in --suite (default, without --envs: models/cartpole_1.xml and cartpole_3.xml, then the suite's models that train)"})
+    models: str = field(default="", metadata={"help": "for --startup: comma-separated MJCF files or names of dm_control's suite models in --suite (default, without --envs: stablebptt/models/cartpole_1.xml and cartpole_3.xml, then the suite's models that train)"})
     envs: str = field(default="", metadata={"help": "for --startup: comma-separated environments, trained as scripts/train.py --env NAME (MuJoCo Playground names or package.module:attribute), after the models"})
     suite: str = field(default="", metadata={"help": "for --startup: the folder of dm_control's suite/*.xml"})
     train_args: str = field(default="--epochs 1 --train-size 8 --test-size 8 --batch 8 --steps 10", metadata={"help": "for --startup: scripts/train.py's options besides --model"})

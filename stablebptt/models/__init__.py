@@ -1,6 +1,6 @@
 """The cart-pole MJCF files, shipped as package data (installed as ``stablebptt.models``).
 
-``models/README.md`` documents the MJCF task convention these files follow.
+``stablebptt/models/README.md`` documents the MJCF task convention these files follow.
 """
 from importlib.resources import files
 from pathlib import Path

@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Survey MuJoCo Playground environments: does each load, pass the reward check, compile and train?
 
-    taskset -c 1 python scripts/env_survey.py                       # the 25 DeepMind Control Suite envs
-    python scripts/env_survey.py --envs PendulumSwingup,CartpoleSwingup --out /tmp/survey
+    taskset -c 1 python experiments/env_survey.py                       # the 25 DeepMind Control Suite envs
+    python experiments/env_survey.py --envs PendulumSwingup,CartpoleSwingup --out /tmp/survey
 
 For every environment, in its own subprocess (a crash or hang stops only that
 environment; ``--timeout`` seconds each, and ``--max-rss-gb`` of memory), it
@@ -154,7 +154,8 @@ def worker(args) -> int:
     save()
     try:
         def import_all():
-            import stablebptt  # noqa: F401 - first: it sets PJRT_NPROC before JAX's CPU client exists
+            import stablebptt
+            stablebptt.one_cpu_thread()  # before JAX's CPU client exists
             from stablebptt import playground
             playground.registry()
 

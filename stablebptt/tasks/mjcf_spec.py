@@ -1,6 +1,6 @@
-"""An MJCF read as a task declares it (models/README.md's convention), the task options over it.
+"""An MJCF read as a task declares it (stablebptt/models/README.md's convention), the task options over it.
 
-    model = load_model(Path("models/cartpole_3.xml"))
+    model = load_model(Path("stablebptt/models/cartpole_3.xml"))
     spec = read_spec(model, mjcf.Config(poles=3))   # horizon, loss, weights, initial states, target
 
 The file's ``<custom>`` fields and keyframes give the horizon, the loss, per-joint
@@ -168,7 +168,7 @@ def _reach(model: mujoco.MjModel, text: str, option: str) -> Reach | None:
 
 
 def read_spec(model: mujoco.MjModel, config: Config) -> Spec:
-    """The task of models/README.md's convention in ``model``, with ``config``'s task options over it."""
+    """The task of stablebptt/models/README.md's convention in ``model``, with ``config``'s task options over it."""
     option = lambda name: config_field(config, name)  # noqa: E731
     if model.nu == 0:
         raise InputError("no actuators: add an <actuator> so the controller can act")

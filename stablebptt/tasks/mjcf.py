@@ -1,6 +1,6 @@
 """Any MJCF file as a task, simulated through MuJoCo MJX; the cart-poles are its models plus ``--poles``.
 
-The task is read from the MJCF itself (models/README.md documents the
+The task is read from the MJCF itself (stablebptt/models/README.md documents the
 convention): initial states from keyframe ``init`` plus a spread, the target
 from keyframe ``target`` (else the reference pose), per-joint loss weights,
 final or averaged loss and the horizon from ``<custom>`` fields. A task file
@@ -52,11 +52,11 @@ TASK_FILE_OPTIONS = ("init_pose", "target_pose", "reach", "loss_joints", "loss",
 class Config(SimulatorConfig):
     """Options of the MJCF task: the model, the task over what it declares, and (inherited) how it is simulated."""
 
-    poles: int = field(default=1, metadata={"help": "number of poles, 1-4 (models/cartpole_N.xml)"})
-    model: str = field(default="", metadata={"help": "any MJCF file to control instead of a cart-pole (see models/README.md)"})
+    poles: int = field(default=1, metadata={"help": "number of poles, 1-4 (stablebptt/models/cartpole_N.xml)"})
+    model: str = field(default="", metadata={"help": "any MJCF file to control instead of a cart-pole (see stablebptt/models/README.md)"})
     spread: float = field(default=1.0, metadata={"help": "scales the initial-state spread the MJCF declares"})
     steps: int = field(default=0, metadata={"help": "override the horizon in steps (0: the MJCF's bptt_horizon, else 100)"})
-    # The task, over what the MJCF declares (models/README.md); a task file may set these too.
+    # The task, over what the MJCF declares (stablebptt/models/README.md); a task file may set these too.
     task_file: str = field(default="", metadata={"help": "JSON file of task options (keys as these options' names, e.g. {\"init_pose\": \"hinge=3.1416\"}); default: MODEL.task.json next to the model when it exists; none: no file"})
     init_pose: str = field(default="", metadata={"help": "centre of the initial states: a keyframe's name, or JOINT=VALUE,... on the MJCF's own (hinges in radians)"})
     target_pose: str = field(default="", metadata={"help": "target of the pose loss: a keyframe's name, or JOINT=VALUE,... on the MJCF's own"})
@@ -128,7 +128,7 @@ class Config(SimulatorConfig):
 
 
 def read_spec(model: mujoco.MjModel, config: Config | None = None) -> Spec:
-    """The task of models/README.md's convention in ``model``, with ``config``'s task options (default: none) over it."""
+    """The task of stablebptt/models/README.md's convention in ``model``, with ``config``'s task options (default: none) over it."""
     return mjcf_spec.read_spec(model, config or Config(task_file="none"))
 
 

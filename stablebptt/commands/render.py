@@ -1,0 +1,152 @@
+#!/usr/bin/env python3
+"""Render rollouts headless: a trained controller from a run directory, or any MJCF under a zero policy.
+
+    python scripts/render.py runs/cartpole_3-20261122-101500    # rollout.mp4 and rollout-strip.png in the run
+    python scripts/render.py runs/repulsion-20261122-101500 --gif   # rollout.gif and rollout-paths.png
+    python scripts/render.py runs/quantum-20261122-101500     # rollout.mp4 and rollout-density.png
+    python scripts/render.py --model stablebptt/models/cartpole_3.xml    # renders/cartpole_3-<time>.mp4 and -strip.png
+
+The controller is rolled out from the run's first test initial states, one video
+frame per step, the rollouts side by side (how MuJoCo scenes are drawn:
+stablebptt/rendering.py, stablebptt/drawing.py). Existing files are never overwritten: default names
+get a suffix -2, -3, ...; an existing --out is refused.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+from stablebptt.cli import Parser, add_options, build, fail, one_line_errors
+from stablebptt.media import fresh_outputs
+from stablebptt.errors import InputError
+
+RENDERS_ROOT = Path("renders")
+STEM = "rollout"  # default name of the files written into a run directory
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Options of scripts/render.py."""
+
+    rollouts: int = field(default=3, metadata={"help": "rollouts to show, from the first test initial states (at most the run's test size)"})
+    seed_index: int = field(default=0, metadata={"help": "which of the run's seeds to roll out (0: the first)"})
+    steps: int = field(default=0, metadata={"help": "with --model: simulation steps (0: the MJCF's bptt_horizon, else 100)"})
+    width: int = field(default=400, metadata={"help": "width in pixels of one rollout's video panel"})
+    height: int = field(default=300, metadata={"help": "height in pixels of one rollout's video panel"})
+    fps: float = field(default=30.0, metadata={"help": "video frames per second (one frame per simulation step)"})
+    gif: bool = field(default=False, metadata={"help": "write a GIF instead of an MP4"})
+    video: bool = field(default=True, metadata={"help": "write the video (--no-video: only the pictures)"})
+    strip_states: int = field(default=8, metadata={"help": "MuJoCo scenes: states overlaid in the frame strip"})
+
+    def __post_init__(self):
+        for name in ("rollouts", "width", "height", "strip_states"):
+            if getattr(self, name) <= 0:
+                raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
+        if self.seed_index < 0 or self.steps < 0:
+            raise InputError("--seed-index and --steps must be zero or positive")
+        if not self.fps > 0:
+            raise InputError(f"--fps must be a positive number, got {self.fps}")
+        if self.width < 16 or self.height < 16:
+            raise InputError(f"--width and --height must be at least 16 pixels, got {self.width}x{self.height}")
+
+
+def parse(argv: list[str]) -> tuple[argparse.Namespace, RenderConfig]:
+    parser = Parser(description=__doc__, formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32))
+    parser.add_argument("run_dir", type=Path, nargs="?", default=None, help="a run directory written by scripts/train.py")
+    parser.add_argument("--model", type=Path, default=None, help="render this MJCF under a zero policy instead of a run")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="the video to write (.mp4 or .gif); the pictures are named after it "
+                             "(default: RUN_DIR/rollout.mp4, or renders/MODEL-TIME.mp4 with --model)")
+    add_options(parser, RenderConfig, "rendering")
+    args = parser.parse_args(argv)
+    if (args.run_dir is None) == (args.model is None):
+        fail("give a run directory or --model FILE.xml (one of the two)")
+    with one_line_errors():
+        config = build(RenderConfig, vars(args))  # build ignores what is not a rendering option
+    if args.model is not None and "seed_index" in vars(args):
+        fail("--seed-index chooses a seed of a run: it needs a run directory, not --model")
+    if args.run_dir is not None and config.steps:
+        fail("--steps applies to --model only: a run is rolled out over the horizon it was trained on")
+    return args, config
+
+
+def build_controller(args, config: RenderConfig):
+    """(task name, task config, train config, task, parameters of one seed, label) of the run or the --model."""
+    import jax
+    from stablebptt import tasks
+    from stablebptt.apps.trained import open_trained
+    from stablebptt.training import TrainConfig
+
+    if args.run_dir is None:
+        module = tasks.load(tasks.MJCF_TASK)
+        task_config = module.Config(model=str(args.model), steps=config.steps)
+        task = module.make(task_config)
+        params = task.init_params(jax.random.PRNGKey(0), True)  # a zero output layer: the policy outputs 0
+        return tasks.MJCF_TASK, task_config, TrainConfig(), task, params, f"{args.model.name}, zero policy"
+    trained = open_trained(args.run_dir)
+    params = trained.seed_params(config.seed_index)
+    label = f"{trained.label}, seed {trained.train.seed + config.seed_index}"
+    return trained.task_name, trained.task_config, trained.train, trained.task, params, label
+
+
+def main(argv: list[str]) -> int:
+    args, config = parse(argv)
+    with one_line_errors():
+        from stablebptt import tasks
+        if args.run_dir is not None:
+            from stablebptt import runs  # imports JAX: only once there is a run to read
+            task_name = runs.open_run(args.run_dir)["task"]
+        else:
+            if not args.model.is_file():
+                raise InputError(f"model file {args.model} does not exist")
+            task_name = tasks.MJCF_TASK
+        entry = tasks.entry(task_name)
+        if not entry.draw:
+            raise InputError(f"the task {task_name} has no drawing (its registry entry gives no draw)")
+        default_stem = (args.run_dir / STEM if args.run_dir is not None
+                        else RENDERS_ROOT / f"{args.model.stem}-{datetime.now():%Y%m%d-%H%M%S}")
+        video, picture = fresh_outputs(args.out, default_stem, entry.picture, config.gif, config.video)
+        if entry.mujoco_frames:
+            # Before mujoco is imported: it reads MUJOCO_GL once.
+            from stablebptt.gl_backend import select_gl_backend
+            select_gl_backend()
+
+    from stablebptt.cli import leave_out_unused_backends, use_compile_cache
+    leave_out_unused_backends()  # after the GL backend is chosen: it imports MJX, and MJX mujoco
+    use_compile_cache()
+
+    try:
+        task_name, task_config, train, task, params, label = build_controller(args, config)
+    except (InputError, TypeError) as error:  # TypeError: a config.json value of the wrong type
+        fail(str(error))
+
+    from stablebptt.apps.trained import first_nonfinite_step, rollouts_from_test_states
+    from stablebptt.drawing import DrawRequest, DrawSettings
+    states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
+    for index, step in enumerate(first_nonfinite_step(states)):
+        if step >= 0:  # a diverged rollout has nothing to draw
+            fail(f"the rollout from test state {index + 1} is not finite from step {step} on "
+                 "(the controller or the simulation diverged): nothing to draw", code=1)
+    titles = [f"test state {i + 1}: loss {loss:.3g}" for i, loss in enumerate(losses)]
+    print(f"{label}: {len(losses)} rollout{'s' if len(losses) != 1 else ''} of {controls.shape[1]} steps, "
+          f"losses {', '.join(f'{loss:.4g}' for loss in losses)}")
+    video = video if config.video else None
+    picture.parent.mkdir(parents=True, exist_ok=True)  # renders/ for --model
+    try:
+        settings = DrawSettings(width=config.width, height=config.height, fps=config.fps,
+                                strip_states=config.strip_states)
+        written = entry.drawer()(DrawRequest(task_config, states, controls, titles, label, settings, video, picture))
+    except InputError as error:
+        fail(str(error))
+    except OSError as error:  # a full disk, a directory without write permission
+        fail(f"cannot write next to {picture}: {error.strerror or error}")
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

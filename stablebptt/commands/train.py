@@ -1,0 +1,153 @@
+#!/usr/bin/env python3
+"""Train a controller by backpropagation through time with gradient flow R, M, S or C.
+
+    python scripts/train.py --poles 3                  # cart-pole with 3 poles (MJX)
+    python scripts/train.py --model my_robot.xml       # any MJCF
+    python scripts/train.py --task repulsion --rc 0.01 --mode C --seeds 5
+    python scripts/train.py --resume runs/cartpole_3-20261122-101500
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from stablebptt import tasks
+from stablebptt.cli import Parser, add_options, build, fail, leave_out_unused_backends, one_line_errors, option_name
+from stablebptt.commands import task_options
+from stablebptt.training import TrainConfig
+
+RUNS_ROOT = Path("runs")
+RESUMABLE = {"epochs"}  # what --resume may change: extending a finished run
+
+
+def parse(argv: list[str]):
+    parser = Parser(description=__doc__, formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32))
+    parser.add_argument("--out", type=Path, default=None, help="run directory to create (default: runs/TASK-TIME); never overwritten")
+    parser.add_argument("--resume", type=Path, default=None, help="continue the run in this directory from its checkpoint")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs and CI)")
+    parser.add_argument("--compile-cache", action=argparse.BooleanOptionalAction, default=True,
+                        help="keep compiled programs between runs (in $STABLEBPTT_COMPILE_CACHE or ~/.cache/stablebptt; default: on)")
+    # owners: option -> the configs that have it ("train" or task names)
+    owners = {name: {"train"} for name in add_options(parser, TrainConfig, "training")}
+    owners = task_options.add_task_options(parser, owners)  # before parsing: the task options are options too
+    return parser.parse_args(argv), owners
+
+
+def configure(args, owners):
+    """(task name, task config, train config, run dir, the run's record or None) from the command line or a run."""
+    given = {name: value for name, value in vars(args).items() if name in owners}
+    if args.resume is not None:
+        changed = sorted(set(given) - RESUMABLE)
+        if changed or args.out is not None or args.task is not None:
+            fail(f"--resume continues a run with its saved configuration; only --epochs may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
+        from stablebptt import runs
+        from stablebptt.apps.trained import configs_of
+        record = runs.open_run(args.resume)
+        task_name = tasks.canonical(record["task"])
+        task_config, train_config = configs_of(args.resume, record, given)
+        return task_name, task_config, train_config, args.resume, record
+    task_name = task_options.choose_task(args, owners, "train")
+    train_config = build(TrainConfig, {"epochs": tasks.load(task_name).DEFAULT_EPOCHS, **given})
+    task_config = task_options.task_config(task_name, given)
+    from stablebptt.checks import check_options
+    check_options(train_config, task_config)  # a resumed run keeps what it recorded
+    return task_name, task_config, train_config, args.out, None
+
+
+def main(argv: list[str]) -> int:
+    leave_out_unused_backends()  # before parsing, which imports the tasks and MJX with them
+    held: list = []  # the run folder in use, its lock released however main ends (in a process, the OS would)
+    try:
+        return train(argv, held)
+    finally:
+        for run in held:
+            run.close()
+
+
+def train(argv: list[str], held: list) -> int:
+    started = time.perf_counter()
+    args, owners = parse(argv)
+    with one_line_errors():
+        task_name, task_config, train_config, run_dir, record = configure(args, owners)
+
+    import jax  # after parsing: --x64 must be set before any array exists
+    jax.config.update("jax_enable_x64", train_config.x64)
+    from stablebptt.cli import use_compile_cache
+    use_compile_cache(args.compile_cache)
+    import numpy as np
+    from stablebptt import fitting, runs
+    from stablebptt.errors import StorageError
+    from stablebptt.program_store import run_key
+    from stablebptt.training import make_trainer, seed_array
+
+    module = tasks.load(task_name)
+    with one_line_errors():
+        if record is not None:
+            held.append(runs.Run.open(run_dir, record))
+        elif run_dir is not None:
+            runs.refuse_used(run_dir)  # at once; a new run's folder is claimed once its task is settled
+        # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
+        task = getattr(module, "make_deferred", module.make)(task_config)
+    program_key = run_key(module, task_name, task_config, train_config)  # an identical run reuses its programs
+    with one_line_errors(f"{task.name}: "):  # the memory plan may refuse the scene
+        trainer = make_trainer(task, train_config, keep=program_key)
+    with one_line_errors():
+        task = task.settled(wait=False)  # a check that has answered by now (a refusal) ends the run here
+    # A new run's epoch is traced here, while XLA may still compile the task's check beside, and
+    # compiled once training starts; a resumed one, which may have nothing left to train, as it starts.
+    lowered = fitting.lowered_epoch(trainer, train_config, program_key) if record is None else None
+    with one_line_errors():
+        task = task.settled()  # a reward without a usable gradient is refused here, before any folder is made
+        if record is None:
+            run_dir = run_dir or runs.default_run_dir(RUNS_ROOT, task.name)  # named as it is claimed
+            held.append(runs.Run.create(run_dir, runs.new_record(task_name, task_config, task, train_config)))
+    run = held[0]
+    seeds = np.asarray(seed_array(train_config))
+    with one_line_errors():
+        start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
+    task_label, resuming = run.name, run.resuming
+    if run.repaired:
+        print(f"rewrote {' and '.join(run.repaired)} of {run_dir} from its checkpoint (epoch {start_epoch})", file=sys.stderr)
+
+    if task.summary:
+        print(task.summary)
+    if start_epoch == train_config.epochs and resuming:
+        mean, std = runs.final_mean_std(rows) if len(rows) else (float("nan"), 0.0)
+        print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
+        return 0
+
+    from stablebptt.cli import EpochProgress, in_worker_thread, out_of_memory, stop_on_signals
+    progress = EpochProgress(started, train_config.epochs, start_epoch, train_config.train_size // train_config.batch,
+                             f"{task_label} {train_config.mode}", args.no_progress)
+    try:
+        with stop_on_signals(progress.write) as should_stop:
+            outcome = in_worker_thread(lambda: fitting.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
+                                                                   progress.on_epoch, progress.on_compiled, should_stop,
+                                                                   run.owner, program_key, lowered))
+    except StorageError as error:
+        fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
+    except jax.errors.JaxRuntimeError as error:
+        if (line := out_of_memory(error)) is None:
+            raise
+        fail(f"{task_label}: {line}; the run keeps its last checkpoint: free memory (another process may hold it) "
+             f"and continue with --resume {run_dir}, or start a new run with a smaller --batch, fewer --seeds or "
+             f"--steps", code=1)
+    progress.close()
+    if outcome.status == "diverged":
+        print(f"error: {outcome.message}", file=sys.stderr)
+        return 1
+    if outcome.status == "interrupted":
+        print(outcome.message, file=sys.stderr)
+        return 130
+    from stablebptt.plots import plot_run
+    plot_run(run_dir)
+    mean, std = runs.final_mean_std(outcome.rows)
+    spread = f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
+    print(f"done: {task_label}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
