@@ -25,6 +25,7 @@ PARALLEL := --numprocesses=auto --maxprocesses=4 --dist=loadscope
 test: $(INSTALLED)
 	$(BIN)/python -m pytest -q $(PARALLEL)
 
-# Closed forms, invariants and every task's gradients at a tiny horizon: under 2 minutes.
+# The modules marked fast (pytestmark): closed forms, invariants and every task's gradients at a tiny
+# horizon, under 2 minutes.
 test-fast: $(INSTALLED)
-	$(BIN)/python -m pytest -q -m "not slow" $(PARALLEL)
+	$(BIN)/python -m pytest -q -m "fast and not slow" $(PARALLEL)

@@ -1,4 +1,4 @@
-"""An environment's reward diagnosis (``environments.diagnose_env``) traced and lowered once, then
+"""An environment's reward diagnosis (``adapter.diagnose_env``) traced and lowered once, then
 compiled under each set of XLA options and run once: seconds to compile, and whether every set
 classifies the reward the same. The compile cache is off.
 
@@ -12,9 +12,10 @@ os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "false")
 
 import jax  # noqa: E402
 
-from stablebptt import environments  # noqa: E402
 from stablebptt.cli import leave_out_unused_backends  # noqa: E402
-from stablebptt.training import compiler_options, usable_cores  # noqa: E402
+from stablebptt.engine.training import compiler_options  # noqa: E402
+from stablebptt.envs import adapter  # noqa: E402
+from stablebptt.timing import usable_cores
 
 leave_out_unused_backends()
 OPTION_SETS = {  # name -> the diagnosis's XLA options
@@ -36,10 +37,10 @@ else:
 OPTION_SETS["training's, again"] = OPTION_SETS["training's"]  # the first compile of a process warms XLA up
 
 for name in sys.argv[1:]:
-    env = environments.load_env(name)
-    step = environments.env_task(env, horizon=1, diagnose=False).dynamics.step
-    checks = environments._gradient_checks(step)
-    program = jax.jit(lambda key: checks(*environments._sample_for_diagnosis(env, step, key)))
+    env = adapter.load_env(name)
+    step = adapter.env_task(env, horizon=1, diagnose=False).dynamics.step
+    checks = adapter._gradient_checks(step)
+    program = jax.jit(lambda key: checks(*adapter._sample_for_diagnosis(env, step, key)))
     key = jax.random.PRNGKey(0)
     started = time.perf_counter()
     lowered = program.lower(key)
@@ -49,6 +50,6 @@ for name in sys.argv[1:]:
         compiled = lowered.compile(compiler_options=options)
         seconds = time.perf_counter() - started
         started = time.perf_counter()
-        diagnosis = environments._classify(*jax.device_get(compiled(key)))
+        diagnosis = adapter._classify(*jax.device_get(compiled(key)))
         print(f"{name}: {label} {options}: compile {seconds:.1f} s, run {time.perf_counter() - started:.2f} s, "
               f"{diagnosis.kind}", flush=True)

@@ -156,17 +156,18 @@ def worker(args) -> int:
         def import_all():
             import stablebptt
             stablebptt.one_cpu_thread()  # before JAX's CPU client exists
-            from stablebptt import playground
+            from stablebptt.envs import playground
             playground.registry()
 
         timed("import_s", import_all)
         import jax
         record["device"] = jax.devices()[0].device_kind  # "cpu", or the GPU's name
         import numpy as np
-        from stablebptt import training
-        from stablebptt.environments import env_task, load_env
+
+        from stablebptt.engine import training
+        from stablebptt.engine.training import nonfinite_names
+        from stablebptt.envs.adapter import env_task, load_env
         from stablebptt.errors import InputError
-        from stablebptt.training import nonfinite_names
 
         save("loading")
         try:
@@ -662,8 +663,8 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if args.worker:
         return worker(args)
-    from stablebptt.modes import MODES
-    from stablebptt.training import CLIP_MODES
+    from stablebptt.engine.training import CLIP_MODES
+    from stablebptt.flows.modes import MODES
     for option, value, choices in (("--mode", args.mode, MODES), ("--clip", args.clip, CLIP_MODES)):
         if value not in choices:
             parser.error(f"{option} {value!r}: choose one of {', '.join(choices)}")

@@ -7,7 +7,7 @@
 With --jacobians, the step's Jacobians of 80 examples by forward and by reverse mode: compile seconds
 and run milliseconds.
 
-With --forms, only the generated rigid-body terms (stablebptt/tree.py) in both forms, written out
+With --forms, only the generated rigid-body terms (stablebptt/physics/rigid_body.py) in both forms, written out
 and in arrays: traced operations and compile seconds of the terms and of their JVP (the JVP
 written out only up to 12 dofs: beyond, XLA's compile outgrows this machine's memory).
 
@@ -25,7 +25,11 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 
-from stablebptt import lean_step, simulator, tree  # noqa: E402
+from stablebptt.physics import (
+    lean_step,  # noqa: E402
+    rigid_body,
+    simulator,
+)
 
 BATCH, STEPS = 8, 10
 
@@ -67,10 +71,10 @@ def forms(path: str) -> None:
     model = simulator.build(mujoco.MjModel.from_xml_path(path)).lean
     inputs = (jnp.broadcast_to(jnp.asarray(model.qpos0, jnp.float32), (BATCH, model.nq)), jnp.zeros((BATCH, model.nv)),
               jnp.zeros((BATCH, model.nu)))
-    for form in (tree._WrittenOut, tree._Arrays):
+    for form in (rigid_body._WrittenOut, rigid_body._Arrays):
         terms = form(model).rigid_body
         functions = {"terms": jax.vmap(terms)}
-        if form is tree._Arrays or model.nv <= 12:
+        if form is rigid_body._Arrays or model.nv <= 12:
             functions["JVP"] = jax.vmap(lambda q, v, u: jax.jvp(terms, (q, v, u), (q, v, u)))
         for label, function in functions.items():
             traced = jax.jit(function).trace(*inputs)
@@ -112,8 +116,8 @@ for path in sys.argv[1:]:
     control = jnp.zeros((BATCH, sim.lean.nu))
     stages = simulator.build(sim.model, simulator.SimulatorConfig(pipeline="stages")).step
     steps = {"default": sim.step, "stages": stages}
-    if lean_step.generated_step_applies(sim.lean, sim.effects) and not set(sim.lean.jnt_type) & {tree.FREE, tree.BALL}:
-        steps["generated rigid-body part, no constraints"] = tree.make_step(sim.lean)
+    if lean_step.generated_step_applies(sim.lean, sim.effects) and not set(sim.lean.jnt_type) & {rigid_body.FREE, rigid_body.BALL}:
+        steps["generated rigid-body part, no constraints"] = rigid_body.make_step(sim.lean)
     for name, step in steps.items():
         print(f"{os.path.basename(path)}, {name}:", flush=True)
         programs(step, state, control)

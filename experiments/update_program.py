@@ -17,8 +17,9 @@ os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "false")
 
 import jax  # noqa: E402
 
-from stablebptt import adjoint_step, tasks  # noqa: E402
-from stablebptt.training import PerUpdateEpoch, make_trainer, seed_array  # noqa: E402
+from stablebptt import tasks  # noqa: E402
+from stablebptt.engine.training import PerUpdateEpoch, make_trainer, seed_array  # noqa: E402
+from stablebptt.flows import adjoint_step
 
 arguments = sys.argv[1:]
 if "--flows-batched" in arguments:

@@ -209,13 +209,13 @@ def leave_out_unused_backends() -> None:
     ``import torch`` work again; only MJX's Warp backend and Playground's torch wrapper stay off in
     this process. MJX is left as it is where it or Warp is already imported.
     """
-    from stablebptt import playground
+    from stablebptt.envs import playground
     from stablebptt.imports import imported_without
     playground.leave_out_when_imported(playground.UNUSED_BY_COMMANDS)
     if "mujoco.mjx" in sys.modules or "warp" in sys.modules:
         return
     with imported_without(("warp",)):  # MJX takes the ImportError for "not installed"
-        importlib.import_module("stablebptt.mjx_internals")  # imports MJX, keeping its Warp message off stdout
+        importlib.import_module("stablebptt.physics.mjx_internals")  # imports MJX, keeping its Warp message off stdout
 
 
 def use_compile_cache(enabled: bool = True,

@@ -36,18 +36,6 @@ use_compile_cache()
 
 ROOT = Path(__file__).resolve().parent.parent  # the checkout: scripts are run from here
 
-# The fast tier (make test-fast, under 2 minutes): closed forms, invariants, every task's gradients at a
-# tiny horizon, task options and hostile input. Every other module is marked slow.
-FAST_MODULES = {"test_building_blocks", "test_flows", "test_smoke", "test_repulsion", "test_quantum", "test_task_options",
-                "test_hostile_inputs", "test_registry"}
-
-
-def pytest_collection_modifyitems(items):
-    for item in items:
-        if item.module.__name__ not in FAST_MODULES:
-            item.add_marker(pytest.mark.slow)
-
-
 @contextlib.contextmanager
 def float64():
     """Run a block in float64 without flipping the whole session (other tests are float32)."""

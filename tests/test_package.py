@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from stablebptt import mujoco_log
+from stablebptt.physics import mujoco_log
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -38,7 +38,7 @@ def test_wheel_has_one_top_level_package_with_models_and_command(installed):
     assert {name.split("/")[0] for name in names if not name.split("/")[0].endswith(".dist-info")} == {"stablebptt"}
     for poles in (1, 2, 3, 4):
         assert f"stablebptt/models/cartpole_{poles}.xml" in names
-    for module in ("tasks/mjcf.py", "tasks/quantum.py", "commands/train.py", "commands/main.py", "mjx_internals.py"):
+    for module in ("tasks/mjcf.py", "tasks/quantum.py", "commands/train.py", "commands/main.py", "physics/mjx_internals.py"):
         assert f"stablebptt/{module}" in names
     # Every module of the library is in the wheel, subpackages included.
     library = [path.relative_to(ROOT).as_posix() for path in (ROOT / "stablebptt").rglob("*.py")]
@@ -55,8 +55,8 @@ def _run_installed(target: Path, cwd: Path, *argv: str) -> subprocess.CompletedP
 
 def test_installed_package_finds_its_models_from_any_directory(installed, tmp_path):
     _, target = installed
-    code = ("from stablebptt.tasks import mjcf; import stablebptt.tasks as t; "
-            "path = mjcf.Config(poles=3).model_path; model = mjcf.load_model(path); "
+    code = ("from stablebptt.tasks import mjcf, mjcf_spec; import stablebptt.tasks as t; "
+            "path = mjcf.Config(poles=3).model_path; model = mjcf_spec.load_model(path); "
             "print(t.__file__); print(path); print(model.njnt)")
     result = _run_installed(target, tmp_path, sys.executable, "-c", code)
     assert result.returncode == 0, result.stderr

@@ -11,7 +11,7 @@ wall time. Evaluation time (ours and Brax's own) is kept off the training clock.
 Variants (`--variants`, tried in order per env; later ones only if an earlier one fails or goes
 NaN, unless --all-variants): shipped | iter1 (solver iterations = 1; skipped where the shipped model
 already has 1) | noconstraint (constraint solver disabled) | saferew (Playground's reward tolerance
-with a finite derivative, stablebptt.playground.safe_tolerance, values unchanged), combined with '+',
+with a finite derivative, stablebptt.envs.playground.safe_tolerance, values unchanged), combined with '+',
 e.g. iter1+saferew. Every variant is scored on the shipped env.
 """
 
@@ -111,11 +111,11 @@ def apply_variant(env, variant: str):
 
 def reward_context(variant: str):
     """saferew: Playground's reward tolerance with the same values and a finite derivative
-    (stablebptt.playground.repaired_rewards, what stablebptt's env_task uses), while APG traces."""
+    (stablebptt.envs.playground.repaired_rewards, what stablebptt's env_task uses), while APG traces."""
     import contextlib
 
     if "saferew" in variant.split("+"):
-        from stablebptt import playground
+        from stablebptt.envs import playground
 
         return playground.repaired_rewards()
     return contextlib.nullcontext()

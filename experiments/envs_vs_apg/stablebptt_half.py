@@ -2,8 +2,8 @@
 
 The other half of the benchmark whose first half is `apg_baseline.py`: the same envs as shipped
 (`registry.load(name, config_overrides={"impl": "jax"})`, no variant: the library differentiates
-MJX's constraint solver implicitly), turned into a `Task` by `stablebptt.environments.env_task`
-and trained by `stablebptt.training.make_trainer`'s compiled update, ALL seeds of one flow in ONE
+MJX's constraint solver implicitly), turned into a `Task` by `stablebptt.envs.adapter.env_task`
+and trained by `stablebptt.engine.training.make_trainer`'s compiled update, ALL seeds of one flow in ONE
 compiled program (TrainConfig(seeds=N), seeds vmapped). Policies are scored with the shared
 `evaluation.py` at regular points of training wall time, off the training clock, exactly as
 apg_baseline.py scores APG. The training clock starts before `env_task` (its reward diagnosis,
@@ -38,9 +38,14 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import evaluation  # noqa: E402
 
-from stablebptt.environments import env_task  # noqa: E402
+from stablebptt.engine.training import (  # noqa: E402
+    PerUpdateEpoch,
+    TrainConfig,
+    make_trainer,
+    seed_array,
+)
+from stablebptt.envs.adapter import env_task  # noqa: E402
 from stablebptt.networks import mlp_apply  # noqa: E402
-from stablebptt.training import PerUpdateEpoch, TrainConfig, make_trainer, seed_array  # noqa: E402
 
 
 def apply(params, obs):

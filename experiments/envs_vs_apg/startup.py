@@ -21,9 +21,10 @@ import time
 
 import jax
 
-from stablebptt import environments, memory, training
-from stablebptt.environments import env_task, load_env
-from stablebptt.training import TrainConfig, make_trainer, seed_array
+from stablebptt.engine import memory, training
+from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
+from stablebptt.envs import adapter
+from stablebptt.envs.adapter import env_task, load_env
 
 TIMES: dict = {}  # wall seconds per phase
 CPU: dict = {}  # CPU seconds of this process per phase (all threads): comparable on a shared machine
@@ -67,9 +68,9 @@ def main(argv=None):
     jax.config.update("jax_enable_compilation_cache", False)
 
     for module, attribute, name in [
-            (environments, "diagnose_env", "env_task: diagnosis (one program)"),
-            (environments, "_sample_for_diagnosis", "env_task: diagnosis states"),
-            (environments, "diagnose_reward", "env_task: diagnosis gradient"),
+            (adapter, "diagnose_env", "env_task: diagnosis (one program)"),
+            (adapter, "_sample_for_diagnosis", "env_task: diagnosis states"),
+            (adapter, "diagnose_reward", "env_task: diagnosis gradient"),
             (training, "check_task", "make_trainer: check_task"),
             (training, "memory_plan", "make_trainer: memory plan"),
             (training, "step_size", "make_trainer: step_size"),

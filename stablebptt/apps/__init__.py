@@ -4,7 +4,7 @@
   roll out its policy.
 - ``figures``: the pictures of the tasks without a MuJoCo scene (repulsion's paths, quantum's densities).
 - ``bench``: the benchmark's options and measurements (``scripts/bench.py``).
-- ``accuracy``: the accuracy studies' options (``scripts/accuracy.py``; ``stablebptt.accuracy_report`` writes their
+- ``accuracy``: the accuracy studies' options (``scripts/accuracy.py``; ``stablebptt.reports.accuracy_report`` writes their
   report); each study in its own module (``trajectory_study``, ``gradient_study``, ``training_study``,
   ``contact_study``), what they share in ``measuring``.
 - ``studies``: each task's side of the studies and the benchmark, reached through its registry entry

@@ -1,24 +1,15 @@
 """What accuracy costs in time, measured: the options of the studies, and the studies themselves.
 
 The command line is scripts/accuracy.py (``stablebptt accuracy``), whose help
-describes the studies; ``stablebptt.accuracy_report`` turns their rows into
-tables, figures and summary.md. Each study lives in its own module, its names
-importable from here: ``trajectory_study``, ``gradient_study``, ``training_study``,
-``contact_study``, and what they share, ``measuring``.
+describes the studies; ``stablebptt.reports.accuracy_report`` turns their rows into
+tables, figures and summary.md. Each study lives in its own module: ``trajectory_study``,
+``gradient_study``, ``training_study``, ``contact_study``, and what they share, ``measuring``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 from stablebptt.errors import InputError
-
-# The studies' names, importable from here where they lived before.
-from stablebptt.apps.contact_study import contact_settings, contact_study
-from stablebptt.apps.gradient_study import GradientSetup, gradient_setups, gradient_study
-from stablebptt.apps.measuring import (PRECISIONS, Call, cast, compile_call, flat_states, policy_params,
-                                       precision, rollout_program, run_once, time_round_robin, to_numpy, tree_norm)
-from stablebptt.apps.trajectory_study import TrajectorySetup, trajectory_setups, trajectory_study
-from stablebptt.apps.training_study import training_study, training_task
 
 TASKS = ("cartpole", "repulsion", "quantum")  # the default --tasks: the built-in tasks with study set-ups
 
@@ -59,7 +50,7 @@ def check_tasks(config: AccuracyConfig) -> None:
       InputError: naming the task and what is missing.
     """
     from stablebptt import tasks
-    from stablebptt.apps.studies import required_hook
+    from stablebptt.apps.study_hooks import required_hook
     for name in (*config.task_list, config.train_task):
         if tasks.canonical(name) not in tasks.entries():
             raise InputError(f"unknown task {name!r}: choose from {', '.join(sorted(tasks.entries()))}")
@@ -69,20 +60,4 @@ def check_tasks(config: AccuracyConfig) -> None:
                 required_hook(name, function, study)
 
 
-_MOVED = {  # per-task set-ups that lived here before: now each task's studies module (stablebptt.apps.studies)
-    "cartpole_setup": "cartpole", "CARTPOLE_DURATION": "cartpole", "repulsion_setup": "repulsion",
-    "REPULSION_DURATION": "repulsion", "quantum_setup": "quantum", "QUANTUM_DURATION": "quantum",
-}
 
-
-def __getattr__(name: str):
-    if name in _MOVED:
-        import importlib
-        return getattr(importlib.import_module(f"stablebptt.apps.studies.{_MOVED[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-__all__ = ["TASKS", "AccuracyConfig", "check_tasks", "contact_settings", "contact_study", "GradientSetup", "gradient_setups",
-           "gradient_study", "PRECISIONS", "Call", "cast", "compile_call", "flat_states", "policy_params", "precision",
-           "rollout_program", "run_once", "time_round_robin", "to_numpy", "tree_norm",
-           "TrajectorySetup", "trajectory_setups", "trajectory_study", "training_study", "training_task"]

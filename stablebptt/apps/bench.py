@@ -84,7 +84,7 @@ class BenchCase:
 def bench_cases(task: str, config: BenchConfig) -> list[BenchCase]:
     """What the benchmark times of ``task``: its studies module's ``bench_cases``, else its defaults."""
     from stablebptt import tasks
-    from stablebptt.apps.studies import hook
+    from stablebptt.apps.study_hooks import hook
     module = tasks.load(task)
     cases = hook(task, "bench_cases")
     if cases is not None:
@@ -95,8 +95,10 @@ def make_update(task, mode, batch_size, plain=False, with_cosine=False):
     """A jitted update: gradient (one-pass flows, or plain jax.grad), clip, Adam."""
     import jax
     import optax
-    from stablebptt.flows import flow_gradients, flows_needed, reference_loss
-    from stablebptt.training import TrainConfig, make_optimizer
+
+    from stablebptt.engine.training import TrainConfig, make_optimizer
+    from stablebptt.flows.gradients import flow_gradients, reference_loss
+    from stablebptt.flows.modes import flows_needed
 
     flows = flows_needed(mode, with_cosine)
     optimizer = make_optimizer(TrainConfig(mode=mode), flows)
@@ -132,12 +134,12 @@ def time_variants(variants: dict, rounds: int) -> dict[str, tuple[float, float]]
 
 def combined_modes() -> list[str]:
     """The modes that combine several flows (``flows.MODE_TABLE``), which share one forward rollout."""
-    from stablebptt.flows import MODE_TABLE
+    from stablebptt.flows.modes import MODE_TABLE
     return [mode.name for mode in MODE_TABLE.values() if len(mode.flows) > 1]
 
 
 def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
-    from stablebptt.flows import MODE_TABLE, MODES
+    from stablebptt.flows.modes import MODE_TABLE, MODES
     regular = MODES[0]  # regular BPTT, the baseline of every ratio
     variants = {f"{regular} plain": make_update(task, regular, batch, plain=True)}
     variants.update({mode: make_update(task, mode, batch) for mode in MODES})
@@ -153,11 +155,3 @@ def mode_table(title: str, task, batch: int, rounds: int) -> list[str]:
         lines.append(f"{mode} / {regular} = {times[mode][0] / times[regular][0]:.2f} "
                      f"({mode} needs {needs}, all from one forward rollout).")
     return lines + [""]
-
-
-def __getattr__(name: str):
-    # The cart-pole's steps table lived here before stablebptt.apps.studies.cartpole.
-    if name in ("SIMULATORS", "pipeline_table", "parts_table"):
-        from stablebptt.apps.studies import cartpole
-        return getattr(cartpole, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -11,6 +11,7 @@ from stablebptt.apps.measuring import compile_call, precision, time_round_robin
 
 if TYPE_CHECKING:
     import numpy as np
+
     from stablebptt.apps.accuracy import AccuracyConfig
 
 
@@ -67,14 +68,16 @@ def contact_study(config: AccuracyConfig, log: Callable, done: list[dict] = (),
 
     Rows in ``done`` (an earlier, interrupted call's) are kept and not measured again; ``on_row`` gets
     all rows after each new one, so a long study can be stopped and resumed."""
+    from pathlib import Path
+
     import jax
     import jax.numpy as jnp
     import mujoco
     import numpy as np
-    from pathlib import Path
-    from stablebptt import lean_step, scene
-    from stablebptt.flows import step_jacobians
-    from stablebptt.tasks.mjcf import load_model
+
+    from stablebptt.flows.linearized import step_jacobians
+    from stablebptt.physics import lean_step, scene
+    from stablebptt.tasks.mjcf_spec import load_model
 
     rows = list(done)
     measured = {(row["model"], row["setting"]) for row in rows}

@@ -3,7 +3,7 @@
 Every function takes NumPy rollouts with the initial state first (``[N, T+1, ...]``
 for N rollouts of T steps) and draws on matplotlib's Agg canvas: no pyplot, no
 display. ``*_paths`` / ``*_density`` write a PNG; ``*_frames`` return the frames of
-an animation, uint8 [T+1, H, W, 3], for ``stablebptt.media.write_video``.
+an animation, uint8 [T+1, H, W, 3], for ``stablebptt.render.media.write_video``.
 
     repulsion_paths(positions, "paths.png", physics=repulsion.Physics())
     frames = quantum_frames(states, controls, dt=0.0625, target=3)
@@ -21,9 +21,9 @@ from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from stablebptt.plots import render
-from stablebptt.drawing import DrawRequest
-from stablebptt.media import figure_pixels, write_video
+from stablebptt.render.drawing import DrawRequest
+from stablebptt.render.media import figure_pixels, write_video
+from stablebptt.reports.plots import render
 from stablebptt.tasks import quantum, repulsion
 
 # Okabe-Ito colours (readable with colour blindness), as the learning curves use.

@@ -6,7 +6,16 @@ import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
-from stablebptt.apps.measuring import PRECISIONS, cast, compile_call, policy_params, precision, run_once, to_numpy, tree_norm
+from stablebptt.apps.measuring import (
+    PRECISIONS,
+    cast,
+    compile_call,
+    policy_params,
+    precision,
+    run_once,
+    to_numpy,
+    tree_norm,
+)
 
 if TYPE_CHECKING:
     from stablebptt.apps.accuracy import AccuracyConfig
@@ -35,7 +44,7 @@ class GradientSetup:
 
 def gradient_setups(config: AccuracyConfig) -> list[GradientSetup]:
     """Each task's set-up, from its studies module (``gradient_setup``); a task without one is refused."""
-    from stablebptt.apps.studies import required_hook
+    from stablebptt.apps.study_hooks import required_hook
     return [required_hook(name, "gradient_setup", "gradient")(config) for name in config.task_list]
 
 
@@ -43,7 +52,8 @@ def gradient_study(setup: GradientSetup, config: AccuracyConfig, log: Callable) 
     """Rows (one per regime, horizon, flow and precision): gradient norm, and float32's error against float64."""
     import jax
     import numpy as np
-    from stablebptt.flows import flow_gradients
+
+    from stablebptt.flows.gradients import flow_gradients
 
     flows = ("R", "M")  # the study's subject, not a list of modes: how g_R grows against g_M, the physics path
     with precision(64):

@@ -48,7 +48,7 @@ def resolve_models(names: list[str], suite: str) -> list[tuple[str, Path]]:
 def resolve_envs(names: list[str]) -> list[str]:
     """The environments as given, a MuJoCo Playground name checked against its registry (package.module:attribute
     is imported only by the training process)."""
-    from stablebptt import playground
+    from stablebptt.envs import playground
     for name in names:
         if ":" not in name:
             playground.check_name(name)

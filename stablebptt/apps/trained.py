@@ -12,11 +12,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from stablebptt import run_models, runs
 from stablebptt.cli import build
+from stablebptt.engine.task import Task
+from stablebptt.engine.training import (
+    TrainConfig,
+    compiler_options,
+    large_step,
+    sample_states,
+)
 from stablebptt.errors import InputError
+from stablebptt.runs import model_store, run_folder
 from stablebptt.tasks import canonical, entries, entry
-from stablebptt.training import Task, TrainConfig, compiler_options, large_step, sample_states
 
 
 @dataclass(frozen=True)
@@ -48,7 +54,7 @@ class ReopenedRun:
         return jax.tree.map(lambda leaf: np.asarray(leaf)[seed_index], self.params)
 
 
-# The name this class had before; ``stablebptt.Trained`` is what ``train`` returns (stablebptt.fitting).
+# The name this class had before; ``stablebptt.Trained`` is what ``train`` returns (stablebptt.engine.fitting).
 Trained = ReopenedRun
 
 
@@ -62,12 +68,12 @@ def configs_of(run_dir: Path, record: dict, train_changes: dict | None = None,
     Raises:
       InputError: an unknown task, values of the wrong type, or a model file changed since the run.
     """
-    source = str(Path(run_dir) / runs.CONFIG_FILE)
+    source = str(Path(run_dir) / run_folder.CONFIG_FILE)
     if canonical(record["task"]) not in entries():
         raise InputError(f"{source} names the task {record['task']!r}, which is none of {', '.join(sorted(entries()))}")
     module = entry(record["task"]).load()
     task_values = dict(record["task_config"])
-    model_file, moved = run_models.model_to_reopen(Path(run_dir), record)
+    model_file, moved = model_store.model_to_reopen(Path(run_dir), record)
     if model_file is not None and "model" in task_values:
         task_values["model"] = model_file
         if moved:
@@ -88,19 +94,19 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     import jax
 
     run_dir = Path(run_dir)
-    record = runs.open_run(run_dir)
+    record = run_folder.open_run(run_dir)
     task_config, train = configs_of(run_dir, record, note=note)
     task_entry = entry(record["task"])
-    if not (run_dir / runs.PARAMS_FILE).is_file():
-        raise InputError(f"{run_dir} has no {runs.PARAMS_FILE}: the run has not finished an epoch yet")
+    if not (run_dir / run_folder.PARAMS_FILE).is_file():
+        raise InputError(f"{run_dir} has no {run_folder.PARAMS_FILE}: the run has not finished an epoch yet")
     jax.config.update("jax_enable_x64", train.x64)  # before any array, as the run was trained
     module = task_entry.load()
     task = module.make(getattr(module, "for_reopening", lambda config: config)(task_config))
     keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)
     template = jax.vmap(lambda key: task.init_params(key, train.zero_output))(keys)
-    params = runs.load_params(run_dir / runs.PARAMS_FILE, template)
+    params = run_folder.load_params(run_dir / run_folder.PARAMS_FILE, template)
     try:  # the epochs params.npz holds: fewer than configured when the run was stopped early
-        epochs = f", {int(max(row['epoch'] for row in runs.read_metrics(run_dir / runs.METRICS_FILE)))} epochs"
+        epochs = f", {int(max(row['epoch'] for row in run_folder.read_metrics(run_dir / run_folder.METRICS_FILE)))} epochs"
     except (OSError, ValueError, KeyError, TypeError):
         epochs = ""
     label = f"{task_entry.label(task_config)}, mode {train.mode}{epochs}"
@@ -113,7 +119,8 @@ def rollouts_from_test_states(task: Task, train: TrainConfig, params: Any, count
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from stablebptt.flows import reference_rollout
+
+    from stablebptt.flows.gradients import reference_rollout
 
     _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))  # make_trainer's split of the data seed
     initial = jax.tree.map(lambda a: a[:count], sample_states(task, test_key, train.test_size))

@@ -15,7 +15,7 @@ def training_task_config(name: str):
     """The training study's configuration of the task ``name``: its studies module's ``training_config``, else
     the defaults."""
     from stablebptt import tasks
-    from stablebptt.apps.studies import hook
+    from stablebptt.apps.study_hooks import hook
     module = tasks.load(name)
     configure = hook(name, "training_config")
     return configure(module) if configure is not None else module.Config()
@@ -36,8 +36,9 @@ def training_study(config: AccuracyConfig, log: Callable) -> list[dict]:
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from stablebptt.flows import MODES
-    from stablebptt.training import TrainConfig, make_trainer, seed_array
+
+    from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
+    from stablebptt.flows.modes import MODES
 
     def upcast(tree):  # inside precision(64)
         return jax.tree.map(lambda a: jnp.asarray(a, jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a, tree)

@@ -6,8 +6,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
-from stablebptt.apps.measuring import (PRECISIONS, cast, compile_call, flat_states, policy_params, precision,
-                                      rollout_program, run_once, time_round_robin, to_numpy)
+from stablebptt.apps.measuring import (
+    PRECISIONS,
+    cast,
+    compile_call,
+    flat_states,
+    policy_params,
+    precision,
+    rollout_program,
+    run_once,
+    time_round_robin,
+    to_numpy,
+)
 
 if TYPE_CHECKING:
     from stablebptt.apps.accuracy import AccuracyConfig
@@ -42,7 +52,7 @@ class TrajectorySetup:
 
 def trajectory_setups(config: AccuracyConfig) -> list[TrajectorySetup]:
     """Each task's set-up, from its studies module (``trajectory_setup``); a task without one is refused."""
-    from stablebptt.apps.studies import required_hook
+    from stablebptt.apps.study_hooks import required_hook
     return [required_hook(name, "trajectory_setup", "trajectory")(config) for name in config.task_list]
 
 
@@ -50,7 +60,8 @@ def trajectory_study(setup: TrajectorySetup, config: AccuracyConfig, log: Callab
     """Rows (one per integrator, dt and precision): final-state error and time per simulated second."""
     import jax
     import numpy as np
-    from stablebptt.flows import flow_gradients
+
+    from stablebptt.flows.gradients import flow_gradients
 
     rng = np.random.default_rng(config.seed)
     with precision(64):  # float64 initial states; float32 runs start from their rounding

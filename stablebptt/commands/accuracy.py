@@ -31,11 +31,12 @@ import sys
 import time
 from pathlib import Path
 
-from stablebptt import accuracy_report
-from stablebptt.accuracy_report import STUDIES
-from stablebptt.cli import fail, parse_config
 from stablebptt.apps.accuracy import AccuracyConfig, check_tasks
+from stablebptt.cli import fail, parse_config
 from stablebptt.errors import InputError
+from stablebptt.reports import accuracy_report
+from stablebptt.reports.accuracy_report import STUDIES
+
 
 def parse(argv: list[str]) -> AccuracyConfig:
     config = parse_config(AccuracyConfig, argv, __doc__, "accuracy study")
@@ -75,10 +76,14 @@ def main(argv: list[str]) -> int:
                                      epochs=min(config.epochs, 3), train_size=16)
 
     import os
+
     import jax
+
+    from stablebptt.apps.contact_study import contact_study
+    from stablebptt.apps.gradient_study import gradient_setups, gradient_study
+    from stablebptt.apps.training_study import training_study
+    from stablebptt.apps.trajectory_study import trajectory_setups, trajectory_study
     from stablebptt.storage import write_json
-    from stablebptt.apps.accuracy import (contact_study, gradient_setups, gradient_study, trajectory_setups,
-                                          trajectory_study, training_study)
 
     started = time.perf_counter()
     log = lambda message: print(message, file=sys.stderr, flush=True)

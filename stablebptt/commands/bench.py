@@ -10,7 +10,7 @@
 Per task, one update (gradient of a batch-8 rollout, then clip and Adam) per mode:
 R, M, S and C through the one-pass flows, and "R plain": jax.grad of the plain
 rollout with no flow machinery, the baseline the ratios divide by. For the
-cart-pole, also its steps: the default one generated body by body (stablebptt/tree.py),
+cart-pole, also its steps: the default one generated body by body (stablebptt/physics/rigid_body.py),
 MJX's stages the scene needs (differentiated through inverse dynamics), the same
 differentiated by plain autodiff through the mass matrix and its solve, the same
 with MJX's dense mass matrix, mjx.step with MuJoCo's default flags, and

@@ -6,7 +6,7 @@
     python scripts/plot.py runs/c --band std --out c.pdf
 
 One run directory: the figure goes to learning_curves.png inside it (the file
-stablebptt.plots.plot_run writes at the end of a run) unless --out says otherwise. Several run directories: the
+stablebptt.reports.plots.plot_run writes at the end of a run) unless --out says otherwise. Several run directories: the
 comparison needs --out, so that it never lands in one run's directory. The
 figure is derived from config.json and metrics.csv, so it is replaced
 (atomically) whenever it is drawn again. A metrics.csv that is missing, empty or
@@ -22,6 +22,7 @@ from pathlib import Path
 
 from stablebptt.cli import Parser, fail
 from stablebptt.errors import InputError
+
 
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -42,7 +43,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
 
 def main(argv: list[str]) -> int:
     args = parse(argv)
-    from stablebptt import plots  # after parsing: matplotlib is slow to import, --help should not wait for it
+    from stablebptt.reports import (
+        plots,  # after parsing: matplotlib is slow to import, --help should not wait for it
+    )
 
     out = args.out if args.out is not None else args.run_dirs[0] / plots.FIGURE_FILE
     if out.is_dir():

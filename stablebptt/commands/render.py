@@ -8,7 +8,7 @@
 
 The controller is rolled out from the run's first test initial states, one video
 frame per step, the rollouts side by side (how MuJoCo scenes are drawn:
-stablebptt/rendering.py, stablebptt/drawing.py). Existing files are never overwritten: default names
+stablebptt/render/mujoco_frames.py, stablebptt/render/drawing.py). Existing files are never overwritten: default names
 get a suffix -2, -3, ...; an existing --out is refused.
 """
 from __future__ import annotations
@@ -20,8 +20,8 @@ from datetime import datetime
 from pathlib import Path
 
 from stablebptt.cli import Parser, add_options, build, fail, one_line_errors
-from stablebptt.media import fresh_outputs
 from stablebptt.errors import InputError
+from stablebptt.render.media import fresh_outputs
 
 RENDERS_ROOT = Path("renders")
 STEM = "rollout"  # default name of the files written into a run directory
@@ -76,9 +76,10 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, RenderConfig]:
 def build_controller(args, config: RenderConfig):
     """(task name, task config, train config, task, parameters of one seed, label) of the run or the --model."""
     import jax
+
     from stablebptt import tasks
     from stablebptt.apps.trained import open_trained
-    from stablebptt.training import TrainConfig
+    from stablebptt.engine.training import TrainConfig
 
     if args.run_dir is None:
         module = tasks.load(tasks.MJCF_TASK)
@@ -97,8 +98,10 @@ def main(argv: list[str]) -> int:
     with one_line_errors():
         from stablebptt import tasks
         if args.run_dir is not None:
-            from stablebptt import runs  # imports JAX: only once there is a run to read
-            task_name = runs.open_run(args.run_dir)["task"]
+            from stablebptt.runs import (
+                run_folder,  # imports JAX: only once there is a run to read
+            )
+            task_name = run_folder.open_run(args.run_dir)["task"]
         else:
             if not args.model.is_file():
                 raise InputError(f"model file {args.model} does not exist")
@@ -111,7 +114,7 @@ def main(argv: list[str]) -> int:
         video, picture = fresh_outputs(args.out, default_stem, entry.picture, config.gif, config.video)
         if entry.mujoco_frames:
             # Before mujoco is imported: it reads MUJOCO_GL once.
-            from stablebptt.gl_backend import select_gl_backend
+            from stablebptt.render.gl_backend import select_gl_backend
             select_gl_backend()
 
     from stablebptt.cli import leave_out_unused_backends, use_compile_cache
@@ -124,7 +127,7 @@ def main(argv: list[str]) -> int:
         fail(str(error))
 
     from stablebptt.apps.trained import first_nonfinite_step, rollouts_from_test_states
-    from stablebptt.drawing import DrawRequest, DrawSettings
+    from stablebptt.render.drawing import DrawRequest, DrawSettings
     states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
     for index, step in enumerate(first_nonfinite_step(states)):
         if step >= 0:  # a diverged rollout has nothing to draw

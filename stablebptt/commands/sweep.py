@@ -11,7 +11,7 @@
 A preset varies a task's complexity; any other task (--model, --env, --task and its
 options, as train.py takes them) varies the learning rate (--lrs). What shares a
 program, how programs spread over devices and hosts, and what each cell leaves:
-stablebptt/grid.py; pieces: stablebptt/grid_pieces.py. Results land in OUT/NAME/
+stablebptt/grids/grid.py; pieces: stablebptt/grids/pieces.py. Results land in OUT/NAME/
 (NAME: the preset, or the task's name, e.g. the model file's): one run folder per
 (value, mode, clip) with the seeds as rows, summary.csv, test_loss.csv, table.md,
 intervals.md (C - R and C - M with 95% bootstrap intervals), verdicts.txt,
@@ -23,15 +23,25 @@ import argparse
 import dataclasses
 import functools
 import math
-import typing
 import sys
 import time
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from stablebptt import tasks
-from stablebptt.cli import (Parser, add_options, build, fail, in_worker_thread, leave_out_unused_backends, one_line_errors,
-                            option_name, out_of_memory, stop_on_signals)
+from stablebptt.cli import (
+    Parser,
+    add_options,
+    build,
+    fail,
+    in_worker_thread,
+    leave_out_unused_backends,
+    one_line_errors,
+    option_name,
+    out_of_memory,
+    stop_on_signals,
+)
 from stablebptt.commands import task_options
 from stablebptt.errors import InputError
 
@@ -86,6 +96,7 @@ def start_processes(config: SweepConfig) -> None:
     if all(given) and not (config.num_processes > 0 and 0 <= config.process_id < config.num_processes):
         fail(f"--process-id must be 0 to --num-processes - 1 ({config.num_processes - 1}), got {config.process_id}")
     import jax
+
     from stablebptt.cli import use_compile_cache
     use_compile_cache(config.compile_cache)
     if all(given):
@@ -146,13 +157,13 @@ def plan_grid(config: SweepConfig, task_name: str | None, given: dict) -> Plan:
         return Plan(task_name, option, values, "", make_task, build_config, preset, SCORES.get(task_name, LOSS))
     if config.complexity:
         fail("--complexity chooses among a preset's complexities; a grid over --model, --env or --task varies --lrs")
-    from stablebptt.training import TrainConfig
+    from stablebptt.engine.training import TrainConfig
     values = parse_list(config.lrs, None, "lrs", float) if config.lrs else [TrainConfig.lr]
     if not all(math.isfinite(v) and v > 0 for v in values):
         fail(f"--lrs takes positive learning rates, got {config.lrs}")
     with one_line_errors():
         fixed = task_options.task_config(task_name, given)
-        from stablebptt.checks import check_options
+        from stablebptt.engine.checks import check_options
         check_options(TrainConfig(), fixed)  # task options that make each other meaningless
         task = tasks.load(task_name).make(fixed)  # built once: the learning rate does not change it
     return Plan(task_name, "lr", values, "lr", lambda value: task, lambda value: fixed, task.name,
@@ -167,7 +178,8 @@ SCORES = {"env": ("episode return", -1.0)}
 def main(argv: list[str]) -> int:
     leave_out_unused_backends()  # before parsing, which imports the tasks and MJX with them
     config, task_name, given = parse(argv)
-    from stablebptt.training import CLIP_MODES, MODES
+    from stablebptt.engine.training import CLIP_MODES
+    from stablebptt.flows.modes import MODES
     modes = parse_list(config.modes, MODES, "modes")
     clips = parse_list(config.clips, CLIP_MODES, "clips")
     if config.unroll < 0:
@@ -180,13 +192,14 @@ def main(argv: list[str]) -> int:
             fail(f"--{name.replace('_', '-')} must be a number of seconds, 0 or more, got {getattr(config, name)}")
     if config.seed_range and (config.merge or config.report):
         fail("--seed-range trains a piece; --merge and --report train nothing: give one")
-    from stablebptt.grid_pieces import parse_seed_range
+    from stablebptt.grids.pieces import parse_seed_range
     with one_line_errors():
         start, stop = parse_seed_range(config.seed_range, config.seeds) if config.seed_range else (0, config.seeds)
     plan = plan_grid(config, task_name, given)
     root = Path(config.out) / plan.name
-    from stablebptt import grid as grids
-    from stablebptt import grid_pieces, grid_report
+    from stablebptt.grids import grid as grids
+    from stablebptt.grids import pieces as grid_pieces
+    from stablebptt.grids import report as grid_report
 
     identity = {"task_steps": config.task_steps, **({"task_options": given} if given else {})}
     grid = grids.Grid(
@@ -263,13 +276,15 @@ FIRST_SEED = 42  # the grid's seeds are FIRST_SEED, FIRST_SEED + 1, ...
 
 def merge(grid, grids, root: Path, seeds: int) -> int:
     """The pieces under ``root`` -> the grid's cells in ``root``; returns how many pieces were merged."""
-    from stablebptt import grid_pieces, grid_report, run_models
+    from stablebptt.grids import pieces as grid_pieces
+    from stablebptt.grids import report as grid_report
+    from stablebptt.runs import model_store
     whole = dataclasses.replace(grid, seeds=tuple(FIRST_SEED + s for s in range(seeds)))
     names = [grid_report.cell_name(grid.task_name, grid.option, value, mode, clip)
              for value in grid.values for mode in grid.modes for clip in grid.clips]
     folders = grid_pieces.check_pieces(root, grids.describe(grid, FIRST_SEED, seeds), names)
     grids.check_cells_are_this_grids(grids.plan(whole, root), whole, root)
-    shared = run_models.SharedModels(root)  # each model compiled and kept once for all the cells
+    shared = model_store.SharedModels(root)  # each model compiled and kept once for all the cells
     for name in names:
         grid_pieces.merge_cell(folders, name, root, grids.write_cell, shared)
     return len(folders)

@@ -7,7 +7,7 @@ Adam minimises L(x, y) = (x^2 + a y^2) / 2 driven by three vector fields with
 the same zero at the minimum: the gradient (like R), the gradient rotated by
 ``--angle`` degrees (like M: balanced but rotational, not a gradient of any
 loss), and their element-wise sign-agreement combination (like C, through
-stablebptt.flows.sign_agreement).
+stablebptt.flows.gradients.sign_agreement).
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from pathlib import Path
 
 from stablebptt.cli import parse_config
 from stablebptt.errors import InputError
+
 
 @dataclass(frozen=True)
 class ToyConfig:
@@ -40,8 +41,9 @@ def main(argv: list[str]) -> int:
     import numpy as np
     import optax
     from matplotlib.figure import Figure
-    from stablebptt.flows import sign_agreement
-    from stablebptt.plots import render
+
+    from stablebptt.flows.modes import sign_agreement
+    from stablebptt.reports.plots import render
 
     curvature = jnp.array([1.0, config.anisotropy])
     loss = lambda p: 0.5 * jnp.sum(curvature * p**2)

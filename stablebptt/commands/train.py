@@ -14,9 +14,19 @@ import time
 from pathlib import Path
 
 from stablebptt import tasks
-from stablebptt.cli import Parser, add_options, build, fail, leave_out_unused_backends, one_line_errors, option_name
+from stablebptt.cli import (
+    Parser,
+    add_options,
+    build,
+    fail,
+    leave_out_unused_backends,
+    one_line_errors,
+    option_name,
+)
 from stablebptt.commands import task_options
-from stablebptt.training import TrainConfig
+from stablebptt.engine import metrics
+from stablebptt.engine.training import TrainConfig
+from stablebptt.runs import epochs
 
 RUNS_ROOT = Path("runs")
 RESUMABLE = {"epochs"}  # what --resume may change: extending a finished run
@@ -42,16 +52,16 @@ def configure(args, owners):
         changed = sorted(set(given) - RESUMABLE)
         if changed or args.out is not None or args.task is not None:
             fail(f"--resume continues a run with its saved configuration; only --epochs may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
-        from stablebptt import runs
         from stablebptt.apps.trained import configs_of
-        record = runs.open_run(args.resume)
+        from stablebptt.runs import run_folder
+        record = run_folder.open_run(args.resume)
         task_name = tasks.canonical(record["task"])
         task_config, train_config = configs_of(args.resume, record, given)
         return task_name, task_config, train_config, args.resume, record
     task_name = task_options.choose_task(args, owners, "train")
     train_config = build(TrainConfig, {"epochs": tasks.load(task_name).DEFAULT_EPOCHS, **given})
     task_config = task_options.task_config(task_name, given)
-    from stablebptt.checks import check_options
+    from stablebptt.engine.checks import check_options
     check_options(train_config, task_config)  # a resumed run keeps what it recorded
     return task_name, task_config, train_config, args.out, None
 
@@ -77,17 +87,19 @@ def train(argv: list[str], held: list) -> int:
     from stablebptt.cli import use_compile_cache
     use_compile_cache(args.compile_cache)
     import numpy as np
-    from stablebptt import fitting, runs
+
+    from stablebptt.engine import fitting
+    from stablebptt.engine.program_store import run_key
+    from stablebptt.engine.training import make_trainer, seed_array
     from stablebptt.errors import StorageError
-    from stablebptt.program_store import run_key
-    from stablebptt.training import make_trainer, seed_array
+    from stablebptt.runs import run_folder
 
     module = tasks.load(task_name)
     with one_line_errors():
         if record is not None:
-            held.append(runs.Run.open(run_dir, record))
+            held.append(run_folder.Run.open(run_dir, record))
         elif run_dir is not None:
-            runs.refuse_used(run_dir)  # at once; a new run's folder is claimed once its task is settled
+            run_folder.refuse_used(run_dir)  # at once; a new run's folder is claimed once its task is settled
         # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
         task = getattr(module, "make_deferred", module.make)(task_config)
     program_key = run_key(module, task_name, task_config, train_config)  # an identical run reuses its programs
@@ -101,8 +113,8 @@ def train(argv: list[str], held: list) -> int:
     with one_line_errors():
         task = task.settled()  # a reward without a usable gradient is refused here, before any folder is made
         if record is None:
-            run_dir = run_dir or runs.default_run_dir(RUNS_ROOT, task.name)  # named as it is claimed
-            held.append(runs.Run.create(run_dir, runs.new_record(task_name, task_config, task, train_config)))
+            run_dir = run_dir or run_folder.default_run_dir(RUNS_ROOT, task.name)  # named as it is claimed
+            held.append(run_folder.Run.create(run_dir, run_folder.new_record(task_name, task_config, task, train_config)))
     run = held[0]
     seeds = np.asarray(seed_array(train_config))
     with one_line_errors():
@@ -114,16 +126,21 @@ def train(argv: list[str], held: list) -> int:
     if task.summary:
         print(task.summary)
     if start_epoch == train_config.epochs and resuming:
-        mean, std = runs.final_mean_std(rows) if len(rows) else (float("nan"), 0.0)
+        mean, std = metrics.final_mean_std(rows) if len(rows) else (float("nan"), 0.0)
         print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
         return 0
 
-    from stablebptt.cli import EpochProgress, in_worker_thread, out_of_memory, stop_on_signals
+    from stablebptt.cli import (
+        EpochProgress,
+        in_worker_thread,
+        out_of_memory,
+        stop_on_signals,
+    )
     progress = EpochProgress(started, train_config.epochs, start_epoch, train_config.train_size // train_config.batch,
                              f"{task_label} {train_config.mode}", args.no_progress)
     try:
         with stop_on_signals(progress.write) as should_stop:
-            outcome = in_worker_thread(lambda: fitting.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
+            outcome = in_worker_thread(lambda: epochs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
                                                                    progress.on_epoch, progress.on_compiled, should_stop,
                                                                    run.owner, program_key, lowered))
     except StorageError as error:
@@ -141,9 +158,9 @@ def train(argv: list[str], held: list) -> int:
     if outcome.status == "interrupted":
         print(outcome.message, file=sys.stderr)
         return 130
-    from stablebptt.plots import plot_run
+    from stablebptt.reports.plots import plot_run
     plot_run(run_dir)
-    mean, std = runs.final_mean_std(outcome.rows)
+    mean, std = metrics.final_mean_std(outcome.rows)
     spread = f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
     print(f"done: {task_label}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")
     return 0

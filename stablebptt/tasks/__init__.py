@@ -1,11 +1,11 @@
 """The task registry: what the command line needs to know about each task.
 
 A task is a module with ``Config`` (a typed dataclass: its command-line
-options), ``make(config) -> stablebptt.training.Task`` and ``DEFAULT_EPOCHS``
+options), ``make(config) -> stablebptt.engine.training.Task`` and ``DEFAULT_EPOCHS``
 (optionally ``for_reopening(config) -> config``: the configuration that rebuilds
 a trained run's task, checks that only matter before training left out; and
 ``program_inputs(config) -> dict | None``: what its compiled programs read besides
-the library and the config, so that ``stablebptt.program_store`` may keep them),
+the library and the config, so that ``stablebptt.engine.program_store`` may keep them),
 described by an ``Entry``: how to name a configuration, how to draw its
 rollouts, which grids the sweep offers. Entries import nothing: a task's module
 (and MuJoCo with it) is imported only when the task is used, so rendering can
@@ -54,7 +54,7 @@ class Entry:
       module: import path of the module with ``Config``, ``make`` and ``DEFAULT_EPOCHS``.
       label: a configuration in a few words, for titles (``label(config) -> str``).
       draw: ``"module:function"`` (or the function) drawing rollouts, ``draw(request) -> [written paths]``
-        with ``request`` a ``stablebptt.drawing.DrawRequest``: the task config, the rollouts' states
+        with ``request`` a ``stablebptt.render.drawing.DrawRequest``: the task config, the rollouts' states
         [N, T+1, ...] and controls [N, T, ...] (NumPy), a title per rollout, a label, the
         ``DrawSettings`` (panel width and height, fps, strip_states), and the video (None: none)
         and picture to write. Empty: not drawable. A function of the earlier eight positional
@@ -106,7 +106,7 @@ def _adapt_positional(draw: Callable) -> Callable:
 
 _BUILTIN = (
     Entry("mjcf", "stablebptt.tasks.mjcf", label=lambda c: c.model_path.name,
-          draw="stablebptt.drawing:draw_mujoco_rollouts", picture="strip", mujoco_frames=True,
+          draw="stablebptt.render.drawing:draw_mujoco_rollouts", picture="strip", mujoco_frames=True,
           presets={"cartpole": ("poles", (1, 2, 3, 4))}, gpu_unroll=5, studies="stablebptt.apps.studies.cartpole"),
     Entry("repulsion", "stablebptt.tasks.repulsion", label=lambda c: f"repulsion, rc={c.rc:g}",
           draw="stablebptt.apps.figures:draw_repulsion", picture="paths",
@@ -117,7 +117,7 @@ _BUILTIN = (
           draw="stablebptt.apps.figures:draw_quantum", picture="density",
           presets={"quantum": ("target", (3, 4, 5))}, gpu_unroll=8, studies="stablebptt.apps.studies.quantum"),
     Entry("env", "stablebptt.tasks.env", label=lambda c: c.env or "an environment",
-          draw="stablebptt.drawing:draw_env_rollouts", picture="strip", mujoco_frames=True),
+          draw="stablebptt.render.drawing:draw_env_rollouts", picture="strip", mujoco_frames=True),
 )
 _REGISTRY: dict[str, Entry] = {}
 _discovered = False

@@ -5,16 +5,16 @@
 
 The loss of a training rollout is its negative return; every epoch's train and
 test losses are the negative episode return from fresh resets, as Playground
-and Brax report it (``stablebptt.environments``).
+and Brax report it (``stablebptt.envs.adapter``).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
 
-from stablebptt.environments import env_task, load_env
+from stablebptt.engine.task import Task
+from stablebptt.envs.adapter import env_task, load_env
 from stablebptt.errors import InputError, config_field
-from stablebptt.training import Task
 
 DEFAULT_EPOCHS = 200
 DEFAULT_STEPS = 100
@@ -59,7 +59,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
     env = load_env(config.env)
     dense = ""
     if ":" not in config.env:  # a name of MuJoCo Playground's registry (load_env has imported it)
-        from stablebptt import playground
+        from stablebptt.envs import playground
         dense = playground.dense_variant(config.env)
     # A registry env's name and the package versions say what its reward computes: its diagnosis is
     # kept for an identical later run, like its programs.

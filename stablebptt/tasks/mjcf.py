@@ -25,22 +25,28 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stablebptt import models, simulator
+from stablebptt import models
+from stablebptt.engine.task import Task
 from stablebptt.errors import InputError, config_field
-from stablebptt.flows import Dynamics, Plan
-from stablebptt.mjx_internals import mjx
+from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.networks import mlp_apply, mlp_init
-from stablebptt.lean_step import State
-from stablebptt.simulator import SimulatorConfig
+from stablebptt.physics import simulator
+from stablebptt.physics.lean_step import State
+from stablebptt.physics.mjx_internals import mjx
+from stablebptt.physics.simulator import SimulatorConfig
 from stablebptt.tasks import mjcf_spec
-from stablebptt.tasks.mjcf_spec import (BALL, DEFAULT_SPREAD, FREE, HINGE, MAX_HORIZON, SLIDE, Spec, joint_names,
-                                        load_model)
-from stablebptt.training import Task
+from stablebptt.tasks.mjcf_spec import (
+    BALL,
+    FREE,
+    HINGE,
+    MAX_HORIZON,
+    SLIDE,
+    Spec,
+    joint_names,
+    load_model,
+)
 
 # The MJCF reading of tasks.mjcf_spec is part of this task's interface too.
-__all__ = ["DEFAULT_EPOCHS", "DEFAULT_SPREAD", "MAX_HORIZON", "MODELS", "TASK_FILE_OPTIONS", "Config", "joint_errors",
-           "joint_names", "load_model", "make", "perturb_qpos", "read_spec"]
-
 MODELS = models.DIRECTORY  # package data: found wherever the package is installed
 DEFAULT_EPOCHS = 1000
 
@@ -283,5 +289,5 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
 def program_inputs(config: Config) -> dict:
     """What the task's compiled programs read besides the library and ``config``: the model, compiled
     (its includes and meshes inside)."""
-    from stablebptt.run_models import compiled_model
+    from stablebptt.runs.model_store import compiled_model
     return {"model": hashlib.sha256(compiled_model(config.model_path)).hexdigest()}

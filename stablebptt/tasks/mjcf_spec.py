@@ -14,18 +14,27 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stablebptt import mujoco_log, run_models
 from stablebptt.errors import InputError, config_field
-from stablebptt.lean_step import State
+from stablebptt.physics import mujoco_log
+from stablebptt.physics.lean_step import State
+from stablebptt.runs import model_store
 
-if TYPE_CHECKING:
-    from stablebptt.tasks.mjcf import Config
+
+class TaskOptions(Protocol):
+    """The task options a spec reads over the file's own declarations (``mjcf.Config`` has them)."""
+
+    loss: str
+    reach: str
+    loss_joints: str
+    init_pose: str
+    target_pose: str
+    spread: float
 
 DEFAULT_HORIZON = 100
 DEFAULT_SPREAD = 0.1  # per-dof half-width of the initial-state noise when the MJCF declares none
@@ -42,7 +51,7 @@ def load_model(path: Path) -> mujoco.MjModel:
     try:
         with mujoco_log.collected() as warnings:
             if path.suffix in (".mjb", ".gz"):
-                model = run_models.load_compiled_model(path)
+                model = model_store.load_compiled_model(path)
             else:
                 model = mujoco.MjModel.from_xml_path(str(path))
     except InputError:
@@ -167,7 +176,7 @@ def _reach(model: mujoco.MjModel, text: str, option: str) -> Reach | None:
     raise InputError(f"{option}: no site or body named {name.strip()!r}")
 
 
-def read_spec(model: mujoco.MjModel, config: Config) -> Spec:
+def read_spec(model: mujoco.MjModel, config: TaskOptions) -> Spec:
     """The task of stablebptt/models/README.md's convention in ``model``, with ``config``'s task options over it."""
     option = lambda name: config_field(config, name)  # noqa: E731
     if model.nu == 0:

@@ -16,10 +16,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from stablebptt.engine.task import CellOption, Task
 from stablebptt.errors import InputError, config_field
-from stablebptt.flows import Dynamics, Plan
+from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.networks import glorot_uniform
-from stablebptt.training import CellOption, Task
 
 DEFAULT_EPOCHS = 1000
 TARGETS = (3, 4, 5)

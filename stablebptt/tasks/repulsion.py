@@ -11,11 +11,11 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from stablebptt.engine.task import CellOption, Task
 from stablebptt.errors import InputError, config_field
-from stablebptt.flows import Dynamics
-from stablebptt.integrators import INTEGRATORS
+from stablebptt.flows.dynamics import Dynamics
 from stablebptt.networks import mlp_apply, mlp_init
-from stablebptt.training import CellOption, Task
+from stablebptt.physics.integrators import INTEGRATORS
 
 DEFAULT_EPOCHS = 100  # the public script says 10; the paper's smoothed figures imply more.
 

@@ -12,9 +12,17 @@ from typing import TYPE_CHECKING
 
 from stablebptt.apps.bench import BenchCase, combined_modes, make_update, time_variants
 from stablebptt.apps.gradient_study import GradientSetup
-from stablebptt.apps.measuring import cast, compile_call, flat_states, precision, rollout_program, run_once
+from stablebptt.apps.measuring import (
+    cast,
+    compile_call,
+    flat_states,
+    precision,
+    rollout_program,
+    run_once,
+)
 from stablebptt.apps.trajectory_study import TrajectorySetup
 from stablebptt.errors import InputError
+from stablebptt.tasks import mjcf_spec
 
 if TYPE_CHECKING:
     from stablebptt.apps.accuracy import AccuracyConfig
@@ -35,8 +43,9 @@ def cartpole_setup(poles: int, quick: bool) -> TrajectorySetup:
 
     def reference(initial_states, forces):
         import jax.numpy as jnp
-        from stablebptt.integrators import rk4
-        from stablebptt.lean_step import State
+
+        from stablebptt.physics.integrators import rk4
+        from stablebptt.physics.lean_step import State
         steps = round(CARTPOLE_DURATION / reference_dt)
         with precision(64):
             arguments = (cast(initial_states, 64), cast(forces, 64))
@@ -96,13 +105,14 @@ def pipeline_table(poles: int, batch: int, rounds: int, simulators: tuple = tupl
     """R updates of the cart-pole through each simulator in ``simulators`` (C too for the generated step and
     the floor), with the parts of the generated step's update where it is among them."""
     import mujoco
-    from stablebptt import lean_step, scene
-    from stablebptt.flows import MODES
+
+    from stablebptt.flows.modes import MODES
+    from stablebptt.physics import lean_step, scene
     from stablebptt.tasks import cartpole_equations, mjcf
     generated = mjcf.make(mjcf.Config(poles=poles))
     stages = mjcf.make(mjcf.Config(poles=poles, pipeline="stages"))
     with_step = lambda step: dataclasses.replace(stages, dynamics=dataclasses.replace(stages.dynamics, step=step))
-    model = mjcf.load_model(mjcf.Config(poles=poles).model_path)
+    model = mjcf_spec.load_model(mjcf.Config(poles=poles).model_path)
     effects = scene.analyze(model)
 
     def dense():
@@ -142,7 +152,9 @@ def parts_table(task, poles: int, batch: int, rounds: int, whole_update) -> list
     """
     import jax
     import jax.random as random
-    from stablebptt.flows import reference_loss, reference_rollout, step_jacobians
+
+    from stablebptt.flows.gradients import reference_loss, reference_rollout
+    from stablebptt.flows.linearized import step_jacobians
 
     dynamics = task.dynamics
     params = task.init_params(random.PRNGKey(0), False)

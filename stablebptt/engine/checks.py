@@ -1,0 +1,170 @@
+"""What a user hands the library, checked once before anything compiles.
+
+``check_task`` traces a ``Task`` with shapes only (``jax.eval_shape``: nothing
+runs): the initial-state sampler's leading size, float parameters, a control
+the step accepts, a step that returns the state's own structure, a scalar
+loss, and a ``Plan`` as the task's plan (a ``Plan`` checks its own fields when
+it is made). Each failure is a ``TaskError`` that names the field and what was
+found, instead of an error deep inside JAX.
+``check_options`` refuses options given together where one makes the other
+meaningless, before a run records both as if they applied.
+"""
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import dataclasses
+import numbers
+from typing import Any, Iterator
+
+import jax
+import jax.numpy as jnp
+
+from stablebptt.errors import InputError
+from stablebptt.flows.dynamics import Plan
+
+
+class TaskError(InputError):
+    """A ``Task`` or its ``Dynamics`` that cannot train: the message names the field."""
+
+
+_shapes_only = contextvars.ContextVar("stablebptt_shapes_only", default=False)
+
+
+@contextlib.contextmanager
+def tracing_shapes() -> Iterator[None]:
+    """Within the block, ``init_params`` is traced for its parameters' shapes alone: ``shapes_only()``
+    is true, and a task whose parameters' values wait for a check still running (``Task.settle``: an
+    environment's reward diagnosis) gives its shapes without waiting. Trace a function made for the
+    trace (``jax.eval_shape(lambda ...: ...)``): JAX keeps a function's trace, ``eval_shape``'s too,
+    for a later jit of the same function, which would then compute values without waiting."""
+    token = _shapes_only.set(True)
+    try:
+        yield
+    finally:
+        _shapes_only.reset(token)
+
+
+def shapes_only() -> bool:
+    """Whether the caller traces for shapes alone (``tracing_shapes``)."""
+    return _shapes_only.get()
+
+
+def parameter_shapes(task: Any, zero_output: bool) -> Any:
+    """The shapes of ``task.init_params(key, zero_output)``, traced with no values (``tracing_shapes``)."""
+    with tracing_shapes():
+        return jax.eval_shape(lambda key: task.init_params(key, zero_output), jax.random.PRNGKey(0))
+
+
+def _whole(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _describe(tree: Any) -> str:
+    leaves = jax.tree.leaves(tree)
+    shown = ", ".join(f"{leaf.dtype}{list(leaf.shape)}" for leaf in leaves[:4])
+    return f"{jax.tree.structure(tree)} with leaves {shown}{', ...' if len(leaves) > 4 else ''}"
+
+
+def _first_line(error: Exception) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0] if text else ''}"
+
+
+def check_dynamics(dynamics: Any) -> None:
+    """The fields of a ``Dynamics`` that need no tracing: the horizon, and functions where functions belong."""
+    if not _whole(dynamics.horizon) or dynamics.horizon < 1:
+        raise TaskError(f"Dynamics.horizon must be a positive whole number of steps, got {dynamics.horizon!r}")
+    for name in ("step", "policy", "loss"):
+        if not callable(getattr(dynamics, name)):
+            raise TaskError(f"Dynamics.{name} must be a function, got {getattr(dynamics, name)!r}")
+
+
+def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
+    """Trace ``task`` with shapes only and raise ``TaskError`` naming the first field that does not fit."""
+    from stablebptt.engine.task import Task
+    if not isinstance(task, Task):
+        raise TaskError(f"expected a stablebptt.Task, got {type(task).__name__}")
+    dynamics = task.dynamics
+    check_dynamics(dynamics)
+    if not isinstance(task.plan, Plan):
+        raise TaskError(f"Task.plan must be a stablebptt.Plan, got {type(task.plan).__name__}")
+    key = jax.random.PRNGKey(0)
+    try:
+        params = parameter_shapes(task, zero_output)
+    except Exception as error:  # noqa: BLE001 - the user's function failed: one line naming it
+        raise TaskError(f"Task.init_params(key, zero_output) fails: {_first_line(error)}") from None
+    not_float = [leaf for leaf in jax.tree.leaves(params) if not jnp.issubdtype(leaf.dtype, jnp.floating)]
+    if not jax.tree.leaves(params) or not_float:
+        raise TaskError(f"Task.init_params must return float parameters to train, got {_describe(params)}")
+    try:
+        states = jax.eval_shape(lambda k: task.sample_initial_states(k, count), key)
+    except Exception as error:  # noqa: BLE001
+        raise TaskError(f"Task.sample_initial_states(key, {count}) fails: {_first_line(error)}") from None
+    sizes = {leaf.shape[0] if leaf.ndim else None for leaf in jax.tree.leaves(states)}
+    if sizes != {count}:
+        raise TaskError(f"Task.sample_initial_states(key, {count}) must return {count} states (every leaf's leading "
+                        f"axis {count}), got {_describe(states)}")
+    state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype), states)
+    try:
+        control = jax.eval_shape(dynamics.policy, params, state)
+    except Exception as error:  # noqa: BLE001
+        raise TaskError(f"Dynamics.policy(params, state) fails on one sampled state: {_first_line(error)}") from None
+    try:
+        reached = jax.eval_shape(dynamics.step, state, control)
+    except Exception as error:  # noqa: BLE001
+        raise TaskError(f"Dynamics.step(state, control) fails on one sampled state and the policy's control "
+                        f"({_describe(control)}): {_first_line(error)}") from None
+    same = (jax.tree.structure(reached) == jax.tree.structure(state)
+            and all(a.shape == b.shape and a.dtype == b.dtype
+                    for a, b in zip(jax.tree.leaves(reached), jax.tree.leaves(state))))
+    if not same:
+        raise TaskError(f"Dynamics.step must return a state like the one it is given ({_describe(state)}), "
+                        f"got {_describe(reached)}")
+    over_time = lambda tree: jax.tree.map(  # noqa: E731
+        lambda leaf: jax.ShapeDtypeStruct((dynamics.horizon,) + leaf.shape, leaf.dtype), tree)
+    try:
+        loss = jax.eval_shape(dynamics.loss, over_time(state), over_time(control))
+    except Exception as error:  # noqa: BLE001
+        raise TaskError(f"Dynamics.loss(states, controls) fails on a rollout of {dynamics.horizon} steps: "
+                        f"{_first_line(error)}") from None
+    if not (hasattr(loss, "shape") and loss.shape == () and jnp.issubdtype(loss.dtype, jnp.floating)):
+        raise TaskError(f"Dynamics.loss must return one float for a trajectory, got {_describe(loss)}")
+
+
+def _given(config: Any, name: str) -> bool:
+    """Whether field ``name`` of a dataclass config differs from its default (was set by the user)."""
+    field = next(f for f in dataclasses.fields(config) if f.name == name)
+    return getattr(config, name) != field.default
+
+
+def train_conflicts(config: Any) -> list[str]:
+    """The ``TrainConfig`` options set together where one makes the other meaningless, one message each."""
+    from stablebptt.errors import config_field
+    from stablebptt.flows.modes import flows_needed
+    field = lambda name: config_field(config, name)  # noqa: E731
+    problems = []
+    if config.clip == "none" and _given(config, "clip_threshold"):
+        problems.append(f"{field('clip_threshold')} {config.clip_threshold:g} has no effect with {field('clip')} none: "
+                        f"drop it, or clip by value or norm")
+    if config.seeds == 1 and _given(config, "seed_batching"):
+        problems.append(f"{field('seed_batching')} {config.seed_batching} says how seeds share a program, and "
+                        f"{field('seeds')} is 1: drop it, or train several seeds")
+    if not config.cosine and {"M", "R"} <= set(flows_needed(config.mode, with_cosine=False)):
+        problems.append(f"{field('cosine')} is off, but mode {config.mode} computes g_M and g_R anyway and logs "
+                        f"their cosine: leave {field('cosine')} on")
+    return problems
+
+
+def check_options(train_config: Any, task_config: Any = None) -> None:
+    """Refuse options set together where one makes the other meaningless (a new run would record
+    both as if they applied): ``train_conflicts`` and the task config's own ``conflicts()``.
+
+    Raises:
+      InputError: naming the options and what to do, the first conflict found.
+    """
+    problems = train_conflicts(train_config)
+    if task_config is not None and hasattr(task_config, "conflicts"):
+        problems += task_config.conflicts()
+    if problems:
+        raise InputError(problems[0])

@@ -1,0 +1,463 @@
+"""Environments as tasks: any environment in Brax's protocol trains through the gradient flows.
+
+The protocol (Brax's, which MuJoCo Playground follows): ``env.reset(key) ->
+State`` and ``env.step(State, action) -> State``, where ``State`` is a pytree
+with ``obs``, ``reward`` and ``done`` (and anything else: an ``mjx.Data``, a
+PRNG key, a step counter), plus ``env.observation_size`` and
+``env.action_size``. ``env_task`` turns such an environment into a ``Task``:
+
+- the loss of a rollout of ``horizon`` steps is its negative (optionally
+  discounted) return, rewards counted until the first ``done``;
+- initial states come from ``env.reset`` (jitted, batched);
+- the policy sees ``State.obs`` and its actions are squashed into [-1, 1];
+- the train and test losses of every epoch are the negative EPISODE return
+  (``episode_length`` steps, the deterministic policy, from fresh resets), the
+  number Brax and MuJoCo Playground report;
+- an ``mjx.step`` inside ``env.step`` is traced with its constraint solver
+  differentiated implicitly (``constraint_derivatives``), so solvers of any
+  iteration count pass reverse mode.
+
+Before training, ``diagnose_env`` looks at the reward's gradient at sampled
+states: a reward whose gradient is zero everywhere (a step function) is
+refused, a NaN derivative of a known form is repaired, and a NaN at exactly
+zero action is avoided by starting the policy's output layer small instead of
+at zero (``RewardDiagnosis``).
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import dataclasses
+import importlib
+import math
+import threading
+from typing import Any, Callable, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stablebptt.engine import program_store
+from stablebptt.engine.checks import shapes_only
+from stablebptt.engine.task import Task
+from stablebptt.engine.training import compiler_options, unless_in_xla_flags
+from stablebptt.errors import InputError
+from stablebptt.flows.dynamics import Dynamics, join, split
+from stablebptt.flows.gradients import reference_losses
+from stablebptt.networks import mlp_apply, mlp_init
+from stablebptt.physics.constraint_derivatives import differentiable_mjx
+
+PyTree = Any
+# Output weights of a policy that must not start at exactly zero action: small enough that the
+# first actions stay near zero, large enough that the reward's derivative is taken off zero.
+SMALL_OUTPUT_SCALE = 1e-2
+DIAGNOSIS_STATES = 8  # resets, each also a few random steps on: where the reward's gradient is looked at
+DIAGNOSIS_STEPS = 5
+
+
+class EnvError(InputError):
+    """An environment that cannot train: not in the protocol, or a reward with no usable gradient."""
+
+
+def observation(state: PyTree) -> jax.Array:
+    """The policy's input: ``State.obs``, or its ``"state"`` entry where the observation is a dict."""
+    obs = state.obs
+    if isinstance(obs, dict):
+        return obs["state"]
+    return obs
+
+
+def check_protocol(env: Any) -> int:
+    """The length of ``env``'s observation vector; ``EnvError`` naming what ``env`` lacks of Brax's
+    environment protocol.
+
+    ``observation_size`` is read once: MuJoCo Playground computes it by tracing ``reset``.
+    """
+    # Looked up on the class first, so that a property is not evaluated just to see that it exists.
+    missing = [name for name in ("reset", "step", "observation_size", "action_size")
+               if not (hasattr(type(env), name) or hasattr(env, name))]
+    if missing:
+        raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: it has no "
+                       f"{', '.join(missing)} (reset(key) -> State, step(State, action) -> State, "
+                       "observation_size, action_size)")
+    try:
+        size, _ = env.observation_size, env.action_size
+    except AttributeError as error:  # a wrapper whose class forwards them to an env that lacks one
+        raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: reading its "
+                       f"observation_size or action_size failed ({error})") from None
+    if isinstance(size, dict):
+        if "state" not in size:
+            raise EnvError(f"{type(env).__name__}'s observation is a dict without a 'state' entry "
+                           f"({', '.join(size)}): give an environment with a vector observation")
+        size = size["state"]
+    if not (isinstance(size, (int, np.integer)) or (isinstance(size, tuple) and len(size) == 1)):
+        raise EnvError(f"{type(env).__name__}'s observation has shape {size}: only vector observations are supported")
+    return int(size[0] if isinstance(size, tuple) else size)
+
+
+class RewardDiagnosis(NamedTuple):
+    """What the reward's gradient looks like at sampled states, with zero and with random actions.
+
+    ``kind`` is ``"usable"``, ``"nan at zero action"``, ``"nan"`` or ``"zero"``.
+    """
+
+    kind: str
+    nan_at_zero: float  # share of sampled states whose gradient is NaN at zero action
+    nan_at_random: float  # the same with random actions
+    zero: bool  # the gradient is exactly zero at every sampled state and action
+
+    def describe(self) -> str:
+        return {"usable": "reward gradient: usable",
+                "nan at zero action": "reward gradient: NaN at exactly zero action (the policy starts off zero)",
+                "nan": f"reward gradient: NaN at {self.nan_at_random:.0%} of sampled states",
+                "zero": "reward gradient: zero at every sampled state"}[self.kind]
+
+
+def _gradient_checks(step: Callable) -> Callable:
+    """``checks(states, actions)``: per state, whether the reward's gradient is finite and its largest
+    finite entry, at zero action and at ``actions``: one gradient mapped over both halves, so a
+    program holds one copy of the step's derivative. Mapped in turn, not vmapped: batching the
+    step's derivative costs more tracing than the few states' run would gain."""
+    def gradient(state, action):
+        parts = split(state)
+        grads = jax.grad(lambda floats, a: step(join(parts, floats), a).reward, argnums=(0, 1))(parts.floats, action)
+        leaves = jax.tree.leaves(grads)
+        finite = jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in leaves]))
+        size = jnp.max(jnp.array([jnp.max(jnp.abs(jnp.where(jnp.isfinite(leaf), leaf, 0.0)), initial=0.0)
+                                  for leaf in leaves]))
+        return finite, size
+
+    def checks(states, actions):
+        twice = jax.tree.map(lambda a: jnp.concatenate([a, a]), states)
+        finite, size = jax.lax.map(lambda pair: gradient(*pair), (twice, jnp.concatenate([jnp.zeros_like(actions), actions])))
+        count = actions.shape[0]
+        return finite[:count], size[:count], finite[count:], size[count:]
+
+    return checks
+
+
+def _classify(finite_zero, size_zero, finite_random, size_random) -> RewardDiagnosis:
+    nan_at_zero = float(1 - np.mean(finite_zero))
+    nan_at_random = float(1 - np.mean(finite_random))
+    zero = not (np.any(size_zero > 0) or np.any(size_random > 0))
+    if nan_at_random > 0:
+        kind = "nan"
+    elif nan_at_zero > 0:
+        kind = "nan at zero action"
+    elif zero:
+        kind = "zero"
+    else:
+        kind = "usable"
+    return RewardDiagnosis(kind, nan_at_zero, nan_at_random, zero)
+
+
+def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> RewardDiagnosis:
+    """The gradient of one step's reward with respect to the state's floats and the action.
+
+    Args:
+      step: the environment's step.
+      states: a batch of states (leading axis), e.g. resets and states a few random steps on.
+      actions: random actions, one per state; zero actions are tried too.
+    """
+    return _classify(*jax.device_get(jax.jit(_gradient_checks(step), compiler_options=_diagnosis_options())(states, actions)))
+
+
+def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
+    """``diagnose_reward`` at states sampled from ``env`` (resets and a few random steps on), the
+    sampling and the gradients compiled as ONE program: no operation runs eagerly, which on a GPU
+    would compile each one apart. States are visited in turn (``lax.map``), as the gradients are."""
+    return RewardDiagnosis(*start_diagnosis(env, step, key)())
+
+
+def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnosis":
+    """``diagnose_env`` begun: its program is traced here, then XLA compiles it in a thread of its own
+    while the caller goes on (XLA lets go of Python while it compiles). Calling the result waits for
+    the compile, runs the program and gives the diagnosis (the fields of a ``RewardDiagnosis``).
+
+    Only XLA's compile works beside the caller. The step is traced here, where the reward's repairs
+    and MJX's derivative remedies are in place for this trace alone. The program runs in the
+    caller, once waited for: nothing of it runs on the device while a program the caller compiles
+    meanwhile times its kernels there (a GPU's autotuning), which might then choose others.
+    """
+    checks = _gradient_checks(step)
+    lowered = jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)),
+                      compiler_options=_diagnosis_options()).lower(key)
+    compiled: concurrent.futures.Future = concurrent.futures.Future()
+
+    def compile_beside():
+        try:
+            compiled.set_result(lowered.compile())
+        except BaseException as error:  # noqa: BLE001 - handed to whoever waits for the answer
+            compiled.set_exception(error)
+
+    # No daemon: a process that ends early (a refusal) waits for it to finish, since XLA cannot be
+    # stopped mid-compile and a daemon thread inside it aborts the interpreter's exit.
+    threading.Thread(target=compile_beside, name="stablebptt-reward-diagnosis").start()
+    return PendingDiagnosis(compiled, key)
+
+
+class PendingDiagnosis(NamedTuple):
+    """A reward diagnosis compiling beside the caller (``start_diagnosis``)."""
+
+    compiled: concurrent.futures.Future  # the diagnosis's compiled program
+    key: jax.Array
+
+    def __call__(self) -> list:
+        """Waits for the compile, runs the program: the fields of a ``RewardDiagnosis``."""
+        return list(_classify(*jax.device_get(self.compiled.result()(self.key))))
+
+    def done(self) -> bool:
+        """Whether the compile has ended (calling then waits no longer than the program's run)."""
+        return self.compiled.done()
+
+
+def _diagnosis_options() -> dict | None:
+    """XLA options of the diagnosis: it runs once, on a few states. On a CPU LLVM does not optimize
+    its kernels (CartpoleSwingup's compiles in 4.8 s instead of 6.1 s, by
+    ``python experiments/diagnosis_compile.py CartpoleSwingup``). On a GPU none of its kernels is
+    timed (autotuning level 0): it compiles beside the trainer's set-up (``start_diagnosis``), whose
+    reset program times its own kernels meanwhile, and must choose them undisturbed. On one H100
+    level 0 compiled it in 8.7 s against the training options' 8.9 s for CartpoleSwingup, 7.0 against
+    8.1 s for AcrobotSwingup, each after another compile in the same process, by ``python
+    experiments/diagnosis_compile.py CartpoleSwingup AcrobotSwingup``
+    (results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt)."""
+    backend = jax.default_backend()
+    cheaper = {"cpu": {"xla_backend_optimization_level": 0}, "gpu": {"xla_gpu_autotune_level": 0}}.get(backend, {})
+    return {**(compiler_options() or {}), **unless_in_xla_flags(cheaper)} or None
+
+
+def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
+    """Resets and the states a few random actions lead to, with a random action for each (traceable)."""
+    reset_key, action_key = jax.random.split(key)
+
+    def visit(key):
+        state = env.reset(key)
+        keys = jax.random.split(jax.random.fold_in(key, 1), DIAGNOSIS_STEPS + 1)
+
+        def advance(state, k):
+            action = jax.random.uniform(k, (env.action_size,), minval=-1.0, maxval=1.0)
+            return step(state, action), state
+
+        last, visited = jax.lax.scan(advance, state, keys[:-1])
+        return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), visited, last)
+
+    states = jax.lax.map(visit, jax.random.split(reset_key, DIAGNOSIS_STATES))
+    states = jax.tree.map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), states)
+    count = jax.tree.leaves(states)[0].shape[0]
+    actions = jax.random.uniform(action_key, (count, env.action_size), minval=-1.0, maxval=1.0)
+    return states, actions
+
+
+def _count(states: PyTree) -> int:
+    return jax.tree.leaves(states)[0].shape[0]
+
+
+class EpisodeState(NamedTuple):
+    """An environment state with the return so far and whether the episode still runs."""
+
+    env: PyTree
+    total: jax.Array
+    running: jax.Array
+
+
+def episode_dynamics(step: Callable, policy: Callable, episode_length: int) -> Dynamics:
+    """A rollout whose loss is the negative episode return, rewards counted until the first ``done``.
+
+    Its state wraps the environment's (``EpisodeState``) so that the return is
+    summed as the rollout goes and no step's state needs keeping.
+    """
+    def episode_step(state: EpisodeState, action):
+        reached = step(state.env, action)
+        # where, not a product: a reward after the end (a NaN state, say) must not leak in.
+        total = state.total + jnp.where(state.running, reached.reward, 0.0)
+        return EpisodeState(reached, total, state.running & (reached.done == 0))
+
+    return Dynamics(step=episode_step, policy=lambda params, state: policy(params, state.env),
+                    loss=lambda states, actions: -states.total[-1], horizon=episode_length)
+
+
+def rollout_loss(discount: float) -> Callable:
+    """The negative discounted return of one rollout, rewards counted until the first ``done``."""
+    def loss(states, actions):
+        done = jax.lax.stop_gradient(states.done)
+        # Step t's reward counts if no earlier step ended the episode.
+        running = jnp.concatenate([jnp.ones((1,), done.dtype), jnp.cumprod(1 - done)[:-1]]) > 0
+        weights = discount ** jnp.arange(done.shape[0], dtype=states.reward.dtype)
+        return -jnp.sum(jnp.where(running, weights * states.reward, 0.0))
+
+    return loss
+
+
+def load_env(spec: str) -> Any:
+    """The environment ``spec`` names: ``package.module:attribute`` (an environment, or a class or
+    factory called without arguments), else a name in MuJoCo Playground's registry.
+
+    Whether it follows Brax's protocol is ``env_task``'s check, made once where the environment is
+    used: reading ``observation_size`` may trace ``reset``, which a rendering has no need of."""
+    if ":" not in spec:
+        from stablebptt.envs import playground
+        return playground.load(spec)
+    module_name, _, attribute = spec.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as error:
+        raise EnvError(f"environment {spec}: cannot import {module_name} ({error})") from None
+    if not attribute or not hasattr(module, attribute):
+        raise EnvError(f"environment {spec}: {module_name} has no attribute {attribute!r}")
+    found = getattr(module, attribute)
+    if not all(hasattr(found, name) for name in ("reset", "step")) or isinstance(found, type):
+        if not callable(found):
+            raise EnvError(f"environment {spec}: {attribute} is neither an environment nor a factory of one")
+        try:
+            found = found()
+        except Exception as error:  # noqa: BLE001 - the user's factory failed: say so in one line
+            raise EnvError(f"environment {spec}: {attribute}() failed ({type(error).__name__}: {error})") from None
+    return found
+
+
+def _is_playground(env: Any) -> bool:
+    return type(env).__module__.startswith("mujoco_playground")
+
+
+def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,
+             hidden: Sequence[int] = (64, 64), name: str = "", reward_context: Callable | None = None,
+             reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0,
+             dense_variant: str = "", diagnosis_key: dict | None = None, defer_diagnosis: bool = False) -> Task:
+    """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
+
+    Args:
+      env: the environment (``reset``, ``step``, ``observation_size``, ``action_size``).
+      horizon: steps of one training rollout (the BPTT horizon).
+      discount: per-step discount of the training loss's return (1: the plain return).
+      episode_length: steps of the evaluation episodes whose return the train and
+        test losses report (negated); None: the environment's own
+        (``env._config.episode_length``, as Playground and Brax evaluate), else 1000.
+      hidden: widths of the policy's hidden layers.
+      name: the task's name in run folders (default: the environment's class name).
+      reward_context: a context manager entered whenever the step is traced (a
+        repair of the reward's derivative; ``reward_repairs`` names it for the summary).
+        None: for MuJoCo Playground's environments ``playground.repaired_rewards``, else none.
+      diagnose: look at the reward's gradient before training (``diagnose_env``);
+        a reward with no usable gradient raises ``EnvError``.
+      dense_variant: the name of an environment with the same task and a dense reward,
+        which the refusal of a reward without a gradient then suggests.
+      diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its
+        registry name): while JAX's compile cache is on, the diagnosis is kept under it (with
+        ``reward_repairs``) beside the compiled programs (``program_store.kept_answer``), and an
+        identical later run reads it instead of tracing the step's derivative again; so are the
+        traced reset (``program_store.kept_function``) and the observation's size, which
+        Playground finds by tracing the reset. None: diagnosed and traced every time.
+      defer_diagnosis: return while the diagnosis compiles and runs beside the caller
+        (``start_diagnosis``): the task's ``settled()`` waits for it and refuses a reward with no
+        usable gradient; the parameters' values wait for it too, their shapes do not, so a
+        trainer can be built meanwhile (``scripts/train.py`` does).
+
+    Example::
+
+        env = mujoco_playground.registry.load("CartpoleSwingup", config_overrides={"impl": "jax"})
+        task = sb.env_task(env, horizon=100)
+        result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
+    """
+    # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
+    observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
+    if episode_length is None:
+        episode_length = int(getattr(getattr(env, "_config", None), "episode_length", 1000))
+    if reward_context is None:
+        reward_context = contextlib.nullcontext
+        if _is_playground(env):
+            from stablebptt.envs import playground
+            reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
+    if not (isinstance(horizon, (int, np.integer)) and not isinstance(horizon, bool) and horizon >= 1):
+        raise EnvError(f"horizon must be a positive whole number of steps, got {horizon!r}")
+    if not (isinstance(episode_length, (int, np.integer)) and episode_length >= 1):
+        raise EnvError(f"episode_length must be a positive whole number of steps, got {episode_length!r}")
+    if not (math.isfinite(discount) and 0 < discount <= 1):
+        raise EnvError(f"discount must be in (0, 1], got {discount}")
+    label = name or type(env).__name__
+
+    @jax.jit  # traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python
+    def step(state, action):
+        with differentiable_mjx(implicit_solver=True), reward_context():
+            return env.step(state, action)
+
+    def policy(params, state):
+        return jnp.tanh(mlp_apply(params, observation(state)))
+
+    sizes = (observations, *hidden, int(env.action_size))
+    reset = jax.jit(jax.vmap(env.reset))
+    resets = {}  # count -> the reset of that many states, kept under diagnosis_key
+
+    def sample_initial_states(key, count):
+        keys = jax.random.split(key, count)
+        if count not in resets:
+            resets[count] = program_store.kept_function(reset, (keys,), diagnosis_key, "reset")
+        return resets[count](keys)
+
+    answer_key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed,
+                                                     "reward_repairs": reward_repairs}
+    started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
+
+    def start() -> PendingDiagnosis:
+        started.append(start_diagnosis(env, step, jax.random.PRNGKey(diagnosis_seed)))
+        return started[0]
+
+    if diagnose:
+        pending = program_store.kept_answer_later(answer_key, "reward diagnosis", start)
+    advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
+        "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
+
+    def diagnosed() -> RewardDiagnosis:
+        """The diagnosis, waited for; ``EnvError`` for a reward with no usable gradient."""
+        diagnosis = RewardDiagnosis(*pending())
+        if diagnosis.kind == "zero":
+            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
+                           f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")
+        if diagnosis.kind == "nan":
+            raise EnvError(f"{label}: the reward's gradient is NaN at {diagnosis.nan_at_random:.0%} of sampled states "
+                           f"with random actions{' even after repairing ' + reward_repairs if reward_repairs else ''}: "
+                           f"{advice} (a norm taken at zero, a tolerance with an infinite bound and no margin?)")
+        return diagnosis
+
+    def init_params(key, zero_output):
+        # The start is the diagnosis's choice: the values wait for it, shapes alone need none.
+        start_off_zero = zero_output and diagnose and not shapes_only() and diagnosed().kind == "nan at zero action"
+        params = mlp_init(key, sizes, zero_output and not start_off_zero)
+        if start_off_zero:  # small, not zero: the reward's derivative is NaN at zero action
+            weights, bias = params[-1]
+            params[-1] = (SMALL_OUTPUT_SCALE * weights, bias)
+        return params
+
+    evaluation = episode_dynamics(step, policy, episode_length)
+    summary = (f"{label}: {sizes[0]} observations, {sizes[-1]} actions in [-1, 1]; horizon {horizon} steps, "
+               f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "
+               f"train/test loss: negative return of {episode_length}-step episodes; "
+               "constraint solver differentiated at its solution")
+    if reward_repairs:
+        summary += f"; repaired: {reward_repairs}"
+
+    def task(diagnosis: RewardDiagnosis | None, gradient: str) -> Task:
+        start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
+        return Task(
+            name=label,
+            dynamics=Dynamics(step=step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
+            init_params=init_params,
+            sample_initial_states=sample_initial_states,
+            summary=summary + (f"; {diagnosis.describe()}" if diagnosis is not None else ""),
+            resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
+                      "hidden": list(hidden), "reward_gradient": gradient,
+                      "reward_repairs": reward_repairs, "policy_output_start": start},
+            evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
+                states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
+        )
+
+    def settle(wait: bool = True) -> Task | None:
+        if not wait and started and not started[0].done():
+            return None
+        diagnosis = diagnosed()
+        return task(diagnosis, diagnosis.kind)
+
+    if not diagnose:
+        return task(None, "not checked")
+    if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
+        return dataclasses.replace(task(None, "pending"), settle=settle)
+    return settle()

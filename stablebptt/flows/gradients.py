@@ -1,0 +1,112 @@
+"""Every flow's gradient from one forward rollout (``flow_gradients``), and the literal stop_gradient
+transcription of the flows' table (``reference_rollout``) both derivative modes are tested against."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from stablebptt.flows.adjoint_step import multi_adjoint_step
+from stablebptt.flows.dynamics import (
+    Dynamics,
+    Plan,
+    PyTree,
+    first_copy,
+    ravel_examples,
+    stack_copies,
+)
+from stablebptt.flows.linearized import linearized_gradients, policy_gradients
+from stablebptt.flows.modes import KEEPS
+
+
+def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
+                control_offsets: PyTree, plan: Plan = Plan()):
+    """Mean batch loss once per flow copy (identical values, distinct gradients), and the visited states.
+
+    ``params`` holds one copy per flow (leading axis) where
+    ``plan.policy_gradient`` is ``"per-step"``. Differentiated with respect
+    to ``control_offsets`` (zeros added to the controls, [T, copies, batch, ...]),
+    it gives every flow's adjoint of every control. Returns ``(losses [copies], x_0..x_{T-1})``.
+    """
+    step = multi_adjoint_step(dynamics, flows, plan)
+    copies = len(flows)
+
+    def body(state_copies, offsets):
+        next_copies, control_copies = step(params, state_copies, offsets)
+        return next_copies, (first_copy(state_copies), next_copies, control_copies)
+
+    _, (visited, states, controls) = jax.lax.scan(body, stack_copies(initial_states, copies), control_offsets,
+                                                  unroll=plan.unroll)
+    # scan stacks time first, [T, copies, batch, ...]; the loss wants one trajectory's [T, ...].
+    per_trajectory = jax.vmap(jax.vmap(dynamics.loss, in_axes=(1, 1)), in_axes=(1, 1))(states, controls)
+    return per_trajectory.mean(axis=1), visited
+
+
+def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
+                   plan: Plan = Plan()):
+    """Mean batch loss and the gradient of every flow from one forward rollout.
+
+    Args:
+      dynamics: the system to differentiate.
+      flows: names from ``FLOWS``, e.g. ``("R", "M")``.
+      params: policy parameters.
+      initial_states: a batch of initial states (leading axis = batch).
+      plan: how to differentiate ``dynamics`` (a task's own: ``Task.plan``; a run's: ``Trainer.plan``).
+
+    Returns:
+      ``(loss, grads)`` where each leaf of ``grads`` has a leading axis of
+      length ``len(flows)`` in the order of ``flows``.
+    """
+    if plan.step_derivative == "forward":
+        return linearized_gradients(dynamics, flows, params, initial_states, plan)
+
+    control = jax.eval_shape(jax.vmap(dynamics.policy, in_axes=(None, 0)), params, initial_states)
+    offsets = jax.tree.map(lambda a: jnp.zeros((dynamics.horizon, len(flows)) + a.shape, a.dtype), control)
+    per_step = plan.policy_gradient == "per-step"
+
+    def total(params, offsets):
+        per_flow, visited = flow_losses(dynamics, flows, params, initial_states, offsets, plan)
+        return per_flow.sum(), (per_flow[0], visited)
+
+    (params_grads, control_adjoints), (loss, visited) = jax.grad(total, argnums=(0, 1), has_aux=True)(
+        stack_copies(params, len(flows)) if per_step else params, offsets)
+    if per_step:
+        return loss, params_grads
+    return loss, policy_gradients(dynamics, params, visited, ravel_examples(control_adjoints, 3))
+
+
+class Trajectory(NamedTuple):
+    states: PyTree  # x_1..x_T
+    controls: PyTree  # u_0..u_{T-1}
+
+
+def reference_rollout(dynamics: Dynamics, params: PyTree, initial_state: PyTree, flow: str = "R",
+                      plan: Plan = Plan()) -> Trajectory:
+    """The rollout with stop_gradient placed literally as in the table above (of ``plan``, only ``unroll`` applies)."""
+    cut_sim = not KEEPS[flow][0]
+    cut_net = not KEEPS[flow][1]
+
+    def body(state, _):
+        control = dynamics.policy(params, jax.lax.stop_gradient(state) if cut_net else state)
+        next_state = dynamics.step(jax.lax.stop_gradient(state) if cut_sim else state, control)
+        return next_state, (next_state, control)
+
+    _, (states, controls) = jax.lax.scan(body, initial_state, None, length=dynamics.horizon, unroll=plan.unroll)
+    return Trajectory(states, controls)
+
+
+def reference_losses(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R",
+                     plan: Plan = Plan()) -> jax.Array:
+    """The loss of each trajectory from a batch of initial states."""
+    def one(x0):
+        trajectory = reference_rollout(dynamics, params, x0, flow, plan)
+        return dynamics.loss(trajectory.states, trajectory.controls)
+
+    return jax.vmap(one)(initial_states)
+
+
+def reference_loss(dynamics: Dynamics, params: PyTree, initial_states: PyTree, flow: str = "R",
+                   plan: Plan = Plan()) -> jax.Array:
+    """Mean loss over a batch of initial states; differentiate it for the flow's gradient."""
+    return reference_losses(dynamics, params, initial_states, flow, plan).mean()

@@ -1,0 +1,236 @@
+"""Derivatives through MJX's constraint solver and contacts: the implicit solver derivative and MJX's NaN traps.
+
+Everything here changes derivatives only; values stay MJX's own, except for the order in which
+the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the same Hessian).
+
+- ``solve_implicitly``: MJX's constraint solver, differentiated at the
+  acceleration it finds (implicit function theorem), not through its
+  iterations. Reverse mode therefore passes solvers of any iteration count
+  (their while loop is never differentiated), and forward and reverse mode
+  agree.
+- ``differentiable_mjx()``: a context in which MJX's private modules carry the
+  remedies below, applied while a step is traced and undone afterwards. Every
+  step this library builds traces inside it; ``implicit_solver=True`` also
+  routes ``mjx.forward``'s solver call (and so ``mjx.step`` inside any
+  environment) through ``solve_implicitly``.
+
+The remedies are written against ``mjx_internals.WRITTEN_FOR``; entering the
+context with another MJX installed warns once (``mjx_internals.check_version``).
+"""
+from __future__ import annotations
+
+import contextlib
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stablebptt.physics import mjx_internals
+from stablebptt.physics.mjx_internals import collision_convex, mjx, solver, support
+from stablebptt.physics.mjx_internals import types as mjx_types
+
+
+def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """MJX's constraint solver, differentiated implicitly at the acceleration it finds.
+
+    The solver minimizes a convex cost in the acceleration, so at its minimum
+    the cost's gradient g vanishes and d qacc = -H^-1 (d g at fixed qacc), H
+    the cost's Hessian: one Newton step's tangent, taken at the solution. Its
+    value is 0 there, so values are the solver's; its tangent is the solution's
+    (implicit function theorem), not that of the iterations that found it.
+    Differentiating the iterations instead goes wrong where the start is already
+    optimal: a joint at rest in friction loss (dm_control's finger) keeps the
+    unconstrained acceleration's tangent, off by 10x in the constraint force.
+    The iterations themselves are not differentiated at all, so reverse mode
+    passes the model's own solver (its while loop) as forward mode does.
+    """
+    solved = _SOLVE(model, jax.lax.stop_gradient(data))
+    newton = model.replace(opt=model.opt.replace(solver=mjx_types.SolverType.NEWTON))
+    at_solution = solver.Context.create(newton, data.replace(qacc=solved.qacc), grad=False)
+    # The theorem holds H where the solution is: only g's tangent is taken, not H's (whose term,
+    # H^-1 dH H^-1 g, is the solver's residual g carried along, and which XLA would otherwise compile
+    # through the Hessian's assembly and Cholesky factorisation).
+    correction = -_newton_direction(newton, data, at_solution, hold_hessian=True)[1]  # ~0 in value
+    qacc = solved.qacc + correction - jax.lax.stop_gradient(correction)
+    # At the minimum M qacc - qfrc_smooth - qfrc_constraint = 0: the constraint force's tangent.
+    balance = support.mul_m(model, data, qacc) - data.qfrc_smooth
+    qfrc_constraint = solved.qfrc_constraint + balance - jax.lax.stop_gradient(balance)
+    return data.tree_replace({"qacc": qacc, "qfrc_constraint": qfrc_constraint,
+                              "_impl.efc_force": solved._impl.efc_force})
+
+
+@jax.custom_jvp
+def _sqrt_flat_at_zero(x):
+    return jnp.sqrt(x)
+
+
+@_sqrt_flat_at_zero.defjvp
+def _sqrt_flat_at_zero_jvp(primals, tangents):
+    (x,), (x_dot,) = primals, tangents
+    root = jnp.sqrt(x)
+    return root, jnp.where(x > 0, x_dot / (2 * jnp.where(x > 0, root, 1.0)), 0.0)
+
+
+# MJX's elliptic-cone line search takes the square root of a contact's squared
+# tangential force, exactly 0 for a contact that does not slide: its slope there
+# is 0 / 0 and turns every forward-mode step Jacobian into NaN, although the
+# terms it feeds are masked out at 0. MJX's solver module alone gets a square
+# root whose slope at 0 is 0; values are unchanged.
+_SOLVER_NUMPY = type(jnp)("jax.numpy, square root flat at zero")
+_SOLVER_NUMPY.__dict__.update({**vars(jnp), "sqrt": _sqrt_flat_at_zero})
+
+
+@jax.custom_jvp
+def _quotient_carrier(deriv_0, deriv_1):
+    return deriv_0
+
+
+@_quotient_carrier.defjvp
+def _quotient_carrier_jvp(primals, tangents):
+    (deriv_0, deriv_1), (deriv_0_dot, deriv_1_dot) = primals, tangents
+    return deriv_0, deriv_0_dot - (deriv_0 / deriv_1) * deriv_1_dot
+
+
+_SOLVE = solver.solve
+_LS_POINT_CREATE = solver._LSPoint.create
+
+
+def _ls_point_create_stable(cls, *args, **kwargs):
+    point = _LS_POINT_CREATE.__func__(cls, *args, **kwargs)
+    return point.replace(deriv_0=_quotient_carrier(point.deriv_0, point.deriv_1),
+                         deriv_1=jax.lax.stop_gradient(point.deriv_1))
+
+
+# MJX's line search steps to alpha - deriv_0 / deriv_1, and those are the only
+# differentiable use of a point's two derivatives (everywhere else they are
+# compared). The slope of a quotient in deriv_1 is -deriv_0 / deriv_1**2, which
+# XLA evaluates as deriv_0 / (deriv_1 * deriv_1): where the search direction is
+# rounding noise (no constraint active, the unconstrained acceleration already
+# optimal), deriv_1 is ~1e-20 and its square underflows float32 to 0, giving
+# inf, and NaN against the zero cotangent such a step gets. Points carry the
+# same values, but deriv_1's tangent moves into deriv_0's as
+# d deriv_0 - (deriv_0 / deriv_1) d deriv_1 (deriv_1 itself gets none), so the
+# quotient's derivative, (d deriv_0 - ratio d deriv_1) / deriv_1, is unchanged
+# and has no square, in forward and reverse mode alike.
+
+
+def _closest_segment_point_plane_stable(a, b, p0, plane_normal):
+    n = plane_normal
+    along = jnp.sum(n * (b - a))
+    denominator = along + 1e-6 * (along == 0.0)
+    numerator = jnp.sum(p0 * n) - jnp.sum(n * a)
+    raw = jax.lax.stop_gradient(numerator / denominator)
+    on_segment = (raw >= 0) & (raw <= 1)
+    t = jnp.where(on_segment, numerator / jnp.where(on_segment, denominator, 1.0), jnp.clip(raw, 0, 1))
+    return a + t * (b - a)
+
+
+# MJX clips a capsule's or box's edge against a convex body's side planes at
+# t = distance / (normal . edge), clipped to [0, 1]. For a plane nearly
+# parallel to the edge the quotient is huge and clipped away, so its cotangent
+# is 0, but the quotient's slope in the denominator, -t / denominator, is inf in
+# float32: 0 x inf gives NaN in reverse mode (manipulator, stacker). Here a
+# clipped t is a constant, as its derivative already says, and the quotient is
+# only formed where it lands on the segment; values are unchanged.
+
+_UPDATE_GRADIENT = solver._update_gradient
+
+
+def _update_gradient_by_blocks(model: mjx.Model, data: mjx.Data, ctx: solver.Context) -> solver.Context:
+    """MJX's Newton gradient step, its elliptic-cone Hessian summed block by block.
+
+    MJX adds each contact's cone block into a dense [rows, rows] matrix, one traced update per contact,
+    and then forms J^T (that matrix) J: for manipulator's 281 contacts, 1208 rows, 281 updates of a
+    1208 x 1208 matrix per Newton iteration and per trace. The same Hessian is
+    J^T diag(D active) J + the sum over contacts of J_c^T H_c J_c, J_c the contact's rows: one gather
+    and one contraction per cone dimension. Other solvers and cones are MJX's own.
+    """
+    if not (model.opt.solver == mjx_types.SolverType.NEWTON and model.opt.cone == mjx_types.ConeType.ELLIPTIC):
+        return _UPDATE_GRADIENT(model, data, ctx)
+    grad, mgrad = _newton_direction(model, data, ctx)
+    return ctx.replace(grad=grad, Mgrad=mgrad)
+
+
+def _newton_direction(model: mjx.Model, data: mjx.Data, ctx: solver.Context,
+                      hold_hessian: bool = False) -> tuple[jax.Array, jax.Array]:
+    """The solver cost's gradient g in the acceleration and H^-1 g (``hold_hessian``: H without a tangent)."""
+    grad = ctx.Ma - data.qfrc_smooth - ctx.qfrc_constraint
+    hessian = _newton_hessian(model, data, ctx)
+    if hold_hessian:
+        hessian = jax.lax.stop_gradient(hessian)
+    return grad, jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(hessian), grad)
+
+
+def _newton_hessian(model: mjx.Model, data: mjx.Data, ctx: solver.Context) -> jax.Array:
+    """The Hessian of the constraint solver's cost in the acceleration, symmetrised as MJX's Newton solver
+    has it: M + J^T diag(D active) J, plus each elliptic cone's J_c^T H_c J_c (``ctx`` from
+    ``solver._update_constraint``)."""
+    jacobian, contact = data._impl.efc_J, data._impl.contact
+    hessian = (jacobian.T * (data._impl.efc_D * ctx.active)) @ jacobian
+    if model.opt.cone == mjx_types.ConeType.ELLIPTIC:
+        cones = np.asarray(contact.dim) > 1  # static: the contacts' dimensions and rows are known while tracing
+        dims, addresses = np.asarray(contact.dim)[cones], np.asarray(contact.efc_address)[cones]
+        for dim in sorted(set(dims.tolist())):
+            which = np.flatnonzero(dims == dim)  # ctx.h holds one block per cone contact, in this order
+            rows = jacobian[addresses[which][:, None] + np.arange(dim)]  # [contacts, dim, nv]
+            hessian = hessian + jnp.einsum("cki,ckl,clj->ij", rows, ctx.h[which, :dim, :dim], rows)
+    hessian = support.full_m(model, data) + hessian
+    return (hessian + hessian.T) * 0.5
+
+
+# (module, attribute, replacement) of every remedy.
+_REMEDIES = (
+    (solver, "jp", _SOLVER_NUMPY),
+    (solver, "_update_gradient", _update_gradient_by_blocks),
+    (solver._LSPoint, "create", classmethod(_ls_point_create_stable)),
+    (collision_convex, "_closest_segment_point_plane", _closest_segment_point_plane_stable),
+)
+_lock = threading.RLock()
+_depth = {"remedies": 0, "implicit": 0}
+_originals: dict[str, list] = {}
+
+
+@contextlib.contextmanager
+def _applied(kind: str, patches):
+    with _lock:
+        if _depth[kind] == 0:
+            mjx_internals.check_version()
+            _originals[kind] = [(owner, name, owner.__dict__[name]) for owner, name, _ in patches]
+            for owner, name, replacement in patches:
+                setattr(owner, name, replacement)
+        _depth[kind] += 1
+    try:
+        yield
+    finally:
+        with _lock:
+            _depth[kind] -= 1
+            if _depth[kind] == 0:
+                for owner, name, original in _originals.pop(kind):
+                    setattr(owner, name, original)
+
+
+@contextlib.contextmanager
+def differentiable_mjx(implicit_solver: bool = False):
+    """Trace MJX code with its derivative traps remedied (and, optionally, its solver differentiated implicitly).
+
+    Values are MJX's own either way. Reentrant; undone on exit, so MJX outside
+    this library is unchanged. Use it around the tracing of a step::
+
+        with differentiable_mjx(implicit_solver=True):
+            next_state = env.step(state, action)   # mjx.step inside: reverse mode passes its solver
+    """
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(_applied("remedies", _REMEDIES))
+        if implicit_solver:
+            stack.enter_context(_applied("implicit", ((solver, "solve", solve_implicitly),)))
+        yield
+
+
+def traced_differentiably(function, implicit_solver: bool = False):
+    """``function`` traced inside ``differentiable_mjx`` whenever it is called."""
+    def wrapped(*args, **kwargs):
+        with differentiable_mjx(implicit_solver):
+            return function(*args, **kwargs)
+
+    return wrapped

@@ -1,0 +1,6 @@
+"""Run folders: what one run keeps, so that it resumes exactly and renders later.
+
+- ``run_folder``: config, metrics, parameters and checkpoints, each written atomically; the lock on a folder.
+- ``model_store``: an MJCF run's model as given and as compiled, a grid's shared copies.
+- ``epochs``: a trainer's epochs into a folder, checkpointed as they go.
+"""

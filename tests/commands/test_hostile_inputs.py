@@ -1,0 +1,279 @@
+"""Bad and hostile input - options, models, files: one line on stderr, exit code 2, nothing trained or written.
+
+Run in-process through scripts/train.py's ``main``: each case fails before anything compiles.
+"""
+from __future__ import annotations
+
+import importlib.util
+
+import pytest
+from conftest import ROOT
+
+pytestmark = pytest.mark.fast  # make test-fast: closed forms, invariants, tiny horizons
+
+PENDULUM = """<mujoco>
+  <option timestep="{timestep}"/>
+  <worldbody>
+    <body><joint name="hinge" type="hinge"/><geom type="capsule" size="0.05" fromto="0 0 0 0 0 -1"/></body>
+    {extra_body}
+  </worldbody>
+  <actuator><motor joint="hinge"/></actuator>
+  {custom}
+</mujoco>"""
+
+CASES = {
+    "zero time step": (dict(timestep="0"), [], "timestep"),
+    "negative time step": (dict(timestep="-0.01"), [], "timestep"),
+    "zero horizon": (dict(custom='<custom><numeric name="bptt_horizon" data="0"/></custom>'), [], "bptt_horizon"),
+    "negative horizon": (dict(custom='<custom><numeric name="bptt_horizon" data="-5"/></custom>'), [], "bptt_horizon"),
+    "fractional horizon": (dict(custom='<custom><numeric name="bptt_horizon" data="2.5"/></custom>'), [], "bptt_horizon"),
+    "NaN horizon": (dict(custom='<custom><numeric name="bptt_horizon" data="nan"/></custom>'), [], "bptt_horizon"),
+    "NaN spread field": (dict(custom='<custom><numeric name="bptt_qvel_spread" data="nan"/></custom>'), [], "bptt_qvel_spread"),
+    "infinite weight": (dict(custom='<custom><numeric name="bptt_joint_weight" data="inf"/></custom>'), [], "bptt_joint_weight"),
+    "NaN target": (dict(custom='<keyframe><key name="target" qpos="nan"/></keyframe>'), [], "target"),
+    "undecodable loss text": (dict(custom='<custom><text name="bptt_loss" data="fin\udcffal"/></custom>'), [], "UTF-8"),
+    "NaN --dt": ({}, ["--dt", "nan"], "--dt"),
+    "infinite --dt": ({}, ["--dt", "inf"], "--dt"),
+    "--dt leaving no step": ({}, ["--dt", "1e6"], "less than one step"),
+    "--dt leaving too many steps": ({}, ["--dt", "1e-300"], "steps"),
+    "NaN --spread": ({}, ["--spread", "nan"], "--spread"),
+    "--spread overflowing float32": ({}, ["--spread", "1e305"], "--spread"),
+    "negative --steps": ({}, ["--steps", "-1"], "--steps"),
+    "huge --data-seed": ({}, ["--data-seed", str(2**70)], "--data-seed"),
+    "negative --seed": ({}, ["--seed", "-1"], "--seed"),
+    "seeds past the last seed": ({}, ["--seed", str(2**32 - 2), "--seeds", "3"], "--seed"),
+    "a collision pair MJX lacks": (dict(extra_body='<body pos="0 0 -3"><freejoint/><geom type="cylinder" size="0.1 0.1"/>'
+                                                   '</body><geom type="box" size="1 1 0.1" pos="0 0 -4"/>'),
+                                   [], "cylinder-box contacts"),
+    "the noslip solver, which MJX lacks": (dict(timestep='0.01" noslip_iterations="5',
+                                                extra_body='<body pos="0 0 -3"><freejoint/><geom size="0.1"/></body>'
+                                                           '<geom type="plane" size="1 1 0.1" pos="0 0 -4"/>'),
+                                           [], "noslip"),
+    "an actuator's damping, which MJX ignores": (dict(custom='<actuator><motor joint="hinge" damping="0.5"/></actuator>'),
+                                                  [], "damping"),
+    "reverse mode through mjx.step's solver loop": (dict(extra_body='<body pos="0 0 -3"><freejoint/><geom size="0.1"/>'
+                                                                    '</body><geom type="plane" size="1 1 0.1" pos="0 0 -4"/>'),
+                                                    ["--pipeline", "mjx", "--step-derivative", "reverse"], "forward"),
+}
+
+
+@pytest.fixture(scope="module")
+def train_main():
+    spec = importlib.util.spec_from_file_location("train_script", ROOT / "scripts" / "train.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.main
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_hostile_input_is_one_line_and_exit_code_2(train_main, tmp_path, capsys, case):
+    fields, options, words = CASES[case]
+    text = PENDULUM.format(**{"timestep": "0.01", "extra_body": "", "custom": "", **fields})
+    model = tmp_path / "hostile.xml"
+    model.write_bytes(text.encode("utf-8", errors="surrogateescape"))  # \udcff becomes the raw byte 0xff
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_:
+        train_main(["--model", str(model), "--epochs", "1", "--out", str(out), "--no-progress"] + options)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert exit_.value.code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith("error: ") and words in lines[0], lines[0]
+    assert not out.exists()  # nothing was written that could be neither resumed nor reused
+
+
+# Bad options and broken model files ({dir}: the test's folder; a file named last is written with the content).
+BAD_COMMAND_LINES = [
+    (["--task", "pendulum"], None),
+    (["--mode", "X"], None),
+    (["--clip", "maybe"], None),
+    (["--task", "repulsion", "--epochs", "0"], None),
+    (["--task", "repulsion", "--seeds", "-1"], None),
+    (["--task", "repulsion", "--lr", "0"], None),
+    (["--task", "repulsion", "--lr", "-1e-3"], None),
+    (["--task", "repulsion", "--batch", "0"], None),
+    (["--task", "repulsion", "--batch", "7"], None),
+    (["--task", "repulsion", "--poles", "3"], None),
+    (["--epochs", "many"], None),
+    (["--resume", "/nonexistent/run"], None),
+    (["--poles", "5"], None),
+    (["--poles", "0"], None),
+    (["--model", "missing.xml"], None),
+    (["--model", "{dir}/broken.xml"], "<mujoco><worldbody><body></mujoco>"),
+    (["--model", "{dir}/no_actuator.xml"], "<mujoco><worldbody><body><joint type='hinge'/><geom size='.1'/></body></worldbody></mujoco>"),
+    (["--model", "{dir}/bad_key.xml"], "<mujoco><worldbody><body><joint type='hinge'/><geom size='.1'/></body></worldbody>"
+                                       "<actuator><motor joint='0'/></actuator><keyframe><key name='init' qpos='1 2 3'/></keyframe></mujoco>"),
+    (["--model", "{dir}/bad_spread.xml"], "<mujoco><worldbody><body><joint name='j' type='hinge'/><geom size='.1'/></body></worldbody>"
+                                          "<actuator><motor joint='j'/></actuator><custom><numeric name='bptt_qpos_spread' data='1 2'/></custom></mujoco>"),
+]
+
+# Options given together where one makes the other meaningless: (arguments, the options the line names).
+CONFLICTS = [
+    (["--task", "repulsion", "--clip", "none", "--clip-threshold", "0.5"], ("--clip-threshold", "--clip none")),
+    (["--task", "repulsion", "--seed-batching", "vmap"], ("--seed-batching", "--seeds")),
+    (["--task", "repulsion", "--mode", "C", "--no-cosine"], ("--cosine", "mode C")),
+    (["--poles", "3", "--model", "{models}/cartpole_2.xml"], ("--poles", "--model")),
+    (["--poles", "2", "--steps", "50", "--horizon-seconds", "2"], ("--steps", "--horizon-seconds")),
+    (["--poles", "2", "--pipeline", "mjx", "--solver-iterations", "3"], ("--solver-iterations", "--pipeline mjx")),
+    (["--poles", "2", "--target-pose", "slider=0.5", "--loss-joints", "none"], ("--target-pose", "--loss-joints")),
+]
+BAD_COMMAND_LINES += [(arguments, None) for arguments, _ in CONFLICTS]
+
+
+@pytest.mark.parametrize("arguments, content", BAD_COMMAND_LINES, ids=[" ".join(a) for a, _ in BAD_COMMAND_LINES])
+def test_bad_command_line_is_one_line_and_exit_code_2(train_main, tmp_path, capsys, arguments, content):
+    from stablebptt import models
+    arguments = [a.format(dir=tmp_path, models=models.DIRECTORY) for a in arguments]
+    if content is not None:
+        (tmp_path / arguments[-1].split("/")[-1]).write_text(content)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_:
+        train_main(arguments + ["--out", str(out), "--no-progress"] if "--resume" not in arguments else arguments)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert exit_.value.code == 2 and len(lines) == 1 and lines[0].startswith("error: "), lines
+    assert not out.exists()
+    for conflict, named in CONFLICTS:
+        if conflict == arguments:
+            assert all(option in lines[0] for option in named), lines[0]
+
+
+def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_takes_each_alone():
+    import stablebptt as sb
+    from stablebptt.engine.checks import check_options
+    from stablebptt.runs import run_folder
+    from stablebptt.tasks import mjcf
+    train_cases = {"TrainConfig.clip_threshold 0.5 has no effect": dict(clip="none", clip_threshold=0.5),
+                   "TrainConfig.seed_batching vmap": dict(seed_batching="vmap"),
+                   "TrainConfig.cosine is off, but mode C": dict(mode="C", cosine=False)}
+    for words, fields in train_cases.items():
+        with pytest.raises(sb.InputError, match=words):
+            sb.train(_pendulum(), sb.TrainConfig(epochs=1, **fields))  # refused before anything compiles
+    task_cases = {"mjcf.Config.poles 3 picks": dict(poles=3, model=str(mjcf.MODELS / "cartpole_2.xml")),
+                  "mjcf.Config.steps 50 overrides": dict(steps=50, horizon_seconds=2.0),
+                  "mjcf.Config.solver_iterations 3": dict(pipeline="mjx", solver_iterations=3),
+                  "mjcf.Config.target_pose": dict(target_pose="slider=0.5", reach="pole_1=0,0,1")}
+    for words, fields in task_cases.items():
+        with pytest.raises(sb.InputError, match=words):
+            run_folder.new_record("mjcf", mjcf.Config(**fields), None, sb.TrainConfig())  # before a run records them
+    # Each option alone, or with what gives it a meaning, is taken.
+    for fields in (dict(clip="norm", clip_threshold=0.5), dict(seeds=3, seed_batching="vmap"), dict(mode="R", cosine=False)):
+        check_options(sb.TrainConfig(**fields))
+    for fields in (dict(model=str(mjcf.MODELS / "cartpole_2.xml")), dict(poles=3, steps=50), dict(horizon_seconds=2.0),
+                   dict(pipeline="mjx"), dict(solver_iterations=3), dict(target_pose="slider=0.5", loss_joints="slider")):
+        check_options(sb.TrainConfig(), mjcf.Config(**fields))
+
+
+# The README's pendulum, as a Python user builds it: each case spoils one field.
+def _pendulum():
+    import jax
+    import jax.numpy as jnp
+
+    import stablebptt as sb
+
+    def step(state, torque):
+        angle, speed = state
+        speed = speed + 0.05 * (-9.81 * jnp.sin(angle) + torque[0])
+        return angle + 0.05 * speed, speed
+
+    dynamics = sb.Dynamics(step=step, policy=lambda p, s: sb.mlp_apply(p, jnp.stack([jnp.sin(s[0]), s[1]])),
+                           loss=lambda states, torques: 1 + jnp.cos(states[0][-1]), horizon=5)
+    return sb.Task(name="pendulum", dynamics=dynamics,
+                   init_params=lambda key, zero_output: sb.mlp_init(key, (2, 8, 1), zero_output),
+                   sample_initial_states=lambda key, n: (jax.random.uniform(key, (n,)), jnp.zeros(n)))
+
+
+def _spoiled(case):
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    import stablebptt as sb
+    task = _pendulum()
+    d = task.dynamics
+    change = {
+        "horizon 0": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, horizon=0)),
+        "horizon -3": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, horizon=-3)),
+        "horizon 2.5": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(d, horizon=2.5)),
+        "plan a string": lambda: dataclasses.replace(task, plan="forward"),
+        "step changes structure": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(
+            d, step=lambda s, u: {"angle": s[0], "speed": s[1]})),
+        "vector loss": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(
+            d, loss=lambda states, torques: 1 + jnp.cos(states[0]))),
+        "wrong control shape": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(
+            d, policy=lambda p, s: jnp.zeros((3, 2)))),
+        "sampler size": lambda: dataclasses.replace(task, sample_initial_states=lambda key, n: (jnp.zeros(n + 1), jnp.zeros(n + 1))),
+        "integer parameters": lambda: dataclasses.replace(task, init_params=lambda key, zero_output: [jnp.zeros(3, int)]),
+    }[case]
+    return sb, change()
+
+
+TASK_CASES = {
+    "horizon 0": "Dynamics.horizon must be a positive whole number of steps, got 0",
+    "horizon -3": "Dynamics.horizon must be a positive whole number of steps, got -3",
+    "horizon 2.5": "Dynamics.horizon must be a positive whole number of steps, got 2.5",
+    "plan a string": "Task.plan must be a stablebptt.Plan, got str",
+    "step changes structure": "Dynamics.step must return a state like the one it is given",
+    "vector loss": "Dynamics.loss must return one float for a trajectory",
+    "wrong control shape": "Dynamics.step must return a state like the one it is given",  # it broadcast the control
+    "sampler size": "Task.sample_initial_states(key, 2) must return 2 states",
+    "integer parameters": "Task.init_params must return float parameters",
+}
+
+
+@pytest.mark.parametrize("case", sorted(TASK_CASES))
+def test_the_python_api_names_what_is_wrong_with_a_task_before_compiling(case):
+    from stablebptt.engine.checks import TaskError
+    sb, task = _spoiled(case)
+    with pytest.raises(TaskError, match=TASK_CASES[case].replace("(", r"\(").replace(")", r"\)")):
+        sb.make_trainer(task, sb.TrainConfig(epochs=1, train_size=8, test_size=8))
+
+
+def test_a_plan_names_its_wrong_field_and_dynamics_sends_engine_settings_to_plan():
+    import stablebptt as sb
+    for field, value, message in [
+            ("step_derivative", "bogus", "Plan.step_derivative must be one of reverse, forward, got 'bogus'"),
+            ("policy_gradient", "bogus", "Plan.policy_gradient must be one of batched, per-step, got 'bogus'"),
+            ("unroll", 0, "Plan.unroll must be a positive whole number, got 0"),
+            ("jacobian_chunk", 2.5, "Plan.jacobian_chunk must be None or a positive whole number, got 2.5"),
+            ("rematerialize", "yes", "Plan.rematerialize must be True or False, got 'yes'")]:
+        with pytest.raises(sb.InputError, match=message):
+            sb.Plan(**{field: value})
+    physics = {name: getattr(_pendulum().dynamics, name) for name in ("step", "policy", "loss", "horizon")}
+    with pytest.raises(sb.InputError, match="^Dynamics takes step, policy, loss and horizon only: step_derivative, "
+                                            "unroll belong to stablebptt.Plan; pass a Plan"):
+        sb.Dynamics(**physics, unroll=5, step_derivative="forward")
+    with pytest.raises(sb.InputError, match="make_trainer's plan must be a stablebptt.Plan or None, got dict"):
+        sb.make_trainer(_pendulum(), sb.TrainConfig(epochs=1, train_size=8, test_size=8), plan={"unroll": 5})
+
+
+@pytest.mark.parametrize("field, value", [("epochs", 2.5), ("lr", "0.1"), ("batch", None), ("seeds", True),
+                                          ("clip", 1), ("x64", "yes")])
+def test_a_train_config_field_of_the_wrong_type_is_named(field, value):
+    import stablebptt as sb
+    with pytest.raises(sb.InputError, match=f"TrainConfig.{field} must be"):
+        sb.TrainConfig(**{field: value})
+
+
+def test_a_dict_for_the_train_config_and_a_float64_trainer_made_in_float32_are_named():
+    import stablebptt as sb
+    with pytest.raises(sb.InputError, match="expected a stablebptt.TrainConfig, got dict"):
+        sb.train(_pendulum(), {"epochs": 1})
+    with pytest.raises(sb.InputError, match="TrainConfig.x64 asks for float64.*jax.enable_x64"):
+        sb.make_trainer(_pendulum(), sb.TrainConfig(epochs=1, x64=True))
+
+
+def test_x64_from_python_trains_in_float64_as_the_command_line_and_leaves_jax_in_float32():
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from conftest import float64
+
+    import stablebptt as sb
+    config = sb.TrainConfig(epochs=2, train_size=8, test_size=8, x64=True)
+    assert not jax.config.jax_enable_x64
+    scoped = sb.train(_pendulum(), config)
+    assert not jax.config.jax_enable_x64 and jnp.ones(1).dtype == jnp.float32  # the user's setting is kept
+    assert {leaf.dtype for leaf in jax.tree.leaves(scoped.params)} == {np.dtype(np.float64)}
+    with float64():  # as the command line's --x64: JAX in float64 from the start
+        whole = sb.train(_pendulum(), config)
+    for a, b in zip(jax.tree.leaves(scoped.params), jax.tree.leaves(whole.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(scoped.metrics["test_loss"], whole.metrics["test_loss"])

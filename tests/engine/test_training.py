@@ -1,0 +1,359 @@
+"""The training engine and scripts/train.py: learning, seeds, resume, divergence, bad input."""
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+
+import jax
+import jax.extend
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import ROOT
+
+from stablebptt import storage, timing
+from stablebptt.engine import training
+from stablebptt.engine.metrics import COLUMNS, empty_rows
+from stablebptt.engine.task import Task
+from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
+from stablebptt.flows.dynamics import Dynamics, Plan
+from stablebptt.runs import epochs, run_folder
+from stablebptt.tasks import repulsion
+
+SMALL = TrainConfig(epochs=3, train_size=32, test_size=32, batch=8, mode="C")
+TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
+SMALL_CLI = ["--task", "repulsion", "--train-size", "32", "--test-size", "32", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def task():
+    return repulsion.make(repulsion.Config(rc=0.01))
+
+
+def run_epochs(trainer, config, epochs):
+    state = trainer.init(seed_array(config))
+    history = []
+    for _ in range(epochs):
+        state, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+        history.append(jax.device_get(metrics))
+    return state, history
+
+
+@pytest.fixture(scope="module")
+def three_seeds(task):
+    config = replace(SMALL, seeds=3, seed=7)
+    return run_epochs(make_trainer(task, config), config, 3)
+
+
+def test_training_lowers_the_test_loss(three_seeds):
+    _, history = three_seeds
+    assert np.all(history[-1]["test_loss"] < history[0]["test_loss"])
+    assert np.all([h["finite"] for h in history])
+    assert np.all(np.abs(history[-1]["cosine"]) <= 1.0)
+
+
+def scan_unrolls(jaxpr) -> set:
+    """The ``unroll`` of every scan in a jaxpr, nested ones included."""
+    found = set()
+    for equation in jaxpr.eqns:
+        if equation.primitive.name == "scan":
+            found.add(equation.params["unroll"])
+        for sub in jax.extend.core.jaxprs_in_params(equation.params):
+            found |= scan_unrolls(sub)
+    return found
+
+
+@pytest.mark.parametrize("grid", [False, True])
+def test_unroll_reaches_every_rollout_loop_and_leaves_the_numbers(task, grid):
+    """--unroll is applied to the epoch's dynamics, in a single run and a grid's per-cell ones."""
+    config = replace(SMALL, epochs=1, seeds=1, unroll=3)
+    trainer, plain = make_trainer(task, config, grid=grid), make_trainer(task, replace(config, unroll=1), grid=grid)
+    state = trainer.init(seed_array(config))
+    values = (jnp.array([0.01]),) if grid else ()
+    arguments = (state, *values, trainer.batches, trainer.train_states, trainer.test_states)
+    # trace, not make_jaxpr: on a GPU the epoch is a program with XLA options, which JAX refuses nested.
+    assert 3 in scan_unrolls(trainer.epoch.trace(*arguments).jaxpr.jaxpr)
+    assert 3 not in scan_unrolls(plain.epoch.trace(*arguments).jaxpr.jaxpr)
+    unrolled, rolled = trainer.epoch(*arguments)[1], plain.epoch(*arguments)[1]
+    for name in ("batch_loss", "test_loss", "update_norm"):
+        np.testing.assert_allclose(unrolled[name], rolled[name], rtol=1e-5)
+
+
+def test_the_run_plan_completes_the_task_plan_and_a_plan_a_user_gives_is_taken_whole(task):
+    """Trainer.plan: the task's own plan, completed by the run (unroll, memory, one step's size); a
+    plan passed to make_trainer is used as given, its defaults too (they override the task's hints)."""
+    config = replace(SMALL, epochs=1, unroll=3)
+    hinted = replace(task, plan=Plan(policy_gradient="per-step"))
+    chosen = make_trainer(hinted, config).plan
+    assert (chosen.policy_gradient, chosen.unroll, chosen.step_derivative) == ("per-step", 3, "reverse")
+    assert chosen.jacobian_per_input and not chosen.rematerialize  # a small step whose path fits in memory
+    given = Plan(unroll=2, step_derivative="forward")
+    assert make_trainer(hinted, config, plan=given).plan is given  # policy_gradient "batched", the default
+    changed = replace(chosen, step_derivative="forward")
+    assert make_trainer(hinted, config, plan=changed).plan is changed
+    one_pass = replace(task, plan=Plan(jacobian_per_input=False))  # a task may ask for one Jacobian pass
+    assert not make_trainer(one_pass, config).plan.jacobian_per_input
+
+
+class StaticData:
+    """A pytree node whose static data is a NumPy array, printed by address (as MJX wraps such data)."""
+
+    def __init__(self, values):
+        self.values = values
+
+    def __repr__(self):
+        return f"<StaticData at {hex(id(self))}>"
+
+
+jax.tree_util.register_pytree_node(StaticData, lambda node: ((0,), StaticData(node.values)),
+                                   lambda data, children: StaticData(data.values))
+
+
+def test_a_kept_traced_epoch_computes_what_the_traced_one_does_and_a_changed_key_traces_anew(task, tmp_path, monkeypatch):
+    """program_store: the first compile traces, exports and keeps the epoch; the second loads it without
+    tracing and gives the same numbers bit for bit; a damaged file is traced anew; the key follows
+    everything it is given (the task's inputs, the arguments' shapes)."""
+    from stablebptt.engine import program_store
+    config = replace(SMALL, epochs=1, epoch_program="per-update")  # a PerUpdateEpoch: three programs kept
+    trainer = make_trainer(task, config)
+    arguments = (trainer.init(seed_array(config)), trainer.batches, trainer.train_states, trainer.test_states)
+    key = {"task": "repulsion", "inputs": {}}
+    plain = jax.device_get(trainer.epoch.lower(*arguments).compile()(*arguments))
+    first, _ = program_store.compile_epoch(trainer.epoch, arguments, key, tmp_path, trainer.compiler_options)
+    kept = sorted((tmp_path / program_store.FOLDER).iterdir())
+    assert len(kept) == 3
+    monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("traced although kept"))
+    second, _ = program_store.compile_epoch(trainer.epoch, arguments, key, tmp_path, trainer.compiler_options)
+    for result in (first, second):
+        for ours, theirs in zip(jax.tree.leaves(jax.device_get(result(*arguments))), jax.tree.leaves(plain)):
+            np.testing.assert_array_equal(ours, theirs)
+    monkeypatch.undo()
+    kept[0].write_bytes(b"damaged")
+    program_store.compile_epoch(trainer.epoch, arguments, key, tmp_path, trainer.compiler_options)
+    assert kept[0].read_bytes() != b"damaged"  # replaced
+    # Static node data shown by address (as MJX's contact data is) keys the same in every process.
+    same = [jax.tree.structure(jax.tree_util.tree_unflatten(jax.tree.structure(StaticData(np.arange(3))), [0]))
+            for _ in range(2)]
+    assert str(same[0]) != str(same[1]) and program_store._tree_digest(same[0]) == program_store._tree_digest(same[1])
+    other = program_store.program_key({**key, "inputs": {"model": "0" * 64}}, arguments)
+    assert other != program_store.program_key(key, arguments) != program_store.program_key(key, arguments[:2])
+    # The set-up's traced measurements are kept the same way (in the session's compile cache here).
+    calls = []
+    for _ in range(2):
+        assert program_store.kept_answer({**key, "test": str(tmp_path)}, "bytes", lambda: calls.append(1) or 58415) == 58415
+    assert len(calls) == 1
+    kept_key = {**key, "test": str(tmp_path)}
+    fields = lambda plan: vars(plan)  # noqa: E731 - Plan compares by identity
+    first = make_trainer(task, config, keep=kept_key)
+    monkeypatch.setattr(training, "step_size", lambda *a: pytest.fail("the step's size traced although kept"))
+    assert fields(first.plan) == fields(make_trainer(task, config, keep=kept_key).plan) == fields(trainer.plan)
+    monkeypatch.undo()
+    from stablebptt.tasks import env, mjcf
+    assert env.program_inputs(env.Config(env="my_lab.envs:arm")) is None  # code outside the library: not kept
+    models = [tmp_path / f"{name}.xml" for name in ("a", "b")]
+    for path, size in zip(models, (0.1, 0.2)):
+        path.write_text(f'<mujoco><worldbody><body><joint type="hinge"/><geom size="{size}"/></body></worldbody></mujoco>')
+    assert len({mjcf.program_inputs(mjcf.Config(model=str(path)))["model"] for path in models}) == 2
+
+
+def test_mapped_seeds_equal_the_same_seeds_trained_alone(task, three_seeds):
+    state, history = three_seeds
+    config = replace(SMALL, seeds=1, seed=8)  # the middle seed of 7, 8, 9
+    alone_state, alone_history = run_epochs(make_trainer(task, config), config, 3)
+    for together, alone in zip(history, alone_history):
+        for name in ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine"):
+            assert together[name][1] == alone[name][0], name
+    for together, alone in zip(jax.tree.leaves(state.params), jax.tree.leaves(alone_state.params)):
+        np.testing.assert_array_equal(together[1], alone[0])
+
+
+def test_vmapped_seeds_agree_with_mapped_seeds_to_rounding(task, three_seeds):
+    _, history = three_seeds
+    config = replace(SMALL, seeds=3, seed=7, seed_batching="vmap")
+    _, vmapped = run_epochs(make_trainer(task, config), config, 1)
+    np.testing.assert_allclose(vmapped[0]["test_loss"], history[0]["test_loss"], rtol=1e-5)
+
+
+def test_an_epoch_compiled_per_update_trains_as_the_epoch_compiled_whole(task, three_seeds, tmp_path):
+    """The same updates and metrics from separately compiled programs (large scenes) as from one."""
+    state, history = three_seeds
+    config = replace(SMALL, seeds=3, seed=7, epoch_program="per-update")
+    trainer = make_trainer(task, config)
+    assert type(trainer.epoch).__name__ == "PerUpdateEpoch"
+    # Through the epoch loop of runs, which compiles ahead before timing.
+    outcome = epochs.train_epochs(trainer, config, tmp_path, trainer.init(seed_array(config)), 0, empty_rows(),
+                                np.asarray(seed_array(config)))
+    assert outcome.status == "complete"
+    for name in ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine"):
+        per_update = outcome.rows[:, COLUMNS.index(name)].reshape(3, 3)  # [epoch, seed]
+        np.testing.assert_allclose(per_update, [h[name] for h in history], rtol=1e-5, err_msg=name)
+    for whole, split in zip(jax.tree.leaves(state.params), jax.tree.leaves(outcome.state.params)):
+        np.testing.assert_allclose(split, whole, rtol=1e-4, atol=1e-7)
+
+
+def test_auto_compiles_a_step_that_solves_apart_on_several_cores_and_a_plain_step_whole(task, monkeypatch):
+    """``epoch_program="auto"``: a step holding a loop of data-dependent length (a constraint solver's)
+    makes the epoch three programs where the CPU compiles them side by side, one program where it
+    cannot; a step without such a loop stays one program."""
+    step = task.dynamics.step
+
+    def solving_step(state, control):  # the step, then a loop that stops after one pass, as a solver converges
+        return jax.lax.while_loop(lambda carry: carry[1] < 1, lambda carry: (carry[0], carry[1] + 1),
+                                  (step(state, control), 0))[0]
+
+    d = task.dynamics
+    solving = replace(task, dynamics=Dynamics(step=solving_step, policy=d.policy, loss=d.loss, horizon=d.horizon))
+    config = replace(SMALL, epochs=1)
+    side_by_side = jax.default_backend() == "cpu" and timing.usable_cores() > 1
+    split = lambda trainer: isinstance(trainer.epoch, training.PerUpdateEpoch)  # noqa: E731
+    assert split(make_trainer(solving, config)) == side_by_side
+    assert not split(make_trainer(task, config))
+    monkeypatch.setattr(training, "usable_cores", lambda: 1)
+    assert not split(make_trainer(solving, config))
+
+
+def test_runs_are_bit_reproducible(task, three_seeds):
+    config = replace(SMALL, seeds=3, seed=7)
+    _, again = run_epochs(make_trainer(task, config), config, 3)
+    for first, second in zip(three_seeds[1], again):
+        for name in ("test_loss", "update_norm"):
+            np.testing.assert_array_equal(first[name], second[name])
+
+
+def exploding_task():
+    """x_{t+1} = x + u, linear policy, a loss unbounded below: Adam walks p up by ~lr per update
+    and its squared gradient, ~p^14, overflows float32 after a few epochs."""
+    return Task(
+        name="exploding",
+        dynamics=Dynamics(step=lambda x, u: x + u, policy=lambda p, x: p * x,
+                          loss=lambda states, controls: -jnp.sum(states[-1] ** 2), horizon=4),
+        init_params=lambda key, zero_output: jnp.array([0.5]),
+        sample_initial_states=lambda key, n: jax.random.uniform(key, (n, 1), minval=0.5, maxval=1.0),
+    )
+
+
+def test_divergence_stops_with_the_epoch_and_keeps_the_last_good_checkpoint(tmp_path):
+    config = TrainConfig(epochs=50, train_size=16, test_size=8, batch=8, lr=100.0, clip="none", mode="R")
+    trainer = make_trainer(exploding_task(), config)
+    state = trainer.init(seed_array(config))
+    outcome = epochs.train_epochs(trainer, config, tmp_path, state, 0, empty_rows(), np.asarray(seed_array(config)))
+    assert outcome.status == "diverged"
+    bad_epoch = outcome.epoch + 1
+    assert f"epoch {bad_epoch}" in outcome.message
+    epoch, saved, rows = run_folder.load_checkpoint(tmp_path, state)
+    assert epoch == outcome.epoch and bad_epoch > 1
+    assert np.all(np.isfinite(rows[:, 2:7])) and rows[:, 0].max() == epoch
+    assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(saved))
+
+
+def nan_through_the_policy_input_task():
+    """g_R is NaN (the policy's input passes a square root at 0, times 0) while g_M, the loss and
+    mode C's sign-agreement update stay finite: C's update is a finite zero that hides the NaN."""
+    return Task(
+        name="hidden-nan",
+        dynamics=Dynamics(step=lambda x, u: x + u, policy=lambda p, x: p * x + 0.0 * jnp.sqrt(jnp.abs(x - x)),
+                          loss=lambda states, controls: jnp.sum((states[-1] - 2.0) ** 2), horizon=3),
+        init_params=lambda key, zero_output: jnp.array([0.5]),
+        sample_initial_states=lambda key, n: jax.random.uniform(key, (n, 1), minval=0.5, maxval=1.0),
+    )
+
+
+def test_a_non_finite_gradient_of_any_flow_stops_training_even_when_the_update_is_finite(tmp_path):
+    config = TrainConfig(epochs=3, train_size=8, test_size=8, batch=8, mode="C")
+    trainer = make_trainer(nan_through_the_policy_input_task(), config)
+    state = trainer.init(seed_array(config))
+    _, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+    assert np.isfinite(metrics["update_norm"][0]) and np.isfinite(metrics["test_loss"][0])  # nothing else shows it
+    outcome = epochs.train_epochs(trainer, config, tmp_path, state, 0, empty_rows(), np.asarray(seed_array(config)))
+    assert outcome.status == "diverged" and outcome.epoch == 0
+    assert "gradient of flow R" in outcome.message and "flow M" not in outcome.message, outcome.message
+
+
+def train_cli(*args, **kwargs):
+    return subprocess.run(TRAIN + list(args), capture_output=True, text=True, cwd=kwargs.pop("cwd", ROOT), **kwargs)
+
+
+def metrics_without_time(run_dir):
+    return [{k: v for k, v in row.items() if k != "seconds"} for row in run_folder.read_metrics(run_dir / run_folder.METRICS_FILE)]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("runs") / "whole"
+    result = train_cli(*SMALL_CLI, "--epochs", "4", "--out", str(run_dir))
+    assert result.returncode == 0, result.stderr
+    return run_dir
+
+
+def test_a_run_directory_holds_config_metrics_params_and_checkpoint(uninterrupted):
+    for name in (run_folder.CONFIG_FILE, run_folder.METRICS_FILE, run_folder.PARAMS_FILE, run_folder.CHECKPOINT_FILE):
+        assert (uninterrupted / name).is_file(), name
+    rows = run_folder.read_metrics(uninterrupted / run_folder.METRICS_FILE)
+    assert [row["epoch"] for row in rows] == [1, 2, 3, 4]
+    assert set(COLUMNS) <= set(rows[0])
+    assert storage.read_json(uninterrupted / run_folder.CONFIG_FILE)["train"]["epochs"] == 4
+
+
+def test_resume_after_sigkill_ends_with_the_uninterrupted_metrics(uninterrupted, tmp_path):
+    run_dir = tmp_path / "killed"
+    process = subprocess.Popen(TRAIN + SMALL_CLI + ["--epochs", "4", "--out", str(run_dir)], cwd=ROOT,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not (run_dir / run_folder.CHECKPOINT_FILE).exists() and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert (run_dir / run_folder.CHECKPOINT_FILE).exists()
+    result = train_cli("--resume", str(run_dir), "--no-progress")
+    assert result.returncode == 0, result.stderr
+    assert metrics_without_time(run_dir) == metrics_without_time(uninterrupted)
+
+
+def test_resume_extends_a_finished_run_exactly(uninterrupted, tmp_path):
+    run_dir = tmp_path / "extended"
+    assert train_cli(*SMALL_CLI, "--epochs", "2", "--out", str(run_dir)).returncode == 0
+    result = train_cli("--resume", str(run_dir), "--epochs", "4", "--no-progress")
+    assert result.returncode == 0, result.stderr
+    assert metrics_without_time(run_dir) == metrics_without_time(uninterrupted)
+
+
+def test_sigint_stops_cleanly_after_saving(tmp_path):
+    run_dir = tmp_path / "interrupted"
+    process = subprocess.Popen(TRAIN + SMALL_CLI + ["--epochs", "500", "--out", str(run_dir)], cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (run_dir / run_folder.CHECKPOINT_FILE).exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130 and "--resume" in stderr and "Traceback" not in stderr
+    epoch, _, rows = run_folder.load_checkpoint(run_dir, make_trainer(repulsion.make(repulsion.Config()), replace(
+        SMALL, train_size=32, test_size=32)).init(seed_array(SMALL)))
+    assert 1 <= epoch < 500 and rows[:, 0].max() == epoch
+
+
+def test_an_existing_or_unwritable_out_is_refused_and_left_untouched(uninterrupted, tmp_path):
+    before = {p.name: p.stat().st_mtime_ns for p in uninterrupted.iterdir()}
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory")
+    for out in (uninterrupted, blocker / "run"):
+        result = train_cli(*SMALL_CLI, "--epochs", "1", "--out", str(out))
+        assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert {p.name: p.stat().st_mtime_ns for p in uninterrupted.iterdir()} == before
+
+
+def test_compiled_programs_are_kept_between_runs_unless_turned_off(tmp_path):
+    """The command line's persistent compilation cache: filled by a run, left empty with --no-compile-cache."""
+    runs = {}
+    for flag, cache in (("--compile-cache", tmp_path / "kept"), ("--no-compile-cache", tmp_path / "off")):
+        env = {**os.environ, "STABLEBPTT_COMPILE_CACHE": str(cache)}
+        # Side by side: the two runs share nothing but the machine.
+        runs[flag, cache] = subprocess.Popen(TRAIN + SMALL_CLI + ["--epochs", "1", "--out", str(tmp_path / flag), flag],
+                                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env)
+    for (flag, cache), process in runs.items():
+        _, stderr = process.communicate()
+        assert process.returncode == 0, stderr
+        entries = list(cache.glob("*")) if cache.exists() else []
+        assert bool(entries) == (flag == "--compile-cache"), (flag, entries)

@@ -1,0 +1,253 @@
+"""Environments in Brax's protocol as tasks: states with integer, bool and key leaves, the reward's
+diagnosis, the command line's --env, MJX's constraint solver differentiated inside mjx.step, and
+MuJoCo Playground (tests that need the extra skip without it)."""
+import importlib.util
+import os
+import subprocess
+import sys
+import types
+from dataclasses import replace
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from conftest import ROOT, float64
+from envs_for_tests import Cart
+
+import stablebptt as sb
+from stablebptt.engine import fitting, program_store
+from stablebptt.engine.metrics import empty_rows
+from stablebptt.engine.training import seed_array
+from stablebptt.envs import adapter
+from stablebptt.envs.adapter import EnvError, env_task
+from stablebptt.flows.gradients import flow_gradients, reference_loss
+from stablebptt.physics.constraint_derivatives import differentiable_mjx
+from stablebptt.physics.mjx_internals import mjx
+from stablebptt.runs import epochs
+from stablebptt.storage import read_json
+
+HAS_PLAYGROUND = importlib.util.find_spec("mujoco_playground") is not None
+needs_playground = pytest.mark.skipif(not HAS_PLAYGROUND, reason="MuJoCo Playground is not installed "
+                                                                  "(pip install 'stablebptt[playground]')")
+TINY = sb.TrainConfig(mode="C", epochs=3, train_size=8, test_size=8, batch=4, clip="norm", lr=1e-2)
+
+
+def test_an_environment_trains_and_flow_r_is_the_gradient_of_the_plain_rollout():
+    task = env_task(Cart(), horizon=12)
+    assert task.resolved["reward_gradient"] == "usable" and task.resolved["episode_length"] == 30
+    with float64():
+        params = task.init_params(jax.random.PRNGKey(1), False)
+        states = task.sample_initial_states(jax.random.PRNGKey(2), 4)
+        assert states.data["count"].dtype == jnp.int32 and states.data["moving"].dtype == bool
+        loss, grads = jax.jit(lambda p, s: flow_gradients(task.dynamics, ("R",), p, s))(params, states)
+        plain = jax.jit(jax.grad(lambda p, s: reference_loss(task.dynamics, p, s)))(params, states)
+        for ours, theirs in zip(jax.tree.leaves(grads), jax.tree.leaves(plain)):
+            np.testing.assert_allclose(ours[0], theirs, rtol=1e-9, atol=1e-12)
+    result = sb.train(task, TINY)
+    # The train and test losses are negative episode returns (30 steps, each reward <= 0).
+    assert np.all(np.isfinite(result.test_loss)) and np.all(result.test_loss >= 0)
+    assert result.test_loss[-1] < result.test_loss[0]  # it learns to hold the cart at the origin
+
+
+def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_starts_off_zero(tmp_path, monkeypatch):
+    # Under a key (a registry env's name), the diagnosis is kept in the compile cache with the programs.
+    key = lambda reward: {"env": f"Cart {reward} {tmp_path}"}  # noqa: E731
+    for _ in range(2):  # the second time from what the first kept: a refusal is kept too
+        with pytest.raises(EnvError, match="gradient is zero at every sampled state") as refusal:
+            env_task(Cart("step"), horizon=5, dense_variant="SmoothCart", diagnosis_key=key("step"))
+        monkeypatch.setattr(adapter, "start_diagnosis", lambda *a: pytest.fail("diagnosed although kept"))
+    monkeypatch.undo()
+    assert "train SmoothCart, its dense variant; or give the reward a slope" in str(refusal.value)
+    with pytest.raises(EnvError, match=r"gradient is NaN at \d+% of sampled states"):
+        env_task(Cart("root"), horizon=5)
+    task = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
+    states = task.sample_initial_states(jax.random.PRNGKey(3), 6)  # its reset is traced and kept too
+    monkeypatch.setattr(adapter, "start_diagnosis", lambda *a: pytest.fail("diagnosed although kept"))
+    monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("traced although kept"))
+    monkeypatch.setattr(adapter, "check_protocol", lambda *a: pytest.fail("observation size read although kept"))
+    again = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
+    assert again.resolved == task.resolved
+    plain = jax.jit(jax.vmap(Cart("norm").reset))(jax.random.split(jax.random.PRNGKey(3), 6))
+    for kept, traced in zip(jax.tree.leaves(again.sample_initial_states(jax.random.PRNGKey(3), 6)), jax.tree.leaves(plain)):
+        np.testing.assert_array_equal(kept, traced)  # bit for bit, integer and bool leaves alike
+    assert jax.tree.structure(states) == jax.tree.structure(plain)
+    monkeypatch.undo()
+    assert task.resolved["reward_gradient"] == "nan at zero action"
+    assert task.resolved["policy_output_start"] == "small"
+    params = task.init_params(jax.random.PRNGKey(0), True)
+    assert 0 < float(jnp.max(jnp.abs(params[-1][0]))) < 0.1  # small output weights, not zero
+    result = sb.train(task, replace(TINY, epochs=1))
+    assert np.isfinite(result.test_loss).all()
+
+
+def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_parameters_until_it_answers(tmp_path, monkeypatch):
+    config, seeds = replace(TINY, epochs=1), seed_array(replace(TINY, epochs=1))
+    refused = env_task(Cart("step"), horizon=5, defer_diagnosis=True, diagnosis_key={"env": f"step {tmp_path}"})
+    assert refused.resolved["reward_gradient"] == "pending"
+    trainer = sb.make_trainer(refused, config)  # shapes only: built while the diagnosis compiles
+    with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
+        refused.settled()
+    with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
+        trainer.init(seeds)  # the parameters' values wait for the diagnosis: no silent start
+    with pytest.raises(EnvError, match="gradient is zero at every sampled state"):  # kept: refused at once
+        env_task(Cart("step"), horizon=5, defer_diagnosis=True, diagnosis_key={"env": f"step {tmp_path}"})
+    pending = env_task(Cart("norm"), horizon=5, defer_diagnosis=True)
+    trainer = sb.make_trainer(pending, config)
+    lowered = fitting.lowered_epoch(trainer, config)  # the epoch traced for the parameters' shapes
+    # init traced and run after that, with the seeds train.py gives, before settling: the start is
+    # still the diagnosis's (small, not zero).
+    state = trainer.init(seeds)
+    output_weights = state.params[-1][0]
+    assert 0 < float(jnp.max(jnp.abs(output_weights))) < 0.1
+    settled = pending.settled()
+    assert settled.settle is None and settled.resolved == env_task(Cart("norm"), horizon=5).resolved
+    assert settled.resolved["policy_output_start"] == "small"
+    arguments = (state, trainer.batches, trainer.train_states, trainer.test_states)
+    plain = jax.jit(trainer.epoch)(*arguments)
+    monkeypatch.setattr(epochs, "compile_epoch", lambda *a, **k: pytest.fail("traced again although lowered"))
+    (tmp_path / "run").mkdir()
+    outcome = epochs.train_epochs(trainer, config, tmp_path / "run", state, 0, empty_rows(),
+                                   np.asarray(seeds), lowered=lowered)
+    assert outcome.status == "complete"
+    for early, again in zip(jax.tree.leaves(outcome.state), jax.tree.leaves(plain[0])):
+        np.testing.assert_array_equal(early, again)  # the epoch lowered from shapes computes the same bits
+
+
+def test_a_wrapper_of_an_environment_that_lacks_a_size_is_refused_in_one_line():
+    class Wrapper:  # its class has every name of the protocol; reading one reaches the wrapped env
+        def __init__(self, env):
+            self.env = env
+
+        reset = property(lambda self: self.env.reset)
+        step = property(lambda self: self.env.step)
+        observation_size = property(lambda self: self.env.observation_size)
+        action_size = property(lambda self: self.env.action_size)
+
+    cart = Cart()
+    incomplete = types.SimpleNamespace(reset=cart.reset, step=cart.step, action_size=1)  # no observation_size
+    with pytest.raises(EnvError, match="reading its observation_size or action_size failed"):
+        env_task(Wrapper(incomplete), horizon=5)
+
+
+def run_script(*args, env=None):
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=900,
+                          env={**os.environ, **(env or {})})
+
+
+def train_in_process(capsys, *argv):
+    """scripts/train.py's main in this process: (exit code, stderr lines)."""
+    from stablebptt.commands import train as train_command
+    try:
+        code = train_command.main(list(argv))
+    except SystemExit as exit_:
+        code = exit_.code
+    return code, [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+
+
+def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_in_one_line(tmp_path, capsys):
+    on_path = {"PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
+    done = run_script("scripts/train.py", "--env", "envs_for_tests:make_cart", "--steps", "6", "--epochs", "2",
+                      "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
+                      "--out", str(tmp_path / "run"), env=on_path)
+    assert done.returncode == 0, done.stderr
+    assert "make_cart" in done.stdout and "reward gradient: usable" in done.stdout
+    record = read_json(tmp_path / "run" / "config.json")
+    assert record["task"] == "env" and record["task_config"]["env"] == "envs_for_tests:make_cart"
+    for args, expected in ((["--env", "envs_for_tests:step_reward_cart"], "gradient is zero at every sampled state"),
+                           (["--env", "no_such_module:env"], "cannot import no_such_module"),
+                           (["--env", "envs_for_tests:nothing"], "has no attribute 'nothing'"),
+                           (["--env", "envs_for_tests:make_cart", "--discount", "0"], "--discount must be in (0, 1]")):
+        code, err = train_in_process(capsys, *args, "--epochs", "1", "--out", str(tmp_path / "refused"))
+        assert code == 2 and len(err) == 1 and expected in err[0], err
+        assert not (tmp_path / "refused").exists()
+
+
+# A hinge pressed past its limit and a ball in sliding contact with the floor; the model's own
+# Newton solver runs 4 iterations, which plain reverse mode cannot pass (a while loop).
+LIMIT_AND_CONTACT = """
+<mujoco><option timestep="0.01" iterations="4" tolerance="1e-12" ls_tolerance="1e-12"/>
+<worldbody><geom type="plane" size="2 2 .1"/>
+<body pos="0 0 1"><joint name="hinge" type="hinge" axis="0 1 0" limited="true" range="-0.5 0.5" damping="0.1"/>
+<geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/></body>
+<body pos="0.6 0 0.1"><joint type="slide" axis="1 0 0"/><joint type="slide" axis="0 0 1"/>
+<geom type="sphere" size="0.1" friction="0.5"/></body>
+</worldbody><actuator><motor joint="hinge"/></actuator></mujoco>"""
+
+
+def test_mjx_step_inside_an_environment_is_differentiated_at_the_solver_solution_as_mujocos_c_step():
+    model = mujoco.MjModel.from_xml_string(LIMIT_AND_CONTACT)
+    x0 = np.array([0.52, 0.1, -0.002, 0.3, 0.2, -0.1])  # past the limit, the ball pressed into the floor
+    ctrl = 0.5
+
+    def c_step(x):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:], data.ctrl[:] = x[:3], x[3:], ctrl
+        mujoco.mj_step(model, data)
+        assert data.nefc >= 4  # the limit and the contact's pyramid stay active under the perturbations
+        return np.concatenate([data.qpos, data.qvel])
+
+    eps = 1e-6
+    central = np.stack([(c_step(x0 + eps * e) - c_step(x0 - eps * e)) / (2 * eps) for e in np.eye(6)], axis=1)
+    with float64():
+        mjx_model = mjx.put_model(model, impl="jax")
+
+        def step(x):  # what an environment's step does
+            data = mjx.make_data(mjx_model, impl="jax").replace(qpos=x[:3], qvel=x[3:], ctrl=jnp.array([ctrl]))
+            data = mjx.step(mjx_model, data)
+            return jnp.concatenate([data.qpos, data.qvel])
+
+        # Under jit the refusal comes at tracing: nothing runs op by op (each MJX operation compiled apart).
+        with pytest.raises(ValueError, match="Reverse-mode differentiation does not work for lax.while_loop"):
+            jax.jit(jax.jacrev(step))(jnp.asarray(x0))
+        with differentiable_mjx(implicit_solver=True):
+            np.testing.assert_allclose(jax.jit(step)(jnp.asarray(x0)), c_step(x0), atol=1e-12)
+            reverse = jax.jit(jax.jacrev(step))(jnp.asarray(x0))  # forward mode: tests/test_suite_models.py
+    assert np.abs(central).max() > 10  # the constraints matter: these Jacobians are far from identity
+    np.testing.assert_allclose(reverse, central, atol=1e-7)
+
+
+@needs_playground
+def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
+    from mujoco_playground._src import reward
+
+    from stablebptt.envs.playground import safe_tolerance
+    x = jnp.linspace(-3.0, 3.0, 61)
+    repaired = 0
+    for sigmoid in ("gaussian", "hyperbolic", "long_tail", "reciprocal", "tanh_squared", "cosine", "linear", "quadratic"):
+        for bounds in ((0.0, 0.0), (1.0, np.inf), (-np.inf, 0.5), (-1.0, 1.0)):
+            for margin in (0.0, 1.0, 2.0):
+                theirs = lambda v: reward.tolerance(v, bounds, margin, sigmoid, 0.1)  # noqa: E731
+                ours = lambda v: safe_tolerance(v, bounds, margin, sigmoid, 0.1)  # noqa: E731
+                np.testing.assert_allclose(ours(x), theirs(x), atol=1e-6)
+                slope, their_slope = jax.vmap(jax.grad(ours))(x), jax.vmap(jax.grad(theirs))(x)
+                assert np.isfinite(slope).all(), (sigmoid, bounds, margin)
+                finite = np.isfinite(their_slope)
+                np.testing.assert_allclose(slope[finite], their_slope[finite], atol=1e-5)
+                repaired += int((~finite).sum())
+    assert repaired > 0  # the infinite upper bound's NaN is there to repair
+    # A refusal suggests the dense variant only where the registry has one.
+    from stablebptt.envs.playground import dense_variant
+    assert dense_variant("CartpoleSwingupSparse") == "CartpoleSwingup" and dense_variant("PendulumSwingup") == ""
+
+
+@needs_playground
+def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_path, capsys):
+    run = tmp_path / "cartpole"
+    from stablebptt.commands import (
+        train as train_command,  # in this process: the installed command's main
+    )
+    assert train_command.main(["--env", "CartpoleSwingup", "--steps", "8", "--episode-length", "8", "--epochs", "1",
+                               "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
+                               "--out", str(run)]) == 0
+    printed = capsys.readouterr().out
+    assert "repaired: Playground's reward tolerance" in printed and "reward gradient: usable" in printed, printed
+    rendered = run_script("scripts/render.py", str(run), "--rollouts", "1", "--no-video")
+    assert rendered.returncode == 0, rendered.stderr
+    assert (run / "rollout-strip.png").stat().st_size > 1000
+    from stablebptt.apps.trained import open_trained
+    assert open_trained(run).task.resolved["reward_gradient"] == "not checked"  # reopened: checked before training
+    code, err = train_in_process(capsys, "--env", "cartpoleswingup", "--out", str(tmp_path / "no"))
+    assert code == 2 and len(err) == 1 and "did you mean CartpoleSwingup?" in err[0], err
+    assert not (tmp_path / "no").exists()

@@ -1,0 +1,537 @@
+"""Faults lose nothing and every run folder can go on: signals at any moment, two runs on one
+folder, damaged folders, a full disk, a model file that moved or changed, any thread."""
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from conftest import ROOT
+
+from stablebptt import errors, storage
+from stablebptt.commands import train as train_command
+from stablebptt.engine import fitting
+from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows
+from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
+from stablebptt.errors import InputError
+from stablebptt.reports import curves
+from stablebptt.runs import epochs, model_store, run_folder
+from stablebptt.tasks import repulsion
+
+SMALL = ["--task", "repulsion", "--train-size", "16", "--test-size", "16", "--batch", "8", "--no-progress"]
+TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
+
+
+def train(capsys, *argv: str) -> tuple[int, list[str], str]:
+    """scripts/train.py in this process: (exit code, stderr lines, stdout)."""
+    try:
+        code = train_command.main(list(argv))
+    except SystemExit as exit_:
+        code = exit_.code
+    captured = capsys.readouterr()
+    return code, [line for line in captured.err.splitlines() if line.strip()], captured.out
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.name != run_folder.LOCK_FILE}
+
+
+def epochs_in(folder: Path) -> list[int]:
+    return sorted({int(row["epoch"]) for row in run_folder.read_metrics(folder / run_folder.METRICS_FILE)})
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    """A repulsion run of 2 epochs, made by the command line in this process."""
+    run_dir = tmp_path_factory.mktemp("faults") / "finished"
+    assert train_command.main(SMALL + ["--epochs", "2", "--out", str(run_dir)]) == 0
+    return run_dir
+
+
+def wait_for(path: Path, process: subprocess.Popen, seconds: float = 180) -> None:
+    deadline = time.monotonic() + seconds
+    while not path.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert path.exists(), process.communicate(timeout=60)
+
+
+def test_sigterm_saves_like_ctrl_c_and_resume_goes_on(tmp_path, capsys):
+    run_dir = tmp_path / "terminated"
+    process = subprocess.Popen(TRAIN + SMALL + ["--epochs", "1000", "--out", str(run_dir)], cwd=tmp_path,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    wait_for(run_dir / run_folder.CHECKPOINT_FILE, process)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr
+    assert "SIGTERM" in stderr and f"--resume {run_dir}" in stderr and "Traceback" not in stderr
+    done = epochs_in(run_dir)
+    assert done == list(range(1, len(done) + 1)) and len(done) < 1000  # every epoch trained is kept
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--epochs", str(len(done) + 1), "--no-progress")
+    assert code == 0, err
+    assert epochs_in(run_dir) == list(range(1, len(done) + 2))
+
+
+def test_resume_without_a_checkpoint_refuses_to_train_over_the_results_it_holds(finished, tmp_path, capsys):
+    folder = tmp_path / "no-checkpoint"
+    shutil.copytree(finished, folder)
+    (folder / run_folder.CHECKPOINT_FILE).unlink()  # a sweep cell's folder, or a checkpoint deleted
+    before = snapshot(folder)
+    code, err, _ = train(capsys, "--resume", str(folder), "--no-progress")
+    assert code == 2 and len(err) == 1, err
+    assert "params.npz and metrics.csv (2 epochs) but no checkpoint.npz" in err[0] and "another --out" in err[0]
+    assert snapshot(folder) == before  # nothing trained over, nothing rewritten
+
+
+def test_a_signal_to_the_run_and_then_to_its_group_saves_and_stops_once(tmp_path):
+    """What GNU timeout (and a batch scheduler's time limit) does: SIGTERM to the command, then to its
+    process group. Both reach the run: one request to stop, the epoch saved. Sent once the first
+    checkpoint exists, so that no machine's speed decides what the run has to save."""
+    run_dir = tmp_path / "timed"
+    process = subprocess.Popen(TRAIN + SMALL + ["--epochs", "100000", "--out", str(run_dir)], cwd=tmp_path,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    wait_for(run_dir / run_folder.CHECKPOINT_FILE, process)
+    os.kill(process.pid, signal.SIGTERM)
+    os.killpg(process.pid, signal.SIGTERM)  # its own session: the group is the run's alone
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr
+    assert stderr.count("SIGTERM: stopping after this epoch") == 1 and "interrupted after epoch" in stderr
+    assert "Traceback" not in stderr
+    assert not [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]  # no temporary file survives
+    assert epochs_in(run_dir) == list(range(1, len(epochs_in(run_dir)) + 1)) and (run_dir / run_folder.CHECKPOINT_FILE).exists()
+
+
+@pytest.mark.parametrize("how", ["SIGKILL as the folder is claimed", "SIGTERM while compiling"])
+def test_a_signal_at_any_moment_leaves_a_folder_that_resumes(tmp_path, capsys, how):
+    run_dir = tmp_path / "early"
+    # No compile cache: a warm start reaches its first epoch within the second this test waits.
+    process = subprocess.Popen(TRAIN + SMALL + ["--epochs", "1", "--no-compile-cache", "--out", str(run_dir)],
+                               cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    wait_for(run_dir / run_folder.CONFIG_FILE, process)
+    if how.startswith("SIGKILL"):
+        process.send_signal(signal.SIGKILL)
+    else:
+        time.sleep(1.0)  # task built; the epoch program is being traced or compiled
+        process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert "Traceback" not in stderr
+    if process.returncode == 0:
+        pytest.skip("the run finished before the signal")  # a machine far faster than CI's
+    assert not (run_dir / run_folder.CHECKPOINT_FILE).exists()
+    again = train(capsys, *SMALL, "--epochs", "1", "--out", str(run_dir))  # the same command: refused, pointing on
+    assert again[0] == 2 and f"--resume {run_dir}" in again[1][0], again
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
+    assert code == 0, err
+    assert epochs_in(run_dir) == [1]
+
+
+def test_signals_are_handled_while_the_work_sits_in_one_long_native_call():
+    # XLA compiles a large contact scene in one call for many minutes; Python runs a signal handler
+    # only when the main thread's call returns, so the work runs in a worker thread. The native call
+    # here is LAPACK's (it releases the interpreter, as XLA's compiler does).
+    from stablebptt.cli import in_worker_thread
+    handled, call = [], []
+    previous = signal.signal(signal.SIGUSR1, lambda signum, frame: handled.append(time.perf_counter()))
+    try:
+        def work():
+            matrix = np.random.default_rng(0).standard_normal((2000, 2000))
+            threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGUSR1)).start()
+            call.append(time.perf_counter())
+            np.linalg.eigvals(matrix)  # about 2 s on one core
+            call.append(time.perf_counter())
+            return "done"
+        assert in_worker_thread(work) == "done"
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    # Handled in the first half of the call, not after it (in the main thread it would wait for the return).
+    start, end = call
+    assert handled and handled[0] - start < (end - start) / 2, (handled, call)
+    def failing_work():
+        raise InputError("raised in the worker")
+    with pytest.raises(InputError, match="raised in the worker"):
+        in_worker_thread(failing_work)
+
+
+def test_two_runs_given_one_folder_at_once_one_is_refused(tmp_path):
+    record = {"task": "repulsion", "task_config": {}, "train": {}}
+    for attempt in range(20):
+        folder = tmp_path / f"contested-{attempt}"
+        start = threading.Barrier(2)
+        results: list = []
+
+        def claim():
+            start.wait()
+            try:
+                results.append(run_folder.create_run(folder, record))
+            except InputError as error:
+                results.append(error)
+
+        threads = [threading.Thread(target=claim) for _ in range(2)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        winners = [r for r in results if isinstance(r, run_folder.RunLock)]
+        losers = [r for r in results if isinstance(r, InputError)]
+        assert len(winners) == 1 and len(losers) == 1, results
+        assert "\n" not in str(losers[0]) and str(folder) in str(losers[0])
+        winners[0].release()
+    assert json.loads((tmp_path / "contested-0" / run_folder.CONFIG_FILE).read_text()) == record
+
+
+def test_a_folder_in_use_is_refused_to_a_second_process(finished, capsys):
+    lock = run_folder.RunLock(finished)  # as a live run holds it
+    try:
+        code, err, _ = train(capsys, "--resume", str(finished), "--epochs", "3", "--no-progress")
+    finally:
+        lock.release()
+    assert code == 2 and len(err) == 1 and "in use by another run" in err[0], err
+
+
+def _truncate_checkpoint(folder: Path) -> None:
+    data = (folder / run_folder.CHECKPOINT_FILE).read_bytes()
+    (folder / run_folder.CHECKPOINT_FILE).write_bytes(data[: len(data) // 2])
+
+
+def _edit_config(change):
+    def damage(folder: Path) -> None:
+        record = storage.read_json(folder / run_folder.CONFIG_FILE)
+        change(record)
+        run_folder.write_config(folder, record)
+    return damage
+
+
+def _foreign_checkpoint(folder: Path) -> None:
+    record = json.loads((folder / run_folder.CONFIG_FILE).read_text())
+    other = {**record, "task_config": {**record["task_config"], "rc": 0.5}}  # same shapes, another task
+    trainer_config = TrainConfig(**{**record["train"]})
+    template = make_trainer(repulsion.make(repulsion.Config()), trainer_config).init(seed_array(trainer_config))
+    epoch, state, rows = run_folder.load_checkpoint(folder, template)
+    run_folder.save_checkpoint(folder, epoch, state, rows, run_folder.identity(other))
+
+
+DAMAGES = {
+    "truncated checkpoint": (_truncate_checkpoint, "is damaged"),
+    "config.json not JSON": (lambda f: (f / run_folder.CONFIG_FILE).write_text("{\"task\": "), "not valid JSON"),
+    "config.json a list": (lambda f: (f / run_folder.CONFIG_FILE).write_text("[]"), "not a run configuration"),
+    "a training option of the wrong type": (_edit_config(lambda r: r["train"].update(seeds="ten")), "seeds must be int"),
+    "task option of the wrong type": (_edit_config(lambda r: r["task_config"].update(rc=[1])), "rc must be float"),
+    "unknown task": (_edit_config(lambda r: r.update(task="pendulum")), "names the task 'pendulum'"),
+    "task_config missing": (_edit_config(lambda r: r.pop("task_config")), "task_config"),
+    "checkpoint of another run": (_foreign_checkpoint, "checkpoint of another run"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGES))
+def test_a_damaged_folder_gets_one_line_and_is_left_as_it_was(finished, tmp_path, capsys, case):
+    damage, words = DAMAGES[case]
+    folder = tmp_path / "damaged"
+    shutil.copytree(finished, folder)
+    damage(folder)
+    before = snapshot(folder)
+    code, err, _ = train(capsys, "--resume", str(folder), "--epochs", "3", "--no-progress")
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: ") and words in err[0], err
+    assert snapshot(folder) == before
+
+
+def test_resume_given_a_file_or_fewer_epochs_changes_nothing(finished, capsys):
+    before = snapshot(finished)
+    code, err, _ = train(capsys, "--resume", str(finished / run_folder.CONFIG_FILE))
+    assert code == 2 and len(err) == 1 and "is a file, not a run directory" in err[0], err
+    code, err, _ = train(capsys, "--resume", str(finished), "--epochs", "1", "--no-progress")
+    assert code == 2 and len(err) == 1 and "has trained 2 epochs" in err[0], err
+    code, err, out = train(capsys, "--resume", str(finished), "--no-progress")
+    assert code == 0 and "done already" in out, err
+    assert snapshot(finished) == before
+
+
+@pytest.mark.parametrize("damage", ["cut mid-line", "empty", "missing"])
+def test_plot_reads_a_damaged_metrics_file_from_the_checkpoint_and_resume_rewrites_it(finished, tmp_path, capsys, damage):
+    folder = tmp_path / "damaged"
+    shutil.copytree(finished, folder)
+    metrics = folder / run_folder.METRICS_FILE
+    whole = metrics.read_bytes()
+    if damage == "missing":
+        metrics.unlink()
+    else:
+        metrics.write_bytes(whole[:-5] if damage == "cut mid-line" else b"")
+    drawn = curves.load_run(folder)
+    assert list(drawn.epochs) == [1, 2] and damage in drawn.note and f"--resume {folder}" in drawn.note
+    np.testing.assert_array_equal(drawn.metrics["test_loss"], curves.load_run(finished).metrics["test_loss"])
+    code, err, out = train(capsys, "--resume", str(folder), "--no-progress")  # what the note advises
+    assert code == 0 and "done already" in out and len(err) == 1 and run_folder.METRICS_FILE in err[0], err
+    assert metrics.read_bytes() == whole and curves.load_run(folder).note == ""
+
+
+def test_resume_rewrites_damaged_parameters_from_the_checkpoint(finished, tmp_path, capsys):
+    folder = tmp_path / "damaged"
+    shutil.copytree(finished, folder)
+    (folder / run_folder.PARAMS_FILE).write_bytes(b"not a zip")
+    code, err, out = train(capsys, "--resume", str(folder), "--no-progress")
+    assert code == 0 and "done already" in out and len(err) == 1 and run_folder.PARAMS_FILE in err[0], err
+    assert (folder / run_folder.PARAMS_FILE).read_bytes() == (finished / run_folder.PARAMS_FILE).read_bytes()
+
+
+def test_a_full_disk_gets_one_line_leaves_no_temporary_and_the_run_resumes(tmp_path, capsys, monkeypatch):
+    run_dir = tmp_path / "full"
+    real_fsync, calls = os.fsync, []
+
+    def fsync_until_the_disk_is_full(descriptor):
+        if str(run_dir) in os.readlink(f"/proc/self/fd/{descriptor}"):  # the run's files; the compile cache's fit
+            calls.append(descriptor)
+            if len(calls) > 4:  # config.json, then epoch 1's checkpoint, params and metrics fit
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real_fsync(descriptor)
+
+    monkeypatch.setattr(os, "fsync", fsync_until_the_disk_is_full)
+    code, err, _ = train(capsys, *SMALL, "--epochs", "3", "--checkpoint-every", "1", "--out", str(run_dir))
+    assert code == 1 and len(err) == 1 and "No space left on device" in err[0] and "--resume" in err[0], err
+    assert not [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]
+    assert epochs_in(run_dir) == [1]
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
+    assert code == 0, err
+    assert epochs_in(run_dir) == [1, 2, 3]
+
+
+def test_running_out_of_device_memory_gets_one_line_and_the_run_resumes(tmp_path, capsys, monkeypatch):
+    # What a GPU shared with other processes raises mid-training (XLA's allocator, not the memory plan).
+    from stablebptt.cli import EpochProgress
+    run_dir, real_on_epoch = tmp_path / "oom", EpochProgress.on_epoch
+
+    def allocation_fails_in_epoch_2(self, epoch, metrics):
+        if epoch == 2:
+            raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 238662897624 bytes.")
+        return real_on_epoch(self, epoch, metrics)
+
+    monkeypatch.setattr(EpochProgress, "on_epoch", allocation_fails_in_epoch_2)
+    code, err, _ = train(capsys, *SMALL, "--epochs", "3", "--checkpoint-every", "1", "--out", str(run_dir))
+    assert code == 1 and len(err) == 1 and "out of memory on cpu" in err[0] and "--resume" in err[0], err
+    monkeypatch.setattr(EpochProgress, "on_epoch", real_on_epoch)
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
+    assert code == 0, err
+    assert epochs_in(run_dir) == [1, 2, 3]
+
+
+def test_atomic_write_leaves_the_old_file_when_the_disk_is_full(tmp_path, monkeypatch):
+    target = tmp_path / "record.json"
+    storage.write_json(target, {"kept": True})
+
+    def full(descriptor):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(errors.StorageError, match="No space left"):
+        storage.write_json(target, {"kept": False})
+    assert json.loads(target.read_text()) == {"kept": True}
+    assert [p.name for p in tmp_path.iterdir()] == ["record.json"]
+
+
+@pytest.mark.parametrize("checkpoint_seconds, stop_after, saved", [(0.0, None, [3, 6, 7]), (3600.0, None, [7]),
+                                                                  (0.0, 2, [2])])
+def test_the_epoch_loop_saves_on_its_cadence_at_the_end_and_at_a_stop(checkpoint_seconds, stop_after, saved):
+    """Every ``checkpoint_every`` epochs at least ``checkpoint_seconds`` apart, always at the end
+    and at a stop; the rows returned and saved are every epoch's, in order, whatever the cadence."""
+    epochs_run, saves = [], []
+
+    def run_epoch(state):
+        epochs_run.append(state + 1)
+        return state + 1, {name: np.full(2, state + 1.0) for name in METRICS}
+
+    status, epoch, state, rows, _ = fitting.fit(
+        run_epoch, 0, 0, 7, np.zeros((0, len(COLUMNS))), np.arange(2),
+        lambda epoch, state, rows: saves.append((epoch, rows[:, 0].tolist())), 3,
+        should_stop=lambda: stop_after is not None and len(epochs_run) >= stop_after,
+        checkpoint_seconds=checkpoint_seconds)
+    assert [e for e, _ in saves] == saved and epoch == state == saved[-1]
+    assert status == ("interrupted" if stop_after else "complete")
+    every_epoch = [float(e) for e in range(1, epoch + 1) for _ in range(2)]
+    assert rows[:, 0].tolist() == every_epoch and saves[-1][1] == every_epoch
+
+ARM = """<mujoco model="arm">
+  <option timestep="0.02"/>
+  <include file="arm_body.xml"/>
+  <actuator><motor joint="shoulder" gear="2"/></actuator>
+  <custom><numeric name="bptt_horizon" data="8"/></custom>
+  <keyframe><key name="target" qpos="0.5"/></keyframe>
+</mujoco>"""
+ARM_BODY = """<mujoco><worldbody><body><joint name="shoulder" type="hinge" damping="0.1"/>
+  <geom type="capsule" size="0.05" fromto="0 0 0 0 0 -0.5"/></body></worldbody></mujoco>"""
+
+
+def test_a_run_remembers_its_model_resumes_and_renders_after_the_file_moved(tmp_path, capsys, monkeypatch):
+    source = tmp_path / "lab"
+    source.mkdir()
+    (source / "arm.xml").write_text(ARM)
+    (source / "arm_body.xml").write_text(ARM_BODY)
+    monkeypatch.chdir(source)
+    options = ["--train-size", "8", "--test-size", "8", "--no-progress"]
+    code, err, _ = train(capsys, "--model", "arm.xml", "--epochs", "1", "--out", str(tmp_path / "run"), *options)
+    assert code == 0, err
+    run_dir = tmp_path / "run"
+    assert (run_dir / model_store.MODEL_PACKED_FILE).is_file() and not (run_dir / model_store.MODEL_BINARY_FILE).exists()
+
+    (source / "arm_body.xml").write_text(ARM_BODY)  # rewritten unchanged: still the same model
+    (source / "arm.xml").write_text(ARM.replace('gear="2"', 'gear="3"'))
+    before = snapshot(run_dir)
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--epochs", "2", "--no-progress")
+    assert code == 2 and len(err) == 1 and "arm.xml changed since the run" in err[0], err
+    assert snapshot(run_dir) == before
+
+    shutil.move(source, tmp_path / "elsewhere")  # the file moved, and we work in another directory
+    monkeypatch.chdir(tmp_path)
+    code, err, _ = train(capsys, "--resume", str(run_dir), "--epochs", "2", "--no-progress")
+    assert code == 0, err
+    assert any("is gone: using the run's own copy" in line for line in err)
+    assert epochs_in(run_dir) == [1, 2]
+    assert json.loads((run_dir / run_folder.CONFIG_FILE).read_text())["resolved_task"]["name"] == "arm"
+
+    render = subprocess.run([sys.executable, str(ROOT / "scripts" / "render.py"), str(run_dir), "--rollouts", "1",
+                             "--no-video"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert render.returncode == 0, render.stderr
+    assert list(run_dir.glob("*.png"))
+
+    # The run's compiled copy (.mjb.gz) is a model file like any other, and so is it unpacked (.mjb):
+    # each trains, and is kept as the same compiled model.
+    unpacked = tmp_path / "arm.mjb"
+    unpacked.write_bytes(model_store.compiled_model(run_dir / model_store.MODEL_PACKED_FILE))
+    for given, again in ((run_dir / model_store.MODEL_PACKED_FILE, tmp_path / "from-gz"), (unpacked, tmp_path / "from-mjb")):
+        code, err, _ = train(capsys, "--model", str(given), "--epochs", "1", "--out", str(again), *options)
+        assert code == 0, err
+        assert (again / model_store.MODEL_PACKED_FILE).read_bytes() == (run_dir / model_store.MODEL_PACKED_FILE).read_bytes()
+        assert not (again / model_store.MODEL_COPY_FILE).exists()
+
+
+SKY = """<mujoco><asset><texture type="skybox" builtin="gradient" rgb1="0.4 0.6 0.8" rgb2="0 0 0" width="256"
+  height="256"/></asset>""" + ARM.split("<mujoco model=\"arm\">", 1)[1]
+
+
+def test_a_grid_keeps_one_compressed_model_for_all_its_cells_and_each_cell_reopens_it(tmp_path):
+    (tmp_path / "arm.xml").write_text(SKY)
+    (tmp_path / "arm_body.xml").write_text(ARM_BODY)
+    binary = model_store.compiled_model(tmp_path / "arm.xml")  # the skybox: 256 x 256 x 6 faces x RGB
+    grid = tmp_path / "grid"
+    cells = [grid / f"cell-{k}" for k in range(3)]
+    for cell in cells:
+        cell.mkdir(parents=True)
+        model_store.link_model(cell, tmp_path / "arm.xml", model_store.share_model(grid, tmp_path / "arm.xml"))
+    shared = list((grid / model_store.SHARED_MODELS).iterdir())
+    assert len(shared) == 1 and shared[0].stat().st_size < len(binary) / 10  # one copy, compressed
+    record = {"resolved_task": {"model_file": str(tmp_path / "gone.xml")}}
+    for cell in cells:
+        assert sorted(p.name for p in cell.iterdir()) == [model_store.MODEL_LINK_FILE, model_store.MODEL_COPY_FILE]
+        path, note = model_store.model_to_reopen(cell, record)  # the model file is gone: the grid's copy
+        assert Path(path) == cell / ".." / model_store.SHARED_MODELS / shared[0].name and "is gone" in note
+        assert model_store.compiled_model(path) == binary
+    moved = tmp_path / "moved"
+    shutil.move(grid, moved)  # the grid moves as a whole: its cells still find their model
+    assert model_store.compiled_model(model_store.model_to_reopen(moved / "cell-0", record)[0]) == binary
+    shutil.rmtree(moved / model_store.SHARED_MODELS)
+    with pytest.raises(InputError, match="does not exist: the grid's models folder"):
+        model_store.model_to_reopen(moved / "cell-0", record)
+
+
+def test_a_run_folder_of_an_earlier_version_reopens_its_uncompressed_model(tmp_path):
+    (tmp_path / "arm.xml").write_text(ARM)
+    (tmp_path / "arm_body.xml").write_text(ARM_BODY)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / model_store.MODEL_BINARY_FILE).write_bytes(model_store.compiled_model(tmp_path / "arm.xml"))
+    path, _ = model_store.model_to_reopen(old, {"resolved_task": {"model_file": str(tmp_path / "gone.xml")}})
+    assert path == str(old / model_store.MODEL_BINARY_FILE)
+    assert model_store.load_compiled_model(path).nv == 1
+    (old / "damaged.mjb.gz").write_bytes(b"not gzip")
+    with pytest.raises(InputError, match="damaged"):
+        model_store.load_compiled_model(old / "damaged.mjb.gz")
+
+
+def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
+    config = TrainConfig(epochs=2, train_size=16, test_size=16, seeds=1)
+    task = repulsion.make(repulsion.Config())
+    record = {"task": "repulsion", "task_config": dataclasses.asdict(repulsion.Config()),
+              "train": dataclasses.asdict(config)}
+    outcome = {}
+
+    def work():
+        lock = run_folder.create_run(tmp_path / "threaded", record)
+        trainer = make_trainer(task, config)
+        outcome["value"] = epochs.train_epochs(trainer, config, tmp_path / "threaded", trainer.init(seed_array(config)),
+                                             0, empty_rows(), np.asarray(seed_array(config)))
+        lock.release()
+
+    worker = threading.Thread(target=work)
+    worker.start()
+    worker.join()
+    assert outcome["value"].status == "complete" and outcome["value"].epoch == 2
+    from stablebptt.reports.plots import plot_run
+    figure = plot_run(tmp_path / "threaded")
+    assert Path(figure).is_file()
+
+
+def test_a_compile_cache_that_cannot_be_written_is_one_line_and_left_off(tmp_path, monkeypatch):
+    from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+    before = jax.config.jax_compilation_cache_dir
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv(COMPILE_CACHE_ENV, str(tmp_path / "a-file" / "cache"))
+    notes = []
+    assert use_compile_cache(note=notes.append) is None
+    assert len(notes) == 1 and "cannot write to the compile cache" in notes[0] and COMPILE_CACHE_ENV in notes[0], notes
+    assert jax.config.jax_compilation_cache_dir == before
+
+
+def test_a_damaged_compile_cache_entry_is_compiled_again_and_replaced_with_one_line(tmp_path, monkeypatch):
+    import warnings
+
+    import jax.numpy as jnp
+    from jax._src import compilation_cache, lru_cache
+
+    from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+    session_cache, minimum = os.environ[COMPILE_CACHE_ENV], jax.config.jax_persistent_cache_min_compile_time_secs
+    cache, notes = tmp_path / "cache", []
+    program = lambda x: jnp.tanh(x) * 3.25 - 7.5  # noqa: E731
+
+    def run_without_warnings():
+        jax.clear_caches()  # not in memory: the next call looks in the cache directory
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            return jax.jit(program)(jnp.ones(5))
+
+    os.environ[COMPILE_CACHE_ENV] = str(cache)
+    try:
+        compilation_cache.reset_cache()
+        assert use_compile_cache(note=notes.append) == cache
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+        expected = run_without_warnings()
+        entries = sorted(cache.glob("*-cache"))
+        assert entries
+        for entry in entries:
+            entry.write_bytes(entry.read_bytes()[:7])  # as a process killed while JAX wrote it leaves one
+        for _ in range(2):  # replaced, so the second run reads it without a word
+            np.testing.assert_array_equal(run_without_warnings(), expected)
+        assert len(notes) == 1 and "damaged entry" in notes[0] and "replaced" in notes[0], notes
+        for entry in entries:
+            compilation_cache.decompress_executable(entry.read_bytes())  # whole again
+
+        def full_disk(self, key, value):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        monkeypatch.setattr(lru_cache.LRUCache, "put", full_disk)
+        program = lambda x: jnp.tanh(x) * 1.5 + 2.5  # noqa: E731 - another program, to be written
+        for _ in range(2):
+            np.testing.assert_allclose(run_without_warnings(), np.tanh(1.0) * 1.5 + 2.5, rtol=1e-6)
+        assert len(notes) == 2 and "cannot write to the compile cache" in notes[1], notes
+    finally:
+        os.environ[COMPILE_CACHE_ENV] = session_cache
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", minimum)
+        compilation_cache.reset_cache()
+        use_compile_cache()

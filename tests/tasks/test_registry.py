@@ -1,0 +1,128 @@
+"""The task registry: scripts learn everything task-specific from it, and a user's own task,
+registered from Python, trains, renders and sweeps through the unchanged command line."""
+from __future__ import annotations
+
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from stablebptt import tasks
+from stablebptt.commands import render as render_command
+from stablebptt.commands import train as train_command
+from stablebptt.errors import InputError
+from stablebptt.runs import run_folder
+
+pytestmark = pytest.mark.fast  # make test-fast: closed forms, invariants, tiny horizons
+
+OWN_TASK = '''
+"""A user's own system: a point mass pushed toward the origin, a hand-written JAX step."""
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+
+from stablebptt import Dynamics, Task, mlp_apply, mlp_init
+
+DEFAULT_EPOCHS = 3
+
+
+@dataclass(frozen=True)
+class Config:
+    mass: float = field(default=2.0, metadata={"help": "mass of the point"})
+
+
+def make(config: Config) -> Task:
+    dt = 0.05
+
+    def step(state, control):
+        position, velocity = state
+        velocity = velocity + dt * control / config.mass
+        return position + dt * velocity, velocity
+
+    dynamics = Dynamics(step=step, policy=lambda params, state: mlp_apply(params, jnp.concatenate(state)),
+                        loss=lambda states, controls: jnp.sum(states[0][-1] ** 2), horizon=20)
+    sample = lambda key, count: (jax.random.normal(key, (count, 2)), jnp.zeros((count, 2)))
+    return Task(name="pointmass", dynamics=dynamics, sample_initial_states=sample,
+                init_params=lambda key, zero_output: mlp_init(key, (4, 16, 2), zero_output))
+
+
+def draw(request):
+    request.picture.write_text(f"{request.label}: {len(request.titles)} rollouts of {request.controls.shape[1]} steps")
+    return [request.picture]
+'''
+
+
+@pytest.fixture(scope="module")
+def own_task(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("my_lab")
+    (folder / "own_pointmass.py").write_text(textwrap.dedent(OWN_TASK))
+    sys.path.insert(0, str(folder))
+    tasks.register(tasks.Entry(name="pointmass", module="own_pointmass", label=lambda c: f"point mass of {c.mass:g} kg",
+                               draw="own_pointmass:draw", picture="text"))
+    yield
+    sys.path.remove(str(folder))
+
+
+def test_every_builtin_entry_names_a_module_a_label_a_drawer_and_grids():
+    for name, entry in tasks.entries().items():
+        if name == "pointmass":
+            continue
+        module = entry.load()
+        assert callable(module.make) and module.DEFAULT_EPOCHS > 0
+        assert entry.label(module.Config()) and callable(entry.drawer())
+    presets = tasks.presets()
+    assert {"cartpole", "repulsion", "quantum", "tiny"} <= set(presets)
+    for task_name, option, values in presets.values():
+        assert option in {f for f in tasks.load(task_name).Config.__dataclass_fields__} and values
+
+
+def test_an_unknown_task_is_one_line():
+    with pytest.raises(InputError, match="unknown task 'pendulum'"):
+        tasks.entry("pendulum")
+
+
+def test_a_registered_own_task_trains_and_renders_through_the_command_line(own_task, tmp_path, capsys):
+    run_dir = tmp_path / "own"
+    assert train_command.main(["--task", "pointmass", "--mass", "3", "--train-size", "16", "--test-size", "16",
+                               "--no-progress", "--out", str(run_dir)]) == 0
+    record = run_folder.open_run(run_dir)
+    assert record["task"] == "pointmass" and record["task_config"] == {"mass": 3.0} and record["train"]["epochs"] == 3
+    losses = [row["test_loss"] for row in run_folder.read_metrics(run_dir / run_folder.METRICS_FILE)]
+    assert losses[-1] < losses[0]  # the point moves toward the origin
+    assert render_command.main([str(run_dir), "--rollouts", "2", "--no-video"]) == 0
+    (picture,) = Path(run_dir).glob("*-text.png")
+    assert picture.read_text() == "point mass of 3 kg, mode C, 3 epochs, seed 42: 2 rollouts of 20 steps"
+
+
+def test_a_drawer_of_the_earlier_eight_arguments_gets_them_from_the_request(tmp_path):
+    from stablebptt.render.drawing import DrawRequest, DrawSettings
+    received = []
+
+    def legacy(task_config, states, controls, titles, label, settings, video, picture):
+        received.append((task_config, states, controls, titles, label, settings, video, picture))
+        return [picture]
+
+    settings = DrawSettings(width=32, height=24, fps=10.0, strip_states=3)
+    request = DrawRequest("config", "states", "controls", ["a", "b"], "label", settings, None, tmp_path / "p.png")
+    assert tasks.Entry(name="legacy", module="unused", draw=legacy).drawer()(request) == [tmp_path / "p.png"]
+    assert received == [("config", "states", "controls", ["a", "b"], "label", settings, None, tmp_path / "p.png")]
+    new_style = lambda request: [request.picture]
+    assert tasks.Entry(name="new", module="unused", draw=new_style).drawer() is new_style
+    with pytest.raises(InputError, match="16x16"):
+        DrawSettings(width=8)
+
+
+def test_runs_recorded_under_the_mjcf_tasks_former_name_reopen(tmp_path):
+    """Run folders written when the MJCF task was named "cartpole" still name a task that resumes and renders."""
+    import dataclasses
+
+    from stablebptt.apps.trained import configs_of
+    from stablebptt.engine.training import TrainConfig
+    from stablebptt.tasks import mjcf
+    assert tasks.entry("cartpole") is tasks.entry("mjcf") and tasks.canonical("cartpole") == "mjcf"
+    record = {"task": "cartpole", "task_config": dataclasses.asdict(mjcf.Config(poles=2)),
+              "train": dataclasses.asdict(TrainConfig(epochs=3))}
+    task_config, train = configs_of(tmp_path, record)
+    assert isinstance(task_config, mjcf.Config) and task_config.poles == 2 and train.epochs == 3
