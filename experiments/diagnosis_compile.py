@@ -13,8 +13,11 @@ os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "false")
 import jax  # noqa: E402
 
 from stablebptt.cli import leave_out_unused_backends  # noqa: E402
-from stablebptt.engine.training import compiler_options  # noqa: E402
-from stablebptt.envs import adapter  # noqa: E402
+from stablebptt.engine.compiling import compiler_options  # noqa: E402
+from stablebptt.envs import (
+    adapter,  # noqa: E402
+    diagnosis,
+)
 from stablebptt.timing import usable_cores
 
 leave_out_unused_backends()
@@ -39,8 +42,8 @@ OPTION_SETS["training's, again"] = OPTION_SETS["training's"]  # the first compil
 for name in sys.argv[1:]:
     env = adapter.load_env(name)
     step = adapter.env_task(env, horizon=1, diagnose=False).dynamics.step
-    checks = adapter._gradient_checks(step)
-    program = jax.jit(lambda key: checks(*adapter._sample_for_diagnosis(env, step, key)))
+    checks = diagnosis._gradient_checks(step)
+    program = jax.jit(lambda key: checks(*diagnosis._sample_for_diagnosis(env, step, key)))
     key = jax.random.PRNGKey(0)
     started = time.perf_counter()
     lowered = program.lower(key)
@@ -50,6 +53,6 @@ for name in sys.argv[1:]:
         compiled = lowered.compile(compiler_options=options)
         seconds = time.perf_counter() - started
         started = time.perf_counter()
-        diagnosis = adapter._classify(*jax.device_get(compiled(key)))
+        verdict = diagnosis._classify(*jax.device_get(compiled(key)))
         print(f"{name}: {label} {options}: compile {seconds:.1f} s, run {time.perf_counter() - started:.2f} s, "
-              f"{diagnosis.kind}", flush=True)
+              f"{verdict.kind}", flush=True)

@@ -43,6 +43,9 @@ import traceback
 from datetime import datetime, timezone
 from pathlib import Path
 
+from stablebptt.engine import per_update
+from stablebptt.engine.config import TrainConfig, seed_array
+
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = ROOT / "results" / "envs" / "suite_cpu"
 SETTING_KEYS = ("steps", "episode_length", "epochs", "train_size", "test_size", "batch", "mode", "clip", "lr", "seed",
@@ -189,13 +192,13 @@ def worker(args) -> int:
         record["summary"] = task.summary
         record["resolved"] = task.resolved
 
-        config = training.TrainConfig(mode=args.mode, clip=args.clip, lr=args.lr, epochs=args.epochs, seed=args.seed,
+        config = TrainConfig(mode=args.mode, clip=args.clip, lr=args.lr, epochs=args.epochs, seed=args.seed,
                                       train_size=args.train_size, test_size=args.test_size, batch=args.batch)
         save("make_trainer")
         trainer = timed("setup_s", lambda: training.make_trainer(task, config))
-        record["epoch_program"] = "per-update" if isinstance(trainer.epoch, training.PerUpdateEpoch) else "whole"
+        record["epoch_program"] = "per-update" if isinstance(trainer.epoch, per_update.PerUpdateEpoch) else "whole"
         record["flows"] = list(trainer.flows)
-        seeds = training.seed_array(config)
+        seeds = seed_array(config)
         state = timed("init_s", lambda: jax.block_until_ready(trainer.init(seeds)))
         arguments = (trainer.batches, trainer.train_states, trainer.test_states)
         updates = config.train_size // config.batch
@@ -663,7 +666,7 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if args.worker:
         return worker(args)
-    from stablebptt.engine.training import CLIP_MODES
+    from stablebptt.engine.config import CLIP_MODES
     from stablebptt.flows.modes import MODES
     for option, value, choices in (("--mode", args.mode, MODES), ("--clip", args.clip, CLIP_MODES)):
         if value not in choices:

@@ -25,11 +25,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 
-from stablebptt.physics import (
-    lean_step,  # noqa: E402
-    rigid_body,
-    simulator,
-)
+from stablebptt.physics import lean_step, rigid_body, simulator  # noqa: E402
+from stablebptt.physics.array_terms import ArrayTerms  # noqa: E402
+from stablebptt.physics.scene_terms import BALL, FREE  # noqa: E402
+from stablebptt.physics.written_out import WrittenOut  # noqa: E402
 
 BATCH, STEPS = 8, 10
 
@@ -71,10 +70,10 @@ def forms(path: str) -> None:
     model = simulator.build(mujoco.MjModel.from_xml_path(path)).lean
     inputs = (jnp.broadcast_to(jnp.asarray(model.qpos0, jnp.float32), (BATCH, model.nq)), jnp.zeros((BATCH, model.nv)),
               jnp.zeros((BATCH, model.nu)))
-    for form in (rigid_body._WrittenOut, rigid_body._Arrays):
+    for form in (WrittenOut, ArrayTerms):
         terms = form(model).rigid_body
         functions = {"terms": jax.vmap(terms)}
-        if form is rigid_body._Arrays or model.nv <= 12:
+        if form is ArrayTerms or model.nv <= 12:
             functions["JVP"] = jax.vmap(lambda q, v, u: jax.jvp(terms, (q, v, u), (q, v, u)))
         for label, function in functions.items():
             traced = jax.jit(function).trace(*inputs)
@@ -116,7 +115,7 @@ for path in sys.argv[1:]:
     control = jnp.zeros((BATCH, sim.lean.nu))
     stages = simulator.build(sim.model, simulator.SimulatorConfig(pipeline="stages")).step
     steps = {"default": sim.step, "stages": stages}
-    if lean_step.generated_step_applies(sim.lean, sim.effects) and not set(sim.lean.jnt_type) & {rigid_body.FREE, rigid_body.BALL}:
+    if lean_step.generated_step_applies(sim.lean, sim.effects) and not set(sim.lean.jnt_type) & {FREE, BALL}:
         steps["generated rigid-body part, no constraints"] = rigid_body.make_step(sim.lean)
     for name, step in steps.items():
         print(f"{os.path.basename(path)}, {name}:", flush=True)

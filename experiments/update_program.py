@@ -18,7 +18,9 @@ os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "false")
 import jax  # noqa: E402
 
 from stablebptt import tasks  # noqa: E402
-from stablebptt.engine.training import PerUpdateEpoch, make_trainer, seed_array  # noqa: E402
+from stablebptt.engine.config import seed_array  # noqa: E402
+from stablebptt.engine.per_update import PerUpdateEpoch
+from stablebptt.engine.training import make_trainer
 from stablebptt.flows import adjoint_step
 
 arguments = sys.argv[1:]

@@ -8,9 +8,10 @@ analysis in ``stablebptt.physics.scene``; the built-in tasks in ``stablebptt.tas
 ``env_task`` turns an environment in Brax's protocol (MuJoCo Playground's, a
 lab's own) into a ``Task`` (``stablebptt.envs.adapter``).
 """
+from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.fitting import Trained, TrainingDiverged, train
 from stablebptt.engine.task import Task
-from stablebptt.engine.training import TrainConfig, make_trainer
+from stablebptt.engine.training import make_trainer
 from stablebptt.errors import InputError
 from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.flows.gradients import flow_gradients

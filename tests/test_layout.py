@@ -53,6 +53,13 @@ def test_no_module_forwards_names_through_a_module_getattr():
     assert forwarding == ["stablebptt/__init__.py"]
 
 
+def test_every_module_is_short():
+    long = {path.relative_to(ROOT).as_posix(): lines for path in _modules()
+            if (lines := len(path.read_text().splitlines())) > MAX_LINES}
+    assert long == {}
+
+
+
 def test_the_source_sits_where_it_installs():
     assert "package-dir" not in (ROOT / "pyproject.toml").read_text()
     for folder in ("tasks", "models", "commands"):

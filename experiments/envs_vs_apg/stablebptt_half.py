@@ -38,12 +38,9 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import evaluation  # noqa: E402
 
-from stablebptt.engine.training import (  # noqa: E402
-    PerUpdateEpoch,
-    TrainConfig,
-    make_trainer,
-    seed_array,
-)
+from stablebptt.engine.config import TrainConfig, seed_array  # noqa: E402
+from stablebptt.engine.per_update import PerUpdateEpoch
+from stablebptt.engine.training import make_trainer
 from stablebptt.envs.adapter import env_task  # noqa: E402
 from stablebptt.networks import mlp_apply  # noqa: E402
 

@@ -22,8 +22,9 @@ import time
 import jax
 
 from stablebptt.engine import memory, training
-from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
-from stablebptt.envs import adapter
+from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.training import make_trainer
+from stablebptt.envs import diagnosis
 from stablebptt.envs.adapter import env_task, load_env
 
 TIMES: dict = {}  # wall seconds per phase
@@ -68,9 +69,9 @@ def main(argv=None):
     jax.config.update("jax_enable_compilation_cache", False)
 
     for module, attribute, name in [
-            (adapter, "diagnose_env", "env_task: diagnosis (one program)"),
-            (adapter, "_sample_for_diagnosis", "env_task: diagnosis states"),
-            (adapter, "diagnose_reward", "env_task: diagnosis gradient"),
+            (diagnosis, "diagnose_env", "env_task: diagnosis (one program)"),
+            (diagnosis, "_sample_for_diagnosis", "env_task: diagnosis states"),
+            (diagnosis, "diagnose_reward", "env_task: diagnosis gradient"),
             (training, "check_task", "make_trainer: check_task"),
             (training, "memory_plan", "make_trainer: memory plan"),
             (training, "step_size", "make_trainer: step_size"),

@@ -96,7 +96,8 @@ def make_update(task, mode, batch_size, plain=False, with_cosine=False):
     import jax
     import optax
 
-    from stablebptt.engine.training import TrainConfig, make_optimizer
+    from stablebptt.engine.config import TrainConfig
+    from stablebptt.engine.optimizer import make_optimizer
     from stablebptt.flows.gradients import flow_gradients, reference_loss
     from stablebptt.flows.modes import flows_needed
 

@@ -13,13 +13,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 from stablebptt.cli import build
+from stablebptt.engine.compiling import compiler_options, large_step
+from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.task import Task
-from stablebptt.engine.training import (
-    TrainConfig,
-    compiler_options,
-    large_step,
-    sample_states,
-)
+from stablebptt.engine.training import sample_states
 from stablebptt.errors import InputError
 from stablebptt.runs import model_store, run_folder
 from stablebptt.tasks import canonical, entries, entry

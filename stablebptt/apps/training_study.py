@@ -37,7 +37,8 @@ def training_study(config: AccuracyConfig, log: Callable) -> list[dict]:
     import jax.numpy as jnp
     import numpy as np
 
-    from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
+    from stablebptt.engine.config import TrainConfig, seed_array
+    from stablebptt.engine.training import make_trainer
     from stablebptt.flows.modes import MODES
 
     def upcast(tree):  # inside precision(64)

@@ -43,9 +43,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
 
 def main(argv: list[str]) -> int:
     args = parse(argv)
-    from stablebptt.reports import (
-        plots,  # after parsing: matplotlib is slow to import, --help should not wait for it
-    )
+    from stablebptt.reports import plots  # after parsing: matplotlib is slow to import, --help should not wait for it
 
     out = args.out if args.out is not None else args.run_dirs[0] / plots.FIGURE_FILE
     if out.is_dir():

@@ -79,7 +79,7 @@ def build_controller(args, config: RenderConfig):
 
     from stablebptt import tasks
     from stablebptt.apps.trained import open_trained
-    from stablebptt.engine.training import TrainConfig
+    from stablebptt.engine.config import TrainConfig
 
     if args.run_dir is None:
         module = tasks.load(tasks.MJCF_TASK)
@@ -98,9 +98,7 @@ def main(argv: list[str]) -> int:
     with one_line_errors():
         from stablebptt import tasks
         if args.run_dir is not None:
-            from stablebptt.runs import (
-                run_folder,  # imports JAX: only once there is a run to read
-            )
+            from stablebptt.runs import run_folder  # imports JAX: only once there is a run to read
             task_name = run_folder.open_run(args.run_dir)["task"]
         else:
             if not args.model.is_file():

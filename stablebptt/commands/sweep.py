@@ -157,7 +157,7 @@ def plan_grid(config: SweepConfig, task_name: str | None, given: dict) -> Plan:
         return Plan(task_name, option, values, "", make_task, build_config, preset, SCORES.get(task_name, LOSS))
     if config.complexity:
         fail("--complexity chooses among a preset's complexities; a grid over --model, --env or --task varies --lrs")
-    from stablebptt.engine.training import TrainConfig
+    from stablebptt.engine.config import TrainConfig
     values = parse_list(config.lrs, None, "lrs", float) if config.lrs else [TrainConfig.lr]
     if not all(math.isfinite(v) and v > 0 for v in values):
         fail(f"--lrs takes positive learning rates, got {config.lrs}")
@@ -178,7 +178,7 @@ SCORES = {"env": ("episode return", -1.0)}
 def main(argv: list[str]) -> int:
     leave_out_unused_backends()  # before parsing, which imports the tasks and MJX with them
     config, task_name, given = parse(argv)
-    from stablebptt.engine.training import CLIP_MODES
+    from stablebptt.engine.config import CLIP_MODES
     from stablebptt.flows.modes import MODES
     modes = parse_list(config.modes, MODES, "modes")
     clips = parse_list(config.clips, CLIP_MODES, "clips")

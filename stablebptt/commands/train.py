@@ -14,18 +14,10 @@ import time
 from pathlib import Path
 
 from stablebptt import tasks
-from stablebptt.cli import (
-    Parser,
-    add_options,
-    build,
-    fail,
-    leave_out_unused_backends,
-    one_line_errors,
-    option_name,
-)
+from stablebptt.cli import Parser, add_options, build, fail, leave_out_unused_backends, one_line_errors, option_name
 from stablebptt.commands import task_options
 from stablebptt.engine import metrics
-from stablebptt.engine.training import TrainConfig
+from stablebptt.engine.config import TrainConfig
 from stablebptt.runs import epochs
 
 RUNS_ROOT = Path("runs")
@@ -86,39 +78,14 @@ def train(argv: list[str], held: list) -> int:
     jax.config.update("jax_enable_x64", train_config.x64)
     from stablebptt.cli import use_compile_cache
     use_compile_cache(args.compile_cache)
-    import numpy as np
-
-    from stablebptt.engine import fitting
-    from stablebptt.engine.program_store import run_key
-    from stablebptt.engine.training import make_trainer, seed_array
     from stablebptt.errors import StorageError
-    from stablebptt.runs import run_folder
+    from stablebptt.runs import session
 
-    module = tasks.load(task_name)
     with one_line_errors():
-        if record is not None:
-            held.append(run_folder.Run.open(run_dir, record))
-        elif run_dir is not None:
-            run_folder.refuse_used(run_dir)  # at once; a new run's folder is claimed once its task is settled
-        # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
-        task = getattr(module, "make_deferred", module.make)(task_config)
-    program_key = run_key(module, task_name, task_config, train_config)  # an identical run reuses its programs
-    with one_line_errors(f"{task.name}: "):  # the memory plan may refuse the scene
-        trainer = make_trainer(task, train_config, keep=program_key)
-    with one_line_errors():
-        task = task.settled(wait=False)  # a check that has answered by now (a refusal) ends the run here
-    # A new run's epoch is traced here, while XLA may still compile the task's check beside, and
-    # compiled once training starts; a resumed one, which may have nothing left to train, as it starts.
-    lowered = fitting.lowered_epoch(trainer, train_config, program_key) if record is None else None
-    with one_line_errors():
-        task = task.settled()  # a reward without a usable gradient is refused here, before any folder is made
-        if record is None:
-            run_dir = run_dir or run_folder.default_run_dir(RUNS_ROOT, task.name)  # named as it is claimed
-            held.append(run_folder.Run.create(run_dir, run_folder.new_record(task_name, task_config, task, train_config)))
-    run = held[0]
-    seeds = np.asarray(seed_array(train_config))
-    with one_line_errors():
-        start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
+        begun = session.begin(tasks.load(task_name), task_name, task_config, train_config, run_dir, record, RUNS_ROOT)
+    held.append(begun.run)
+    run, task, seeds, start_epoch, rows = begun.run, begun.task, begun.seeds, begun.start_epoch, begun.rows
+    run_dir = run.directory
     task_label, resuming = run.name, run.resuming
     if run.repaired:
         print(f"rewrote {' and '.join(run.repaired)} of {run_dir} from its checkpoint (epoch {start_epoch})", file=sys.stderr)
@@ -130,19 +97,14 @@ def train(argv: list[str], held: list) -> int:
         print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
         return 0
 
-    from stablebptt.cli import (
-        EpochProgress,
-        in_worker_thread,
-        out_of_memory,
-        stop_on_signals,
-    )
+    from stablebptt.cli import EpochProgress, in_worker_thread, out_of_memory, stop_on_signals
     progress = EpochProgress(started, train_config.epochs, start_epoch, train_config.train_size // train_config.batch,
                              f"{task_label} {train_config.mode}", args.no_progress)
     try:
         with stop_on_signals(progress.write) as should_stop:
-            outcome = in_worker_thread(lambda: epochs.train_epochs(trainer, train_config, run_dir, state, start_epoch, rows, seeds,
-                                                                   progress.on_epoch, progress.on_compiled, should_stop,
-                                                                   run.owner, program_key, lowered))
+            outcome = in_worker_thread(lambda: epochs.train_epochs(*begun.training_arguments(), progress.on_epoch,
+                                                                   progress.on_compiled, should_stop, run.owner,
+                                                                   begun.program_key, begun.lowered))
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     except jax.errors.JaxRuntimeError as error:

@@ -12,14 +12,10 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from stablebptt.engine.metrics import (
-    COLUMNS,
-    METRICS,
-    empty_rows,
-    epoch_rows,
-)
+from stablebptt.engine.config import TrainConfig
+from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
 from stablebptt.engine.program_store import cache_dir, lower_epoch
-from stablebptt.engine.training import TrainConfig, Trainer, nonfinite_names
+from stablebptt.engine.training import Trainer, nonfinite_names
 from stablebptt.timing import compile_ahead
 
 
@@ -122,7 +118,7 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
     traced as it compiles instead: its metrics' program takes its shapes from the update's compiled
     one. ``program_key`` as ``train_epochs`` takes it."""
     from stablebptt.engine.checks import tracing_shapes
-    from stablebptt.engine.training import seed_array
+    from stablebptt.engine.config import seed_array
     # init's function, through a function of its own, not its jit: JAX would keep a jit's trace for
     # the next call, and this one's parameters start before the check has decided how.
     init = getattr(trainer.init, "__wrapped__", trainer.init)
@@ -130,7 +126,6 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
         shapes = jax.eval_shape(lambda seeds: init(seeds), seed_array(config))
     arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
     return LoweredEpoch(lower_epoch(trainer.epoch, arguments, program_key, cache_dir(), trainer.compiler_options), shapes)
-
 
 
 class Trained(NamedTuple):
@@ -188,7 +183,8 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
 
 
 def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]) -> Trained:
-    from stablebptt.engine.training import make_trainer, seed_array
+    from stablebptt.engine.config import seed_array
+    from stablebptt.engine.training import make_trainer
     started = time.perf_counter()
     trainer = make_trainer(task, config)
     task = task.settled()  # a check left running (an environment's reward diagnosis) may refuse it here

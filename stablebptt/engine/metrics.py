@@ -4,8 +4,6 @@ from __future__ import annotations
 import numpy as np
 
 METRICS = ("batch_loss", "train_loss", "test_loss", "update_norm", "cosine")
-
-
 COLUMNS = ("epoch", "seed") + METRICS + ("seconds",)
 
 

@@ -25,12 +25,10 @@ at zero (``RewardDiagnosis``).
 """
 from __future__ import annotations
 
-import concurrent.futures
 import contextlib
 import dataclasses
 import importlib
 import math
-import threading
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -40,9 +38,9 @@ import numpy as np
 from stablebptt.engine import program_store
 from stablebptt.engine.checks import shapes_only
 from stablebptt.engine.task import Task
-from stablebptt.engine.training import compiler_options, unless_in_xla_flags
+from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, start_diagnosis
 from stablebptt.errors import InputError
-from stablebptt.flows.dynamics import Dynamics, join, split
+from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
@@ -51,8 +49,6 @@ PyTree = Any
 # Output weights of a policy that must not start at exactly zero action: small enough that the
 # first actions stay near zero, large enough that the reward's derivative is taken off zero.
 SMALL_OUTPUT_SCALE = 1e-2
-DIAGNOSIS_STATES = 8  # resets, each also a few random steps on: where the reward's gradient is looked at
-DIAGNOSIS_STEPS = 5
 
 
 class EnvError(InputError):
@@ -93,159 +89,6 @@ def check_protocol(env: Any) -> int:
     if not (isinstance(size, (int, np.integer)) or (isinstance(size, tuple) and len(size) == 1)):
         raise EnvError(f"{type(env).__name__}'s observation has shape {size}: only vector observations are supported")
     return int(size[0] if isinstance(size, tuple) else size)
-
-
-class RewardDiagnosis(NamedTuple):
-    """What the reward's gradient looks like at sampled states, with zero and with random actions.
-
-    ``kind`` is ``"usable"``, ``"nan at zero action"``, ``"nan"`` or ``"zero"``.
-    """
-
-    kind: str
-    nan_at_zero: float  # share of sampled states whose gradient is NaN at zero action
-    nan_at_random: float  # the same with random actions
-    zero: bool  # the gradient is exactly zero at every sampled state and action
-
-    def describe(self) -> str:
-        return {"usable": "reward gradient: usable",
-                "nan at zero action": "reward gradient: NaN at exactly zero action (the policy starts off zero)",
-                "nan": f"reward gradient: NaN at {self.nan_at_random:.0%} of sampled states",
-                "zero": "reward gradient: zero at every sampled state"}[self.kind]
-
-
-def _gradient_checks(step: Callable) -> Callable:
-    """``checks(states, actions)``: per state, whether the reward's gradient is finite and its largest
-    finite entry, at zero action and at ``actions``: one gradient mapped over both halves, so a
-    program holds one copy of the step's derivative. Mapped in turn, not vmapped: batching the
-    step's derivative costs more tracing than the few states' run would gain."""
-    def gradient(state, action):
-        parts = split(state)
-        grads = jax.grad(lambda floats, a: step(join(parts, floats), a).reward, argnums=(0, 1))(parts.floats, action)
-        leaves = jax.tree.leaves(grads)
-        finite = jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in leaves]))
-        size = jnp.max(jnp.array([jnp.max(jnp.abs(jnp.where(jnp.isfinite(leaf), leaf, 0.0)), initial=0.0)
-                                  for leaf in leaves]))
-        return finite, size
-
-    def checks(states, actions):
-        twice = jax.tree.map(lambda a: jnp.concatenate([a, a]), states)
-        finite, size = jax.lax.map(lambda pair: gradient(*pair), (twice, jnp.concatenate([jnp.zeros_like(actions), actions])))
-        count = actions.shape[0]
-        return finite[:count], size[:count], finite[count:], size[count:]
-
-    return checks
-
-
-def _classify(finite_zero, size_zero, finite_random, size_random) -> RewardDiagnosis:
-    nan_at_zero = float(1 - np.mean(finite_zero))
-    nan_at_random = float(1 - np.mean(finite_random))
-    zero = not (np.any(size_zero > 0) or np.any(size_random > 0))
-    if nan_at_random > 0:
-        kind = "nan"
-    elif nan_at_zero > 0:
-        kind = "nan at zero action"
-    elif zero:
-        kind = "zero"
-    else:
-        kind = "usable"
-    return RewardDiagnosis(kind, nan_at_zero, nan_at_random, zero)
-
-
-def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> RewardDiagnosis:
-    """The gradient of one step's reward with respect to the state's floats and the action.
-
-    Args:
-      step: the environment's step.
-      states: a batch of states (leading axis), e.g. resets and states a few random steps on.
-      actions: random actions, one per state; zero actions are tried too.
-    """
-    return _classify(*jax.device_get(jax.jit(_gradient_checks(step), compiler_options=_diagnosis_options())(states, actions)))
-
-
-def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
-    """``diagnose_reward`` at states sampled from ``env`` (resets and a few random steps on), the
-    sampling and the gradients compiled as ONE program: no operation runs eagerly, which on a GPU
-    would compile each one apart. States are visited in turn (``lax.map``), as the gradients are."""
-    return RewardDiagnosis(*start_diagnosis(env, step, key)())
-
-
-def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnosis":
-    """``diagnose_env`` begun: its program is traced here, then XLA compiles it in a thread of its own
-    while the caller goes on (XLA lets go of Python while it compiles). Calling the result waits for
-    the compile, runs the program and gives the diagnosis (the fields of a ``RewardDiagnosis``).
-
-    Only XLA's compile works beside the caller. The step is traced here, where the reward's repairs
-    and MJX's derivative remedies are in place for this trace alone. The program runs in the
-    caller, once waited for: nothing of it runs on the device while a program the caller compiles
-    meanwhile times its kernels there (a GPU's autotuning), which might then choose others.
-    """
-    checks = _gradient_checks(step)
-    lowered = jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)),
-                      compiler_options=_diagnosis_options()).lower(key)
-    compiled: concurrent.futures.Future = concurrent.futures.Future()
-
-    def compile_beside():
-        try:
-            compiled.set_result(lowered.compile())
-        except BaseException as error:  # noqa: BLE001 - handed to whoever waits for the answer
-            compiled.set_exception(error)
-
-    # No daemon: a process that ends early (a refusal) waits for it to finish, since XLA cannot be
-    # stopped mid-compile and a daemon thread inside it aborts the interpreter's exit.
-    threading.Thread(target=compile_beside, name="stablebptt-reward-diagnosis").start()
-    return PendingDiagnosis(compiled, key)
-
-
-class PendingDiagnosis(NamedTuple):
-    """A reward diagnosis compiling beside the caller (``start_diagnosis``)."""
-
-    compiled: concurrent.futures.Future  # the diagnosis's compiled program
-    key: jax.Array
-
-    def __call__(self) -> list:
-        """Waits for the compile, runs the program: the fields of a ``RewardDiagnosis``."""
-        return list(_classify(*jax.device_get(self.compiled.result()(self.key))))
-
-    def done(self) -> bool:
-        """Whether the compile has ended (calling then waits no longer than the program's run)."""
-        return self.compiled.done()
-
-
-def _diagnosis_options() -> dict | None:
-    """XLA options of the diagnosis: it runs once, on a few states. On a CPU LLVM does not optimize
-    its kernels (CartpoleSwingup's compiles in 4.8 s instead of 6.1 s, by
-    ``python experiments/diagnosis_compile.py CartpoleSwingup``). On a GPU none of its kernels is
-    timed (autotuning level 0): it compiles beside the trainer's set-up (``start_diagnosis``), whose
-    reset program times its own kernels meanwhile, and must choose them undisturbed. On one H100
-    level 0 compiled it in 8.7 s against the training options' 8.9 s for CartpoleSwingup, 7.0 against
-    8.1 s for AcrobotSwingup, each after another compile in the same process, by ``python
-    experiments/diagnosis_compile.py CartpoleSwingup AcrobotSwingup``
-    (results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt)."""
-    backend = jax.default_backend()
-    cheaper = {"cpu": {"xla_backend_optimization_level": 0}, "gpu": {"xla_gpu_autotune_level": 0}}.get(backend, {})
-    return {**(compiler_options() or {}), **unless_in_xla_flags(cheaper)} or None
-
-
-def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
-    """Resets and the states a few random actions lead to, with a random action for each (traceable)."""
-    reset_key, action_key = jax.random.split(key)
-
-    def visit(key):
-        state = env.reset(key)
-        keys = jax.random.split(jax.random.fold_in(key, 1), DIAGNOSIS_STEPS + 1)
-
-        def advance(state, k):
-            action = jax.random.uniform(k, (env.action_size,), minval=-1.0, maxval=1.0)
-            return step(state, action), state
-
-        last, visited = jax.lax.scan(advance, state, keys[:-1])
-        return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), visited, last)
-
-    states = jax.lax.map(visit, jax.random.split(reset_key, DIAGNOSIS_STATES))
-    states = jax.tree.map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), states)
-    count = jax.tree.leaves(states)[0].shape[0]
-    actions = jax.random.uniform(action_key, (count, env.action_size), minval=-1.0, maxval=1.0)
-    return states, actions
 
 
 def _count(states: PyTree) -> int:

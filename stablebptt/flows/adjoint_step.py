@@ -10,15 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.flows.dynamics import (
-    Dynamics,
-    Plan,
-    first_copy,
-    join,
-    split,
-    split_cotangent,
-    stack_copies,
-)
+from stablebptt.flows.dynamics import Dynamics, Plan, first_copy, join, split, split_cotangent, stack_copies
 from stablebptt.flows.modes import KEEPS
 
 

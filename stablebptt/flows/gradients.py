@@ -8,14 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from stablebptt.flows.adjoint_step import multi_adjoint_step
-from stablebptt.flows.dynamics import (
-    Dynamics,
-    Plan,
-    PyTree,
-    first_copy,
-    ravel_examples,
-    stack_copies,
-)
+from stablebptt.flows.dynamics import Dynamics, Plan, PyTree, first_copy, ravel_examples, stack_copies
 from stablebptt.flows.linearized import linearized_gradients, policy_gradients
 from stablebptt.flows.modes import KEEPS
 

@@ -30,10 +30,11 @@ import numpy as np
 
 from stablebptt import storage
 from stablebptt.engine import fitting
+from stablebptt.engine.config import CLIP_MODES, TrainConfig
 from stablebptt.engine.metrics import empty_rows
 from stablebptt.engine.program_store import code_digest
 from stablebptt.engine.task import Task
-from stablebptt.engine.training import CLIP_MODES, TrainConfig, make_trainer
+from stablebptt.engine.training import make_trainer
 from stablebptt.errors import InputError
 from stablebptt.flows.modes import MODES
 from stablebptt.grids.report import cell_name

@@ -17,17 +17,8 @@ import jax.numpy as jnp
 import mujoco
 
 from stablebptt.physics import rigid_body
-from stablebptt.physics.constraint_derivatives import (
-    solve_implicitly,
-    traced_differentiably,
-)
-from stablebptt.physics.mjx_internals import (
-    collision_driver,
-    constraint,
-    mjx,
-    passive,
-    smooth,
-)
+from stablebptt.physics.constraint_derivatives import solve_implicitly, traced_differentiably
+from stablebptt.physics.mjx_internals import collision_driver, constraint, mjx, passive, smooth
 from stablebptt.physics.mjx_internals import forward as mjx_forward
 from stablebptt.physics.mjx_internals import types as mjx_types
 from stablebptt.physics.mjx_support import put_model
@@ -185,7 +176,7 @@ def make_step(model: mujoco.MjModel, effects: SceneEffects | None, pipeline: str
 
 
 def _generated_with_mjx_constraints(model: mujoco.MjModel, mjx_model: mjx.Model) -> Callable[[State, jax.Array], State]:
-    """The generated rigid-body terms (``rigid_body.RigidBody``) through MJX's collision, constraint rows and
+    """The generated rigid-body terms (``scene_terms.RigidBody``) through MJX's collision, constraint rows and
     solver (differentiated implicitly), then MuJoCo's Euler or RK4.
 
     Without MJX's scans over the tree, XLA compiles far less: hopper's first update comes 36.4 -> 21.4 s

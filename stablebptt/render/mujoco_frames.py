@@ -23,8 +23,6 @@ import numpy as np
 
 from stablebptt.errors import InputError
 
-
-
 BACKGROUND = (1.0, 1.0, 1.0)  # plain white behind models without a skybox of their own: print-friendly
 AZIMUTH = 90.0  # look along +y: a planar system moving in the x-z plane (the MJCF convention) faces the camera
 ELEVATION = -15.0  # slightly from above, so depth still reads

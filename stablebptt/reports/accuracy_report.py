@@ -109,12 +109,7 @@ def _log_axes(ax, x: bool = True) -> None:
 
 def _plain_log_ticks(axis, values) -> None:
     """Ticks at ``values`` written as plain numbers (100, 0.5) on a log axis."""
-    from matplotlib.ticker import (
-        FixedLocator,
-        FuncFormatter,
-        NullFormatter,
-        NullLocator,
-    )
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullFormatter, NullLocator
     axis.set_major_locator(FixedLocator(list(values)))
     axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     axis.set_minor_locator(NullLocator())

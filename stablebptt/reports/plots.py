@@ -28,15 +28,7 @@ from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.errors import InputError
 from stablebptt.flows.modes import MODE_ORDER, MODES
-from stablebptt.reports.curves import (
-    BANDS,
-    Run,
-    aggregate,
-    default_smooth,
-    effective_window,
-    load_run,
-    moving_average,
-)
+from stablebptt.reports.curves import BANDS, Run, aggregate, default_smooth, effective_window, load_run, moving_average
 from stablebptt.storage import atomic_write
 
 FIGURE_FILE = "learning_curves.png"

@@ -8,9 +8,10 @@ from typing import Callable, NamedTuple
 import jax
 import numpy as np
 
+from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.fitting import LoweredEpoch, fit, nonfinite_message
 from stablebptt.engine.program_store import cache_dir, compile_epoch
-from stablebptt.engine.training import TrainConfig, Trainer, TrainState
+from stablebptt.engine.training import Trainer, TrainState
 from stablebptt.runs.run_folder import METRICS_FILE, PARAMS_FILE, save_checkpoint, save_params, write_metrics
 
 

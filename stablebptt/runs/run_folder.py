@@ -29,14 +29,12 @@ from typing import Any
 import jax
 import numpy as np
 
+from stablebptt.engine.config import TrainConfig
+from stablebptt.engine.metrics import COLUMNS, empty_rows
+from stablebptt.engine.training import TrainState
 from stablebptt.errors import InputError, StorageError
+from stablebptt.runs.model_store import copy_model
 from stablebptt.storage import atomic_write, json_bytes, read_json, write_json, write_temporary
-from stablebptt.engine.metrics import METRICS
-from stablebptt.engine.training import TrainConfig, TrainState
-from stablebptt.runs.model_store import (MODEL_BINARY_FILE, MODEL_COPY_FILE, MODEL_LINK_FILE, MODEL_PACKED_FILE,
-                                   SHARED_MODELS, compiled_model, copy_model, keep_model, kept_model,
-                                   load_compiled_model, model_to_reopen)
-from stablebptt.engine.metrics import COLUMNS, empty_rows, final_mean_std
 
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.csv"

@@ -35,16 +35,7 @@ from stablebptt.physics.lean_step import State
 from stablebptt.physics.mjx_internals import mjx
 from stablebptt.physics.simulator import SimulatorConfig
 from stablebptt.tasks import mjcf_spec
-from stablebptt.tasks.mjcf_spec import (
-    BALL,
-    FREE,
-    HINGE,
-    MAX_HORIZON,
-    SLIDE,
-    Spec,
-    joint_names,
-    load_model,
-)
+from stablebptt.tasks.mjcf_spec import BALL, FREE, HINGE, MAX_HORIZON, SLIDE, Spec, joint_names, load_model
 
 # The MJCF reading of tasks.mjcf_spec is part of this task's interface too.
 MODELS = models.DIRECTORY  # package data: found wherever the package is installed

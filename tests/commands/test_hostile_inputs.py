@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib.util
 
 import pytest
+
 from conftest import ROOT
 
 pytestmark = pytest.mark.fast  # make test-fast: closed forms, invariants, tiny horizons
@@ -264,9 +265,10 @@ def test_x64_from_python_trains_in_float64_as_the_command_line_and_leaves_jax_in
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from conftest import float64
 
     import stablebptt as sb
+
+    from conftest import float64
     config = sb.TrainConfig(epochs=2, train_size=8, test_size=8, x64=True)
     assert not jax.config.jax_enable_x64
     scoped = sb.train(_pendulum(), config)

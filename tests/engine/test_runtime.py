@@ -15,6 +15,9 @@ import sys
 import textwrap
 
 import pytest
+
+from stablebptt.engine import compiling
+
 from conftest import ROOT
 
 # 16 independent triangular solves of 100 7x7 systems with 49 right-hand sides each
@@ -50,24 +53,23 @@ def test_concurrent_batched_lapack_calls_finish():
 
 def test_gpu_programs_compile_with_unchecked_autotuning_on_every_core_unless_xla_flags_say_otherwise(monkeypatch):
     """On a GPU every program compiles with XLA's autotuning unchecked (level 1), its kernels compiled
-    on every usable core (``training.gpu_options``); an option the user put in XLA_FLAGS is left to
+    on every usable core (``compiling.gpu_options``); an option the user put in XLA_FLAGS is left to
     XLA. A jaxlib that no longer knows an option's name fails the compile below, on any backend."""
     import jax
     import jax.numpy as jnp
     import numpy as np
 
     from stablebptt import timing
-    from stablebptt.engine import training
 
     x = jnp.arange(9.0).reshape(3, 3)
-    np.testing.assert_array_equal(jax.jit(lambda a: a @ a, compiler_options=training.gpu_options())(x), x @ x)
-    monkeypatch.setattr(training.jax, "default_backend", lambda: "gpu")
+    np.testing.assert_array_equal(jax.jit(lambda a: a @ a, compiler_options=compiling.gpu_options())(x), x @ x)
+    monkeypatch.setattr(compiling.jax, "default_backend", lambda: "gpu")
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
     every_core = {"xla_gpu_autotune_level": 1, "xla_gpu_force_compilation_parallelism": timing.usable_cores()}
-    assert training.compiler_options(False) == every_core
-    assert training.compiler_options(True) == every_core  # the CPU's loop emitter stays the CPU's
+    assert compiling.compiler_options(False) == every_core
+    assert compiling.compiler_options(True) == every_core  # the CPU's loop emitter stays the CPU's
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level=4")
-    assert training.compiler_options(False) == {"xla_gpu_force_compilation_parallelism": timing.usable_cores()}
+    assert compiling.compiler_options(False) == {"xla_gpu_force_compilation_parallelism": timing.usable_cores()}
 
 
 def test_large_scenes_compile_with_a_loop_emitter_this_xla_accepts_and_the_numbers_stay():
@@ -79,7 +81,7 @@ def test_large_scenes_compile_with_a_loop_emitter_this_xla_accepts_and_the_numbe
     import jax.numpy as jnp
     import numpy as np
 
-    from stablebptt.engine.training import LARGE_STEP_CPU_OPTIONS, compiler_options
+    from stablebptt.engine.compiling import LARGE_STEP_CPU_OPTIONS, compiler_options
 
     if jax.default_backend() == "cpu":
         assert compiler_options(False) is None

@@ -16,17 +16,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import ROOT
 
-from stablebptt.engine.training import (
-    TrainConfig,
-    make_optimizer,
-    make_trainer,
-    seed_array,
-)
+from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.optimizer import make_optimizer
+from stablebptt.engine.training import make_trainer
 from stablebptt.flows.gradients import flow_gradients, reference_rollout
 from stablebptt.runs import run_folder
 from stablebptt.tasks import mjcf, repulsion
+
+from conftest import ROOT
 
 PRECISIONS = (32, 64)
 FLOWS = ("R", "M")

@@ -11,16 +11,18 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import ROOT
 
 from stablebptt import storage, timing
-from stablebptt.engine import training
+from stablebptt.engine import per_update, training
+from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.metrics import COLUMNS, empty_rows
 from stablebptt.engine.task import Task
-from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
+from stablebptt.engine.training import make_trainer
 from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.runs import epochs, run_folder
 from stablebptt.tasks import repulsion
+
+from conftest import ROOT
 
 SMALL = TrainConfig(epochs=3, train_size=32, test_size=32, batch=8, mode="C")
 TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
@@ -207,10 +209,10 @@ def test_auto_compiles_a_step_that_solves_apart_on_several_cores_and_a_plain_ste
     solving = replace(task, dynamics=Dynamics(step=solving_step, policy=d.policy, loss=d.loss, horizon=d.horizon))
     config = replace(SMALL, epochs=1)
     side_by_side = jax.default_backend() == "cpu" and timing.usable_cores() > 1
-    split = lambda trainer: isinstance(trainer.epoch, training.PerUpdateEpoch)  # noqa: E731
+    split = lambda trainer: isinstance(trainer.epoch, per_update.PerUpdateEpoch)  # noqa: E731
     assert split(make_trainer(solving, config)) == side_by_side
     assert not split(make_trainer(task, config))
-    monkeypatch.setattr(training, "usable_cores", lambda: 1)
+    monkeypatch.setattr(per_update, "usable_cores", lambda: 1)
     assert not split(make_trainer(solving, config))
 
 

@@ -13,13 +13,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import ROOT, float64
-from envs_for_tests import Cart
 
 import stablebptt as sb
 from stablebptt.engine import fitting, program_store
+from stablebptt.engine.config import seed_array
 from stablebptt.engine.metrics import empty_rows
-from stablebptt.engine.training import seed_array
 from stablebptt.envs import adapter
 from stablebptt.envs.adapter import EnvError, env_task
 from stablebptt.flows.gradients import flow_gradients, reference_loss
@@ -27,6 +25,9 @@ from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import mjx
 from stablebptt.runs import epochs
 from stablebptt.storage import read_json
+
+from conftest import ROOT, float64
+from envs_for_tests import Cart
 
 HAS_PLAYGROUND = importlib.util.find_spec("mujoco_playground") is not None
 needs_playground = pytest.mark.skipif(not HAS_PLAYGROUND, reason="MuJoCo Playground is not installed "
@@ -235,9 +236,7 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
 @needs_playground
 def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_path, capsys):
     run = tmp_path / "cartpole"
-    from stablebptt.commands import (
-        train as train_command,  # in this process: the installed command's main
-    )
+    from stablebptt.commands import train as train_command  # in this process: the installed command's main
     assert train_command.main(["--env", "CartpoleSwingup", "--steps", "8", "--episode-length", "8", "--epochs", "1",
                                "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
                                "--out", str(run)]) == 0

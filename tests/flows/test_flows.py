@@ -11,12 +11,7 @@ from stablebptt.errors import InputError
 from stablebptt.flows import adjoint_step
 from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.flows.gradients import flow_gradients, reference_loss, reference_rollout
-from stablebptt.flows.modes import (
-    flows_needed,
-    select_flow,
-    sign_agreement,
-    tree_cosine,
-)
+from stablebptt.flows.modes import flows_needed, select_flow, sign_agreement, tree_cosine
 
 pytestmark = pytest.mark.fast  # make test-fast: closed forms, invariants, tiny horizons
 

@@ -12,18 +12,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import ROOT
 
 from stablebptt import storage
-from stablebptt.engine.training import (
-    CLIP_MODES,
-    TrainConfig,
-    make_grid_optimizer,
-    make_optimizer,
-)
+from stablebptt.engine.config import CLIP_MODES, TrainConfig
+from stablebptt.engine.optimizer import make_grid_optimizer, make_optimizer
 from stablebptt.flows.modes import MODES
 from stablebptt.grids.grid import place
 from stablebptt.runs import run_folder
+
+from conftest import ROOT
 
 TINY = ["--preset", "tiny", "--modes", "C,R", "--clips", "value", "--seeds", "2", "--train-size", "16",
         "--test-size", "16", "--task-steps", "20", "--checkpoint-every", "1"]

@@ -5,10 +5,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import float64
 
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.physics.integrators import INTEGRATORS
+
+from conftest import float64
 
 pytestmark = pytest.mark.fast  # make test-fast: closed forms, invariants, tiny horizons
 

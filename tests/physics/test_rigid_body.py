@@ -12,10 +12,13 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import ROOT
 
 # Every term the generator writes: a tilted base with a slide and an off-centre hinge in one
 from stablebptt.physics import lean_step, rigid_body, scene
+from stablebptt.physics.array_terms import ArrayTerms
+from stablebptt.physics.written_out import WrittenOut
+
+from conftest import ROOT
 
 # body, a welded body without joints, branches, rotated inertias, armature, springs, joint damping
 # (Euler's implicit damping), a clamped motor with a gear, a position servo with kv, a force limit,
@@ -221,12 +224,12 @@ CONSTRAINED = {"hopping, Euler": HOPPING.format(integrator="Euler"), "hopping, R
                "branches in contact": BRANCHES_IN_CONTACT, "floating": FLOATING}
 
 
-@pytest.mark.parametrize("backend, six_dofs", [("cpu", rigid_body._Arrays), ("gpu", rigid_body._WrittenOut)])
+@pytest.mark.parametrize("backend, six_dofs", [("cpu", ArrayTerms), ("gpu", WrittenOut)])
 def test_the_terms_of_a_few_dofs_are_written_out_and_more_in_arrays(monkeypatch, backend, six_dofs):
     monkeypatch.setattr(jax, "default_backend", lambda: backend)
-    assert isinstance(rigid_body.make_scene(MODELS["cartpole_4"]()), rigid_body._WrittenOut)  # 5 dofs
+    assert isinstance(rigid_body.make_scene(MODELS["cartpole_4"]()), WrittenOut)  # 5 dofs
     assert isinstance(rigid_body.make_scene(MODELS["branches, Euler"]()), six_dofs)
-    assert isinstance(rigid_body.make_scene(mujoco.MjModel.from_xml_string(FLOATING)), rigid_body._Arrays)  # 15 dofs
+    assert isinstance(rigid_body.make_scene(mujoco.MjModel.from_xml_string(FLOATING)), ArrayTerms)  # 15 dofs
 
 
 # A ball on slides tethered to a cup on limited slides by a limited spatial tendon, as dm_control's
@@ -284,7 +287,7 @@ def test_a_limited_spatial_tendon_steps_as_mujocos_c_step(x64, form):
     assert int(mujoco.mjtConstraint.mjCNSTR_LIMIT_TENDON) in rows
 
 
-@pytest.mark.parametrize("form", ["_WrittenOut", "_Arrays"])
+@pytest.mark.parametrize("form", [WrittenOut, ArrayTerms], ids=["written-out", "arrays"])
 @pytest.mark.parametrize("name", ["branches in contact", "floating", "tethered"])
 def test_both_forms_of_the_rigid_body_terms_are_mujocos(x64, form, name):
     """Each term MJX's constraint stages read, in either form, against MuJoCo's own at a moving state
@@ -296,7 +299,7 @@ def test_both_forms_of_the_rigid_body_terms_are_mujocos(x64, form, name):
     data.qvel[:], data.ctrl[:] = rng.uniform(-2, 2, model.nv), rng.uniform(-0.5, 0.5, model.nu)
     qpos = data.qpos.copy()
     mujoco.mj_forward(model, data)
-    terms = jax.jit(getattr(rigid_body, form)(model).rigid_body)(jnp.array(qpos), jnp.array(data.qvel), jnp.array(data.ctrl))
+    terms = jax.jit(form(model).rigid_body)(jnp.array(qpos), jnp.array(data.qvel), jnp.array(data.ctrl))
     mass_matrix = np.zeros((model.nv, model.nv))
     mujoco.mj_fullM(model, data, mass_matrix)
     expected = {"xpos": data.xpos, "xmat": data.xmat.reshape(-1, 3, 3), "geom_xpos": data.geom_xpos,

@@ -19,13 +19,15 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import ROOT
 
-from stablebptt.engine.training import TrainConfig, memory_plan
+from stablebptt.engine.compiling import memory_plan
+from stablebptt.engine.config import TrainConfig
 from stablebptt.errors import InputError
 from stablebptt.physics import lean_step, mjx_support, rigid_body, scene, simulator
 from stablebptt.physics.mjx_internals import collision_driver
 from stablebptt.tasks import mjcf, mjcf_spec
+
+from conftest import ROOT
 
 SUITE = ["acrobot", "ball_in_cup", "cartpole", "cheetah", "dog", "finger", "fish", "hopper", "humanoid",
          "humanoid_CMU", "lqr", "manipulator", "pendulum", "point_mass", "quadruped", "reacher", "stacker",
@@ -249,9 +251,7 @@ def test_clipping_an_edge_nearly_parallel_to_a_side_plane_keeps_reverse_mode_fin
     # MJX clips a capsule's or box's edge against a convex body's side planes
     # (manipulator, stacker); an edge nearly parallel to a plane gave NaN
     # cotangents. Values: the clipped intersection of the closed form.
-    from stablebptt.physics.constraint_derivatives import (
-        _closest_segment_point_plane_stable as point,
-    )
+    from stablebptt.physics.constraint_derivatives import _closest_segment_point_plane_stable as point
     from stablebptt.physics.constraint_derivatives import differentiable_mjx
     from stablebptt.physics.mjx_internals import collision_convex
     normal = jnp.array([0.0, 0.0, 1.0], jnp.float32)

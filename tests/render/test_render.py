@@ -17,12 +17,13 @@ import jax
 import numpy as np
 import pytest
 
-from stablebptt.engine.training import TrainConfig
+from stablebptt.engine.config import TrainConfig
 from stablebptt.errors import InputError
 from stablebptt.render import gl_backend, media, mujoco_frames
 from stablebptt.runs import run_folder
 
 from conftest import ROOT
+
 RENDER = ROOT / "scripts" / "render.py"
 TRAIN = ROOT / "scripts" / "train.py"
 MODEL = ROOT / "stablebptt" / "models" / "cartpole_1.xml"

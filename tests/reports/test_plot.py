@@ -17,6 +17,7 @@ from stablebptt.reports import curves, plots
 from stablebptt.runs import run_folder
 
 from conftest import ROOT
+
 SCRIPT = ROOT / "scripts" / "plot.py"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -23,7 +23,8 @@ from stablebptt import errors, storage
 from stablebptt.commands import train as train_command
 from stablebptt.engine import fitting
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows
-from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
+from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.training import make_trainer
 from stablebptt.errors import InputError
 from stablebptt.reports import curves
 from stablebptt.runs import epochs, model_store, run_folder

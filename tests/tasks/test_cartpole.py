@@ -8,14 +8,16 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import ROOT, float64
 from jax.flatten_util import ravel_pytree
 
-from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
+from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.training import make_trainer
 from stablebptt.flows.gradients import flow_gradients
 from stablebptt.flows.linearized import step_jacobians
 from stablebptt.physics import lean_step, scene, symmetries
 from stablebptt.tasks import cartpole_equations, mjcf, mjcf_spec
+
+from conftest import ROOT, float64
 
 TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
 

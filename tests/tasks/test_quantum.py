@@ -11,7 +11,8 @@ import pytest
 
 from stablebptt import tasks
 from stablebptt.cli import add_options
-from stablebptt.engine.training import TrainConfig, make_trainer, seed_array
+from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.training import make_trainer
 from stablebptt.errors import InputError
 from stablebptt.flows.gradients import flow_gradients, reference_loss, reference_rollout
 from stablebptt.flows.modes import FLOWS

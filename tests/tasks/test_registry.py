@@ -119,7 +119,7 @@ def test_runs_recorded_under_the_mjcf_tasks_former_name_reopen(tmp_path):
     import dataclasses
 
     from stablebptt.apps.trained import configs_of
-    from stablebptt.engine.training import TrainConfig
+    from stablebptt.engine.config import TrainConfig
     from stablebptt.tasks import mjcf
     assert tasks.entry("cartpole") is tasks.entry("mjcf") and tasks.canonical("cartpole") == "mjcf"
     record = {"task": "cartpole", "task_config": dataclasses.asdict(mjcf.Config(poles=2)),

@@ -12,14 +12,7 @@ from typing import TYPE_CHECKING
 
 from stablebptt.apps.bench import BenchCase, combined_modes, make_update, time_variants
 from stablebptt.apps.gradient_study import GradientSetup
-from stablebptt.apps.measuring import (
-    cast,
-    compile_call,
-    flat_states,
-    precision,
-    rollout_program,
-    run_once,
-)
+from stablebptt.apps.measuring import cast, compile_call, flat_states, precision, rollout_program, run_once
 from stablebptt.apps.trajectory_study import TrajectorySetup
 from stablebptt.errors import InputError
 from stablebptt.tasks import mjcf_spec

@@ -4,14 +4,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from stablebptt.apps.gradient_study import GradientSetup
-from stablebptt.apps.measuring import (
-    cast,
-    compile_call,
-    flat_states,
-    precision,
-    rollout_program,
-    run_once,
-)
+from stablebptt.apps.measuring import cast, compile_call, flat_states, precision, rollout_program, run_once
 from stablebptt.apps.trajectory_study import TrajectorySetup
 
 if TYPE_CHECKING:

@@ -1,0 +1,117 @@
+"""How a task's programs compile: XLA's options per backend, the size of a traced step, the memory plan."""
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Callable, NamedTuple
+
+import jax
+import jax.extend
+import jax.numpy as jnp
+
+from stablebptt.engine.checks import parameter_shapes
+from stablebptt.engine.config import LARGE_STEP, TrainConfig
+from stablebptt.engine.memory import MemoryPlan, measure_now, plan_memory
+from stablebptt.engine.task import Task
+from stablebptt.flows.dynamics import Plan, PyTree
+from stablebptt.timing import usable_cores
+
+# XLA:CPU's default fusion emitters compute each element of a fusion by calling the
+# functions of its operands, so an operand that many elements read is recomputed for each.
+# MJX's kinematics of a deep tree fuse into long elementwise chains: humanoid_CMU's first
+# 5-step epoch had not ended after 20 minutes, nearly all of it in one fusion of 623
+# operations that yields 24 numbers; with XLA's loop emitter it takes 5-7 s. Small steps
+# keep the fusion emitters: their updates run 15-30% faster with them.
+LARGE_STEP_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+def _example_control(task: Task, config: TrainConfig, initial_state: PyTree) -> PyTree:
+    params = parameter_shapes(task, config.zero_output)
+    control = jax.eval_shape(task.dynamics.policy, params, initial_state)
+    return jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), control)
+
+
+def _operations(jaxpr) -> int:
+    return sum(1 + sum(_operations(inner) for inner in jax.extend.core.jaxprs_in_params(equation.params))
+               for equation in jaxpr.eqns)
+
+
+def gpu_options() -> dict:
+    """XLA options of the programs that hold a simulator step, compiled for a GPU.
+
+    While it compiles for a GPU, XLA times candidate kernels of its matrix products and fusions
+    ("autotuning") and by default (level 4) also fills their buffers and checks every candidate
+    against a reference. Level 1 times them and checks none; level 0 does not time them at all. And
+    XLA compiles a program's kernels on one thread unless told how many to use. On one H100, the
+    cart-pole grid's four programs (240 cells each) compiled in 53-155 s with the defaults, in
+    9-19 s with level 0 on every core but then trained twice as long, and in 11-22 s with level 1
+    on every core, training as fast as with the defaults
+    (experiments/startup_gpu/grid_compile.sh; results/startup/gpu-side-by-side/grid/).
+    """
+    return {"xla_gpu_autotune_level": 1, "xla_gpu_force_compilation_parallelism": usable_cores()}
+
+
+def compiler_options(large: bool = False) -> dict | None:
+    """XLA options of a program that holds a simulator step; ``large``: ``large_step``'s answer.
+
+    An option the user set in ``XLA_FLAGS`` (``--xla_gpu_autotune_level=4``: XLA's own checks) is
+    left to it.
+    """
+    backend = jax.default_backend()
+    options = dict(LARGE_STEP_CPU_OPTIONS) if large and backend == "cpu" else {}
+    if backend == "gpu":
+        options.update(unless_in_xla_flags(gpu_options()))
+    return options or None
+
+
+def unless_in_xla_flags(options: dict) -> dict:
+    """``options`` less those the user set in ``XLA_FLAGS``, whose value holds."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {name: value for name, value in options.items() if f"--{name}=" not in flags}
+
+
+def large_step(task: Task, config: TrainConfig, initial_state: PyTree) -> bool:
+    """Whether one simulator step has more than ``LARGE_STEP`` operations (``step_size``)."""
+    return step_size(task, config, initial_state).operations > LARGE_STEP
+
+
+class StepSize(NamedTuple):
+    """What one traced simulator step holds."""
+
+    operations: int  # inner loops' bodies counted once
+    solves: bool  # a loop of data-dependent length: a constraint solver's iterations
+
+
+def step_size(task: Task, config: TrainConfig, initial_state: PyTree) -> StepSize:
+    """One trace of one simulator step, measured (``StepSize``)."""
+    control = _example_control(task, config, initial_state)
+    jaxpr = jax.make_jaxpr(task.dynamics.step)(initial_state, control).jaxpr
+    return StepSize(_operations(jaxpr), _holds_while(jaxpr))
+
+
+def _holds_while(jaxpr) -> bool:
+    return any(equation.primitive.name == "while" or any(_holds_while(inner) for inner in
+                                                          jax.extend.core.jaxprs_in_params(equation.params))
+               for equation in jaxpr.eqns)
+
+
+def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Plan | None = None,
+                measured: Callable = measure_now) -> MemoryPlan:
+    """The settings that fit ``task``'s gradient path (the derivative of ``plan``, default the task's own),
+    at ``config.batch`` examples per update, into memory."""
+    dynamics, plan = task.dynamics, task.plan if plan is None else plan
+    control = _example_control(task, config, initial_state)
+    size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
+    known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
+    return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, plan.step_derivative,
+                       tangents=size(initial_state) + size(control) - known, measured=measured)
+
+
+def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable = measure_now) -> Plan:
+    """How a run differentiates ``task``: the task's own plan, completed by the memory plan (Jacobian
+    chunks or recomputed steps), a large step's single Jacobian pass (the task may ask for it too)
+    and ``config.unroll``."""
+    memory = memory_plan(task, config, initial_state, measured=measured)
+    return dataclasses.replace(task.plan, unroll=config.unroll, jacobian_chunk=memory.jacobian_chunk,
+                               rematerialize=memory.rematerialize,
+                               jacobian_per_input=task.plan.jacobian_per_input and not large)

@@ -1,0 +1,88 @@
+"""The options of a training run (``TrainConfig``) and its seeds."""
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass, field, fields
+
+import jax
+import jax.extend
+import jax.numpy as jnp
+import numpy as np
+
+from stablebptt.errors import InputError, config_field
+from stablebptt.flows.modes import MODE_TABLE, MODES
+
+CLIP_MODES = ("value", "norm", "none")
+SEED_BATCHING = ("map", "vmap")
+EPOCH_PROGRAMS = ("auto", "whole", "per-update")
+# Operations in one traced step above which a scene counts as large: ``epoch_program="auto"``
+# compiles it per update, and forward mode pushes all its tangents in one pass. XLA's CPU compiler
+# can take many minutes and gigabytes for a program that inlines a contact model's step many times
+# (updates, rollouts, one Jacobian pass per input, evaluation), where fewer copies compiled apart
+# take a few minutes. The built-in tasks' steps (the cart-poles: about 4,000) are small; so are the
+# DeepMind Control Suite's contact scenes whose step is generated (stablebptt/physics/rigid_body.py), while
+# through MJX's stages they are large.
+LARGE_STEP = 8_000
+MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training options shared by every task; the defaults are the paper's."""
+
+    mode: str = field(default="C", metadata={"help": "gradient flow: " + ", ".join(f"{m.name} ({m.description})" for m in MODE_TABLE.values()), "choices": MODES})
+    clip: str = field(default="value", metadata={"help": "gradient clipping: value (each element to +-threshold), norm (global norm), none", "choices": CLIP_MODES})
+    clip_threshold: float = field(default=1.0, metadata={"help": "threshold of value and norm clipping"})
+    epochs: int = field(default=1000, metadata={"help": "number of passes over the training set"})
+    seeds: int = field(default=1, metadata={"help": "independent seeds trained in one compiled program"})
+    seed: int = field(default=42, metadata={"help": "first network seed; seed k uses seed+k"})
+    lr: float = field(default=1e-3, metadata={"help": "Adam learning rate"})
+    batch: int = field(default=8, metadata={"help": "initial states per update"})
+    train_size: int = field(default=256, metadata={"help": "training initial states"})
+    test_size: int = field(default=256, metadata={"help": "test initial states"})
+    data_seed: int = field(default=42, metadata={"help": "seed of the training and test initial states (shared by all network seeds)"})
+    zero_output: bool = field(default=True, metadata={"help": "start the output layer at zero as the original run scripts do (--no-zero-output: Glorot)"})
+    cosine: bool = field(default=True, metadata={"help": "also compute g_M and g_R in every mode to log their cosine (--no-cosine: only the flows the mode needs)"})
+    x64: bool = field(default=False, metadata={"help": "run everything in float64"})
+    unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Plan.unroll)"})
+    checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
+    seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: faster per seed, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
+    epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations, and on a CPU of several cores for steps with a constraint solver (update and evaluation compile side by side)", "choices": EPOCH_PROGRAMS})
+
+    def __post_init__(self):
+        for item in fields(self):  # from Python anything can arrive: 2.5 epochs, lr "0.1", batch None
+            value, kind = getattr(self, item.name), item.type if isinstance(item.type, str) else item.type.__name__
+            fits = {"int": isinstance(value, numbers.Integral) and not isinstance(value, bool),
+                    "float": isinstance(value, numbers.Real) and not isinstance(value, bool),
+                    "str": isinstance(value, str), "bool": isinstance(value, (bool, np.bool_))}[kind]
+            if not fits:
+                raise InputError(f"{config_field(self, item.name)} must be {'a whole number' if kind == 'int' else kind}, "
+                                 f"got {value!r}")
+        if self.mode not in MODES:
+            raise InputError(f"unknown mode {self.mode!r}: choose one of {', '.join(MODES)}")
+        if self.clip not in CLIP_MODES:
+            raise InputError(f"unknown clip mode {self.clip!r}: choose one of {', '.join(CLIP_MODES)}")
+        for name in ("epochs", "seeds", "batch", "train_size", "test_size", "checkpoint_every", "unroll"):
+            if getattr(self, name) <= 0:
+                raise InputError(f"{config_field(self, name)} must be a positive integer, got {getattr(self, name)}")
+        for name in ("lr", "clip_threshold"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"{config_field(self, name)} must be a positive number, got {value}")
+        for name, last in (("seed", self.seed + self.seeds - 1), ("data_seed", self.data_seed)):
+            if not 0 <= getattr(self, name) <= last <= MAX_SEED:
+                raise InputError(f"{config_field(self, name)} must be from 0 to {MAX_SEED}"
+                                 + (f" with {config_field(self, 'seeds')} {self.seeds}" if name == "seed" else "")
+                                 + f", got {getattr(self, name)}")
+        if self.seed_batching not in SEED_BATCHING:
+            raise InputError(f"unknown seed batching {self.seed_batching!r}: choose map or vmap")
+        if self.epoch_program not in EPOCH_PROGRAMS:
+            raise InputError(f"unknown epoch program {self.epoch_program!r}: choose one of {', '.join(EPOCH_PROGRAMS)}")
+        if self.train_size % self.batch:
+            raise InputError(f"{config_field(self, 'batch')} {self.batch} does not divide the {self.train_size} training "
+                             "states: pick a divisor")
+
+
+def seed_array(config: TrainConfig) -> jax.Array:
+    return jnp.arange(config.seed, config.seed + config.seeds, dtype=jnp.uint32)

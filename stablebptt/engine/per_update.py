@@ -1,0 +1,80 @@
+"""An epoch compiled per update: for large steps, where one program of the whole epoch would take XLA long."""
+from __future__ import annotations
+
+import concurrent.futures
+from typing import Callable, NamedTuple
+
+import jax
+import jax.extend
+import jax.numpy as jnp
+
+from stablebptt.flows.dynamics import PyTree
+from stablebptt.timing import usable_cores
+
+
+class PerUpdateEpoch:
+    """An epoch as a Python loop over separately compiled programs: one update, one evaluation, its metrics.
+
+    Called like the one-program epoch, ``(states, batches, train, test) -> (states,
+    metrics)``, with the same metrics; ``lower(...).compile()`` compiles every
+    program ahead, as ``jax.jit``'s does for the whole epoch. XLA compiles the
+    pieces apart in a fraction of the time and memory it needs for one program
+    holding them all; on a CPU of several cores the update and the evaluation
+    compile side by side.
+    """
+
+    def __init__(self, update: Callable, evaluate: Callable, epoch_metrics: Callable):
+        self.update, self.evaluate, self.epoch_metrics = update, evaluate, epoch_metrics
+
+    def __call__(self, state, batches, train_states, test_states):
+        outputs = []
+        for index in range(_updates(batches)):
+            state, output = self.update(state, jax.tree.map(lambda a, i=index: a[i], batches))
+            outputs.append(output)
+        per_update = jax.tree.map(lambda *each: jnp.stack(each, axis=1), *outputs)  # [seeds, updates]
+        return state, self.epoch_metrics(state, per_update, self.evaluate(state.params, train_states, test_states))
+
+    def lower(self, state, batches, train_states, test_states, lower_one: Callable | None = None):
+        """The epoch for these arguments; its ``compile()`` lowers and compiles the pieces, each by
+        ``lower_one(program, arguments, name)`` (default: the program's own ``lower``)."""
+        return _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states),
+                                      lower_one or (lambda program, arguments, name: program.lower(*arguments)))
+
+    def compile_pieces(self, arguments: tuple, lower_one: Callable) -> PerUpdateEpoch:
+        """The three programs compiled for the epoch's ``arguments``, each lowered by ``lower_one(program,
+        arguments, name)``; each compiled program knows its outputs' shapes: nothing is traced twice."""
+        state, batches, train_states, test_states = arguments
+        update = lower_one(self.update, (state, jax.tree.map(lambda a: a[0], batches)), "update")
+        evaluate = lower_one(self.evaluate, (state.params, train_states, test_states), "evaluate")
+        if compile_side_by_side():
+            with concurrent.futures.ThreadPoolExecutor(1) as beside:
+                evaluate = beside.submit(evaluate.compile)
+                update = update.compile()
+                evaluate = evaluate.result()
+        else:
+            update, evaluate = update.compile(), evaluate.compile()
+        per_update = jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], _updates(batches)) + a.shape[1:], a.dtype),
+                                  update.out_info[1])
+        losses = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), evaluate.out_info)
+        metrics = lower_one(self.epoch_metrics, (state, per_update, losses), "epoch_metrics").compile()
+        return PerUpdateEpoch(update, evaluate, metrics)
+
+
+class _LoweredPerUpdateEpoch(NamedTuple):
+    epoch: PerUpdateEpoch
+    arguments: tuple
+    lower_one: Callable
+
+    def compile(self) -> PerUpdateEpoch:
+        return self.epoch.compile_pieces(self.arguments, self.lower_one)
+
+
+def compile_side_by_side() -> bool:
+    """Whether two programs compile at once: XLA lets go of Python while it compiles, so a CPU of
+    several cores compiles the evaluation beside the update. Not on one core (two compiles' memory
+    for nothing), nor on a GPU, whose kernel autotuning would time candidates against each other."""
+    return jax.default_backend() == "cpu" and usable_cores() > 1
+
+
+def _updates(batches: PyTree) -> int:
+    return len(jax.tree.leaves(batches)[0])

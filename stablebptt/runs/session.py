@@ -1,0 +1,95 @@
+"""A run begun in its folder: everything ``stablebptt train`` does before its first epoch.
+
+    from stablebptt import tasks
+    from stablebptt.engine.config import TrainConfig
+    from stablebptt.runs import epochs, session
+    module = tasks.load("repulsion")
+    begun = session.begin(module, "repulsion", module.Config(), TrainConfig(epochs=20))
+    try:
+        outcome = epochs.train_epochs(*begun.training_arguments())
+    finally:
+        begun.run.close()
+
+``begin`` builds the task and its trainer, claims a new run's folder once the task is settled (a
+refusal leaves no folder), or opens a run to resume, and returns the state to train from. A task
+may leave a check running while its trainer is built (an environment's reward diagnosis,
+``Task.settle``): the epoch is traced meanwhile and compiled once training starts.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from types import ModuleType
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.fitting import LoweredEpoch, lowered_epoch
+from stablebptt.engine.program_store import run_key
+from stablebptt.engine.task import Task
+from stablebptt.engine.training import Trainer, TrainState, make_trainer
+from stablebptt.errors import InputError
+from stablebptt.runs.run_folder import Run, default_run_dir, new_record, refuse_used
+
+
+class Session(NamedTuple):
+    """A run ready to train: its folder (locked until ``run.close()``), task, trainer and starting point."""
+
+    run: Run
+    task: Task
+    trainer: Trainer
+    config: TrainConfig  # as the run records it (a resumed run's, with the epochs asked for)
+    state: TrainState  # the checkpoint's, else the trainer's fresh one
+    start_epoch: int
+    rows: np.ndarray  # the metric rows recorded so far
+    seeds: np.ndarray
+    program_key: dict | None  # what decides the run's programs (``program_store.run_key``)
+    lowered: LoweredEpoch | None  # a new run's epoch, traced while the task settled
+
+    def training_arguments(self) -> tuple:
+        """``runs.epochs.train_epochs``'s positional arguments up to its callbacks."""
+        return self.trainer, self.config, self.run.directory, self.state, self.start_epoch, self.rows, self.seeds
+
+
+def begin(task_module: ModuleType, task_name: str, task_config: Any, train_config: TrainConfig,
+          run_dir: Path | None = None, record: dict | None = None, runs_root: Path = Path("runs")) -> Session:
+    """Begin a new run (``record`` None) or resume the one in ``run_dir`` (its ``config.json`` as ``record``).
+
+    Args:
+      task_module: the task's module (``stablebptt.tasks.load(task_name)``): its ``make`` (or
+        ``make_deferred``) builds the task from ``task_config``.
+      run_dir: a new run's folder (default: ``runs_root``/TASK-TIME); refused at once where it is in use,
+        claimed once the task is settled.
+
+    Raises:
+      InputError: bad input, a task that cannot train (named), a folder in use; no folder is left behind.
+      StorageError: the folder cannot be written.
+    """
+    run = None
+    try:
+        if record is not None:
+            run = Run.open(run_dir, record)
+        elif run_dir is not None:
+            refuse_used(run_dir)
+        # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
+        task = getattr(task_module, "make_deferred", task_module.make)(task_config)
+        program_key = run_key(task_module, task_name, task_config, train_config)  # an identical run reuses them
+        try:
+            trainer = make_trainer(task, train_config, keep=program_key)
+        except InputError as error:  # the memory plan may refuse the scene
+            raise InputError(f"{task.name}: {error}") from None
+        task = task.settled(wait=False)  # a check that has answered by now (a refusal) ends the run here
+        # A new run's epoch is traced while XLA may still compile the task's check beside; a resumed one,
+        # which may have nothing left to train, compiles as it starts.
+        lowered = lowered_epoch(trainer, train_config, program_key) if record is None else None
+        task = task.settled()  # a reward without a usable gradient is refused here, before any folder is made
+        if run is None:
+            run_dir = run_dir or default_run_dir(runs_root, task.name)  # named as it is claimed
+            run = Run.create(run_dir, new_record(task_name, task_config, task, train_config))
+        start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
+    except BaseException:
+        if run is not None:
+            run.close()
+        raise
+    return Session(run, task, trainer, train_config, state, start_epoch, rows, np.asarray(seed_array(train_config)),
+                   program_key, lowered)
