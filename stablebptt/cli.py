@@ -204,7 +204,7 @@ def leave_out_unused_backends() -> None:
 
     MJX loads its Warp backend at import whenever warp-lang is installed (MuJoCo Playground installs
     it), and Warp has no gradients: a warm train.py's set-up took 0.7-1.8 s less without it
-    (results/startup/cpu-no-warp-*.md). Playground's torch and RSL-RL wrappers import PyTorch
+    (the records: ``git show fb065bd:results/startup/cpu-no-warp-after.md``). Playground's torch and RSL-RL wrappers import PyTorch
     wherever it is installed (``playground.UNUSED_BY_COMMANDS``). Afterwards ``import warp`` and
     ``import torch`` work again; only MJX's Warp backend and Playground's torch wrapper stay off in
     this process. MJX is left as it is where it or Warp is already imported.
@@ -243,7 +243,7 @@ def use_compile_cache(enabled: bool = True,
     import jax
     jax.config.update("jax_compilation_cache_dir", str(directory))
     # Every program, the set-up's tiny ones too: loading them is quicker than compiling them anew in
-    # every warm run (hopper 4.3 -> 3.4 s to its first update: results/startup/cpu-cache-tiny-*.md).
+    # every warm run (hopper 4.3 -> 3.4 s to its first update: ``git show fb065bd:results/startup/cpu-cache-tiny-after.md``).
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     _handle_cache_faults(directory, note)
     return directory

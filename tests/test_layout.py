@@ -68,3 +68,20 @@ def test_the_source_sits_where_it_installs():
     scripts = sorted(path.stem for path in (ROOT / "scripts").glob("*.py"))
     assert scripts == sorted(path.stem for path in (PACKAGE / "commands").glob("*.py")
                              if path.stem not in ("__init__", "main", "task_options"))
+
+
+def test_every_record_under_results_is_cited_by_a_document():
+    """results/ keeps what the documents cite (a file, or a folder holding it), in a tree a reader can
+    take in; history stays in git (results/LOG.md says where)."""
+    listed = subprocess.run(["git", "ls-files", "results"], cwd=ROOT, capture_output=True, text=True)
+    if listed.returncode != 0:
+        pytest.skip("not a git checkout: the committed records are git's files")
+    records = listed.stdout.split()
+    documents = [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), *PACKAGE.rglob("*.py"), *PACKAGE.rglob("*.md"),
+                 *(ROOT / "benchmarks").rglob("*.py")]
+    text = "\n".join(path.read_text() for path in documents)
+    uncited = [record for record in records
+               if not any(folder in text for folder in ("/".join(record.split("/")[:depth])
+                                                        for depth in range(2, record.count("/") + 2)))]
+    assert uncited == []
+    assert len(records) <= 120

@@ -17,7 +17,7 @@ from pathlib import Path
 from stablebptt.errors import InputError
 from stablebptt.timing import usable_cores
 
-# dm_control's suite models that train (tests/test_suite_models.py), smallest first.
+# dm_control's suite models that train (tests/physics/test_suite_models.py), smallest first.
 SUITE_MODELS = ("pendulum", "acrobot", "point_mass", "hopper", "ball_in_cup", "reacher", "fish", "walker",
                 "cartpole", "cheetah", "finger", "humanoid", "stacker", "manipulator")
 PARTS = ("setup_s", "compile_s", "epoch_s", "first_update_s")

@@ -20,8 +20,10 @@ from typing import Any, Iterator
 import jax
 import jax.numpy as jnp
 
-from stablebptt.errors import InputError
+from stablebptt.engine.task import Task
+from stablebptt.errors import InputError, config_field
 from stablebptt.flows.dynamics import Plan
+from stablebptt.flows.modes import flows_needed
 
 
 class TaskError(InputError):
@@ -82,7 +84,6 @@ def check_dynamics(dynamics: Any) -> None:
 
 def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
     """Trace ``task`` with shapes only and raise ``TaskError`` naming the first field that does not fit."""
-    from stablebptt.engine.task import Task
     if not isinstance(task, Task):
         raise TaskError(f"expected a stablebptt.Task, got {type(task).__name__}")
     dynamics = task.dynamics
@@ -140,8 +141,6 @@ def _given(config: Any, name: str) -> bool:
 
 def train_conflicts(config: Any) -> list[str]:
     """The ``TrainConfig`` options set together where one makes the other meaningless, one message each."""
-    from stablebptt.errors import config_field
-    from stablebptt.flows.modes import flows_needed
     field = lambda name: config_field(config, name)  # noqa: E731
     problems = []
     if config.clip == "none" and _given(config, "clip_threshold"):

@@ -12,10 +12,11 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from stablebptt.engine.config import TrainConfig
+from stablebptt.engine.checks import check_options, tracing_shapes
+from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
 from stablebptt.engine.program_store import cache_dir, lower_epoch
-from stablebptt.engine.training import Trainer, nonfinite_names
+from stablebptt.engine.training import Trainer, make_trainer, nonfinite_names
 from stablebptt.timing import compile_ahead
 
 
@@ -117,8 +118,6 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
     trace. A ``PerUpdateEpoch`` (a large step; a constraint solver on a CPU of several cores) is
     traced as it compiles instead: its metrics' program takes its shapes from the update's compiled
     one. ``program_key`` as ``train_epochs`` takes it."""
-    from stablebptt.engine.checks import tracing_shapes
-    from stablebptt.engine.config import seed_array
     # init's function, through a function of its own, not its jit: JAX would keep a jit's trace for
     # the next call, and this one's parameters start before the check has decided how.
     init = getattr(trainer.init, "__wrapped__", trainer.init)
@@ -172,7 +171,6 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
       result = stablebptt.train(task, stablebptt.TrainConfig(mode="C", epochs=50))
       print(result.test_loss[-1])
     """
-    from stablebptt.engine.checks import check_options
     if isinstance(config, TrainConfig):  # anything else make_trainer names
         check_options(config)
         if config.x64 and not jax.config.jax_enable_x64:
@@ -183,8 +181,6 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
 
 
 def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]) -> Trained:
-    from stablebptt.engine.config import seed_array
-    from stablebptt.engine.training import make_trainer
     started = time.perf_counter()
     trainer = make_trainer(task, config)
     task = task.settled()  # a check left running (an environment's reward diagnosis) may refuse it here

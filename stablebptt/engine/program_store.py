@@ -60,8 +60,6 @@ def program_key(key_parts: dict, arguments: tuple) -> str:
     shapes and types."""
     import jax
 
-    from stablebptt.engine.program_store import code_digest
-
     shapes = jax.tree.map(lambda a: f"{getattr(a, 'shape', ())}:{getattr(a, 'dtype', type(a).__name__)}", arguments)
     everything = {
         "parts": key_parts, "code": code_digest(), "packages": _versions(),

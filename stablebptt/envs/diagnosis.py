@@ -141,13 +141,12 @@ class PendingDiagnosis(NamedTuple):
 def _diagnosis_options() -> dict | None:
     """XLA options of the diagnosis: it runs once, on a few states. On a CPU LLVM does not optimize
     its kernels (CartpoleSwingup's compiles in 4.8 s instead of 6.1 s, by
-    ``python experiments/diagnosis_compile.py CartpoleSwingup``). On a GPU none of its kernels is
+    ``python benchmarks/diagnosis_compile.py CartpoleSwingup``). On a GPU none of its kernels is
     timed (autotuning level 0): it compiles beside the trainer's set-up (``start_diagnosis``), whose
     reset program times its own kernels meanwhile, and must choose them undisturbed. On one H100
     level 0 compiled it in 8.7 s against the training options' 8.9 s for CartpoleSwingup, 7.0 against
-    8.1 s for AcrobotSwingup, each after another compile in the same process, by ``python
-    experiments/diagnosis_compile.py CartpoleSwingup AcrobotSwingup``
-    (results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt)."""
+    8.1 s for AcrobotSwingup, each after another compile in the same process (the record:
+    ``git show fb065bd:results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt``)."""
     backend = jax.default_backend()
     cheaper = {"cpu": {"xla_backend_optimization_level": 0}, "gpu": {"xla_gpu_autotune_level": 0}}.get(backend, {})
     return {**(compiler_options() or {}), **unless_in_xla_flags(cheaper)} or None

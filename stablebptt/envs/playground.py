@@ -25,8 +25,8 @@ REPAIRS = "Playground's reward tolerance in a form whose derivative is finite (v
 
 
 # Playground's torch and RSL-RL wrappers import these wherever they are installed; no command runs
-# them, and PyTorch alone took 3.4 s of a GPU machine's cold start (`bash experiments/startup_gpu/env_phases.sh
-# CartpoleSwingup` on one H200; docs/performance.md).
+# them, and PyTorch alone took 3.4 s of a GPU machine's cold start (one H200, CartpoleSwingup;
+# the record: `git show fb065bd:results/startup/gpu-side-by-side/h200/phases_CartpoleSwingup.log`).
 UNUSED_BY_COMMANDS = ("torch", "tensordict", "rsl_rl")
 _left_out: tuple[str, ...] = ()
 

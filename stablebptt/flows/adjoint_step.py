@@ -90,7 +90,7 @@ def multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...], plan: Plan = 
         # Leaves without a derivative get float0 cotangents, which mark them here.
         parts = split_cotangent(next_state_ct)
         # One pullback per flow: in turn on a CPU (each runs as the single-flow program, and the update
-        # ran 2-16% faster than batched: experiments/update_program.py), batched over the flows elsewhere.
+        # ran 2-16% faster than batched: benchmarks/update_program.py), batched over the flows elsewhere.
         pulled = jax.lax.map(step_pullback, parts.floats) if pullbacks_in_turn() else jax.vmap(step_pullback)(parts.floats)
         state_ct_sim, control_ct_sim = pulled
         control_ct = jax.tree.map(jnp.add, control_ct, control_ct_sim)

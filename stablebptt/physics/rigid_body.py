@@ -14,7 +14,7 @@ constants, in one of two forms of the same physics (``make_scene``):
   through constant masks of which dof moves which body. Its program grows with
   the number of joints, not with their arithmetic: written out, humanoid's terms
   are 21,000 traced operations that XLA compiles in 95 s; in arrays, 900 in 2 s
-  (``experiments/step_compile.py --forms``).
+  (``benchmarks/step_compile.py --forms``).
 
 The physics is MuJoCo's, term by term (tests compare with ``mujoco.mj_step`` in
 float64): forward kinematics, the composite-rigid-body mass matrix plus

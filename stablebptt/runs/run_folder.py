@@ -29,6 +29,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from stablebptt.engine.checks import check_options
 from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.metrics import COLUMNS, empty_rows
 from stablebptt.engine.training import TrainState
@@ -333,7 +334,6 @@ def new_record(task_name: str, task_config: Any, task: Any, train_config: TrainC
     """
     import platform
 
-    from stablebptt.engine.checks import check_options
     check_options(train_config, task_config)
     environment = {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])}
     return run_record(task_name, task_config, train_config, task, environment=environment)

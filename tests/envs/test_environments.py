@@ -204,7 +204,7 @@ def test_mjx_step_inside_an_environment_is_differentiated_at_the_solver_solution
             jax.jit(jax.jacrev(step))(jnp.asarray(x0))
         with differentiable_mjx(implicit_solver=True):
             np.testing.assert_allclose(jax.jit(step)(jnp.asarray(x0)), c_step(x0), atol=1e-12)
-            reverse = jax.jit(jax.jacrev(step))(jnp.asarray(x0))  # forward mode: tests/test_suite_models.py
+            reverse = jax.jit(jax.jacrev(step))(jnp.asarray(x0))  # forward mode: tests/physics/test_suite_models.py
     assert np.abs(central).max() > 10  # the constraints matter: these Jacobians are far from identity
     np.testing.assert_allclose(reverse, central, atol=1e-7)
 

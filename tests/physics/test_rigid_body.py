@@ -111,7 +111,7 @@ def random_point(model, seed):
 def test_the_generated_steps_derivative_is_plain_autodiff_through_mjx(x64, form):
     """Reverse mode through the inverse-dynamics derivative of a branching tree gives MJX's Jacobians
     (forward mode, which differentiates the same inverse dynamics, on the chains of cartpole_3 in
-    tests/test_cartpole.py and cartpole_2 with RK4 below)."""
+    tests/tasks/test_cartpole.py and cartpole_2 with RK4 below)."""
     model = MODELS["branches, Euler"]()
     lean, effects = lean_of(model)
     generated = lean_step.make_step(lean, effects)

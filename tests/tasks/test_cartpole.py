@@ -92,7 +92,7 @@ def test_initial_states_and_loss_follow_the_paper(three_pole_task):
     assert np.isclose(three_pole_task.dynamics.loss(down, None), 2.0)
 
 
-@pytest.mark.parametrize("poles", [2, 4])  # 1 pole: tests/test_smoke.py
+@pytest.mark.parametrize("poles", [2, 4])  # 1 pole: tests/tasks/test_smoke.py
 def test_all_flows_give_finite_gradients(poles):
     task = mjcf.make(mjcf.Config(poles=poles, steps=30))
     params = task.init_params(jax.random.PRNGKey(0), False)

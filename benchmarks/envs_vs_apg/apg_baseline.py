@@ -1,0 +1,404 @@
+"""Brax APG baseline on MuJoCo Playground envs under a wall-clock budget.
+
+Runs `brax.training.agents.apg.train` with its own defaults (Playground ships no APG config),
+wrapped with `mujoco_playground.wrapper.wrap_for_brax_training` as Brax's Playground launcher
+does, and scores the current policy with the shared `evaluation.py` at regular points of training
+wall time. Evaluation time (ours and Brax's own) is kept off the training clock.
+
+  python benchmarks/envs_vs_apg/apg_baseline.py --envs CartpoleSwingup,AcrobotSwingup,CheetahRun \
+      --seeds 3 --budget 180 --out DIR
+
+Variants (`--variants`, tried in order per env; later ones only if an earlier one fails or goes
+NaN, unless --all-variants): shipped | iter1 (solver iterations = 1; skipped where the shipped model
+already has 1) | noconstraint (constraint solver disabled) | saferew (Playground's reward tolerance
+with a finite derivative, stablebptt.envs.playground.safe_tolerance, values unchanged), combined with '+',
+e.g. iter1+saferew. Every variant is scored on the shipped env.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import sys
+import time
+import traceback
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import evaluation  # noqa: E402
+
+
+def _install_jax_shims():
+    """Brax 0.14.2 calls jax.device_put_replicated, which current JAX no longer has."""
+    if hasattr(jax, "device_put_replicated"):
+        return
+
+    def device_put_replicated(x, devices):
+        devices = list(devices)
+        mesh = jax.sharding.Mesh(np.array(devices), ("d",))
+        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("d"))
+
+        def put(a):
+            a = jnp.asarray(a)
+            return jax.device_put(jnp.broadcast_to(a[None], (len(devices),) + a.shape), sharding)
+
+        return jax.tree_util.tree_map(put, x)
+
+    jax.device_put_replicated = device_put_replicated
+
+
+_install_jax_shims()
+
+from brax.training import acting  # noqa: E402
+from brax.training.agents.apg import networks as apg_networks  # noqa: E402
+from brax.training.agents.apg import train as apg_train  # noqa: E402
+from mujoco_playground import wrapper as mjp_wrapper  # noqa: E402
+
+# apg.train's own defaults, spelled out so the record says what ran.
+APG_DEFAULTS = dict(
+    horizon_length=32,
+    num_envs=1,
+    learning_rate=1e-4,
+    adam_b=(0.7, 0.95),
+    use_schedule=True,
+    schedule_decay=0.997,
+    max_gradient_norm=1e9,
+    normalize_observations=False,
+    deterministic_eval=False,
+    num_eval_envs=128,
+    action_repeat=1,
+)
+# Defaults of Brax's own launcher (brax/training/learner.py --learner=apg) where they differ.
+LEARNER_CLI = dict(APG_DEFAULTS, num_envs=4, learning_rate=5e-4, normalize_observations=True)
+PRESETS = {"train_defaults": APG_DEFAULTS, "learner_cli": LEARNER_CLI}
+
+
+class BudgetReached(Exception):
+    pass
+
+
+class NaNReached(Exception):
+    pass
+
+
+def apply_variant(env, variant: str):
+    import mujoco
+    from mujoco import mjx
+
+    m = env._mj_model
+    parts = variant.split("+")
+    model_changed = False
+    for part in parts:
+        if part in ("shipped", "saferew"):  # saferew changes the reward's derivative only (see run_one)
+            continue
+        if part == "iter1":
+            m.opt.iterations = 1
+        elif part == "noconstraint":
+            m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+        else:
+            raise ValueError(variant)
+        model_changed = True
+    if model_changed:
+        env._mjx_model = mjx.put_model(m, impl="jax")
+    return env
+
+
+def reward_context(variant: str):
+    """saferew: Playground's reward tolerance with the same values and a finite derivative
+    (stablebptt.envs.playground.repaired_rewards, what stablebptt's env_task uses), while APG traces."""
+    import contextlib
+
+    if "saferew" in variant.split("+"):
+        from stablebptt.envs import playground
+
+        return playground.repaired_rewards()
+    return contextlib.nullcontext()
+
+
+def solver_info(env) -> dict:
+    o = env._mj_model.opt
+    return {
+        "solver": int(o.solver),
+        "iterations": int(o.iterations),
+        "ls_iterations": int(o.ls_iterations),
+        "disableflags": int(o.disableflags),
+        "n_limited_joints": int(env._mj_model.jnt_limited.sum()),
+    }
+
+
+def _f(x):
+    x = float(np.asarray(x))
+    return x if math.isfinite(x) else str(x)
+
+
+_EVALUATORS: dict = {}
+
+
+def run_one(env_name, variant, seed, budget, eval_every, updates_per_epoch, hp, eval_envs, log, brax_eval="all"):
+    """One APG training run; returns its JSON record."""
+    shipped = evaluation.load_env(env_name)
+    episode_length = int(shipped._config.episode_length)
+    train_env = apply_variant(evaluation.load_env(env_name), variant)
+
+    hp = dict(hp)
+    num_envs, horizon = hp["num_envs"], hp["horizon_length"]
+    nets = apg_networks.make_apg_networks
+    rec = {
+        "env": env_name,
+        "variant": variant,
+        "seed": seed,
+        "algo": "brax_apg",
+        "budget_s": budget,
+        "episode_length": episode_length,
+        "hyperparams": {k: (list(v) if isinstance(v, tuple) else v) for k, v in hp.items()},
+        "updates_per_epoch": updates_per_epoch,
+        "solver_train_env": solver_info(train_env),
+        "solver_eval_env": solver_info(shipped),
+        "eval": {"num_envs": eval_envs, "seed": evaluation.EVAL_SEED, "deterministic": True},
+        "device": str(jax.devices()[0]),
+        "jax": jax.__version__,
+        "points": [],
+        "epochs": [],
+        "status": "running",
+    }
+
+    # Our deterministic policy from APG's params (normalizer, policy): tanh of the Gaussian mean.
+    obs_size, act_size = train_env.observation_size, train_env.action_size
+    from brax.training.acme import running_statistics
+
+    normalize = running_statistics.normalize if hp["normalize_observations"] else (lambda x, y: x)
+    net = nets(obs_size, act_size, preprocess_observations_fn=normalize)
+    make_policy = apg_networks.make_inference_fn(net)
+
+    def apply(params, obs):
+        return make_policy(params, deterministic=True)(obs, jax.random.PRNGKey(0))[0]
+
+    # One compiled evaluator per (env, variant, policy family), shared by the seeds: the policy's
+    # structure is the same for every seed, and params are an argument.
+    key = (env_name, variant, bool(hp["normalize_observations"]), eval_envs)
+    if key not in _EVALUATORS:
+        _EVALUATORS[key] = (
+            evaluation.make_evaluator(shipped, apply, num_envs=eval_envs),
+            evaluation.make_evaluator(train_env, apply, num_envs=eval_envs) if variant != "shipped" else None,
+        )
+    eval_shipped, eval_variant = _EVALUATORS[key]
+    rec["brax_eval_mode"] = brax_eval
+
+    clock = {"t0": None, "eval_s": 0.0, "last_eval_train_s": -1e9, "epoch": 0, "last_epoch_end": None}
+
+    def train_s():
+        return time.perf_counter() - clock["t0"] - clock["eval_s"]
+
+    def record_point(params, brax_eval):
+        t = train_s()
+        e0 = time.perf_counter()
+        # Host copies: the same argument types at every call, so the evaluator compiles once (the
+        # replicated training state's arrays may carry another sharding than the initial ones).
+        params = jax.tree_util.tree_map(np.asarray, jax.device_get(params))
+        ev = eval_shipped(params)
+        pt = {
+            "train_wall_s": t,
+            "epoch": clock["epoch"],
+            "updates": clock["epoch"] * updates_per_epoch,
+            "env_steps": clock["epoch"] * updates_per_epoch * num_envs * horizon,
+            "return": ev["mean_return"],
+            "return_std": ev["std_return"],
+            "num_done_early": ev["num_done_early"],
+        }
+        if eval_variant is not None:
+            pt["return_train_variant"] = eval_variant(params)["mean_return"]
+        if brax_eval is not None:
+            pt["brax_eval_return"] = _f(brax_eval.get("eval/episode_reward", float("nan")))
+        pt["eval_s"] = time.perf_counter() - e0
+        rec["points"].append(pt)
+        clock["last_eval_train_s"] = t
+        log(
+            f"  [{env_name}/{variant}/s{seed}] t={t:7.1f}s ep={clock['epoch']} steps={pt['env_steps']} "
+            f"return={pt['return']:.2f} brax={pt.get('brax_eval_return')}"
+        )
+
+    class TimedEvaluator(acting.Evaluator):
+        """Brax's evaluator, extended to time epochs, score with the shared protocol and stop."""
+
+        def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
+            now = time.perf_counter()
+            first = clock["last_epoch_end"] is None
+            if first:
+                rec["setup_s"] = now - clock["t0"]  # wrap + jit of reset/step + init, before epoch 1
+            else:
+                clock["epoch"] += 1
+                ep = {
+                    "epoch": clock["epoch"],
+                    "wall_s": now - clock["last_epoch_end"],
+                    "sps": _f(training_metrics.get("training/sps", float("nan"))),
+                    "grad_norm": _f(training_metrics.get("training/grad_norm", float("nan"))),
+                    "params_norm": _f(training_metrics.get("training/params_norm", float("nan"))),
+                }
+                rec["epochs"].append(ep)
+            e0 = time.perf_counter()
+            t = train_s()
+            nan = (not first) and (
+                isinstance(rec["epochs"][-1]["grad_norm"], str)
+                or isinstance(rec["epochs"][-1]["params_norm"], str)
+            )
+            due = first or nan or t >= budget or t - clock["last_eval_train_s"] >= eval_every
+            metrics = dict(training_metrics)
+            brax_eval = None
+            if due:
+                if rec["brax_eval_mode"] == "all":  # Brax's own evaluator (compiles once per run), a cross-check
+                    brax_eval = super().run_evaluation(policy_params, training_metrics, aggregate_episodes)
+                    metrics = brax_eval
+                record_point(policy_params, brax_eval)
+            clock["eval_s"] += time.perf_counter() - e0
+            clock["last_epoch_end"] = time.perf_counter()
+            if nan:
+                rec["nan_epoch"] = clock["epoch"]
+                rec["nan_update_range"] = [
+                    (clock["epoch"] - 1) * updates_per_epoch + 1,
+                    clock["epoch"] * updates_per_epoch,
+                ]
+                raise NaNReached()
+            if t >= budget:
+                raise BudgetReached()
+            return metrics
+
+    max_epochs = 1_000_000
+    saved = acting.Evaluator
+    acting.Evaluator = TimedEvaluator
+    clock["t0"] = time.perf_counter()
+    try:
+        with reward_context(variant):
+            apg_train.train(
+                environment=train_env,
+                eval_env=train_env,
+                wrap_env_fn=mjp_wrapper.wrap_for_brax_training,
+                episode_length=episode_length,
+                policy_updates=updates_per_epoch * max_epochs,
+                num_evals=max_epochs + 1,
+                seed=seed,
+                network_factory=nets,
+                **hp,
+            )
+        rec["status"] = "finished"
+    except BudgetReached:
+        rec["status"] = "budget"
+    except NaNReached:
+        rec["status"] = "nan"
+    except Exception as e:  # noqa: BLE001 - the failure itself is the measurement
+        rec["status"] = "error"
+        rec["error_type"] = type(e).__name__
+        rec["error"] = str(e)[:3000]
+        rec["traceback_tail"] = traceback.format_exc()[-3000:]
+        log(f"  [{env_name}/{variant}/s{seed}] ERROR {type(e).__name__}: {str(e)[:300]}")
+    finally:
+        acting.Evaluator = saved
+    rec["total_wall_s"] = time.perf_counter() - clock["t0"]
+    rec["eval_wall_s"] = clock["eval_s"]
+
+    eps = rec["epochs"]
+    if eps:
+        rec["first_epoch_s"] = eps[0]["wall_s"]
+        steady = [e["wall_s"] for e in eps[1:]] or [eps[0]["wall_s"]]
+        rec["steady_epoch_s"] = statistics.median(steady)
+        # Compile = setup plus the first epoch's excess over a steady epoch.
+        rec["compile_s"] = rec.get("setup_s", 0.0) + eps[0]["wall_s"] - rec["steady_epoch_s"]
+        rec["steps_per_update"] = num_envs * horizon
+        rec["update_s"] = rec["steady_epoch_s"] / updates_per_epoch
+        rec["env_steps_per_s"] = num_envs * horizon / rec["update_s"]
+        sps = [e["sps"] for e in eps[1:] if not isinstance(e["sps"], str)]
+        rec["brax_sps_median"] = statistics.median(sps) if sps else None
+    finite = [p["return"] for p in rec["points"] if math.isfinite(p["return"])]
+    rec["final_return"] = rec["points"][-1]["return"] if rec["points"] else None
+    rec["best_return"] = max(finite) if finite else None
+    return rec
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--envs", default="CartpoleSwingup,AcrobotSwingup,CheetahRun")
+    p.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1, one after another")
+    p.add_argument("--seed0", type=int, default=0)
+    p.add_argument("--budget", type=float, default=180.0, help="training wall seconds, compile included")
+    p.add_argument("--eval-every", type=float, default=None, help="training wall seconds; default budget/10")
+    p.add_argument("--updates-per-epoch", type=int, default=20, help="APG updates between callbacks")
+    p.add_argument("--eval-envs", type=int, default=evaluation.NUM_EVAL_ENVS)
+    p.add_argument("--preset", choices=sorted(PRESETS), default="train_defaults")
+    p.add_argument("--set", action="append", default=[], help="override a hyperparameter: key=value")
+    p.add_argument("--variants", default="shipped,iter1,noconstraint")
+    p.add_argument("--all-variants", action="store_true", help="run every variant, not only fallbacks")
+    p.add_argument("--sticky-variant", action="store_true",
+                   help="seeds after the first start from the variant the first seed trained on")
+    p.add_argument("--brax-eval", choices=("all", "none"), default="all",
+                   help="also run Brax's own evaluator at each point (none: only the shared evaluation.py)")
+    p.add_argument("--throughput", action="store_true",
+                   help="write throughput_apg_*.json (update time at the given horizon/num_envs) instead of run records")
+    p.add_argument("--out", required=True)
+    a = p.parse_args(argv)
+
+    hp = dict(PRESETS[a.preset])
+    for kv in a.set:
+        k, v = kv.split("=", 1)
+        hp[k] = type(hp[k])(json.loads(v)) if k in hp and not isinstance(hp[k], bool) else json.loads(v)
+    eval_every = a.eval_every or a.budget / 10
+    os.makedirs(a.out, exist_ok=True)
+    logf = open(os.path.join(a.out, "log.txt"), "a")
+
+    def log(msg):
+        print(msg, flush=True)
+        logf.write(msg + "\n")
+        logf.flush()
+
+    log(f"jax {jax.__version__} devices {jax.devices()} preset {a.preset} hp {hp}")
+    summary = []
+    throughput_records = []
+    for env_name in a.envs.split(","):
+        variants = a.variants.split(",")
+        if evaluation.load_env(env_name)._mj_model.opt.iterations == 1 and "iter1" in variants:
+            variants.remove("iter1")  # the shipped model already runs one solver iteration
+            log(f"== {env_name}: shipped solver iterations = 1, variant iter1 skipped (same model)")
+        for seed in range(a.seed0, a.seed0 + a.seeds):
+            for variant in variants:
+                log(f"== {env_name} variant={variant} seed={seed} budget={a.budget}s")
+                rec = run_one(env_name, variant, seed, a.budget, eval_every, a.updates_per_epoch, hp, a.eval_envs, log,
+                              a.brax_eval)
+                rec["preset"] = a.preset
+                rec["argv"] = sys.argv
+                if a.throughput:
+                    tp = {"env": env_name, "method": f"Brax APG ({variant})", "algo": "brax_apg", "variant": variant,
+                          "horizon": hp["horizon_length"], "batch": hp["num_envs"], "seeds": 1, "seed": seed,
+                          "update_s": rec.get("update_s"), "env_steps_per_s": rec.get("env_steps_per_s"),
+                          "compile_s": rec.get("compile_s"), "epochs": len(rec.get("epochs", [])),
+                          "updates_per_epoch": a.updates_per_epoch, "device": rec["device"], "jax": rec["jax"],
+                          "status": "ok" if rec.get("update_s") and rec["status"] in ("budget", "finished") else rec["status"],
+                          "error_type": rec.get("error_type"), "error": rec.get("error"), "argv": sys.argv}
+                    throughput_records.append(tp)
+                    with open(os.path.join(a.out, f"throughput_apg_H{hp['horizon_length']}_B{hp['num_envs']}.json"), "w") as f:
+                        json.dump(throughput_records, f, indent=1)
+                    log(f"   -> throughput {tp}")
+                    if rec["status"] in ("budget", "finished") and not a.all_variants:
+                        break
+                    continue
+                with open(os.path.join(a.out, f"{env_name}_{variant}_s{seed}.json"), "w") as f:
+                    json.dump(rec, f, indent=1)
+                keys = ("env", "variant", "seed", "status", "final_return", "best_return", "compile_s",
+                        "env_steps_per_s", "update_s", "nan_epoch", "error_type")
+                summary.append({k: rec.get(k) for k in keys})
+                log(f"   -> {summary[-1]}")
+                with open(os.path.join(a.out, "summary.json"), "w") as f:
+                    json.dump(summary, f, indent=1)
+                if rec["status"] in ("budget", "finished") and not a.all_variants:
+                    if a.sticky_variant and seed == a.seed0:
+                        # Later seeds start from the variant that trained seed0 (earlier ones failed there).
+                        variants = variants[variants.index(variant):]
+                        log(f"== {env_name}: later seeds run variants {variants} (sticky)")
+                    break
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,17 @@
+# Sourced on a machine without the dependencies on its package index (a GPU machine that cannot reach
+# one): installs the cp312 wheels in .whl/ once per machine into /tmp/site and puts it and the
+# checkout on the path (stablebptt is imported from the checkout). The wheels: mujoco, mujoco-core,
+# mujoco-mjx and their dependencies, and for the environments playground and brax (warp-lang is not
+# needed: MJX runs with impl="jax").
+# The packages are byte-compiled as pip installs them for a user: the machine's Python writes no
+# bytecode of its own (PYTHONDONTWRITEBYTECODE), and compiling every module's source at each start
+# cost about 1.8 s of a warm start there. So is the checkout, at every call (only what changed).
+if [ ! -f /tmp/site/.installed ]; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+    && python3 -m compileall -q -j 0 /tmp/site > /dev/null \
+    && touch /tmp/site/.installed || { echo "wheel install failed"; exit 1; }
+fi
+compile_checkout() { python3 -m compileall -q -j 0 ${1:-.}/stablebptt > /dev/null; }
+compile_checkout
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=disable
+
