@@ -19,8 +19,14 @@ def config_field(config, name: str) -> str:
 
 
 def as_options(message: str) -> str:
-    """``message`` with every config, Dynamics or Plan field named as its command-line option."""
-    return _FIELD.sub(lambda match: "--" + _OPTION_OF.get(match.group(1), match.group(2)).replace("_", "-"), message)
+    """``message`` with every config or Plan field, and the Dynamics fields the command line sets, named as
+    its command-line option. ``Dynamics.step``, ``.policy`` and ``.loss`` are a task's code, no option:
+    they keep their names."""
+    def option(match: re.Match) -> str:
+        if match.group(1).startswith("Dynamics.") and match.group(1) not in _OPTION_OF:
+            return match.group(1)
+        return "--" + _OPTION_OF.get(match.group(1), match.group(2)).replace("_", "-")
+    return _FIELD.sub(option, message)
 
 
 class InputError(ValueError):

@@ -71,3 +71,14 @@ def make_cart() -> Cart:
 
 
 step_reward_cart = Cart("step")
+
+
+class TreeChangingCart(Cart):
+    """Breaks the protocol: its step drops an entry of the state's data."""
+
+    def step(self, state: State, action: jax.Array) -> State:
+        reached = super().step(state, action)
+        return reached._replace(data={k: v for k, v in reached.data.items() if k != "moving"})
+
+
+tree_changing_cart = TreeChangingCart()

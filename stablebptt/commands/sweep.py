@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import hashlib
 import math
 import sys
 import time
@@ -170,6 +171,17 @@ def plan_grid(config: SweepConfig, task_name: str | None, given: dict) -> Plan:
                 SCORES.get(task_name, LOSS))
 
 
+def model_contents(task_configs: list) -> list | None:
+    """Per axis value, the SHA-256 of the model file the task reads (an MJCF task's ``model_path``), as
+    ``train --resume`` checks a run's; None where no value has one. A grid records it, so that a grid,
+    a piece or a merge refuses a model file whose contents changed."""
+    paths = [getattr(task_config, "model_path", None) for task_config in task_configs]
+    if not any(paths):
+        return None
+    return [hashlib.sha256(Path(path).read_bytes()).hexdigest() if path and Path(path).is_file() else None
+            for path in paths]
+
+
 LOSS = ("test loss", 1.0)
 # Tasks whose test loss reads better as a score: the environment task's is the negative episode return.
 SCORES = {"env": ("episode return", -1.0)}
@@ -202,6 +214,8 @@ def main(argv: list[str]) -> int:
     from stablebptt.grids import report as grid_report
 
     identity = {"task_steps": config.task_steps, **({"task_options": given} if given else {})}
+    if (inputs := model_contents([plan.task_config(value) for value in plan.values])) is not None:
+        identity["inputs"] = inputs
     grid = grids.Grid(
         plan.task_name, plan.option, tuple(plan.values), make_task=plan.make_task, task_config=plan.task_config,
         modes=tuple(modes), clips=tuple(clips), seeds=tuple(FIRST_SEED + s for s in range(start, stop)),
@@ -233,42 +247,53 @@ def main(argv: list[str]) -> int:
     from tqdm import tqdm
     where = grid_pieces.piece_root(root, start, stop) if config.seed_range else root
     where.mkdir(parents=True, exist_ok=True)
-    if config.seed_range:
+    lock = None
+    if jax.process_count() == 1:  # the processes of one distributed grid share its folder; another grid may not
+        from stablebptt.runs.run_folder import RunLock
         with one_line_errors():
-            grid_pieces.write_manifest(where, grids.describe(grid, FIRST_SEED, config.seeds),
-                                       start, stop)
-    wall = time.perf_counter()
-    deadline = time.monotonic() + config.time_limit if config.time_limit else None
-    log = lambda message: tqdm.write(message, file=sys.stderr)
-    # A signal (Ctrl-C, SIGTERM, SIGHUP) sets a flag, as in train.py: every program checkpoints
-    # after its current epoch and stops.
-    with stop_on_signals(log) as interrupted:
-        try:
-            stop_now = lambda: interrupted() or (deadline is not None and time.monotonic() > deadline)
-            outcome = in_worker_thread(lambda: grids.run_grid(grid, where, stop_now, log))
-        except InputError as error:
-            fail(str(error))
-        except jax.errors.JaxRuntimeError as error:
-            if (line := out_of_memory(error)) is None:
-                raise
-            fail(f"{line}; every program keeps its last checkpoint: free memory (another process may hold it) and "
-                 f"run the same command again to resume, or give fewer --seeds", code=1)
-    if interrupted():
-        print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
-        return 130
-    finished = all(r["epochs_done"] == config.epochs for r in outcome)
-    record = grids.write_record(where, {"preset": plan.name, "option": plan.option, "config": dataclasses.asdict(config),
-                                        "finished": finished, "wall_seconds_this_call": time.perf_counter() - wall}, outcome)
-    if jax.process_index() == 0 and not config.seed_range:
-        # The report covers every run directory of the grid, also those of earlier or parallel calls.
-        print("\n".join(report()))
-    if config.seed_range:
-        print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: piece {where} "
-              f"(record: {record.name}); once every piece is done, the same command with --merge instead of "
-              f"--seed-range joins them")
-    else:
-        print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: {root} (record: {record.name})")
-    return 0
+            lock = RunLock(where)
+    try:
+        if config.seed_range:
+            with one_line_errors():
+                grid_pieces.write_manifest(where, grids.describe(grid, FIRST_SEED, config.seeds),
+                                           start, stop)
+        wall = time.perf_counter()
+        deadline = time.monotonic() + config.time_limit if config.time_limit else None
+        log = lambda message: tqdm.write(message, file=sys.stderr)
+        # A signal (Ctrl-C, SIGTERM, SIGHUP) sets a flag, as in train.py: every program checkpoints
+        # after its current epoch and stops.
+        with stop_on_signals(log) as interrupted:
+            try:
+                stop_now = lambda: interrupted() or (deadline is not None and time.monotonic() > deadline)
+                outcome = in_worker_thread(lambda: grids.run_grid(grid, where, stop_now, log))
+            except InputError as error:
+                fail(str(error))
+            except jax.errors.JaxRuntimeError as error:
+                if (line := out_of_memory(error)) is None:
+                    raise
+                fail(f"{line}; every program keeps its last checkpoint: free memory (another process may hold it) and "
+                     f"run the same command again to resume, or give fewer --seeds", code=1)
+        if interrupted():
+            print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
+            return 130
+        finished = all(r["epochs_done"] == config.epochs for r in outcome)
+        record = grids.write_record(where, {"preset": plan.name, "option": plan.option,
+                                            "config": dataclasses.asdict(config), "finished": finished,
+                                            "wall_seconds_this_call": time.perf_counter() - wall}, outcome)
+        if jax.process_index() == 0 and not config.seed_range:
+            # The report covers every run directory of the grid, also those of earlier or parallel calls.
+            print("\n".join(report()))
+        if config.seed_range:
+            print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: piece {where} "
+                  f"(record: {record.name}); once every piece is done, the same command with --merge instead of "
+                  f"--seed-range joins them")
+        else:
+            print(f"{'done' if finished else 'stopped at the time limit; run again to resume'}: {root} "
+                  f"(record: {record.name})")
+        return 0
+    finally:
+        if lock is not None:
+            lock.release()
 
 
 FIRST_SEED = 42  # the grid's seeds are FIRST_SEED, FIRST_SEED + 1, ...

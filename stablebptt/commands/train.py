@@ -49,6 +49,9 @@ def configure(args, owners):
         record = run_folder.open_run(args.resume)
         task_name = tasks.canonical(record["task"])
         task_config, train_config = configs_of(args.resume, record, given)
+        if check_resume := getattr(tasks.load(task_name), "check_resume", None):
+            if note := check_resume(task_config, record):  # what cannot be checked is said, once
+                print(note, file=sys.stderr)
         return task_name, task_config, train_config, args.resume, record
     task_name = task_options.choose_task(args, owners, "train")
     train_config = build(TrainConfig, {"epochs": tasks.load(task_name).DEFAULT_EPOCHS, **given})

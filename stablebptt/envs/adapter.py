@@ -29,6 +29,9 @@ import contextlib
 import dataclasses
 import importlib
 import math
+import numbers
+import os
+import sys
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -88,7 +91,97 @@ def check_protocol(env: Any) -> int:
         size = size["state"]
     if not (isinstance(size, (int, np.integer)) or (isinstance(size, tuple) and len(size) == 1)):
         raise EnvError(f"{type(env).__name__}'s observation has shape {size}: only vector observations are supported")
-    return int(size[0] if isinstance(size, tuple) else size)
+    size = int(size[0] if isinstance(size, tuple) else size)
+    actions = env.action_size
+    # Nothing to act on, or nothing to see: every update would be zero, a run that only seems to train.
+    if not (isinstance(actions, (int, np.integer)) and not isinstance(actions, bool) and actions >= 1):
+        raise EnvError(f"{type(env).__name__}'s action_size is {actions!r}: a policy needs at least one action to train")
+    if size < 1:
+        raise EnvError(f"{type(env).__name__}'s observation_size is {size}: a policy needs at least one observation")
+    return size
+
+
+def check_step(env: Any, step: Callable, observations: int, label: str) -> bool:
+    """``EnvError`` where ``env``'s reset or step breaks Brax's protocol in a way that tracing alone
+    shows: an observation of another size than ``observation_size`` says, a step returning a state of
+    another tree, shapes or dtypes than the one it is given, a reward or done that is not a number.
+    Traced with shapes only; True where all holds."""
+    try:
+        state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    except Exception as error:  # noqa: BLE001 - the user's reset failed: one line naming it
+        raise EnvError(f"{label}: reset(key) fails: {type(error).__name__}: {_first_line(error)}") from None
+    for name in ("obs", "reward", "done"):
+        if not hasattr(state, name):
+            raise EnvError(f"{label}: reset(key) returns {type(state).__name__} without .{name}: Brax's protocol's "
+                           "State has obs, reward and done")
+    seen = jax.tree.map(lambda leaf: leaf.shape, observation(state))
+    if seen != (observations,):
+        raise EnvError(f"{label}: reset(key) gives an observation of shape {seen}, but observation_size is "
+                       f"{observations}")
+    action = jax.ShapeDtypeStruct((int(env.action_size),), jnp.float32)
+    try:
+        reached = jax.eval_shape(step, state, action)
+    except Exception as error:  # noqa: BLE001 - the user's step failed: one line naming it
+        raise EnvError(f"{label}: step(state, action) fails on the state reset gives and an action of "
+                       f"{int(env.action_size)} numbers: {type(error).__name__}: {_first_line(error)}") from None
+    given, got = jax.tree.structure(state), jax.tree.structure(reached)
+    if given != got:
+        raise EnvError(f"{label}: step(state, action) must return a state of the tree it is given: reset gives "
+                       f"{_tree_text(given)}, step returns {_tree_text(got)}")
+    for (path, before), after in zip(jax.tree_util.tree_leaves_with_path(state), jax.tree.leaves(reached)):
+        if (before.shape, before.dtype) != (after.shape, after.dtype):
+            raise EnvError(f"{label}: step(state, action) changes state{jax.tree_util.keystr(path)} from "
+                           f"{before.dtype}{list(before.shape)} to {after.dtype}{list(after.shape)}: a state keeps its "
+                           "shapes and dtypes from step to step")
+    for name in ("reward", "done"):
+        if getattr(reached, name).shape != ():
+            raise EnvError(f"{label}: step(state, action) gives a {name} of shape {getattr(reached, name).shape}, "
+                           "not one number")
+    return True
+
+
+def _first_line(error: Exception) -> str:
+    return (str(error).strip().splitlines() or [""])[0]
+
+
+def _tree_text(structure: Any) -> str:
+    text = str(structure)
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def _whole(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _check_arguments(**given: Any) -> None:
+    """``EnvError`` naming the first argument of ``env_task`` of the wrong type or range."""
+    def refuse(name: str, wanted: str) -> None:
+        raise EnvError(f"env_task's {name} must be {wanted}, got {given[name]!r}")
+
+    if not _whole(given["horizon"]) or given["horizon"] < 1:
+        refuse("horizon", "a positive whole number of steps")
+    discount = given["discount"]
+    if not (isinstance(discount, numbers.Real) and not isinstance(discount, bool) and math.isfinite(discount)
+            and 0 < discount <= 1):
+        refuse("discount", "a number in (0, 1]")
+    if given["episode_length"] is not None and (not _whole(given["episode_length"]) or given["episode_length"] < 1):
+        refuse("episode_length", "a positive whole number of steps, or None for the environment's own")
+    hidden = given["hidden"]
+    if isinstance(hidden, (str, bytes)) or not isinstance(hidden, Sequence) or \
+            not all(_whole(width) and width >= 1 for width in hidden):
+        refuse("hidden", "a sequence of positive whole numbers, the hidden layers' widths")
+    for name in ("name", "reward_repairs", "dense_variant"):
+        if not isinstance(given[name], str):
+            refuse(name, "a string")
+    for name in ("diagnose", "defer_diagnosis"):
+        if not isinstance(given[name], bool):
+            refuse(name, "True or False")
+    if not _whole(given["diagnosis_seed"]):
+        refuse("diagnosis_seed", "a whole number")
+    if given["reward_context"] is not None and not callable(given["reward_context"]):
+        refuse("reward_context", "a context manager's factory, or None")
+    if given["diagnosis_key"] is not None and not isinstance(given["diagnosis_key"], dict):
+        refuse("diagnosis_key", "a dict, or None")
 
 
 def _count(states: PyTree) -> int:
@@ -141,10 +234,19 @@ def load_env(spec: str) -> Any:
         from stablebptt.envs import playground
         return playground.load(spec)
     module_name, _, attribute = spec.partition(":")
+    # A user's module is found where Python finds modules, and in the folder the command runs in, as
+    # `python -m` would (an installed command's path holds only its own folder); last, so that it
+    # shadows no installed package.
+    if os.getcwd() not in sys.path and "" not in sys.path:
+        sys.path.append(os.getcwd())
     try:
         module = importlib.import_module(module_name)
     except ImportError as error:
         raise EnvError(f"environment {spec}: cannot import {module_name} ({error})") from None
+    except Exception as error:  # noqa: BLE001 - the user's module failed as it ran (a SyntaxError too): one line
+        where = f" (line {error.lineno})" if isinstance(error, SyntaxError) and error.lineno else ""
+        raise EnvError(f"environment {spec}: importing {module_name} failed{where}: "
+                       f"{type(error).__name__}: {error.msg if isinstance(error, SyntaxError) else error}") from None
     if not attribute or not hasattr(module, attribute):
         raise EnvError(f"environment {spec}: {module_name} has no attribute {attribute!r}")
     found = getattr(module, attribute)
@@ -201,6 +303,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         task = sb.env_task(env, horizon=100)
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
+    _check_arguments(horizon=horizon, discount=discount, episode_length=episode_length, hidden=hidden, name=name,
+                     reward_context=reward_context, reward_repairs=reward_repairs, diagnose=diagnose,
+                     diagnosis_seed=diagnosis_seed, dense_variant=dense_variant, diagnosis_key=diagnosis_key,
+                     defer_diagnosis=defer_diagnosis)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
     if episode_length is None:
@@ -210,12 +316,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if _is_playground(env):
             from stablebptt.envs import playground
             reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
-    if not (isinstance(horizon, (int, np.integer)) and not isinstance(horizon, bool) and horizon >= 1):
-        raise EnvError(f"horizon must be a positive whole number of steps, got {horizon!r}")
-    if not (isinstance(episode_length, (int, np.integer)) and episode_length >= 1):
-        raise EnvError(f"episode_length must be a positive whole number of steps, got {episode_length!r}")
-    if not (math.isfinite(discount) and 0 < discount <= 1):
-        raise EnvError(f"discount must be in (0, 1], got {discount}")
+    if not _whole(episode_length) or episode_length < 1:
+        raise EnvError(f"{type(env).__name__}'s episode_length must be a positive whole number of steps, got "
+                       f"{episode_length!r}: give env_task(episode_length=...)")
     label = name or type(env).__name__
 
     @jax.jit  # traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python
@@ -241,8 +344,15 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
 
     def start() -> PendingDiagnosis:
-        started.append(start_diagnosis(env, step, jax.random.PRNGKey(diagnosis_seed)))
+        try:
+            started.append(start_diagnosis(env, step, jax.random.PRNGKey(diagnosis_seed)))
+        except (TypeError, ValueError):  # a step that breaks the protocol fails the diagnosis's trace: say how
+            check_step(env, step, observations, label)
+            raise
         return started[0]
+
+    if not diagnose:  # nothing traces the step before the trainer: see that it keeps the protocol
+        program_store.kept_answer(diagnosis_key, "protocol", lambda: check_step(env, step, observations, label))
 
     if diagnose:
         pending = program_store.kept_answer_later(answer_key, "reward diagnosis", start)

@@ -163,8 +163,14 @@ def _identity(program: Program, grid: Grid) -> dict:
 
 def check_resumable(program: Program, grid: Grid) -> None:
     identity_file = program.directory / "cells.json"
-    if identity_file.exists() and storage.read_json(identity_file) != _identity(program, grid):
-        raise InputError(f"{program.directory} holds a checkpoint of a different grid: choose another --out or remove it")
+    mine = _identity(program, grid)
+    if identity_file.exists() and "inputs" not in (found := storage.read_json(identity_file)):
+        mine.pop("inputs", None)  # a checkpoint written before grids recorded their model's contents
+    if identity_file.exists() and found != mine:
+        changed = (" (the model file's contents changed since it trained: restore the file, or train the changed "
+                   "model into another --out)" if found.get("inputs") != mine.get("inputs") else "")
+        raise InputError(f"{program.directory} holds a checkpoint of a different grid{changed}: choose another --out "
+                         f"or remove it")
 
 
 @dataclass

@@ -52,7 +52,7 @@ def write_manifest(folder: Path, grid_description: dict, start: int, stop: int) 
     manifest = {"grid": grid_description, "seed_range": [start, stop]}
     if path.exists():
         found = storage.read_json(path)
-        if found != manifest:
+        if found != {"grid": as_recorded(grid_description, found.get("grid")), "seed_range": [start, stop]}:
             raise InputError(f"{folder} holds a piece of another grid ({_first_difference(found, manifest)}): "
                              f"choose another --out or remove it")
         return
@@ -60,15 +60,52 @@ def write_manifest(folder: Path, grid_description: dict, start: int, stop: int) 
     storage.write_json(path, manifest)
 
 
+def as_recorded(grid_description: dict, recorded) -> dict:
+    """``grid_description`` as a piece written before grids recorded their model's contents (``inputs``)
+    would have it, where ``recorded`` is such a piece's; else unchanged."""
+    identity = grid_description.get("identity")
+    if isinstance(recorded, dict) and isinstance(identity, dict) and "inputs" not in recorded.get("identity", {}):
+        return {**grid_description, "identity": {key: value for key, value in identity.items() if key != "inputs"}}
+    return grid_description
+
+
+# The fields of a grid's description in the order a reader looks for a difference: the axes and settings
+# before the code and the task options every axis value repeats.
+_ORDER = ("task", "name", "option", "train_option", "values", "modes", "clips", "first_seed", "seeds", "epochs",
+          "train_size", "test_size", "identity", "task_configs", "code")
+
+
 def _first_difference(found: dict, expected: dict) -> str:
-    """The first field in which two manifests differ, as 'grid.epochs: 1000 there, 200 here'."""
-    def walk(a, b, prefix):
+    """The first field in which two manifests differ, as the option that sets it: '--lrs: 0.001 there, 0.01 here'."""
+    def name(path: list[str], grid: dict) -> str:
+        key = path[-1] if path else "the grid"
+        if key == "values":
+            return f"--{grid.get('train_option') or grid.get('option')}s" if grid.get("train_option") == "lr" \
+                else f"the values of --{str(grid.get('option', '')).replace('_', '-')}"
+        if path[:2] == ["grid", "task_configs"] and len(path) > 3:
+            return f"--{key.replace('_', '-')}"
+        if "inputs" in path:
+            return "the model file's contents"
+        return {"code": "the library's code", "seed_range": "--seed-range", "first_seed": "--seed",
+                "modes": "--modes", "clips": "--clips"}.get(key, f"--{key.replace('_', '-')}")
+
+    def walk(a, b, path):
         if isinstance(a, dict) and isinstance(b, dict):
-            for key in sorted(set(a) | set(b)):
+            for key in sorted(set(a) | set(b), key=lambda k: (_ORDER.index(k) if k in _ORDER else len(_ORDER), k)):
                 if a.get(key) != b.get(key):
-                    return walk(a.get(key), b.get(key), f"{prefix}.{key}" if prefix else key)
-        return f"{prefix}: {a!r} there, {b!r} here"
-    return walk(found, expected, "")
+                    return walk(a.get(key), b.get(key), path + [key])
+        if isinstance(a, list) and isinstance(b, list) and len(a) == len(b) and path[-1] == "task_configs":
+            for index, (x, y) in enumerate(zip(a, b)):
+                if x != y:
+                    return walk(x, y, path + [str(index)])
+        grid = (expected or {}).get("grid", expected) or {}
+        return f"{name(path, grid)}: {_short(a)} there, {_short(b)} here"
+    return walk(found, expected, [])
+
+
+def _short(value) -> str:
+    text = ", ".join(map(str, value)) if isinstance(value, list) else str(value)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def pieces(root: Path) -> list[tuple[Path, dict]]:
@@ -97,14 +134,17 @@ def check_pieces(root: Path, grid_description: dict, cell_names: list[str]) -> l
     if not found:
         raise InputError(f"no pieces in {root / PIECES_FOLDER}: train them first with --seed-range START:STOP")
     for folder, manifest in found:
-        if manifest.get("grid") != grid_description:
+        if manifest.get("grid") != (expected := as_recorded(grid_description, manifest.get("grid"))):
             raise InputError(f"{folder} is a piece of another grid "
-                             f"({_first_difference(manifest.get('grid'), grid_description)}): merge it with its own "
+                             f"({_first_difference(manifest.get('grid'), expected)}): merge it with its own "
                              f"command, or remove it")
     ranges = [tuple(manifest["seed_range"]) for _, manifest in found]
-    for (start, stop), (next_start, _) in zip(ranges, ranges[1:]):
+    for (folder, (start, stop)), (next_folder, (next_start, next_stop)) in zip(zip(found, ranges),
+                                                                               zip(found[1:], ranges[1:])):
         if next_start < stop:
-            raise InputError(f"pieces seeds {start}-{stop - 1} and seeds {next_start}-... overlap: remove one")
+            raise InputError(f"the pieces of seeds {start}-{stop - 1} and {next_start}-{next_stop - 1} overlap in "
+                             f"seeds {next_start}-{min(stop, next_stop) - 1}: remove one ({folder[0]} or "
+                             f"{next_folder[0]})")
     if gaps := _missing(ranges, grid_description["seeds"]):
         raise InputError(f"seeds without a piece yet: run {gaps} (the same command otherwise), then merge")
     for folder, _ in found:

@@ -72,11 +72,33 @@ def load_run(run_dir: str | Path) -> Run:
     config = read_json(path / CONFIG_FILE)
     if not (isinstance(config, dict) and all(isinstance(config.get(key, {}), dict) for key in ("train", "task_config"))):
         raise InputError(f"{path / CONFIG_FILE} is not a run configuration (expected 'train' and 'task_config' objects)")
+    if (problem := _field_problem(config)) is not None:
+        raise InputError(f"{path / CONFIG_FILE} is not a run configuration: {problem}")
     rows, note = run_metrics(path)
     missing = [column for column in REQUIRED_COLUMNS if column not in rows[0]]
     if missing:
         raise InputError(f"{metrics_path} lacks the column {missing[0]!r}: is it a metrics.csv of scripts/train.py?")
     return Run(path, config, *_pivot(rows, metrics_path), note)
+
+
+# The fields a figure reads of a run's config.json (its labels, colours and line styles), with their types.
+_DRAWN_FIELDS = (("task", str), ("train.mode", str), ("train.clip", str), ("train.lr", float),
+                 ("train.clip_threshold", float), ("train.epochs", int), ("train.seeds", int))
+
+
+def _field_problem(config: dict) -> str | None:
+    """What is wrong with the fields a figure reads of ``config`` (absent ones are left out), or None."""
+    for name, kind in _DRAWN_FIELDS:
+        owner, _, key = name.rpartition(".")
+        holder = config.get(owner, {}) if owner else config
+        if key not in holder:
+            continue
+        value = holder[key]
+        fits = isinstance(value, kind) and not isinstance(value, bool) or \
+            (kind is float and isinstance(value, int) and not isinstance(value, bool))
+        if not fits:
+            return f"'{name}' is {value!r}, not a {'number' if kind in (int, float) else 'string'}"
+    return None
 
 
 def _pivot(rows: list[dict[str, float]], source: Path) -> tuple[np.ndarray, np.ndarray, dict]:

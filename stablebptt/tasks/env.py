@@ -9,6 +9,7 @@ and Brax report it (``stablebptt.envs.adapter``).
 """
 from __future__ import annotations
 
+import importlib.metadata
 import math
 from dataclasses import dataclass, field, replace
 
@@ -64,10 +65,44 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
     # A registry env's name and the package versions say what its reward computes: its diagnosis is
     # kept for an identical later run, like its programs.
     inputs = program_inputs(config)
-    return env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
+    task = env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
                     diagnose=config.reward_check, defer_diagnosis=defer_diagnosis,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs})
+    if ":" in config.env:
+        return task
+    # A registry env is its name and the package's release: the run records which, and resumes only on it.
+    return _with_release(task, _playground_version())
+
+
+def _with_release(task: Task, version: str) -> Task:
+    """``task`` resolved with MuJoCo Playground's release, also once its pending check has settled."""
+    settle = task.settle
+    if settle is not None:
+        def settle_with_release(wait: bool = True) -> Task | None:
+            settled = settle(wait)
+            return None if settled is None else _with_release(settled, version)
+        task = replace(task, settle=settle_with_release)
+    return replace(task, resolved={**task.resolved, "playground_version": version})
+
+
+def _playground_version() -> str:
+    return importlib.metadata.version("playground")
+
+
+def check_resume(config: Config, record: dict) -> str:
+    """Before a run of ``config`` resumes from its ``record``: ``InputError`` where MuJoCo Playground's
+    release differs from the one the run began with; else the line to tell the user of what the library
+    cannot check (an environment of their own package), or ''."""
+    if ":" in config.env:
+        return (f"note: the run trains {config.env}, code of your own that the library cannot check: if "
+                f"{config.env.partition(':')[0]} changed since the run began, its metrics change at the resume")
+    began = record.get("resolved_task", {}).get("playground_version")
+    now = _playground_version()
+    if began is not None and began != now:
+        raise InputError(f"the run began on MuJoCo Playground {began}, and {now} is installed: {config.env}'s "
+                         f"rewards may differ; install playground=={began} to resume it, or train anew")
+    return ""
 
 
 def for_reopening(config: Config) -> Config:

@@ -19,7 +19,8 @@ from stablebptt.engine import fitting, program_store
 from stablebptt.engine.config import seed_array
 from stablebptt.engine.metrics import empty_rows
 from stablebptt.envs import adapter
-from stablebptt.envs.adapter import EnvError, env_task
+from stablebptt.envs.adapter import EnvError, env_task, load_env
+from stablebptt.errors import InputError
 from stablebptt.flows.gradients import flow_gradients, reference_loss
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import mjx
@@ -250,3 +251,68 @@ def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_p
     code, err = train_in_process(capsys, "--env", "cartpoleswingup", "--out", str(tmp_path / "no"))
     assert code == 2 and len(err) == 1 and "did you mean CartpoleSwingup?" in err[0], err
     assert not (tmp_path / "no").exists()
+
+
+@pytest.mark.parametrize("argument, value", [("discount", "0.5"), ("discount", None), ("discount", True),
+                                             ("episode_length", True), ("episode_length", 2.5), ("horizon", 2.5),
+                                             ("hidden", "64"), ("diagnose", "yes"), ("name", 3)])
+def test_every_argument_of_env_task_is_refused_in_the_librarys_terms(argument, value):
+    arguments = {"horizon": 5, argument: value}
+    with pytest.raises(EnvError, match=f"env_task's {argument} must be"):
+        env_task(Cart(), **arguments)
+
+
+@pytest.mark.parametrize("diagnose", [True, False])
+def test_a_step_that_returns_a_state_of_another_tree_is_refused_before_anything_is_scanned(diagnose):
+    from envs_for_tests import TreeChangingCart
+    with pytest.raises(EnvError, match="TreeChangingCart: step.state, action. must return a state of the tree"):
+        env_task(TreeChangingCart(), horizon=5, diagnose=diagnose)
+
+
+def test_an_env_module_that_fails_as_it_imports_is_one_line_and_the_current_folder_is_searched(
+        tmp_path, monkeypatch, capsys):
+    (tmp_path / "lab_env_divides.py").write_text("RATE = 1 / 0\n")
+    (tmp_path / "lab_env_typo.py").write_text("def make(:\n    pass\n")
+    (tmp_path / "lab_env_good.py").write_text("from envs_for_tests import Cart\n\ndef make():\n    return Cart()\n")
+    monkeypatch.chdir(tmp_path)  # a user in their own project folder
+    monkeypatch.setattr(sys, "path", [entry for entry in sys.path if entry not in ("", str(tmp_path))])
+    with pytest.raises(EnvError, match=r"importing lab_env_divides failed: ZeroDivisionError: division by zero"):
+        load_env("lab_env_divides:make")
+    with pytest.raises(EnvError, match=r"importing lab_env_typo failed \(line 1\): SyntaxError"):
+        load_env("lab_env_typo:make")
+    assert isinstance(load_env("lab_env_good:make"), Cart)
+    code, err = train_in_process(capsys, "--env", "lab_env_divides:make", "--out", str(tmp_path / "refused"))
+    assert code == 2 and len(err) == 1 and "ZeroDivisionError" in err[0], err
+    code, err = train_in_process(capsys, "--env", "envs_for_tests:tree_changing_cart", "--no-reward-check",
+                                 "--out", str(tmp_path / "refused"))
+    assert code == 2 and len(err) == 1 and "step(state, action) must return a state of the tree" in err[0], err
+    assert "--step" not in err[0]
+    assert not (tmp_path / "refused").exists()
+
+
+def test_a_resumed_env_run_says_what_it_cannot_check_and_refuses_another_playground_release(tmp_path, capsys):
+    sizes = ["--steps", "4", "--train-size", "4", "--test-size", "4", "--batch", "4", "--episode-length", "6",
+             "--no-progress"]
+    assert train_in_process(capsys, "--env", "envs_for_tests:make_cart", *sizes, "--epochs", "1",
+                            "--out", str(tmp_path / "run"))[0] == 0
+    code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--epochs", "2")
+    assert code == 0, err
+    assert [line for line in err if line.startswith("note:")] == [
+        "note: the run trains envs_for_tests:make_cart, code of your own that the library cannot check: if "
+        "envs_for_tests changed since the run began, its metrics change at the resume"]
+    from stablebptt.tasks import env
+    if HAS_PLAYGROUND:
+        config = env.Config(env="CartpoleSwingup")
+        assert env.check_resume(config, {"resolved_task": {"playground_version": env._playground_version()}}) == ""
+        with pytest.raises(InputError, match=r"the run began on MuJoCo Playground 0.0.1, and .* is installed"):
+            env.check_resume(config, {"resolved_task": {"playground_version": "0.0.1"}})
+
+
+@pytest.mark.parametrize("sizes, words", [((2, 0), "action_size is 0"), ((0, 1), "observation_size is 0"),
+                                          ((2, True), "action_size is True")])
+def test_an_environment_of_degenerate_sizes_is_refused_rather_than_trained_with_zero_updates(sizes, words):
+    class Degenerate(Cart):
+        observation_size, action_size = sizes
+
+    with pytest.raises(EnvError, match=f"Degenerate's {words}"):
+        env_task(Degenerate(), horizon=5)

@@ -329,7 +329,7 @@ def test_a_grid_in_seed_pieces_merges_into_the_grid_run_whole(tiny, tmp_path):
     changed = json.loads(original)
     changed["grid"]["epochs"] = 3
     manifest.write_text(json.dumps(changed))
-    assert refused_in_one_line(piece("--merge"), "is a piece of another grid (epochs: 3 there, 2 here)")
+    assert refused_in_one_line(piece("--merge"), "is a piece of another grid (--epochs: 3 there, 2 here)")
     manifest.write_text(original)
     metrics = pieces / "seeds1-1" / CELLS[0] / run_folder.METRICS_FILE
     whole = metrics.read_text()
@@ -386,3 +386,59 @@ def test_a_grid_over_an_mjcf_file_and_over_an_environment_reports_intervals(suit
     assert "best " in out and "(episode return " in out, out
     cells = sorted(p.name for p in (tmp_path / "make_cart").glob("env-lr*") if p.is_dir())
     assert cells == ["env-lr0.001-C-norm", "env-lr0.001-M-norm", "env-lr0.001-R-norm"], cells
+
+
+def test_a_merge_names_overlapping_pieces_and_the_option_in_which_a_piece_differs(tmp_path):
+    """Read from the pieces' manifests alone, before anything is merged."""
+    from stablebptt.errors import InputError
+    from stablebptt.grids import pieces
+
+    grid = {"task": "mjcf", "name": "m", "option": "lr", "train_option": "lr", "values": [0.001, 0.003],
+            "modes": ["R", "C"], "clips": ["value"], "first_seed": 0, "seeds": 4, "epochs": 2,
+            "task_configs": [{"dt": 0.01}, {"dt": 0.01}], "code": "abc"}
+    for start, stop in ((0, 2), (1, 3)):
+        pieces.write_manifest(pieces.piece_root(tmp_path, start, stop), grid, start, stop)
+    with pytest.raises(InputError, match=r"the pieces of seeds 0-1 and 1-2 overlap in seeds 1-1: remove one"):
+        pieces.check_pieces(tmp_path, grid, [])
+    other_lrs = {**grid, "values": [0.01, 0.03]}
+    with pytest.raises(InputError, match=r"\(--lrs: 0.001, 0.003 there, 0.01, 0.03 here\)"):
+        pieces.check_pieces(tmp_path, other_lrs, [])
+    other_dt = {**grid, "task_configs": [{"dt": 0.01}, {"dt": 0.02}]}
+    with pytest.raises(InputError, match=r"\(--dt: 0.01 there, 0.02 here\)"):
+        pieces.check_pieces(tmp_path, other_dt, [])
+
+
+SWINGING = """<mujoco><option timestep="0.02"/><worldbody><body><joint name="hinge" type="hinge" axis="0 1 0"/>
+<geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" mass="{mass}"/></body></worldbody>
+<actuator><motor joint="hinge" ctrlrange="-1 1" ctrllimited="true"/></actuator></mujoco>"""
+
+
+def test_a_grid_its_pieces_and_their_merge_refuse_a_model_file_whose_contents_changed(tmp_path):
+    """A mass edited between two pieces, or before a grid resumes: refused in one line, nothing mixed."""
+    model = tmp_path / "swinging.xml"
+    model.write_text(SWINGING.format(mass=1))
+    sizes = ["--model", str(model), "--horizon-seconds", "0.1", "--modes", "C", "--clips", "norm", "--seeds", "2",
+             "--epochs", "1", "--train-size", "8", "--test-size", "4", "--out", str(tmp_path / "out")]
+    assert sweep_in_process(*sizes, "--seed-range", "0:1")[0] == 0
+    model.write_text(SWINGING.format(mass=2))
+    assert refused_in_one_line(sweep_in_process(*sizes, "--seed-range", "0:1"),  # the same command again
+                               "holds a piece of another grid (the model file's contents")
+    assert sweep_in_process(*sizes, "--seed-range", "1:2")[0] == 0
+    assert refused_in_one_line(sweep_in_process(*sizes, "--merge"), "is a piece of another grid (the model file's contents")
+    whole = [*sizes[:-1], str(tmp_path / "whole")]
+    assert sweep_in_process(*whole)[0] == 0
+    model.write_text(SWINGING.format(mass=3))
+    assert refused_in_one_line(sweep_in_process(*whole), "the model file's contents changed")
+
+
+def test_a_second_process_on_the_same_piece_or_grid_is_refused_while_the_first_holds_it(tmp_path):
+    from stablebptt.grids import pieces
+    from stablebptt.runs.run_folder import RunLock
+    for folder, more in ((pieces.piece_root(tmp_path / "tiny", 0, 1), ["--seed-range", "0:1"]), (tmp_path / "tiny", [])):
+        folder.mkdir(parents=True, exist_ok=True)
+        held = RunLock(folder)  # the first process, training
+        try:
+            assert refused_in_one_line(sweep_in_process(*TINY, "--epochs", "1", "--out", str(tmp_path), *more),
+                                       f"{folder} is in use by another run (process {os.getpid()})")
+        finally:
+            held.release()

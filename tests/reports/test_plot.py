@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from matplotlib.colors import to_rgb
 
+from stablebptt import storage
 from stablebptt.engine.metrics import COLUMNS
 from stablebptt.errors import InputError
 from stablebptt.reports import curves, plots
@@ -232,6 +233,18 @@ def test_a_file_or_a_directory_without_config_is_not_a_run(tmp_path):
     run = write_run(tmp_path / "run")
     (run / "config.json").unlink()
     with pytest.raises(InputError, match="config.json does not exist"):
+        curves.load_run(run)
+
+
+@pytest.mark.parametrize("field, value", [("task", 3), ("train.mode", 5), ("train.clip", ["norm"]),
+                                          ("train.lr", "fast"), ("train.epochs", True)])
+def test_a_config_whose_drawn_fields_have_the_wrong_types_is_not_a_run(tmp_path, field, value):
+    run = write_run(tmp_path / "run")
+    record = storage.read_json(run / "config.json")
+    owner, _, key = field.rpartition(".")
+    (record[owner] if owner else record)[key] = value
+    storage.write_json(run / "config.json", record)
+    with pytest.raises(InputError, match=f"config.json is not a run configuration: '{field}' is"):
         curves.load_run(run)
 
 
