@@ -1,8 +1,14 @@
 """`python scripts/sweep.py ...` in a checkout: the same as the installed `stablebptt sweep ...`
 (stablebptt/commands/sweep.py)."""
+import signal
 import sys
 
-from stablebptt.commands.sweep import main
+if __name__ == "__main__":  # first: a Ctrl-C while the command loads ends it quietly, then in one line
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    from stablebptt.cli import stop_at_once_on_interrupt
+    stop_at_once_on_interrupt()
+
+from stablebptt.commands.sweep import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))

@@ -1,33 +1,43 @@
 """stablebptt: stable backpropagation through time through differentiable physics.
 
-The public API: describe a system as a ``Task`` (a ``Dynamics`` of policy, step,
-loss and horizon; a network initialiser; an initial-state sampler) and ``train``
-it with a ``TrainConfig``; how the engine differentiates it is a ``Plan`` it chooses. The gradient flows R, M, S and their combination C
-live in ``stablebptt.flows.gradients``; run folders in ``stablebptt.runs.run_folder``; MuJoCo scene
-analysis in ``stablebptt.physics.scene``; the built-in tasks in ``stablebptt.tasks``.
-``env_task`` turns an environment in Brax's protocol (MuJoCo Playground's, a
-lab's own) into a ``Task`` (``stablebptt.envs.adapter``).
-"""
-from stablebptt.engine.config import TrainConfig
-from stablebptt.engine.fitting import Trained, TrainingDiverged, train
-from stablebptt.engine.task import Task
-from stablebptt.engine.training import make_trainer
-from stablebptt.errors import InputError
-from stablebptt.flows.dynamics import Dynamics, Plan
-from stablebptt.flows.gradients import flow_gradients
-from stablebptt.flows.modes import FLOWS, MODES, select_flow, sign_agreement
-from stablebptt.networks import mlp_apply, mlp_init
-from stablebptt.runtime import one_cpu_thread
+The public API: describe a system as a ``Task`` (a ``Dynamics`` of policy, step, loss and horizon; a
+network initialiser; an initial-state sampler) and ``train`` it with a ``TrainConfig``; how the engine
+differentiates it is a ``Plan`` it chooses. The gradient flows R, M, S and their combination C live in
+``stablebptt.flows``; run folders in ``stablebptt.runs``; MuJoCo scene analysis in
+``stablebptt.physics.scene``; the built-in tasks in ``stablebptt.tasks``. ``env_task`` turns an
+environment in Brax's protocol (MuJoCo Playground's, a lab's own) into a ``Task``
+(``stablebptt.envs.adapter``).
 
-__all__ = ["FLOWS", "MODES", "Dynamics", "InputError", "Plan", "Task", "TrainConfig", "Trained", "TrainingDiverged",
-           "env_task", "flow_gradients", "make_trainer", "mlp_apply", "mlp_init", "one_cpu_thread", "select_flow", "sign_agreement",
-           "train"]
+Each name is imported where it is first used: ``import stablebptt`` loads neither JAX nor MuJoCo, so
+a command can take its signals in hand before they load, and MuJoCo loads after a renderer has
+chosen its OpenGL backend.
+"""
+import importlib
+
+# Public name -> the module that defines it.
+_HOMES = {
+    "TrainConfig": "stablebptt.engine.config",
+    "Trained": "stablebptt.engine.fitting", "TrainingDiverged": "stablebptt.engine.fitting",
+    "train": "stablebptt.engine.fitting",
+    "Task": "stablebptt.engine.task",
+    "make_trainer": "stablebptt.engine.training",
+    "InputError": "stablebptt.errors",
+    "Dynamics": "stablebptt.flows.dynamics", "Plan": "stablebptt.flows.dynamics",
+    "flow_gradients": "stablebptt.flows.gradients",
+    "FLOWS": "stablebptt.flows.modes", "MODES": "stablebptt.flows.modes",
+    "select_flow": "stablebptt.flows.modes", "sign_agreement": "stablebptt.flows.modes",
+    "mlp_apply": "stablebptt.networks", "mlp_init": "stablebptt.networks",
+    "one_cpu_thread": "stablebptt.runtime",
+    "env_task": "stablebptt.envs.adapter",
+}
+__all__ = sorted(_HOMES)
 
 
 def __getattr__(name: str):
-    # Imported on first use: the environment adapter imports MJX, and MuJoCo must not load before a
-    # renderer has chosen its OpenGL backend.
-    if name == "env_task":
-        from stablebptt.envs.adapter import env_task
-        return env_task
+    if name in _HOMES:
+        return getattr(importlib.import_module(_HOMES[name]), name)
     raise AttributeError(f"module 'stablebptt' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_HOMES))

@@ -129,6 +129,43 @@ REPEAT_SECONDS = 1.0
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
+INTERRUPTED = ("stopped by Ctrl-C: files are written whole, nothing is half-made; a run folder it claimed "
+               "(config.json alone, or a checkpoint) continues with --resume")
+
+
+def _stop_at_once(signum, frame) -> None:
+    """The Python-level handler of Ctrl-C outside a training loop: a sentinel the watcher looks for."""
+
+
+def stop_at_once_on_interrupt() -> None:
+    """From here on, Ctrl-C outside a training loop (``stop_on_signals``) ends the process at once with one
+    line on stderr and exit code 130, in any phase: imports, tracing, compiling, the reward diagnosis.
+
+    Python runs a signal's handler only between the main thread's calls, and a compile can hold the
+    main thread for minutes: the signal is taken at C level instead (``signal.set_wakeup_fd``) and a
+    watcher thread ends the process from there. It exits without unwinding the interpreter
+    (``os._exit``): unwinding while XLA compiles in another thread can crash the process. Every file
+    is written atomically, and run folders resume from any state, so nothing is lost. Call it first
+    in a command's process, from the main thread; a library user's process is left as it is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return
+    readable, writable = os.pipe()
+    os.set_blocking(writable, False)
+    signal.signal(signal.SIGINT, _stop_at_once)
+    signal.set_wakeup_fd(writable, warn_on_full_buffer=False)
+
+    def watch() -> None:
+        while True:
+            received = os.read(readable, 64)
+            # Within a training loop stop_on_signals holds Ctrl-C (stop after this epoch): left to it.
+            if signal.SIGINT in received and signal.getsignal(signal.SIGINT) is _stop_at_once:
+                os.write(2, f"{INTERRUPTED}\n".encode())
+                os._exit(130)
+
+    threading.Thread(target=watch, name="ctrl-c", daemon=True).start()
+
+
 @contextlib.contextmanager
 def stop_on_signals(announce: Callable[[str], None] = lambda message: None) -> Iterator[Callable[[], bool]]:
     """Within the block, Ctrl-C, SIGTERM (timeout, Slurm, Kubernetes, docker stop) and SIGHUP ask to stop.

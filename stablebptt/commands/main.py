@@ -4,6 +4,8 @@ from __future__ import annotations
 import importlib
 import sys
 
+from stablebptt.cli import stop_at_once_on_interrupt
+
 SUBCOMMANDS = {
     "train": "train a controller (one run)",
     "sweep": "train a grid of tasks, flows, clippings and seeds",
@@ -22,6 +24,7 @@ def usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    stop_at_once_on_interrupt()  # first: Ctrl-C stops in one line in every phase of a command
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(usage())

@@ -132,4 +132,6 @@ def train(argv: list[str], held: list) -> int:
 
 
 if __name__ == "__main__":
+    from stablebptt.cli import stop_at_once_on_interrupt
+    stop_at_once_on_interrupt()
     sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,51 @@
+"""Ctrl-C at any moment of a command, from its first import to its last epoch: at most two lines on
+stderr, no traceback, and nothing half-made (a run folder that exists continues with --resume).
+While the command loads, Ctrl-C ends it as the signal does by default (exit status -SIGINT, no line)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from conftest import ROOT
+
+TRAIN = ["scripts/train.py", "--poles", "1", "--steps", "10", "--epochs", "3", "--train-size", "16",
+         "--test-size", "16", "--batch", "8", "--no-progress"]
+# Seconds after the start: the imports, the scene and the tracing, the compiles, training or its end.
+DELAYS = (0.3, 1.5, 4.0, 8.0, 14.0)
+
+
+def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resumes(tmp_path):
+    processes = {}
+    for index, delay in enumerate(DELAYS):
+        # An empty compile cache each: every phase, compiling included, takes its full time.
+        env = {**os.environ, "STABLEBPTT_COMPILE_CACHE": str(tmp_path / f"cache{index}")}
+        command = [sys.executable, *TRAIN, "--out", str(tmp_path / f"run{index}")]
+        if index == 1:  # the installed command's entry point
+            command = [sys.executable, "-m", "stablebptt.commands.main", "train", *TRAIN[1:],
+                       "--out", str(tmp_path / f"run{index}")]
+        processes[delay] = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                                            stderr=subprocess.PIPE, text=True)
+    started = time.monotonic()
+    for delay, process in sorted(processes.items()):
+        time.sleep(max(0.0, started + delay - time.monotonic()))
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    outcomes = {delay: (process.wait(timeout=600), process.stderr.read()) for delay, process in processes.items()}
+    for delay, (code, stderr) in outcomes.items():
+        lines = [line for line in stderr.splitlines() if line.strip()]
+        assert code in (0, 130, -signal.SIGINT), f"{delay} s: exit {code}: {stderr}"
+        assert "Traceback" not in stderr and len(lines) <= 2, f"{delay} s: {stderr}"
+    stopped = [index for index, delay in enumerate(DELAYS) if outcomes[delay][0] in (130, -signal.SIGINT)]
+    assert stopped, "no command was still running when its Ctrl-C came"
+    for index in stopped:
+        folder = tmp_path / f"run{index}"
+        assert not folder.exists() or (folder / "config.json").is_file(), os.listdir(folder)
+    resumable = [index for index in stopped if (tmp_path / f"run{index}" / "config.json").is_file()]
+    if resumable:  # the latest one: a claimed folder, or one that trained a little
+        resumed = subprocess.run([sys.executable, "scripts/train.py", "--resume", str(tmp_path / f"run{resumable[-1]}"),
+                                  "--no-progress"], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                                 env={**os.environ, "STABLEBPTT_COMPILE_CACHE": str(tmp_path / "cache-resume")})
+        assert resumed.returncode == 0, resumed.stderr
