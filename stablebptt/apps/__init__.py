@@ -8,7 +8,8 @@
   report); each study in its own module (``trajectory_study``, ``gradient_study``, ``training_study``,
   ``contact_study``), what they share in ``measuring``.
 - ``studies``: each task's side of the studies and the benchmark, reached through its registry entry
-  (``Entry.studies``), so no study names a task.
+  (``Entry.studies``, found by ``study_hooks``), so no study names a task.
 
-The library below (flows, training, runs, scene, simulator, ...) never imports these or ``stablebptt.tasks``.
+The layers below (tasks, grids, runs, envs, engine, physics, flows) never import these; import-linter
+checks it (``[tool.importlinter]`` in pyproject.toml).
 """
