@@ -7,6 +7,7 @@ old file and no temporary one.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -62,3 +63,8 @@ def read_json(path: Path) -> Any:
         raise InputError(f"{path} does not exist: is this a run directory?") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise InputError(f"{path} is not valid JSON ({error})") from None
+
+
+def file_sha256(path: Path | str) -> str:
+    """The SHA-256 of a file's bytes, as runs and grids record a model file's contents."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import hashlib
 import math
 import sys
 import time
@@ -45,6 +44,7 @@ from stablebptt.cli import (
 )
 from stablebptt.commands import task_options
 from stablebptt.errors import InputError
+from stablebptt.storage import file_sha256
 
 # preset -> (task, the option that sets the complexity, its values): from the task registry
 PRESETS = tasks.presets()
@@ -178,8 +178,8 @@ def model_contents(task_configs: list) -> list | None:
     paths = [getattr(task_config, "model_path", None) for task_config in task_configs]
     if not any(paths):
         return None
-    return [hashlib.sha256(Path(path).read_bytes()).hexdigest() if path and Path(path).is_file() else None
-            for path in paths]
+    digests = {path: file_sha256(path) for path in set(paths) if path and Path(path).is_file()}  # each file read once
+    return [digests.get(path) for path in paths]
 
 
 LOSS = ("test loss", 1.0)

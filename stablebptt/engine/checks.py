@@ -58,7 +58,8 @@ def parameter_shapes(task: Any, zero_output: bool) -> Any:
         return jax.eval_shape(lambda key: task.init_params(key, zero_output), jax.random.PRNGKey(0))
 
 
-def _whole(value: Any) -> bool:
+def whole_number(value: Any) -> bool:
+    """An int or NumPy integer, not a bool."""
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
@@ -68,14 +69,15 @@ def _describe(tree: Any) -> str:
     return f"{jax.tree.structure(tree)} with leaves {shown}{', ...' if len(leaves) > 4 else ''}"
 
 
-def _first_line(error: Exception) -> str:
+def first_line(error: Exception) -> str:
+    """An error in one line: its type and the first line of its message."""
     text = str(error).strip().splitlines()
     return f"{type(error).__name__}: {text[0] if text else ''}"
 
 
 def check_dynamics(dynamics: Any) -> None:
     """The fields of a ``Dynamics`` that need no tracing: the horizon, and functions where functions belong."""
-    if not _whole(dynamics.horizon) or dynamics.horizon < 1:
+    if not whole_number(dynamics.horizon) or dynamics.horizon < 1:
         raise TaskError(f"Dynamics.horizon must be a positive whole number of steps, got {dynamics.horizon!r}")
     for name in ("step", "policy", "loss"):
         if not callable(getattr(dynamics, name)):
@@ -94,14 +96,14 @@ def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
     try:
         params = parameter_shapes(task, zero_output)
     except Exception as error:  # noqa: BLE001 - the user's function failed: one line naming it
-        raise TaskError(f"Task.init_params(key, zero_output) fails: {_first_line(error)}") from None
+        raise TaskError(f"Task.init_params(key, zero_output) fails: {first_line(error)}") from None
     not_float = [leaf for leaf in jax.tree.leaves(params) if not jnp.issubdtype(leaf.dtype, jnp.floating)]
     if not jax.tree.leaves(params) or not_float:
         raise TaskError(f"Task.init_params must return float parameters to train, got {_describe(params)}")
     try:
         states = jax.eval_shape(lambda k: task.sample_initial_states(k, count), key)
     except Exception as error:  # noqa: BLE001
-        raise TaskError(f"Task.sample_initial_states(key, {count}) fails: {_first_line(error)}") from None
+        raise TaskError(f"Task.sample_initial_states(key, {count}) fails: {first_line(error)}") from None
     sizes = {leaf.shape[0] if leaf.ndim else None for leaf in jax.tree.leaves(states)}
     if sizes != {count}:
         raise TaskError(f"Task.sample_initial_states(key, {count}) must return {count} states (every leaf's leading "
@@ -110,12 +112,12 @@ def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
     try:
         control = jax.eval_shape(dynamics.policy, params, state)
     except Exception as error:  # noqa: BLE001
-        raise TaskError(f"Dynamics.policy(params, state) fails on one sampled state: {_first_line(error)}") from None
+        raise TaskError(f"Dynamics.policy(params, state) fails on one sampled state: {first_line(error)}") from None
     try:
         reached = jax.eval_shape(dynamics.step, state, control)
     except Exception as error:  # noqa: BLE001
         raise TaskError(f"Dynamics.step(state, control) fails on one sampled state and the policy's control "
-                        f"({_describe(control)}): {_first_line(error)}") from None
+                        f"({_describe(control)}): {first_line(error)}") from None
     same = (jax.tree.structure(reached) == jax.tree.structure(state)
             and all(a.shape == b.shape and a.dtype == b.dtype
                     for a, b in zip(jax.tree.leaves(reached), jax.tree.leaves(state))))
@@ -128,7 +130,7 @@ def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
         loss = jax.eval_shape(dynamics.loss, over_time(state), over_time(control))
     except Exception as error:  # noqa: BLE001
         raise TaskError(f"Dynamics.loss(states, controls) fails on a rollout of {dynamics.horizon} steps: "
-                        f"{_first_line(error)}") from None
+                        f"{first_line(error)}") from None
     if not (hasattr(loss, "shape") and loss.shape == () and jnp.issubdtype(loss.dtype, jnp.floating)):
         raise TaskError(f"Dynamics.loss must return one float for a trajectory, got {_describe(loss)}")
 

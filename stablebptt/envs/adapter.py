@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.engine import program_store
-from stablebptt.engine.checks import shapes_only
+from stablebptt.engine.checks import first_line, shapes_only, whole_number
 from stablebptt.engine.task import Task
 from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, start_diagnosis
 from stablebptt.errors import InputError
@@ -109,7 +109,7 @@ def check_step(env: Any, step: Callable, observations: int, label: str) -> bool:
     try:
         state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     except Exception as error:  # noqa: BLE001 - the user's reset failed: one line naming it
-        raise EnvError(f"{label}: reset(key) fails: {type(error).__name__}: {_first_line(error)}") from None
+        raise EnvError(f"{label}: reset(key) fails: {first_line(error)}") from None
     for name in ("obs", "reward", "done"):
         if not hasattr(state, name):
             raise EnvError(f"{label}: reset(key) returns {type(state).__name__} without .{name}: Brax's protocol's "
@@ -123,7 +123,7 @@ def check_step(env: Any, step: Callable, observations: int, label: str) -> bool:
         reached = jax.eval_shape(step, state, action)
     except Exception as error:  # noqa: BLE001 - the user's step failed: one line naming it
         raise EnvError(f"{label}: step(state, action) fails on the state reset gives and an action of "
-                       f"{int(env.action_size)} numbers: {type(error).__name__}: {_first_line(error)}") from None
+                       f"{int(env.action_size)} numbers: {first_line(error)}") from None
     given, got = jax.tree.structure(state), jax.tree.structure(reached)
     if given != got:
         raise EnvError(f"{label}: step(state, action) must return a state of the tree it is given: reset gives "
@@ -140,17 +140,9 @@ def check_step(env: Any, step: Callable, observations: int, label: str) -> bool:
     return True
 
 
-def _first_line(error: Exception) -> str:
-    return (str(error).strip().splitlines() or [""])[0]
-
-
 def _tree_text(structure: Any) -> str:
     text = str(structure)
     return text if len(text) <= 200 else text[:197] + "..."
-
-
-def _whole(value: Any) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def _check_arguments(**given: Any) -> None:
@@ -158,17 +150,17 @@ def _check_arguments(**given: Any) -> None:
     def refuse(name: str, wanted: str) -> None:
         raise EnvError(f"env_task's {name} must be {wanted}, got {given[name]!r}")
 
-    if not _whole(given["horizon"]) or given["horizon"] < 1:
+    if not whole_number(given["horizon"]) or given["horizon"] < 1:
         refuse("horizon", "a positive whole number of steps")
     discount = given["discount"]
     if not (isinstance(discount, numbers.Real) and not isinstance(discount, bool) and math.isfinite(discount)
             and 0 < discount <= 1):
         refuse("discount", "a number in (0, 1]")
-    if given["episode_length"] is not None and (not _whole(given["episode_length"]) or given["episode_length"] < 1):
+    if given["episode_length"] is not None and (not whole_number(given["episode_length"]) or given["episode_length"] < 1):
         refuse("episode_length", "a positive whole number of steps, or None for the environment's own")
     hidden = given["hidden"]
     if isinstance(hidden, (str, bytes)) or not isinstance(hidden, Sequence) or \
-            not all(_whole(width) and width >= 1 for width in hidden):
+            not all(whole_number(width) and width >= 1 for width in hidden):
         refuse("hidden", "a sequence of positive whole numbers, the hidden layers' widths")
     for name in ("name", "reward_repairs", "dense_variant"):
         if not isinstance(given[name], str):
@@ -176,7 +168,7 @@ def _check_arguments(**given: Any) -> None:
     for name in ("diagnose", "defer_diagnosis"):
         if not isinstance(given[name], bool):
             refuse(name, "True or False")
-    if not _whole(given["diagnosis_seed"]):
+    if not whole_number(given["diagnosis_seed"]):
         refuse("diagnosis_seed", "a whole number")
     if given["reward_context"] is not None and not callable(given["reward_context"]):
         refuse("reward_context", "a context manager's factory, or None")
@@ -316,7 +308,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if _is_playground(env):
             from stablebptt.envs import playground
             reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
-    if not _whole(episode_length) or episode_length < 1:
+    if not whole_number(episode_length) or episode_length < 1:
         raise EnvError(f"{type(env).__name__}'s episode_length must be a positive whole number of steps, got "
                        f"{episode_length!r}: give env_task(episode_length=...)")
     label = name or type(env).__name__

@@ -37,6 +37,7 @@ from stablebptt.engine.task import Task
 from stablebptt.engine.training import make_trainer
 from stablebptt.errors import InputError
 from stablebptt.flows.modes import MODES
+from stablebptt.grids.pieces import identity_as_recorded
 from stablebptt.grids.report import cell_name
 from stablebptt.runs import model_store, run_folder
 from stablebptt.timing import compile_ahead
@@ -163,10 +164,11 @@ def _identity(program: Program, grid: Grid) -> dict:
 
 def check_resumable(program: Program, grid: Grid) -> None:
     identity_file = program.directory / "cells.json"
-    mine = _identity(program, grid)
-    if identity_file.exists() and "inputs" not in (found := storage.read_json(identity_file)):
-        mine.pop("inputs", None)  # a checkpoint written before grids recorded their model's contents
-    if identity_file.exists() and found != mine:
+    if not identity_file.exists():
+        return
+    found = storage.read_json(identity_file)
+    mine = identity_as_recorded(_identity(program, grid), found)
+    if found != mine:
         changed = (" (the model file's contents changed since it trained: restore the file, or train the changed "
                    "model into another --out)" if found.get("inputs") != mine.get("inputs") else "")
         raise InputError(f"{program.directory} holds a checkpoint of a different grid{changed}: choose another --out "

@@ -64,9 +64,17 @@ def as_recorded(grid_description: dict, recorded) -> dict:
     """``grid_description`` as a piece written before grids recorded their model's contents (``inputs``)
     would have it, where ``recorded`` is such a piece's; else unchanged."""
     identity = grid_description.get("identity")
-    if isinstance(recorded, dict) and isinstance(identity, dict) and "inputs" not in recorded.get("identity", {}):
-        return {**grid_description, "identity": {key: value for key, value in identity.items() if key != "inputs"}}
+    if isinstance(recorded, dict) and isinstance(identity, dict):
+        return {**grid_description, "identity": identity_as_recorded(identity, recorded.get("identity", {}))}
     return grid_description
+
+
+def identity_as_recorded(identity: dict, recorded: dict) -> dict:
+    """A grid's ``identity`` as one written before grids recorded their model's contents (``inputs``)
+    would have it, where ``recorded`` is such an identity; else unchanged."""
+    if isinstance(recorded, dict) and "inputs" not in recorded:
+        return {key: value for key, value in identity.items() if key != "inputs"}
+    return identity
 
 
 # The fields of a grid's description in the order a reader looks for a difference: the axes and settings
@@ -80,7 +88,7 @@ def _first_difference(found: dict, expected: dict) -> str:
     def name(path: list[str], grid: dict) -> str:
         key = path[-1] if path else "the grid"
         if key == "values":
-            return f"--{grid.get('train_option') or grid.get('option')}s" if grid.get("train_option") == "lr" \
+            return "--lrs" if grid.get("train_option") == "lr" \
                 else f"the values of --{str(grid.get('option', '')).replace('_', '-')}"
         if path[:2] == ["grid", "task_configs"] and len(path) > 3:
             return f"--{key.replace('_', '-')}"

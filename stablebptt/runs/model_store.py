@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from stablebptt.errors import InputError, StorageError
-from stablebptt.storage import atomic_write, read_json, write_json
+from stablebptt.storage import atomic_write, file_sha256, read_json, write_json
 
 MODEL_COPY_FILE = "model.xml"  # a copy of the MJCF file a run trained on
 MODEL_PACKED_FILE = "model.mjb.gz"  # the same model compiled, with everything it includes, gzip-compressed
@@ -163,7 +163,7 @@ def model_to_reopen(run_dir: Path, record: dict) -> tuple[str | None, str]:
         return None, ""
     original = Path(original)
     if original.is_file():
-        if resolved.get("model_sha256") not in (None, hashlib.sha256(original.read_bytes()).hexdigest()):
+        if resolved.get("model_sha256") not in (None, file_sha256(original)):
             raise InputError(f"{original} changed since the run in {run_dir} started: restore it (the run's copy is "
                              f"{run_dir / MODEL_COPY_FILE}), or start a new run with the changed file")
         return str(original), ""

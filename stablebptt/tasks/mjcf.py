@@ -34,6 +34,7 @@ from stablebptt.physics import simulator
 from stablebptt.physics.lean_step import State
 from stablebptt.physics.mjx_internals import mjx
 from stablebptt.physics.simulator import SimulatorConfig
+from stablebptt.storage import file_sha256
 from stablebptt.tasks import mjcf_spec
 from stablebptt.tasks.mjcf_spec import BALL, FREE, HINGE, MAX_HORIZON, SLIDE, Spec, joint_names, load_model
 
@@ -247,7 +248,7 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
     as_list = lambda a: np.asarray(a, dtype=float).tolist()
     resolved = {
         "model_file": str(path.resolve()),
-        "model_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+        "model_sha256": file_sha256(path),
         "timestep": float(lean.opt.timestep),
         "horizon_steps": horizon,
         "loss": spec.loss,
