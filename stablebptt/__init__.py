@@ -1,7 +1,8 @@
 """stablebptt: stable backpropagation through time through differentiable physics.
 
 The public API: describe a system as a ``Task`` (a ``Dynamics`` of policy, step, loss and horizon; a
-network initialiser; an initial-state sampler) and ``train`` it with a ``TrainConfig``; how the engine
+network initialiser; an initial-state sampler; optionally its ``Episodes``, to train on carried ones) and
+``train`` it with a ``TrainConfig``; how the engine
 differentiates it is a ``Plan`` it chooses. The gradient flows R, M, S and their combination C live in
 ``stablebptt.flows``; run folders in ``stablebptt.runs``; MuJoCo scene analysis in
 ``stablebptt.physics.scene``; the built-in tasks in ``stablebptt.tasks``. ``env_task`` turns an
@@ -17,6 +18,7 @@ import importlib
 # Public name -> the module that defines it.
 _HOMES = {
     "TrainConfig": "stablebptt.engine.config",
+    "Episodes": "stablebptt.engine.episodes",
     "Trained": "stablebptt.engine.fitting", "TrainingDiverged": "stablebptt.engine.fitting",
     "train": "stablebptt.engine.fitting",
     "Task": "stablebptt.engine.task",

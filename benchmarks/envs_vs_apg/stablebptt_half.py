@@ -12,9 +12,12 @@ the initial states' resets, the update's compile all count), as APG's starts bef
   python benchmarks/envs_vs_apg/stablebptt_half.py --envs CartpoleSwingup --modes R,C \
       --seeds 3 --budget 90 --horizon 100 --batch 64 --out DIR
 
-Training data as the library defines it: `train_size` initial states from `env.reset` (fixed,
-minibatches of `batch` cycled in order), a rollout of `horizon` steps from each, loss the negative
-return over those steps. (APG instead continues its rollouts across updates, auto-resetting.)
+Training data as the library defines it (`--episodes`): on (the default, as `stablebptt train --env`),
+`batch` env states carried from update to update, each update one window of `horizon` steps from where
+they stand, an episode reset between windows once it is done or at its length, the episodes' clocks
+spread at the start (as APG trains); off (the paper's protocol), `train_size` fixed initial states from
+`env.reset`, minibatches of `batch` cycled in order, one window from each. The loss is the window's
+negative return.
 
 `--throughput` times the update alone (no evaluation, one seed unless --seeds): steady update
 wall time over `--throughput-updates` updates after the compile.
@@ -68,7 +71,7 @@ def _seed_slice(tree, i):
 def build(env, a, mode, seeds, horizon, batch):
     """Task and trainer; returns (task, config, trainer, update) with update = the jitted per-update program."""
     b0 = time.perf_counter()
-    task = env_task(env, horizon, discount=a.discount, episode_length=a.trainer_episode_length,
+    task = env_task(env, horizon, discount=a.discount, episode_length=a.trainer_episode_length or None,
                     hidden=tuple(a.hidden), name=env.__class__.__name__)
     PHASES["env_task_s"] = time.perf_counter() - b0
     print(f"  env_task {PHASES['env_task_s']:.1f}s", flush=True)  # a run cut during its set-up still says how far it got
@@ -76,7 +79,7 @@ def build(env, a, mode, seeds, horizon, batch):
                          # test_size = train_size: one compile of the batched reset serves both samples.
                          train_size=batch * a.train_batches, test_size=batch * a.train_batches, seeds=seeds, seed=a.seed0,
                          epochs=1, cosine=False, unroll=a.unroll, seed_batching=a.seed_batching,
-                         epoch_program="per-update")
+                         epoch_program="per-update", episodes=a.episodes)
     b0 = time.perf_counter()
     trainer = make_trainer(task, config)
     PHASES["make_trainer_s"] = time.perf_counter() - b0
@@ -103,8 +106,10 @@ def run_one(env_name, mode, a, log):
                         "discount": a.discount, "hidden": list(a.hidden), "unroll": a.unroll,
                         "seed_batching": a.seed_batching, "policy": "tanh(mlp), output layer starts at zero "
                         "(small where the reward's gradient is NaN at zero action)",
-                        "initial_states": "train_size env.reset states (data_seed 42), fixed, minibatches cycled",
-                        "trainer_episode_length": a.trainer_episode_length},
+                        "initial_states": ("batch env states carried across updates, reset when an episode ends"
+                                           if a.episodes == "on" else
+                                           "train_size env.reset states (data_seed 42), fixed, minibatches cycled"),
+                        "episodes": a.episodes, "trainer_episode_length": a.trainer_episode_length},
         "solver_train_env": solver_info(train_env), "solver_eval_env": solver_info(eval_env),
         "eval": {"num_envs": a.eval_envs, "seed": evaluation.EVAL_SEED, "deterministic": True,
                  "seeds_in_one_program": True},
@@ -281,8 +286,10 @@ def main(argv=None):
     p.add_argument("--hidden", type=lambda s: [int(x) for x in s.split(",")], default=[64, 64])
     p.add_argument("--unroll", type=int, default=1)
     p.add_argument("--seed-batching", default="vmap", choices=("vmap", "map"))
-    p.add_argument("--trainer-episode-length", type=int, default=1,
-                   help="env_task's episode_length (the trainer's own evaluation, never run here)")
+    p.add_argument("--episodes", default="on", choices=("on", "off"),
+                   help="train on carried episodes (on) or from fixed starts, one window from each (off)")
+    p.add_argument("--trainer-episode-length", type=int, default=0,
+                   help="env_task's episode_length: the length of the carried episodes (0: the env's own)")
     p.add_argument("--max-updates", type=int, default=0, help="stop after this many updates (0: budget only)")
     p.add_argument("--min-timing-updates", type=int, default=6,
                    help="after the budget, run updates (not counted as training) until this many are timed")

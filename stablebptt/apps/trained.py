@@ -14,7 +14,7 @@ from typing import Any, Callable
 
 from stablebptt.cli import build
 from stablebptt.engine.compiling import compiler_options, large_step
-from stablebptt.engine.config import TrainConfig
+from stablebptt.engine.config import RECORDED_BEFORE, TrainConfig
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import sample_states
 from stablebptt.errors import InputError
@@ -76,7 +76,7 @@ def configs_of(run_dir: Path, record: dict, train_changes: dict | None = None,
         if moved:
             note(moved)
     return (build(module.Config, task_values, source),
-            build(TrainConfig, {**record["train"], **(train_changes or {})}, source))
+            build(TrainConfig, {**RECORDED_BEFORE, **record["train"], **(train_changes or {})}, source))
 
 
 def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> ReopenedRun:

@@ -54,7 +54,8 @@ def configure(args, owners):
                 print(note, file=sys.stderr)
         return task_name, task_config, train_config, args.resume, record
     task_name = task_options.choose_task(args, owners, "train")
-    train_config = build(TrainConfig, {"epochs": tasks.load(task_name).DEFAULT_EPOCHS, **given})
+    module = tasks.load(task_name)
+    train_config = build(TrainConfig, {"epochs": module.DEFAULT_EPOCHS, **getattr(module, "TRAIN_DEFAULTS", {}), **given})
     task_config = task_options.task_config(task_name, given)
     from stablebptt.engine.checks import check_options
     check_options(train_config, task_config)  # a resumed run keeps what it recorded
@@ -95,13 +96,17 @@ def train(argv: list[str], held: list) -> int:
 
     if task.summary:
         print(task.summary)
+    if begun.trainer.episodes is not None:
+        print(f"training on carried episodes: {train_config.batch} per seed, each update one window of "
+              f"{task.dynamics.horizon} steps from where they stand, {begun.trainer.updates_per_epoch} updates an epoch "
+              f"(--episodes off: one window from fixed starts)")
     if start_epoch == train_config.epochs and resuming:
         mean, std = metrics.final_mean_std(rows) if len(rows) else (float("nan"), 0.0)
         print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
         return 0
 
     from stablebptt.cli import EpochProgress, in_worker_thread, out_of_memory, stop_on_signals
-    progress = EpochProgress(started, train_config.epochs, start_epoch, train_config.train_size // train_config.batch,
+    progress = EpochProgress(started, train_config.epochs, start_epoch, begun.trainer.updates_per_epoch,
                              f"{task_label} {train_config.mode}", args.no_progress)
     try:
         with stop_on_signals(progress.write) as should_stop:

@@ -16,6 +16,10 @@ from stablebptt.flows.modes import MODE_TABLE, MODES
 CLIP_MODES = ("value", "norm", "none")
 SEED_BATCHING = ("map", "vmap")
 EPOCH_PROGRAMS = ("auto", "whole", "per-update")
+EPISODE_CHOICES = ("auto", "on", "off")
+# What a run's record that lacks a field trained with: the field came later, and its default is not
+# what such a run did (an environment's run before episode training trained from fixed resets).
+RECORDED_BEFORE = {"episodes": "off"}
 # Operations in one traced step above which a scene counts as large: ``epoch_program="auto"``
 # compiles it per update, and forward mode pushes all its tangents in one pass. XLA's CPU compiler
 # can take many minutes and gigabytes for a program that inlines a contact model's step many times
@@ -38,8 +42,8 @@ class TrainConfig:
     seeds: int = field(default=1, metadata={"help": "independent seeds trained in one compiled program"})
     seed: int = field(default=42, metadata={"help": "first network seed; seed k uses seed+k"})
     lr: float = field(default=1e-3, metadata={"help": "Adam learning rate"})
-    batch: int = field(default=8, metadata={"help": "initial states per update"})
-    train_size: int = field(default=256, metadata={"help": "training initial states"})
+    batch: int = field(default=8, metadata={"help": "initial states per update (training on episodes: the states carried from update to update)"})
+    train_size: int = field(default=256, metadata={"help": "training initial states (training on episodes: the fresh starts whose episode return the train loss reports)"})
     test_size: int = field(default=256, metadata={"help": "test initial states"})
     data_seed: int = field(default=42, metadata={"help": "seed of the training and test initial states (shared by all network seeds)"})
     zero_output: bool = field(default=True, metadata={"help": "start the output layer at zero as the original run scripts do (--no-zero-output: Glorot)"})
@@ -48,6 +52,7 @@ class TrainConfig:
     unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Plan.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: faster per seed, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
+    episodes: str = field(default="auto", metadata={"help": "on: train on whole episodes, --batch states carried from update to update, each update one window of the horizon from where they stand, an episode reset when it ends, an epoch one episode's length of windows; off: the paper's protocol, one window from each of the fixed training states; auto: on for tasks with episodes (environments), off for the others", "choices": EPISODE_CHOICES})
     epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations, and on a CPU of several cores for steps with a constraint solver (update and evaluation compile side by side)", "choices": EPOCH_PROGRAMS})
 
     def __post_init__(self):
@@ -79,9 +84,17 @@ class TrainConfig:
             raise InputError(f"unknown seed batching {self.seed_batching!r}: choose map or vmap")
         if self.epoch_program not in EPOCH_PROGRAMS:
             raise InputError(f"unknown epoch program {self.epoch_program!r}: choose one of {', '.join(EPOCH_PROGRAMS)}")
-        if self.train_size % self.batch:
-            raise InputError(f"{config_field(self, 'batch')} {self.batch} does not divide the {self.train_size} training "
-                             "states: pick a divisor")
+        if self.episodes not in EPISODE_CHOICES:
+            raise InputError(f"unknown {config_field(self, 'episodes')} {self.episodes!r}: choose one of {', '.join(EPISODE_CHOICES)}")
+        if self.episodes == "off":
+            check_batches(self)
+
+
+def check_batches(config: TrainConfig) -> None:
+    """``InputError`` where the batch does not divide the training states (the paper's protocol's minibatches)."""
+    if config.train_size % config.batch:
+        raise InputError(f"{config_field(config, 'batch')} {config.batch} does not divide the {config.train_size} "
+                         "training states: pick a divisor")
 
 
 def seed_array(config: TrainConfig) -> jax.Array:

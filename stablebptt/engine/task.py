@@ -6,6 +6,7 @@ from typing import Callable
 
 import jax
 
+from stablebptt.engine.episodes import Episodes
 from stablebptt.flows.dynamics import Dynamics, Plan, PyTree
 
 
@@ -50,6 +51,9 @@ class Task:
         parameters' values wait for it (their shapes do not): a trainer may be built meanwhile.
         ``settle(wait)``: the task as checked, or None where ``wait`` is false and the check has
         not answered yet.
+      episodes: what the task knows of its episodes (reset, reward, done, length): a trainer
+        may then train on carried episodes (``TrainConfig.episodes``; ``stablebptt.engine.episodes``),
+        an environment's by default. None: the paper's protocol only.
     """
 
     name: str
@@ -62,6 +66,7 @@ class Task:
     evaluation: Callable[[PyTree, PyTree], jax.Array] | None = None
     plan: Plan = Plan()
     settle: Callable[[bool], "Task | None"] | None = None
+    episodes: Episodes | None = None
 
     def settled(self, wait: bool = True) -> "Task":
         """The task once its pending check has answered (``settle``), which may refuse it; itself where

@@ -6,6 +6,7 @@ the plan of how to differentiate the task) and returns pure functions;
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any, Callable, NamedTuple
 
@@ -16,14 +17,22 @@ import optax
 
 from stablebptt.engine.checks import check_task
 from stablebptt.engine.compiling import compiler_options, run_plan, step_size
-from stablebptt.engine.config import LARGE_STEP, TrainConfig
+from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches
+from stablebptt.engine.episodes import (
+    Episodes,
+    continue_from,
+    first_population,
+    start_window,
+    updates_per_epoch,
+    window_dynamics,
+)
 from stablebptt.engine.optimizer import make_grid_optimizer, make_optimizer
 from stablebptt.engine.per_update import PerUpdateEpoch, compile_side_by_side
 from stablebptt.engine.program_store import kept_answer
 from stablebptt.engine.task import Task
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows.dynamics import Plan
-from stablebptt.flows.gradients import flow_gradients, reference_loss, reference_losses
+from stablebptt.flows.gradients import flow_window, reference_loss, reference_losses
 from stablebptt.flows.modes import FLOWS, flows_needed, tree_cosine
 
 PyTree = Any
@@ -32,6 +41,7 @@ PyTree = Any
 class TrainState(NamedTuple):
     params: PyTree
     opt_state: PyTree
+    carried: PyTree = None  # training on episodes: the population carried from update to update (``Carried``)
 
 
 class Trainer(NamedTuple):
@@ -53,6 +63,11 @@ class Trainer(NamedTuple):
     batches: PyTree
     plan: Plan  # how every function differentiates and rolls out the task
     compiler_options: dict | None = None  # XLA options every program of the trainer is compiled with
+    episodes: Episodes | None = None  # the episodes it carries (``TrainConfig.episodes``); None: fixed starts
+
+    @property
+    def updates_per_epoch(self) -> int:
+        return len(jax.tree.leaves(self.batches)[0])
 
 
 def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan | None = None,
@@ -77,6 +92,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     kept("task checked", lambda: check_task(task, config.zero_output) or True)
     if plan is not None and not isinstance(plan, Plan):
         raise InputError(f"make_trainer's plan must be a stablebptt.Plan or None, got {type(plan).__name__}")
+    episodes = episodes_of(task, config)
     flows = FLOWS if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
@@ -93,13 +109,22 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     jit = functools.partial(jax.jit, compiler_options=options)
     measured = lambda name, measure: kept(f"traced bytes, {name}", measure)  # noqa: E731
     plan = run_plan(task, config, example_state, large, measured) if plan is None else plan  # one for every dynamics an epoch uses
-    # Fixed order, no shuffling: minibatch i is always the same states.
-    batches = jax.jit(lambda states: jax.tree.map(  # one program, not one eager reshape per leaf
-        lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), states))(train_states)
+    if episodes is None:
+        # Fixed order, no shuffling: minibatch i is always the same states.
+        batches = jax.jit(lambda states: jax.tree.map(  # one program, not one eager reshape per leaf
+            lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), states))(train_states)
+    else:  # the updates of an epoch take the carried states: the scan runs over their numbers alone
+        window = task.dynamics.horizon
+        batches = jnp.arange(updates_per_epoch(episodes, window))
+        reward_dtype = jax.eval_shape(episodes.reward, example_state).dtype
+        # Known columns index the task's state; a window's state holds more. The window's own plan drops them.
+        window_plan = dataclasses.replace(plan, known_columns=None)
 
     def init(seed):
-        params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)
-        return TrainState(params, optimizer.init(params))
+        key = jax.random.PRNGKey(seed)
+        params = task.init_params(key, config.zero_output)
+        carried = None if episodes is None else first_population(key, episodes, config.batch, window)
+        return TrainState(params, optimizer.init(params), carried)
 
     def evaluate(params, initial_states, dynamics=task.dynamics):
         if task.evaluation is not None:
@@ -107,7 +132,13 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         return reference_loss(dynamics, params, initial_states, plan=plan)
 
     def update(dynamics, state, batch):
-        loss, grads = flow_gradients(dynamics, flows, state.params, batch, plan)
+        if episodes is None:
+            loss, grads, _ = flow_window(dynamics, flows, state.params, batch, plan)
+            carried = None
+        else:  # one window from where the carried states stand; the gradient stops at its start
+            loss, grads, final = flow_window(window_dynamics(dynamics, episodes, window), flows, state.params,
+                                             start_window(state.carried, reward_dtype), window_plan)
+            carried = continue_from(final, state.carried.key, episodes)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         if "M" in flows and "R" in flows:
@@ -118,7 +149,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         # Every flow's gradient, not only the update: mode C's sign agreement
         # turns a NaN of g_R into a finite zero update.
         flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])
-        return TrainState(params, opt_state), (loss, optax.tree.norm(updates), cosine, flows_finite)
+        return TrainState(params, opt_state, carried), (loss, optax.tree.norm(updates), cosine, flows_finite)
 
     def evaluate_both(params, train_states, test_states, dynamics=task.dynamics):
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
@@ -132,7 +163,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         losses, update_norms, cosines, flows_finite = per_update
         train_loss, test_loss = losses_of_both[:config.train_size].mean(), losses_of_both[config.train_size:].mean()
         # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
-        checks = [jnp.isfinite(losses).all(), jnp.isfinite(update_norms).all() & _all_finite(state),
+        # The carried states are not checked: a task's state may hold infinities by design; their losses tell.
+        checks = [jnp.isfinite(losses).all(), jnp.isfinite(update_norms).all() & _all_finite(state[:2]),
                   jnp.isfinite(train_loss), jnp.isfinite(test_loss)] + list(flows_finite.all(axis=0))
         failed = sum(jnp.where(ok, 0, 1 << bit) for bit, ok in enumerate(checks))
         return {
@@ -180,7 +212,19 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         batches=batches,
         plan=plan,
         compiler_options=options,
+        episodes=episodes,
     )
+
+
+def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
+    """The episodes a run of ``task`` trains on (``TrainConfig.episodes``), or None for the paper's protocol."""
+    if config.episodes == "on" and task.episodes is None:
+        raise InputError(f"{config_field(config, 'episodes')} on: {task.name} has no episodes to carry (Task.episodes "
+                         "gives a reset, a reward, a done and a length); train it with episodes off")
+    if config.episodes == "off" or task.episodes is None:
+        check_batches(config)
+        return None
+    return task.episodes
 
 
 def sample_states(task: Task, key: jax.Array, count: int) -> PyTree:

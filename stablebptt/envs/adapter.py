@@ -40,6 +40,7 @@ import numpy as np
 
 from stablebptt.engine import program_store
 from stablebptt.engine.checks import first_line, shapes_only, whole_number
+from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.task import Task
 from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, start_diagnosis
 from stablebptt.errors import InputError
@@ -373,7 +374,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         return params
 
     evaluation = episode_dynamics(step, policy, episode_length)
-    summary = (f"{label}: {sizes[0]} observations, {sizes[-1]} actions in [-1, 1]; horizon {horizon} steps, "
+    # Training on carried episodes (the default): reset by the env's own reset, ended when done or at its length.
+    episodes = Episodes(reset=env.reset, reward=lambda state: state.reward, done=lambda state: state.done > 0,
+                        length=episode_length, discount=discount)
+    summary = (f"{label}: {sizes[0]} observations, {sizes[-1]} actions in [-1, 1]; windows of {horizon} steps, "
                f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "
                f"train/test loss: negative return of {episode_length}-step episodes; "
                "constraint solver differentiated at its solution")
@@ -393,6 +397,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                       "reward_repairs": reward_repairs, "policy_output_start": start},
             evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
                 states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
+            episodes=episodes,
         )
 
     def settle(wait: bool = True) -> Task | None:

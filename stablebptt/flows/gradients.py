@@ -20,7 +20,7 @@ def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, init
     ``params`` holds one copy per flow (leading axis) where
     ``plan.policy_gradient`` is ``"per-step"``. Differentiated with respect
     to ``control_offsets`` (zeros added to the controls, [T, copies, batch, ...]),
-    it gives every flow's adjoint of every control. Returns ``(losses [copies], x_0..x_{T-1})``.
+    it gives every flow's adjoint of every control. Returns ``(losses [copies], x_0..x_{T-1}, x_T)``.
     """
     step = multi_adjoint_step(dynamics, flows, plan)
     copies = len(flows)
@@ -29,16 +29,28 @@ def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, init
         next_copies, control_copies = step(params, state_copies, offsets)
         return next_copies, (first_copy(state_copies), next_copies, control_copies)
 
-    _, (visited, states, controls) = jax.lax.scan(body, stack_copies(initial_states, copies), control_offsets,
-                                                  unroll=plan.unroll)
+    final, (visited, states, controls) = jax.lax.scan(body, stack_copies(initial_states, copies), control_offsets,
+                                                      unroll=plan.unroll)
     # scan stacks time first, [T, copies, batch, ...]; the loss wants one trajectory's [T, ...].
     per_trajectory = jax.vmap(jax.vmap(dynamics.loss, in_axes=(1, 1)), in_axes=(1, 1))(states, controls)
-    return per_trajectory.mean(axis=1), visited
+    return per_trajectory.mean(axis=1), visited, first_copy(final)
 
 
 def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
                    plan: Plan = Plan()):
-    """Mean batch loss and the gradient of every flow from one forward rollout.
+    """Mean batch loss and the gradient of every flow from one forward rollout (``flow_window``'s first two).
+
+    Returns:
+      ``(loss, grads)`` where each leaf of ``grads`` has a leading axis of
+      length ``len(flows)`` in the order of ``flows``.
+    """
+    loss, grads, _ = flow_window(dynamics, flows, params, initial_states, plan)
+    return loss, grads
+
+
+def flow_window(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
+                plan: Plan = Plan()):
+    """Mean batch loss, the gradient of every flow and the states reached, from one forward rollout of a window.
 
     Args:
       dynamics: the system to differentiate.
@@ -48,8 +60,8 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
       plan: how to differentiate ``dynamics`` (a task's own: ``Task.plan``; a run's: ``Trainer.plan``).
 
     Returns:
-      ``(loss, grads)`` where each leaf of ``grads`` has a leading axis of
-      length ``len(flows)`` in the order of ``flows``.
+      ``(loss, grads, final_states)``: ``grads`` as ``flow_gradients``'; ``final_states`` the batch
+      after ``dynamics.horizon`` steps, from which a trainer of carried episodes continues.
     """
     if plan.step_derivative == "forward":
         return linearized_gradients(dynamics, flows, params, initial_states, plan)
@@ -59,14 +71,14 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
     per_step = plan.policy_gradient == "per-step"
 
     def total(params, offsets):
-        per_flow, visited = flow_losses(dynamics, flows, params, initial_states, offsets, plan)
-        return per_flow.sum(), (per_flow[0], visited)
+        per_flow, visited, final = flow_losses(dynamics, flows, params, initial_states, offsets, plan)
+        return per_flow.sum(), (per_flow[0], visited, final)
 
-    (params_grads, control_adjoints), (loss, visited) = jax.grad(total, argnums=(0, 1), has_aux=True)(
+    (params_grads, control_adjoints), (loss, visited, final) = jax.grad(total, argnums=(0, 1), has_aux=True)(
         stack_copies(params, len(flows)) if per_step else params, offsets)
     if per_step:
-        return loss, params_grads
-    return loss, policy_gradients(dynamics, params, visited, ravel_examples(control_adjoints, 3))
+        return loss, params_grads, final
+    return loss, policy_gradients(dynamics, params, visited, ravel_examples(control_adjoints, 3)), final
 
 
 class Trajectory(NamedTuple):

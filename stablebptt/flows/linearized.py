@@ -97,7 +97,7 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
 
 def linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
                          plan: Plan = Plan()):
-    """``flow_gradients`` by rollout, batched step Jacobians and an adjoint recurrence (``"forward"``)."""
+    """``flow_window`` by rollout, batched step Jacobians and an adjoint recurrence (``"forward"``)."""
     horizon, batch_size = dynamics.horizon, jax.tree.leaves(initial_states)[0].shape[0]
     batch_policy = jax.vmap(dynamics.policy, in_axes=(None, 0))
     batch_step = jax.vmap(dynamics.step)
@@ -171,7 +171,7 @@ def linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyT
         (state_jacobian, control_jacobian, policy_jacobian, direct_state, control_grad),
         reverse=True, unroll=plan.unroll)  # [T, copies, batch, control]
 
-    return loss, policy_gradients(dynamics, params, visited, control_adjoints)
+    return loss, policy_gradients(dynamics, params, visited, control_adjoints), final
 
 
 def policy_gradients(dynamics: Dynamics, params: PyTree, visited: PyTree, control_adjoints: jax.Array) -> PyTree:

@@ -50,7 +50,9 @@ def train_epochs(
     gets the seconds of XLA's compile alone (and of a ``PerUpdateEpoch``'s tracing).
     """
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    if lowered is not None and jax.tree.map(_shape_of, state) == jax.tree.map(_shape_of, lowered.shapes):
+    # Leaves alone: a carried env state's tree holds NumPy arrays in its static fields, which == cannot compare.
+    leaf_shapes = lambda tree: [_shape_of(leaf) for leaf in jax.tree.leaves(tree)]  # noqa: E731
+    if lowered is not None and leaf_shapes(state) == leaf_shapes(lowered.shapes):
         started = time.perf_counter()
         epoch_fn = lowered.lowered.compile()
         compile_seconds = time.perf_counter() - started

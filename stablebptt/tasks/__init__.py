@@ -2,7 +2,8 @@
 
 A task is a module with ``Config`` (a typed dataclass: its command-line
 options), ``make(config) -> stablebptt.engine.training.Task`` and ``DEFAULT_EPOCHS``
-(optionally ``for_reopening(config) -> config``: the configuration that rebuilds
+(optionally ``TRAIN_DEFAULTS``: training options the command line defaults to for the task;
+``for_reopening(config) -> config``: the configuration that rebuilds
 a trained run's task, checks that only matter before training left out; and
 ``program_inputs(config) -> dict | None``: what its compiled programs read besides
 the library and the config, so that ``stablebptt.engine.program_store`` may keep them),

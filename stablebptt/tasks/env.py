@@ -19,6 +19,8 @@ from stablebptt.errors import InputError, config_field
 
 DEFAULT_EPOCHS = 200
 DEFAULT_STEPS = 100
+# Training on carried episodes: the states carried per seed, and the fresh starts of the train and test returns.
+TRAIN_DEFAULTS = {"batch": 64, "train_size": 16, "test_size": 16}
 MAX_STEPS = 100_000
 
 

@@ -24,7 +24,7 @@ from stablebptt.errors import InputError
 from stablebptt.flows.gradients import flow_gradients, reference_loss
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import mjx
-from stablebptt.runs import epochs
+from stablebptt.runs import epochs, run_folder
 from stablebptt.storage import read_json
 
 from conftest import ROOT, float64
@@ -155,6 +155,7 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
                       "--out", str(tmp_path / "run"), env=on_path)
     assert done.returncode == 0, done.stderr
     assert "make_cart" in done.stdout and "reward gradient: usable" in done.stdout
+    assert "training on carried episodes: 4 per seed, each update one window of 6 steps" in done.stdout
     record = read_json(tmp_path / "run" / "config.json")
     assert record["task"] == "env" and record["task_config"]["env"] == "envs_for_tests:make_cart"
     for args, expected in ((["--env", "envs_for_tests:step_reward_cart"], "gradient is zero at every sampled state"),
@@ -290,13 +291,28 @@ def test_an_env_module_that_fails_as_it_imports_is_one_line_and_the_current_fold
     assert not (tmp_path / "refused").exists()
 
 
-def test_a_resumed_env_run_says_what_it_cannot_check_and_refuses_another_playground_release(tmp_path, capsys):
+def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_one_and_says_what_it_cannot_check(
+        tmp_path, capsys):
+    # Windows of 4 steps along carried episodes of 6: episodes end inside windows and are reset between them.
     sizes = ["--steps", "4", "--train-size", "4", "--test-size", "4", "--batch", "4", "--episode-length", "6",
-             "--no-progress"]
+             "--seeds", "2", "--no-progress"]
     assert train_in_process(capsys, "--env", "envs_for_tests:make_cart", *sizes, "--epochs", "1",
                             "--out", str(tmp_path / "run"))[0] == 0
-    code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--epochs", "2")
+    code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--epochs", "3")
     assert code == 0, err
+    assert train_in_process(capsys, "--env", "envs_for_tests:make_cart", *sizes, "--epochs", "3",
+                            "--out", str(tmp_path / "straight"))[0] == 0
+    resumed, straight = (run_folder.read_metrics(tmp_path / name / run_folder.METRICS_FILE) for name in ("run", "straight"))
+    assert len(resumed) == len(straight) == 6
+    for one, other in zip(resumed, straight):
+        assert {k: v for k, v in one.items() if k != "seconds"} == {k: v for k, v in other.items() if k != "seconds"}
+    assert len({row["test_loss"] for row in straight}) > 2  # it trains: the returns move
+    # A run recorded before episode training trained from fixed starts, and resumes so.
+    from stablebptt.apps.trained import configs_of
+    record = read_json(tmp_path / "run" / "config.json")
+    assert record["train"]["episodes"] == "auto"
+    del record["train"]["episodes"]
+    assert configs_of(tmp_path / "run", record)[1].episodes == "off"
     assert [line for line in err if line.startswith("note:")] == [
         "note: the run trains envs_for_tests:make_cart, code of your own that the library cannot check: if "
         "envs_for_tests changed since the run began, its metrics change at the resume"]

@@ -1,0 +1,137 @@
+"""Training on carried episodes: states kept from one update to the next, one window of each per update.
+
+The paper's protocol trains every update from fixed initial states, one window from each, so a policy
+never meets a state past the window's end. A task with ``Episodes`` may train on whole episodes
+instead, as the field's first-order trainers do: a population of states is carried from update to
+update (``Carried``, part of the training state and of every checkpoint); each update rolls every
+state one window of the horizon further, the gradient stopped at the window's start; a state whose
+episode is over (done, or at the episode's length) is reset between windows; and the episodes'
+clocks start spread over an episode, so that the windows cover every phase of it from the first
+update on.
+
+Within a window the flows roll a ``Window``: the task's state, its episode clock, whether its
+episode still runs, and the reward of the step that reached it. Once an episode ends its state stays
+as it was before the end and its rewards count no more, so no state past an episode's end (a NaN
+one, say) reaches the policy or the loss.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from stablebptt.errors import InputError
+from stablebptt.flows.dynamics import Dynamics, PyTree
+
+# The stream of a seed's PRNG keys that its episodes' resets draw from; the parameters draw from the seed itself.
+RESET_STREAM = 1
+
+
+@dataclass(frozen=True)
+class Episodes:
+    """What a task knows of its episodes, to train on carried ones (``Task.episodes``).
+
+    Attributes:
+      reset: ``reset(key) -> state``, one state at an episode's start (the task's state, as ``Dynamics.step`` takes).
+      reward: ``reward(state) -> scalar``, the reward of the step that reached ``state``.
+      done: ``done(state) -> bool``, whether the episode ends at ``state`` before its length.
+      length: steps of an episode.
+      discount: per-step discount of a window's return, in (0, 1].
+    """
+
+    reset: Callable[[jax.Array], PyTree]
+    reward: Callable[[PyTree], jax.Array]
+    done: Callable[[PyTree], jax.Array]
+    length: int
+    discount: float = 1.0
+
+    def __post_init__(self):
+        for name in ("reset", "reward", "done"):
+            if not callable(getattr(self, name)):
+                raise InputError(f"Episodes.{name} must be a function, got {type(getattr(self, name)).__name__}")
+        if not isinstance(self.length, numbers.Integral) or isinstance(self.length, bool) or self.length < 1:
+            raise InputError(f"Episodes.length must be a positive whole number of steps, got {self.length!r}")
+        discount = self.discount
+        if not (isinstance(discount, numbers.Real) and not isinstance(discount, bool) and math.isfinite(discount)
+                and 0 < discount <= 1):
+            raise InputError(f"Episodes.discount must be a number in (0, 1], got {discount!r}")
+
+
+class Carried(NamedTuple):
+    """The population a trainer of episodes carries from update to update (one seed's)."""
+
+    states: PyTree  # [envs, ...] where each episode stands
+    clocks: jax.Array  # int32 [envs]: steps into each episode
+    key: jax.Array  # the PRNG key the next resets draw from
+
+
+class Window(NamedTuple):
+    """A state within a window, as the flows roll it."""
+
+    state: PyTree
+    clock: jax.Array  # int32: steps into its episode
+    running: jax.Array  # bool: its episode has not ended
+    reward: jax.Array  # the reward of the step that reached it (0 once the episode has ended)
+
+
+def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int) -> Dynamics:
+    """``dynamics`` over ``Window`` states: a window of ``window`` steps whose loss is its negative
+    (discounted) return, rewards after its episode's end left out."""
+    def step(current: Window, control) -> Window:
+        reached = dynamics.step(current.state, control)
+        clock = current.clock + 1
+        still = current.running & jnp.logical_not(episodes.done(reached)) & (clock < episodes.length)
+        # where, not a product: the value of a step past the end (a NaN, say) must not leak in.
+        reward = jnp.where(current.running, episodes.reward(reached), 0.0)
+        state = jax.tree.map(lambda new, old: jnp.where(still, new, old), reached, current.state)
+        return Window(state, jnp.where(current.running, clock, current.clock), still, reward)
+
+    def loss(states: Window, controls) -> jax.Array:
+        weights = episodes.discount ** jnp.arange(window, dtype=states.reward.dtype)
+        return -jnp.sum(weights * states.reward)
+
+    return Dynamics(step=step, policy=lambda params, current: dynamics.policy(params, current.state), loss=loss,
+                    horizon=window)
+
+
+def start_window(carried: Carried, reward_dtype) -> Window:
+    """The carried states as the first states of a window: every episode running."""
+    envs = carried.clocks.shape[0]
+    return Window(carried.states, carried.clocks, jnp.ones(envs, bool), jnp.zeros(envs, reward_dtype))
+
+
+def continue_from(final: Window, key: jax.Array, episodes: Episodes) -> Carried:
+    """The population after a window: each ended episode reset, the others where the window left them."""
+    envs = final.clock.shape[0]
+    key, resets = jax.random.split(key)
+    fresh = jax.vmap(episodes.reset)(jax.random.split(resets, envs))
+    ended = jnp.logical_not(final.running)
+    states = jax.tree.map(lambda new, old: jnp.where(_along(ended, old), new, old), fresh, final.state)
+    return Carried(states, jnp.where(ended, 0, final.clock).astype(jnp.int32), key)
+
+
+def first_population(seed_key: jax.Array, episodes: Episodes, envs: int, window: int) -> Carried:
+    """A seed's first population: ``envs`` fresh episodes whose clocks are spread uniformly over an
+    episode where a window is shorter than one (so that the windows cover every phase of it), else at 0."""
+    key = jax.random.fold_in(seed_key, RESET_STREAM)
+    key, resets, clocks = jax.random.split(key, 3)
+    states = jax.vmap(episodes.reset)(jax.random.split(resets, envs))
+    if window < episodes.length:
+        start = jax.random.randint(clocks, (envs,), 0, episodes.length, dtype=jnp.int32)
+    else:
+        start = jnp.zeros(envs, jnp.int32)
+    return Carried(states, start, key)
+
+
+def updates_per_epoch(episodes: Episodes, window: int) -> int:
+    """An epoch of episode training: enough windows that every state advances one episode's length."""
+    return max(1, -(-episodes.length // window))
+
+
+def _along(flags: jax.Array, leaf: jax.Array) -> jax.Array:
+    """Per-example ``flags`` [envs] broadcast against a leaf [envs, ...]."""
+    return flags.reshape(flags.shape + (1,) * (jnp.ndim(leaf) - 1))

@@ -1,0 +1,125 @@
+"""Training on carried episodes: a window's return counts only its episode's steps, ended episodes are
+reset between windows and no others, clocks start spread, and the flows' gradient of a window is the
+gradient of its plain rollout, in both derivative modes."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.episodes import (
+    Carried,
+    Episodes,
+    continue_from,
+    first_population,
+    start_window,
+    updates_per_epoch,
+    window_dynamics,
+)
+from stablebptt.engine.task import Task
+from stablebptt.engine.training import make_trainer
+from stablebptt.errors import InputError
+from stablebptt.flows.dynamics import Dynamics, Plan
+from stablebptt.flows.gradients import flow_window, reference_loss, reference_rollout
+
+from conftest import float64
+
+pytestmark = pytest.mark.fast
+
+LENGTH = 10
+
+
+def drift(rate: float = 0.9) -> Dynamics:
+    """x' = rate x + u, u = theta . (x, 1), the reward -x^2 of the state reached: smooth, closed form."""
+    return Dynamics(step=lambda x, u: rate * x + u[0], policy=lambda theta, x: jnp.stack([theta[0] * x + theta[1]]),
+                    loss=lambda states, controls: jnp.sum(states ** 2), horizon=4)
+
+
+def episodes(done_beyond: float = 1e9) -> Episodes:
+    return Episodes(reset=lambda key: jax.random.uniform(key, (), minval=-1.0, maxval=1.0), reward=lambda x: -x ** 2,
+                    done=lambda x: jnp.abs(x) > done_beyond, length=LENGTH)
+
+
+def carried(states, clocks) -> Carried:
+    return Carried(jnp.asarray(states, jnp.float32), jnp.asarray(clocks, jnp.int32), jax.random.PRNGKey(0))
+
+
+def test_a_window_counts_the_steps_of_its_episode_and_no_state_past_its_end():
+    # A constant reward of 1 per step: a window's return is the number of steps its episode had left.
+    counting = Episodes(reset=lambda key: jnp.zeros(()), reward=lambda x: jnp.ones(()), done=lambda x: x > 2.5,
+                        length=LENGTH)
+    step_by_one = Dynamics(step=lambda x, u: x + 1.0, policy=lambda theta, x: jnp.zeros(1), loss=lambda s, c: 0.0,
+                           horizon=6)
+    window = window_dynamics(step_by_one, counting, 6)
+    start = start_window(carried([-10.0, -10.0, -10.0, 0.0], [0, 7, 9, 0]), jnp.float32)
+    trajectory = jax.vmap(lambda x0: reference_rollout(window, None, x0))(start)
+    returns = -jax.vmap(window.loss)(trajectory.states, trajectory.controls)
+    # 6 steps left; 3 (clock 7 of 10); 1 (clock 9); done once x passes 2.5, at its third step: 3.
+    np.testing.assert_array_equal(returns, [6, 3, 1, 3])
+    last = jax.tree.map(lambda a: a[:, -1], trajectory.states)
+    np.testing.assert_array_equal(last.running, [True, False, False, False])
+    np.testing.assert_array_equal(last.clock, [6, 10, 10, 3])
+    # The state stays as it was before the end: the done state (3.0) never enters a window.
+    np.testing.assert_array_equal(last.state, [-4.0, -8.0, -10.0, 2.0])
+
+
+def test_ended_episodes_alone_are_reset_with_their_clocks_and_the_key_moves_on():
+    task_episodes = episodes()
+    window = window_dynamics(drift(), task_episodes, 4)
+    start = start_window(carried([0.1, 0.2, 0.3], [0, 6, 8]), jnp.float32)
+    final = jax.vmap(lambda x0: jax.tree.map(lambda a: a[-1], reference_rollout(window, jnp.array([0.0, 0.0]), x0).states))(start)
+    after = continue_from(final, jax.random.PRNGKey(3), task_episodes)
+    np.testing.assert_array_equal(after.clocks, [4, 0, 0])  # 6 + 4 and 8 + 4 reach the length of 10
+    np.testing.assert_allclose(after.states[0], 0.1 * 0.9 ** 4, rtol=1e-6)  # the running one goes on
+    _, resets = jax.random.split(jax.random.PRNGKey(3))
+    fresh = jax.vmap(task_episodes.reset)(jax.random.split(resets, 3))
+    np.testing.assert_array_equal(after.states[1:], fresh[1:])
+    assert not np.array_equal(after.key, jax.random.PRNGKey(3))
+
+
+def test_first_clocks_are_spread_over_an_episode_unless_a_window_holds_one():
+    spread = first_population(jax.random.PRNGKey(0), episodes(), 256, window=3)
+    assert spread.clocks.min() >= 0 and spread.clocks.max() < LENGTH and len(np.unique(spread.clocks)) == LENGTH
+    whole = first_population(jax.random.PRNGKey(0), episodes(), 8, window=LENGTH)
+    np.testing.assert_array_equal(whole.clocks, 0)
+    assert updates_per_epoch(episodes(), 3) == 4 and updates_per_epoch(episodes(), 20) == 1
+
+
+@pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
+def test_flow_r_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_where_it_does(step_derivative):
+    # Episodes that end inside the window, by their clock and by done: the masks must hold in the gradient too.
+    window = window_dynamics(drift(1.3), episodes(done_beyond=0.8), 5)
+    with float64():
+        start = start_window(Carried(jnp.array([0.3, -0.5, 0.7, 0.1]), jnp.array([0, 7, 2, 9], jnp.int32),
+                                     jax.random.PRNGKey(0)), jnp.float64)
+        theta = jnp.array([0.2, -0.1])
+        loss, grads, final = flow_window(window, ("R", "M"), theta, start, Plan(step_derivative=step_derivative))
+        plain = jax.grad(lambda p: reference_loss(window, p, start))(theta)
+        np.testing.assert_allclose(grads[0], plain, rtol=1e-10)
+        np.testing.assert_allclose(loss, reference_loss(window, theta, start), rtol=1e-12)
+        reached = jax.vmap(lambda x0: jax.tree.map(lambda a: a[-1], reference_rollout(window, theta, x0).states))(start)
+        for ours, theirs in zip(jax.tree.leaves(final), jax.tree.leaves(reached)):
+            np.testing.assert_allclose(ours, theirs, rtol=1e-12)
+        assert not np.all(final.running)  # some episode did end inside the window
+
+
+def test_a_trainer_carries_episodes_where_the_task_has_them_and_refuses_to_where_it_has_none():
+    task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
+                sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)), episodes=episodes())
+    config = TrainConfig(epochs=1, batch=3, train_size=2, test_size=2, lr=1e-2)  # 3 does not divide 2: no minibatches
+    trainer = make_trainer(task, config)
+    assert trainer.episodes is not None and trainer.updates_per_epoch == 3  # ceil(10 / 4)
+    state = trainer.init(seed_array(config))
+    assert state.carried.clocks.shape == (1, 3)
+    state, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+    assert bool(metrics["finite"][0])
+    fixed = make_trainer(task, TrainConfig(epochs=1, batch=1, train_size=2, test_size=2, episodes="off"))
+    assert fixed.episodes is None and fixed.init(seed_array(config)).carried is None
+    with pytest.raises(InputError, match="batch 3 does not divide the 2 training states"):
+        make_trainer(task, TrainConfig(batch=3, train_size=2, episodes="off"))
+    no_episodes = Task(name="plain", dynamics=drift(), init_params=task.init_params,
+                       sample_initial_states=task.sample_initial_states)
+    with pytest.raises(InputError, match="plain has no episodes to carry"):
+        make_trainer(no_episodes, TrainConfig(batch=1, train_size=2, episodes="on"))
+    with pytest.raises(InputError, match="batch 3 does not divide"):
+        make_trainer(no_episodes, TrainConfig(batch=3, train_size=2))
