@@ -52,6 +52,7 @@ def runs(records: list[dict]) -> dict:
         entry = joined.setdefault(key, {"final": [], "best": [], "curves": [], "compile_s": [], "update_ms": [],
                                         "steps_per_s": [], "diverged": 0, "updates": [], "argv": [], "device": set()})
         entry["device"].add(record["device"])
+        entry["budget_s"] = record["budget_s"]
         entry["argv"].append(" ".join(record["argv"]).replace("/tmp/", "DIR/"))
         entry["compile_s"].append(record["compile_s"])
         entry["update_ms"].append(1e3 * record["update_s"])
@@ -95,13 +96,13 @@ def _number(value: float, digits: int = 1) -> str:
 
 
 def tables(joined: dict) -> list[str]:
-    lines = ["| env | method | seeds | final return | 95% interval | best return | updates | compile s | update ms "
-             "| env steps/s per seed | diverged seeds |", "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| env | method | budget s | seeds | final return | 95% interval | best return | updates | compile s | update ms "
+             "| env steps/s per seed | diverged seeds |", "|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
     order = lambda key: (key[0], key[1].startswith("stablebptt"), key[1])  # noqa: E731
     for key in sorted(joined, key=order):
         e = joined[key]
         low, high = interval(e["final"])
-        lines.append(f"| {key[0]} | {key[1]} | {len(e['final'])} | {_number(np.mean(e['final']))} | "
+        lines.append(f"| {key[0]} | {key[1]} | {e['budget_s']:.0f} | {len(e['final'])} | {_number(np.mean(e['final']))} | "
                      f"[{_number(low)}, {_number(high)}] | {_number(np.mean(e['best']))} | "
                      f"{int(np.mean(e['updates']))} | {_number(np.mean(e['compile_s']), 0)} | "
                      f"{_number(np.median(e['update_ms']), 1)} | {_number(np.mean(e['steps_per_s']), 0)} | "
