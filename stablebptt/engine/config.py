@@ -53,6 +53,9 @@ class TrainConfig:
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: faster per seed, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
     episodes: str = field(default="auto", metadata={"help": "on: train on whole episodes, --batch states carried from update to update, each update one window of the horizon from where they stand, an episode reset when it ends, an epoch one episode's length of windows; off: the paper's protocol, one window from each of the fixed training states; auto: on for tasks with episodes (environments), off for the others", "choices": EPISODE_CHOICES})
+    critic: bool = field(default=False, metadata={"help": "training on episodes: add a learned value of the window's last state to each window's return (short-horizon actor-critic), the critic fitted to TD(lambda) targets of the windows' rewards"})
+    critic_lr: float = field(default=1e-3, metadata={"help": "the critic's Adam learning rate"})
+    td_lambda: float = field(default=0.95, metadata={"help": "lambda of the critic's TD(lambda) targets, in [0, 1]"})
     epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations, and on a CPU of several cores for steps with a constraint solver (update and evaluation compile side by side)", "choices": EPOCH_PROGRAMS})
 
     def __post_init__(self):
@@ -71,7 +74,9 @@ class TrainConfig:
         for name in ("epochs", "seeds", "batch", "train_size", "test_size", "checkpoint_every", "unroll"):
             if getattr(self, name) <= 0:
                 raise InputError(f"{config_field(self, name)} must be a positive integer, got {getattr(self, name)}")
-        for name in ("lr", "clip_threshold"):
+        if not (math.isfinite(self.td_lambda) and 0 <= self.td_lambda <= 1):
+            raise InputError(f"{config_field(self, 'td_lambda')} must be in [0, 1], got {self.td_lambda}")
+        for name in ("lr", "clip_threshold", "critic_lr"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"{config_field(self, name)} must be a positive number, got {value}")

@@ -41,6 +41,7 @@ class Episodes:
       done: ``done(state) -> bool``, whether the episode ends at ``state`` before its length.
       length: steps of an episode.
       discount: per-step discount of a window's return, in (0, 1].
+      observe: ``observe(state) -> vector``, what a learned value sees (``TrainConfig.critic``); None: no critic.
     """
 
     reset: Callable[[jax.Array], PyTree]
@@ -48,6 +49,7 @@ class Episodes:
     done: Callable[[PyTree], jax.Array]
     length: int
     discount: float = 1.0
+    observe: Callable[[PyTree], jax.Array] | None = None
 
     def __post_init__(self):
         for name in ("reset", "reward", "done"):
@@ -78,9 +80,11 @@ class Window(NamedTuple):
     reward: jax.Array  # the reward of the step that reached it (0 once the episode has ended)
 
 
-def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int) -> Dynamics:
+def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
+                    value: Callable[[PyTree], jax.Array] | None = None) -> Dynamics:
     """``dynamics`` over ``Window`` states: a window of ``window`` steps whose loss is its negative
-    (discounted) return, rewards after its episode's end left out."""
+    (discounted) return, rewards after its episode's end left out; with ``value`` (of a task's state),
+    plus the discounted value of the window's last state where its episode still runs there."""
     def step(current: Window, control) -> Window:
         reached = dynamics.step(current.state, control)
         clock = current.clock + 1
@@ -92,7 +96,11 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int) -> Dyna
 
     def loss(states: Window, controls) -> jax.Array:
         weights = episodes.discount ** jnp.arange(window, dtype=states.reward.dtype)
-        return -jnp.sum(weights * states.reward)
+        total = jnp.sum(weights * states.reward)
+        if value is not None:  # a loss on the last state: its gradient reaches that state, in every flow
+            last = jax.tree.map(lambda a: a[-1], states)
+            total = total + episodes.discount ** window * jnp.where(last.running, value(last.state), 0.0)
+        return -total
 
     return Dynamics(step=step, policy=lambda params, current: dynamics.policy(params, current.state), loss=loss,
                     horizon=window)

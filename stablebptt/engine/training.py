@@ -18,6 +18,7 @@ import optax
 from stablebptt.engine.checks import check_task
 from stablebptt.engine.compiling import compiler_options, run_plan, step_size
 from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches
+from stablebptt.engine.critic import bootstrap, fit_critic, init_critic, td_lambda_targets, value
 from stablebptt.engine.episodes import (
     Episodes,
     continue_from,
@@ -42,6 +43,7 @@ class TrainState(NamedTuple):
     params: PyTree
     opt_state: PyTree
     carried: PyTree = None  # training on episodes: the population carried from update to update (``Carried``)
+    critic: PyTree = None  # with ``TrainConfig.critic``: the learned value at a window's end (``Critic``)
 
 
 class Trainer(NamedTuple):
@@ -119,26 +121,45 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         reward_dtype = jax.eval_shape(episodes.reward, example_state).dtype
         # Known columns index the task's state; a window's state holds more. The window's own plan drops them.
         window_plan = dataclasses.replace(plan, known_columns=None)
+        if config.critic:
+            critic_optimizer = optax.adam(config.critic_lr)
+            observations = jax.eval_shape(episodes.observe, example_state).shape[0]
 
     def init(seed):
         key = jax.random.PRNGKey(seed)
         params = task.init_params(key, config.zero_output)
         carried = None if episodes is None else first_population(key, episodes, config.batch, window)
-        return TrainState(params, optimizer.init(params), carried)
+        critic = init_critic(key, observations, critic_optimizer) if config.critic else None
+        return TrainState(params, optimizer.init(params), carried, critic)
 
     def evaluate(params, initial_states, dynamics=task.dynamics):
         if task.evaluation is not None:
             return task.evaluation(params, initial_states).mean()
         return reference_loss(dynamics, params, initial_states, plan=plan)
 
+    def fitted_critic(critic, window):
+        """The critic after fitting it to the TD(lambda) targets of the window just rolled."""
+        reached = jax.tree.map(lambda past, last: jnp.concatenate([past[1:], last[None]]), window.visited, window.final)
+        observe = jax.vmap(jax.vmap(episodes.observe))
+        values = jax.vmap(jax.vmap(lambda o: value(critic.target, o)))(observe(reached.state))
+        targets = td_lambda_targets(reached.reward, values, reached.running, episodes.discount, config.td_lambda)
+        seen = observe(window.visited.state)  # [T, batch, observations]; a state past its episode's end weighs 0
+        return fit_critic(critic, seen.reshape((-1, seen.shape[-1])), targets.reshape(-1),
+                          window.visited.running.reshape(-1).astype(targets.dtype), critic_optimizer)[0]
+
     def update(dynamics, state, batch):
+        critic = state.critic
         if episodes is None:
-            loss, grads, _ = flow_window(dynamics, flows, state.params, batch, plan)
+            loss, grads, _, _ = flow_window(dynamics, flows, state.params, batch, plan)
             carried = None
         else:  # one window from where the carried states stand; the gradient stops at its start
-            loss, grads, final = flow_window(window_dynamics(dynamics, episodes, window), flows, state.params,
-                                             start_window(state.carried, reward_dtype), window_plan)
-            carried = continue_from(final, state.carried.key, episodes)
+            at_end = None if critic is None else bootstrap(critic, episodes.observe)
+            window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end), flows, state.params,
+                                        start_window(state.carried, reward_dtype), window_plan)
+            loss, grads = window_result.loss, window_result.grads
+            carried = continue_from(window_result.final, state.carried.key, episodes)
+            if critic is not None:
+                critic = fitted_critic(critic, window_result)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         if "M" in flows and "R" in flows:
@@ -149,7 +170,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         # Every flow's gradient, not only the update: mode C's sign agreement
         # turns a NaN of g_R into a finite zero update.
         flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])
-        return TrainState(params, opt_state, carried), (loss, optax.tree.norm(updates), cosine, flows_finite)
+        return TrainState(params, opt_state, carried, critic), (loss, optax.tree.norm(updates), cosine, flows_finite)
 
     def evaluate_both(params, train_states, test_states, dynamics=task.dynamics):
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
@@ -164,7 +185,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         train_loss, test_loss = losses_of_both[:config.train_size].mean(), losses_of_both[config.train_size:].mean()
         # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
         # The carried states are not checked: a task's state may hold infinities by design; their losses tell.
-        checks = [jnp.isfinite(losses).all(), jnp.isfinite(update_norms).all() & _all_finite(state[:2]),
+        checks = [jnp.isfinite(losses).all(),
+                  jnp.isfinite(update_norms).all() & _all_finite((state.params, state.opt_state, state.critic)),
                   jnp.isfinite(train_loss), jnp.isfinite(test_loss)] + list(flows_finite.all(axis=0))
         failed = sum(jnp.where(ok, 0, 1 << bit) for bit, ok in enumerate(checks))
         return {
@@ -222,8 +244,15 @@ def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
         raise InputError(f"{config_field(config, 'episodes')} on: {task.name} has no episodes to carry (Task.episodes "
                          "gives a reset, a reward, a done and a length); train it with episodes off")
     if config.episodes == "off" or task.episodes is None:
+        if config.critic:
+            raise InputError(f"{config_field(config, 'critic')}: a learned value at a window's end needs carried "
+                             f"episodes, and {task.name} trains from fixed starts here (episodes "
+                             f"{'off' if task.episodes is not None else 'it has none'})")
         check_batches(config)
         return None
+    if config.critic and task.episodes.observe is None:
+        raise InputError(f"{config_field(config, 'critic')}: {task.name}'s Episodes has no observe(state), what the "
+                         "critic sees")
     return task.episodes
 
 

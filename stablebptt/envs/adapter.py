@@ -376,7 +376,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     evaluation = episode_dynamics(step, policy, episode_length)
     # Training on carried episodes (the default): reset by the env's own reset, ended when done or at its length.
     episodes = Episodes(reset=env.reset, reward=lambda state: state.reward, done=lambda state: state.done > 0,
-                        length=episode_length, discount=discount)
+                        length=episode_length, discount=discount, observe=observation)
     summary = (f"{label}: {sizes[0]} observations, {sizes[-1]} actions in [-1, 1]; windows of {horizon} steps, "
                f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "
                f"train/test loss: negative return of {episode_length}-step episodes; "

@@ -44,8 +44,17 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
       ``(loss, grads)`` where each leaf of ``grads`` has a leading axis of
       length ``len(flows)`` in the order of ``flows``.
     """
-    loss, grads, _ = flow_window(dynamics, flows, params, initial_states, plan)
-    return loss, grads
+    window = flow_window(dynamics, flows, params, initial_states, plan)
+    return window.loss, window.grads
+
+
+class WindowGradients(NamedTuple):
+    """What one forward rollout of a window gives (``flow_window``)."""
+
+    loss: jax.Array  # mean batch loss
+    grads: PyTree  # every flow's gradient, a leading axis of len(flows)
+    final: PyTree  # x_T [batch, ...], where a trainer of carried episodes continues from
+    visited: PyTree  # x_0..x_{T-1} [T, batch, ...]
 
 
 def flow_window(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
@@ -60,11 +69,11 @@ def flow_window(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, init
       plan: how to differentiate ``dynamics`` (a task's own: ``Task.plan``; a run's: ``Trainer.plan``).
 
     Returns:
-      ``(loss, grads, final_states)``: ``grads`` as ``flow_gradients``'; ``final_states`` the batch
-      after ``dynamics.horizon`` steps, from which a trainer of carried episodes continues.
+      ``WindowGradients``: ``grads`` as ``flow_gradients``', the batch after ``dynamics.horizon`` steps
+      and the states each step started from.
     """
     if plan.step_derivative == "forward":
-        return linearized_gradients(dynamics, flows, params, initial_states, plan)
+        return WindowGradients(*linearized_gradients(dynamics, flows, params, initial_states, plan))
 
     control = jax.eval_shape(jax.vmap(dynamics.policy, in_axes=(None, 0)), params, initial_states)
     offsets = jax.tree.map(lambda a: jnp.zeros((dynamics.horizon, len(flows)) + a.shape, a.dtype), control)
@@ -77,8 +86,9 @@ def flow_window(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, init
     (params_grads, control_adjoints), (loss, visited, final) = jax.grad(total, argnums=(0, 1), has_aux=True)(
         stack_copies(params, len(flows)) if per_step else params, offsets)
     if per_step:
-        return loss, params_grads, final
-    return loss, policy_gradients(dynamics, params, visited, ravel_examples(control_adjoints, 3)), final
+        return WindowGradients(loss, params_grads, final, visited)
+    return WindowGradients(loss, policy_gradients(dynamics, params, visited, ravel_examples(control_adjoints, 3)),
+                           final, visited)
 
 
 class Trajectory(NamedTuple):

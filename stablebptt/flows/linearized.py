@@ -171,7 +171,7 @@ def linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyT
         (state_jacobian, control_jacobian, policy_jacobian, direct_state, control_grad),
         reverse=True, unroll=plan.unroll)  # [T, copies, batch, control]
 
-    return loss, policy_gradients(dynamics, params, visited, control_adjoints), final
+    return loss, policy_gradients(dynamics, params, visited, control_adjoints), final, visited
 
 
 def policy_gradients(dynamics: Dynamics, params: PyTree, visited: PyTree, control_adjoints: jax.Array) -> PyTree:

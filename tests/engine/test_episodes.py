@@ -86,21 +86,59 @@ def test_first_clocks_are_spread_over_an_episode_unless_a_window_holds_one():
 
 
 @pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
-def test_flow_r_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_where_it_does(step_derivative):
-    # Episodes that end inside the window, by their clock and by done: the masks must hold in the gradient too.
-    window = window_dynamics(drift(1.3), episodes(done_beyond=0.8), 5)
+@pytest.mark.parametrize("at_end", [None, lambda x: 3.0 * x ** 2 - x], ids=["window", "with a value at its end"])
+def test_each_flow_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_where_it_does(step_derivative, at_end):
+    # Episodes that end inside the window, by their clock and by done: the masks must hold in the gradient too;
+    # a value of the last state is a loss on it, which every flow keeps.
+    window = window_dynamics(drift(1.0), episodes(done_beyond=0.8), 5, value=at_end)
     with float64():
-        start = start_window(Carried(jnp.array([0.3, -0.5, 0.7, 0.1]), jnp.array([0, 7, 2, 9], jnp.int32),
+        start = start_window(Carried(jnp.array([0.3, -0.5, 0.7, 0.1, 0.05]), jnp.array([0, 7, 2, 9, 1], jnp.int32),
                                      jax.random.PRNGKey(0)), jnp.float64)
         theta = jnp.array([0.2, -0.1])
-        loss, grads, final = flow_window(window, ("R", "M"), theta, start, Plan(step_derivative=step_derivative))
-        plain = jax.grad(lambda p: reference_loss(window, p, start))(theta)
-        np.testing.assert_allclose(grads[0], plain, rtol=1e-10)
+        loss, grads, final, _ = flow_window(window, ("R", "M"), theta, start, Plan(step_derivative=step_derivative))
+        for index, flow in enumerate(("R", "M")):
+            plain = jax.grad(lambda p, flow=flow: reference_loss(window, p, start, flow))(theta)
+            np.testing.assert_allclose(grads[index], plain, rtol=1e-10)
         np.testing.assert_allclose(loss, reference_loss(window, theta, start), rtol=1e-12)
         reached = jax.vmap(lambda x0: jax.tree.map(lambda a: a[-1], reference_rollout(window, theta, x0).states))(start)
         for ours, theirs in zip(jax.tree.leaves(final), jax.tree.leaves(reached)):
             np.testing.assert_allclose(ours, theirs, rtol=1e-12)
-        assert not np.all(final.running)  # some episode did end inside the window
+        assert not np.all(final.running) and np.any(final.running)  # some episodes end inside the window, some not
+
+
+def test_td_lambda_targets_are_the_closed_forms_at_lambda_0_and_1_and_stop_where_an_episode_ends():
+    from stablebptt.engine.critic import td_lambda_targets
+    rewards = jnp.array([[1.0], [2.0], [3.0]])
+    values = jnp.array([[10.0], [20.0], [30.0]])  # of x_1, x_2, x_3
+    running = jnp.array([[True], [True], [True]])
+    one_step = td_lambda_targets(rewards, values, running, 0.5, 0.0)
+    np.testing.assert_allclose(one_step[:, 0], [1 + 0.5 * 10, 2 + 0.5 * 20, 3 + 0.5 * 30])
+    whole = td_lambda_targets(rewards, values, running, 0.5, 1.0)
+    np.testing.assert_allclose(whole[:, 0], [1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 30, 2 + 0.5 * 3 + 0.25 * 30, 3 + 0.5 * 30])
+    ended = td_lambda_targets(rewards, values, jnp.array([[True], [False], [False]]), 0.5, 1.0)
+    np.testing.assert_allclose(ended[:, 0], [1 + 0.5 * 2, 2, 3])  # nothing after x_2's end counts
+
+
+def test_a_critic_trains_beside_the_policy_and_its_target_follows_it():
+    task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
+                sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)),
+                episodes=Episodes(**{**episodes().__dict__, "observe": lambda x: jnp.stack([x]), "discount": 0.9}))
+    config = TrainConfig(epochs=1, batch=8, train_size=2, test_size=2, lr=1e-2, critic=True, critic_lr=1e-2)
+    trainer = make_trainer(task, config)
+    state = trainer.init(seed_array(config))
+    first = state.critic
+    np.testing.assert_array_equal(jax.tree.leaves(first.params)[0], jax.tree.leaves(first.target)[0])
+    for _ in range(3):
+        state, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+        assert bool(metrics["finite"][0])
+    moved = lambda a, b: float(jnp.max(jnp.abs(a - b)))  # noqa: E731
+    assert moved(state.critic.params[0][0], first.params[0][0]) > 0 and moved(state.critic.target[0][0], first.target[0][0]) > 0
+    # The value of x^2-like returns: the critic learns that states far from 0 are worth less (rewards -x^2).
+    from stablebptt.engine.critic import value
+    one = jax.tree.map(lambda a: a[0], state.critic.params)
+    assert float(value(one, jnp.array([0.9]))) < float(value(one, jnp.array([0.0])))
+    with pytest.raises(InputError, match="critic: a learned value at a window's end needs carried episodes"):
+        make_trainer(task, TrainConfig(batch=1, train_size=2, episodes="off", critic=True))
 
 
 def test_a_trainer_carries_episodes_where_the_task_has_them_and_refuses_to_where_it_has_none():

@@ -1,0 +1,84 @@
+"""A learned value at a window's end (``TrainConfig.critic``), as short-horizon actor-critic trains.
+
+The actor's loss of a window becomes its discounted rewards plus the discounted value of the state
+it ends in, where that state's episode still runs (``window_dynamics(value=...)``). That term is a
+loss on the window's last state, so its gradient reaches that state and enters every flow as the
+loss's own gradient does, cut by none of them. The value is the target critic's, which follows the
+critic slowly. After each window the critic, a network of the observation with its own Adam, is
+fitted to TD(lambda) targets computed from the window's rewards and the target critic's values.
+"""
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from stablebptt.flows.dynamics import PyTree
+from stablebptt.networks import mlp_apply, mlp_init
+
+HIDDEN = (64, 64)
+# Short-horizon actor-critic's settings: Adam steps on a window's targets, and the share of the target
+# critic kept at each window (the rest is the critic's).
+ITERATIONS = 16
+TARGET_KEEP = 0.2
+# The stream of a seed's PRNG keys the critic's initial weights draw from (the resets draw from 1).
+CRITIC_STREAM = 2
+
+
+class Critic(NamedTuple):
+    """One seed's critic: its weights, its optimizer's state, and the target critic that follows it."""
+
+    params: PyTree
+    opt_state: PyTree
+    target: PyTree
+
+
+def value(params: PyTree, observation: jax.Array) -> jax.Array:
+    return mlp_apply(params, observation)[0]
+
+
+def init_critic(seed_key: jax.Array, observations: int, optimizer: optax.GradientTransformation) -> Critic:
+    params = mlp_init(jax.random.fold_in(seed_key, CRITIC_STREAM), (observations, *HIDDEN, 1), zero_output=False)
+    return Critic(params, optimizer.init(params), params)
+
+
+def td_lambda_targets(rewards: jax.Array, values: jax.Array, running: jax.Array, discount: float,
+                      td_lambda: float) -> jax.Array:
+    """TD(lambda) targets of the states a window starts each step from, [T, batch].
+
+    ``rewards[t]``: the reward of step t (to x_{t+1}); ``values[t]``: the value of x_{t+1};
+    ``running[t]``: whether x_{t+1}'s episode still runs (where it does not, nothing after it counts).
+    The last step's target bootstraps from the value of the window's last state.
+    """
+    def back(after, step):
+        reward, value_next, still = step
+        target = reward + discount * jnp.where(still, (1 - td_lambda) * value_next + td_lambda * after, 0.0)
+        return target, target
+
+    _, targets = jax.lax.scan(back, values[-1], (rewards, values, running), reverse=True)
+    return targets
+
+
+def fit_critic(critic: Critic, observations: jax.Array, targets: jax.Array, weights: jax.Array,
+               optimizer: optax.GradientTransformation, iterations: int = ITERATIONS) -> tuple[Critic, jax.Array]:
+    """``iterations`` Adam steps of the critic on the weighted squared error to ``targets`` (all examples
+    at once), then the target critic moved towards it. Returns the critic and its last loss."""
+    def loss(params):
+        errors = jax.vmap(lambda o: value(params, o))(observations) - targets
+        return jnp.sum(weights * errors ** 2) / jnp.maximum(jnp.sum(weights), 1.0)
+
+    def step(current: Critic, _):
+        error, grads = jax.value_and_grad(loss)(current.params)
+        updates, opt_state = optimizer.update(grads, current.opt_state, current.params)
+        return Critic(optax.apply_updates(current.params, updates), opt_state, current.target), error
+
+    fitted, errors = jax.lax.scan(step, critic, None, length=iterations)
+    target = jax.tree.map(lambda kept, new: TARGET_KEEP * kept + (1 - TARGET_KEEP) * new, fitted.target, fitted.params)
+    return Critic(fitted.params, fitted.opt_state, target), errors[-1]
+
+
+def bootstrap(critic: Critic, observe: Callable[[PyTree], jax.Array]) -> Callable[[PyTree], jax.Array]:
+    """The value a window's loss adds at its last state: the target critic's, of the state's observation."""
+    return lambda state: value(critic.target, observe(state))
