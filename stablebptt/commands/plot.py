@@ -33,6 +33,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
                         help="centred moving average over N epochs, 0 = raw (default: 30 for runs of >= 90 epochs, else 0)")
     parser.add_argument("--band", choices=("minmax", "std"), default="minmax",
                         help="band around the mean over seeds: min to max, or +- one standard deviation (default: minmax)")
+    parser.add_argument("--x", choices=("epoch", "env-steps", "seconds"), default="epoch", dest="x_axis",
+                        help="draw against epochs, the env steps each seed simulated in training, or the training "
+                             "wall time (compiling excluded) (default: epoch)")
     args = parser.parse_args(argv)
     if args.smooth is not None and args.smooth < 0:
         fail(f"--smooth must be zero or positive, got {args.smooth}")
@@ -50,7 +53,7 @@ def main(argv: list[str]) -> int:
         out = out / plots.FIGURE_FILE
     try:
         path = plots.learning_curves(args.run_dirs, out, smooth=args.smooth, band=args.band,
-                                     note=lambda line: print(line, file=sys.stderr))
+                                     note=lambda line: print(line, file=sys.stderr), x_axis=args.x_axis)
     except InputError as error:
         fail(str(error))
     print(f"wrote {path}")

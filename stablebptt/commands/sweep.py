@@ -44,6 +44,7 @@ from stablebptt.cli import (
 )
 from stablebptt.commands import task_options
 from stablebptt.errors import InputError
+from stablebptt.reports.curves import LOSS, SCORES
 from stablebptt.storage import file_sha256
 
 # preset -> (task, the option that sets the complexity, its values): from the task registry
@@ -182,9 +183,6 @@ def model_contents(task_configs: list) -> list | None:
     return [digests.get(path) for path in paths]
 
 
-LOSS = ("test loss", 1.0)
-# Tasks whose test loss reads better as a score: the environment task's is the negative episode return.
-SCORES = {"env": ("episode return", -1.0)}
 
 
 def main(argv: list[str]) -> int:

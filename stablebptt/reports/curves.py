@@ -21,6 +21,11 @@ from stablebptt.storage import read_json
 PAPER_SMOOTH = 30  # the paper smooths its curves over 30 epochs
 BANDS = ("minmax", "std")
 REQUIRED_COLUMNS = ("epoch", "seed", "test_loss", "update_norm")
+LOSS = ("test loss", 1.0)
+# Tasks whose test loss reads better as a score: the environment task's is the negative episode return.
+SCORES = {"env": ("episode return", -1.0)}
+# What a learning curve may be drawn against.
+X_AXES = ("epoch", "env-steps", "seconds")
 
 
 class Run(NamedTuple):
@@ -206,3 +211,29 @@ def aggregate(values: np.ndarray, band: str = "minmax") -> tuple[np.ndarray, np.
 def default_smooth(epochs: int) -> int:
     """The paper's 30-epoch smoothing for runs of at least 90 epochs; none for shorter runs."""
     return PAPER_SMOOTH if epochs >= 3 * PAPER_SMOOTH else 0
+
+
+def score_of(run: Run) -> tuple[str, float]:
+    """(name, sign) of what a run's test loss means: ``sign * test_loss`` is the named number."""
+    return SCORES.get(str(run.config.get("task")), LOSS)
+
+
+def x_values(run: Run, axis: str) -> tuple[np.ndarray, str]:
+    """A run's epochs as ``axis`` (``X_AXES``) and the axis label.
+
+    ``env-steps``: the steps each seed simulated in training (``steps_per_epoch`` of its config.json,
+    which runs record since they train on carried episodes); ``seconds``: the training wall time,
+    compiling excluded, summed over the epochs drawn.
+    """
+    if axis == "epoch":
+        return run.epochs.astype(float), "epoch"
+    if axis == "seconds":
+        per_epoch = np.nanmax(run.metrics.get("seconds", np.full((len(run.epochs), 1), np.nan)), axis=1)
+        return np.cumsum(np.nan_to_num(per_epoch)), "training wall time, s (compiling excluded)"
+    if axis == "env-steps":
+        steps = run.config.get("steps_per_epoch")
+        if not isinstance(steps, int) or isinstance(steps, bool) or steps <= 0:
+            raise InputError(f"{run.path / CONFIG_FILE} does not record its env steps per epoch (runs record them "
+                             "since they train on carried episodes): draw it against epochs or seconds")
+        return run.epochs.astype(float) * steps, "env steps per seed"
+    raise InputError(f"unknown x axis {axis!r}: choose one of {', '.join(X_AXES)}")

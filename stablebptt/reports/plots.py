@@ -28,7 +28,18 @@ from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.errors import InputError
 from stablebptt.flows.modes import MODE_ORDER, MODES
-from stablebptt.reports.curves import BANDS, Run, aggregate, default_smooth, effective_window, load_run, moving_average
+from stablebptt.reports.curves import (
+    BANDS,
+    LOSS,
+    Run,
+    aggregate,
+    default_smooth,
+    effective_window,
+    load_run,
+    moving_average,
+    score_of,
+    x_values,
+)
 from stablebptt.storage import atomic_write
 
 FIGURE_FILE = "learning_curves.png"
@@ -89,15 +100,28 @@ def _short(value) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
+# Task options a title leaves out: the run's name says them (the model file, the environment).
+_NAMED_BY_THE_RUN = {"model", "env"}
+
+
 def _common_settings(runs: Sequence[Run]) -> str:
-    """The task and its options when all runs share them, for the figure title."""
+    """What all runs share, in the words of the command that trained them: the run's name (a model's,
+    an environment's) and the options set, as flags: 'cartpole_3: --steps 80 --no-zero-output'."""
     tasks = {run.config.get("task") for run in runs}
     if len(tasks) != 1 or None in tasks:
         return ""
+    names = {str((run.config.get("resolved_task") or {}).get("name") or run.config.get("task")) for run in runs}
     settings = [run.config.get("task_config") or {} for run in runs]
-    shared = [f"{key}={_short(value)}" for key, value in sorted(settings[0].items())
-              if value not in ("", None) and all(setting.get(key) == value for setting in settings)]  # "" = unset
-    return f"{tasks.pop()}" + (f" ({', '.join(shared)})" if shared else "")
+    flags = []
+    for key, value in sorted(settings[0].items()):
+        # 0 and "" mean the task's own value, True the usual one: only what a user set is said.
+        usual = value is True or value is None or value == "" or (not isinstance(value, bool) and value == 0)
+        if key in _NAMED_BY_THE_RUN or usual or any(s.get(key) != value for s in settings):
+            continue
+        flag = key.replace("_", "-")
+        flags.append(f"--no-{flag}" if value is False else f"--{flag} {_short(value)}")
+    name = names.pop() if len(names) == 1 else str(tasks.pop())
+    return name + (f": {' '.join(flags)}" if flags else "")
 
 
 def _styles(runs: Sequence[Run]) -> list[tuple[tuple, str]]:
@@ -142,7 +166,8 @@ def _font_families() -> list[str]:
     return ["DejaVu Sans"] + [name for name in FALLBACK_FONTS if name in installed]
 
 
-def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str | None = None) -> Figure:
+def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str | None = None,
+         x_axis: str = "epoch") -> Figure:
     """The learning-curve figure of some runs (not yet saved).
 
     Args:
@@ -150,15 +175,17 @@ def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str 
       smooth: moving-average window in epochs (``moving_average``); 0 = raw curves.
       band: ``"minmax"`` or ``"std"`` over seeds (``aggregate``).
       title: the figure title; by default the task, the shared options and what line and band show.
+      x_axis: what the curves are drawn against (``curves.X_AXES``): epochs, env steps per seed, or
+        training wall time.
 
     Returns:
       A matplotlib ``Figure`` on the Agg canvas (no display needed).
     """
     with matplotlib.rc_context({"font.family": _font_families()}):  # fonts are chosen as texts are made
-        return _draw(runs, smooth, band, title)
+        return _draw(runs, smooth, band, title, x_axis)
 
 
-def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None) -> Figure:
+def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None, x_axis: str = "epoch") -> Figure:
     if not runs:
         raise InputError("no run to draw: give at least one run directory")
     if smooth < 0:
@@ -171,10 +198,18 @@ def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None) -> Fig
     FigureCanvasAgg(figure)  # explicit headless canvas: never touches pyplot or a display
     axes = figure.subplots(1, len(PANELS), sharex=True)
     few_epochs = max(len(run.epochs) for run in runs) <= 15  # markers make short curves readable
+    xs = [x_values(run, x_axis) for run in runs]
+    # An environment's test loss is its negative episode return: drawn as the return, on a linear axis.
+    scores = {score_of(run) for run in runs}
+    score = scores.pop() if len(scores) == 1 else LOSS
     for ax, (column, panel_title, ylabel, log) in zip(axes, PANELS):
+        if column == "test_loss" and score != LOSS:
+            panel_title, ylabel, log = score[0].capitalize(), score[0], False
         absent, drawn = [], 0
-        for run, label, (colour, linestyle) in zip(runs, labels, styles):
+        for run, label, (colour, linestyle), (x, x_label) in zip(runs, labels, styles, xs):
             values = run.metrics.get(column, np.full((len(run.epochs), len(run.seeds)), np.nan))
+            if column == "test_loss":
+                values = score[1] * values
             if log:
                 values = np.where(values > 0, values, np.nan)  # a log axis cannot show 0 (e.g. S at a zero gradient)
             if not np.any(np.isfinite(values)):
@@ -188,10 +223,10 @@ def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None) -> Fig
             else:
                 smoothed = moving_average(values, window)
             mean, low, high = aggregate(smoothed, band)
-            ax.plot(run.epochs, mean, color=colour, linestyle=linestyle, linewidth=1.8, label=label,
+            ax.plot(x, mean, color=colour, linestyle=linestyle, linewidth=1.8, label=label,
                     marker="o" if few_epochs else None, markersize=3.5)
             if len(run.seeds) > 1:
-                ax.fill_between(run.epochs, low, high, color=colour, alpha=0.18, linewidth=0)
+                ax.fill_between(x, low, high, color=colour, alpha=0.18, linewidth=0)
         if log and drawn:
             ax.set_yscale("log")
             # Plain numbers (0.03, 2) read better than 3x10^-2; minor ticks get labels on short axes.
@@ -202,8 +237,9 @@ def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None) -> Fig
             ax.set_ylim(-1.05, 1.05)
         ax.set_title(panel_title)
         ax.set_ylabel(ylabel)
-        ax.set_xlabel("epoch")
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True, steps=[1, 2, 2.5, 5, 10]))
+        ax.set_xlabel(xs[0][1])
+        if x_axis == "epoch":
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True, steps=[1, 2, 2.5, 5, 10]))
         ax.grid(True, which="major", alpha=0.3)
         if absent:
             reason = "not logged (trained with --no-cosine)" if column == "cosine" else "zero throughout: no log scale"
@@ -255,7 +291,7 @@ def render(figure: Figure, out_path: Path, dpi: int = 150) -> Path:
 
 def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth: int | None = 0, band: str = "minmax",
                     title: str | None = None, dpi: int = 150,
-                    note: Callable[[str], None] = lambda line: None) -> Path:
+                    note: Callable[[str], None] = lambda line: None, x_axis: str = "epoch") -> Path:
     """Draw the learning curves of some run directories into one figure file.
 
     Args:
@@ -267,6 +303,7 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
       title: figure title; by default the shared task settings and what line and band show.
       dpi: resolution of a PNG.
       note: told where a run's metrics were read from elsewhere than its ``metrics.csv``.
+      x_axis: what the curves are drawn against (``curves.X_AXES``).
 
     Returns:
       The path written.
@@ -285,7 +322,7 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
             note(run.note)
     if smooth is None:
         smooth = default_smooth(max(len(run.epochs) for run in runs))
-    figure = draw(runs, smooth=smooth, band=band, title=title)
+    figure = draw(runs, smooth=smooth, band=band, title=title, x_axis=x_axis)
     return render(figure, Path(out_path), dpi=dpi)
 
 

@@ -326,7 +326,7 @@ def write_config(directory: Path, record: dict) -> None:
     write_json(Path(directory) / CONFIG_FILE, record)
 
 
-def new_record(task_name: str, task_config: Any, task: Any, train_config: TrainConfig) -> dict:
+def new_record(task_name: str, task_config: Any, task: Any, train_config: TrainConfig, **extra: Any) -> dict:
     """The config.json of a new run: the task as configured and as resolved, training, versions, device.
 
     Raises:
@@ -336,7 +336,7 @@ def new_record(task_name: str, task_config: Any, task: Any, train_config: TrainC
 
     check_options(train_config, task_config)
     environment = {"python": platform.python_version(), "jax": jax.__version__, "device": str(jax.devices()[0])}
-    return run_record(task_name, task_config, train_config, task, environment=environment)
+    return run_record(task_name, task_config, train_config, task, environment=environment, **extra)
 
 
 class Run:

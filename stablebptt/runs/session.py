@@ -85,7 +85,9 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
         task = task.settled()  # a reward without a usable gradient is refused here, before any folder is made
         if run is None:
             run_dir = run_dir or default_run_dir(runs_root, task.name)  # named as it is claimed
-            run = Run.create(run_dir, new_record(task_name, task_config, task, train_config))
+            # The env steps each seed simulates in an epoch's training: learning curves may be drawn against them.
+            steps = trainer.updates_per_epoch * train_config.batch * task.dynamics.horizon
+            run = Run.create(run_dir, new_record(task_name, task_config, task, train_config, steps_per_epoch=steps))
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
     except BaseException:
         if run is not None:

@@ -144,6 +144,31 @@ def test_labels_name_mode_clip_and_only_the_settings_that_differ(tmp_path):
 
 # ---- the figure ----
 
+def test_an_environment_run_is_drawn_as_its_return_against_env_steps_and_titled_in_the_commands_words(tmp_path):
+    path = write_run(tmp_path / "env", task="env", epochs=4, seeds=(42,),
+                     task_config={"env": "CartpoleSwingup", "steps": 128, "discount": 1.0, "episode_length": 0,
+                                  "reward_check": False})
+    record = storage.read_json(path / "config.json")
+    storage.write_json(path / "config.json", {**record, "resolved_task": {"name": "CartpoleSwingup"},
+                                              "steps_per_epoch": 8192})
+    run = curves.load_run(path)
+    figure = plots.draw([run], x_axis="env-steps")
+    returns = figure.axes[0]
+    assert returns.get_title() == "Episode return" and returns.get_yscale() == "linear"
+    x, y = returns.get_lines()[0].get_data()
+    np.testing.assert_array_equal(x, [8192, 16384, 24576, 32768])
+    np.testing.assert_allclose(y, -run.metrics["test_loss"][:, 0])  # the test loss is the negative return
+    assert returns.get_xlabel() == "env steps per seed"
+    # The name the run has, and what was set, as the flags that set it; 0 and True are the usual values.
+    assert figure.get_suptitle().startswith("CartpoleSwingup: --discount 1 --no-reward-check --steps 128\n")
+    seconds = plots.draw([run], x_axis="seconds").axes[0].get_lines()[0].get_data()[0]
+    np.testing.assert_allclose(seconds, [0.1, 0.2, 0.3, 0.4])  # summed epoch times
+    older = curves.load_run(write_run(tmp_path / "older"))
+    with pytest.raises(InputError, match="does not record its env steps per epoch"):
+        plots.draw([older], x_axis="env-steps")
+
+
+
 def test_figure_orders_flows_as_the_paper_and_styles_by_flow_and_clip(tmp_path):
     runs = [curves.load_run(write_run(tmp_path / mode, mode=mode, clip=clip))
             for mode, clip in [("S", "value"), ("C", "norm"), ("R", "value"), ("M", "value")]]
