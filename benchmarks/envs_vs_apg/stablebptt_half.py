@@ -79,7 +79,8 @@ def build(env, a, mode, seeds, horizon, batch):
                          # test_size = train_size: one compile of the batched reset serves both samples.
                          train_size=batch * a.train_batches, test_size=batch * a.train_batches, seeds=seeds, seed=a.seed0,
                          epochs=1, cosine=False, unroll=a.unroll, seed_batching=a.seed_batching,
-                         epoch_program="per-update", episodes=a.episodes)
+                         epoch_program="per-update", episodes=a.episodes, critic=a.critic, critic_lr=a.critic_lr,
+                         td_lambda=a.td_lambda)
     b0 = time.perf_counter()
     trainer = make_trainer(task, config)
     PHASES["make_trainer_s"] = time.perf_counter() - b0
@@ -109,7 +110,8 @@ def run_one(env_name, mode, a, log):
                         "initial_states": ("batch env states carried across updates, reset when an episode ends"
                                            if a.episodes == "on" else
                                            "train_size env.reset states (data_seed 42), fixed, minibatches cycled"),
-                        "episodes": a.episodes, "trainer_episode_length": a.trainer_episode_length},
+                        "episodes": a.episodes, "trainer_episode_length": a.trainer_episode_length,
+                        "critic": a.critic, "critic_lr": a.critic_lr, "td_lambda": a.td_lambda},
         "solver_train_env": solver_info(train_env), "solver_eval_env": solver_info(eval_env),
         "eval": {"num_envs": a.eval_envs, "seed": evaluation.EVAL_SEED, "deterministic": True,
                  "seeds_in_one_program": True},
@@ -288,6 +290,9 @@ def main(argv=None):
     p.add_argument("--seed-batching", default="vmap", choices=("vmap", "map"))
     p.add_argument("--episodes", default="on", choices=("on", "off"),
                    help="train on carried episodes (on) or from fixed starts, one window from each (off)")
+    p.add_argument("--critic", action="store_true", help="bootstrap each window by a learned value of its last state")
+    p.add_argument("--critic-lr", type=float, default=1e-3)
+    p.add_argument("--td-lambda", type=float, default=0.95)
     p.add_argument("--trainer-episode-length", type=int, default=0,
                    help="env_task's episode_length: the length of the carried episodes (0: the env's own)")
     p.add_argument("--max-updates", type=int, default=0, help="stop after this many updates (0: budget only)")

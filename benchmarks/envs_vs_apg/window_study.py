@@ -40,7 +40,10 @@ def trim(record: dict) -> dict:
 def method(record: dict) -> str:
     if "seed" in record:
         return "Brax APG"
-    return f"stablebptt {record['mode']}, window {record['hyperparams']['horizon']}"
+    critic = ", critic" if record["hyperparams"].get("critic") else ""
+    discount = record["hyperparams"].get("discount", 1.0)
+    return f"stablebptt {record['mode']}, window {record['hyperparams']['horizon']}{critic}" + \
+        (f", discount {discount:g}" if discount != 1.0 else "")
 
 
 def runs(records: list[dict]) -> dict:
@@ -189,7 +192,9 @@ def main(argv=None) -> None:
             if not isinstance(record, dict) or "points" not in record:
                 continue  # summaries
             name = (f"{record['env']}_apg_s{record['seed']}" if "seed" in record else
-                    f"{record['env']}_{record['mode']}_w{record['hyperparams']['horizon']}")
+                    f"{record['env']}_{record['mode']}_w{record['hyperparams']['horizon']}"
+                    + ("_critic" if record["hyperparams"].get("critic") else "")
+                    + (f"_d{record['hyperparams']['discount']:g}" if record["hyperparams"].get("discount", 1.0) != 1.0 else ""))
             stored[name] = trim(record)
     with open(kept, "w") as handle:
         json.dump(dict(sorted(stored.items())), handle, indent=0)
