@@ -53,6 +53,15 @@ def x64():
         yield
 
 
+@pytest.fixture(params=["written out", "in arrays"])
+def form(request, monkeypatch):
+    """The generated step's terms of every size in one form, then the other (``rigid_body.make_scene``)."""
+    from stablebptt.physics import rigid_body
+    most = 1000 if request.param == "written out" else 0
+    monkeypatch.setattr(rigid_body, "WRITTEN_OUT_DOFS", {"cpu": most, "gpu": most})
+    return request.param
+
+
 DM_CONTROL = "dm_control==1.0.50"  # the DeepMind Control Suite's MJCF files, as users find them
 
 

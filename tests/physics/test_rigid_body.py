@@ -72,14 +72,6 @@ def lean_of(model):
     return scene.lean_model(model, effects), effects
 
 
-@pytest.fixture(params=["written out", "in arrays"])
-def form(request, monkeypatch):
-    """Each test that takes it runs with the terms of every size in both forms (``rigid_body.make_scene``)."""
-    most = 1000 if request.param == "written out" else 0
-    monkeypatch.setattr(rigid_body, "WRITTEN_OUT_DOFS", {"cpu": most, "gpu": most})
-    return request.param
-
-
 @pytest.mark.parametrize("name", MODELS)
 def test_the_generated_step_follows_mujocos_c_step(x64, form, name):
     model = MODELS[name]()
@@ -189,6 +181,12 @@ BRANCHES_IN_CONTACT = BRANCHES.format(integrator="Euler").replace(
 # A floating torso on a free joint, an arm on a ball joint with friction loss, a limited elbow, and
 # a hand on a slide and a limited ball joint: quaternions in the kinematics, three-dof groups in
 # Newton-Euler, MJX's Euler integrating on the sphere.
+HAND = """          <body name="hand" pos="0.15 0 0" euler="0 30 0">
+            <joint name="twist" type="slide" axis="1 0 0" range="-0.02 0.02"/>
+            <joint name="wrist" type="ball" pos="0.01 0 0" range="0 40" damping="0.02"/>
+            <geom type="sphere" size="0.04" pos="0.03 0 0" mass="0.2"/>
+          </body>
+"""
 FLOATING = """<mujoco model="floating">
   <option timestep="0.005" gravity="0.3 -0.2 -9.81"/>
   <worldbody>
@@ -220,6 +218,9 @@ FLOATING = """<mujoco model="floating">
     <motor joint="hip" ctrlrange="-1 1" ctrllimited="true"/>
   </actuator>
 </mujoco>"""
+# Without the hand (11 dofs): the size up to which a GPU writes the terms out (WRITTEN_OUT_DOFS), a free and
+# a ball joint still in it. Written out, the 15-dof scene compiles for minutes and is never so built.
+FLOATING_ARM = FLOATING.replace(HAND, "")
 CONSTRAINED = {"hopping, Euler": HOPPING.format(integrator="Euler"), "hopping, RK4": HOPPING.format(integrator="RK4"),
                "branches in contact": BRANCHES_IN_CONTACT, "floating": FLOATING}
 
@@ -339,58 +340,6 @@ IN_CONTACT_QVEL = [0.5, -0.3, 0.4, 0.2, -0.1]
 IN_CONTACT_CONTROL = [0.3, -0.2]
 
 
-def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
-    """In contact and at a limit, reverse mode through the generated terms and the implicit solver gives
-    the Jacobians of forward mode through MJX's stages and the same solver."""
-    model = mujoco.MjModel.from_xml_string(HOPPING.format(integrator="Euler"))
-    lean, effects = lean_of(model)
-    data = mujoco.MjData(model)
-    data.qpos[:], data.qvel[:] = IN_CONTACT_QPOS, IN_CONTACT_QVEL
-    mujoco.mj_forward(model, data)
-    assert data.ncon > 0 and int(mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT) in data.efc_type[:data.nefc]
-    state = lean_step.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
-    control = jnp.array(IN_CONTACT_CONTROL)
-    generated = lean_step.make_step(lean, effects)
-    stages = lean_step.make_step(lean, effects, "stages")
-    expected = jax.jit(jax.jacfwd(stages, argnums=(0, 1)))(state, control)
-    got = jax.jit(jax.jacrev(generated, argnums=(0, 1)))(state, control)
-    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
-        np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
-    assert np.abs(np.asarray(expected.qvel[0].qpos)).max() > 1e-3
-
-
-def test_free_and_ball_joints_in_contact_have_mjx_stages_jacobians(x64, form):
-    """Through the quaternions' normalisation and the three-dof groups, in either form: the floating body
-    on the floor, its shoulder turning."""
-    model = mujoco.MjModel.from_xml_string(FLOATING)
-    lean, effects = lean_of(model)
-    data = mujoco.MjData(model)
-    data.qvel[6:9] = [2.0, -1.0, 0.5]
-    for _ in range(200):
-        if data.ncon:
-            break
-        mujoco.mj_step(model, data)
-    assert data.ncon > 0
-    state = lean_step.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
-    control = jnp.array(IN_CONTACT_CONTROL)
-    expected = jax.jit(jax.jacfwd(lean_step.make_step(lean, effects, "stages"), argnums=(0, 1)))(state, control)
-    got = jax.jit(jax.jacrev(lean_step.make_step(lean, effects), argnums=(0, 1)))(state, control)
-    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
-        np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
-    assert np.abs(np.asarray(expected.qvel[0].qpos)[6:9, 3:7]).max() > 1e-3  # the shoulder by the torso's turn
-
-
-@pytest.mark.parametrize("jacobian", [jax.jacfwd, jax.jacrev])
-def test_rk4_with_constraints_has_the_jacobian_of_central_differences(x64, jacobian):
-    """Four constrained accelerations per step, each through the solver's implicit derivative: in contact
-    and at a limit, forward and reverse mode against central differences of the step itself."""
-    model = mujoco.MjModel.from_xml_string(HOPPING.format(integrator="RK4"))
-    lean, effects = lean_of(model)
-    inputs = tuple(jnp.array(x) for x in (IN_CONTACT_QPOS, IN_CONTACT_QVEL, IN_CONTACT_CONTROL))
-    got = assert_central_differences(lean_step.make_step(lean, effects), inputs, jacobian, rtol=1e-5, atol=1e-6)
-    assert np.abs(np.asarray(got[0])).max() > 0.1
-
-
 # The branches in contact, coupled: a joint equality (a quadratic in the other joint) and a fixed tendon's
 # equality; actuators on fixed tendons beside the joints', one a position servo whose length is the tendon's.
 # As manipulator's grasp and coupling. LOOPED adds a connect that holds the leg's foot to the hand.
@@ -426,23 +375,6 @@ def test_fixed_tendon_actuators_and_equality_constraints_step_as_mujocos_c_step(
     rows = steps_from_mujocos_states(jax.jit(lean_step.make_step(lean, effects)), model, data, np.random.default_rng(1))
     assert int(mujoco.mjtConstraint.mjCNSTR_EQUALITY) in rows
     assert np.abs(data.actuator_force[:2]).min() > 0  # both tendon actuators pulled
-
-
-def test_a_connect_loop_steps_as_mjx_stages_with_their_jacobians(x64):
-    """A connect's rows read the generated body frames. MJX's connect rows are not MuJoCo 4's (their
-    reference accelerations differ), so the comparison is with MJX's stages: the step and,
-    reverse mode through the generated terms against forward mode through the stages, its Jacobians."""
-    model, lean, effects, data = coupled_scene(LOOPED)
-    state = lean_step.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
-    control = jnp.array([0.3, -0.2, 0.1, 0.4, -0.3])
-    generated, stages = lean_step.make_step(lean, effects), lean_step.make_step(lean, effects, "stages")
-    for a, b in zip(jax.jit(generated)(state, control), jax.jit(stages)(state, control)):
-        np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
-    expected = jax.jit(jax.jacfwd(stages, argnums=(0, 1)))(state, control)
-    got = jax.jit(jax.jacrev(generated, argnums=(0, 1)))(state, control)
-    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
-        np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
-    assert np.abs(np.asarray(expected.qvel[1])[:, :2]).max() > 1e-3  # d qvel' / d (the tendons' controls)
 
 
 WELDED = BRANCHES.format(integrator="Euler").replace(
