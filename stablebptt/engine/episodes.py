@@ -7,7 +7,9 @@ update (``Carried``, part of the training state and of every checkpoint); each u
 state one window of the horizon further, the gradient stopped at the window's start; a state whose
 episode is over (done, or at the episode's length) is reset between windows; and the episodes'
 clocks start spread over an episode, so that the windows cover every phase of it from the first
-update on.
+update on. A reset episode starts with the next window, so the clocks stay spread to within a
+window; the steps a window rolls past an episode's end (half a window per episode, on average)
+are simulated and count for nothing.
 
 Within a window the flows roll a ``Window``: the task's state, its episode clock, whether its
 episode still runs, and the reward of the step that reached it. Once an episode ends its state stays
