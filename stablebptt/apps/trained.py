@@ -75,8 +75,10 @@ def configs_of(run_dir: Path, record: dict, train_changes: dict | None = None,
         task_values["model"] = model_file
         if moved:
             note(moved)
-    return (build(module.Config, task_values, source),
-            build(TrainConfig, {**RECORDED_BEFORE, **record["train"], **(train_changes or {})}, source))
+    task_config = build(module.Config, task_values, source)
+    if recorded := getattr(module, "recorded_config", None):  # a default that changed since the run began
+        task_config = recorded(task_config, record)
+    return task_config, build(TrainConfig, {**RECORDED_BEFORE, **record["train"], **(train_changes or {})}, source)
 
 
 def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> ReopenedRun:

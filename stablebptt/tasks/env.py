@@ -1,6 +1,6 @@
 """An environment in Brax's protocol as a task: MuJoCo Playground's registry by name, or any importable env.
 
-    python scripts/train.py --env CartpoleSwingup --steps 100
+    python scripts/train.py --env CartpoleSwingup --steps 128
     python scripts/train.py --env my_lab.envs:make_arm_env --steps 50
 
 The loss of a training rollout is its negative return; every epoch's train and
@@ -18,7 +18,11 @@ from stablebptt.envs.adapter import env_task, load_env
 from stablebptt.errors import InputError, config_field
 
 DEFAULT_EPOCHS = 200
-DEFAULT_STEPS = 100
+# Windows of 128 steps along carried episodes beat 32 and 512 for R and C on CartpoleSwingup and
+# AcrobotSwingup (docs/performance.md, "Training on carried episodes"). Runs recorded with steps 0
+# before trained windows of the former default, and keep them (``recorded_config``).
+DEFAULT_STEPS = 128
+FORMER_DEFAULT_STEPS = 100
 # Training on carried episodes: the states carried per seed, and the fresh starts of the train and test returns.
 TRAIN_DEFAULTS = {"batch": 64, "train_size": 16, "test_size": 16}
 MAX_STEPS = 100_000
@@ -105,6 +109,15 @@ def check_resume(config: Config, record: dict) -> str:
         raise InputError(f"the run began on MuJoCo Playground {began}, and {now} is installed: {config.env}'s "
                          f"rewards may differ; install playground=={began} to resume it, or train anew")
     return ""
+
+
+def recorded_config(config: Config, record: dict) -> Config:
+    """``config`` as the run of ``record`` trained it: 'steps 0' meant the default of the run's day,
+    which its resolved task records."""
+    if config.steps == 0:
+        steps = (record.get("resolved_task") or {}).get("horizon_steps", FORMER_DEFAULT_STEPS)
+        return replace(config, steps=int(steps))
+    return config
 
 
 def for_reopening(config: Config) -> Config:

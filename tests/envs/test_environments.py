@@ -309,14 +309,20 @@ def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_o
     assert len({row["test_loss"] for row in straight}) > 2  # it trains: the returns move
     # A run recorded before episode training trained from fixed starts, and resumes so.
     from stablebptt.apps.trained import configs_of
+    from stablebptt.tasks import env
     record = read_json(tmp_path / "run" / "config.json")
     assert record["train"]["episodes"] == "auto"
     del record["train"]["episodes"]
     assert configs_of(tmp_path / "run", record)[1].episodes == "off"
+    # 'steps 0' is the default of the run's day: the window its resolved task records.
+    assert configs_of(tmp_path / "run", record)[0].steps == 4
+    record["task_config"]["steps"] = 0
+    assert configs_of(tmp_path / "run", record)[0].steps == 4
+    del record["resolved_task"]["horizon_steps"]
+    assert configs_of(tmp_path / "run", record)[0].steps == env.FORMER_DEFAULT_STEPS == 100
     assert [line for line in err if line.startswith("note:")] == [
         "note: the run trains envs_for_tests:make_cart, code of your own that the library cannot check: if "
         "envs_for_tests changed since the run began, its metrics change at the resume"]
-    from stablebptt.tasks import env
     if HAS_PLAYGROUND:
         config = env.Config(env="CartpoleSwingup")
         assert env.check_resume(config, {"resolved_task": {"playground_version": env._playground_version()}}) == ""
