@@ -97,10 +97,12 @@ def train(argv: list[str], held: list) -> int:
     if task.summary:
         print(task.summary)
     if begun.trainer.episodes is not None:
-        critic = (f", its return bootstrapped by a learned value of its last state (TD({train_config.td_lambda:g}) "
+        extras = (f", its return bootstrapped by a learned value of its last state (TD({train_config.td_lambda:g}) "
                   "targets)") if train_config.critic else ""
+        if train_config.action_noise:
+            extras += f", Gaussian noise of standard deviation {train_config.action_noise:g} on its actions"
         print(f"training on carried episodes: {train_config.batch} per seed, each update one window of "
-              f"{task.dynamics.horizon} steps from where they stand{critic}, {begun.trainer.updates_per_epoch} updates "
+              f"{task.dynamics.horizon} steps from where they stand{extras}, {begun.trainer.updates_per_epoch} updates "
               f"an epoch (--episodes off: one window from fixed starts)")
     if start_epoch == train_config.epochs and resuming:
         mean, std = metrics.final_mean_std(rows) if len(rows) else (float("nan"), 0.0)

@@ -42,6 +42,7 @@ class TrainConfig:
     seeds: int = field(default=1, metadata={"help": "independent seeds trained in one compiled program"})
     seed: int = field(default=42, metadata={"help": "first network seed; seed k uses seed+k"})
     lr: float = field(default=1e-3, metadata={"help": "Adam learning rate"})
+    lr_decay: float = field(default=1.0, metadata={"help": "the learning rate's factor per update, in (0, 1] (1: constant; Brax APG decays by 0.997)"})
     batch: int = field(default=8, metadata={"help": "initial states per update (training on episodes: the states carried from update to update)"})
     train_size: int = field(default=256, metadata={"help": "training initial states (training on episodes: the fresh starts whose episode return the train loss reports)"})
     test_size: int = field(default=256, metadata={"help": "test initial states"})
@@ -53,6 +54,7 @@ class TrainConfig:
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: faster per seed, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
     episodes: str = field(default="auto", metadata={"help": "on: train on whole episodes, --batch states carried from update to update, each update one window of the horizon from where they stand, an episode reset when it ends, an epoch one episode's length of windows; off: the paper's protocol, one window from each of the fixed training states; auto: on for tasks with episodes (environments), off for the others", "choices": EPISODE_CHOICES})
+    action_noise: float = field(default=0.0, metadata={"help": "training on episodes: standard deviation of Gaussian noise added to every action of a training window (exploration; evaluation stays deterministic)"})
     critic: bool = field(default=False, metadata={"help": "training on episodes: add a learned value of the window's last state to each window's return (short-horizon actor-critic), the critic fitted to TD(lambda) targets of the windows' rewards"})
     critic_lr: float = field(default=1e-3, metadata={"help": "the critic's Adam learning rate"})
     td_lambda: float = field(default=0.95, metadata={"help": "lambda of the critic's TD(lambda) targets, in [0, 1]"})
@@ -76,6 +78,10 @@ class TrainConfig:
                 raise InputError(f"{config_field(self, name)} must be a positive integer, got {getattr(self, name)}")
         if not (math.isfinite(self.td_lambda) and 0 <= self.td_lambda <= 1):
             raise InputError(f"{config_field(self, 'td_lambda')} must be in [0, 1], got {self.td_lambda}")
+        if not (math.isfinite(self.lr_decay) and 0 < self.lr_decay <= 1):
+            raise InputError(f"{config_field(self, 'lr_decay')} must be in (0, 1], got {self.lr_decay}")
+        if not (math.isfinite(self.action_noise) and self.action_noise >= 0):
+            raise InputError(f"{config_field(self, 'action_noise')} must be a number >= 0, got {self.action_noise}")
         for name in ("lr", "clip_threshold", "critic_lr"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):

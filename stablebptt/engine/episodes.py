@@ -31,6 +31,8 @@ from stablebptt.flows.dynamics import Dynamics, PyTree
 
 # The stream of a seed's PRNG keys that its episodes' resets draw from; the parameters draw from the seed itself.
 RESET_STREAM = 1
+# The stream of the carried key that a window's exploration noise draws from (its resets split the key itself).
+NOISE_STREAM = 3
 
 
 @dataclass(frozen=True)
@@ -80,13 +82,19 @@ class Window(NamedTuple):
     clock: jax.Array  # int32: steps into its episode
     running: jax.Array  # bool: its episode has not ended
     reward: jax.Array  # the reward of the step that reached it (0 once the episode has ended)
+    noise_key: jax.Array | None = None  # with exploration noise: the key its actions' noise draws from
 
 
 def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
-                    value: Callable[[PyTree], jax.Array] | None = None) -> Dynamics:
+                    value: Callable[[PyTree], jax.Array] | None = None, action_noise: float = 0.0) -> Dynamics:
     """``dynamics`` over ``Window`` states: a window of ``window`` steps whose loss is its negative
     (discounted) return, rewards after its episode's end left out; with ``value`` (of a task's state),
-    plus the discounted value of the window's last state where its episode still runs there."""
+    plus the discounted value of the window's last state where its episode still runs there.
+
+    With ``action_noise``, every action gets Gaussian noise of that standard deviation, drawn from the
+    state's ``noise_key`` and its clock (``start_window``), so a flow that evaluates the policy again at a
+    visited state sees the same noise. The noise does not depend on the parameters: the gradient is the
+    policy's own, taken along the noisy trajectory."""
     def step(current: Window, control) -> Window:
         reached = dynamics.step(current.state, control)
         clock = current.clock + 1
@@ -94,7 +102,7 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
         # where, not a product: the value of a step past the end (a NaN, say) must not leak in.
         reward = jnp.where(current.running, episodes.reward(reached), 0.0)
         state = jax.tree.map(lambda new, old: jnp.where(still, new, old), reached, current.state)
-        return Window(state, jnp.where(current.running, clock, current.clock), still, reward)
+        return Window(state, jnp.where(current.running, clock, current.clock), still, reward, current.noise_key)
 
     def loss(states: Window, controls) -> jax.Array:
         weights = episodes.discount ** jnp.arange(window, dtype=states.reward.dtype)
@@ -104,14 +112,25 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
             total = total + episodes.discount ** window * jnp.where(last.running, value(last.state), 0.0)
         return -total
 
-    return Dynamics(step=step, policy=lambda params, current: dynamics.policy(params, current.state), loss=loss,
-                    horizon=window)
+    def policy(params, current: Window):
+        control = dynamics.policy(params, current.state)
+        if action_noise == 0:
+            return control
+        keys = jax.random.split(jax.random.fold_in(current.noise_key, current.clock), len(jax.tree.leaves(control)))
+        noise = jax.tree.unflatten(jax.tree.structure(control), [
+            jax.random.normal(key, jnp.shape(leaf), jnp.result_type(leaf)) for key, leaf in
+            zip(keys, jax.tree.leaves(control))])
+        return jax.tree.map(lambda c, n: c + action_noise * n, control, noise)
+
+    return Dynamics(step=step, policy=policy, loss=loss, horizon=window)
 
 
-def start_window(carried: Carried, reward_dtype) -> Window:
-    """The carried states as the first states of a window: every episode running."""
+def start_window(carried: Carried, reward_dtype, noise: bool = False) -> Window:
+    """The carried states as the first states of a window: every episode running; with ``noise``, each
+    with a key of its own for the window's exploration noise."""
     envs = carried.clocks.shape[0]
-    return Window(carried.states, carried.clocks, jnp.ones(envs, bool), jnp.zeros(envs, reward_dtype))
+    keys = jax.random.split(jax.random.fold_in(carried.key, NOISE_STREAM), envs) if noise else None
+    return Window(carried.states, carried.clocks, jnp.ones(envs, bool), jnp.zeros(envs, reward_dtype), keys)
 
 
 def continue_from(final: Window, key: jax.Array, episodes: Episodes) -> Carried:

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import optax
 
 from stablebptt.engine.config import CLIP_MODES, TrainConfig
+from stablebptt.errors import InputError, config_field
 from stablebptt.flows.modes import FLOWS, MODES, select_flow
 
 # Clip modes as optax transforms of the threshold: single runs and grid cells clip with the same ones.
@@ -35,8 +36,11 @@ def make_optimizer(config: TrainConfig, flows: tuple[str, ...], per_cell: bool =
     ``opt_state.hyperparams`` after ``init``.
     """
     def chain(learning_rate, clip_threshold):
+        decay = []
+        if config.lr_decay != 1:  # only then: a constant rate keeps the optimizer state of earlier runs
+            decay = [optax.scale_by_schedule(lambda count: config.lr_decay ** count)]
         return optax.chain(select_flow(config.mode, flows), CLIPPERS[config.clip](clip_threshold),
-                           optax.adam(learning_rate))
+                           optax.adam(learning_rate), *decay)
 
     def chain_per_cell(learning_rate, clip_threshold, mode_index, clip_index):
         return optax.chain(_switch([select_flow(mode, flows) for mode in MODES], mode_index),
@@ -44,6 +48,9 @@ def make_optimizer(config: TrainConfig, flows: tuple[str, ...], per_cell: bool =
                            optax.adam(learning_rate))
 
     if per_cell:
+        if config.lr_decay != 1:
+            raise InputError(f"{config_field(config, 'lr_decay')}: a sweep's cells keep a constant learning rate; "
+                             "train a decaying one as a run of its own")
         return optax.inject_hyperparams(chain_per_cell)(
             learning_rate=config.lr, clip_threshold=config.clip_threshold,
             mode_index=MODES.index(config.mode), clip_index=CLIP_MODES.index(config.clip))

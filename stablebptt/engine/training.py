@@ -154,8 +154,9 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             carried = None
         else:  # one window from where the carried states stand; the gradient stops at its start
             at_end = None if critic is None else bootstrap(critic, episodes.observe)
-            window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end), flows, state.params,
-                                        start_window(state.carried, reward_dtype), window_plan)
+            window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end, config.action_noise), flows,
+                                        state.params, start_window(state.carried, reward_dtype, config.action_noise > 0),
+                                        window_plan)
             loss, grads = window_result.loss, window_result.grads
             carried = continue_from(window_result.final, state.carried.key, episodes)
             if critic is not None:
@@ -244,10 +245,12 @@ def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
         raise InputError(f"{config_field(config, 'episodes')} on: {task.name} has no episodes to carry (Task.episodes "
                          "gives a reset, a reward, a done and a length); train it with episodes off")
     if config.episodes == "off" or task.episodes is None:
-        if config.critic:
-            raise InputError(f"{config_field(config, 'critic')}: a learned value at a window's end needs carried "
-                             f"episodes, and {task.name} trains from fixed starts here (episodes "
-                             f"{'off' if task.episodes is not None else 'it has none'})")
+        needs = {"critic": "a learned value at a window's end", "action_noise": "exploration noise on a window's actions"}
+        for name, what in needs.items():
+            if getattr(config, name):
+                raise InputError(f"{config_field(config, name)}: {what} needs carried episodes, and {task.name} "
+                                 f"trains from fixed starts here (episodes "
+                                 f"{'off' if task.episodes is not None else 'it has none'})")
         check_batches(config)
         return None
     if config.critic and task.episodes.observe is None:

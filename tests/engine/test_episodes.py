@@ -86,14 +86,17 @@ def test_first_clocks_are_spread_over_an_episode_unless_a_window_holds_one():
 
 
 @pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
-@pytest.mark.parametrize("at_end", [None, lambda x: 3.0 * x ** 2 - x], ids=["window", "with a value at its end"])
-def test_each_flow_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_where_it_does(step_derivative, at_end):
+@pytest.mark.parametrize("at_end, action_noise", [(None, 0.0), (lambda x: 3.0 * x ** 2 - x, 0.0), (None, 0.3)],
+                         ids=["window", "with a value at its end", "with exploration noise"])
+def test_each_flow_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_where_it_does(step_derivative, at_end,
+                                                                                         action_noise):
     # Episodes that end inside the window, by their clock and by done: the masks must hold in the gradient too;
-    # a value of the last state is a loss on it, which every flow keeps.
-    window = window_dynamics(drift(1.0), episodes(done_beyond=0.8), 5, value=at_end)
+    # a value of the last state is a loss on it, which every flow keeps; noise on the actions is part of the
+    # trajectory, which the flows evaluate the policy along again.
+    window = window_dynamics(drift(1.0), episodes(done_beyond=0.8), 5, value=at_end, action_noise=action_noise)
     with float64():
         start = start_window(Carried(jnp.array([0.3, -0.5, 0.7, 0.1, 0.05]), jnp.array([0, 7, 2, 9, 1], jnp.int32),
-                                     jax.random.PRNGKey(0)), jnp.float64)
+                                     jax.random.PRNGKey(0)), jnp.float64, noise=action_noise > 0)
         theta = jnp.array([0.2, -0.1])
         loss, grads, final, _ = flow_window(window, ("R", "M"), theta, start, Plan(step_derivative=step_derivative))
         for index, flow in enumerate(("R", "M")):
@@ -104,6 +107,42 @@ def test_each_flow_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_whe
         for ours, theirs in zip(jax.tree.leaves(final), jax.tree.leaves(reached)):
             np.testing.assert_allclose(ours, theirs, rtol=1e-12)
         assert not np.all(final.running) and np.any(final.running)  # some episodes end inside the window, some not
+
+
+def test_exploration_noise_is_gaussian_of_its_deviation_fresh_at_every_step_and_window_and_absent_without_it():
+    sigma, envs = 0.3, 4096
+    window = window_dynamics(drift(), episodes(), 3, action_noise=sigma)
+    theta = jnp.array([0.5, 0.2])
+    population = carried(np.linspace(-0.5, 0.5, envs), np.zeros(envs))
+    noisy = jax.vmap(lambda x0: reference_rollout(window, theta, x0))(start_window(population, jnp.float32, noise=True))
+    visited = jax.tree.map(lambda a, b: jnp.concatenate([a[:, None], b[:, :-1]], axis=1),
+                           start_window(population, jnp.float32, noise=True), noisy.states)
+    deviations = noisy.controls[..., 0] - (theta[0] * visited.state + theta[1])  # [envs, steps]
+    np.testing.assert_allclose(deviations.std(axis=0), sigma, rtol=0.05)
+    np.testing.assert_allclose(deviations.mean(axis=0), 0.0, atol=4 * sigma / np.sqrt(envs))
+    assert abs(np.corrcoef(deviations[:, 0], deviations[:, 1])[0, 1]) < 0.1  # a fresh draw at every step
+    moved_on = start_window(population._replace(key=jax.random.PRNGKey(1)), jnp.float32, noise=True)
+    again = jax.vmap(lambda x0: reference_rollout(window, theta, x0))(moved_on)
+    assert not np.allclose(again.controls, noisy.controls)  # and with every window's key
+    plain = window_dynamics(drift(), episodes(), 3)
+    assert start_window(population, jnp.float32).noise_key is None
+    np.testing.assert_array_equal(jax.vmap(lambda x: plain.policy(theta, x))(start_window(population, jnp.float32)),
+                                  theta[0] * population.states[:, None] + theta[1])
+
+
+def test_a_decaying_learning_rate_scales_every_update_by_its_factor_per_update():
+    from stablebptt.engine.optimizer import make_optimizer
+    # Adam's update of a constant gradient is lr times its sign, bias correction included: the decay is all that moves.
+    optimizer = make_optimizer(TrainConfig(mode="R", clip="none", lr=0.1, lr_decay=0.5), ("R",))
+    params = jnp.zeros(3)
+    state = optimizer.init(params)
+    gradient = jnp.array([[2.0, -3.0, 0.5]])  # one flow's row
+    for count in range(4):
+        updates, state = optimizer.update(gradient, state, params)
+        np.testing.assert_allclose(updates, -0.1 * 0.5 ** count * np.sign(gradient[0]), rtol=1e-4)
+    assert make_optimizer(TrainConfig(mode="R"), ("R",)).init(params).hyperparams.keys() == state.hyperparams.keys()
+    with pytest.raises(InputError, match="lr_decay must be in"):
+        TrainConfig(lr_decay=1.5)
 
 
 def test_td_lambda_targets_are_the_closed_forms_at_lambda_0_and_1_and_stop_where_an_episode_ends():
@@ -137,6 +176,8 @@ def test_a_critic_trains_beside_the_policy_and_its_target_follows_it():
     from stablebptt.engine.critic import value
     one = jax.tree.map(lambda a: a[0], state.critic.params)
     assert float(value(one, jnp.array([0.9]))) < float(value(one, jnp.array([0.0])))
+    with pytest.raises(InputError, match="action_noise: exploration noise on a window's actions needs carried episodes"):
+        make_trainer(task, TrainConfig(batch=1, train_size=2, episodes="off", action_noise=0.1))
     with pytest.raises(InputError, match="critic: a learned value at a window's end needs carried episodes"):
         make_trainer(task, TrainConfig(batch=1, train_size=2, episodes="off", critic=True))
 
