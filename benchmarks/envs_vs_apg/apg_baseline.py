@@ -19,43 +19,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
-import statistics
 import sys
-import time
-import traceback
 
 import jax
-import jax.numpy as jnp
-import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import brax_runs  # noqa: E402
 import evaluation  # noqa: E402
 
+brax_runs.install_jax_shims()
 
-def _install_jax_shims():
-    """Brax 0.14.2 calls jax.device_put_replicated, which current JAX no longer has."""
-    if hasattr(jax, "device_put_replicated"):
-        return
-
-    def device_put_replicated(x, devices):
-        devices = list(devices)
-        mesh = jax.sharding.Mesh(np.array(devices), ("d",))
-        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("d"))
-
-        def put(a):
-            a = jnp.asarray(a)
-            return jax.device_put(jnp.broadcast_to(a[None], (len(devices),) + a.shape), sharding)
-
-        return jax.tree_util.tree_map(put, x)
-
-    jax.device_put_replicated = device_put_replicated
-
-
-_install_jax_shims()
-
-from brax.training import acting  # noqa: E402
 from brax.training.agents.apg import networks as apg_networks  # noqa: E402
 from brax.training.agents.apg import train as apg_train  # noqa: E402
 from mujoco_playground import wrapper as mjp_wrapper  # noqa: E402
@@ -77,14 +51,6 @@ APG_DEFAULTS = dict(
 # Defaults of Brax's own launcher (brax/training/learner.py --learner=apg) where they differ.
 LEARNER_CLI = dict(APG_DEFAULTS, num_envs=4, learning_rate=5e-4, normalize_observations=True)
 PRESETS = {"train_defaults": APG_DEFAULTS, "learner_cli": LEARNER_CLI}
-
-
-class BudgetReached(Exception):
-    pass
-
-
-class NaNReached(Exception):
-    pass
 
 
 def apply_variant(env, variant: str):
@@ -121,22 +87,6 @@ def reward_context(variant: str):
     return contextlib.nullcontext()
 
 
-def solver_info(env) -> dict:
-    o = env._mj_model.opt
-    return {
-        "solver": int(o.solver),
-        "iterations": int(o.iterations),
-        "ls_iterations": int(o.ls_iterations),
-        "disableflags": int(o.disableflags),
-        "n_limited_joints": int(env._mj_model.jnt_limited.sum()),
-    }
-
-
-def _f(x):
-    x = float(np.asarray(x))
-    return x if math.isfinite(x) else str(x)
-
-
 _EVALUATORS: dict = {}
 
 
@@ -158,14 +108,11 @@ def run_one(env_name, variant, seed, budget, eval_every, updates_per_epoch, hp, 
         "episode_length": episode_length,
         "hyperparams": {k: (list(v) if isinstance(v, tuple) else v) for k, v in hp.items()},
         "updates_per_epoch": updates_per_epoch,
-        "solver_train_env": solver_info(train_env),
-        "solver_eval_env": solver_info(shipped),
+        "solver_train_env": brax_runs.solver_info(train_env),
+        "solver_eval_env": brax_runs.solver_info(shipped),
         "eval": {"num_envs": eval_envs, "seed": evaluation.EVAL_SEED, "deterministic": True},
         "device": str(jax.devices()[0]),
         "jax": jax.__version__,
-        "points": [],
-        "epochs": [],
-        "status": "running",
     }
 
     # Our deterministic policy from APG's params (normalizer, policy): tanh of the Gaussian mean.
@@ -188,91 +135,9 @@ def run_one(env_name, variant, seed, budget, eval_every, updates_per_epoch, hp, 
             evaluation.make_evaluator(train_env, apply, num_envs=eval_envs) if variant != "shipped" else None,
         )
     eval_shipped, eval_variant = _EVALUATORS[key]
-    rec["brax_eval_mode"] = brax_eval
 
-    clock = {"t0": None, "eval_s": 0.0, "last_eval_train_s": -1e9, "epoch": 0, "last_epoch_end": None}
-
-    def train_s():
-        return time.perf_counter() - clock["t0"] - clock["eval_s"]
-
-    def record_point(params, brax_eval):
-        t = train_s()
-        e0 = time.perf_counter()
-        # Host copies: the same argument types at every call, so the evaluator compiles once (the
-        # replicated training state's arrays may carry another sharding than the initial ones).
-        params = jax.tree_util.tree_map(np.asarray, jax.device_get(params))
-        ev = eval_shipped(params)
-        pt = {
-            "train_wall_s": t,
-            "epoch": clock["epoch"],
-            "updates": clock["epoch"] * updates_per_epoch,
-            "env_steps": clock["epoch"] * updates_per_epoch * num_envs * horizon,
-            "return": ev["mean_return"],
-            "return_std": ev["std_return"],
-            "num_done_early": ev["num_done_early"],
-        }
-        if eval_variant is not None:
-            pt["return_train_variant"] = eval_variant(params)["mean_return"]
-        if brax_eval is not None:
-            pt["brax_eval_return"] = _f(brax_eval.get("eval/episode_reward", float("nan")))
-        pt["eval_s"] = time.perf_counter() - e0
-        rec["points"].append(pt)
-        clock["last_eval_train_s"] = t
-        log(
-            f"  [{env_name}/{variant}/s{seed}] t={t:7.1f}s ep={clock['epoch']} steps={pt['env_steps']} "
-            f"return={pt['return']:.2f} brax={pt.get('brax_eval_return')}"
-        )
-
-    class TimedEvaluator(acting.Evaluator):
-        """Brax's evaluator, extended to time epochs, score with the shared protocol and stop."""
-
-        def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
-            now = time.perf_counter()
-            first = clock["last_epoch_end"] is None
-            if first:
-                rec["setup_s"] = now - clock["t0"]  # wrap + jit of reset/step + init, before epoch 1
-            else:
-                clock["epoch"] += 1
-                ep = {
-                    "epoch": clock["epoch"],
-                    "wall_s": now - clock["last_epoch_end"],
-                    "sps": _f(training_metrics.get("training/sps", float("nan"))),
-                    "grad_norm": _f(training_metrics.get("training/grad_norm", float("nan"))),
-                    "params_norm": _f(training_metrics.get("training/params_norm", float("nan"))),
-                }
-                rec["epochs"].append(ep)
-            e0 = time.perf_counter()
-            t = train_s()
-            nan = (not first) and (
-                isinstance(rec["epochs"][-1]["grad_norm"], str)
-                or isinstance(rec["epochs"][-1]["params_norm"], str)
-            )
-            due = first or nan or t >= budget or t - clock["last_eval_train_s"] >= eval_every
-            metrics = dict(training_metrics)
-            brax_eval = None
-            if due:
-                if rec["brax_eval_mode"] == "all":  # Brax's own evaluator (compiles once per run), a cross-check
-                    brax_eval = super().run_evaluation(policy_params, training_metrics, aggregate_episodes)
-                    metrics = brax_eval
-                record_point(policy_params, brax_eval)
-            clock["eval_s"] += time.perf_counter() - e0
-            clock["last_epoch_end"] = time.perf_counter()
-            if nan:
-                rec["nan_epoch"] = clock["epoch"]
-                rec["nan_update_range"] = [
-                    (clock["epoch"] - 1) * updates_per_epoch + 1,
-                    clock["epoch"] * updates_per_epoch,
-                ]
-                raise NaNReached()
-            if t >= budget:
-                raise BudgetReached()
-            return metrics
-
-    max_epochs = 1_000_000
-    saved = acting.Evaluator
-    acting.Evaluator = TimedEvaluator
-    clock["t0"] = time.perf_counter()
-    try:
+    def train():
+        max_epochs = 1_000_000
         with reward_context(variant):
             apg_train.train(
                 environment=train_env,
@@ -285,38 +150,10 @@ def run_one(env_name, variant, seed, budget, eval_every, updates_per_epoch, hp, 
                 network_factory=nets,
                 **hp,
             )
-        rec["status"] = "finished"
-    except BudgetReached:
-        rec["status"] = "budget"
-    except NaNReached:
-        rec["status"] = "nan"
-    except Exception as e:  # noqa: BLE001 - the failure itself is the measurement
-        rec["status"] = "error"
-        rec["error_type"] = type(e).__name__
-        rec["error"] = str(e)[:3000]
-        rec["traceback_tail"] = traceback.format_exc()[-3000:]
-        log(f"  [{env_name}/{variant}/s{seed}] ERROR {type(e).__name__}: {str(e)[:300]}")
-    finally:
-        acting.Evaluator = saved
-    rec["total_wall_s"] = time.perf_counter() - clock["t0"]
-    rec["eval_wall_s"] = clock["eval_s"]
 
-    eps = rec["epochs"]
-    if eps:
-        rec["first_epoch_s"] = eps[0]["wall_s"]
-        steady = [e["wall_s"] for e in eps[1:]] or [eps[0]["wall_s"]]
-        rec["steady_epoch_s"] = statistics.median(steady)
-        # Compile = setup plus the first epoch's excess over a steady epoch.
-        rec["compile_s"] = rec.get("setup_s", 0.0) + eps[0]["wall_s"] - rec["steady_epoch_s"]
-        rec["steps_per_update"] = num_envs * horizon
-        rec["update_s"] = rec["steady_epoch_s"] / updates_per_epoch
-        rec["env_steps_per_s"] = num_envs * horizon / rec["update_s"]
-        sps = [e["sps"] for e in eps[1:] if not isinstance(e["sps"], str)]
-        rec["brax_sps_median"] = statistics.median(sps) if sps else None
-    finite = [p["return"] for p in rec["points"] if math.isfinite(p["return"])]
-    rec["final_return"] = rec["points"][-1]["return"] if rec["points"] else None
-    rec["best_return"] = max(finite) if finite else None
-    return rec
+    return brax_runs.timed_run(train, rec, evaluate=eval_shipped, evaluate_variant=eval_variant, budget=budget,
+                               eval_every=eval_every, updates_per_epoch=updates_per_epoch,
+                               env_steps_per_update=num_envs * horizon, brax_eval=brax_eval, log=log)
 
 
 def main(argv=None):

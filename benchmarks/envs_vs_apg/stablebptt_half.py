@@ -80,6 +80,7 @@ def build(env, a, mode, seeds, horizon, batch):
                          train_size=batch * a.train_batches, test_size=batch * a.train_batches, seeds=seeds, seed=a.seed0,
                          epochs=1, cosine=False, unroll=a.unroll, seed_batching=a.seed_batching,
                          epoch_program="per-update", episodes=a.episodes, critic=a.critic, critic_lr=a.critic_lr,
+                         action_noise=a.action_noise, lr_decay=a.lr_decay,
                          td_lambda=a.td_lambda)
     b0 = time.perf_counter()
     trainer = make_trainer(task, config)
@@ -111,7 +112,8 @@ def run_one(env_name, mode, a, log):
                                            if a.episodes == "on" else
                                            "train_size env.reset states (data_seed 42), fixed, minibatches cycled"),
                         "episodes": a.episodes, "trainer_episode_length": a.trainer_episode_length,
-                        "critic": a.critic, "critic_lr": a.critic_lr, "td_lambda": a.td_lambda},
+                        "critic": a.critic, "critic_lr": a.critic_lr, "td_lambda": a.td_lambda,
+                        "action_noise": a.action_noise, "lr_decay": a.lr_decay},
         "solver_train_env": solver_info(train_env), "solver_eval_env": solver_info(eval_env),
         "eval": {"num_envs": a.eval_envs, "seed": evaluation.EVAL_SEED, "deterministic": True,
                  "seeds_in_one_program": True},
@@ -290,6 +292,8 @@ def main(argv=None):
     p.add_argument("--seed-batching", default="vmap", choices=("vmap", "map"))
     p.add_argument("--episodes", default="on", choices=("on", "off"),
                    help="train on carried episodes (on) or from fixed starts, one window from each (off)")
+    p.add_argument("--action-noise", type=float, default=0.0, help="std of Gaussian noise on training actions")
+    p.add_argument("--lr-decay", type=float, default=1.0, help="the learning rate's factor per update")
     p.add_argument("--critic", action="store_true", help="bootstrap each window by a learned value of its last state")
     p.add_argument("--critic-lr", type=float, default=1e-3)
     p.add_argument("--td-lambda", type=float, default=0.95)

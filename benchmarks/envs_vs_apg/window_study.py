@@ -1,13 +1,20 @@
-"""The window study and the side-by-side with Brax APG: tables with intervals and curves from the records.
+"""The window study and the side-by-side with Brax APG and PPO: tables with intervals and curves from the records.
 
-Reads the records `stablebptt_half.py` and `apg_baseline.py` wrote (one JSON per run), keeps of each
-what the report uses (`--raw`: trimmed, the per-update logs left out, into `OUT/records.json`, which
-a later call adds to), and writes
-`OUT/window_study.md` (the tables) and one figure per env, `OUT/window_study_<env>.png` (the return
-against training wall time and against env steps).
+Reads the records `stablebptt_half.py`, `apg_baseline.py` and `ppo_baseline.py` wrote (one JSON per
+run), keeps of each what the report uses (`--raw`: trimmed, the per-update logs left out, into
+`OUT/records.json`, which a later call adds to), and writes `OUT/window_study.md` (the tables) and
+one figure per env, `OUT/window_study_<env>.png` (the mean return of each method with a band, against
+training wall time and against env steps).
 
   python benchmarks/envs_vs_apg/window_study.py --raw DIR [DIR ...] --out results/envs/episodes
+  python benchmarks/envs_vs_apg/window_study.py --raw DIR --sharing 5 --out ...  # seeds_together.sh's runs
+  python benchmarks/envs_vs_apg/window_study.py --cut-logs LOG [LOG ...] --sharing 5 --budget 360 --out ...
   python benchmarks/envs_vs_apg/window_study.py --out results/envs/episodes     # from OUT/records.json again
+
+`--cut-logs` takes the log of a Brax baseline's run that the call's time limit cut before it wrote
+its record, and keeps what the log's lines say (its evaluations) as a record of status "cut".
+`--sharing N` marks the records read by this call as runs of N seeds at once on one GPU
+(`seeds_together.sh`), as stablebptt's N seeds share theirs in one program.
 
 Every return is `evaluation.py`'s: 64 fixed resets, 1000 steps, the deterministic policy, off the
 training clock. "Final" is the policy when the budget ran out, "best" each seed's best evaluation.
@@ -27,23 +34,88 @@ import numpy as np
 KEEP_STABLEBPTT = ("env", "mode", "seeds", "budget_s", "hyperparams", "device", "jax", "points", "status", "compile_s",
                    "nan_update_per_seed", "updates", "update_s", "env_steps_per_s_per_seed",
                    "final_return_per_seed", "best_return_per_seed", "argv")
-KEEP_APG = ("env", "seed", "budget_s", "hyperparams", "device", "jax", "points", "status", "compile_s", "updates_per_epoch",
-            "update_s", "env_steps_per_s", "final_return", "best_return", "argv")
+KEEP_BRAX = ("env", "seed", "algo", "variant", "budget_s", "hyperparams", "device", "jax", "points", "status", "compile_s",
+             "updates_per_epoch", "update_s", "env_steps_per_s", "final_return", "best_return", "argv", "sharing", "error_type", "error")
 RESAMPLES = 10_000
+# The time at which the methods of an env are compared side by side: each seed's last evaluation at
+# or before it. Per env, the latest time by which every method's runs had been evaluated (stablebptt's
+# runs on the locomotion envs were evaluated every 150 s or so, PPO's on WalkerWalk were cut at 248-300 s).
+EQUAL_TIME_S = {"CartpoleSwingup": 240.0, "AcrobotSwingup": 240.0, "CheetahRun": 320.0, "WalkerWalk": 285.0}
+BRAX_NAMES = {"brax_apg": "Brax APG", "brax_ppo": "Brax PPO"}
 
 
 def trim(record: dict) -> dict:
-    keep = KEEP_APG if "seed" in record else KEEP_STABLEBPTT
-    return {key: record[key] for key in keep if key in record}
+    keep = KEEP_BRAX if "seed" in record else KEEP_STABLEBPTT
+    kept = {key: record[key] for key in keep if key in record}
+    if "error" in kept:
+        kept["error"] = kept["error"][:160]
+    return kept
 
 
 def method(record: dict) -> str:
     if "seed" in record:
-        return "Brax APG"
-    critic = ", critic" if record["hyperparams"].get("critic") else ""
-    discount = record["hyperparams"].get("discount", 1.0)
-    return f"stablebptt {record['mode']}, window {record['hyperparams']['horizon']}{critic}" + \
-        (f", discount {discount:g}" if discount != 1.0 else "")
+        variant = record.get("variant", "shipped")
+        sharing = record.get("sharing", 1)
+        return (BRAX_NAMES[record.get("algo", "brax_apg")] + (f" ({variant})" if variant != "shipped" else "")
+                + (f", {sharing} seeds sharing a GPU" if sharing > 1 else ""))
+    options = record["hyperparams"]
+    name = f"stablebptt {record['mode']}, window {options['horizon']}"
+    name += ", critic" if options.get("critic") else ""
+    name += f", discount {options['discount']:g}" if options.get("discount", 1.0) != 1.0 else ""
+    name += f", action noise {options['action_noise']:g}" if options.get("action_noise", 0.0) else ""
+    name += f", lr decay {options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else ""
+    return name + (f", seeds {record['seeds'][0]}-{record['seeds'][-1]}" if record["seeds"][0] != 0 else "")
+
+
+def record_name(record: dict) -> str:
+    """The record's key in records.json: one per stablebptt run (its seeds inside), one per Brax seed."""
+    if "seed" in record:
+        algo = {"brax_apg": "apg", "brax_ppo": "ppo"}[record.get("algo", "brax_apg")]
+        variant = record.get("variant", "shipped")
+        return f"{record['env']}_{algo}{'' if variant == 'shipped' else '_' + variant}_s{record['seed']}"
+    options = record["hyperparams"]
+    return (f"{record['env']}_{record['mode']}_w{options['horizon']}" + ("_critic" if options.get("critic") else "")
+            + (f"_d{options['discount']:g}" if options.get("discount", 1.0) != 1.0 else "")
+            + (f"_noise{options['action_noise']:g}" if options.get("action_noise", 0.0) else "")
+            + (f"_decay{options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else "")
+            + (f"_seeds{record['seeds'][0]}" if record["seeds"][0] != 0 else ""))
+
+
+def record_from_log(path: str, budget: float) -> list[dict]:
+    """The evaluations a Brax baseline's log printed, as records (one per seed) of a run cut before its end."""
+    import re
+    pattern = re.compile(r"\[(\w+)/(\w+)/s(\d+)\] t=\s*([\d.]+)s ep=(\d+) steps=(\d+) return=(\S+)")
+    header = re.compile(r"^jax (\S+) devices .*? (\w+) hp (\{.*\})$")
+    records: dict = {}
+    options, version = {}, ""
+    for line in open(path):
+        found = header.match(line.strip())
+        if found:
+            import ast
+            version, options = found.group(1), ast.literal_eval(found.group(3))
+            continue
+        found = pattern.search(line)
+        if not found:
+            continue
+        env, label, seed = found.group(1), found.group(2), int(found.group(3))
+        algo = "brax_ppo" if label == "brax_ppo" else "brax_apg"
+        record = records.setdefault(seed, {"env": env, "seed": seed, "algo": algo, "variant": "shipped" if algo == "brax_ppo"
+                                           else label, "budget_s": budget, "hyperparams": options, "jax": version,
+                                           "device": "cuda:0", "points": [], "status": "cut", "compile_s": float("nan"),
+                                           "update_s": float("nan"), "env_steps_per_s": float("nan"),
+                                           "argv": [f"(from the log {os.path.basename(path)})"]})
+        record["points"].append({"train_wall_s": float(found.group(4)), "epoch": int(found.group(5)),
+                                 "env_steps": int(found.group(6)), "return": float(found.group(7))})
+    for record in records.values():
+        returns = [p["return"] for p in record["points"]]
+        record["final_return"], record["best_return"] = returns[-1], max(returns)
+    return list(records.values())
+
+
+def at_time(curve: list, seconds: float) -> tuple[float, float, float] | None:
+    """A seed's last evaluation at or before ``seconds`` of training: (time, env steps, return)."""
+    before = [point for point in curve if point[0] <= seconds]
+    return before[-1] if before else None
 
 
 def runs(records: list[dict]) -> dict:
@@ -53,17 +125,22 @@ def runs(records: list[dict]) -> dict:
     for record in records:
         key = (record["env"], method(record))
         entry = joined.setdefault(key, {"final": [], "best": [], "curves": [], "compile_s": [], "update_ms": [],
-                                        "steps_per_s": [], "diverged": 0, "updates": [], "argv": [], "device": set()})
+                                        "steps_per_s": [], "diverged": 0, "updates": [], "argv": [], "device": set(),
+                                        "ended": []})
+        entry["ended"].append(record["status"] if record["status"] != "error" else
+                              f"error ({record.get('error', '')[:90]})")
         entry["device"].add(record["device"])
         entry["budget_s"] = record["budget_s"]
         entry["argv"].append(" ".join(record["argv"]).replace("/tmp/", "DIR/"))
-        entry["compile_s"].append(record["compile_s"])
-        entry["update_ms"].append(1e3 * record["update_s"])
+        entry["compile_s"].append(record["compile_s"] if record.get("compile_s") is not None else float("nan"))
+        entry["update_ms"].append(1e3 * record["update_s"] if record.get("update_s") is not None else float("nan"))
         if "seed" in record:
             entry["final"].append(record["final_return"])
             entry["best"].append(record["best_return"])
-            entry["steps_per_s"].append(record["env_steps_per_s"])
-            entry["updates"].append(record["points"][-1]["updates"])
+            entry["steps_per_s"].append(record["env_steps_per_s"] if record.get("env_steps_per_s") is not None
+                                        else float("nan"))
+            entry["updates"].append(record["points"][-1].get("updates", record["points"][-1]["epoch"]))
+            entry["diverged"] += record["status"] == "nan"
             entry["curves"].append([(p["train_wall_s"], p["env_steps"], p["return"]) for p in record["points"]])
         else:
             entry["final"] += record["final_return_per_seed"]
@@ -125,14 +202,54 @@ def tables(joined: dict) -> list[str]:
     return lines
 
 
+def side_by_side(joined: dict) -> list[str]:
+    """Every method of every env at the same training time, with the env steps each had taken by then."""
+    lines = ["| env | method | seeds | at s | return then | 95% interval | evaluated at s (mean) | env steps per seed "
+             "by then | how the runs ended |", "|---|---|---:|---:|---:|---|---:|---:|---|"]
+    for env, name in sorted(joined, key=lambda key: (key[0], not key[1].startswith("Brax"), key[1])):
+        entry = joined[(env, name)]
+        seconds = EQUAL_TIME_S.get(env)
+        if ", seeds " in name or seconds is None:  # the sweep's seeds are kept apart from the reported ones
+            continue
+        reached = [at_time(curve, seconds) for curve in entry["curves"]]
+        reached = [point for point in reached if point is not None]
+        returns = [point[2] for point in reached]
+        finite = [value for value in returns if math.isfinite(value)]
+        low, high = interval(finite)
+        ended = ", ".join(f"{entry['ended'].count(status)} {status}" for status in sorted(set(entry["ended"])))
+        lines.append(f"| {env} | {name} | {len(reached)} | {seconds:.0f} | {_number(np.mean(finite)) if finite else '-'} | "
+                     f"[{_number(low)}, {_number(high)}] | {_number(np.mean([p[0] for p in reached]), 0)} | "
+                     f"{_number(np.mean([p[1] for p in reached]), 0)} | {ended} |")
+    return lines
+
+
+def sweep(joined: dict) -> list[str]:
+    """The options swept on seeds kept apart from the reported ones, each against the same seeds without it."""
+    lines = ["| env | setting | seeds | final return | 95% interval | difference to the setting without options | "
+             "95% interval |", "|---|---|---:|---:|---|---:|---|"]
+    for env, name in sorted(joined):
+        if ", seeds " not in name:
+            continue
+        base_name = name.split(",")[0] + "," + name.split(",")[1] + "," + name.rsplit(",", 1)[1]
+        entry, base = joined[(env, name)], joined.get((env, base_name))
+        low, high = interval(entry["final"])
+        difference = "| - | - |"
+        if base is not None and base_name != name:
+            mean, d_low, d_high = difference_interval(entry["final"], base["final"])
+            difference = f"| {_number(mean)} | [{_number(d_low)}, {_number(d_high)}] |"
+        lines.append(f"| {env} | {name} | {len(entry['final'])} | {_number(np.mean(entry['final']))} | "
+                     f"[{_number(low)}, {_number(high)}] {difference}")
+    return lines
+
+
 def throughput(timed: list[dict], records: list[dict]) -> list[str]:
     """The update at APG's window and env count: stablebptt's throughput-only runs beside APG's training runs."""
     if not timed:
         return []
     lines = ["One update at Brax APG's defaults (window 32, one env, one seed), forward and backward, on the same "
              "machine:", "", "| env | method | update ms | env steps/s | command |", "|---|---|---:|---:|---|"]
-    for record in records:
-        if "seed" in record:
+    for record in records:  # APG's own runs at its defaults, each seed alone on its GPU
+        if "seed" in record and record.get("algo", "brax_apg") == "brax_apg" and record.get("sharing", 1) == 1:
             lines.append(f"| {record['env']} | Brax APG (seed {record['seed']}, timed while training) | "
                          f"{1e3 * record['update_s']:.1f} | {record['env_steps_per_s']:.0f} | apg_baseline.py |")
     for record in timed:
@@ -142,32 +259,59 @@ def throughput(timed: list[dict], records: list[dict]) -> list[str]:
     return lines
 
 
+def band(curves: list, column: int, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean over seeds of each seed's last evaluation at or before every grid value of ``column`` (time or env
+    steps), where every seed has one, with the 95% bootstrap interval of the mean."""
+    values = []
+    for curve in curves:
+        points = np.array(curve, float)
+        order = np.searchsorted(points[:, column], grid, side="right") - 1
+        seed = np.where((order >= 0) & (grid <= points[-1, column]), points[np.clip(order, 0, None), 2], np.nan)
+        values.append(seed)
+    values = np.array(values)
+    defined = np.all(np.isfinite(values), axis=0)
+    means = np.full(grid.shape, np.nan)
+    low, high = means.copy(), means.copy()
+    rng = np.random.default_rng(0)
+    for index in np.flatnonzero(defined):
+        column_values = values[:, index]
+        means[index] = column_values.mean()
+        if len(column_values) > 1:
+            resampled = rng.choice(column_values, (1000, len(column_values))).mean(axis=1)
+            low[index], high[index] = np.percentile(resampled, [2.5, 97.5])
+    return means, low, high
+
+
 def figure(joined: dict, env: str, path: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    names = sorted(name for e, name in joined if e == env)
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
+    names = sorted((name for e, name in joined if e == env and ", seeds " not in name),
+                   key=lambda name: (not name.startswith("Brax"), name))
     colors = plt.get_cmap("tab10")
     for index, name in enumerate(names):
-        curves = joined[(env, name)]["curves"]
+        curves = [curve for curve in joined[(env, name)]["curves"] if len(curve) > 1]
+        if not curves:  # runs that never finished an update (an error) draw nothing
+            continue
         for axis, column in zip(axes, (0, 1)):
-            for number, curve in enumerate(curves):
-                points = np.array(curve, float)
-                if column == 1:  # a log axis: the initial policy (no env step yet) is the left panel's first point
-                    points = points[points[:, 1] > 0]
-                axis.plot(points[:, column], points[:, 2], color=colors(index), alpha=0.35 if len(curves) > 1 else 1,
-                          label=name if number == 0 else None, linewidth=1.2)
+            ends = [np.array(curve, float)[:, column] for curve in curves]
+            start = max(e[e > 0].min() if column == 1 else e.min() for e in ends)
+            stop = max(e.max() for e in ends)
+            grid = np.geomspace(start, stop, 200) if column == 1 else np.linspace(start, stop, 200)
+            means, low, high = band(curves, column, grid)
+            style = "--" if name.startswith("Brax") else "-"
+            axis.plot(grid, means, style, color=colors(index % 10), label=f"{name} ({len(curves)} seeds)", linewidth=1.4)
+            axis.fill_between(grid, low, high, color=colors(index % 10), alpha=0.15)
     axes[0].set_xlabel("training wall time, s (compile included, evaluation off the clock)")
     axes[1].set_xlabel("env steps per seed")
     axes[1].set_xscale("log")
     for axis in axes:
         axis.set_ylabel("episode return (64 resets, deterministic policy)")
         axis.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    others = " and Brax APG" if any(name == "Brax APG" for name in names) else ""
-    fig.suptitle(f"{env}: episode return of every seed, stablebptt's windows along carried episodes{others}")
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"{env}: mean episode return over seeds with its 95% bootstrap band")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -178,6 +322,9 @@ def main(argv=None) -> None:
     parser.add_argument("--raw", nargs="*", default=[], help="folders holding the runs' records (searched below)")
     parser.add_argument("--out", required=True)
     parser.add_argument("--machine", default="", help="the GPUs the records came from, in words (the records say cuda:N)")
+    parser.add_argument("--sharing", type=int, default=1, help="seeds run at once on one GPU in the runs read now")
+    parser.add_argument("--cut-logs", nargs="*", default=[], help="logs of Brax runs cut before they wrote a record")
+    parser.add_argument("--budget", type=float, default=0.0, help="the budget the cut runs were given, s")
     args = parser.parse_args(argv)
     kept = os.path.join(args.out, "records.json")
     os.makedirs(args.out, exist_ok=True)
@@ -191,21 +338,28 @@ def main(argv=None) -> None:
                 continue
             if not isinstance(record, dict) or "points" not in record:
                 continue  # summaries
-            name = (f"{record['env']}_apg_s{record['seed']}" if "seed" in record else
-                    f"{record['env']}_{record['mode']}_w{record['hyperparams']['horizon']}"
-                    + ("_critic" if record["hyperparams"].get("critic") else "")
-                    + (f"_d{record['hyperparams']['discount']:g}" if record["hyperparams"].get("discount", 1.0) != 1.0 else ""))
-            stored[name] = trim(record)
+            if "seed" in record:
+                record["sharing"] = args.sharing
+            stored[record_name(record)] = trim(record)
+    for path in args.cut_logs:
+        for record in record_from_log(path, args.budget):
+            record["sharing"] = args.sharing
+            stored[record_name(record)] = trim(record)
     with open(kept, "w") as handle:
         json.dump(dict(sorted(stored.items())), handle, indent=0)
     records = [record for name, record in stored.items() if not name.startswith("throughput_")]
     timed = [record for name, record in stored.items() if name.startswith("throughput_")]
     joined = runs(records)
     machine = f" --machine '{args.machine}'" if args.machine else ""
-    lines = ["# Windows along carried episodes: stablebptt R and C against Brax APG", "",
+    lines = ["# Windows along carried episodes: stablebptt R and C against Brax APG and Brax PPO", "",
              f"Written by `python benchmarks/envs_vs_apg/window_study.py --out {args.out}{machine}` from the records in "
-             f"`{kept}`{' (' + args.machine + ')' if args.machine else ''}.", "", *tables(joined), "",
-             *throughput(timed, records), "", "Commands (DIR: the call's folder):", ""]
+             f"`{kept}`{' (' + args.machine + ')' if args.machine else ''}.", "",
+             "## Side by side at equal training time (compile included)", "",
+             *side_by_side(joined), "", "## Every run at its budget", "", *tables(joined), "",
+             "## Options swept on seeds kept apart from the reported ones", "", *sweep(joined), "",
+             *throughput(timed, records), "", "Commands (DIR: the call's folder; a Brax method marked \"N seeds sharing a GPU\" ran its seeds' commands at "
+             "once through `benchmarks/envs_vs_apg/seeds_together.sh N LOGS 'COMMAND'`, each env's on a GPU of its own "
+             "through `benchmarks/envs_vs_apg/on_gpus.sh`):", ""]
     for key in sorted(joined):
         lines += [f"- {key[0]}, {key[1]}: " + "; ".join(f"`{command}`" for command in sorted(set(joined[key]['argv'])))]
     for env in sorted({env for env, _ in joined}):

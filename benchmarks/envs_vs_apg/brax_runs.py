@@ -1,0 +1,198 @@
+"""What the Brax baselines (`apg_baseline.py`, `ppo_baseline.py`) share: a Brax training run under a
+wall-clock budget, scored with the shared `evaluation.py` off the training clock.
+
+Brax's trainers call `acting.Evaluator.run_evaluation` before the first epoch and after every epoch;
+`timed_run` puts a subclass in its place for the run, which times the epochs, scores the current
+policy with the shared protocol when a point is due, and stops the run (an exception out of Brax's
+loop) at the budget or at the first non-finite update. Evaluation time, Brax's own included, is kept
+off the training clock.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+import traceback
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def install_jax_shims():
+    """Brax 0.14.2 calls jax.device_put_replicated, which current JAX no longer has."""
+    if hasattr(jax, "device_put_replicated"):
+        return
+
+    def device_put_replicated(x, devices):
+        devices = list(devices)
+        mesh = jax.sharding.Mesh(np.array(devices), ("d",))
+        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("d"))
+
+        def put(a):
+            a = jnp.asarray(a)
+            return jax.device_put(jnp.broadcast_to(a[None], (len(devices),) + a.shape), sharding)
+
+        return jax.tree_util.tree_map(put, x)
+
+    jax.device_put_replicated = device_put_replicated
+
+
+class BudgetReached(Exception):
+    pass
+
+
+class NaNReached(Exception):
+    pass
+
+
+def solver_info(env) -> dict:
+    o = env._mj_model.opt
+    return {
+        "solver": int(o.solver),
+        "iterations": int(o.iterations),
+        "ls_iterations": int(o.ls_iterations),
+        "disableflags": int(o.disableflags),
+        "n_limited_joints": int(env._mj_model.jnt_limited.sum()),
+    }
+
+
+def finite_or_text(x):
+    x = float(np.asarray(x))
+    return x if math.isfinite(x) else str(x)
+
+
+def timed_run(
+    train: Callable[[], Any],
+    rec: dict,
+    *,
+    evaluate: Callable[[Any], dict],
+    evaluate_variant: Callable[[Any], dict] | None,
+    budget: float,
+    eval_every: float,
+    updates_per_epoch: int,
+    env_steps_per_update: int,
+    brax_eval: str,
+    log: Callable[[str], None],
+) -> dict:
+    """Runs `train()` (a Brax trainer's call) under the budget; fills and returns `rec`.
+
+    An epoch is what Brax runs between two calls of its evaluator: `updates_per_epoch` updates of
+    `env_steps_per_update` env steps each."""
+    from brax.training import acting
+
+    label = f"[{rec['env']}/{rec.get('variant', rec['algo'])}/s{rec['seed']}]"
+    rec.update(points=[], epochs=[], status="running", brax_eval_mode=brax_eval)
+    clock = {"t0": None, "eval_s": 0.0, "last_eval_train_s": -1e9, "epoch": 0, "last_epoch_end": None}
+
+    def train_s():
+        return time.perf_counter() - clock["t0"] - clock["eval_s"]
+
+    def record_point(params, brax_metrics):
+        t = train_s()
+        e0 = time.perf_counter()
+        # Host copies: the same argument types at every call, so the evaluator compiles once (the
+        # replicated training state's arrays may carry another sharding than the initial ones).
+        params = jax.tree_util.tree_map(np.asarray, jax.device_get(params))
+        ev = evaluate(params)
+        point = {
+            "train_wall_s": t,
+            "epoch": clock["epoch"],
+            "updates": clock["epoch"] * updates_per_epoch,
+            "env_steps": clock["epoch"] * updates_per_epoch * env_steps_per_update,
+            "return": ev["mean_return"],
+            "return_std": ev["std_return"],
+            "num_done_early": ev["num_done_early"],
+        }
+        if evaluate_variant is not None:
+            point["return_train_variant"] = evaluate_variant(params)["mean_return"]
+        if brax_metrics is not None:
+            point["brax_eval_return"] = finite_or_text(brax_metrics.get("eval/episode_reward", float("nan")))
+        point["eval_s"] = time.perf_counter() - e0
+        rec["points"].append(point)
+        clock["last_eval_train_s"] = t
+        log(f"  {label} t={t:7.1f}s ep={clock['epoch']} steps={point['env_steps']} "
+            f"return={point['return']:.2f} brax={point.get('brax_eval_return')}")
+
+    class TimedEvaluator(acting.Evaluator):
+        def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
+            now = time.perf_counter()
+            first = clock["last_epoch_end"] is None
+            if first:
+                rec["setup_s"] = now - clock["t0"]  # wrapping, the jit of reset and step, init: before epoch 1
+            else:
+                clock["epoch"] += 1
+                rec["epochs"].append({
+                    "epoch": clock["epoch"],
+                    "wall_s": now - clock["last_epoch_end"],
+                    "sps": finite_or_text(training_metrics.get("training/sps", float("nan"))),
+                    "grad_norm": finite_or_text(training_metrics.get("training/grad_norm", float("nan"))),
+                    "params_norm": finite_or_text(training_metrics.get("training/params_norm", float("nan"))),
+                    # Every scalar Brax reports (APG's norms, PPO's losses): one non-finite stops the run.
+                    "finite": all(math.isfinite(float(np.asarray(v))) for v in training_metrics.values()
+                                  if np.ndim(v) == 0),
+                })
+            e0 = time.perf_counter()
+            t = train_s()
+            nan = (not first) and not rec["epochs"][-1]["finite"]
+            due = first or nan or t >= budget or t - clock["last_eval_train_s"] >= eval_every
+            metrics = dict(training_metrics)
+            brax_metrics = None
+            if due:
+                if brax_eval == "all":  # Brax's own evaluator (compiles once per run), a cross-check
+                    brax_metrics = super().run_evaluation(policy_params, training_metrics, aggregate_episodes)
+                    metrics = brax_metrics
+                record_point(policy_params, brax_metrics)
+            clock["eval_s"] += time.perf_counter() - e0
+            clock["last_epoch_end"] = time.perf_counter()
+            if nan:
+                rec["nan_epoch"] = clock["epoch"]
+                rec["nan_update_range"] = [(clock["epoch"] - 1) * updates_per_epoch + 1, clock["epoch"] * updates_per_epoch]
+                raise NaNReached()
+            if t >= budget:
+                raise BudgetReached()
+            return metrics
+
+    saved = acting.Evaluator
+    acting.Evaluator = TimedEvaluator
+    clock["t0"] = time.perf_counter()
+    try:
+        train()
+        rec["status"] = "finished"
+    except BudgetReached:
+        rec["status"] = "budget"
+    except NaNReached:
+        rec["status"] = "nan"
+    except Exception as e:  # noqa: BLE001 - the failure itself is the measurement
+        rec["status"] = "error"
+        rec["error_type"] = type(e).__name__
+        rec["error"] = str(e)[:3000]
+        rec["traceback_tail"] = traceback.format_exc()[-3000:]
+        log(f"  {label} ERROR {type(e).__name__}: {str(e)[:300]}")
+    finally:
+        acting.Evaluator = saved
+    rec["total_wall_s"] = time.perf_counter() - clock["t0"]
+    rec["eval_wall_s"] = clock["eval_s"]
+
+    epochs = rec["epochs"]
+    if epochs:
+        rec["first_epoch_s"] = epochs[0]["wall_s"]
+        steady = [e["wall_s"] for e in epochs[1:]] or [epochs[0]["wall_s"]]
+        rec["steady_epoch_s"] = statistics.median(steady)
+        # Compile = set-up plus the first epoch's excess over a steady epoch.
+        rec["compile_s"] = rec.get("setup_s", 0.0) + epochs[0]["wall_s"] - rec["steady_epoch_s"]
+        rec["steps_per_update"] = env_steps_per_update
+        rec["update_s"] = rec["steady_epoch_s"] / updates_per_epoch
+        rec["env_steps_per_s"] = env_steps_per_update / rec["update_s"]
+        sps = [e["sps"] for e in epochs[1:] if not isinstance(e["sps"], str)]
+        rec["brax_sps_median"] = statistics.median(sps) if sps else None
+    finite = [p["return"] for p in rec["points"] if math.isfinite(p["return"])]
+    rec["final_return"] = rec["points"][-1]["return"] if rec["points"] else None
+    rec["best_return"] = max(finite) if finite else None
+    # A trainer whose epochs are long (PPO's) may pass the budget by most of an epoch: the return at
+    # equal time is the last one scored within it.
+    within = [p for p in rec["points"] if p["train_wall_s"] <= budget]
+    rec["return_within_budget"] = within[-1]["return"] if within else None
+    return rec
