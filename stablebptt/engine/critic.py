@@ -79,6 +79,20 @@ def fit_critic(critic: Critic, observations: jax.Array, targets: jax.Array, weig
     return Critic(fitted.params, fitted.opt_state, target), errors[-1]
 
 
+def fit_to_window(critic: Critic, visited: PyTree, final: PyTree, observe: Callable[[PyTree], jax.Array],
+                  discount: float, td_lambda: float, optimizer: optax.GradientTransformation) -> Critic:
+    """The critic after fitting it to the TD(lambda) targets of a window just rolled: ``visited``, the
+    window's states x_0..x_{T-1} [T, batch] and ``final``, x_T [batch] (``stablebptt.engine.episodes.Window``:
+    a task's state, its reward and whether its episode runs)."""
+    reached = jax.tree.map(lambda past, last: jnp.concatenate([past[1:], last[None]]), visited, final)
+    observe_all = jax.vmap(jax.vmap(observe))
+    values = jax.vmap(jax.vmap(lambda o: value(critic.target, o)))(observe_all(reached.state))
+    targets = td_lambda_targets(reached.reward, values, reached.running, discount, td_lambda)
+    seen = observe_all(visited.state)  # [T, batch, observations]; a state past its episode's end weighs 0
+    return fit_critic(critic, seen.reshape((-1, seen.shape[-1])), targets.reshape(-1),
+                      visited.running.reshape(-1).astype(targets.dtype), optimizer)[0]
+
+
 def bootstrap(critic: Critic, observe: Callable[[PyTree], jax.Array]) -> Callable[[PyTree], jax.Array]:
     """The value a window's loss adds at its last state: the target critic's, of the state's observation."""
     return lambda state: value(critic.target, observe(state))

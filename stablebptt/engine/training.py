@@ -18,7 +18,7 @@ import optax
 from stablebptt.engine.checks import check_task
 from stablebptt.engine.compiling import compiler_options, run_plan, step_size
 from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches
-from stablebptt.engine.critic import bootstrap, fit_critic, init_critic, td_lambda_targets, value
+from stablebptt.engine.critic import bootstrap, fit_to_window, init_critic
 from stablebptt.engine.episodes import (
     Episodes,
     continue_from,
@@ -137,16 +137,6 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             return task.evaluation(params, initial_states).mean()
         return reference_loss(dynamics, params, initial_states, plan=plan)
 
-    def fitted_critic(critic, window):
-        """The critic after fitting it to the TD(lambda) targets of the window just rolled."""
-        reached = jax.tree.map(lambda past, last: jnp.concatenate([past[1:], last[None]]), window.visited, window.final)
-        observe = jax.vmap(jax.vmap(episodes.observe))
-        values = jax.vmap(jax.vmap(lambda o: value(critic.target, o)))(observe(reached.state))
-        targets = td_lambda_targets(reached.reward, values, reached.running, episodes.discount, config.td_lambda)
-        seen = observe(window.visited.state)  # [T, batch, observations]; a state past its episode's end weighs 0
-        return fit_critic(critic, seen.reshape((-1, seen.shape[-1])), targets.reshape(-1),
-                          window.visited.running.reshape(-1).astype(targets.dtype), critic_optimizer)[0]
-
     def update(dynamics, state, batch):
         critic = state.critic
         if episodes is None:
@@ -160,7 +150,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             loss, grads = window_result.loss, window_result.grads
             carried = continue_from(window_result.final, state.carried.key, episodes)
             if critic is not None:
-                critic = fitted_critic(critic, window_result)
+                critic = fit_to_window(critic, window_result.visited, window_result.final, episodes.observe,
+                                       episodes.discount, config.td_lambda, critic_optimizer)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         if "M" in flows and "R" in flows:
