@@ -1,0 +1,222 @@
+"""A smooth training surrogate of a step reward: the comparisons a reward turns into numbers become sigmoids.
+
+A reward such as ``1.0 if lower <= x <= upper else 0.0`` (a tolerance with margin 0) or ``speed > 1``
+made a number has a gradient of zero almost everywhere: BPTT has nothing to follow. ``smooth_reward``
+traces the step once and reads its program. A comparison of floats whose result reaches the reward
+and nothing else of the step's output is a candidate; where its truth is turned into a number (a
+conversion to a float, or a choice between two values that do not depend on the step's inputs, as
+``jnp.where(inside, 1.0, 0.0)``), the number becomes ``sigmoid(difference / temperature)`` instead,
+with ``and``, ``or`` and ``not`` between such truths as products. Everything else of the step runs as
+traced: the state it returns is the step's own to the last bit, only its reward changes. Working on
+the traced program, it smooths a lab's own reward as it does MuJoCo Playground's.
+
+Each comparison's temperature is the median of the absolute difference it compared, over sampled
+states (``temperatures``), times a scale the user may give: a typical sampled state then sits
+within about one temperature of the threshold, where the sigmoid's slope is large.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax._src import source_info_util
+from jax.extend import core
+
+PyTree = Any
+COMPARISONS = {"lt": -1, "le": -1, "gt": 1, "ge": 1}  # the sign of (a - b) where the comparison is true
+LOGICAL = {"and", "or", "not", "xor"}
+REWARD, OTHER = "reward", "other"
+
+
+class Soft(NamedTuple):
+    """A truth with a smooth stand-in: ``hard`` is what the program computes, ``prob`` its sigmoid."""
+
+    hard: jax.Array
+    prob: jax.Array
+    origins: frozenset  # the comparisons it was made from
+
+
+@dataclass(frozen=True)
+class Smoothing:
+    """What ``smooth_reward`` smoothed: each comparison's place in the source and its temperature."""
+
+    terms: tuple[str, ...]
+    temperatures: tuple[float, ...]
+
+    def describe(self) -> str:
+        if not self.terms:
+            return "smoothed: nothing (no comparison made a number of the reward)"
+        places = ", ".join(f"{term} (temperature {temperature:.3g})" for term, temperature in
+                           zip(self.terms, self.temperatures))
+        return f"smoothed {len(self.terms)} comparison{'s' if len(self.terms) > 1 else ''} of the reward into sigmoids: {places}"
+
+
+def _is_call(eqn) -> bool:
+    """A call of a traced function (``jax.jit`` inside the step, ``jnp.where``'s own): read into, not bound."""
+    return isinstance(eqn.params.get("jaxpr"), core.ClosedJaxpr) and eqn.primitive.name in ("jit", "pjit", "closed_call")
+
+
+def _labels(jaxpr: core.Jaxpr, out_labels: list[frozenset]) -> tuple[list[frozenset], dict]:
+    """Which outputs of ``jaxpr`` (REWARD, OTHER) each equation's results reach, and each variable."""
+    reaches: dict = {}
+    for var, label in zip(jaxpr.outvars, out_labels):
+        if isinstance(var, core.Var):
+            reaches[var] = reaches.get(var, frozenset()) | label
+    per_equation = [frozenset()] * len(jaxpr.eqns)
+    for index in range(len(jaxpr.eqns) - 1, -1, -1):
+        eqn = jaxpr.eqns[index]
+        label = frozenset().union(*(reaches.get(var, frozenset()) for var in eqn.outvars))
+        per_equation[index] = label
+        for var in eqn.invars:
+            if isinstance(var, core.Var):
+                reaches[var] = reaches.get(var, frozenset()) | label
+    return per_equation, reaches
+
+
+def _hard(value):
+    return value.hard if isinstance(value, Soft) else value
+
+
+def _prob(value, dtype):
+    return value.prob.astype(dtype) if isinstance(value, Soft) else jnp.asarray(value).astype(dtype)
+
+
+class _Interpreter:
+    """Evaluates a step's program with its reward's comparisons smoothed (or, recording, their differences)."""
+
+    def __init__(self, temperatures: dict | None):
+        self.temperatures = temperatures  # place -> temperature; None: record the differences instead
+        self.differences: dict = {}
+        self.used: set = set()
+        self.places: dict = {}
+
+    def run(self, jaxpr: core.Jaxpr, consts, args, constant_args, out_labels, path=()):
+        values: dict = {}
+        constant: dict = {}
+
+        def read(var):
+            if isinstance(var, core.Literal):
+                return var.val, True
+            return values[var], constant[var]
+
+        for var, value in zip(jaxpr.constvars, consts):
+            values[var], constant[var] = value, True
+        for var, value, fixed in zip(jaxpr.invars, args, constant_args):
+            values[var], constant[var] = value, fixed
+        labels, reaches = _labels(jaxpr, out_labels)
+        for index, eqn in enumerate(jaxpr.eqns):
+            inputs = [read(var) for var in eqn.invars]
+            invals, fixed = [value for value, _ in inputs], [flag for _, flag in inputs]
+            inner_labels = [reaches.get(var, frozenset()) for var in eqn.outvars]
+            outputs = self.equation(eqn, invals, fixed, labels[index], inner_labels, path + (index,))
+            all_fixed = all(fixed)
+            for var, value in zip(eqn.outvars, outputs):
+                if not isinstance(var, core.DropVar):
+                    values[var], constant[var] = value, all_fixed
+        return [read(var)[0] for var in jaxpr.outvars]
+
+    def equation(self, eqn, invals, fixed, label, out_labels, place):
+        name = eqn.primitive.name
+        soft_inputs = any(isinstance(value, Soft) for value in invals)
+        if name in COMPARISONS and label == frozenset({REWARD}) and not all(fixed) \
+                and jnp.issubdtype(jnp.result_type(*[_hard(v) for v in invals]), jnp.floating):
+            a, b = (_hard(value) for value in invals)
+            hard = eqn.primitive.bind(a, b, **eqn.params)
+            difference = COMPARISONS[name] * (a - b)  # positive where the comparison is true
+            self.places[place] = source_info_util.summarize(eqn.source_info)
+            if self.temperatures is None:
+                self.differences[place] = difference
+                prob = hard.astype(difference.dtype)
+            elif place in self.temperatures:
+                prob = jax.nn.sigmoid(difference / self.temperatures[place])
+            else:  # not smoothed: no sampled state told its scale, or nothing made it a number
+                return [hard]
+            return [Soft(hard, prob, frozenset({place}))]
+        if _is_call(eqn) and (soft_inputs or REWARD in label):
+            inner = eqn.params["jaxpr"]
+            return self.run(inner.jaxpr, inner.consts, invals, fixed, out_labels, place)
+        if soft_inputs and name in LOGICAL:
+            probs = [_prob(value, jnp.float32) for value in invals]
+            hard = eqn.primitive.bind(*(_hard(value) for value in invals), **eqn.params)
+            prob = {"and": lambda p, q: p * q, "or": lambda p, q: p + q - p * q, "not": lambda p: 1 - p,
+                    "xor": lambda p, q: p + q - 2 * p * q}[name](*probs)
+            return [Soft(hard, prob, frozenset().union(*(v.origins for v in invals if isinstance(v, Soft))))]
+        if soft_inputs and name == "convert_element_type":
+            value, dtype = invals[0], eqn.params["new_dtype"]
+            if dtype == jnp.bool_:
+                return [value]
+            if jnp.issubdtype(dtype, jnp.floating):  # a truth made a number
+                self.used.update(value.origins)
+                return [value.prob.astype(dtype)]
+        if soft_inputs and name == "select_n" and isinstance(invals[0], Soft) and len(invals) == 3 \
+                and all(fixed[1:]) and not any(isinstance(v, Soft) for v in invals[1:]):
+            predicate, when_false, when_true = invals
+            if jnp.issubdtype(jnp.result_type(when_false), jnp.floating):  # a choice between two fixed numbers
+                self.used.update(predicate.origins)
+                prob = predicate.prob.astype(jnp.result_type(when_false))
+                return [prob * when_true + (1 - prob) * when_false]
+        outputs = eqn.primitive.bind(*(_hard(value) for value in invals), **eqn.params)
+        return outputs if eqn.primitive.multiple_results else [outputs]
+
+
+def _reward_leaf(tree: PyTree) -> int:
+    """The index of the leaf named ``reward`` among a step's output leaves."""
+    paths = [path for path, _ in jax.tree_util.tree_flatten_with_path(tree)[0]]
+    named = [index for index, path in enumerate(paths) if path and getattr(path[-1], "name", getattr(path[-1], "key", None)) == "reward"]
+    if len(named) != 1:
+        raise ValueError(f"a step's state must hold one leaf named reward to smooth it, found {len(named)}")
+    return named[0]
+
+
+def _traced(step: Callable, state: PyTree, action: jax.Array):
+    closed, shape = jax.make_jaxpr(step, return_shape=True)(state, action)
+    leaves = len(jax.tree.leaves(shape))
+    reward = _reward_leaf(shape)
+    out_labels = [frozenset({REWARD}) if index == reward else frozenset({OTHER}) for index in range(leaves)]
+    return closed, jax.tree.structure(shape), out_labels
+
+
+def _evaluate(closed, out_labels, structure, interpreter: _Interpreter, state, action):
+    args = jax.tree.leaves((state, action))
+    outputs = interpreter.run(closed.jaxpr, closed.consts, args, [False] * len(args), out_labels)
+    return jax.tree.unflatten(structure, [_hard(value) for value in outputs])
+
+
+def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0) -> dict:
+    """Each smoothable comparison's temperature: ``scale`` times the median absolute difference it
+    compares over the sampled ``states`` and ``actions`` (leading axis: samples), where that is above 0."""
+    one = jax.tree.map(lambda a: a[0], (states, actions))
+    closed, structure, out_labels = _traced(step, *one)
+    recorder = _Interpreter(None)
+
+    def differences(state, action):
+        recorder.differences.clear()
+        _evaluate(closed, out_labels, structure, recorder, state, action)
+        return {place: recorder.differences[place] for place in recorder.differences}
+
+    sampled = jax.device_get(jax.vmap(differences)(states, actions))
+    chosen = {}
+    for place, values in sampled.items():
+        magnitudes = np.abs(np.asarray(values, float)).ravel()
+        positive = magnitudes[magnitudes > 0]
+        if place in recorder.used and positive.size:
+            chosen[place] = (float(scale * np.median(positive)), recorder.places[place])
+    return chosen
+
+
+def smooth_reward(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0) -> tuple[Callable, Smoothing]:
+    """``step`` with its reward's comparisons smoothed, temperatures from the sampled ``states`` and
+    ``actions`` (module docstring); and what was smoothed. The state it returns is ``step``'s."""
+    chosen = temperatures(step, states, actions, scale)
+    temperature_of = {place: temperature for place, (temperature, _) in chosen.items()}
+    one = jax.tree.map(lambda a: a[0], (states, actions))
+    closed, structure, out_labels = _traced(step, *one)
+
+    def smoothed(state, action):
+        return _evaluate(closed, out_labels, structure, _Interpreter(temperature_of), state, action)
+
+    ordered = sorted(chosen.items())
+    return smoothed, Smoothing(tuple(place for _, (_, place) in ordered), tuple(t for _, (t, _) in ordered))
