@@ -43,7 +43,7 @@ for name in sys.argv[1:]:
     env = adapter.load_env(name)
     step = adapter.env_task(env, horizon=1, diagnose=False).dynamics.step
     checks = diagnosis._gradient_checks(step)
-    program = jax.jit(lambda key: checks(*diagnosis._sample_for_diagnosis(env, step, key)))
+    program = jax.jit(lambda key: checks(*diagnosis.sample_for_diagnosis(env, step, key)))
     key = jax.random.PRNGKey(0)
     started = time.perf_counter()
     lowered = program.lower(key)

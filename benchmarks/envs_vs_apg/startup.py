@@ -70,7 +70,7 @@ def main(argv=None):
 
     for module, attribute, name in [
             (diagnosis, "diagnose_env", "env_task: diagnosis (one program)"),
-            (diagnosis, "_sample_for_diagnosis", "env_task: diagnosis states"),
+            (diagnosis, "sample_for_diagnosis", "env_task: diagnosis states"),
             (diagnosis, "diagnose_reward", "env_task: diagnosis gradient"),
             (training, "check_task", "make_trainer: check_task"),
             (training, "memory_plan", "make_trainer: memory plan"),

@@ -183,7 +183,9 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
 def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]) -> Trained:
     started = time.perf_counter()
     trainer = make_trainer(task, config)
-    task = task.settled()  # a check left running (an environment's reward diagnosis) may refuse it here
+    built, task = task, task.settled()  # a check left running (an environment's reward diagnosis) may refuse it here
+    if task.dynamics.step is not built.dynamics.step:  # or smooth its reward: then the trainer trains it as settled
+        trainer = make_trainer(task, config)
     seeds = np.asarray(seed_array(config))
     state = trainer.init(seed_array(config))
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)

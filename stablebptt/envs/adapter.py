@@ -42,6 +42,7 @@ from stablebptt.engine import program_store
 from stablebptt.engine.checks import first_line, shapes_only, whole_number
 from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.task import Task
+from stablebptt.envs import surrogate
 from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, start_diagnosis
 from stablebptt.errors import InputError
 from stablebptt.flows.dynamics import Dynamics
@@ -175,6 +176,13 @@ def _check_arguments(**given: Any) -> None:
         refuse("reward_context", "a context manager's factory, or None")
     if given["diagnosis_key"] is not None and not isinstance(given["diagnosis_key"], dict):
         refuse("diagnosis_key", "a dict, or None")
+    if given["smoothing"] not in ("auto", "off"):
+        refuse("smoothing", '"auto" or "off"')
+    scale = given["smoothing_scale"]
+    if not (isinstance(scale, numbers.Real) and not isinstance(scale, bool) and math.isfinite(scale) and scale > 0):
+        refuse("smoothing_scale", "a positive number")
+    if given["surrogate_reward"] is not None and not callable(given["surrogate_reward"]):
+        refuse("surrogate_reward", "a function of the state a step reaches, or None")
 
 
 def _count(states: PyTree) -> int:
@@ -260,7 +268,9 @@ def _is_playground(env: Any) -> bool:
 def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,
              hidden: Sequence[int] = (64, 64), name: str = "", reward_context: Callable | None = None,
              reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0,
-             dense_variant: str = "", diagnosis_key: dict | None = None, defer_diagnosis: bool = False) -> Task:
+             dense_variant: str = "", diagnosis_key: dict | None = None, defer_diagnosis: bool = False,
+             smoothing: str = "auto", smoothing_scale: float = 1.0,
+             surrogate_reward: Callable[[Any], jax.Array] | None = None) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -289,6 +299,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         (``start_diagnosis``): the task's ``settled()`` waits for it and refuses a reward with no
         usable gradient; the parameters' values wait for it too, their shapes do not, so a
         trainer can be built meanwhile (``scripts/train.py`` does).
+      smoothing: "auto": where the diagnosis finds the reward's gradient zero at every sampled state,
+        train on a smooth surrogate of it instead (``stablebptt.envs.surrogate``: the comparisons the
+        reward makes numbers of become sigmoids), diagnosed in turn; every reported return stays the
+        true reward's. "off": refuse such a reward.
+      smoothing_scale: the surrogate's temperatures are this times the sampled differences' median.
+      surrogate_reward: ``reward(state) -> scalar`` of the state a step reaches, trained on in place of
+        the env's reward (diagnosed, not smoothed); the reported returns stay the env's.
 
     Example::
 
@@ -299,7 +316,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     _check_arguments(horizon=horizon, discount=discount, episode_length=episode_length, hidden=hidden, name=name,
                      reward_context=reward_context, reward_repairs=reward_repairs, diagnose=diagnose,
                      diagnosis_seed=diagnosis_seed, dense_variant=dense_variant, diagnosis_key=diagnosis_key,
-                     defer_diagnosis=defer_diagnosis)
+                     defer_diagnosis=defer_diagnosis, smoothing=smoothing, smoothing_scale=smoothing_scale,
+                     surrogate_reward=surrogate_reward)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
     if episode_length is None:
@@ -322,6 +340,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     def policy(params, state):
         return jnp.tanh(mlp_apply(params, observation(state)))
 
+    # What the windows train on: the env's reward, or the user's own surrogate of it (diagnosed as the reward is).
+    training_step = step if surrogate_reward is None else jax.jit(surrogate.user_surrogate(step, surrogate_reward))
+
     sizes = (observations, *hidden, int(env.action_size))
     reset = jax.jit(jax.vmap(env.reset))
     resets = {}  # count -> the reset of that many states, kept under diagnosis_key
@@ -338,7 +359,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     def start() -> PendingDiagnosis:
         try:
-            started.append(start_diagnosis(env, step, jax.random.PRNGKey(diagnosis_seed)))
+            started.append(start_diagnosis(env, training_step, jax.random.PRNGKey(diagnosis_seed)))
         except (TypeError, ValueError):  # a step that breaks the protocol fails the diagnosis's trace: say how
             check_step(env, step, observations, label)
             raise
@@ -353,9 +374,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
 
     def diagnosed() -> RewardDiagnosis:
-        """The diagnosis, waited for; ``EnvError`` for a reward with no usable gradient."""
+        """The diagnosis, waited for; ``EnvError`` for a reward with no usable gradient (one that is flat
+        everywhere only where smoothing is off)."""
         diagnosis = RewardDiagnosis(*pending())
-        if diagnosis.kind == "zero":
+        if diagnosis.kind == "zero" and smoothing == "off":
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
                            f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")
         if diagnosis.kind == "nan":
@@ -384,17 +406,19 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if reward_repairs:
         summary += f"; repaired: {reward_repairs}"
 
-    def task(diagnosis: RewardDiagnosis | None, gradient: str) -> Task:
+    def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None) -> Task:
         start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
+        trained_step, smoothed_terms = smoothed or (training_step, "")
         return Task(
             name=label,
-            dynamics=Dynamics(step=step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
+            dynamics=Dynamics(step=trained_step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
             init_params=init_params,
             sample_initial_states=sample_initial_states,
-            summary=summary + (f"; {diagnosis.describe()}" if diagnosis is not None else ""),
+            summary=summary + "".join(f"; {part}" for part in (smoothed_terms, diagnosis and diagnosis.describe()) if part),
             resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
                       "hidden": list(hidden), "reward_gradient": gradient,
-                      "reward_repairs": reward_repairs, "policy_output_start": start},
+                      "reward_repairs": reward_repairs, "policy_output_start": start,
+                      **({"reward_smoothing": smoothed_terms} if smoothed_terms else {})},
             evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
                 states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
             episodes=episodes,
@@ -404,7 +428,19 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if not wait and started and not started[0].done():
             return None
         diagnosis = diagnosed()
-        return task(diagnosis, diagnosis.kind)
+        if diagnosis.kind != "zero":
+            return task(diagnosis, diagnosis.kind)
+        # Flat at every sampled state: train a smooth surrogate where one can be made, and diagnose it.
+        smooth_step, smoothing_done = surrogate.smoothed_training_step(env, training_step, jax.random.PRNGKey(diagnosis_seed),
+                                                                      smoothing_scale)
+        if not smoothing_done.terms:
+            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
+                           f"comparison of it could be smoothed (its steps are not comparisons made numbers): {advice}")
+        again = RewardDiagnosis(*start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed))())
+        if again.kind in ("zero", "nan"):
+            raise EnvError(f"{label}: the reward's gradient is {again.kind} at every sampled state even after "
+                           f"{smoothing_done.describe()}: some term of it is flat beyond these comparisons; {advice}")
+        return task(again, again.kind, (smooth_step, smoothing_done.describe()))
 
     if not diagnose:
         return task(None, "not checked")

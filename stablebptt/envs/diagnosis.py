@@ -107,7 +107,7 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnos
     meanwhile times its kernels there (a GPU's autotuning), which might then choose others.
     """
     checks = _gradient_checks(step)
-    lowered = jax.jit(lambda key: checks(*_sample_for_diagnosis(env, step, key)),
+    lowered = jax.jit(lambda key: checks(*sample_for_diagnosis(env, step, key)),
                       compiler_options=_diagnosis_options()).lower(key)
     compiled: concurrent.futures.Future = concurrent.futures.Future()
 
@@ -152,7 +152,7 @@ def _diagnosis_options() -> dict | None:
     return {**(compiler_options() or {}), **unless_in_xla_flags(cheaper)} or None
 
 
-def _sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
+def sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
     """Resets and the states a few random actions lead to, with a random action for each (traceable)."""
     reset_key, action_key = jax.random.split(key)
 

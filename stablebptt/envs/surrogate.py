@@ -197,7 +197,7 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
         _evaluate(closed, out_labels, structure, recorder, state, action)
         return {place: recorder.differences[place] for place in recorder.differences}
 
-    sampled = jax.device_get(jax.vmap(differences)(states, actions))
+    sampled = jax.device_get(jax.jit(jax.vmap(differences))(states, actions))
     chosen = {}
     for place, values in sampled.items():
         magnitudes = np.abs(np.asarray(values, float)).ravel()
@@ -220,3 +220,23 @@ def smooth_reward(step: Callable, states: PyTree, actions: jax.Array, scale: flo
 
     ordered = sorted(chosen.items())
     return smoothed, Smoothing(tuple(place for _, (_, place) in ordered), tuple(t for _, (t, _) in ordered))
+
+
+def with_reward(state: PyTree, reward: jax.Array) -> PyTree:
+    """``state`` with its leaf named ``reward`` replaced."""
+    leaves, structure = jax.tree.flatten(state)
+    leaves[_reward_leaf(state)] = reward
+    return jax.tree.unflatten(structure, leaves)
+
+
+def user_surrogate(step: Callable, reward: Callable[[PyTree], jax.Array]) -> Callable:
+    """``step`` whose reward is ``reward(state reached)``: a surrogate of the user's own."""
+    return lambda state, action: (lambda reached: with_reward(reached, reward(reached)))(step(state, action))
+
+
+def smoothed_training_step(env: Any, step: Callable, key: jax.Array, scale: float = 1.0) -> tuple[Callable, Smoothing]:
+    """``smooth_reward`` at the states a reward diagnosis samples from ``env`` (resets and a few random
+    steps on, with random actions), drawn from ``key``."""
+    from stablebptt.envs.diagnosis import sample_for_diagnosis
+    states, actions = jax.jit(lambda k: sample_for_diagnosis(env, step, k))(key)
+    return smooth_reward(step, states, actions, scale)

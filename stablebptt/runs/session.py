@@ -73,16 +73,21 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
             refuse_used(run_dir)
         # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
         task = getattr(task_module, "make_deferred", task_module.make)(task_config)
-        program_key = run_key(task_module, task_name, task_config, train_config)  # an identical run reuses them
+        program_key = _smoothed_key(run_key(task_module, task_name, task_config, train_config), task)  # an identical run reuses them
         try:
             trainer = make_trainer(task, train_config, keep=program_key)
         except InputError as error:  # the memory plan may refuse the scene
             raise InputError(f"{task.name}: {error}") from None
+        built = task
         task = task.settled(wait=False)  # a check that has answered by now (a refusal) ends the run here
         # A new run's epoch is traced while XLA may still compile the task's check beside; a resumed one,
         # which may have nothing left to train, compiles as it starts.
         lowered = lowered_epoch(trainer, train_config, program_key) if record is None else None
         task = task.settled()  # a reward without a usable gradient is refused here, before any folder is made
+        if task.dynamics.step is not built.dynamics.step:  # the check smoothed the reward: train the task as settled
+            program_key = _smoothed_key(program_key, task)
+            trainer = make_trainer(task, train_config, keep=program_key)
+            lowered = lowered_epoch(trainer, train_config, program_key) if record is None else None
         if run is None:
             run_dir = run_dir or default_run_dir(runs_root, task.name)  # named as it is claimed
             # The env steps each seed simulates in an epoch's training: learning curves may be drawn against them.
@@ -95,3 +100,10 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
         raise
     return Session(run, task, trainer, train_config, state, start_epoch, rows, np.asarray(seed_array(train_config)),
                    program_key, lowered)
+
+
+def _smoothed_key(program_key: dict | None, task: Task) -> dict | None:
+    """The key of a run's kept programs: a task that trains a smoothed reward (``env_task(smoothing=...)``)
+    steps through other programs than the same config's unsmoothed task."""
+    smoothing = task.resolved.get("reward_smoothing")
+    return program_key if program_key is None or smoothing is None else {**program_key, "reward_smoothing": smoothing}

@@ -35,12 +35,18 @@ class Config:
     discount: float = field(default=1.0, metadata={"help": "per-step discount of the training rollout's return, in (0, 1]"})
     episode_length: int = field(default=0, metadata={"help": "steps of the evaluation episodes whose return every epoch logs (0: the environment's own)"})
     reward_check: bool = field(default=True, metadata={"help": "before training, look at the reward's gradient at sampled states and refuse a reward that has none (--no-reward-check skips it: a quicker start, no refusal)"})
+    smoothing: str = field(default="auto", metadata={"help": "auto: where the reward check finds the reward's gradient zero at every sampled state, train on a smooth surrogate (the comparisons the reward makes numbers of become sigmoids; the reported returns stay the true reward's); off: refuse such a reward", "choices": ("auto", "off")})
+    smoothing_scale: float = field(default=1.0, metadata={"help": "the surrogate's temperatures: this times the median difference each smoothed comparison meets at the sampled states"})
 
     def __post_init__(self):
         if not 0 <= self.steps <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'steps')} must be between 1 and {MAX_STEPS} (or 0 for {DEFAULT_STEPS}), got {self.steps}")
         if not (math.isfinite(self.discount) and 0 < self.discount <= 1):
             raise InputError(f"{config_field(self, 'discount')} must be in (0, 1], got {self.discount}")
+        if self.smoothing not in ("auto", "off"):
+            raise InputError(f"{config_field(self, 'smoothing')} must be auto or off, got {self.smoothing!r}")
+        if not (math.isfinite(self.smoothing_scale) and self.smoothing_scale > 0):
+            raise InputError(f"{config_field(self, 'smoothing_scale')} must be a positive number, got {self.smoothing_scale}")
         if not 0 <= self.episode_length <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
 
@@ -73,7 +79,8 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
     inputs = program_inputs(config)
     task = env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
-                    diagnose=config.reward_check, defer_diagnosis=defer_diagnosis,
+                    diagnose=config.reward_check, defer_diagnosis=defer_diagnosis, smoothing=config.smoothing,
+                    smoothing_scale=config.smoothing_scale,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs})
     if ":" in config.env:
         return task

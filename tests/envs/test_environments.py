@@ -58,7 +58,7 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
     key = lambda reward: {"env": f"Cart {reward} {tmp_path}"}  # noqa: E731
     for _ in range(2):  # the second time from what the first kept: a refusal is kept too
         with pytest.raises(EnvError, match="gradient is zero at every sampled state") as refusal:
-            env_task(Cart("step"), horizon=5, dense_variant="SmoothCart", diagnosis_key=key("step"))
+            env_task(Cart("step"), horizon=5, dense_variant="SmoothCart", diagnosis_key=key("step"), smoothing="off")
         monkeypatch.setattr(adapter, "start_diagnosis", lambda *a: pytest.fail("diagnosed although kept"))
     monkeypatch.undo()
     assert "train SmoothCart, its dense variant; or give the reward a slope" in str(refusal.value)
@@ -86,7 +86,8 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
 
 def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_parameters_until_it_answers(tmp_path, monkeypatch):
     config, seeds = replace(TINY, epochs=1), seed_array(replace(TINY, epochs=1))
-    refused = env_task(Cart("step"), horizon=5, defer_diagnosis=True, diagnosis_key={"env": f"step {tmp_path}"})
+    refused = env_task(Cart("step"), horizon=5, defer_diagnosis=True, diagnosis_key={"env": f"step {tmp_path}"},
+                       smoothing="off")
     assert refused.resolved["reward_gradient"] == "pending"
     trainer = sb.make_trainer(refused, config)  # shapes only: built while the diagnosis compiles
     with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
@@ -94,7 +95,8 @@ def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_paramet
     with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
         trainer.init(seeds)  # the parameters' values wait for the diagnosis: no silent start
     with pytest.raises(EnvError, match="gradient is zero at every sampled state"):  # kept: refused at once
-        env_task(Cart("step"), horizon=5, defer_diagnosis=True, diagnosis_key={"env": f"step {tmp_path}"})
+        env_task(Cart("step"), horizon=5, defer_diagnosis=True, diagnosis_key={"env": f"step {tmp_path}"},
+                 smoothing="off")
     pending = env_task(Cart("norm"), horizon=5, defer_diagnosis=True)
     trainer = sb.make_trainer(pending, config)
     lowered = fitting.lowered_epoch(trainer, config)  # the epoch traced for the parameters' shapes
@@ -158,7 +160,8 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
     assert "training on carried episodes: 4 per seed, each update one window of 6 steps" in done.stdout
     record = read_json(tmp_path / "run" / "config.json")
     assert record["task"] == "env" and record["task_config"]["env"] == "envs_for_tests:make_cart"
-    for args, expected in ((["--env", "envs_for_tests:step_reward_cart"], "gradient is zero at every sampled state"),
+    for args, expected in ((["--env", "envs_for_tests:step_reward_cart", "--smoothing", "off"],
+                            "gradient is zero at every sampled state"),
                            (["--env", "no_such_module:env"], "cannot import no_such_module"),
                            (["--env", "envs_for_tests:nothing"], "has no attribute 'nothing'"),
                            (["--env", "envs_for_tests:make_cart", "--discount", "0"], "--discount must be in (0, 1]")):

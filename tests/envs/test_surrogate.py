@@ -80,3 +80,4 @@ def test_the_surrogate_has_a_gradient_where_the_reward_has_none_and_it_points_th
     far = Slider(jnp.array([-3.0, -5.0]), jnp.array([-8.0, 8.0]), jnp.zeros(2))
     still = jnp.zeros((2, 1))
     np.testing.assert_allclose(jax.vmap(smooth_step)(far, still).reward, jax.vmap(step)(far, still).reward, atol=0.005)
+

@@ -1,0 +1,53 @@
+"""A lab's env whose reward is a step function trains on its smooth surrogate (stablebptt.envs.surrogate),
+from Python and from the command line, and reports its true return; a surrogate of the user's own is
+trained as given; smoothing off refuses the reward as before."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from envs_for_tests import Cart
+
+import stablebptt as sb
+from stablebptt.commands import train as train_command
+from stablebptt.envs.adapter import EnvError, env_task
+def test_a_labs_env_with_a_step_reward_trains_on_its_surrogate_and_reports_its_true_return():
+    config = sb.TrainConfig(mode="C", epochs=2, train_size=8, test_size=8, batch=4, clip="norm", lr=1e-2)
+    task = env_task(Cart("step"), horizon=5)  # 1 where |position| < 0.1, else 0: flat almost everywhere
+    assert "smoothed 1 comparison of the reward into sigmoids: " in task.summary and "envs_for_tests.py" in task.summary
+    assert task.resolved["reward_gradient"] == "usable" and "reward_smoothing" in task.resolved
+    states = task.sample_initial_states(jax.random.PRNGKey(0), 8)
+    params = task.init_params(jax.random.PRNGKey(1), True)
+    # The returns it reports are the true reward's: those of the same env trained without a check.
+    plain = env_task(Cart("step"), horizon=5, diagnose=False)
+    np.testing.assert_array_equal(task.evaluation(params, states), plain.evaluation(params, states))
+    # It trains on the surrogate: from the zero policy the true reward's update is exactly zero, this one is not.
+    trained = sb.train(task, config)
+    assert np.all(np.isfinite(trained.test_loss)) and float(jnp.abs(trained.params[-1][0]).max()) > 0
+    flat = sb.train(plain, config)
+    assert float(jnp.abs(flat.params[-1][0]).max()) == 0.0
+    # A surrogate of the user's own is trained on as given, and diagnosed.
+    own = env_task(Cart("step"), horizon=5, surrogate_reward=lambda state: -state.data["position"] ** 2)
+    assert own.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in own.resolved
+    reached = own.dynamics.step(jax.tree.map(lambda a: a[0], states), jnp.array([0.3]))
+    assert float(reached.reward) == pytest.approx(-float(reached.data["position"]) ** 2)
+    with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
+        env_task(Cart("step"), horizon=5, smoothing="off")
+    with pytest.raises(EnvError, match="env_task's smoothing_scale must be a positive number"):
+        env_task(Cart("step"), horizon=5, smoothing_scale=0.0)
+
+
+def test_the_command_line_names_the_smoothed_comparisons_in_its_first_line(tmp_path, capsys):
+    code = train_command.main(["--env", "envs_for_tests:step_reward_cart", "--steps", "5", "--epochs", "1",
+                               "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
+                               "--out", str(tmp_path / "run")])
+    printed = capsys.readouterr().out.splitlines()
+    assert code == 0 and printed[0].startswith("step_reward_cart: ") and "smoothed 1 comparison of the reward" in printed[0]
+    from stablebptt.storage import read_json
+    resolved = read_json(tmp_path / "run" / "config.json")["resolved_task"]
+    assert resolved["reward_smoothing"] in printed[0] and resolved["reward_gradient"] == "usable"
+    with pytest.raises(SystemExit) as refused:
+        train_command.main(["--env", "envs_for_tests:step_reward_cart", "--smoothing-scale", "-1",
+                            "--out", str(tmp_path / "refused")])
+    err = capsys.readouterr().err.splitlines()
+    assert refused.value.code == 2 and err == ["error: --smoothing-scale must be a positive number, got -1.0"]
+    assert not (tmp_path / "refused").exists()
