@@ -7,7 +7,8 @@ and nothing else of the step's output is a candidate; where its truth is turned 
 conversion to a float, or a choice between two values that do not depend on the step's inputs, as
 ``jnp.where(inside, 1.0, 0.0)``), the number becomes ``sigmoid(difference / temperature)`` instead,
 with ``and``, ``or`` and ``not`` between such truths as products. Everything else of the step runs as
-traced: the state it returns is the step's own to the last bit, only its reward changes. Working on
+traced: the state it returns is the step's own to the last bit, only its reward changes (and the
+records of the reward's terms a step may keep under ``metrics``, which no later step reads). Working on
 the traced program, it smooths a lab's own reward as it does MuJoCo Playground's.
 
 Each comparison's temperature is the median of the absolute difference it compared, over sampled
@@ -165,17 +166,25 @@ class _Interpreter:
 def _reward_leaf(tree: PyTree) -> int:
     """The index of the leaf named ``reward`` among a step's output leaves."""
     paths = [path for path, _ in jax.tree_util.tree_flatten_with_path(tree)[0]]
-    named = [index for index, path in enumerate(paths) if path and getattr(path[-1], "name", getattr(path[-1], "key", None)) == "reward"]
+    named = [index for index, path in enumerate(paths) if path and _names(path)[-1] == "reward"]
     if len(named) != 1:
         raise ValueError(f"a step's state must hold one leaf named reward to smooth it, found {len(named)}")
     return named[0]
 
 
+def _names(path) -> list:
+    return [getattr(key, "name", getattr(key, "key", None)) for key in path]
+
+
 def _traced(step: Callable, state: PyTree, action: jax.Array):
+    """The step's program, its output's structure, and what each output leaf is: the reward, the
+    reward's own records (a leaf under ``metrics``, as Playground logs each term of it: they follow the
+    reward, and no later step reads them), or the state."""
     closed, shape = jax.make_jaxpr(step, return_shape=True)(state, action)
-    leaves = len(jax.tree.leaves(shape))
+    paths = [path for path, _ in jax.tree_util.tree_flatten_with_path(shape)[0]]
     reward = _reward_leaf(shape)
-    out_labels = [frozenset({REWARD}) if index == reward else frozenset({OTHER}) for index in range(leaves)]
+    out_labels = [frozenset({REWARD}) if index == reward else frozenset() if "metrics" in _names(path)
+                  else frozenset({OTHER}) for index, path in enumerate(paths)]
     return closed, jax.tree.structure(shape), out_labels
 
 

@@ -18,6 +18,7 @@ class Slider(NamedTuple):
     x: jax.Array
     v: jax.Array
     reward: jax.Array
+    metrics: dict  # the reward's terms as logged, as Playground's states keep them: no later step reads them
 
 
 def in_target(x):
@@ -31,13 +32,15 @@ def step(state: Slider, action: jax.Array) -> Slider:
     x = jnp.where(state.x + DT * v > WALL, WALL, state.x + DT * v)  # a wall: a comparison of the state, kept
     moving_fast = (v > FAST).astype(jnp.float32)  # a threshold made a number
     distance = jnp.where(x < 0, -x, x)  # a piecewise function: its gradient is already there
-    return Slider(x, v, in_target(x) + 0.5 * moving_fast - 0.01 * distance)
+    target = in_target(x)
+    return Slider(x, v, target + 0.5 * moving_fast - 0.01 * distance, {"in_target": target})
 
 
 def samples(count=256, seed=0):
     keys = jax.random.split(jax.random.PRNGKey(seed), 3)
     states = Slider(jax.random.uniform(keys[0], (count,), minval=-0.5, maxval=2.5),
-                    jax.random.uniform(keys[1], (count,), minval=-1.0, maxval=1.0), jnp.zeros(count))
+                    jax.random.uniform(keys[1], (count,), minval=-1.0, maxval=1.0), jnp.zeros(count),
+                    {"in_target": jnp.zeros(count)})
     return states, jax.random.uniform(keys[2], (count, 1), minval=-1.0, maxval=1.0)
 
 
@@ -71,13 +74,13 @@ def test_the_comparisons_made_numbers_are_smoothed_and_named_and_the_rest_is_not
 
 def test_the_surrogate_has_a_gradient_where_the_reward_has_none_and_it_points_the_right_way(smoothed):
     smooth_step, _ = smoothed
-    state, action = Slider(jnp.float32(0.5), jnp.float32(0.0), jnp.float32(0.0)), jnp.array([0.0])
+    state, action = Slider(jnp.float32(0.5), jnp.float32(0.0), jnp.float32(0.0), {"in_target": jnp.float32(0.0)}), jnp.array([0.0])
     true_slope = jax.grad(lambda s, a: step(s, a).reward)(state, action)
     assert float(true_slope.x) == pytest.approx(-0.01)  # the distance term's alone: the target gives nothing
     slope = jax.jit(jax.grad(lambda s, a: smooth_step(s, a).reward))(state, action)
     assert float(slope.x) > 0.05 and float(slope.v) > 0.1  # towards the target (where the true slope points away), and faster
     # Far from every threshold (eight temperatures or more) the surrogate is the reward.
-    far = Slider(jnp.array([-3.0, -5.0]), jnp.array([-8.0, 8.0]), jnp.zeros(2))
+    far = Slider(jnp.array([-3.0, -5.0]), jnp.array([-8.0, 8.0]), jnp.zeros(2), {"in_target": jnp.zeros(2)})
     still = jnp.zeros((2, 1))
     np.testing.assert_allclose(jax.vmap(smooth_step)(far, still).reward, jax.vmap(step)(far, still).reward, atol=0.005)
 
