@@ -17,6 +17,7 @@ within about one temperature of the threshold, where the sigmoid's slope is larg
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
@@ -127,7 +128,7 @@ class _Interpreter:
             a, b = (_hard(value) for value in invals)
             hard = eqn.primitive.bind(a, b, **eqn.params)
             difference = COMPARISONS[name] * (a - b)  # positive where the comparison is true
-            self.places[place] = source_info_util.summarize(eqn.source_info)
+            self.places[place] = _where_written(eqn)
             if self.temperatures is None:
                 self.differences[place] = difference
                 prob = hard.astype(difference.dtype)
@@ -161,6 +162,21 @@ class _Interpreter:
                 return [prob * when_true + (1 - prob) * when_false]
         outputs = eqn.primitive.bind(*(_hard(value) for value in invals), **eqn.params)
         return outputs if eqn.primitive.multiple_results else [outputs]
+
+
+LIBRARY = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _where_written(eqn) -> str:
+    """The line of the env's code that made the comparison: the innermost frame outside JAX and this
+    library (whose repair of Playground's tolerance computes it), as ``folder/file.py:line (function)``."""
+    frames = list(source_info_util.user_frames(eqn.source_info.traceback))
+    outside = [frame for frame in frames if not os.path.abspath(frame.file_name).startswith(LIBRARY + os.sep)]
+    frame = (outside or frames or [None])[0]
+    if frame is None:
+        return source_info_util.summarize(eqn.source_info)
+    short = os.path.join(*os.path.normpath(frame.file_name).split(os.sep)[-2:])
+    return f"{short}:{frame.start_line} ({frame.function_name})"
 
 
 def _reward_leaf(tree: PyTree) -> int:
