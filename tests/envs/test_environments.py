@@ -242,16 +242,17 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
 def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_path, capsys):
     run = tmp_path / "cartpole"
     from stablebptt.commands import train as train_command  # in this process: the installed command's main
+    # No reward check: its program (a minute of compiling here) is tested on the tests' own envs.
     assert train_command.main(["--env", "CartpoleSwingup", "--steps", "8", "--episode-length", "8", "--epochs", "1",
                                "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
-                               "--out", str(run)]) == 0
+                               "--no-reward-check", "--out", str(run)]) == 0
     printed = capsys.readouterr().out
-    assert "repaired: Playground's reward tolerance" in printed and "reward gradient: usable" in printed, printed
+    assert "repaired: Playground's reward tolerance" in printed and "reward gradient" not in printed, printed
     rendered = run_script("scripts/render.py", str(run), "--rollouts", "1", "--no-video")
     assert rendered.returncode == 0, rendered.stderr
     assert (run / "rollout-strip.png").stat().st_size > 1000
     from stablebptt.apps.trained import open_trained
-    assert open_trained(run).task.resolved["reward_gradient"] == "not checked"  # reopened: checked before training
+    assert open_trained(run).task.resolved["reward_gradient"] == "not checked"
     code, err = train_in_process(capsys, "--env", "cartpoleswingup", "--out", str(tmp_path / "no"))
     assert code == 2 and len(err) == 1 and "did you mean CartpoleSwingup?" in err[0], err
     assert not (tmp_path / "no").exists()
