@@ -141,7 +141,8 @@ class _Interpreter:
             inner = eqn.params["jaxpr"]
             return self.run(inner.jaxpr, inner.consts, invals, fixed, out_labels, place)
         if soft_inputs and name in LOGICAL:
-            probs = [_prob(value, jnp.float32) for value in invals]
+            dtype = next(value.prob.dtype for value in invals if isinstance(value, Soft))
+            probs = [_prob(value, dtype) for value in invals]
             hard = eqn.primitive.bind(*(_hard(value) for value in invals), **eqn.params)
             prob = {"and": lambda p, q: p * q, "or": lambda p, q: p + q - p * q, "not": lambda p: 1 - p,
                     "xor": lambda p, q: p + q - 2 * p * q}[name](*probs)
