@@ -194,6 +194,20 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None) -> I
     finally:
         for signum, old in previous.items():
             signal.signal(signum, old)
+        if requested:  # the same request may still be on its way (timeout signals the group after the process)
+            _ignore_the_repeat(*requested[0], previous[requested[0][0]])
+
+
+def _ignore_the_repeat(signum: int, first: float, previous: Any) -> None:
+    """After the block: ``signum`` again within ``REPEAT_SECONDS`` of the request is the same request and
+    is ignored; later, ``previous`` (what the block found) handles it."""
+    def late(number, frame):
+        if time.monotonic() - first < REPEAT_SECONDS:
+            return
+        signal.signal(number, previous)
+        os.kill(os.getpid(), number)
+
+    signal.signal(signum, late)
 
 
 def in_worker_thread(work: Callable[[], Any]) -> Any:

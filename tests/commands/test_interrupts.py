@@ -49,3 +49,26 @@ def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resum
                                   "--no-progress"], cwd=ROOT, capture_output=True, text=True, timeout=600,
                                  env={**os.environ, "STABLEBPTT_COMPILE_CACHE": str(tmp_path / "cache-resume")})
         assert resumed.returncode == 0, resumed.stderr
+
+
+def test_the_same_stop_request_arriving_after_the_run_stopped_is_ignored_and_a_later_one_is_not():
+    # timeout and batch schedulers signal the process, then its group: on a busy machine the second copy
+    # may arrive after the training loop has stopped and put the handlers back.
+    script = """if True:
+        import os, signal, sys, time
+        from stablebptt.cli import REPEAT_SECONDS, stop_on_signals
+        with stop_on_signals() as should_stop:
+            os.kill(os.getpid(), signal.SIGTERM)
+            while not should_stop():
+                time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGTERM)  # the same request again, after the block: ignored
+        time.sleep(0.1)
+        print("survived", flush=True)
+        time.sleep(REPEAT_SECONDS)
+        os.kill(os.getpid(), signal.SIGTERM)  # a new request, later: the default action ends the process
+        time.sleep(5)
+        print("not reached", flush=True)
+    """
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.stdout.split() == ["survived"] and done.returncode == -signal.SIGTERM, (done.stdout, done.stderr)
