@@ -211,11 +211,11 @@ def _evaluate(closed, out_labels, structure, interpreter: _Interpreter, state, a
     return jax.tree.unflatten(structure, [_hard(value) for value in outputs])
 
 
-def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0) -> dict:
+def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0, traced: tuple | None = None) -> dict:
     """Each smoothable comparison's temperature: ``scale`` times the median absolute difference it
-    compares over the sampled ``states`` and ``actions`` (leading axis: samples), where that is above 0."""
-    one = jax.tree.map(lambda a: a[0], (states, actions))
-    closed, structure, out_labels = _traced(step, *one)
+    compares over the sampled ``states`` and ``actions`` (leading axis: samples), where that is above 0.
+    ``traced``: the step's ``_traced`` program, where the caller has it already."""
+    closed, structure, out_labels = traced or _traced(step, *jax.tree.map(lambda a: a[0], (states, actions)))
     recorder = _Interpreter(None)
 
     def differences(state, action):
@@ -236,10 +236,10 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
 def smooth_reward(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0) -> tuple[Callable, Smoothing]:
     """``step`` with its reward's comparisons smoothed, temperatures from the sampled ``states`` and
     ``actions`` (module docstring); and what was smoothed. The state it returns is ``step``'s."""
-    chosen = temperatures(step, states, actions, scale)
+    traced = _traced(step, *jax.tree.map(lambda a: a[0], (states, actions)))  # one trace serves both passes
+    chosen = temperatures(step, states, actions, scale, traced)
     temperature_of = {place: temperature for place, (temperature, _) in chosen.items()}
-    one = jax.tree.map(lambda a: a[0], (states, actions))
-    closed, structure, out_labels = _traced(step, *one)
+    closed, structure, out_labels = traced
 
     def smoothed(state, action):
         return _evaluate(closed, out_labels, structure, _Interpreter(temperature_of), state, action)
