@@ -26,6 +26,7 @@ import mujoco
 import numpy as np
 
 from stablebptt import models
+from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.task import Task
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows.dynamics import Dynamics, Plan
@@ -43,6 +44,7 @@ MODELS = models.DIRECTORY  # package data: found wherever the package is install
 DEFAULT_EPOCHS = 1000
 
 # What a task file may set: the task, not the simulation.
+MAX_EPISODE = 1_000_000  # steps of an episode (episode_seconds)
 TASK_FILE_OPTIONS = ("init_pose", "target_pose", "reach", "loss_joints", "loss", "horizon_seconds", "spread")
 
 
@@ -62,6 +64,7 @@ class Config(SimulatorConfig):
     loss_joints: str = field(default="", metadata={"help": "joints the pose loss compares, comma-separated (leave passive bodies out); none: no pose loss"})
     loss: str = field(default="", metadata={"help": "when the loss is taken: final (last state) or mean (over all steps); default: the MJCF's bptt_loss, else final", "choices": ("", "final", "mean")})
     horizon_seconds: float = field(default=0.0, metadata={"help": "horizon in simulated seconds (0: the MJCF's bptt_horizon, else 100 steps); --steps overrides it"})
+    episode_seconds: float = field(default=0.0, metadata={"help": "give the task episodes of this many simulated seconds, so that it trains on carried ones (--episodes): windows of the horizon along them, each step's reward the negative state loss, an episode that ends (or whose state is no longer finite) reset from the initial states' spread; 0: no episodes, the paper's protocol"})
 
     def __post_init__(self):
         super().__post_init__()
@@ -73,6 +76,8 @@ class Config(SimulatorConfig):
             raise InputError(f"{config_field(self, 'steps')} must be between 1 and {MAX_HORIZON} (or 0 for the MJCF's own), got {self.steps}")
         if self.loss not in ("", "final", "mean"):
             raise InputError(f"{config_field(self, 'loss')} must be final or mean (or empty for the MJCF's own), got {self.loss!r}")
+        if not (math.isfinite(self.episode_seconds) and self.episode_seconds >= 0):
+            raise InputError(f"{config_field(self, 'episode_seconds')} must be a finite time, zero or positive, got {self.episode_seconds}")
         if not (math.isfinite(self.horizon_seconds) and self.horizon_seconds >= 0):
             raise InputError(f"{config_field(self, 'horizon_seconds')} must be a finite positive time (or 0 for the MJCF's own), got {self.horizon_seconds}")
         self._merge_task_file()
@@ -244,6 +249,17 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
         qpos = jax.vmap(lambda d: perturb_qpos(model, spec.init.qpos, d))(dq)
         return State(qpos, spec.init.qvel + dv, jnp.broadcast_to(spec.init.act, (count, model.na)))
 
+    episodes = None
+    if config.episode_seconds:
+        length = round(config.episode_seconds / timestep)
+        if not 1 <= length <= MAX_EPISODE:
+            raise InputError(f"{config_field(Config, 'episode_seconds')} {config.episode_seconds:g} is {length} steps of "
+                             f"{timestep:g} s: choose between one step and {MAX_EPISODE}")
+        # A state that is no longer finite ends its episode: it is reset, and nothing past it counts.
+        episodes = Episodes(reset=lambda key: jax.tree.map(lambda a: a[0], sample_initial_states(key, 1)),
+                            reward=lambda state: -state_loss(state.qpos), length=length,
+                            done=lambda state: ~jnp.all(jnp.isfinite(jnp.concatenate([state.qpos, state.qvel]))))
+
     name = path.name.removesuffix(".gz").rsplit(".", 1)[0]  # runs name the model: cartpole_3, humanoid, ...
     as_list = lambda a: np.asarray(a, dtype=float).tolist()
     resolved = {
@@ -251,6 +267,7 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
         "model_sha256": file_sha256(path),
         "timestep": float(lean.opt.timestep),
         "horizon_steps": horizon,
+        **({"episode_steps": episodes.length} if episodes else {}),
         "loss": spec.loss,
         "joint_weight": dict(zip(joint_names(model), as_list(spec.joint_weight))),
         "init": {"qpos": as_list(spec.init.qpos), "qvel": as_list(spec.init.qvel), "act": as_list(spec.init.act)},
@@ -273,8 +290,10 @@ def _make(config: Config, path: Path, model: mujoco.MjModel, spec: Spec) -> Task
         init_params=lambda key, zero_output: mlp_init(key, sizes, zero_output),
         sample_initial_states=sample_initial_states,
         summary=f"{path.name}: {sim.summary}; horizon {horizon} steps, {spec.loss}-state loss"
-                + (f" (reaching {reach.name})" if reach is not None else ""),
+                + (f" (reaching {reach.name})" if reach is not None else "")
+                + (f"; episodes of {episodes.length} steps, each step's reward the negative state loss" if episodes else ""),
         resolved=resolved,
+        episodes=episodes,
     )
 
 

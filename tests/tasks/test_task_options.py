@@ -84,8 +84,33 @@ def test_a_limited_actuator_never_leaves_its_range_and_keeps_a_gradient(pendulum
     assert any(float(jnp.abs(leaf).max()) > 0 for leaf in jax.tree.leaves(slope))
 
 
+def test_an_mjcf_task_given_episode_seconds_trains_on_carried_episodes_rewarded_by_its_state_loss(pendulum):
+    from stablebptt.engine.config import TrainConfig, seed_array
+    from stablebptt.engine.training import make_trainer
+    assert mjcf.make(mjcf.Config(model=str(pendulum))).episodes is None  # the paper's protocol unless asked
+    task = mjcf.make(mjcf.Config(model=str(pendulum), target_pose="upright", steps=3, episode_seconds=0.1))
+    episodes = task.episodes
+    assert (episodes.length, task.resolved["episode_steps"]) == (5, 5)  # 0.1 s at dt 0.02
+    angles = jnp.array([0.0, 1.0, 3.14159265])
+    states = State(angles[:, None], jnp.zeros((3, 1)), jnp.zeros((3, 0)))
+    # Each step's reward is the negative state loss: the pose loss of a hinge, 1 - cos(q - target).
+    np.testing.assert_allclose(jax.vmap(episodes.reward)(states), -(1 - np.cos(angles - 3.14159265)), atol=1e-6)
+    nan = State(jnp.array([jnp.nan]), jnp.zeros(1), jnp.zeros(0))
+    assert bool(episodes.done(nan)) and not bool(episodes.done(State(jnp.zeros(1), jnp.zeros(1), jnp.zeros(0))))
+    reset, sampled = episodes.reset(jax.random.PRNGKey(7)), task.sample_initial_states(jax.random.PRNGKey(7), 1)
+    np.testing.assert_array_equal(reset.qpos, sampled.qpos[0])  # an episode starts as the initial states are drawn
+    config = TrainConfig(epochs=1, batch=2, train_size=2, test_size=2, lr=1e-2)
+    trainer = make_trainer(task, config)
+    assert trainer.episodes is episodes and trainer.updates_per_epoch == 2  # ceil(5 / 3)
+    state = trainer.init(seed_array(config))
+    state, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+    assert bool(metrics["finite"][0]) and state.carried.clocks.shape == (1, 2)
+
+
 @pytest.mark.parametrize("options, words", [
     (dict(init_pose="elbow=1"), "no joint named 'elbow'"),
+    (dict(episode_seconds=-1.0), "episode_seconds must be a finite time"),
+    (dict(episode_seconds=0.001), "episode_seconds 0.001 is 0 steps"),
     (dict(target_pose="sideways"), "no keyframe named 'sideways'"),
     (dict(init_pose="hinge=nan"), "finite"),
     (dict(reach="tip=1,0"), "NAME=X,Y,Z"),
