@@ -2,12 +2,13 @@
 mode through the generated terms and the implicit solver against forward mode through MJX's own stages,
 (RK4's and a connect loop's: test_rk4_and_loop_jacobians.py). Apart from test_rigid_body.py, whose scenes
 they use, so that the modules' compiles share the cores."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 from test_rigid_body import (
-    FLOATING,
     FLOATING_ARM,
     HOPPING,
     IN_CONTACT_CONTROL,
@@ -39,11 +40,12 @@ def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
     assert np.abs(np.asarray(expected.qvel[0].qpos)).max() > 1e-3
 
 
-def test_free_and_ball_joints_in_contact_have_mjx_stages_jacobians(x64, form):
-    """Through the quaternions' normalisation and the three-dof groups, in either form: the floating body
-    on the floor, its shoulder turning (written out, at the size a GPU writes out)."""
-    model = mujoco.MjModel.from_xml_string(FLOATING_ARM if form == "written out" else FLOATING)
-    assert (model.nv, model.nu) == ((10, 1) if form == "written out" else (15, 2))
+@functools.cache
+def floating_arm_in_contact():
+    """The floating arm on the floor, its shoulder turning: its lean model, the state, the control, and
+    the Jacobians of forward mode through MJX's stages (computed once for both forms)."""
+    model = mujoco.MjModel.from_xml_string(FLOATING_ARM)
+    assert (model.nv, model.nu) == (10, 1)
     lean, effects = lean_of(model)
     data = mujoco.MjData(model)
     data.qvel[6:9] = [2.0, -1.0, 0.5]
@@ -55,6 +57,14 @@ def test_free_and_ball_joints_in_contact_have_mjx_stages_jacobians(x64, form):
     state = lean_step.State(jnp.array(data.qpos), jnp.array(data.qvel), jnp.zeros(0))
     control = jnp.array(IN_CONTACT_CONTROL[:model.nu])
     expected = jax.jit(jax.jacfwd(lean_step.make_step(lean, effects, "stages"), argnums=(0, 1)))(state, control)
+    return lean, effects, state, control, expected
+
+
+def test_free_and_ball_joints_in_contact_have_mjx_stages_jacobians(x64, form):
+    """Through the quaternions' normalisation and the three-dof groups, in either form: the floating torso
+    and its arm on the floor, at the size a GPU writes the terms out (the 15-dof floating scene's terms in
+    arrays are MuJoCo's: test_rigid_body.py)."""
+    lean, effects, state, control, expected = floating_arm_in_contact()
     got = jax.jit(jax.jacrev(lean_step.make_step(lean, effects), argnums=(0, 1)))(state, control)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
         np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
