@@ -160,22 +160,16 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--envs", default="CartpoleSwingup,AcrobotSwingup,CheetahRun")
     p.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1, one after another")
-    p.add_argument("--seed0", type=int, default=0)
-    p.add_argument("--budget", type=float, default=180.0, help="training wall seconds, compile included")
-    p.add_argument("--eval-every", type=float, default=None, help="training wall seconds; default budget/10")
     p.add_argument("--updates-per-epoch", type=int, default=20, help="APG updates between callbacks")
-    p.add_argument("--eval-envs", type=int, default=evaluation.NUM_EVAL_ENVS)
     p.add_argument("--preset", choices=sorted(PRESETS), default="train_defaults")
     p.add_argument("--set", action="append", default=[], help="override a hyperparameter: key=value")
     p.add_argument("--variants", default="shipped,iter1,noconstraint")
     p.add_argument("--all-variants", action="store_true", help="run every variant, not only fallbacks")
     p.add_argument("--sticky-variant", action="store_true",
                    help="seeds after the first start from the variant the first seed trained on")
-    p.add_argument("--brax-eval", choices=("all", "none"), default="all",
-                   help="also run Brax's own evaluator at each point (none: only the shared evaluation.py)")
     p.add_argument("--throughput", action="store_true",
                    help="write throughput_apg_*.json (update time at the given horizon/num_envs) instead of run records")
-    p.add_argument("--out", required=True)
+    brax_runs.add_common_arguments(p, budget=180.0, eval_envs=evaluation.NUM_EVAL_ENVS, brax_eval="all")
     a = p.parse_args(argv)
 
     hp = dict(PRESETS[a.preset])

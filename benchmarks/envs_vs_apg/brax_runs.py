@@ -21,6 +21,18 @@ import jax.numpy as jnp
 import numpy as np
 
 
+def add_common_arguments(parser, budget: float, eval_envs: int, brax_eval: str) -> None:
+    """The options both Brax baselines take: the first seed, the training budget and the evaluation
+    schedule, Brax's own evaluator, and the output folder."""
+    parser.add_argument("--seed0", type=int, default=0)
+    parser.add_argument("--budget", type=float, default=budget, help="training wall seconds, compile included")
+    parser.add_argument("--eval-every", type=float, default=None, help="training wall seconds; default budget/10")
+    parser.add_argument("--eval-envs", type=int, default=eval_envs)
+    parser.add_argument("--brax-eval", choices=("all", "none"), default=brax_eval,
+                        help="also run Brax's own evaluator at each point (none: only the shared evaluation.py)")
+    parser.add_argument("--out", required=True)
+
+
 def install_jax_shims():
     """Brax 0.14.2 calls jax.device_put_replicated, which current JAX no longer has."""
     if hasattr(jax, "device_put_replicated"):

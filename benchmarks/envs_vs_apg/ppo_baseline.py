@@ -95,14 +95,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--envs", default="CartpoleSwingup")
     p.add_argument("--seeds", type=int, default=1, help="seeds seed0..seed0+N-1, one after another")
-    p.add_argument("--seed0", type=int, default=0)
-    p.add_argument("--budget", type=float, default=240.0, help="training wall seconds, compile included")
-    p.add_argument("--eval-every", type=float, default=None, help="training wall seconds; default budget/10")
-    p.add_argument("--eval-envs", type=int, default=evaluation.NUM_EVAL_ENVS)
     p.add_argument("--set", action="append", default=[], help="override a hyperparameter: key=JSON value")
-    p.add_argument("--brax-eval", choices=("all", "none"), default="none",
-                   help="also run Brax's own evaluator at each point (none: only the shared evaluation.py)")
-    p.add_argument("--out", required=True)
+    brax_runs.add_common_arguments(p, budget=240.0, eval_envs=evaluation.NUM_EVAL_ENVS, brax_eval="none")
     a = p.parse_args(argv)
     overrides = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in a.set)}
     os.makedirs(a.out, exist_ok=True)
