@@ -14,6 +14,13 @@ the traced program, it smooths a lab's own reward as it does MuJoCo Playground's
 Each comparison's temperature is the median of the absolute difference it compared, over sampled
 states (``temperatures``), times a scale the user may give: a typical sampled state then sits
 within about one temperature of the threshold, where the sigmoid's slope is large.
+
+A reward can also be flat because an exponential that reaches it underflows: a Gaussian tolerance
+whose margin is small next to the sampled distances (``exp(-d**2 / margin**2)`` is 0 in float32 once
+d exceeds about 9 margins), where value and slope are both exactly 0. Where the median exponent an
+``exp`` of the reward meets at the sampled states is below the logarithm of the smallest float, the
+exponent is scaled so that the median becomes -1 (over the same scale): for a Gaussian, a margin
+widened to where the typical sampled state sits.
 """
 from __future__ import annotations
 
@@ -47,13 +54,28 @@ class Smoothing:
 
     terms: tuple[str, ...]
     temperatures: tuple[float, ...]
+    exponents: tuple[str, ...] = ()  # the underflowing exponentials' places, and the factor of each exponent
+    exponent_scales: tuple[float, ...] = ()
+
+    @property
+    def anything(self) -> bool:
+        return bool(self.terms or self.exponents)
 
     def describe(self) -> str:
-        if not self.terms:
-            return "smoothed: nothing (no comparison made a number of the reward)"
-        places = ", ".join(f"{term} (temperature {temperature:.3g})" for term, temperature in
-                           zip(self.terms, self.temperatures))
-        return f"smoothed {len(self.terms)} comparison{'s' if len(self.terms) > 1 else ''} of the reward into sigmoids: {places}"
+        if not self.anything:
+            return "smoothed: nothing (no comparison made a number of the reward, no exponential of it underflowing)"
+        parts = []
+        if self.terms:
+            places = ", ".join(f"{term} (temperature {temperature:.3g})" for term, temperature in
+                               zip(self.terms, self.temperatures))
+            parts.append(f"{len(self.terms)} comparison{'s' if len(self.terms) > 1 else ''} of the reward into "
+                         f"sigmoids: {places}")
+        if self.exponents:
+            places = ", ".join(f"{term} (exponent times {factor:.3g})" for term, factor in
+                               zip(self.exponents, self.exponent_scales))
+            parts.append(f"{len(self.exponents)} underflowing exponential{'s' if len(self.exponents) > 1 else ''} "
+                         f"of the reward widened: {places}")
+        return "smoothed " + "; ".join(parts)
 
 
 def _is_call(eqn) -> bool:
@@ -89,9 +111,11 @@ def _prob(value, dtype):
 class _Interpreter:
     """Evaluates a step's program with its reward's comparisons smoothed (or, recording, their differences)."""
 
-    def __init__(self, temperatures: dict | None):
+    def __init__(self, temperatures: dict | None, exponent_scales: dict | None = None):
         self.temperatures = temperatures  # place -> temperature; None: record the differences instead
+        self.exponent_scales = exponent_scales or {}  # place -> factor of an underflowing exponential's exponent
         self.differences: dict = {}
+        self.exponents: dict = {}
         self.used: set = set()
         self.places: dict = {}
 
@@ -123,6 +147,12 @@ class _Interpreter:
     def equation(self, eqn, invals, fixed, label, out_labels, place):
         name = eqn.primitive.name
         soft_inputs = any(isinstance(value, Soft) for value in invals)
+        if name == "exp" and label == frozenset({REWARD}) and not all(fixed) and not soft_inputs \
+                and jnp.issubdtype(jnp.result_type(invals[0]), jnp.floating):
+            self.places[place] = _where_written(eqn)
+            if self.temperatures is None:
+                self.exponents[place] = invals[0]
+            return [jnp.exp(invals[0] * self.exponent_scales.get(place, 1.0)).astype(jnp.result_type(invals[0]))]
         if name in COMPARISONS and label == frozenset({REWARD}) and not all(fixed) \
                 and jnp.issubdtype(jnp.result_type(*[_hard(v) for v in invals]), jnp.floating):
             a, b = (_hard(value) for value in invals)
@@ -211,41 +241,52 @@ def _evaluate(closed, out_labels, structure, interpreter: _Interpreter, state, a
     return jax.tree.unflatten(structure, [_hard(value) for value in outputs])
 
 
-def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0, traced: tuple | None = None) -> dict:
+def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0,
+                 traced: tuple | None = None) -> tuple[dict, dict]:
     """Each smoothable comparison's temperature: ``scale`` times the median absolute difference it
-    compares over the sampled ``states`` and ``actions`` (leading axis: samples), where that is above 0.
-    ``traced``: the step's ``_traced`` program, where the caller has it already."""
+    compares over the sampled ``states`` and ``actions`` (leading axis: samples), where that is above 0;
+    and each underflowing exponential's factor, 1 / (``scale`` times its median exponent's magnitude).
+    Both as place -> (number, where written). ``traced``: the step's ``_traced`` program, where the
+    caller has it already."""
     closed, structure, out_labels = traced or _traced(step, *jax.tree.map(lambda a: a[0], (states, actions)))
     recorder = _Interpreter(None)
 
     def differences(state, action):
         recorder.differences.clear()
+        recorder.exponents.clear()
         _evaluate(closed, out_labels, structure, recorder, state, action)
-        return {place: recorder.differences[place] for place in recorder.differences}
+        return dict(recorder.differences), dict(recorder.exponents)
 
-    sampled = jax.device_get(jax.jit(jax.vmap(differences))(states, actions))
+    sampled, exponents = jax.device_get(jax.jit(jax.vmap(differences))(states, actions))
     chosen = {}
     for place, values in sampled.items():
         magnitudes = np.abs(np.asarray(values, float)).ravel()
         positive = magnitudes[magnitudes > 0]
         if place in recorder.used and positive.size:
             chosen[place] = (float(scale * np.median(positive)), recorder.places[place])
-    return chosen
+    widened = {}
+    for place, values in exponents.items():  # where the median sample's exponential underflows to 0
+        median = float(np.median(np.asarray(values, float)))
+        if median < np.log(np.finfo(np.asarray(values).dtype).tiny):
+            widened[place] = (1.0 / (scale * abs(median)), recorder.places[place])
+    return chosen, widened
 
 
 def smooth_reward(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0) -> tuple[Callable, Smoothing]:
     """``step`` with its reward's comparisons smoothed, temperatures from the sampled ``states`` and
     ``actions`` (module docstring); and what was smoothed. The state it returns is ``step``'s."""
     traced = _traced(step, *jax.tree.map(lambda a: a[0], (states, actions)))  # one trace serves both passes
-    chosen = temperatures(step, states, actions, scale, traced)
+    chosen, widened = temperatures(step, states, actions, scale, traced)
     temperature_of = {place: temperature for place, (temperature, _) in chosen.items()}
+    factor_of = {place: factor for place, (factor, _) in widened.items()}
     closed, structure, out_labels = traced
 
     def smoothed(state, action):
-        return _evaluate(closed, out_labels, structure, _Interpreter(temperature_of), state, action)
+        return _evaluate(closed, out_labels, structure, _Interpreter(temperature_of, factor_of), state, action)
 
-    ordered = sorted(chosen.items())
-    return smoothed, Smoothing(tuple(place for _, (_, place) in ordered), tuple(t for _, (t, _) in ordered))
+    ordered, exponents = sorted(chosen.items()), sorted(widened.items())
+    return smoothed, Smoothing(tuple(place for _, (_, place) in ordered), tuple(t for _, (t, _) in ordered),
+                               tuple(place for _, (_, place) in exponents), tuple(f for _, (f, _) in exponents))
 
 
 def with_reward(state: PyTree, reward: jax.Array) -> PyTree:

@@ -84,3 +84,36 @@ def test_the_surrogate_has_a_gradient_where_the_reward_has_none_and_it_points_th
     still = jnp.zeros((2, 1))
     np.testing.assert_allclose(jax.vmap(smooth_step)(far, still).reward, jax.vmap(step)(far, still).reward, atol=0.005)
 
+
+
+NARROW, WIDE = 0.01, 1.0  # Gaussian margins: far smaller than the sampled distances, and of their size
+
+
+@jax.jit
+def gaussian_step(state: Slider, action: jax.Array) -> Slider:
+    """A reward of two Gaussians of the distance to TARGET: the narrow one underflows at most sampled states."""
+    x = state.x + DT * action[0]
+    near = jnp.exp(-0.5 * ((x - TARGET) / NARROW) ** 2)
+    broad = jnp.exp(-0.5 * ((x - TARGET) / WIDE) ** 2)
+    return Slider(x, state.v, near * (0.5 + 0.5 * broad), {"in_target": near})
+
+
+def test_an_underflowing_gaussian_is_widened_to_the_sampled_distances_and_a_fitting_one_is_left_alone():
+    states, actions = samples()
+    smooth_step, smoothing = smooth_reward(gaussian_step, states, actions)
+    assert (smoothing.terms, len(smoothing.exponents)) == ((), 1), smoothing.describe()
+    assert "test_surrogate.py" in smoothing.exponents[0] and "1 underflowing exponential" in smoothing.describe()
+    # The exponent is scaled so that the median sampled one becomes -1: the margin widened to the median distance.
+    x = states.x + DT * actions[:, 0]
+    exponents = -0.5 * ((np.asarray(x, float) - TARGET) / NARROW) ** 2
+    np.testing.assert_allclose(smoothing.exponent_scales[0], 1 / abs(np.median(exponents)), rtol=1e-4)
+    state, action = jax.tree.map(lambda a: a[0], states), jnp.array([0.2])
+    reached = gaussian_step(state, action)
+    assert float(reached.reward) == 0.0 and float(jax.grad(lambda s: gaussian_step(s, action).reward)(state).x) == 0.0
+    smooth = jax.jit(smooth_step)(state, action)
+    factor, distance = smoothing.exponent_scales[0], float(reached.x) - TARGET
+    expected = np.exp(-0.5 * factor * (distance / NARROW) ** 2) * (0.5 + 0.5 * np.exp(-0.5 * (distance / WIDE) ** 2))
+    np.testing.assert_allclose(float(smooth.reward), expected, rtol=1e-4)  # the broad Gaussian as it was
+    assert float(smooth.x) == float(reached.x)
+    slope = jax.grad(lambda s: smooth_step(s, action).reward)(state)
+    assert float(slope.x) * -distance > 0  # towards the target
