@@ -14,10 +14,7 @@ import jax  # noqa: E402
 
 from stablebptt.cli import leave_out_unused_backends  # noqa: E402
 from stablebptt.engine.compiling import compiler_options  # noqa: E402
-from stablebptt.envs import (
-    adapter,  # noqa: E402
-    diagnosis,
-)
+from stablebptt.envs import adapter, diagnosis, protocol  # noqa: E402
 from stablebptt.timing import usable_cores
 
 leave_out_unused_backends()
@@ -40,7 +37,7 @@ else:
 OPTION_SETS["training's, again"] = OPTION_SETS["training's"]  # the first compile of a process warms XLA up
 
 for name in sys.argv[1:]:
-    env = adapter.load_env(name)
+    env = protocol.load_env(name)
     step = adapter.env_task(env, horizon=1, diagnose=False).dynamics.step
     checks = diagnosis._gradient_checks(step)
     program = jax.jit(lambda key: checks(*diagnosis.sample_for_diagnosis(env, step, key)))

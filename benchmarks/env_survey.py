@@ -169,7 +169,8 @@ def worker(args) -> int:
 
         from stablebptt.engine import training
         from stablebptt.engine.training import nonfinite_names
-        from stablebptt.envs.adapter import env_task, load_env
+        from stablebptt.envs.adapter import env_task
+        from stablebptt.envs.protocol import load_env
         from stablebptt.errors import InputError
 
         save("loading")

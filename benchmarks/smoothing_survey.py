@@ -11,7 +11,8 @@ import sys
 import time
 
 from stablebptt.envs import playground
-from stablebptt.envs.adapter import EnvError, env_task
+from stablebptt.envs.adapter import env_task
+from stablebptt.envs.protocol import EnvError
 
 FLAT = ("AcrobotSwingupSparse", "CartpoleBalanceSparse", "CartpoleSwingupSparse", "BallInCup", "FingerSpin",
         "FingerTurnEasy", "FingerTurnHard", "HopperHop", "HopperStand", "PendulumSwingup", "PointMass", "ReacherEasy",

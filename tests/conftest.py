@@ -11,6 +11,7 @@ import os
 os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0".strip()
 
 import atexit
+import importlib.util
 import contextlib
 import shutil
 import subprocess
@@ -35,6 +36,25 @@ atexit.register(shutil.rmtree, os.environ[COMPILE_CACHE_ENV], ignore_errors=True
 use_compile_cache()
 
 ROOT = Path(__file__).resolve().parent.parent  # the checkout: scripts are run from here
+
+HAS_PLAYGROUND = importlib.util.find_spec("mujoco_playground") is not None
+needs_playground = pytest.mark.skipif(not HAS_PLAYGROUND, reason="MuJoCo Playground is not installed "
+                                                                  "(pip install 'stablebptt[playground]')")
+
+
+def run_script(*args, env=None):
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=900,
+                          env={**os.environ, **(env or {})})
+
+
+def train_in_process(capsys, *argv):
+    """scripts/train.py's main in this process: (exit code, stderr lines)."""
+    from stablebptt.commands import train as train_command
+    try:
+        code = train_command.main(list(argv))
+    except SystemExit as exit_:
+        code = exit_.code
+    return code, [line for line in capsys.readouterr().err.splitlines() if line.strip()]
 
 @contextlib.contextmanager
 def float64():

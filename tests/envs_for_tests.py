@@ -82,3 +82,9 @@ class TreeChangingCart(Cart):
 
 
 tree_changing_cart = TreeChangingCart()
+
+
+def position_reward(state: State) -> jax.Array:
+    """A surrogate of the step reward's own making: the squared distance from the origin, negated
+    (``--surrogate-reward envs_for_tests:position_reward``)."""
+    return -state.data["position"] ** 2

@@ -42,6 +42,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import evaluation  # noqa: E402
 
 from stablebptt.engine.config import TrainConfig, seed_array  # noqa: E402
+from stablebptt.engine.observations import StandardizedNetwork, standardized  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch
 from stablebptt.engine.training import make_trainer
 from stablebptt.envs.adapter import env_task  # noqa: E402
@@ -49,7 +50,10 @@ from stablebptt.networks import mlp_apply  # noqa: E402
 
 
 def apply(params, obs):
-    """env_task's policy on the raw observation: tanh of the MLP (deterministic)."""
+    """env_task's policy on the observation: tanh of the MLP (deterministic), the observation standardised
+    by the statistics the parameters keep where the run normalised observations."""
+    if isinstance(params, StandardizedNetwork):
+        params, obs = params.network, standardized(params.statistics, obs)
     return jnp.tanh(mlp_apply(params, obs))
 
 
@@ -72,7 +76,8 @@ def build(env, a, mode, seeds, horizon, batch):
     """Task and trainer; returns (task, config, trainer, update) with update = the jitted per-update program."""
     b0 = time.perf_counter()
     task = env_task(env, horizon, discount=a.discount, episode_length=a.trainer_episode_length or None,
-                    hidden=tuple(a.hidden), name=env.__class__.__name__)
+                    hidden=tuple(a.hidden), name=env.__class__.__name__,
+                    normalize_observations=a.normalize_observations)
     PHASES["env_task_s"] = time.perf_counter() - b0
     print(f"  env_task {PHASES['env_task_s']:.1f}s", flush=True)  # a run cut during its set-up still says how far it got
     config = TrainConfig(mode=mode, clip=a.clip, clip_threshold=a.clip_threshold, lr=a.lr, batch=batch,
@@ -113,7 +118,8 @@ def run_one(env_name, mode, a, log):
                                            "train_size env.reset states (data_seed 42), fixed, minibatches cycled"),
                         "episodes": a.episodes, "trainer_episode_length": a.trainer_episode_length,
                         "critic": a.critic, "critic_lr": a.critic_lr, "td_lambda": a.td_lambda,
-                        "action_noise": a.action_noise, "lr_decay": a.lr_decay},
+                        "action_noise": a.action_noise, "lr_decay": a.lr_decay,
+                        "normalize_observations": a.normalize_observations},
         "solver_train_env": solver_info(train_env), "solver_eval_env": solver_info(eval_env),
         "eval": {"num_envs": a.eval_envs, "seed": evaluation.EVAL_SEED, "deterministic": True,
                  "seeds_in_one_program": True},
@@ -294,6 +300,8 @@ def main(argv=None):
                    help="train on carried episodes (on) or from fixed starts, one window from each (off)")
     p.add_argument("--action-noise", type=float, default=0.0, help="std of Gaussian noise on training actions")
     p.add_argument("--lr-decay", type=float, default=1.0, help="the learning rate's factor per update")
+    p.add_argument("--normalize-observations", action="store_true",
+                   help="the policy sees observations standardised by running statistics")
     p.add_argument("--critic", action="store_true", help="bootstrap each window by a learned value of its last state")
     p.add_argument("--critic-lr", type=float, default=1e-3)
     p.add_argument("--td-lambda", type=float, default=0.95)

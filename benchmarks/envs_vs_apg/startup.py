@@ -25,7 +25,8 @@ from stablebptt.engine import memory, training
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.training import make_trainer
 from stablebptt.envs import diagnosis
-from stablebptt.envs.adapter import env_task, load_env
+from stablebptt.envs.adapter import env_task
+from stablebptt.envs.protocol import load_env
 
 TIMES: dict = {}  # wall seconds per phase
 CPU: dict = {}  # CPU seconds of this process per phase (all threads): comparable on a shared machine

@@ -64,6 +64,7 @@ def method(record: dict) -> str:
     name += f", discount {options['discount']:g}" if options.get("discount", 1.0) != 1.0 else ""
     name += f", action noise {options['action_noise']:g}" if options.get("action_noise", 0.0) else ""
     name += f", lr decay {options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else ""
+    name += ", normalised observations" if options.get("normalize_observations") else ""
     return name + (f", seeds {record['seeds'][0]}-{record['seeds'][-1]}" if record["seeds"][0] != 0 else "")
 
 
@@ -78,6 +79,7 @@ def record_name(record: dict) -> str:
             + (f"_d{options['discount']:g}" if options.get("discount", 1.0) != 1.0 else "")
             + (f"_noise{options['action_noise']:g}" if options.get("action_noise", 0.0) else "")
             + (f"_decay{options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else "")
+            + ("_norm" if options.get("normalize_observations") else "")
             + (f"_seeds{record['seeds'][0]}" if record["seeds"][0] != 0 else ""))
 
 
@@ -197,6 +199,10 @@ def tables(joined: dict) -> list[str]:
             continue
         mean, low, high = difference_interval(joined[(env, name)]["final"], joined[other]["final"])
         verdict = "C higher" if low > 0 else "R higher" if high < 0 else "no separation"
+        diverged = [f"{flow} diverged in {count} of {len(joined[key]['final'])} seeds" for flow, key in
+                    (("C", (env, name)), ("R", other)) if (count := int(np.sum(~np.isfinite(joined[key]["final"]))))]
+        if diverged:  # a seed without a finite return has no difference: say what happened instead
+            verdict = ", ".join(diverged) + ", the other finite in all"
         lines.append(f"| {env} | {name.rsplit(' ', 1)[1]} | {_number(mean)} | [{_number(low)}, {_number(high)}] | "
                      f"{verdict} |")
     return lines

@@ -54,6 +54,11 @@ class Task:
       episodes: what the task knows of its episodes (reset, reward, done, length): a trainer
         may then train on carried episodes (``TrainConfig.episodes``; ``stablebptt.engine.episodes``),
         an environment's by default. None: the paper's protocol only.
+      refresh_statistics: what the parameters keep of the states the policy meets besides their
+        gradient (running observation statistics, ``stablebptt.engine.observations``):
+        ``refresh_statistics(params, states [T, B, ...], counted [T, B]) -> params``, applied after
+        every update to the states its window visited (where ``counted``: an episode's states before
+        its end). The policy must take no gradient through what it refreshes. None: nothing is kept.
     """
 
     name: str
@@ -67,6 +72,7 @@ class Task:
     plan: Plan = Plan()
     settle: Callable[[bool], "Task | None"] | None = None
     episodes: Episodes | None = None
+    refresh_statistics: Callable[[PyTree, PyTree, jax.Array], PyTree] | None = None
 
     def settled(self, wait: bool = True) -> "Task":
         """The task once its pending check has answered (``settle``), which may refuse it; itself where

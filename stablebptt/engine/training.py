@@ -140,20 +140,23 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     def update(dynamics, state, batch):
         critic = state.critic
         if episodes is None:
-            loss, grads, _, _ = flow_window(dynamics, flows, state.params, batch, plan)
-            carried = None
+            loss, grads, _, visited = flow_window(dynamics, flows, state.params, batch, plan)
+            carried, counted = None, jnp.ones(jax.tree.leaves(visited)[0].shape[:2], bool)
         else:  # one window from where the carried states stand; the gradient stops at its start
             at_end = None if critic is None else bootstrap(critic, episodes.observe)
             window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end, config.action_noise), flows,
                                         state.params, start_window(state.carried, reward_dtype, config.action_noise > 0),
                                         window_plan)
             loss, grads = window_result.loss, window_result.grads
+            visited, counted = window_result.visited.state, window_result.visited.running
             carried = continue_from(window_result.final, state.carried.key, episodes)
             if critic is not None:
                 critic = fit_to_window(critic, window_result.visited, window_result.final, episodes.observe,
                                        episodes.discount, config.td_lambda, critic_optimizer)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
+        if task.refresh_statistics is not None:  # what the policy saw in this window, after the update that used it
+            params = task.refresh_statistics(params, visited, counted)
         if "M" in flows and "R" in flows:
             row = lambda f: jax.tree.map(lambda a: a[flows.index(f)], grads)
             cosine = tree_cosine(row("M"), row("R"))

@@ -1,10 +1,6 @@
 """Environments as tasks: any environment in Brax's protocol trains through the gradient flows.
 
-The protocol (Brax's, which MuJoCo Playground follows): ``env.reset(key) ->
-State`` and ``env.step(State, action) -> State``, where ``State`` is a pytree
-with ``obs``, ``reward`` and ``done`` (and anything else: an ``mjx.Data``, a
-PRNG key, a step counter), plus ``env.observation_size`` and
-``env.action_size``. ``env_task`` turns such an environment into a ``Task``:
+``env_task`` turns an environment in Brax's protocol (``stablebptt.envs.protocol``) into a ``Task``:
 
 - the loss of a rollout of ``horizon`` steps is its negative (optionally
   discounted) return, rewards counted until the first ``done``;
@@ -27,24 +23,21 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import importlib
 import math
 import numbers
-import os
-import sys
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from stablebptt.engine import program_store
-from stablebptt.engine.checks import first_line, shapes_only, whole_number
+from stablebptt.engine.checks import shapes_only, whole_number
 from stablebptt.engine.episodes import Episodes
+from stablebptt.engine.observations import StandardizedNetwork, no_observations, refresh_from, standardized
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, start_diagnosis
-from stablebptt.errors import InputError
+from stablebptt.envs.protocol import EnvError, check_protocol, check_same_states, check_step, observation
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import mlp_apply, mlp_init
@@ -54,97 +47,6 @@ PyTree = Any
 # Output weights of a policy that must not start at exactly zero action: small enough that the
 # first actions stay near zero, large enough that the reward's derivative is taken off zero.
 SMALL_OUTPUT_SCALE = 1e-2
-
-
-class EnvError(InputError):
-    """An environment that cannot train: not in the protocol, or a reward with no usable gradient."""
-
-
-def observation(state: PyTree) -> jax.Array:
-    """The policy's input: ``State.obs``, or its ``"state"`` entry where the observation is a dict."""
-    obs = state.obs
-    if isinstance(obs, dict):
-        return obs["state"]
-    return obs
-
-
-def check_protocol(env: Any) -> int:
-    """The length of ``env``'s observation vector; ``EnvError`` naming what ``env`` lacks of Brax's
-    environment protocol.
-
-    ``observation_size`` is read once: MuJoCo Playground computes it by tracing ``reset``.
-    """
-    # Looked up on the class first, so that a property is not evaluated just to see that it exists.
-    missing = [name for name in ("reset", "step", "observation_size", "action_size")
-               if not (hasattr(type(env), name) or hasattr(env, name))]
-    if missing:
-        raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: it has no "
-                       f"{', '.join(missing)} (reset(key) -> State, step(State, action) -> State, "
-                       "observation_size, action_size)")
-    try:
-        size, _ = env.observation_size, env.action_size
-    except AttributeError as error:  # a wrapper whose class forwards them to an env that lacks one
-        raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: reading its "
-                       f"observation_size or action_size failed ({error})") from None
-    if isinstance(size, dict):
-        if "state" not in size:
-            raise EnvError(f"{type(env).__name__}'s observation is a dict without a 'state' entry "
-                           f"({', '.join(size)}): give an environment with a vector observation")
-        size = size["state"]
-    if not (isinstance(size, (int, np.integer)) or (isinstance(size, tuple) and len(size) == 1)):
-        raise EnvError(f"{type(env).__name__}'s observation has shape {size}: only vector observations are supported")
-    size = int(size[0] if isinstance(size, tuple) else size)
-    actions = env.action_size
-    # Nothing to act on, or nothing to see: every update would be zero, a run that only seems to train.
-    if not (isinstance(actions, (int, np.integer)) and not isinstance(actions, bool) and actions >= 1):
-        raise EnvError(f"{type(env).__name__}'s action_size is {actions!r}: a policy needs at least one action to train")
-    if size < 1:
-        raise EnvError(f"{type(env).__name__}'s observation_size is {size}: a policy needs at least one observation")
-    return size
-
-
-def check_step(env: Any, step: Callable, observations: int, label: str) -> bool:
-    """``EnvError`` where ``env``'s reset or step breaks Brax's protocol in a way that tracing alone
-    shows: an observation of another size than ``observation_size`` says, a step returning a state of
-    another tree, shapes or dtypes than the one it is given, a reward or done that is not a number.
-    Traced with shapes only; True where all holds."""
-    try:
-        state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
-    except Exception as error:  # noqa: BLE001 - the user's reset failed: one line naming it
-        raise EnvError(f"{label}: reset(key) fails: {first_line(error)}") from None
-    for name in ("obs", "reward", "done"):
-        if not hasattr(state, name):
-            raise EnvError(f"{label}: reset(key) returns {type(state).__name__} without .{name}: Brax's protocol's "
-                           "State has obs, reward and done")
-    seen = jax.tree.map(lambda leaf: leaf.shape, observation(state))
-    if seen != (observations,):
-        raise EnvError(f"{label}: reset(key) gives an observation of shape {seen}, but observation_size is "
-                       f"{observations}")
-    action = jax.ShapeDtypeStruct((int(env.action_size),), jnp.float32)
-    try:
-        reached = jax.eval_shape(step, state, action)
-    except Exception as error:  # noqa: BLE001 - the user's step failed: one line naming it
-        raise EnvError(f"{label}: step(state, action) fails on the state reset gives and an action of "
-                       f"{int(env.action_size)} numbers: {first_line(error)}") from None
-    given, got = jax.tree.structure(state), jax.tree.structure(reached)
-    if given != got:
-        raise EnvError(f"{label}: step(state, action) must return a state of the tree it is given: reset gives "
-                       f"{_tree_text(given)}, step returns {_tree_text(got)}")
-    for (path, before), after in zip(jax.tree_util.tree_leaves_with_path(state), jax.tree.leaves(reached)):
-        if (before.shape, before.dtype) != (after.shape, after.dtype):
-            raise EnvError(f"{label}: step(state, action) changes state{jax.tree_util.keystr(path)} from "
-                           f"{before.dtype}{list(before.shape)} to {after.dtype}{list(after.shape)}: a state keeps its "
-                           "shapes and dtypes from step to step")
-    for name in ("reward", "done"):
-        if getattr(reached, name).shape != ():
-            raise EnvError(f"{label}: step(state, action) gives a {name} of shape {getattr(reached, name).shape}, "
-                           "not one number")
-    return True
-
-
-def _tree_text(structure: Any) -> str:
-    text = str(structure)
-    return text if len(text) <= 200 else text[:197] + "..."
 
 
 def _check_arguments(**given: Any) -> None:
@@ -167,7 +69,7 @@ def _check_arguments(**given: Any) -> None:
     for name in ("name", "reward_repairs", "dense_variant"):
         if not isinstance(given[name], str):
             refuse(name, "a string")
-    for name in ("diagnose", "defer_diagnosis"):
+    for name in ("diagnose", "defer_diagnosis", "normalize_observations"):
         if not isinstance(given[name], bool):
             refuse(name, "True or False")
     if not whole_number(given["diagnosis_seed"]):
@@ -183,6 +85,11 @@ def _check_arguments(**given: Any) -> None:
         refuse("smoothing_scale", "a positive number")
     if given["surrogate_reward"] is not None and not callable(given["surrogate_reward"]):
         refuse("surrogate_reward", "a function of the state a step reaches, or None")
+    if given["reward_env"] is not None:
+        if given["surrogate_reward"] is not None:
+            raise EnvError("env_task: give a surrogate_reward or a reward_env to train on, not both")
+        if not callable(getattr(given["reward_env"], "step", None)):
+            refuse("reward_env", "an environment whose step takes the env's states, or None")
 
 
 def _count(states: PyTree) -> int:
@@ -225,42 +132,6 @@ def rollout_loss(discount: float) -> Callable:
     return loss
 
 
-def load_env(spec: str) -> Any:
-    """The environment ``spec`` names: ``package.module:attribute`` (an environment, or a class or
-    factory called without arguments), else a name in MuJoCo Playground's registry.
-
-    Whether it follows Brax's protocol is ``env_task``'s check, made once where the environment is
-    used: reading ``observation_size`` may trace ``reset``, which a rendering has no need of."""
-    if ":" not in spec:
-        from stablebptt.envs import playground
-        return playground.load(spec)
-    module_name, _, attribute = spec.partition(":")
-    # A user's module is found where Python finds modules, and in the folder the command runs in, as
-    # `python -m` would (an installed command's path holds only its own folder); last, so that it
-    # shadows no installed package.
-    if os.getcwd() not in sys.path and "" not in sys.path:
-        sys.path.append(os.getcwd())
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as error:
-        raise EnvError(f"environment {spec}: cannot import {module_name} ({error})") from None
-    except Exception as error:  # noqa: BLE001 - the user's module failed as it ran (a SyntaxError too): one line
-        where = f" (line {error.lineno})" if isinstance(error, SyntaxError) and error.lineno else ""
-        raise EnvError(f"environment {spec}: importing {module_name} failed{where}: "
-                       f"{type(error).__name__}: {error.msg if isinstance(error, SyntaxError) else error}") from None
-    if not attribute or not hasattr(module, attribute):
-        raise EnvError(f"environment {spec}: {module_name} has no attribute {attribute!r}")
-    found = getattr(module, attribute)
-    if not all(hasattr(found, name) for name in ("reset", "step")) or isinstance(found, type):
-        if not callable(found):
-            raise EnvError(f"environment {spec}: {attribute} is neither an environment nor a factory of one")
-        try:
-            found = found()
-        except Exception as error:  # noqa: BLE001 - the user's factory failed: say so in one line
-            raise EnvError(f"environment {spec}: {attribute}() failed ({type(error).__name__}: {error})") from None
-    return found
-
-
 def _is_playground(env: Any) -> bool:
     return type(env).__module__.startswith("mujoco_playground")
 
@@ -270,7 +141,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0,
              dense_variant: str = "", diagnosis_key: dict | None = None, defer_diagnosis: bool = False,
              smoothing: str = "auto", smoothing_scale: float = 1.0,
-             surrogate_reward: Callable[[Any], jax.Array] | None = None) -> Task:
+             surrogate_reward: Callable[[Any], jax.Array] | None = None, normalize_observations: bool = False,
+             reward_env: Any = None) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -306,6 +178,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       smoothing_scale: the surrogate's temperatures are this times the sampled differences' median.
       surrogate_reward: ``reward(state) -> scalar`` of the state a step reaches, trained on in place of
         the env's reward (diagnosed, not smoothed); the reported returns stay the env's.
+      reward_env: an environment whose step takes and returns ``env``'s states (the dense variant of a
+        ``...Sparse`` env: the same model, another reward): the windows train on its steps' rewards
+        (diagnosed as the env's would be), while every reported return stays ``env``'s.
+      normalize_observations: the policy sees its observations standardised by the running mean and
+        deviation of every observation its training windows met (``stablebptt.engine.observations``);
+        its parameters are then a ``StandardizedNetwork``, the statistics kept with the network.
 
     Example::
 
@@ -317,7 +195,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                      reward_context=reward_context, reward_repairs=reward_repairs, diagnose=diagnose,
                      diagnosis_seed=diagnosis_seed, dense_variant=dense_variant, diagnosis_key=diagnosis_key,
                      defer_diagnosis=defer_diagnosis, smoothing=smoothing, smoothing_scale=smoothing_scale,
-                     surrogate_reward=surrogate_reward)
+                     surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
+                     reward_env=reward_env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
     if episode_length is None:
@@ -338,10 +217,22 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             return env.step(state, action)
 
     def policy(params, state):
-        return jnp.tanh(mlp_apply(params, observation(state)))
+        seen = observation(state)
+        if normalize_observations:
+            params, seen = params.network, standardized(params.statistics, seen)
+        return jnp.tanh(mlp_apply(params, seen))
 
-    # What the windows train on: the env's reward, or the user's own surrogate of it (diagnosed as the reward is).
+    # What the windows train on: the env's reward, the user's own surrogate of it, or the reward of another env's
+    # step on the same states (diagnosed as the reward is).
     training_step = step if surrogate_reward is None else jax.jit(surrogate.user_surrogate(step, surrogate_reward))
+    if reward_env is not None:
+        @jax.jit
+        def reward_env_step(state, action):
+            with differentiable_mjx(implicit_solver=True), reward_context():
+                return reward_env.step(state, action)
+
+        check_same_states(env, reward_env_step, label)
+        training_step = reward_env_step
 
     sizes = (observations, *hidden, int(env.action_size))
     reset = jax.jit(jax.vmap(env.reset))
@@ -393,13 +284,14 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if start_off_zero:  # small, not zero: the reward's derivative is NaN at zero action
             weights, bias = params[-1]
             params[-1] = (SMALL_OUTPUT_SCALE * weights, bias)
-        return params
+        return StandardizedNetwork(params, no_observations(observations)) if normalize_observations else params
 
     evaluation = episode_dynamics(step, policy, episode_length)
     # Training on carried episodes (the default): reset by the env's own reset, ended when done or at its length.
     episodes = Episodes(reset=env.reset, reward=lambda state: state.reward, done=lambda state: state.done > 0,
                         length=episode_length, discount=discount, observe=observation)
-    summary = (f"{label}: {sizes[0]} observations, {sizes[-1]} actions in [-1, 1]; windows of {horizon} steps, "
+    summary = (f"{label}: {sizes[0]} observations{' (standardised by running statistics)' if normalize_observations else ''}, "
+               f"{sizes[-1]} actions in [-1, 1]; windows of {horizon} steps, "
                f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "
                f"train/test loss: negative return of {episode_length}-step episodes; "
                "constraint solver differentiated at its solution")
@@ -418,10 +310,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
                       "hidden": list(hidden), "reward_gradient": gradient,
                       "reward_repairs": reward_repairs, "policy_output_start": start,
+                      **({"normalize_observations": True} if normalize_observations else {}),
                       **({"reward_smoothing": smoothed_terms} if smoothed_terms else {})},
             evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
                 states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
             episodes=episodes,
+            refresh_statistics=refresh_from(observation) if normalize_observations else None,
         )
 
     def settle(wait: bool = True) -> Task | None:
@@ -433,9 +327,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         # Flat at every sampled state: train a smooth surrogate where one can be made, and diagnose it.
         smooth_step, smoothing_done = surrogate.smoothed_training_step(env, training_step, jax.random.PRNGKey(diagnosis_seed),
                                                                       smoothing_scale)
-        if not smoothing_done.terms:
+        if not smoothing_done.anything:
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
-                           f"comparison of it could be smoothed (its steps are not comparisons made numbers): {advice}")
+                           f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
         again = RewardDiagnosis(*start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed))())
         if again.kind in ("zero", "nan"):
             raise EnvError(f"{label}: the reward's gradient is {again.kind} at every sampled state even after "

@@ -102,7 +102,7 @@ def draw_mujoco_rollouts(request: DrawRequest) -> list[Path]:
 def draw_env_rollouts(request: DrawRequest) -> list[Path]:
     """An environment's rollouts, drawn from its own ``mj_model`` and the positions in its states'
     ``data`` (an ``mjx.Data``, as MuJoCo Playground's)."""
-    from stablebptt.envs.adapter import load_env
+    from stablebptt.envs.protocol import load_env
     env_name = request.task_config.env
     model = getattr(load_env(env_name), "mj_model", None)
     qpos = getattr(getattr(request.states, "data", None), "qpos", None)

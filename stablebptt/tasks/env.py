@@ -14,7 +14,8 @@ import math
 from dataclasses import dataclass, field, replace
 
 from stablebptt.engine.task import Task
-from stablebptt.envs.adapter import env_task, load_env
+from stablebptt.envs.adapter import env_task
+from stablebptt.envs.protocol import load_env, load_reward
 from stablebptt.errors import InputError, config_field
 
 DEFAULT_EPOCHS = 200
@@ -36,6 +37,9 @@ class Config:
     episode_length: int = field(default=0, metadata={"help": "steps of the evaluation episodes whose return every epoch logs (0: the environment's own)"})
     reward_check: bool = field(default=True, metadata={"help": "before training, look at the reward's gradient at sampled states and refuse a reward that has none (--no-reward-check skips it: a quicker start, no refusal)"})
     smoothing: str = field(default="auto", metadata={"help": "auto: where the reward check finds the reward's gradient zero at every sampled state, train on a smooth surrogate (the comparisons the reward makes numbers of become sigmoids; the reported returns stay the true reward's); off: refuse such a reward", "choices": ("auto", "off")})
+    surrogate_reward: str = field(default="", metadata={"help": "package.module:function, a reward of the state a step reaches that the windows train on in place of the env's (its gradient diagnosed, not smoothed); every reported return stays the env's"})
+    dense_reward: bool = field(default=False, metadata={"help": "a ...Sparse env of MuJoCo Playground's trains on its dense variant's reward (the same model and states); every reported return stays the sparse one's"})
+    normalize_observations: bool = field(default=False, metadata={"help": "the policy sees its observations standardised by the running mean and deviation of all those its training windows met (the statistics are kept with its parameters)"})
     smoothing_scale: float = field(default=1.0, metadata={"help": "the surrogate's temperatures: this times the median difference each smoothed comparison meets at the sampled states"})
 
     def __post_init__(self):
@@ -47,6 +51,9 @@ class Config:
             raise InputError(f"{config_field(self, 'smoothing')} must be auto or off, got {self.smoothing!r}")
         if not (math.isfinite(self.smoothing_scale) and self.smoothing_scale > 0):
             raise InputError(f"{config_field(self, 'smoothing_scale')} must be a positive number, got {self.smoothing_scale}")
+        if self.surrogate_reward and self.dense_reward:
+            raise InputError(f"give {config_field(self, 'surrogate_reward')} or {config_field(self, 'dense_reward')}, "
+                             "not both: the windows train on one reward")
         if not 0 <= self.episode_length <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
 
@@ -77,15 +84,46 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
     # A registry env's name and the package versions say what its reward computes: its diagnosis is
     # kept for an identical later run, like its programs.
     inputs = program_inputs(config)
+    trained_reward, reward_env = trained_reward_of(config, dense)
     task = env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
                     diagnose=config.reward_check, defer_diagnosis=defer_diagnosis, smoothing=config.smoothing,
-                    smoothing_scale=config.smoothing_scale,
-                    diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs})
+                    smoothing_scale=config.smoothing_scale, normalize_observations=config.normalize_observations,
+                    surrogate_reward=load_reward(config.surrogate_reward) if config.surrogate_reward else None,
+                    reward_env=reward_env,
+                    diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
+                                                               **({"trained_reward": trained_reward} if trained_reward else {})})
+    if trained_reward:
+        task = _trained_on(task, trained_reward)
     if ":" in config.env:
         return task
     # A registry env is its name and the package's release: the run records which, and resumes only on it.
     return _with_release(task, _playground_version())
+
+
+def trained_reward_of(config: Config, dense: str) -> tuple[str, object]:
+    """What the windows train on besides the env's own reward, in words ('' for the env's own), and the
+    env whose step gives it (None: the env's own step, or the user's surrogate on it)."""
+    if config.dense_reward:
+        if not dense:
+            raise InputError(f"{config_field(config, 'dense_reward')}: {config.env} has no dense variant in MuJoCo "
+                             "Playground's registry (its ...Sparse envs have one); give --surrogate-reward instead")
+        return f"the reward of {dense}, its dense variant", load_env(dense)
+    if config.surrogate_reward:
+        return f"the reward {config.surrogate_reward}", None
+    return "", None
+
+
+def _trained_on(task: Task, trained_reward: str) -> Task:
+    """``task`` saying in its summary and record which reward its windows train on, also once settled."""
+    settle = task.settle
+    if settle is not None:
+        def settle_saying_so(wait: bool = True) -> Task | None:
+            settled = settle(wait)
+            return None if settled is None else _trained_on(settled, trained_reward)
+        task = replace(task, settle=settle_saying_so)
+    return replace(task, summary=f"{task.summary}; trained on {trained_reward} (returns reported: the env's own)",
+                   resolved={**task.resolved, "trained_reward": trained_reward})
 
 
 def _with_release(task: Task, version: str) -> Task:
@@ -107,9 +145,11 @@ def check_resume(config: Config, record: dict) -> str:
     """Before a run of ``config`` resumes from its ``record``: ``InputError`` where MuJoCo Playground's
     release differs from the one the run began with; else the line to tell the user of what the library
     cannot check (an environment of their own package), or ''."""
-    if ":" in config.env:
-        return (f"note: the run trains {config.env}, code of your own that the library cannot check: if "
-                f"{config.env.partition(':')[0]} changed since the run began, its metrics change at the resume")
+    own = [spec for spec in (config.env, config.surrogate_reward) if ":" in spec]
+    if own:
+        modules = " or ".join(spec.partition(":")[0] for spec in own)
+        return (f"note: the run trains {' on '.join(own)}, code of your own that the library cannot check: if "
+                f"{modules} changed since the run began, its metrics change at the resume")
     began = record.get("resolved_task", {}).get("playground_version")
     now = _playground_version()
     if began is not None and began != now:
@@ -135,6 +175,6 @@ def for_reopening(config: Config) -> Config:
 
 def program_inputs(config: Config) -> dict | None:
     """What the task's compiled programs read besides the library and ``config``: a Playground env is
-    its registry name and the package's version (in every key); an env of the user's own package
-    could change unseen (None: traced every run)."""
-    return None if ":" in config.env else {}
+    its registry name and the package's version (in every key); an env or a surrogate reward of the
+    user's own package could change unseen (None: traced every run)."""
+    return None if ":" in config.env or config.surrogate_reward else {}

@@ -1,16 +1,13 @@
 """Environments in Brax's protocol as tasks: states with integer, bool and key leaves, the reward's
-diagnosis, the command line's --env, MJX's constraint solver differentiated inside mjx.step, and
-MuJoCo Playground (tests that need the extra skip without it)."""
-import importlib.util
+diagnosis, the command line's --env (MJX inside an environment and MuJoCo Playground's envs:
+test_mjx_and_playground.py)."""
 import os
-import subprocess
 import sys
 import types
 from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 import pytest
 
@@ -19,20 +16,16 @@ from stablebptt.engine import fitting, program_store
 from stablebptt.engine.config import seed_array
 from stablebptt.engine.metrics import empty_rows
 from stablebptt.envs import adapter
-from stablebptt.envs.adapter import EnvError, env_task, load_env
+from stablebptt.envs.adapter import env_task
+from stablebptt.envs.protocol import EnvError, load_env
 from stablebptt.errors import InputError
 from stablebptt.flows.gradients import flow_gradients, reference_loss
-from stablebptt.physics.constraint_derivatives import differentiable_mjx
-from stablebptt.physics.mjx_internals import mjx
 from stablebptt.runs import epochs, run_folder
 from stablebptt.storage import read_json
 
-from conftest import ROOT, float64
+from conftest import HAS_PLAYGROUND, ROOT, float64, run_script, train_in_process
 from envs_for_tests import Cart
 
-HAS_PLAYGROUND = importlib.util.find_spec("mujoco_playground") is not None
-needs_playground = pytest.mark.skipif(not HAS_PLAYGROUND, reason="MuJoCo Playground is not installed "
-                                                                  "(pip install 'stablebptt[playground]')")
 TINY = sb.TrainConfig(mode="C", epochs=3, train_size=8, test_size=8, batch=4, clip="norm", lr=1e-2)
 
 
@@ -135,21 +128,6 @@ def test_a_wrapper_of_an_environment_that_lacks_a_size_is_refused_in_one_line():
         env_task(Wrapper(incomplete), horizon=5)
 
 
-def run_script(*args, env=None):
-    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=900,
-                          env={**os.environ, **(env or {})})
-
-
-def train_in_process(capsys, *argv):
-    """scripts/train.py's main in this process: (exit code, stderr lines)."""
-    from stablebptt.commands import train as train_command
-    try:
-        code = train_command.main(list(argv))
-    except SystemExit as exit_:
-        code = exit_.code
-    return code, [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-
-
 def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_in_one_line(tmp_path, capsys):
     on_path = {"PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     done = run_script("scripts/train.py", "--env", "envs_for_tests:make_cart", "--steps", "6", "--epochs", "2",
@@ -172,92 +150,6 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
 
 # A hinge pressed past its limit and a ball in sliding contact with the floor; the model's own
 # Newton solver runs 4 iterations, which plain reverse mode cannot pass (a while loop).
-LIMIT_AND_CONTACT = """
-<mujoco><option timestep="0.01" iterations="4" tolerance="1e-12" ls_tolerance="1e-12"/>
-<worldbody><geom type="plane" size="2 2 .1"/>
-<body pos="0 0 1"><joint name="hinge" type="hinge" axis="0 1 0" limited="true" range="-0.5 0.5" damping="0.1"/>
-<geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/></body>
-<body pos="0.6 0 0.1"><joint type="slide" axis="1 0 0"/><joint type="slide" axis="0 0 1"/>
-<geom type="sphere" size="0.1" friction="0.5"/></body>
-</worldbody><actuator><motor joint="hinge"/></actuator></mujoco>"""
-
-
-def test_mjx_step_inside_an_environment_is_differentiated_at_the_solver_solution_as_mujocos_c_step():
-    model = mujoco.MjModel.from_xml_string(LIMIT_AND_CONTACT)
-    x0 = np.array([0.52, 0.1, -0.002, 0.3, 0.2, -0.1])  # past the limit, the ball pressed into the floor
-    ctrl = 0.5
-
-    def c_step(x):
-        data = mujoco.MjData(model)
-        data.qpos[:], data.qvel[:], data.ctrl[:] = x[:3], x[3:], ctrl
-        mujoco.mj_step(model, data)
-        assert data.nefc >= 4  # the limit and the contact's pyramid stay active under the perturbations
-        return np.concatenate([data.qpos, data.qvel])
-
-    eps = 1e-6
-    central = np.stack([(c_step(x0 + eps * e) - c_step(x0 - eps * e)) / (2 * eps) for e in np.eye(6)], axis=1)
-    with float64():
-        mjx_model = mjx.put_model(model, impl="jax")
-
-        def step(x):  # what an environment's step does
-            data = mjx.make_data(mjx_model, impl="jax").replace(qpos=x[:3], qvel=x[3:], ctrl=jnp.array([ctrl]))
-            data = mjx.step(mjx_model, data)
-            return jnp.concatenate([data.qpos, data.qvel])
-
-        # Under jit the refusal comes at tracing: nothing runs op by op (each MJX operation compiled apart).
-        with pytest.raises(ValueError, match="Reverse-mode differentiation does not work for lax.while_loop"):
-            jax.jit(jax.jacrev(step))(jnp.asarray(x0))
-        with differentiable_mjx(implicit_solver=True):
-            np.testing.assert_allclose(jax.jit(step)(jnp.asarray(x0)), c_step(x0), atol=1e-12)
-            reverse = jax.jit(jax.jacrev(step))(jnp.asarray(x0))  # forward mode: tests/physics/test_suite_models.py
-    assert np.abs(central).max() > 10  # the constraints matter: these Jacobians are far from identity
-    np.testing.assert_allclose(reverse, central, atol=1e-7)
-
-
-@needs_playground
-def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
-    from mujoco_playground._src import reward
-
-    from stablebptt.envs.playground import safe_tolerance
-    x = jnp.linspace(-3.0, 3.0, 61)
-    repaired = 0
-    for sigmoid in ("gaussian", "hyperbolic", "long_tail", "reciprocal", "tanh_squared", "cosine", "linear", "quadratic"):
-        for bounds in ((0.0, 0.0), (1.0, np.inf), (-np.inf, 0.5), (-1.0, 1.0)):
-            for margin in (0.0, 1.0, 2.0):
-                theirs = lambda v: reward.tolerance(v, bounds, margin, sigmoid, 0.1)  # noqa: E731
-                ours = lambda v: safe_tolerance(v, bounds, margin, sigmoid, 0.1)  # noqa: E731
-                np.testing.assert_allclose(ours(x), theirs(x), atol=1e-6)
-                slope, their_slope = jax.vmap(jax.grad(ours))(x), jax.vmap(jax.grad(theirs))(x)
-                assert np.isfinite(slope).all(), (sigmoid, bounds, margin)
-                finite = np.isfinite(their_slope)
-                np.testing.assert_allclose(slope[finite], their_slope[finite], atol=1e-5)
-                repaired += int((~finite).sum())
-    assert repaired > 0  # the infinite upper bound's NaN is there to repair
-    # A refusal suggests the dense variant only where the registry has one.
-    from stablebptt.envs.playground import dense_variant
-    assert dense_variant("CartpoleSwingupSparse") == "CartpoleSwingup" and dense_variant("PendulumSwingup") == ""
-
-
-@needs_playground
-def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_path, capsys):
-    run = tmp_path / "cartpole"
-    from stablebptt.commands import train as train_command  # in this process: the installed command's main
-    # No reward check: its program (a minute of compiling here) is tested on the tests' own envs.
-    assert train_command.main(["--env", "CartpoleSwingup", "--steps", "8", "--episode-length", "8", "--epochs", "1",
-                               "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
-                               "--no-reward-check", "--out", str(run)]) == 0
-    printed = capsys.readouterr().out
-    assert "repaired: Playground's reward tolerance" in printed and "reward gradient" not in printed, printed
-    rendered = run_script("scripts/render.py", str(run), "--rollouts", "1", "--no-video")
-    assert rendered.returncode == 0, rendered.stderr
-    assert (run / "rollout-strip.png").stat().st_size > 1000
-    from stablebptt.apps.trained import open_trained
-    assert open_trained(run).task.resolved["reward_gradient"] == "not checked"
-    code, err = train_in_process(capsys, "--env", "cartpoleswingup", "--out", str(tmp_path / "no"))
-    assert code == 2 and len(err) == 1 and "did you mean CartpoleSwingup?" in err[0], err
-    assert not (tmp_path / "no").exists()
-
-
 @pytest.mark.parametrize("argument, value", [("discount", "0.5"), ("discount", None), ("discount", True),
                                              ("episode_length", True), ("episode_length", 2.5), ("horizon", 2.5),
                                              ("hidden", "64"), ("diagnose", "yes"), ("name", 3)])
@@ -297,9 +189,10 @@ def test_an_env_module_that_fails_as_it_imports_is_one_line_and_the_current_fold
 
 def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_one_and_says_what_it_cannot_check(
         tmp_path, capsys):
-    # Windows of 4 steps along carried episodes of 6: episodes end inside windows and are reset between them.
+    # Windows of 4 steps along carried episodes of 6: episodes end inside windows and are reset between them;
+    # the observation statistics ride in the parameters' checkpoint.
     sizes = ["--steps", "4", "--train-size", "4", "--test-size", "4", "--batch", "4", "--episode-length", "6",
-             "--seeds", "2", "--no-progress"]
+             "--seeds", "2", "--no-progress", "--normalize-observations"]
     assert train_in_process(capsys, "--env", "envs_for_tests:make_cart", *sizes, "--epochs", "1",
                             "--out", str(tmp_path / "run"))[0] == 0
     code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--epochs", "3")
@@ -315,7 +208,7 @@ def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_o
     from stablebptt.apps.trained import configs_of
     from stablebptt.tasks import env
     record = read_json(tmp_path / "run" / "config.json")
-    assert record["train"]["episodes"] == "auto"
+    assert record["train"]["episodes"] == "auto" and record["resolved_task"]["normalize_observations"] is True
     del record["train"]["episodes"]
     assert configs_of(tmp_path / "run", record)[1].episodes == "off"
     # 'steps 0' is the default of the run's day: the window its resolved task records.

@@ -1,15 +1,20 @@
 """A lab's env whose reward is a step function trains on its smooth surrogate (stablebptt.envs.surrogate),
-from Python and from the command line, and reports its true return; a surrogate of the user's own is
-trained as given; smoothing off refuses the reward as before."""
+from Python and from the command line, and reports its true return; a surrogate of the user's own (a
+function, from Python or the command line) or the reward of another env on the same states (a sparse
+env's dense variant) is trained as given; smoothing off refuses the reward as before."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import train_in_process
 from envs_for_tests import Cart
 
 import stablebptt as sb
 from stablebptt.commands import train as train_command
-from stablebptt.envs.adapter import EnvError, env_task
+from stablebptt.envs.adapter import env_task
+from stablebptt.envs.protocol import EnvError
+
+
 def test_a_labs_env_with_a_step_reward_trains_on_its_surrogate_and_reports_its_true_return():
     config = sb.TrainConfig(mode="C", epochs=2, train_size=8, test_size=8, batch=4, clip="norm", lr=1e-2)
     task = env_task(Cart("step"), horizon=5)  # 1 where |position| < 0.1, else 0: flat almost everywhere
@@ -30,6 +35,17 @@ def test_a_labs_env_with_a_step_reward_trains_on_its_surrogate_and_reports_its_t
     assert own.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in own.resolved
     reached = own.dynamics.step(jax.tree.map(lambda a: a[0], states), jnp.array([0.3]))
     assert float(reached.reward) == pytest.approx(-float(reached.data["position"]) ** 2)
+    # Or the reward of another env's step on the same states (a sparse env's dense variant), reported on its own.
+    dense = env_task(Cart("step"), horizon=5, reward_env=Cart())
+    assert dense.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in dense.resolved
+    reached = dense.dynamics.step(jax.tree.map(lambda a: a[0], states), jnp.array([0.3]))
+    assert float(reached.reward) == pytest.approx(-float(reached.data["position"]) ** 2 - 0.01 * 0.3 ** 2)
+    np.testing.assert_array_equal(dense.evaluation(params, states), plain.evaluation(params, states))
+    from envs_for_tests import TreeChangingCart
+    with pytest.raises(EnvError, match="Cart: the step whose reward is trained on does not return states like Cart's"):
+        env_task(Cart("step"), horizon=5, reward_env=TreeChangingCart())
+    with pytest.raises(EnvError, match="give a surrogate_reward or a reward_env to train on, not both"):
+        env_task(Cart("step"), horizon=5, reward_env=Cart(), surrogate_reward=lambda state: state.reward)
     with pytest.raises(EnvError, match="gradient is zero at every sampled state"):
         env_task(Cart("step"), horizon=5, smoothing="off")
     with pytest.raises(EnvError, match="env_task's smoothing_scale must be a positive number"):
@@ -51,3 +67,23 @@ def test_the_command_line_names_the_smoothed_comparisons_in_its_first_line(tmp_p
     err = capsys.readouterr().err.splitlines()
     assert refused.value.code == 2 and err == ["error: --smoothing-scale must be a positive number, got -1.0"]
     assert not (tmp_path / "refused").exists()
+
+
+def test_the_command_line_trains_on_a_surrogate_of_the_users_own_and_refuses_what_cannot_be_in_one_line(
+        tmp_path, capsys):
+    code = train_command.main(["--env", "envs_for_tests:step_reward_cart", "--surrogate-reward",
+                               "envs_for_tests:position_reward", "--steps", "5", "--epochs", "1", "--train-size", "4",
+                               "--test-size", "4", "--batch", "4", "--no-progress", "--out", str(tmp_path / "run")])
+    printed = capsys.readouterr().out.splitlines()
+    assert code == 0 and "trained on the reward envs_for_tests:position_reward" in printed[0], printed
+    from stablebptt.storage import read_json
+    resolved = read_json(tmp_path / "run" / "config.json")["resolved_task"]
+    assert resolved["trained_reward"] == "the reward envs_for_tests:position_reward" and "reward_smoothing" not in resolved
+    for options, words in [(["--surrogate-reward", "no_such_module_here:reward"], "cannot import no_such_module_here"),
+                           (["--surrogate-reward", "envs_for_tests:Cart"], "Cart is not a function of the state"),
+                           (["--dense-reward"], "envs_for_tests:step_reward_cart has no dense variant"),
+                           (["--dense-reward", "--surrogate-reward", "envs_for_tests:position_reward"], "not both")]:
+        code, err = train_in_process(capsys, "--env", "envs_for_tests:step_reward_cart", *options, "--out",
+                                     str(tmp_path / "no"))
+        assert code == 2 and len(err) == 1 and words in err[0], err
+    assert not (tmp_path / "no").exists()

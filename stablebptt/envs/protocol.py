@@ -1,0 +1,182 @@
+"""Brax's environment protocol: loading an environment by name, and the checks that it keeps the protocol.
+
+The protocol (Brax's, which MuJoCo Playground follows): ``env.reset(key) -> State`` and
+``env.step(State, action) -> State``, where ``State`` is a pytree with ``obs``, ``reward`` and ``done``
+(and anything else: an ``mjx.Data``, a PRNG key, a step counter), plus ``env.observation_size`` and
+``env.action_size``.
+"""
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stablebptt.engine.checks import first_line
+from stablebptt.errors import InputError
+
+PyTree = Any
+
+
+class EnvError(InputError):
+    """An environment that cannot train: not in the protocol, or a reward with no usable gradient."""
+
+
+def observation(state: PyTree) -> jax.Array:
+    """The policy's input: ``State.obs``, or its ``"state"`` entry where the observation is a dict."""
+    obs = state.obs
+    if isinstance(obs, dict):
+        return obs["state"]
+    return obs
+
+
+def check_protocol(env: Any) -> int:
+    """The length of ``env``'s observation vector; ``EnvError`` naming what ``env`` lacks of Brax's
+    environment protocol.
+
+    ``observation_size`` is read once: MuJoCo Playground computes it by tracing ``reset``.
+    """
+    # Looked up on the class first, so that a property is not evaluated just to see that it exists.
+    missing = [name for name in ("reset", "step", "observation_size", "action_size")
+               if not (hasattr(type(env), name) or hasattr(env, name))]
+    if missing:
+        raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: it has no "
+                       f"{', '.join(missing)} (reset(key) -> State, step(State, action) -> State, "
+                       "observation_size, action_size)")
+    try:
+        size, _ = env.observation_size, env.action_size
+    except AttributeError as error:  # a wrapper whose class forwards them to an env that lacks one
+        raise EnvError(f"{type(env).__name__} is not an environment in Brax's protocol: reading its "
+                       f"observation_size or action_size failed ({error})") from None
+    if isinstance(size, dict):
+        if "state" not in size:
+            raise EnvError(f"{type(env).__name__}'s observation is a dict without a 'state' entry "
+                           f"({', '.join(size)}): give an environment with a vector observation")
+        size = size["state"]
+    if not (isinstance(size, (int, np.integer)) or (isinstance(size, tuple) and len(size) == 1)):
+        raise EnvError(f"{type(env).__name__}'s observation has shape {size}: only vector observations are supported")
+    size = int(size[0] if isinstance(size, tuple) else size)
+    actions = env.action_size
+    # Nothing to act on, or nothing to see: every update would be zero, a run that only seems to train.
+    if not (isinstance(actions, (int, np.integer)) and not isinstance(actions, bool) and actions >= 1):
+        raise EnvError(f"{type(env).__name__}'s action_size is {actions!r}: a policy needs at least one action to train")
+    if size < 1:
+        raise EnvError(f"{type(env).__name__}'s observation_size is {size}: a policy needs at least one observation")
+    return size
+
+
+def check_step(env: Any, step: Callable, observations: int, label: str) -> bool:
+    """``EnvError`` where ``env``'s reset or step breaks Brax's protocol in a way that tracing alone
+    shows: an observation of another size than ``observation_size`` says, a step returning a state of
+    another tree, shapes or dtypes than the one it is given, a reward or done that is not a number.
+    Traced with shapes only; True where all holds."""
+    try:
+        state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    except Exception as error:  # noqa: BLE001 - the user's reset failed: one line naming it
+        raise EnvError(f"{label}: reset(key) fails: {first_line(error)}") from None
+    for name in ("obs", "reward", "done"):
+        if not hasattr(state, name):
+            raise EnvError(f"{label}: reset(key) returns {type(state).__name__} without .{name}: Brax's protocol's "
+                           "State has obs, reward and done")
+    seen = jax.tree.map(lambda leaf: leaf.shape, observation(state))
+    if seen != (observations,):
+        raise EnvError(f"{label}: reset(key) gives an observation of shape {seen}, but observation_size is "
+                       f"{observations}")
+    action = jax.ShapeDtypeStruct((int(env.action_size),), jnp.float32)
+    try:
+        reached = jax.eval_shape(step, state, action)
+    except Exception as error:  # noqa: BLE001 - the user's step failed: one line naming it
+        raise EnvError(f"{label}: step(state, action) fails on the state reset gives and an action of "
+                       f"{int(env.action_size)} numbers: {first_line(error)}") from None
+    given, got = jax.tree.structure(state), jax.tree.structure(reached)
+    if given != got:
+        raise EnvError(f"{label}: step(state, action) must return a state of the tree it is given: reset gives "
+                       f"{_tree_text(given)}, step returns {_tree_text(got)}")
+    for (path, before), after in zip(jax.tree_util.tree_leaves_with_path(state), jax.tree.leaves(reached)):
+        if (before.shape, before.dtype) != (after.shape, after.dtype):
+            raise EnvError(f"{label}: step(state, action) changes state{jax.tree_util.keystr(path)} from "
+                           f"{before.dtype}{list(before.shape)} to {after.dtype}{list(after.shape)}: a state keeps its "
+                           "shapes and dtypes from step to step")
+    for name in ("reward", "done"):
+        if getattr(reached, name).shape != ():
+            raise EnvError(f"{label}: step(state, action) gives a {name} of shape {getattr(reached, name).shape}, "
+                           "not one number")
+    return True
+
+
+def check_same_states(env: Any, step: Callable, label: str) -> bool:
+    """``EnvError`` where ``step`` (another env's, whose reward is trained on) does not take ``env``'s states
+    to states of the same tree, shapes and dtypes; traced with shapes only."""
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    action = jax.ShapeDtypeStruct((int(env.action_size),), jnp.float32)
+    try:
+        reached = jax.eval_shape(step, state, action)
+    except Exception as error:  # noqa: BLE001 - the other env's step failed on these states: one line naming it
+        raise EnvError(f"{label}: the step whose reward is trained on fails on {label}'s states: {first_line(error)}") from None
+    if jax.tree.structure(reached) != jax.tree.structure(state) or any(
+            (a.shape, a.dtype) != (b.shape, b.dtype) for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(reached))):
+        raise EnvError(f"{label}: the step whose reward is trained on does not return states like {label}'s "
+                       "(another tree, shape or dtype): train on the reward of an env of the same model and states")
+    return True
+
+
+def _tree_text(structure: Any) -> str:
+    text = str(structure)
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def load_env(spec: str) -> Any:
+    """The environment ``spec`` names: ``package.module:attribute`` (an environment, or a class or
+    factory called without arguments), else a name in MuJoCo Playground's registry.
+
+    Whether it follows Brax's protocol is ``env_task``'s check, made once where the environment is
+    used: reading ``observation_size`` may trace ``reset``, which a rendering has no need of."""
+    if ":" not in spec:
+        from stablebptt.envs import playground
+        return playground.load(spec)
+    found, attribute = import_attribute(spec, "environment")
+    if not all(hasattr(found, name) for name in ("reset", "step")) or isinstance(found, type):
+        if not callable(found):
+            raise EnvError(f"environment {spec}: {attribute} is neither an environment nor a factory of one")
+        try:
+            found = found()
+        except Exception as error:  # noqa: BLE001 - the user's factory failed: say so in one line
+            raise EnvError(f"environment {spec}: {attribute}() failed ({type(error).__name__}: {error})") from None
+    return found
+
+
+def load_reward(spec: str) -> Callable[[PyTree], jax.Array]:
+    """The function ``package.module:function`` names: a reward of the state a step reaches, trained on in
+    place of an environment's own (``env_task(surrogate_reward=...)``)."""
+    if ":" not in spec:
+        raise EnvError(f"surrogate reward {spec}: give it as package.module:function, a reward of the state a step reaches")
+    found, attribute = import_attribute(spec, "surrogate reward")
+    if not callable(found) or isinstance(found, type):
+        raise EnvError(f"surrogate reward {spec}: {attribute} is not a function of the state a step reaches")
+    return found
+
+
+def import_attribute(spec: str, what: str) -> tuple[Any, str]:
+    """(the attribute ``package.module:attribute`` names, its name); ``EnvError`` in one line, naming ``what``
+    ``spec`` was to be, where the module cannot be imported or lacks it."""
+    module_name, _, attribute = spec.partition(":")
+    # A user's module is found where Python finds modules, and in the folder the command runs in, as
+    # `python -m` would (an installed command's path holds only its own folder); last, so that it
+    # shadows no installed package.
+    if os.getcwd() not in sys.path and "" not in sys.path:
+        sys.path.append(os.getcwd())
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as error:
+        raise EnvError(f"{what} {spec}: cannot import {module_name} ({error})") from None
+    except Exception as error:  # noqa: BLE001 - the user's module failed as it ran (a SyntaxError too): one line
+        where = f" (line {error.lineno})" if isinstance(error, SyntaxError) and error.lineno else ""
+        raise EnvError(f"{what} {spec}: importing {module_name} failed{where}: "
+                       f"{type(error).__name__}: {error.msg if isinstance(error, SyntaxError) else error}") from None
+    if not attribute or not hasattr(module, attribute):
+        raise EnvError(f"{what} {spec}: {module_name} has no attribute {attribute!r}")
+    return getattr(module, attribute), attribute
