@@ -13,7 +13,8 @@ the traced program, it smooths a lab's own reward as it does MuJoCo Playground's
 
 Each comparison's temperature is the median of the absolute difference it compared, over sampled
 states (``temperatures``), times a scale the user may give: a typical sampled state then sits
-within about one temperature of the threshold, where the sigmoid's slope is large.
+within about one temperature of the threshold, where the sigmoid's slope is large. The two bounds
+of an interval (two comparisons joined by ``and``) share the larger of their temperatures.
 
 A reward can also be flat because an exponential that reaches it underflows: a Gaussian tolerance
 whose margin is small next to the sampled distances (``exp(-d**2 / margin**2)`` is 0 in float32 once
@@ -117,6 +118,7 @@ class _Interpreter:
         self.differences: dict = {}
         self.exponents: dict = {}
         self.used: set = set()
+        self.bounds: set = set()  # pairs of comparisons joined by ``and``: the two bounds of an interval
         self.places: dict = {}
 
     def run(self, jaxpr: core.Jaxpr, consts, args, constant_args, out_labels, path=()):
@@ -171,6 +173,8 @@ class _Interpreter:
             inner = eqn.params["jaxpr"]
             return self.run(inner.jaxpr, inner.consts, invals, fixed, out_labels, place)
         if soft_inputs and name in LOGICAL:
+            if name == "and" and all(isinstance(value, Soft) and len(value.origins) == 1 for value in invals):
+                self.bounds.add(frozenset().union(*(value.origins for value in invals)))
             dtype = next(value.prob.dtype for value in invals if isinstance(value, Soft))
             probs = [_prob(value, dtype) for value in invals]
             hard = eqn.primitive.bind(*(_hard(value) for value in invals), **eqn.params)
@@ -264,6 +268,13 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
         positive = magnitudes[magnitudes > 0]
         if place in recorder.used and positive.size:
             chosen[place] = (float(scale * np.median(positive)), recorder.places[place])
+    # The two bounds of an interval share the larger temperature: a state inside a narrow box sits close
+    # to both, and the bound it rarely nears (cos(angle) <= 1) would otherwise get a step's temperature.
+    for pair in recorder.bounds:
+        if len(pair) == 2 and pair <= chosen.keys():
+            shared = max(chosen[place][0] for place in pair)
+            for place in pair:
+                chosen[place] = (shared, chosen[place][1])
     widened = {}
     for place, values in exponents.items():  # where the median sample's exponential underflows to 0
         median = float(np.median(np.asarray(values, float)))

@@ -70,6 +70,10 @@ def test_the_comparisons_made_numbers_are_smoothed_and_named_and_the_rest_is_not
     states, actions = samples()
     v = states.v + DT * actions[:, 0]
     assert np.isclose(smoothing.temperatures, np.median(np.abs(v - FAST)), rtol=1e-5).sum() == 1
+    # The target's two bounds, one interval, share the larger of their medians.
+    x = np.asarray(jax.vmap(step)(states, actions).x, float)
+    shared = max(np.median(np.abs(x - (TARGET - WIDTH))), np.median(np.abs(x - (TARGET + WIDTH))))
+    assert np.isclose(smoothing.temperatures, shared, rtol=1e-5).sum() == 2, smoothing.temperatures
 
 
 def test_the_surrogate_has_a_gradient_where_the_reward_has_none_and_it_points_the_right_way(smoothed):
