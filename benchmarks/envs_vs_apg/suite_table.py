@@ -1,0 +1,98 @@
+"""The suite table: MuJoCo Playground's DeepMind Control Suite envs trained by stablebptt, in real returns.
+
+Reads the records `stablebptt_half.py` wrote (one per env, its seeds in one program) and writes
+`OUT/suite.md`: per env the initial policy's return (its evaluation before the first update), the
+final and best return with a 95% bootstrap interval over seeds, MuJoCo Playground's PPO return as the
+reference, the final return's share of it, env steps per second per seed and the set-up and compile
+time; `OUT/records.json` keeps the records (trimmed as window_study.py trims them), and a later call
+adds to it.
+
+  python benchmarks/envs_vs_apg/suite_table.py --raw DIR [DIR ...] --out results/envs/suite
+  python benchmarks/envs_vs_apg/suite_table.py --out results/envs/suite      # from OUT/records.json again
+
+The runs, one env per GPU (`on_gpus.sh`), each for the same budget, compile included:
+
+  python benchmarks/envs_vs_apg/stablebptt_half.py --envs E --modes C --seeds 5 --budget 300 \\
+      --eval-every 60 --batch 64 --horizon 128 --min-timing-updates 2 --out DIR/E
+
+A flat reward trains on its smooth surrogate (the record's task summary names it); every return here
+is the true reward's, scored by evaluation.py.
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import math
+import os
+
+import numpy as np
+from window_study import interval, trim
+
+# PPO's returns on MuJoCo Playground's suite envs, read from the learning curves it published (about
+# 60-100M env steps); approximate to the curves' resolution. Envs without a number here get none.
+PPO_REFERENCE = {"CartpoleBalance": 950, "CartpoleSwingup": 800, "CheetahRun": 850, "WalkerWalk": 960,
+                 "WalkerRun": 560, "WalkerStand": 1000, "FingerSpin": 600, "FingerTurnEasy": 950,
+                 "FingerTurnHard": 950, "ReacherEasy": 950, "ReacherHard": 950, "PointMass": 900, "FishSwim": 650,
+                 "AcrobotSwingup": 220, "HumanoidWalk": 500, "HumanoidRun": 130}
+
+
+def row(record: dict) -> str:
+    """One env's line of the table."""
+    seeds = record["seeds"]
+    final, best = np.asarray(record["final_return_per_seed"], float), np.asarray(record["best_return_per_seed"], float)
+    initial = np.asarray(record["points"][0]["return_per_seed"], float)  # the evaluation before the first update
+    finite = final[np.isfinite(final)]
+    low, high = interval(finite)
+    reference = PPO_REFERENCE.get(record["env"])
+    share = f"{100 * finite.mean() / reference:.0f}%" if reference and finite.size else "-"
+    smoothed = "smoothed" in record.get("task_summary", "") or "widened" in record.get("task_summary", "")
+    notes = [note for note, holds in (("trained on its reward's surrogate", smoothed),
+                                      (f"{len(final) - finite.size} of {len(final)} seeds non-finite", finite.size < len(final)),
+                                      ("final interval above the initial return", finite.size > 1 and low > initial.mean()))
+             if holds]
+    steps = record.get("env_steps_per_s_per_seed")
+    return (f"| {record['env']} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
+            f"{_number(finite.mean() if finite.size else float('nan'))} [{_number(low)}, {_number(high)}] | "
+            f"{_number(np.nanmean(best))} | {reference or '-'} | {share} | {_number(steps, 0)} | "
+            f"{_number(record.get('compile_s'), 0)} | {'; '.join(notes)} |")
+
+
+def _number(value, digits: int = 1) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def table(records: list[dict]) -> list[str]:
+    lines = ["| env | seeds | budget s | initial return | final return [95% interval] | best return | PPO reference | "
+             "final / reference | env steps/s per seed | set-up and compile s | notes |",
+             "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---|"]
+    return lines + [row(record) for record in sorted(records, key=lambda r: r["env"])]
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--raw", nargs="*", default=[], help="folders holding stablebptt_half.py's records (searched below)")
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args(argv)
+    kept = os.path.join(args.out, "records.json")
+    records = json.load(open(kept)) if os.path.exists(kept) else {}
+    for folder in args.raw:
+        for path in sorted(glob.glob(os.path.join(folder, "**", "*_stablebptt_*.json"), recursive=True)):
+            record = json.load(open(path))
+            if record.get("status") != "error" and record.get("points"):
+                records[record["env"]] = {**trim(record), "task_summary": record.get("task_summary", "")}
+    os.makedirs(args.out, exist_ok=True)
+    with open(kept, "w") as file:
+        json.dump(records, file, indent=1)
+    lines = ["# MuJoCo Playground's suite envs trained by stablebptt", "",
+             f"Written by `python benchmarks/envs_vs_apg/suite_table.py --out {args.out}` from `{kept}`; every return "
+             "is evaluation.py's (64 fixed resets, 1000 steps, the deterministic policy, the true reward). PPO's "
+             "references are read from MuJoCo Playground's published learning curves (approximate).", "",
+             *table(list(records.values())), ""]
+    with open(os.path.join(args.out, "suite.md"), "w") as file:
+        file.write("\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
