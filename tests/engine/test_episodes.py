@@ -158,6 +158,7 @@ def test_td_lambda_targets_are_the_closed_forms_at_lambda_0_and_1_and_stop_where
     np.testing.assert_allclose(ended[:, 0], [1 + 0.5 * 2, 2, 3])  # nothing after x_2's end counts
 
 
+@pytest.mark.slow  # trains: the full tier
 def test_a_critic_trains_beside_the_policy_and_its_target_follows_it():
     task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
                 sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)),

@@ -64,7 +64,7 @@ def standardized_drift() -> Task:
                 refresh_statistics=refresh_from(lambda x: jnp.stack([x])))
 
 
-@pytest.mark.parametrize("mode", ["R", "C"])
+@pytest.mark.parametrize("mode", [pytest.param("R", marks=pytest.mark.slow), "C"])  # both in the full tier
 def test_a_trainer_refreshes_the_statistics_from_its_windows_states_and_trains_the_network_alone(mode):
     task = standardized_drift()
     config = TrainConfig(mode=mode, epochs=1, batch=2, train_size=4, test_size=2, lr=1e-2, cosine=False)

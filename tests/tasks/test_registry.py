@@ -83,6 +83,7 @@ def test_an_unknown_task_is_one_line():
         tasks.entry("pendulum")
 
 
+@pytest.mark.slow  # a command line that trains and renders: the full tier
 def test_a_registered_own_task_trains_and_renders_through_the_command_line(own_task, tmp_path, capsys):
     run_dir = tmp_path / "own"
     assert train_command.main(["--task", "pointmass", "--mass", "3", "--train-size", "16", "--test-size", "16",

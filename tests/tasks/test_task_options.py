@@ -84,6 +84,7 @@ def test_a_limited_actuator_never_leaves_its_range_and_keeps_a_gradient(pendulum
     assert any(float(jnp.abs(leaf).max()) > 0 for leaf in jax.tree.leaves(slope))
 
 
+@pytest.mark.slow  # trains an epoch: the full tier
 def test_an_mjcf_task_given_episode_seconds_trains_on_carried_episodes_rewarded_by_its_state_loss(pendulum):
     from stablebptt.engine.config import TrainConfig, seed_array
     from stablebptt.engine.training import make_trainer
