@@ -202,7 +202,7 @@ def tables(joined: dict) -> list[str]:
         diverged = [f"{flow} diverged in {count} of {len(joined[key]['final'])} seeds" for flow, key in
                     (("C", (env, name)), ("R", other)) if (count := int(np.sum(~np.isfinite(joined[key]["final"]))))]
         if diverged:  # a seed without a finite return has no difference: say what happened instead
-            verdict = ", ".join(diverged) + ", the other finite in all"
+            verdict = ", ".join(diverged) + (", the other finite in all" if len(diverged) == 1 else "")
         lines.append(f"| {env} | {name.rsplit(' ', 1)[1]} | {_number(mean)} | [{_number(low)}, {_number(high)}] | "
                      f"{verdict} |")
     return lines

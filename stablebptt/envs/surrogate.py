@@ -154,7 +154,9 @@ class _Interpreter:
             self.places[place] = _where_written(eqn)
             if self.temperatures is None:
                 self.exponents[place] = invals[0]
-            return [jnp.exp(invals[0] * self.exponent_scales.get(place, 1.0)).astype(jnp.result_type(invals[0]))]
+            elif place in self.exponent_scales:
+                return [jnp.exp(invals[0] * self.exponent_scales[place]).astype(jnp.result_type(invals[0]))]
+            return [eqn.primitive.bind(invals[0], **eqn.params)]  # the exponential as the step computes it
         if name in COMPARISONS and label == frozenset({REWARD}) and not all(fixed) \
                 and jnp.issubdtype(jnp.result_type(*[_hard(v) for v in invals]), jnp.floating):
             a, b = (_hard(value) for value in invals)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.metadata
 import math
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 from stablebptt.engine.task import Task
 from stablebptt.envs.adapter import env_task
@@ -116,25 +117,26 @@ def trained_reward_of(config: Config, dense: str) -> tuple[str, object]:
 
 def _trained_on(task: Task, trained_reward: str) -> Task:
     """``task`` saying in its summary and record which reward its windows train on, also once settled."""
-    settle = task.settle
-    if settle is not None:
-        def settle_saying_so(wait: bool = True) -> Task | None:
-            settled = settle(wait)
-            return None if settled is None else _trained_on(settled, trained_reward)
-        task = replace(task, settle=settle_saying_so)
-    return replace(task, summary=f"{task.summary}; trained on {trained_reward} (returns reported: the env's own)",
-                   resolved={**task.resolved, "trained_reward": trained_reward})
+    return _also_once_settled(task, lambda known: replace(
+        known, summary=f"{known.summary}; trained on {trained_reward} (returns reported: the env's own)",
+        resolved={**known.resolved, "trained_reward": trained_reward}))
 
 
 def _with_release(task: Task, version: str) -> Task:
     """``task`` resolved with MuJoCo Playground's release, also once its pending check has settled."""
+    return _also_once_settled(task, lambda known: replace(known, resolved={**known.resolved,
+                                                                          "playground_version": version}))
+
+
+def _also_once_settled(task: Task, change: Callable[[Task], Task]) -> Task:
+    """``change(task)``, and ``change`` of the task its pending check settles into (``Task.settle``)."""
     settle = task.settle
     if settle is not None:
-        def settle_with_release(wait: bool = True) -> Task | None:
+        def settle_changed(wait: bool = True) -> Task | None:
             settled = settle(wait)
-            return None if settled is None else _with_release(settled, version)
-        task = replace(task, settle=settle_with_release)
-    return replace(task, resolved={**task.resolved, "playground_version": version})
+            return None if settled is None else _also_once_settled(settled, change)
+        task = replace(task, settle=settle_changed)
+    return change(task)
 
 
 def _playground_version() -> str:
