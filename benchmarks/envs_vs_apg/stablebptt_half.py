@@ -35,26 +35,15 @@ import time
 import traceback
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import evaluation  # noqa: E402
 
 from stablebptt.engine.config import TrainConfig, seed_array  # noqa: E402
-from stablebptt.engine.observations import StandardizedNetwork, standardized  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch
 from stablebptt.engine.training import make_trainer
-from stablebptt.envs.adapter import env_task  # noqa: E402
-from stablebptt.networks import mlp_apply  # noqa: E402
-
-
-def apply(params, obs):
-    """env_task's policy on the observation: tanh of the MLP (deterministic), the observation standardised
-    by the statistics the parameters keep where the run normalised observations."""
-    if isinstance(params, StandardizedNetwork):
-        params, obs = params.network, standardized(params.statistics, obs)
-    return jnp.tanh(mlp_apply(params, obs))
+from stablebptt.envs.adapter import env_task, observation_policy  # noqa: E402
 
 
 def solver_info(env) -> dict:
@@ -128,7 +117,7 @@ def run_one(env_name, mode, a, log):
     }
     if (env_name, a.eval_envs) not in _EVALUATORS:  # one compiled evaluator per env, shared by the modes
         # All seeds in one program, each with evaluation.py's protocol (same resets, same rollout).
-        _EVALUATORS[(env_name, a.eval_envs)] = evaluation.make_seed_evaluator(eval_env, apply, num_envs=a.eval_envs)
+        _EVALUATORS[(env_name, a.eval_envs)] = evaluation.make_seed_evaluator(eval_env, observation_policy, num_envs=a.eval_envs)
     evaluate = _EVALUATORS[(env_name, a.eval_envs)]
     clock = {"eval_s": 0.0, "last_eval_train_s": -1e9, "updates": 0}
     t0 = time.perf_counter()

@@ -136,6 +136,14 @@ def _is_playground(env: Any) -> bool:
     return type(env).__module__.startswith("mujoco_playground")
 
 
+def observation_policy(params: Any, seen: jax.Array) -> jax.Array:
+    """An env task's deterministic policy on an observation: tanh of the MLP, the observation standardised
+    first by the statistics the parameters keep where the run normalises observations."""
+    if isinstance(params, StandardizedNetwork):
+        params, seen = params.network, standardized(params.statistics, seen)
+    return jnp.tanh(mlp_apply(params, seen))
+
+
 def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,
              hidden: Sequence[int] = (64, 64), name: str = "", reward_context: Callable | None = None,
              reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0,
@@ -217,10 +225,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             return env.step(state, action)
 
     def policy(params, state):
-        seen = observation(state)
-        if normalize_observations:
-            params, seen = params.network, standardized(params.statistics, seen)
-        return jnp.tanh(mlp_apply(params, seen))
+        return observation_policy(params, observation(state))
 
     # What the windows train on: the env's reward, the user's own surrogate of it, or the reward of another env's
     # step on the same states (diagnosed as the reward is).

@@ -92,15 +92,9 @@ def check_step(env: Any, step: Callable, observations: int, label: str) -> bool:
     except Exception as error:  # noqa: BLE001 - the user's step failed: one line naming it
         raise EnvError(f"{label}: step(state, action) fails on the state reset gives and an action of "
                        f"{int(env.action_size)} numbers: {first_line(error)}") from None
-    given, got = jax.tree.structure(state), jax.tree.structure(reached)
-    if given != got:
-        raise EnvError(f"{label}: step(state, action) must return a state of the tree it is given: reset gives "
-                       f"{_tree_text(given)}, step returns {_tree_text(got)}")
-    for (path, before), after in zip(jax.tree_util.tree_leaves_with_path(state), jax.tree.leaves(reached)):
-        if (before.shape, before.dtype) != (after.shape, after.dtype):
-            raise EnvError(f"{label}: step(state, action) changes state{jax.tree_util.keystr(path)} from "
-                           f"{before.dtype}{list(before.shape)} to {after.dtype}{list(after.shape)}: a state keeps its "
-                           "shapes and dtypes from step to step")
+    difference = _first_difference(state, reached)
+    if difference:
+        raise EnvError(f"{label}: step(state, action) {difference}")
     for name in ("reward", "done"):
         if getattr(reached, name).shape != ():
             raise EnvError(f"{label}: step(state, action) gives a {name} of shape {getattr(reached, name).shape}, "
@@ -117,11 +111,24 @@ def check_same_states(env: Any, step: Callable, label: str) -> bool:
         reached = jax.eval_shape(step, state, action)
     except Exception as error:  # noqa: BLE001 - the other env's step failed on these states: one line naming it
         raise EnvError(f"{label}: the step whose reward is trained on fails on {label}'s states: {first_line(error)}") from None
-    if jax.tree.structure(reached) != jax.tree.structure(state) or any(
-            (a.shape, a.dtype) != (b.shape, b.dtype) for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(reached))):
-        raise EnvError(f"{label}: the step whose reward is trained on does not return states like {label}'s "
-                       "(another tree, shape or dtype): train on the reward of an env of the same model and states")
+    difference = _first_difference(state, reached)
+    if difference:
+        raise EnvError(f"{label}: the step whose reward is trained on does not return states like {label}'s: it "
+                       f"{difference}; train on the reward of an env of the same model and states")
     return True
+
+
+def _first_difference(state: Any, reached: Any) -> str | None:
+    """How a step's returned state ``reached`` first differs from the ``state`` it was given (its tree,
+    then a leaf's shape or dtype), in words that follow "step(state, action)"; None where none does."""
+    given, got = jax.tree.structure(state), jax.tree.structure(reached)
+    if given != got:
+        return f"must return a state of the tree it is given: reset gives {_tree_text(given)}, step returns {_tree_text(got)}"
+    for (path, before), after in zip(jax.tree_util.tree_leaves_with_path(state), jax.tree.leaves(reached)):
+        if (before.shape, before.dtype) != (after.shape, after.dtype):
+            return (f"changes state{jax.tree_util.keystr(path)} from {before.dtype}{list(before.shape)} to "
+                    f"{after.dtype}{list(after.shape)}: a state keeps its shapes and dtypes from step to step")
+    return None
 
 
 def _tree_text(structure: Any) -> str:
