@@ -29,8 +29,10 @@ import os
 import numpy as np
 from window_study import interval, trim
 
-# PPO's returns on MuJoCo Playground's suite envs, read from the learning curves it published (about
-# 60-100M env steps); approximate to the curves' resolution. Envs without a number here get none.
+# PPO's returns on MuJoCo Playground's suite envs, read off the reward curves of Figure 7 of its report
+# (Zakka et al. 2025, arXiv 2502.08844v1, Appendix A.2: Brax PPO, 60M env steps, 100M for AcrobotSwingup,
+# WalkerRun and the swimmer, 5 seeds on one A100). The report gives curves, not numbers: these are
+# approximate to the curves' resolution. Envs without a number here get none.
 PPO_REFERENCE = {"CartpoleBalance": 950, "CartpoleSwingup": 800, "CheetahRun": 850, "WalkerWalk": 960,
                  "WalkerRun": 560, "WalkerStand": 1000, "FingerSpin": 600, "FingerTurnEasy": 950,
                  "FingerTurnHard": 950, "ReacherEasy": 950, "ReacherHard": 950, "PointMass": 900, "FishSwim": 650,

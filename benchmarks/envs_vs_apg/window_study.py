@@ -33,14 +33,16 @@ import numpy as np
 
 KEEP_STABLEBPTT = ("env", "mode", "seeds", "budget_s", "hyperparams", "device", "jax", "points", "status", "compile_s",
                    "nan_update_per_seed", "updates", "update_s", "env_steps_per_s_per_seed",
-                   "final_return_per_seed", "best_return_per_seed", "argv")
+                   "final_return_per_seed", "best_return_per_seed", "argv", "machine")
 KEEP_BRAX = ("env", "seed", "algo", "variant", "budget_s", "hyperparams", "device", "jax", "points", "status", "compile_s",
-             "updates_per_epoch", "update_s", "env_steps_per_s", "final_return", "best_return", "argv", "sharing", "error_type", "error")
+             "updates_per_epoch", "update_s", "env_steps_per_s", "final_return", "best_return", "argv", "sharing", "error_type", "error",
+             "machine")
 RESAMPLES = 10_000
 # The time at which the methods of an env are compared side by side: each seed's last evaluation at
 # or before it. Per env, the latest time by which every method's runs had been evaluated (stablebptt's
 # runs on the locomotion envs were evaluated every 150 s or so, PPO's on WalkerWalk were cut at 248-300 s).
-EQUAL_TIME_S = {"CartpoleSwingup": 240.0, "AcrobotSwingup": 240.0, "CheetahRun": 320.0, "WalkerWalk": 285.0}
+EQUAL_TIME_S = {"CartpoleSwingup": 240.0, "AcrobotSwingup": 240.0, "CheetahRun": 320.0, "WalkerWalk": 285.0,
+                "WalkerStand": 300.0}
 BRAX_NAMES = {"brax_apg": "Brax APG", "brax_ppo": "Brax PPO"}
 
 
@@ -128,10 +130,11 @@ def runs(records: list[dict]) -> dict:
         key = (record["env"], method(record))
         entry = joined.setdefault(key, {"final": [], "best": [], "curves": [], "compile_s": [], "update_ms": [],
                                         "steps_per_s": [], "diverged": 0, "updates": [], "argv": [], "device": set(),
-                                        "ended": []})
+                                        "ended": [], "machine": set()})
         entry["ended"].append(record["status"] if record["status"] != "error" else
                               f"error ({record.get('error', '')[:90]})")
         entry["device"].add(record["device"])
+        entry["machine"].add(record.get("machine", "-"))
         entry["budget_s"] = record["budget_s"]
         entry["argv"].append(" ".join(record["argv"]).replace("/tmp/", "DIR/"))
         entry["compile_s"].append(record["compile_s"] if record.get("compile_s") is not None else float("nan"))
@@ -179,7 +182,7 @@ def _number(value: float, digits: int = 1) -> str:
 
 def tables(joined: dict) -> list[str]:
     lines = ["| env | method | budget s | seeds | final return | 95% interval | best return | updates | compile s | update ms "
-             "| env steps/s per seed | diverged seeds |", "|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
+             "| env steps/s per seed | diverged seeds | machine |", "|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|"]
     order = lambda key: (key[0], key[1].startswith("stablebptt"), key[1])  # noqa: E731
     for key in sorted(joined, key=order):
         e = joined[key]
@@ -188,10 +191,11 @@ def tables(joined: dict) -> list[str]:
                      f"[{_number(low)}, {_number(high)}] | {_number(np.mean(e['best']))} | "
                      f"{int(np.mean(e['updates']))} | {_number(np.mean(e['compile_s']), 0)} | "
                      f"{_number(np.median(e['update_ms']), 1)} | {_number(np.mean(e['steps_per_s']), 0)} | "
-                     f"{e['diverged']} |")
+                     f"{e['diverged']} | {'; '.join(sorted(e['machine']))} |")
     lines += ["", "C - R, final return, per env and window (95% bootstrap interval; the sign is the verdict only where "
               "the interval excludes 0):", "", "| env | window | C - R | 95% interval | verdict |", "|---|---:|---:|---|---|"]
-    for env, name in sorted(joined):
+    window = lambda key: (key[0], int(key[1].rsplit(" ", 1)[1]) if key[1].rsplit(" ", 1)[1].isdigit() else 0, key[1])  # noqa: E731
+    for env, name in sorted(joined, key=window):
         if not name.startswith("stablebptt C"):
             continue
         other = (env, name.replace("stablebptt C", "stablebptt R"))
@@ -217,7 +221,9 @@ def side_by_side(joined: dict) -> list[str]:
         seconds = EQUAL_TIME_S.get(env)
         if ", seeds " in name or seconds is None:  # the sweep's seeds are kept apart from the reported ones
             continue
-        reached = [at_time(curve, seconds) for curve in entry["curves"]]
+        # A run whose budget is the time compared at is scored by its last evaluation, made when the update
+        # running at the budget ended (up to one update after it).
+        reached = [curve[-1] if entry["budget_s"] == seconds else at_time(curve, seconds) for curve in entry["curves"]]
         reached = [point for point in reached if point is not None]
         returns = [point[2] for point in reached]
         finite = [value for value in returns if math.isfinite(value)]
@@ -327,7 +333,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--raw", nargs="*", default=[], help="folders holding the runs' records (searched below)")
     parser.add_argument("--out", required=True)
-    parser.add_argument("--machine", default="", help="the GPUs the records came from, in words (the records say cuda:N)")
+    parser.add_argument("--machine", default="", help="the machine the records read now came from, in words (a record "
+                        "says only cuda:N); kept with each record")
     parser.add_argument("--sharing", type=int, default=1, help="seeds run at once on one GPU in the runs read now")
     parser.add_argument("--cut-logs", nargs="*", default=[], help="logs of Brax runs cut before they wrote a record")
     parser.add_argument("--budget", type=float, default=0.0, help="the budget the cut runs were given, s")
@@ -346,20 +353,19 @@ def main(argv=None) -> None:
                 continue  # summaries
             if "seed" in record:
                 record["sharing"] = args.sharing
-            stored[record_name(record)] = trim(record)
+            stored[record_name(record)] = trim(record) | ({"machine": args.machine} if args.machine else {})
     for path in args.cut_logs:
         for record in record_from_log(path, args.budget):
             record["sharing"] = args.sharing
-            stored[record_name(record)] = trim(record)
+            stored[record_name(record)] = trim(record) | ({"machine": args.machine} if args.machine else {})
     with open(kept, "w") as handle:
         json.dump(dict(sorted(stored.items())), handle, indent=0)
     records = [record for name, record in stored.items() if not name.startswith("throughput_")]
     timed = [record for name, record in stored.items() if name.startswith("throughput_")]
     joined = runs(records)
-    machine = f" --machine '{args.machine}'" if args.machine else ""
     lines = ["# Windows along carried episodes: stablebptt R and C against Brax APG and Brax PPO", "",
-             f"Written by `python benchmarks/envs_vs_apg/window_study.py --out {args.out}{machine}` from the records in "
-             f"`{kept}`{' (' + args.machine + ')' if args.machine else ''}.", "",
+             f"Written by `python benchmarks/envs_vs_apg/window_study.py --out {args.out}` from the records in `{kept}`; "
+             "each run's machine is in the table of every run at its budget.", "",
              "## Side by side at equal training time (compile included)", "",
              *side_by_side(joined), "", "## Every run at its budget", "", *tables(joined), "",
              "## Options swept on seeds kept apart from the reported ones", "", *sweep(joined), "",
