@@ -28,11 +28,15 @@ import stablebptt
 stablebptt.one_cpu_thread()  # XLA:CPU's set-up, before JAX creates its CPU client
 from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
 
-# One compilation cache for the session, the command lines the tests start included: a program
-# compiled once (the same small run, resumed, killed, rendered) is loaded the next time. Never
-# the user's own cache.
-os.environ[COMPILE_CACHE_ENV] = tempfile.mkdtemp(prefix="stablebptt-test-cache-")
-atexit.register(shutil.rmtree, os.environ[COMPILE_CACHE_ENV], ignore_errors=True)
+# One compilation cache for the session, its workers and the command lines the tests start included:
+# a program compiled once (the same small run, resumed, killed, rendered, or built by tests on another
+# worker) is loaded the next time. Never the user's own cache. The process that made it (pytest's
+# own, which starts the workers) removes it at its exit; a worker finds it in its environment.
+TESTS_CACHE_ENV = "STABLEBPTT_TESTS_COMPILE_CACHE"
+if TESTS_CACHE_ENV not in os.environ:
+    os.environ[TESTS_CACHE_ENV] = tempfile.mkdtemp(prefix="stablebptt-test-cache-")
+    atexit.register(shutil.rmtree, os.environ[TESTS_CACHE_ENV], ignore_errors=True)
+os.environ[COMPILE_CACHE_ENV] = os.environ[TESTS_CACHE_ENV]
 use_compile_cache()
 
 ROOT = Path(__file__).resolve().parent.parent  # the checkout: scripts are run from here

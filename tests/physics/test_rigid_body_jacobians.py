@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+import pytest
 from test_rigid_body import (
     FLOATING_ARM,
     HOPPING,
@@ -17,7 +18,9 @@ from test_rigid_body import (
     lean_of,
 )
 
-from stablebptt.physics import lean_step
+from stablebptt.physics import lean_step, rigid_body
+from stablebptt.physics.array_terms import ArrayTerms
+from stablebptt.physics.written_out import WrittenOut
 
 
 def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
@@ -40,16 +43,52 @@ def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
     assert np.abs(np.asarray(expected.qvel[0].qpos)).max() > 1e-3
 
 
+# The written-out form's compile grows with the terms a scene couples (about 100 s for the torso and its
+# arm together, 15 s and 28 s apart, on one core), so that form is checked on each joint group alone;
+# the coupled scene in the array form, which compiles its loops once.
+FREE_BODY = """<mujoco model="free body">
+  <option timestep="0.005" gravity="0.3 -0.2 -9.81"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body name="torso" pos="0.1 0.2 0.35" quat="0.9 0.1 0.3 0.2">
+      <joint name="root" type="free" damping="0.01"/>
+      <geom type="capsule" fromto="-0.1 0 0 0.1 0 0" size="0.05" mass="2"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+# An arm on a ball joint above the floor, its forearm on a driven hinge: it swings down into the floor.
+BALL_ARM = """<mujoco model="ball arm">
+  <option timestep="0.005" gravity="0.3 -0.2 -9.81"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body name="arm" pos="0 0 0.2" euler="10 20 30">
+      <joint name="shoulder" type="ball" damping="0.05" armature="0.01" frictionloss="0.01"/>
+      <geom type="capsule" fromto="0 0 0 0.2 0 0" size="0.03" mass="0.5"/>
+      <body name="forearm" pos="0.2 0 0">
+        <joint name="elbow" type="hinge" axis="0 1 0" range="-30 30"/>
+        <geom type="capsule" fromto="0 0 0 0.15 0 0" size="0.025" mass="0.3"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor joint="elbow" gear="2" ctrlrange="-1 1" ctrllimited="true"/>
+  </actuator>
+</mujoco>"""
+# scene -> (its MJCF, the form its terms take, the columns of its orientation's quaternion in qpos)
+FREE_AND_BALL = {"free body, written out": (FREE_BODY, "written out", slice(3, 7)),
+                 "ball arm, written out": (BALL_ARM, "written out", slice(0, 4)),
+                 "torso and arm, in arrays": (FLOATING_ARM, "in arrays", slice(3, 7))}
+
+
 @functools.cache
-def floating_arm_in_contact():
-    """The floating arm on the floor, its shoulder turning: its lean model, the state, the control, and
-    the Jacobians of forward mode through MJX's stages (computed once for both forms)."""
-    model = mujoco.MjModel.from_xml_string(FLOATING_ARM)
-    assert (model.nv, model.nu) == (10, 1)
+def in_contact(xml):
+    """The scene on the floor, falling or swinging into it: its lean model, the state, the control, and the
+    Jacobians of forward mode through MJX's stages."""
+    model = mujoco.MjModel.from_xml_string(xml)
     lean, effects = lean_of(model)
     data = mujoco.MjData(model)
-    data.qvel[6:9] = [2.0, -1.0, 0.5]
-    for _ in range(200):
+    data.qvel[-min(model.nv, 3):] = [2.0, -1.0, 0.5][:min(model.nv, 3)]
+    for _ in range(400):
         if data.ncon:
             break
         mujoco.mj_step(model, data)
@@ -60,12 +99,17 @@ def floating_arm_in_contact():
     return lean, effects, state, control, expected
 
 
-def test_free_and_ball_joints_in_contact_have_mjx_stages_jacobians(x64, form):
-    """Through the quaternions' normalisation and the three-dof groups, in either form: the floating torso
-    and its arm on the floor, at the size a GPU writes the terms out (the 15-dof floating scene's terms in
-    arrays are MuJoCo's: test_rigid_body.py)."""
-    lean, effects, state, control, expected = floating_arm_in_contact()
+@pytest.mark.parametrize("name", FREE_AND_BALL)
+def test_free_and_ball_joints_in_contact_have_mjx_stages_jacobians(x64, monkeypatch, name):
+    """Through the quaternions' normalisation and the three-dof groups, in the form each scene's terms take:
+    a free body and a ball-jointed arm on the floor written out, as a GPU writes them, and the floating
+    torso with its arm in arrays (the 15-dof floating scene's terms in arrays are MuJoCo's: test_rigid_body.py)."""
+    xml, form, quaternion = FREE_AND_BALL[name]
+    most = 1000 if form == "written out" else 0
+    monkeypatch.setattr(rigid_body, "WRITTEN_OUT_DOFS", {"cpu": most, "gpu": most})
+    lean, effects, state, control, expected = in_contact(xml)
+    assert isinstance(rigid_body.make_scene(mujoco.MjModel.from_xml_string(xml)), WrittenOut if most else ArrayTerms)
     got = jax.jit(jax.jacrev(lean_step.make_step(lean, effects), argnums=(0, 1)))(state, control)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
         np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
-    assert np.abs(np.asarray(expected.qvel[0].qpos)[6:9, 3:7]).max() > 1e-3  # the shoulder by the torso's turn
+    assert np.abs(np.asarray(expected.qvel[0].qpos)[:, quaternion]).max() > 1e-3  # the velocities by the turn
