@@ -61,11 +61,11 @@ def _seed_slice(tree, i):
     return jax.tree.map(lambda a: a[i], tree)
 
 
-def build(env, a, mode, seeds, horizon, batch):
-    """Task and trainer; returns (task, config, trainer, update) with update = the jitted per-update program."""
+def build(env, env_name, a, mode, seeds, horizon, batch):
+    """Task and trainer for ``env``, named ``env_name`` (Playground's registry name) in its summary; returns (task, config, trainer, update) with update = the jitted per-update program."""
     b0 = time.perf_counter()
     task = env_task(env, horizon, discount=a.discount, episode_length=a.trainer_episode_length or None,
-                    hidden=tuple(a.hidden), name=env.__class__.__name__,
+                    hidden=tuple(a.hidden), name=env_name,
                     normalize_observations=a.normalize_observations)
     PHASES["env_task_s"] = time.perf_counter() - b0
     print(f"  env_task {PHASES['env_task_s']:.1f}s", flush=True)  # a run cut during its set-up still says how far it got
@@ -144,7 +144,7 @@ def run_one(env_name, mode, a, log):
             + ",".join(f"{r:.1f}" for r in rets) + f" (eval {pt['eval_s']:.1f}s)")
 
     try:
-        task, config, trainer, update = build(train_env, a, mode, seeds, horizon, batch)
+        task, config, trainer, update = build(train_env, env_name, a, mode, seeds, horizon, batch)
         rec["task_summary"] = task.summary
         rec["task_resolved"] = task.resolved
         rec["flows"] = list(trainer.flows)
@@ -237,7 +237,7 @@ def throughput(env_name, mode, a, log):
            "jax": jax.__version__}
     try:
         t0 = time.perf_counter()
-        task, config, trainer, update = build(env, a, mode, a.seeds, a.horizon, a.batch)
+        task, config, trainer, update = build(env, env_name, a, mode, a.seeds, a.horizon, a.batch)
         state = trainer.init(seed_array(config))
         jax.block_until_ready(state)
         rec["setup_s"] = time.perf_counter() - t0
