@@ -40,6 +40,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import evaluation  # noqa: E402
 
+from stablebptt.engine.checks import tracing_shapes  # noqa: E402
 from stablebptt.engine.config import TrainConfig, seed_array  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch
 from stablebptt.engine.training import make_trainer
@@ -64,8 +65,10 @@ def _seed_slice(tree, i):
 def build(env, env_name, a, mode, seeds, horizon, batch):
     """Task and trainer for ``env``, named ``env_name`` (Playground's registry name) in its summary; returns (task, config, trainer, update) with update = the jitted per-update program."""
     b0 = time.perf_counter()
+    # As the command line sets up: the reward's diagnosis compiles beside the trainer's set-up and the
+    # update's compile, and is waited for after them (settled).
     task = env_task(env, horizon, discount=a.discount, episode_length=a.trainer_episode_length or None,
-                    hidden=tuple(a.hidden), name=env_name,
+                    hidden=tuple(a.hidden), name=env_name, defer_diagnosis=True,
                     normalize_observations=a.normalize_observations)
     PHASES["env_task_s"] = time.perf_counter() - b0
     print(f"  env_task {PHASES['env_task_s']:.1f}s", flush=True)  # a run cut during its set-up still says how far it got
@@ -82,6 +85,18 @@ def build(env, env_name, a, mode, seeds, horizon, batch):
     print(f"  make_trainer {PHASES['make_trainer_s']:.1f}s", flush=True)
     assert isinstance(trainer.epoch, PerUpdateEpoch)
     return task, config, trainer, trainer.epoch.update
+
+
+def compile_update(trainer, update, seed_ids):
+    """The update compiled for the states ``trainer.init`` gives, from their shapes alone (the reward's
+    diagnosis, which decides the parameters' start, need not have answered); and the minibatches."""
+    init = getattr(trainer.init, "__wrapped__", trainer.init)  # not its jit: its trace would be kept
+    with tracing_shapes():
+        shapes = jax.eval_shape(lambda seeds: init(seeds), seed_ids)
+    batches = trainer.batches
+    take = jax.jit(_seed_slice)  # one program for every minibatch, not one eager slice per leaf
+    batch_list = [take(batches, i) for i in range(len(jax.tree.leaves(batches)[0]))]
+    return update.lower(shapes, batch_list[0]).compile(), batch_list
 
 
 _EVALUATORS: dict = {}
@@ -145,20 +160,22 @@ def run_one(env_name, mode, a, log):
 
     try:
         task, config, trainer, update = build(train_env, env_name, a, mode, seeds, horizon, batch)
+        seed_ids = seed_array(config)
+        rec["setup_s"] = time.perf_counter() - t0  # env_task (the diagnosis started), resets, trainer set-up
+        c0 = time.perf_counter()
+        compiled, batch_list = compile_update(trainer, update, seed_ids)
+        settled = task.settled()  # the diagnosis, compiled beside; a flat reward settles into its surrogate
+        if settled.dynamics.step is not task.dynamics.step:
+            trainer = make_trainer(settled, config)
+            update = trainer.epoch.update
+            compiled, batch_list = compile_update(trainer, update, seed_ids)
+        task = settled
+        state = trainer.init(seed_ids)
+        jax.block_until_ready(state)
+        rec["update_compile_s"] = time.perf_counter() - c0  # the update's compile, the diagnosis's wait, init
         rec["task_summary"] = task.summary
         rec["task_resolved"] = task.resolved
         rec["flows"] = list(trainer.flows)
-        seed_ids = seed_array(config)
-        state = trainer.init(seed_ids)
-        jax.block_until_ready(state)
-        rec["setup_s"] = time.perf_counter() - t0  # env_task (diagnosis), resets, trainer set-up, init
-        c0 = time.perf_counter()
-        batches = trainer.batches
-        n_batches = len(jax.tree.leaves(batches)[0])
-        take = jax.jit(_seed_slice)  # one program for every minibatch, not one eager slice per leaf
-        batch_list = [take(batches, i) for i in range(n_batches)]
-        compiled = update.lower(state, batch_list[0]).compile()
-        rec["update_compile_s"] = time.perf_counter() - c0
         rec["compile_s"] = rec["setup_s"] + rec["update_compile_s"]
         rec["setup_phases_s"] = dict(PHASES)
         log(f"  [{env_name}/{mode}] phases {PHASES}")
@@ -169,7 +186,7 @@ def run_one(env_name, mode, a, log):
         nan_update = [None] * seeds
         while True:
             u0 = time.perf_counter()
-            state, (loss, norm, _cos, finite) = compiled(state, batch_list[clock["updates"] % n_batches])
+            state, (loss, norm, _cos, finite) = compiled(state, batch_list[clock["updates"] % len(batch_list)])
             loss = np.asarray(loss)  # blocks: the update is timed whole
             update_times.append(time.perf_counter() - u0)
             clock["updates"] += 1
@@ -192,7 +209,7 @@ def run_one(env_name, mode, a, log):
         timing_only = 0
         while len(update_times) < a.min_timing_updates:
             u0 = time.perf_counter()
-            state, (loss, *_rest) = compiled(state, batch_list[(clock["updates"] + timing_only) % n_batches])
+            state, (loss, *_rest) = compiled(state, batch_list[(clock["updates"] + timing_only) % len(batch_list)])
             np.asarray(loss)
             update_times.append(time.perf_counter() - u0)
             timing_only += 1
@@ -238,6 +255,10 @@ def throughput(env_name, mode, a, log):
     try:
         t0 = time.perf_counter()
         task, config, trainer, update = build(env, env_name, a, mode, a.seeds, a.horizon, a.batch)
+        settled = task.settled()  # timed as trained: a flat reward settles into its surrogate
+        if settled.dynamics.step is not task.dynamics.step:
+            trainer = make_trainer(settled, config)
+            update = trainer.epoch.update
         state = trainer.init(seed_array(config))
         jax.block_until_ready(state)
         rec["setup_s"] = time.perf_counter() - t0
