@@ -40,8 +40,8 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import evaluation  # noqa: E402
 
-from stablebptt.engine.checks import tracing_shapes  # noqa: E402
 from stablebptt.engine.config import TrainConfig, seed_array  # noqa: E402
+from stablebptt.engine.fitting import settled_trainer, state_shapes  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch
 from stablebptt.engine.training import make_trainer
 from stablebptt.envs.adapter import env_task, observation_policy  # noqa: E402
@@ -89,10 +89,8 @@ def build(env, env_name, a, mode, seeds, horizon, batch):
 
 def compile_update(trainer, update, seed_ids):
     """The update compiled for the states ``trainer.init`` gives, from their shapes alone (the reward's
-    diagnosis, which decides the parameters' start, need not have answered); and the minibatches."""
-    init = getattr(trainer.init, "__wrapped__", trainer.init)  # not its jit: its trace would be kept
-    with tracing_shapes():
-        shapes = jax.eval_shape(lambda seeds: init(seeds), seed_ids)
+    diagnosis need not have answered); and the minibatches."""
+    shapes = state_shapes(trainer, seed_ids)
     batches = trainer.batches
     take = jax.jit(_seed_slice)  # one program for every minibatch, not one eager slice per leaf
     batch_list = [take(batches, i) for i in range(len(jax.tree.leaves(batches)[0]))]
@@ -164,12 +162,11 @@ def run_one(env_name, mode, a, log):
         rec["setup_s"] = time.perf_counter() - t0  # env_task (the diagnosis started), resets, trainer set-up
         c0 = time.perf_counter()
         compiled, batch_list = compile_update(trainer, update, seed_ids)
-        settled = task.settled()  # the diagnosis, compiled beside; a flat reward settles into its surrogate
-        if settled.dynamics.step is not task.dynamics.step:
-            trainer = make_trainer(settled, config)
-            update = trainer.epoch.update
+        # The diagnosis, compiled beside; a flat reward settles into its surrogate, trained by a trainer of its own.
+        task, settled = settled_trainer(task, trainer, config)
+        if settled is not trainer:
+            trainer, update = settled, settled.epoch.update
             compiled, batch_list = compile_update(trainer, update, seed_ids)
-        task = settled
         state = trainer.init(seed_ids)
         jax.block_until_ready(state)
         rec["update_compile_s"] = time.perf_counter() - c0  # the update's compile, the diagnosis's wait, init
@@ -255,10 +252,8 @@ def throughput(env_name, mode, a, log):
     try:
         t0 = time.perf_counter()
         task, config, trainer, update = build(env, env_name, a, mode, a.seeds, a.horizon, a.batch)
-        settled = task.settled()  # timed as trained: a flat reward settles into its surrogate
-        if settled.dynamics.step is not task.dynamics.step:
-            trainer = make_trainer(settled, config)
-            update = trainer.epoch.update
+        task, trainer = settled_trainer(task, trainer, config)  # timed as trained: a flat reward's surrogate
+        update = trainer.epoch.update
         state = trainer.init(seed_array(config))
         jax.block_until_ready(state)
         rec["setup_s"] = time.perf_counter() - t0

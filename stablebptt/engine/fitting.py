@@ -111,6 +111,23 @@ class LoweredEpoch(NamedTuple):
     shapes: Any  # the states' shapes (jax.ShapeDtypeStruct) it was lowered for
 
 
+def state_shapes(trainer: Trainer, seeds: Any) -> Any:
+    """The shapes of ``trainer.init(seeds)``, traced with no values: a task's check still running need
+    not have answered (it decides the parameters' start, not their shapes)."""
+    # init's function, through a function of its own, not its jit: JAX would keep a jit's trace for
+    # the next call, and this one's parameters start before the check has decided how.
+    init = getattr(trainer.init, "__wrapped__", trainer.init)
+    with tracing_shapes():
+        return jax.eval_shape(lambda seeds: init(seeds), seeds)
+
+
+def settled_trainer(task: Any, trainer: Trainer, config: TrainConfig) -> tuple[Any, Trainer]:
+    """``task`` once its check left running has answered (``Task.settled``, which may refuse it), with
+    ``trainer`` built for it, or a new one where the check smoothed its reward (another step)."""
+    settled = task.settled()
+    return settled, trainer if settled.dynamics.step is task.dynamics.step else make_trainer(settled, config)
+
+
 def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | None = None) -> LoweredEpoch:
     """``trainer``'s epoch traced and lowered for the states ``trainer.init`` gives, from their shapes
     alone: a task's check still running (``Task.settle``: an environment's reward diagnosis, which
@@ -118,11 +135,7 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
     trace. A ``PerUpdateEpoch`` (a large step; a constraint solver on a CPU of several cores) is
     traced as it compiles instead: its metrics' program takes its shapes from the update's compiled
     one. ``program_key`` as ``train_epochs`` takes it."""
-    # init's function, through a function of its own, not its jit: JAX would keep a jit's trace for
-    # the next call, and this one's parameters start before the check has decided how.
-    init = getattr(trainer.init, "__wrapped__", trainer.init)
-    with tracing_shapes():
-        shapes = jax.eval_shape(lambda seeds: init(seeds), seed_array(config))
+    shapes = state_shapes(trainer, seed_array(config))
     arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
     return LoweredEpoch(lower_epoch(trainer.epoch, arguments, program_key, cache_dir(), trainer.compiler_options), shapes)
 
@@ -182,10 +195,8 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
 
 def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]) -> Trained:
     started = time.perf_counter()
-    trainer = make_trainer(task, config)
-    built, task = task, task.settled()  # a check left running (an environment's reward diagnosis) may refuse it here
-    if task.dynamics.step is not built.dynamics.step:  # or smooth its reward: then the trainer trains it as settled
-        trainer = make_trainer(task, config)
+    # A check left running (an environment's reward diagnosis) may refuse the task here, or smooth its reward.
+    task, trainer = settled_trainer(task, make_trainer(task, config), config)
     seeds = np.asarray(seed_array(config))
     state = trainer.init(seed_array(config))
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)

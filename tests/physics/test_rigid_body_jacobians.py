@@ -46,34 +46,13 @@ def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
 # The written-out form's compile grows with the terms a scene couples (about 100 s for the torso and its
 # arm together, 15 s and 28 s apart, on one core), so that form is checked on each joint group alone;
 # the coupled scene in the array form, which compiles its loops once.
-FREE_BODY = """<mujoco model="free body">
-  <option timestep="0.005" gravity="0.3 -0.2 -9.81"/>
-  <worldbody>
-    <geom name="floor" type="plane" size="5 5 0.1"/>
-    <body name="torso" pos="0.1 0.2 0.35" quat="0.9 0.1 0.3 0.2">
-      <joint name="root" type="free" damping="0.01"/>
-      <geom type="capsule" fromto="-0.1 0 0 0.1 0 0" size="0.05" mass="2"/>
-    </body>
-  </worldbody>
-</mujoco>"""
-# An arm on a ball joint above the floor, its forearm on a driven hinge: it swings down into the floor.
-BALL_ARM = """<mujoco model="ball arm">
-  <option timestep="0.005" gravity="0.3 -0.2 -9.81"/>
-  <worldbody>
-    <geom name="floor" type="plane" size="5 5 0.1"/>
-    <body name="arm" pos="0 0 0.2" euler="10 20 30">
-      <joint name="shoulder" type="ball" damping="0.05" armature="0.01" frictionloss="0.01"/>
-      <geom type="capsule" fromto="0 0 0 0.2 0 0" size="0.03" mass="0.5"/>
-      <body name="forearm" pos="0.2 0 0">
-        <joint name="elbow" type="hinge" axis="0 1 0" range="-30 30"/>
-        <geom type="capsule" fromto="0 0 0 0.15 0 0" size="0.025" mass="0.3"/>
-      </body>
-    </body>
-  </worldbody>
-  <actuator>
-    <motor joint="elbow" gear="2" ctrlrange="-1 1" ctrllimited="true"/>
-  </actuator>
-</mujoco>"""
+ARM = FLOATING_ARM[FLOATING_ARM.index('      <body name="arm"'):FLOATING_ARM.index("    </body>\n  </worldbody>")]
+ELBOW_MOTOR = FLOATING_ARM[FLOATING_ARM.index("  <actuator>"):FLOATING_ARM.index("</mujoco>")]
+FREE_BODY = FLOATING_ARM.replace(ARM, "").replace(ELBOW_MOTOR, "")  # the torso alone, falling
+# The arm alone, hung where the torso was from the world, a little lower: on its ball joint it swings down
+# into the floor.
+TORSO = '      <joint name="root" type="free" damping="0.01"/>\n      <geom type="capsule" fromto="-0.1 0 0 0.1 0 0" size="0.05" mass="2"/>\n'
+BALL_ARM = FLOATING_ARM.replace(TORSO, "").replace('pos="0.1 0.2 0.35"', 'pos="0.1 0.2 0.3"')
 # scene -> (its MJCF, the form its terms take, the columns of its orientation's quaternion in qpos)
 FREE_AND_BALL = {"free body, written out": (FREE_BODY, "written out", slice(3, 7)),
                  "ball arm, written out": (BALL_ARM, "written out", slice(0, 4)),
