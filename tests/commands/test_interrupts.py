@@ -4,6 +4,7 @@ While the command loads, Ctrl-C ends it as the signal does by default (exit stat
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -15,6 +16,15 @@ TRAIN = ["scripts/train.py", "--poles", "1", "--steps", "10", "--epochs", "3", "
          "--test-size", "16", "--batch", "8", "--no-progress"]
 # Seconds after the start: the imports, the scene and the tracing, the compiles, training or its end.
 DELAYS = (0.3, 1.5, 4.0, 8.0, 14.0)
+
+
+def interrupted_python_itself(stderr: str) -> bool:
+    """A Ctrl-C that came while the interpreter was still starting (its own site imports, slow on a
+    loaded machine) is Python's KeyboardInterrupt from before the program's first line: no frame of
+    its traceback lies in the repository. The command cannot act before it runs, so the test does not
+    count it against the command."""
+    frames = re.findall(r'^  File "([^"]+)"', stderr, flags=re.MULTILINE)
+    return stderr.rstrip().endswith("KeyboardInterrupt") and not any(frame.startswith(str(ROOT)) for frame in frames)
 
 
 def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resumes(tmp_path):
@@ -36,6 +46,8 @@ def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resum
     outcomes = {delay: (process.wait(timeout=600), process.stderr.read()) for delay, process in processes.items()}
     for delay, (code, stderr) in outcomes.items():
         lines = [line for line in stderr.splitlines() if line.strip()]
+        if code == 1 and interrupted_python_itself(stderr):  # Python's exit status for it
+            continue
         assert code in (0, 130, -signal.SIGINT), f"{delay} s: exit {code}: {stderr}"
         assert "Traceback" not in stderr and len(lines) <= 2, f"{delay} s: {stderr}"
     stopped = [index for index, delay in enumerate(DELAYS) if outcomes[delay][0] in (130, -signal.SIGINT)]
