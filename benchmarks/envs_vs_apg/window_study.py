@@ -28,6 +28,7 @@ import glob
 import json
 import math
 import os
+import re
 
 import numpy as np
 
@@ -180,11 +181,17 @@ def _number(value: float, digits: int = 1) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
+def method_order(key: tuple[str, str]) -> tuple:
+    """Env, then the Brax baselines, then stablebptt's runs by window (as a number), flow and options."""
+    env, name = key
+    window = re.search(r"window (\d+)", name)
+    return env, name.startswith("stablebptt"), int(window.group(1)) if window else 0, name
+
+
 def tables(joined: dict) -> list[str]:
     lines = ["| env | method | budget s | seeds | final return | 95% interval | best return | updates | compile s | update ms "
              "| env steps/s per seed | diverged seeds | machine |", "|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|"]
-    order = lambda key: (key[0], key[1].startswith("stablebptt"), key[1])  # noqa: E731
-    for key in sorted(joined, key=order):
+    for key in sorted(joined, key=method_order):
         e = joined[key]
         low, high = interval(e["final"])
         lines.append(f"| {key[0]} | {key[1]} | {e['budget_s']:.0f} | {len(e['final'])} | {_number(np.mean(e['final']))} | "
@@ -194,8 +201,7 @@ def tables(joined: dict) -> list[str]:
                      f"{e['diverged']} | {'; '.join(sorted(e['machine']))} |")
     lines += ["", "C - R, final return, per env and window (95% bootstrap interval; the sign is the verdict only where "
               "the interval excludes 0):", "", "| env | window | C - R | 95% interval | verdict |", "|---|---:|---:|---|---|"]
-    window = lambda key: (key[0], int(key[1].rsplit(" ", 1)[1]) if key[1].rsplit(" ", 1)[1].isdigit() else 0, key[1])  # noqa: E731
-    for env, name in sorted(joined, key=window):
+    for env, name in sorted(joined, key=method_order):
         if not name.startswith("stablebptt C"):
             continue
         other = (env, name.replace("stablebptt C", "stablebptt R"))
@@ -207,7 +213,7 @@ def tables(joined: dict) -> list[str]:
                     (("C", (env, name)), ("R", other)) if (count := int(np.sum(~np.isfinite(joined[key]["final"]))))]
         if diverged:  # a seed without a finite return has no difference: say what happened instead
             verdict = ", ".join(diverged) + (", the other finite in all" if len(diverged) == 1 else "")
-        lines.append(f"| {env} | {name.rsplit(' ', 1)[1]} | {_number(mean)} | [{_number(low)}, {_number(high)}] | "
+        lines.append(f"| {env} | {name.split('window ', 1)[1]} | {_number(mean)} | [{_number(low)}, {_number(high)}] | "
                      f"{verdict} |")
     return lines
 
@@ -216,7 +222,7 @@ def side_by_side(joined: dict) -> list[str]:
     """Every method of every env at the same training time, with the env steps each had taken by then."""
     lines = ["| env | method | seeds | at s | return then | 95% interval | evaluated at s (mean) | env steps per seed "
              "by then | how the runs ended |", "|---|---|---:|---:|---:|---|---:|---:|---|"]
-    for env, name in sorted(joined, key=lambda key: (key[0], not key[1].startswith("Brax"), key[1])):
+    for env, name in sorted(joined, key=method_order):
         entry = joined[(env, name)]
         seconds = EQUAL_TIME_S.get(env)
         if ", seeds " in name or seconds is None:  # the sweep's seeds are kept apart from the reported ones
