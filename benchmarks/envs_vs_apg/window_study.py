@@ -39,6 +39,7 @@ KEEP_BRAX = ("env", "seed", "algo", "variant", "budget_s", "hyperparams", "devic
              "updates_per_epoch", "update_s", "env_steps_per_s", "final_return", "best_return", "argv", "sharing", "error_type", "error",
              "machine")
 RESAMPLES = 10_000
+DEFAULT_BATCH = 64  # stablebptt_half.py's states per seed, left out of a method's name
 # The time at which the methods of an env are compared side by side: each seed's last evaluation at
 # or before it. Per env, the latest time by which every method's runs had been evaluated (stablebptt's
 # runs on the locomotion envs were evaluated every 150 s or so, PPO's on WalkerWalk were cut at 248-300 s).
@@ -68,6 +69,7 @@ def method(record: dict) -> str:
     name += f", action noise {options['action_noise']:g}" if options.get("action_noise", 0.0) else ""
     name += f", lr decay {options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else ""
     name += ", normalised observations" if options.get("normalize_observations") else ""
+    name += f", {options['batch']} states per seed" if options.get("batch", DEFAULT_BATCH) != DEFAULT_BATCH else ""
     return name + (f", seeds {record['seeds'][0]}-{record['seeds'][-1]}" if record["seeds"][0] != 0 else "")
 
 
@@ -83,6 +85,7 @@ def record_name(record: dict) -> str:
             + (f"_noise{options['action_noise']:g}" if options.get("action_noise", 0.0) else "")
             + (f"_decay{options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else "")
             + ("_norm" if options.get("normalize_observations") else "")
+            + (f"_b{options['batch']}" if options.get("batch", DEFAULT_BATCH) != DEFAULT_BATCH else "")
             + (f"_seeds{record['seeds'][0]}" if record["seeds"][0] != 0 else ""))
 
 
