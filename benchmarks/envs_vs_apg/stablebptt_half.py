@@ -62,6 +62,12 @@ def _seed_slice(tree, i):
     return jax.tree.map(lambda a: a[i], tree)
 
 
+def finite_per_seed(params) -> list[bool]:
+    """Whether each seed's parameters (the leading axis of every leaf) are all finite."""
+    leaves = [np.asarray(leaf) for leaf in jax.tree.leaves(params)]
+    return np.logical_and.reduce([np.isfinite(leaf.reshape(leaf.shape[0], -1)).all(axis=1) for leaf in leaves]).tolist()
+
+
 def build(env, env_name, a, mode, seeds, horizon, batch):
     """Task and trainer for ``env``, named ``env_name`` (Playground's registry name) in its summary; returns (task, config, trainer, update) with update = the jitted per-update program."""
     b0 = time.perf_counter()
@@ -142,7 +148,9 @@ def run_one(env_name, mode, a, log):
         t = train_s()
         e0 = time.perf_counter()
         per_seed = evaluate(params)
-        rets = [p["mean_return"] for p in per_seed]
+        # A seed whose parameters went non-finite has no policy: its return is NaN, whatever the env's
+        # reward makes of the states a NaN action leads to (some rewards map them to a finite number).
+        rets = [p["mean_return"] if ok else float("nan") for p, ok in zip(per_seed, finite_per_seed(params))]
         pt = {"train_wall_s": t, "updates": clock["updates"],
               "env_steps_per_seed": clock["updates"] * batch * horizon,
               "return_per_seed": rets, "return_std_per_seed": [p["std_return"] for p in per_seed],
