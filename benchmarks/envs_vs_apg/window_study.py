@@ -310,7 +310,7 @@ def figure(joined: dict, env: str, path: str) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(13, 5))
     names = sorted((name for e, name in joined if e == env and ", seeds " not in name),
-                   key=lambda name: (not name.startswith("Brax"), name))
+                   key=lambda name: method_order((env, name)))
     colors = plt.get_cmap("tab10")
     for index, name in enumerate(names):
         curves = [curve for curve in joined[(env, name)]["curves"] if len(curve) > 1]
