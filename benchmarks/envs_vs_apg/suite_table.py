@@ -16,7 +16,8 @@ The runs, one env per GPU (`on_gpus.sh`), each for the same budget, compile incl
       --eval-every 60 --batch 64 --horizon 128 --min-timing-updates 2 --out DIR/E
 
 A flat reward trains on its smooth surrogate (the record's task summary names it); every return here
-is the true reward's, scored by evaluation.py.
+is the true reward's, scored by evaluation.py. A row's notes say how its env trained where the
+evaluations show it: flat since training began, or seeds that fell below half their best.
 """
 from __future__ import annotations
 
@@ -39,6 +40,23 @@ PPO_REFERENCE = {"CartpoleBalance": 950, "CartpoleSwingup": 800, "CheetahRun": 8
                  "AcrobotSwingup": 220, "HumanoidWalk": 500, "HumanoidRun": 130}
 
 
+def course(record: dict) -> list[str]:
+    """What the evaluations say of how an env trained, where it trains poorly: a plateau (the mean of
+    every evaluation after the first update within 5% of the last) or seeds that fell (a final return
+    below half the seed's best)."""
+    returns = np.asarray([point["return_per_seed"] for point in record["points"]], float)  # evaluations x seeds
+    means = np.nanmean(returns, axis=1)
+    notes = []
+    after_first = means[1:]
+    if len(after_first) >= 3 and np.all(np.abs(after_first - means[-1]) <= 0.05 * abs(means[-1])):
+        notes.append(f"flat from its first evaluation after training began (update {record['points'][1]['updates']})")
+    final, best = returns[-1], np.nanmax(returns, axis=0)
+    fell = int(np.sum(final < 0.5 * best))
+    if fell:
+        notes.append(f"{fell} of {returns.shape[1]} seeds ended below half their best")
+    return notes
+
+
 def row(record: dict) -> str:
     """One env's line of the table."""
     seeds = record["seeds"]
@@ -52,7 +70,7 @@ def row(record: dict) -> str:
     notes = [note for note, holds in (("trained on its reward's surrogate", smoothed),
                                       (f"{len(final) - finite.size} of {len(final)} seeds non-finite", finite.size < len(final)),
                                       ("final interval above the initial return", finite.size > 1 and low > initial.mean()))
-             if holds]
+             if holds] + course(record)
     steps = record.get("env_steps_per_s_per_seed")
     return (f"| {record['env']} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
             f"{_number(finite.mean() if finite.size else float('nan'))} [{_number(low)}, {_number(high)}] | "
