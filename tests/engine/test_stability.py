@@ -240,24 +240,32 @@ def test_accuracy_script_quick_run_writes_tables_and_figures(tmp_path):
     assert replot.returncode == 0 and "| repulsion | RK4 | float64 |" in (out / "summary.md").read_text(), replot.stderr
 
 
-def test_accuracy_script_rejects_bad_input_in_one_line(tmp_path):
-    script = [sys.executable, str(ROOT / "scripts" / "accuracy.py")]
-    processes = [subprocess.Popen(script + arguments, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
-                 for arguments in (["--tasks", "pendulum"], ["--studies", "speed"], ["--replot", "--out", str(tmp_path)])]
-    for process in processes:  # side by side: each is refused before it computes anything
-        _, stderr = process.communicate()
-        lines = stderr.strip().splitlines()
-        assert process.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), stderr
+def refused_in_process(main, argv, capsys):
+    """A command's ``main`` (the one its script and the installed command run) in this process, on input
+    it refuses while parsing: (exit code, stderr lines). The scripts' own start is tested on their runs."""
+    try:
+        code = main(argv)
+    except SystemExit as exit_:
+        code = exit_.code
+    return code, capsys.readouterr().err.strip().splitlines()
 
 
-def test_bench_command_writes_the_tables_it_is_asked_for(tmp_path):
+def test_accuracy_script_rejects_bad_input_in_one_line(tmp_path, capsys):
+    from stablebptt.commands.accuracy import main
+    for arguments in (["--tasks", "pendulum"], ["--studies", "speed"], ["--replot", "--out", str(tmp_path)]):
+        code, lines = refused_in_process(main, arguments, capsys)  # each refused before it computes anything
+        assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), (arguments, lines)
+    assert not any(tmp_path.iterdir())
+
+
+def test_bench_command_writes_the_tables_it_is_asked_for(tmp_path, capsys):
     """`stablebptt bench` (through the installed command's dispatcher): a row per mode for repulsion; for the
     cart-pole with `--tables steps --simulators generated,floor`, only those simulators and the parts."""
+    from stablebptt.commands import bench as bench_command
+    code, lines = refused_in_process(bench_command.main, ["--rounds", "1", "--tasks", "cartpole", "--simulators",
+                                                          "generated,warp"], capsys)
+    assert code == 2 and len(lines) == 1 and "--simulators" in lines[0], lines
     command = [sys.executable, "-m", "stablebptt.commands.main", "bench", "--rounds", "1"]
-    refused = subprocess.run(command + ["--tasks", "cartpole", "--simulators", "generated,warp"],
-                             capture_output=True, text=True, cwd=tmp_path)
-    lines = refused.stderr.strip().splitlines()
-    assert refused.returncode == 2 and len(lines) == 1 and "--simulators" in lines[0], refused.stderr
     modes, steps = tmp_path / "modes.md", tmp_path / "steps.md"
     # Side by side: the two commands share nothing but the machine.
     processes = [subprocess.Popen(command + arguments, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
