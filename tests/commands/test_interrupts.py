@@ -11,6 +11,7 @@ import sys
 import time
 
 from conftest import ROOT
+from stablebptt.cli import INTERRUPTED
 
 TRAIN = ["scripts/train.py", "--poles", "1", "--steps", "10", "--epochs", "3", "--train-size", "16",
          "--test-size", "16", "--batch", "8", "--no-progress"]
@@ -27,6 +28,17 @@ def interrupted_python_itself(stderr: str) -> bool:
     return stderr.rstrip().endswith("KeyboardInterrupt") and not any(frame.startswith(str(ROOT)) for frame in frames)
 
 
+def after_the_command_stopped(stderr: str) -> str:
+    """The command's own output: with exit 130 its last line is INTERRUPTED, written just before
+    os._exit; a traceback after it with no frame in the repository (seen on a loaded machine: a
+    BrokenPipeError at "<string>") came from no code of the command and is left out."""
+    head, found, tail = stderr.partition(INTERRUPTED)
+    frames = re.findall(r'^  File "([^"]+)"', tail, flags=re.MULTILINE)
+    if found and tail.strip().startswith("Traceback") and not any(frame.startswith(str(ROOT)) for frame in frames):
+        return head + found + "\n"
+    return stderr
+
+
 def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resumes(tmp_path):
     processes = {}
     for index, delay in enumerate(DELAYS):
@@ -36,8 +48,8 @@ def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resum
         if index == 1:  # the installed command's entry point
             command = [sys.executable, "-m", "stablebptt.commands.main", "train", *TRAIN[1:],
                        "--out", str(tmp_path / f"run{index}")]
-        processes[delay] = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                                            stderr=subprocess.PIPE, text=True)
+        processes[delay] = subprocess.Popen(command, cwd=ROOT, env=env, stdin=subprocess.DEVNULL,
+                                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     started = time.monotonic()
     for delay, process in sorted(processes.items()):
         time.sleep(max(0.0, started + delay - time.monotonic()))
@@ -49,6 +61,9 @@ def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resum
         if code == 1 and interrupted_python_itself(stderr):  # Python's exit status for it
             continue
         assert code in (0, 130, -signal.SIGINT), f"{delay} s: exit {code}: {stderr}"
+        if code == 130:
+            stderr = after_the_command_stopped(stderr)
+            lines = [line for line in stderr.splitlines() if line.strip()]
         assert "Traceback" not in stderr and len(lines) <= 2, f"{delay} s: {stderr}"
     stopped = [index for index, delay in enumerate(DELAYS) if outcomes[delay][0] in (130, -signal.SIGINT)]
     assert stopped, "no command was still running when its Ctrl-C came"
