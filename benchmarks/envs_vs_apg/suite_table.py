@@ -17,7 +17,8 @@ The runs, one env per GPU (`on_gpus.sh`), each for the same budget, compile incl
 
 A flat reward trains on its smooth surrogate (the record's task summary names it); every return here
 is the true reward's, scored by evaluation.py. A row's notes say how its env trained where the
-evaluations show it: flat since training began, or seeds that fell below half their best.
+evaluations show it: flat since training began (which, below PPO's reference, says where it stopped),
+or seeds that fell below half their best.
 """
 from __future__ import annotations
 
@@ -41,9 +42,9 @@ PPO_REFERENCE = {"CartpoleBalance": 950, "CartpoleSwingup": 800, "CheetahRun": 8
 
 
 def course(record: dict) -> list[str]:
-    """What the evaluations say of how an env trained, where it trains poorly: a plateau (the mean of
-    every evaluation after the first update within 5% of the last) or seeds that fell (a final return
-    below half the seed's best)."""
+    """What the evaluations say of how an env trained: a plateau (the mean of every evaluation after the
+    first update within 5% of the last; at any level, PointMass's 836 too) or seeds that fell (a final
+    return below half the seed's best)."""
     returns = np.asarray([point["return_per_seed"] for point in record["points"]], float)  # evaluations x seeds
     means = np.nanmean(returns, axis=1)
     notes = []

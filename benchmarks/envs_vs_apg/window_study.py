@@ -41,8 +41,8 @@ KEEP_BRAX = ("env", "seed", "algo", "variant", "budget_s", "hyperparams", "devic
 RESAMPLES = 10_000
 DEFAULT_BATCH = 64  # stablebptt_half.py's states per seed, left out of a method's name
 # The time at which the methods of an env are compared side by side: each seed's last evaluation at
-# or before it. Per env, the latest time by which every method's runs had been evaluated (stablebptt's
-# runs on the locomotion envs were evaluated every 150 s or so, PPO's on WalkerWalk were cut at 248-300 s).
+# or before it, or when its budget ran out where that budget is this time. Per env, the budget of the
+# study's runs there (stablebptt's longer runs on the locomotion envs were evaluated every 150 s or so).
 EQUAL_TIME_S = {"CartpoleSwingup": 240.0, "AcrobotSwingup": 240.0, "CheetahRun": 320.0, "WalkerWalk": 285.0,
                 "WalkerStand": 300.0}
 BRAX_NAMES = {"brax_apg": "Brax APG", "brax_ppo": "Brax PPO"}

@@ -19,13 +19,17 @@ TRAIN = ["scripts/train.py", "--poles", "1", "--steps", "10", "--epochs", "3", "
 DELAYS = (0.3, 1.5, 4.0, 8.0, 14.0)
 
 
+def no_frame_in_the_repository(traceback: str) -> bool:
+    """Whether none of a traceback's frames lies in the repository: no code of the command raised it."""
+    return not any(frame.startswith(str(ROOT)) for frame in re.findall(r'^  File "([^"]+)"', traceback, flags=re.MULTILINE))
+
+
 def interrupted_python_itself(stderr: str) -> bool:
     """A Ctrl-C that came while the interpreter was still starting (its own site imports, slow on a
     loaded machine) is Python's KeyboardInterrupt from before the program's first line: no frame of
     its traceback lies in the repository. The command cannot act before it runs, so the test does not
     count it against the command."""
-    frames = re.findall(r'^  File "([^"]+)"', stderr, flags=re.MULTILINE)
-    return stderr.rstrip().endswith("KeyboardInterrupt") and not any(frame.startswith(str(ROOT)) for frame in frames)
+    return stderr.rstrip().endswith("KeyboardInterrupt") and no_frame_in_the_repository(stderr)
 
 
 def after_the_command_stopped(stderr: str) -> str:
@@ -33,8 +37,7 @@ def after_the_command_stopped(stderr: str) -> str:
     os._exit; a traceback after it with no frame in the repository (seen on a loaded machine: a
     BrokenPipeError at "<string>") came from no code of the command and is left out."""
     head, found, tail = stderr.partition(INTERRUPTED)
-    frames = re.findall(r'^  File "([^"]+)"', tail, flags=re.MULTILINE)
-    if found and tail.strip().startswith("Traceback") and not any(frame.startswith(str(ROOT)) for frame in frames):
+    if found and tail.strip().startswith("Traceback") and no_frame_in_the_repository(tail):
         return head + found + "\n"
     return stderr
 

@@ -43,16 +43,22 @@ def test_the_generated_step_with_constraints_has_mjx_stages_jacobians(x64):
     assert np.abs(np.asarray(expected.qvel[0].qpos)).max() > 1e-3
 
 
+def replaced(mjcf: str, part: str, by: str = "") -> str:
+    """``mjcf`` with ``part`` (which must be in it: a scene derived from an edited one fails here) replaced."""
+    assert part in mjcf, part
+    return mjcf.replace(part, by)
+
+
 # The written-out form's compile grows with the terms a scene couples (about 100 s for the torso and its
 # arm together, 15 s and 28 s apart, on one core), so that form is checked on each joint group alone;
 # the coupled scene in the array form, which compiles its loops once.
 ARM = FLOATING_ARM[FLOATING_ARM.index('      <body name="arm"'):FLOATING_ARM.index("    </body>\n  </worldbody>")]
 ELBOW_MOTOR = FLOATING_ARM[FLOATING_ARM.index("  <actuator>"):FLOATING_ARM.index("</mujoco>")]
-FREE_BODY = FLOATING_ARM.replace(ARM, "").replace(ELBOW_MOTOR, "")  # the torso alone, falling
+FREE_BODY = replaced(replaced(FLOATING_ARM, ARM), ELBOW_MOTOR)  # the torso alone, falling
 # The arm alone, hung where the torso was from the world, a little lower: on its ball joint it swings down
 # into the floor.
 TORSO = '      <joint name="root" type="free" damping="0.01"/>\n      <geom type="capsule" fromto="-0.1 0 0 0.1 0 0" size="0.05" mass="2"/>\n'
-BALL_ARM = FLOATING_ARM.replace(TORSO, "").replace('pos="0.1 0.2 0.35"', 'pos="0.1 0.2 0.3"')
+BALL_ARM = replaced(replaced(FLOATING_ARM, TORSO), 'pos="0.1 0.2 0.35"', 'pos="0.1 0.2 0.3"')
 # scene -> (its MJCF, the form its terms take, the columns of its orientation's quaternion in qpos)
 FREE_AND_BALL = {"free body, written out": (FREE_BODY, "written out", slice(3, 7)),
                  "ball arm, written out": (BALL_ARM, "written out", slice(0, 4)),
