@@ -72,7 +72,7 @@ def build(env, env_name, a, mode, seeds, horizon, batch):
     """Task and trainer for ``env``, named ``env_name`` (Playground's registry name) in its summary; returns (task, config, trainer, update) with update = the jitted per-update program."""
     b0 = time.perf_counter()
     # As the command line sets up: the reward's diagnosis compiles beside the trainer's set-up and the
-    # update's compile, and is waited for after them (settled).
+    # update's trace, and is waited for before the update compiles (settled).
     task = env_task(env, horizon, discount=a.discount, episode_length=a.trainer_episode_length or None,
                     hidden=tuple(a.hidden), name=env_name, defer_diagnosis=True,
                     normalize_observations=a.normalize_observations)
@@ -93,14 +93,14 @@ def build(env, env_name, a, mode, seeds, horizon, batch):
     return task, config, trainer, trainer.epoch.update
 
 
-def compile_update(trainer, update, seed_ids):
-    """The update compiled for the states ``trainer.init`` gives, from their shapes alone (the reward's
-    diagnosis need not have answered); and the minibatches."""
+def lower_update(trainer, update, seed_ids):
+    """The update traced and lowered for the states ``trainer.init`` gives, from their shapes alone
+    (the reward's diagnosis need not have answered); and the minibatches."""
     shapes = state_shapes(trainer, seed_ids)
     batches = trainer.batches
     take = jax.jit(_seed_slice)  # one program for every minibatch, not one eager slice per leaf
     batch_list = [take(batches, i) for i in range(len(jax.tree.leaves(batches)[0]))]
-    return update.lower(shapes, batch_list[0]).compile(), batch_list
+    return update.lower(shapes, batch_list[0]), batch_list
 
 
 _EVALUATORS: dict = {}
@@ -169,12 +169,15 @@ def run_one(env_name, mode, a, log):
         seed_ids = seed_array(config)
         rec["setup_s"] = time.perf_counter() - t0  # env_task (the diagnosis started), resets, trainer set-up
         c0 = time.perf_counter()
-        compiled, batch_list = compile_update(trainer, update, seed_ids)
-        # The diagnosis, compiled beside; a flat reward settles into its surrogate, trained by a trainer of its own.
+        # As `stablebptt train` starts: the update is traced while the reward's diagnosis compiles beside,
+        # and compiled once the diagnosis has answered, so a flat reward's surrogate is the only update
+        # compiled (it has a trainer of its own).
+        lowered, batch_list = lower_update(trainer, update, seed_ids)
         task, settled = settled_trainer(task, trainer, config)
         if settled is not trainer:
             trainer, update = settled, settled.epoch.update
-            compiled, batch_list = compile_update(trainer, update, seed_ids)
+            lowered, batch_list = lower_update(trainer, update, seed_ids)
+        compiled = lowered.compile()
         state = trainer.init(seed_ids)
         jax.block_until_ready(state)
         rec["update_compile_s"] = time.perf_counter() - c0  # the update's compile, the diagnosis's wait, init
