@@ -44,6 +44,7 @@ from stablebptt.engine.config import TrainConfig, seed_array  # noqa: E402
 from stablebptt.engine.fitting import settled_trainer, state_shapes  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch
 from stablebptt.engine.training import make_trainer
+from stablebptt.envs import playground  # noqa: E402
 from stablebptt.envs.adapter import env_task, observation_policy  # noqa: E402
 
 
@@ -75,7 +76,9 @@ def build(env, env_name, a, mode, seeds, horizon, batch):
     # update's trace, and is waited for before the update compiles (settled).
     task = env_task(env, horizon, discount=a.discount, episode_length=a.trainer_episode_length or None,
                     hidden=tuple(a.hidden), name=env_name, defer_diagnosis=True,
-                    normalize_observations=a.normalize_observations)
+                    normalize_observations=a.normalize_observations,
+                    # --dense-reward: a ...Sparse env trains on its dense variant's reward, scored on its own.
+                    reward_env=evaluation.load_env(playground.dense_variant(env_name)) if a.dense_reward else None)
     PHASES["env_task_s"] = time.perf_counter() - b0
     print(f"  env_task {PHASES['env_task_s']:.1f}s", flush=True)  # a run cut during its set-up still says how far it got
     config = TrainConfig(mode=mode, clip=a.clip, clip_threshold=a.clip_threshold, lr=a.lr, batch=batch,
@@ -127,7 +130,7 @@ def run_one(env_name, mode, a, log):
                         "episodes": a.episodes, "trainer_episode_length": a.trainer_episode_length,
                         "critic": a.critic, "critic_lr": a.critic_lr, "td_lambda": a.td_lambda,
                         "action_noise": a.action_noise, "lr_decay": a.lr_decay,
-                        "normalize_observations": a.normalize_observations},
+                        "normalize_observations": a.normalize_observations, "dense_reward": a.dense_reward},
         "solver_train_env": solver_info(train_env), "solver_eval_env": solver_info(eval_env),
         "eval": {"num_envs": a.eval_envs, "seed": evaluation.EVAL_SEED, "deterministic": True,
                  "seeds_in_one_program": True},
@@ -318,6 +321,8 @@ def main(argv=None):
     p.add_argument("--lr-decay", type=float, default=1.0, help="the learning rate's factor per update")
     p.add_argument("--normalize-observations", action="store_true",
                    help="the policy sees observations standardised by running statistics")
+    p.add_argument("--dense-reward", action="store_true", help="a ...Sparse env trains on its dense variant's reward "
+                   "(as `stablebptt train --dense-reward`); every return reported stays the sparse one's")
     p.add_argument("--critic", action="store_true", help="bootstrap each window by a learned value of its last state")
     p.add_argument("--critic-lr", type=float, default=1e-3)
     p.add_argument("--td-lambda", type=float, default=0.95)

@@ -68,12 +68,18 @@ def row(record: dict) -> str:
     reference = PPO_REFERENCE.get(record["env"])
     share = f"{100 * finite.mean() / reference:.0f}%" if reference and finite.size else "-"
     smoothed = "smoothed" in record.get("task_summary", "") or "widened" in record.get("task_summary", "")
-    notes = [note for note, holds in (("trained on its reward's surrogate", smoothed),
+    dense = record.get("hyperparams", {}).get("dense_reward")
+    stopped = [update for update in record.get("nan_update_per_seed") or [] if update is not None]
+    notes = [note for note, holds in (("trained on its dense variant's reward", dense),
+                                      ("trained on its reward's surrogate", smoothed and not dense),
+                                      (f"updates non-finite on {len(stopped)} of {len(final)} seeds (at updates "
+                                       f"{min(stopped or [0])}-{max(stopped or [0])}), each scored at its last finite parameters"
+                                       + ("; the run ended there" if record.get("status") == "nan" else ""), bool(stopped)),
                                       (f"{len(final) - finite.size} of {len(final)} seeds non-finite", finite.size < len(final)),
                                       ("final interval above the initial return", finite.size > 1 and low > initial.mean()))
              if holds] + course(record)
     steps = record.get("env_steps_per_s_per_seed")
-    return (f"| {record['env']} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
+    return (f"| {record['env']}{' (dense reward)' if dense else ''} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
             f"{_number(finite.mean() if finite.size else float('nan'))} [{_number(low)}, {_number(high)}] | "
             f"{_number(np.nanmean(best))} | {reference or '-'} | {share} | {_number(steps, 0)} | "
             f"{_number(record.get('compile_s'), 0)} | {'; '.join(notes)} |")
@@ -87,7 +93,7 @@ def table(records: list[dict]) -> list[str]:
     lines = ["| env | seeds | budget s | initial return | final return [95% interval] | best return | PPO reference | "
              "final / reference | env steps/s per seed | set-up and compile s | notes |",
              "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---|"]
-    return lines + [row(record) for record in sorted(records, key=lambda r: r["env"])]
+    return lines + [row(record) for record in sorted(records, key=lambda r: (r["env"], bool(r.get("hyperparams", {}).get("dense_reward"))))]
 
 
 def main(argv=None) -> None:
@@ -101,7 +107,8 @@ def main(argv=None) -> None:
         for path in sorted(glob.glob(os.path.join(folder, "**", "*_stablebptt_*.json"), recursive=True)):
             record = json.load(open(path))
             if record.get("status") != "error" and record.get("points"):
-                records[record["env"]] = {**trim(record), "task_summary": record.get("task_summary", "")}
+                dense = record.get("hyperparams", {}).get("dense_reward")  # a second row: another way to train the env
+                records[record["env"] + (" dense" if dense else "")] = {**trim(record), "task_summary": record.get("task_summary", "")}
     os.makedirs(args.out, exist_ok=True)
     with open(kept, "w") as file:
         json.dump(records, file, indent=1)
