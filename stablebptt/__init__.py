@@ -20,6 +20,7 @@ _HOMES = {
     "TrainConfig": "stablebptt.engine.config",
     "Episodes": "stablebptt.engine.episodes",
     "Trained": "stablebptt.engine.fitting", "TrainingDiverged": "stablebptt.engine.fitting",
+    "NonFiniteFlowWarning": "stablebptt.engine.fitting",
     "train": "stablebptt.engine.fitting",
     "Task": "stablebptt.engine.task",
     "make_trainer": "stablebptt.engine.training",

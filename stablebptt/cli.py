@@ -380,6 +380,8 @@ class EpochProgress:
             self.write(f"time to the first update: {first_update:.0f} s (compiling {self.compiled['seconds']:.0f} s; "
                        f"the first epoch, {self.updates} updates and the train and test losses, "
                        f"{metrics['seconds']:.1f} s)", sys.stdout)
+        if metrics.get("notice"):  # a non-finite flow gradient left at zero: said, never silent
+            self.write(f"epoch {epoch}: {metrics['notice']}")
         self.bar.update(1)
         self.bar.set_postfix(test_loss=f"{float(np.mean(metrics['test_loss'])):.4g}")
 

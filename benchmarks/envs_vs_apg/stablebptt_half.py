@@ -87,7 +87,7 @@ def build(env, env_name, a, mode, seeds, horizon, batch):
                          epochs=1, cosine=False, unroll=a.unroll, seed_batching=a.seed_batching,
                          epoch_program="per-update", episodes=a.episodes, critic=a.critic, critic_lr=a.critic_lr,
                          action_noise=a.action_noise, lr_decay=a.lr_decay,
-                         td_lambda=a.td_lambda)
+                         td_lambda=a.td_lambda, nonfinite_flows=a.nonfinite_flows)
     b0 = time.perf_counter()
     trainer = make_trainer(task, config)
     PHASES["make_trainer_s"] = time.perf_counter() - b0
@@ -130,7 +130,8 @@ def run_one(env_name, mode, a, log):
                         "episodes": a.episodes, "trainer_episode_length": a.trainer_episode_length,
                         "critic": a.critic, "critic_lr": a.critic_lr, "td_lambda": a.td_lambda,
                         "action_noise": a.action_noise, "lr_decay": a.lr_decay,
-                        "normalize_observations": a.normalize_observations, "dense_reward": a.dense_reward},
+                        "normalize_observations": a.normalize_observations, "dense_reward": a.dense_reward,
+                        "nonfinite_flows": a.nonfinite_flows},
         "solver_train_env": solver_info(train_env), "solver_eval_env": solver_info(eval_env),
         "eval": {"num_envs": a.eval_envs, "seed": evaluation.EVAL_SEED, "deterministic": True,
                  "seeds_in_one_program": True},
@@ -195,6 +196,7 @@ def run_one(env_name, mode, a, log):
         record_point(state.params)
         update_times, losses, norms = [], [], []
         nan_update = [None] * seeds
+        zeroed = np.zeros(seeds, int)
         while True:
             u0 = time.perf_counter()
             state, (loss, norm, _cos, finite) = compiled(state, batch_list[clock["updates"] % len(batch_list)])
@@ -203,7 +205,12 @@ def run_one(env_name, mode, a, log):
             clock["updates"] += 1
             losses.append(loss.tolist())
             norms.append(np.asarray(norm).tolist())
-            ok = np.asarray(finite).all(axis=-1) & np.isfinite(loss)
+            # A seed stops counting as training where its loss or update is non-finite, or (nonfinite_flows
+            # "stop", the default) any flow's gradient is; with "zero" such a gradient is counted and C goes on.
+            flows_ok = np.asarray(finite).all(axis=-1)
+            update_ok = np.isfinite(loss) & np.isfinite(np.asarray(norm))
+            ok = update_ok & flows_ok if a.nonfinite_flows == "stop" else update_ok
+            zeroed += ~flows_ok & update_ok
             for i in range(seeds):
                 if nan_update[i] is None and not ok[i]:
                     nan_update[i] = clock["updates"]
@@ -227,6 +234,7 @@ def run_one(env_name, mode, a, log):
         rec["timing_only_updates"] = timing_only
         rec["status"] = "nan" if all(n is not None for n in nan_update) else "budget"
         rec["nan_update_per_seed"] = nan_update
+        rec["zeroed_updates_per_seed"] = zeroed.tolist()  # updates whose flow gradient was non-finite, the update finite
         rec["updates"] = clock["updates"]
         steady = update_times[1:] or update_times
         rec["first_update_s"] = update_times[0]
@@ -323,6 +331,9 @@ def main(argv=None):
                    help="the policy sees observations standardised by running statistics")
     p.add_argument("--dense-reward", action="store_true", help="a ...Sparse env trains on its dense variant's reward "
                    "(as `stablebptt train --dense-reward`); every return reported stays the sparse one's")
+    p.add_argument("--nonfinite-flows", choices=("stop", "zero"), default="stop",
+                   help="as `stablebptt train --nonfinite-flows`: zero (mode C) counts a flow's non-finite gradient, "
+                   "left at zero by C's sign agreement, and trains the seed on")
     p.add_argument("--critic", action="store_true", help="bootstrap each window by a learned value of its last state")
     p.add_argument("--critic-lr", type=float, default=1e-3)
     p.add_argument("--td-lambda", type=float, default=0.95)

@@ -33,7 +33,7 @@ import re
 import numpy as np
 
 KEEP_STABLEBPTT = ("env", "mode", "seeds", "budget_s", "hyperparams", "device", "jax", "points", "status", "compile_s",
-                   "nan_update_per_seed", "updates", "update_s", "env_steps_per_s_per_seed",
+                   "nan_update_per_seed", "zeroed_updates_per_seed", "updates", "update_s", "env_steps_per_s_per_seed",
                    "final_return_per_seed", "best_return_per_seed", "argv", "machine")
 KEEP_BRAX = ("env", "seed", "algo", "variant", "budget_s", "hyperparams", "device", "jax", "points", "status", "compile_s",
              "updates_per_epoch", "update_s", "env_steps_per_s", "final_return", "best_return", "argv", "sharing", "error_type", "error",
@@ -69,6 +69,7 @@ def method(record: dict) -> str:
     name += f", action noise {options['action_noise']:g}" if options.get("action_noise", 0.0) else ""
     name += f", lr decay {options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else ""
     name += ", normalised observations" if options.get("normalize_observations") else ""
+    name += ", non-finite flows zeroed" if options.get("nonfinite_flows") == "zero" else ""
     name += f", {options['batch']} states per seed" if options.get("batch", DEFAULT_BATCH) != DEFAULT_BATCH else ""
     return name + (f", seeds {record['seeds'][0]}-{record['seeds'][-1]}" if record["seeds"][0] != 0 else "")
 
@@ -85,6 +86,7 @@ def record_name(record: dict) -> str:
             + (f"_noise{options['action_noise']:g}" if options.get("action_noise", 0.0) else "")
             + (f"_decay{options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else "")
             + ("_norm" if options.get("normalize_observations") else "")
+            + ("_zeroed" if options.get("nonfinite_flows") == "zero" else "")
             + (f"_b{options['batch']}" if options.get("batch", DEFAULT_BATCH) != DEFAULT_BATCH else "")
             + (f"_seeds{record['seeds'][0]}" if record["seeds"][0] != 0 else ""))
 

@@ -17,6 +17,7 @@ CLIP_MODES = ("value", "norm", "none")
 SEED_BATCHING = ("map", "vmap")
 EPOCH_PROGRAMS = ("auto", "whole", "per-update")
 EPISODE_CHOICES = ("auto", "on", "off")
+NONFINITE_FLOW_CHOICES = ("stop", "zero")
 # What a run's record that lacks a field trained with: the field came later, and its default is not
 # what such a run did (an environment's run before episode training trained from fixed resets).
 RECORDED_BEFORE = {"episodes": "off"}
@@ -58,6 +59,7 @@ class TrainConfig:
     critic: bool = field(default=False, metadata={"help": "training on episodes: add a learned value of the window's last state to each window's return (short-horizon actor-critic), the critic fitted to TD(lambda) targets of the windows' rewards"})
     critic_lr: float = field(default=1e-3, metadata={"help": "the critic's Adam learning rate"})
     td_lambda: float = field(default=0.95, metadata={"help": "lambda of the critic's TD(lambda) targets, in [0, 1]"})
+    nonfinite_flows: str = field(default="stop", metadata={"help": "stop: a non-finite gradient of any computed flow stops training, also where the update stays finite; zero (mode C): its components, which C's sign agreement turns into zero updates, are left at zero and training goes on, each epoch where it happened named in a line", "choices": NONFINITE_FLOW_CHOICES})
     epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations, and on a CPU of several cores for steps with a constraint solver (update and evaluation compile side by side)", "choices": EPOCH_PROGRAMS})
 
     def __post_init__(self):
@@ -97,6 +99,8 @@ class TrainConfig:
             raise InputError(f"unknown epoch program {self.epoch_program!r}: choose one of {', '.join(EPOCH_PROGRAMS)}")
         if self.episodes not in EPISODE_CHOICES:
             raise InputError(f"unknown {config_field(self, 'episodes')} {self.episodes!r}: choose one of {', '.join(EPISODE_CHOICES)}")
+        if self.nonfinite_flows not in NONFINITE_FLOW_CHOICES:
+            raise InputError(f"unknown {config_field(self, 'nonfinite_flows')} {self.nonfinite_flows!r}: choose stop or zero")
         if self.episodes == "off":
             check_batches(self)
 

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -16,7 +17,7 @@ from stablebptt.engine.checks import check_options, tracing_shapes
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
 from stablebptt.engine.program_store import cache_dir, lower_epoch
-from stablebptt.engine.training import Trainer, make_trainer, nonfinite_names
+from stablebptt.engine.training import FLOW_BITS, Trainer, make_trainer, nonfinite_names
 from stablebptt.timing import compile_ahead
 
 
@@ -26,6 +27,18 @@ def nonfinite_message(flows: tuple[str, ...], metrics: dict) -> str:
         return ""
     what = nonfinite_names(flows, int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))))
     return f"non-finite {', '.join(what)}"
+
+
+def zeroed_notice(flows: tuple[str, ...], metrics: dict, seeds: np.ndarray) -> str:
+    """What an epoch that went on through non-finite flow gradients (``nonfinite_flows`` "zero") left
+    at zero, in words; "" where nothing was."""
+    counts = np.atleast_1d(metrics.get("nonfinite_flow_updates", 0))
+    if not counts.any() or not np.all(metrics["finite"]):
+        return ""
+    bits = int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))) >> FLOW_BITS << FLOW_BITS
+    where = ", ".join(f"seed {int(seed)}: {int(count)}" for seed, count in zip(seeds, counts) if count)
+    return (f"{', '.join(nonfinite_names(flows, bits))} non-finite in some updates ({where}); mode C's sign "
+            "agreement left those components at zero and training went on")
 
 
 def fit(
@@ -41,6 +54,7 @@ def fit(
     on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None,
     diverged: Callable[[dict], str] = lambda metrics: "",
     checkpoint_seconds: float = 0.0,
+    noticed: Callable[[dict], str] = lambda metrics: "",
 ) -> tuple[str, int, Any, np.ndarray, str]:
     """The epoch loop: epochs ``start_epoch+1 .. epochs``, checkpointing, stopping and divergence.
 
@@ -59,6 +73,8 @@ def fit(
       on_epoch: gets each epoch's metrics, with its wall time under ``"seconds"``.
       diverged: a message when an epoch's metrics must not be kept (its state is
         dropped, the last good one saved), else "".
+      noticed: a message on an epoch that is kept but must not pass in silence (a non-finite flow
+        gradient left at zero), else ""; ``on_epoch`` gets it under ``"notice"``.
 
     Returns:
       (status, last saved epoch, state, rows, message); status "complete",
@@ -98,7 +114,7 @@ def fit(
         due = epoch % checkpoint_every == 0 and time.monotonic() - last_save >= checkpoint_seconds
         if due or epoch == epochs or stopping:
             checkpoint(epoch, state)
-        on_epoch(epoch, {**metrics, "seconds": seconds})
+        on_epoch(epoch, {**metrics, "seconds": seconds, "notice": noticed(metrics)})
         if stopping:
             return "interrupted", epoch, state, all_rows(), ""
     return "complete", epoch, state, all_rows(), ""
@@ -157,6 +173,10 @@ class TrainingDiverged(ArithmeticError):
     """A loss, update or gradient of training went non-finite; the message says which, and when."""
 
 
+class NonFiniteFlowWarning(RuntimeWarning):
+    """Training went on through a flow's non-finite gradient, left at zero (``nonfinite_flows`` "zero")."""
+
+
 def train(task: Any, config: TrainConfig = TrainConfig(),
           on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None) -> Trained:
     """Train ``task``'s controller in memory, with no run folder, and return the result.
@@ -210,9 +230,16 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
         first_update = first_update or time.perf_counter() - started
         return new_state, metrics
 
+    def noticed(metrics):
+        notice = zeroed_notice(trainer.flows, metrics, seeds)
+        if notice:
+            warnings.warn(f"{task.name}: {notice}", NonFiniteFlowWarning, stacklevel=2)
+        return notice
+
     status, epoch, state, rows, problem = fit(run_epoch, state, 0, config.epochs, empty_rows(), seeds,
                                               lambda *saved: None, config.epochs, on_epoch=on_epoch,
-                                              diverged=lambda metrics: nonfinite_message(trainer.flows, metrics))
+                                              diverged=lambda metrics: nonfinite_message(trainer.flows, metrics),
+                                              noticed=noticed)
     if status == "diverged":
         raise TrainingDiverged(f"{task.name}: {problem} at epoch {epoch + 1} (TrainConfig.mode {config.mode!r})")
     per_epoch = {name: rows[:, COLUMNS.index(name)].reshape(epoch, len(seeds)) for name in METRICS}

@@ -184,14 +184,17 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
                   jnp.isfinite(update_norms).all() & _all_finite((state.params, state.opt_state, state.critic)),
                   jnp.isfinite(train_loss), jnp.isfinite(test_loss)] + list(flows_finite.all(axis=0))
         failed = sum(jnp.where(ok, 0, 1 << bit) for bit, ok in enumerate(checks))
+        # With nonfinite_flows "zero" a flow's non-finite gradient (C's update stays finite) is named, not a stop.
+        stopping = failed if config.nonfinite_flows == "stop" else failed & ((1 << FLOW_BITS) - 1)
         return {
             "batch_loss": losses.mean(),
             "train_loss": train_loss,
             "test_loss": test_loss,
             "update_norm": update_norms.mean(),
             "cosine": cosines.mean(),
-            "finite": failed == 0,
+            "finite": stopping == 0,
             "nonfinite": failed,  # bit set per failed check, in the order of nonfinite_names(flows)
+            "nonfinite_flow_updates": jnp.sum(~flows_finite.all(axis=1)),  # updates with a non-finite flow gradient
         }
 
     def epoch(state, batches, train_states, test_states, dynamics=task.dynamics):
@@ -268,6 +271,9 @@ def sample_states(task: Task, key: jax.Array, count: int) -> PyTree:
 def _all_finite(tree: PyTree) -> jax.Array:
     leaves = [leaf for leaf in jax.tree.leaves(tree) if jnp.issubdtype(leaf.dtype, jnp.inexact)]
     return jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in leaves])) if leaves else jnp.array(True)
+
+
+FLOW_BITS = 4  # the checks before the flows' own in the nonfinite metric: losses, update, train and test loss
 
 
 def nonfinite_names(flows: tuple[str, ...], failed: int) -> list[str]:

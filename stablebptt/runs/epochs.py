@@ -9,7 +9,7 @@ import jax
 import numpy as np
 
 from stablebptt.engine.config import TrainConfig
-from stablebptt.engine.fitting import LoweredEpoch, fit, nonfinite_message
+from stablebptt.engine.fitting import LoweredEpoch, fit, nonfinite_message, zeroed_notice
 from stablebptt.engine.program_store import cache_dir, compile_epoch
 from stablebptt.engine.training import Trainer, TrainState
 from stablebptt.runs.run_folder import METRICS_FILE, PARAMS_FILE, save_checkpoint, save_params, write_metrics
@@ -76,7 +76,8 @@ def train_epochs(
         return f"{problem} at epoch {{epoch}} (seed {', '.join(map(str, bad))})" if problem else ""
 
     status, epoch, state, rows, problem = fit(run_epoch, state, start_epoch, config.epochs, rows, seeds, save,
-                                              config.checkpoint_every, should_stop, on_epoch, diverged)
+                                              config.checkpoint_every, should_stop, on_epoch, diverged,
+                                              noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds))
     if status == "diverged":
         message = (f"{problem.format(epoch=epoch + 1)}; stopped, the last good checkpoint (epoch {epoch}) "
                    f"is kept in {run_dir}")

@@ -12,12 +12,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from stablebptt import storage, timing
-from stablebptt.engine import per_update, training
+from stablebptt import cli, storage, timing
+from stablebptt.engine import fitting, per_update, training
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.metrics import COLUMNS, empty_rows
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import make_trainer
+from stablebptt.errors import InputError
 from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.runs import epochs, run_folder
 from stablebptt.tasks import repulsion
@@ -271,6 +272,38 @@ def test_a_non_finite_gradient_of_any_flow_stops_training_even_when_the_update_i
     outcome = epochs.train_epochs(trainer, config, tmp_path, state, 0, empty_rows(), np.asarray(seed_array(config)))
     assert outcome.status == "diverged" and outcome.epoch == 0
     assert "gradient of flow R" in outcome.message and "flow M" not in outcome.message, outcome.message
+
+
+def test_with_nonfinite_flows_zero_mode_c_trains_on_through_a_nan_of_g_r_and_says_so_every_epoch(tmp_path):
+    config = TrainConfig(epochs=2, train_size=8, test_size=8, batch=8, mode="C", seeds=2, nonfinite_flows="zero")
+    trainer = make_trainer(nan_through_the_policy_input_task(), config)
+    state = trainer.init(seed_array(config))
+    notices = []
+    outcome = epochs.train_epochs(trainer, config, tmp_path, state, 0, empty_rows(), np.asarray(seed_array(config)),
+                                  on_epoch=lambda epoch, metrics: notices.append(metrics["notice"]))
+    assert outcome.status == "complete" and outcome.epoch == 2, outcome.message
+    # g_R is NaN in every element: C's sign agreement zeroes the whole update, so nothing moved.
+    assert np.array_equal(np.asarray(outcome.state.params), np.asarray(state.params))
+    assert len(notices) == 2 and all("gradient of flow R" in notice and "flow M" not in notice and
+                                     "seed 42: 1" in notice and "seed 43: 1" in notice for notice in notices), notices
+
+
+def test_the_python_api_warns_of_a_flow_left_at_zero_and_refuses_zero_outside_mode_c():
+    config = TrainConfig(epochs=1, train_size=8, test_size=8, batch=8, mode="C", nonfinite_flows="zero")
+    with pytest.warns(fitting.NonFiniteFlowWarning, match="gradient of flow R non-finite"):
+        fitting.train(nan_through_the_policy_input_task(), config)
+    with pytest.raises(InputError, match="nonfinite_flows"):
+        fitting.train(nan_through_the_policy_input_task(), replace(config, mode="R"))
+
+
+def test_the_progress_line_names_a_notice_and_stays_quiet_without_one(capsys):
+    progress = cli.EpochProgress(time.perf_counter(), 2, 0, 1, "task", disable=True)
+    progress.on_compiled(1.0)
+    progress.on_epoch(1, {"test_loss": np.array([1.0]), "seconds": 0.1, "notice": ""})
+    progress.on_epoch(2, {"test_loss": np.array([1.0]), "seconds": 0.1, "notice": "gradient of flow R non-finite"})
+    progress.close()
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert lines == ["epoch 2: gradient of flow R non-finite"], lines
 
 
 def train_cli(*args, **kwargs):
