@@ -58,6 +58,17 @@ def course(record: dict) -> list[str]:
     return notes
 
 
+def setting(record: dict) -> str:
+    """How a run trained beyond the table's protocol (C at window 128 on the env's own or surrogate
+    reward), in words; "" for the protocol itself. Each setting is a row of its own."""
+    options = record.get("hyperparams", {})
+    parts = ["dense reward"] if options.get("dense_reward") else []
+    parts += [f"window {options['horizon']}"] if options.get("horizon", 128) != 128 else []
+    parts += [f"critic, discount {options.get('discount', 1.0):g}"] if options.get("critic") else []
+    parts += ["non-finite flows zeroed"] if options.get("nonfinite_flows") == "zero" else []
+    return ", ".join(parts)
+
+
 def row(record: dict) -> str:
     """One env's line of the table."""
     seeds = record["seeds"]
@@ -79,7 +90,8 @@ def row(record: dict) -> str:
                                       ("final interval above the initial return", finite.size > 1 and low > initial.mean()))
              if holds] + course(record)
     steps = record.get("env_steps_per_s_per_seed")
-    return (f"| {record['env']}{' (dense reward)' if dense else ''} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
+    label = record["env"] + (f" ({setting(record)})" if setting(record) else "")
+    return (f"| {label} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
             f"{_number(finite.mean() if finite.size else float('nan'))} [{_number(low)}, {_number(high)}] | "
             f"{_number(np.nanmean(best))} | {reference or '-'} | {share} | {_number(steps, 0)} | "
             f"{_number(record.get('compile_s'), 0)} | {'; '.join(notes)} |")
@@ -93,7 +105,7 @@ def table(records: list[dict]) -> list[str]:
     lines = ["| env | seeds | budget s | initial return | final return [95% interval] | best return | PPO reference | "
              "final / reference | env steps/s per seed | set-up and compile s | notes |",
              "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---|"]
-    return lines + [row(record) for record in sorted(records, key=lambda r: (r["env"], bool(r.get("hyperparams", {}).get("dense_reward"))))]
+    return lines + [row(record) for record in sorted(records, key=lambda r: (r["env"], setting(r)))]
 
 
 def main(argv=None) -> None:
@@ -107,8 +119,8 @@ def main(argv=None) -> None:
         for path in sorted(glob.glob(os.path.join(folder, "**", "*_stablebptt_*.json"), recursive=True)):
             record = json.load(open(path))
             if record.get("status") != "error" and record.get("points"):
-                dense = record.get("hyperparams", {}).get("dense_reward")  # a second row: another way to train the env
-                records[record["env"] + (" dense" if dense else "")] = {**trim(record), "task_summary": record.get("task_summary", "")}
+                name = record["env"] + (f" ({setting(record)})" if setting(record) else "")  # another way to train it: a row of its own
+                records[name] = {**trim(record), "task_summary": record.get("task_summary", "")}
     os.makedirs(args.out, exist_ok=True)
     with open(kept, "w") as file:
         json.dump(records, file, indent=1)
