@@ -36,7 +36,7 @@ from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.observations import StandardizedNetwork, no_observations, refresh_from, standardized
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
-from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, start_diagnosis
+from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, diagnose_reward, start_diagnosis
 from stablebptt.envs.protocol import EnvError, check_protocol, check_same_states, check_step, observation
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
@@ -330,12 +330,16 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if diagnosis.kind != "zero":
             return task(diagnosis, diagnosis.kind)
         # Flat at every sampled state: train a smooth surrogate where one can be made, and diagnose it.
+        # The diagnosis's own samples where it ran here (a kept answer has none): no program samples again.
+        samples = started[0].samples() if started else None
         smooth_step, smoothing_done = surrogate.smoothed_training_step(env, training_step, jax.random.PRNGKey(diagnosis_seed),
-                                                                      smoothing_scale)
+                                                                      smoothing_scale, samples)
         if not smoothing_done.anything:
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
                            f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
-        again = RewardDiagnosis(*start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed))())
+        # The surrogate's step reaches the same states as the env's: its gradient is checked at those samples.
+        again = (diagnose_reward(smooth_step, *samples) if samples else
+                 RewardDiagnosis(*start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed))()))
         if again.kind in ("zero", "nan"):
             raise EnvError(f"{label}: the reward's gradient is {again.kind} at every sampled state even after "
                            f"{smoothing_done.describe()}: some term of it is flat beyond these comparisons; {advice}")

@@ -107,8 +107,12 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnos
     meanwhile times its kernels there (a GPU's autotuning), which might then choose others.
     """
     checks = _gradient_checks(step)
-    lowered = jax.jit(lambda key: checks(*sample_for_diagnosis(env, step, key)),
-                      compiler_options=_diagnosis_options()).lower(key)
+
+    def checked_samples(key):  # the samples come back too: a flat reward's surrogate is fitted and checked on them
+        samples = sample_for_diagnosis(env, step, key)
+        return checks(*samples), samples
+
+    lowered = jax.jit(checked_samples, compiler_options=_diagnosis_options()).lower(key)
     compiled: concurrent.futures.Future = concurrent.futures.Future()
 
     def compile_beside():
@@ -120,7 +124,7 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnos
     # No daemon: a process that ends early (a refusal) waits for it to finish, since XLA cannot be
     # stopped mid-compile and a daemon thread inside it aborts the interpreter's exit.
     threading.Thread(target=compile_beside, name="stablebptt-reward-diagnosis").start()
-    return PendingDiagnosis(compiled, key)
+    return PendingDiagnosis(compiled, key, [])
 
 
 class PendingDiagnosis(NamedTuple):
@@ -128,10 +132,17 @@ class PendingDiagnosis(NamedTuple):
 
     compiled: concurrent.futures.Future  # the diagnosis's compiled program
     key: jax.Array
+    ran: list  # once called: the states and actions its program sampled, (states, actions)
 
     def __call__(self) -> list:
         """Waits for the compile, runs the program: the fields of a ``RewardDiagnosis``."""
-        return list(_classify(*jax.device_get(self.compiled.result()(self.key))))
+        checked, samples = self.compiled.result()(self.key)
+        self.ran[:] = [samples]
+        return list(_classify(*jax.device_get(checked)))
+
+    def samples(self) -> tuple[PyTree, jax.Array] | None:
+        """The states and actions the program sampled, once it has run; else None."""
+        return self.ran[0] if self.ran else None
 
     def done(self) -> bool:
         """Whether the compile has ended (calling then waits no longer than the program's run)."""
