@@ -181,6 +181,7 @@ def run_one(env_name, mode, a, log):
         if settled is not trainer:
             trainer, update = settled, settled.epoch.update
             lowered, batch_list = lower_update(trainer, update, seed_ids)
+        task = task.settled_fully()  # the surrogate's own check, compiled beside that trace
         compiled = lowered.compile()
         state = trainer.init(seed_ids)
         jax.block_until_ready(state)
@@ -275,6 +276,7 @@ def throughput(env_name, mode, a, log):
         t0 = time.perf_counter()
         task, config, trainer, update = build(env, env_name, a, mode, a.seeds, a.horizon, a.batch)
         task, trainer = settled_trainer(task, trainer, config)  # timed as trained: a flat reward's surrogate
+        task = task.settled_fully()
         update = trainer.epoch.update
         state = trainer.init(seed_array(config))
         jax.block_until_ready(state)

@@ -139,7 +139,9 @@ def state_shapes(trainer: Trainer, seeds: Any) -> Any:
 
 def settled_trainer(task: Any, trainer: Trainer, config: TrainConfig) -> tuple[Any, Trainer]:
     """``task`` once its check left running has answered (``Task.settled``, which may refuse it), with
-    ``trainer`` built for it, or a new one where the check smoothed its reward (another step)."""
+    ``trainer`` built for it, or a new one where the check smoothed its reward (another step). A
+    smoothed reward's task is still checking its surrogate beside the caller: ``settled_fully()``
+    waits for that check (and may refuse it) once the new trainer's program is traced."""
     settled = task.settled()
     return settled, trainer if settled.dynamics.step is task.dynamics.step else make_trainer(settled, config)
 
@@ -221,6 +223,7 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
     state = trainer.init(seed_array(config))
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
     epoch_fn, _ = compile_ahead(trainer.epoch, state, *arguments)
+    task = task.settled_fully()  # a smoothed reward's surrogate, checked beside that compile, may refuse it here
     first_update = 0.0  # seconds from the call to the end of the first epoch
 
     def run_epoch(state):

@@ -79,3 +79,11 @@ class Task:
         none is pending, or where ``wait`` is false and the check has not answered yet."""
         answered = None if self.settle is None else self.settle(wait)
         return self if answered is None else answered
+
+    def settled_fully(self) -> "Task":
+        """The task once every pending check has answered: a check's answer may leave another pending
+        (a flat reward's surrogate, itself checked beside the caller)."""
+        task = self
+        while task.settle is not None:
+            task = task.settled()
+        return task

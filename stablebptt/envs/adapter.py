@@ -36,7 +36,7 @@ from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.observations import StandardizedNetwork, no_observations, refresh_from, standardized
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
-from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, diagnose_reward, start_diagnosis
+from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, start_checks, start_diagnosis
 from stablebptt.envs.protocol import EnvError, check_protocol, check_same_states, check_step, observation
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
@@ -337,16 +337,26 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if not smoothing_done.anything:
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
                            f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
-        # The surrogate's step reaches the same states as the env's: its gradient is checked at those samples.
-        again = (diagnose_reward(smooth_step, *samples) if samples else
-                 RewardDiagnosis(*start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed))()))
-        if again.kind in ("zero", "nan"):
-            raise EnvError(f"{label}: the reward's gradient is {again.kind} at every sampled state even after "
-                           f"{smoothing_done.describe()}: some term of it is flat beyond these comparisons; {advice}")
-        return task(again, again.kind, (smooth_step, smoothing_done.describe()))
+        # The surrogate's step reaches the same states as the env's: its gradient is checked at those
+        # samples, compiled beside whatever the caller does next (tracing the surrogate's trainer).
+        checking = (start_checks(smooth_step, *samples) if samples else
+                    start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed)))
+        smoothed = (smooth_step, smoothing_done.describe())
+
+        def settle_surrogate(wait: bool = True) -> Task | None:
+            if not wait and not checking.done():
+                return None
+            again = RewardDiagnosis(*checking())
+            if again.kind in ("zero", "nan"):
+                raise EnvError(f"{label}: the reward's gradient is {again.kind} at every sampled state even after "
+                               f"{smoothing_done.describe()}: some term of it is flat beyond these comparisons; {advice}")
+            return task(again, again.kind, smoothed)
+
+        return dataclasses.replace(task(None, "pending", smoothed), settle=settle_surrogate)
 
     if not diagnose:
         return task(None, "not checked")
     if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
         return dataclasses.replace(task(None, "pending"), settle=settle)
-    return settle()
+    answered = settle()  # a flat reward's surrogate may still be checked beside: deferred, the caller waits
+    return answered if defer_diagnosis else answered.settled_fully()

@@ -96,6 +96,31 @@ def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
     return RewardDiagnosis(*start_diagnosis(env, step, key)())
 
 
+def _compiled_beside(lowered) -> concurrent.futures.Future:
+    """``lowered``'s compile in a thread of its own, its program (or its error) in the future returned."""
+    compiled: concurrent.futures.Future = concurrent.futures.Future()
+
+    def compile_beside():
+        try:
+            compiled.set_result(lowered.compile())
+        except BaseException as error:  # noqa: BLE001 - handed to whoever waits for the answer
+            compiled.set_exception(error)
+
+    # No daemon: a process that ends early (a refusal) waits for it to finish, since XLA cannot be
+    # stopped mid-compile and a daemon thread inside it aborts the interpreter's exit.
+    threading.Thread(target=compile_beside, name="stablebptt-reward-diagnosis").start()
+    return compiled
+
+
+def start_checks(step: Callable, states: PyTree, actions: jax.Array) -> "PendingDiagnosis":
+    """``diagnose_reward`` begun as ``start_diagnosis`` begins its diagnosis: traced here, compiled
+    beside the caller, run when called (a flat reward's surrogate, checked at the states its
+    diagnosis sampled while the trainer's program is traced)."""
+    lowered = jax.jit(lambda samples: (_gradient_checks(step)(*samples), samples),
+                      compiler_options=_diagnosis_options()).lower((states, actions))
+    return PendingDiagnosis(_compiled_beside(lowered), (states, actions), [])
+
+
 def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnosis":
     """``diagnose_env`` begun: its program is traced here, then XLA compiles it in a thread of its own
     while the caller goes on (XLA lets go of Python while it compiles). Calling the result waits for
@@ -113,25 +138,14 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnos
         return checks(*samples), samples
 
     lowered = jax.jit(checked_samples, compiler_options=_diagnosis_options()).lower(key)
-    compiled: concurrent.futures.Future = concurrent.futures.Future()
-
-    def compile_beside():
-        try:
-            compiled.set_result(lowered.compile())
-        except BaseException as error:  # noqa: BLE001 - handed to whoever waits for the answer
-            compiled.set_exception(error)
-
-    # No daemon: a process that ends early (a refusal) waits for it to finish, since XLA cannot be
-    # stopped mid-compile and a daemon thread inside it aborts the interpreter's exit.
-    threading.Thread(target=compile_beside, name="stablebptt-reward-diagnosis").start()
-    return PendingDiagnosis(compiled, key, [])
+    return PendingDiagnosis(_compiled_beside(lowered), key, [])
 
 
 class PendingDiagnosis(NamedTuple):
     """A reward diagnosis compiling beside the caller (``start_diagnosis``)."""
 
     compiled: concurrent.futures.Future  # the diagnosis's compiled program
-    key: jax.Array
+    key: Any  # its argument: a PRNG key (start_diagnosis), or the samples themselves (start_checks)
     ran: list  # once called: the states and actions its program sampled, (states, actions)
 
     def __call__(self) -> list:

@@ -88,6 +88,7 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
             program_key = _smoothed_key(program_key, task)
             trainer = make_trainer(task, train_config, keep=program_key)
             lowered = lowered_epoch(trainer, train_config, program_key) if record is None else None
+        task = task.settled_fully()  # the surrogate's own check, compiled beside that trace, may refuse it here
         if run is None:
             run_dir = run_dir or default_run_dir(runs_root, task.name)  # named as it is claimed
             # The env steps each seed simulates in an epoch's training: learning curves may be drawn against them.

@@ -104,3 +104,15 @@ def test_the_surrogate_is_fitted_on_the_diagnosis_own_samples_as_on_a_fresh_draw
     _, drawn_again = smoothed_training_step(env, env.step, key)
     assert from_diagnosis.anything and from_diagnosis.terms == drawn_again.terms
     np.testing.assert_allclose(from_diagnosis.temperatures, drawn_again.temperatures, rtol=1e-6)
+
+
+def test_a_deferred_flat_reward_settles_into_its_surrogate_whose_own_check_answers_afterwards():
+    task = env_task(Cart("step"), horizon=5, defer_diagnosis=True)
+    assert task.resolved["reward_gradient"] == "pending"
+    smoothed = task.settled()  # the surrogate is built; its check compiles beside whatever comes next
+    assert smoothed.settle is not None and smoothed.resolved["reward_gradient"] == "pending"
+    assert "reward_smoothing" in smoothed.resolved and smoothed.dynamics.step is not task.dynamics.step
+    final = smoothed.settled_fully()
+    assert final.settle is None and final.dynamics.step is smoothed.dynamics.step
+    assert final.resolved == env_task(Cart("step"), horizon=5).resolved  # as the undeferred call settles it
+    assert final.summary == env_task(Cart("step"), horizon=5).summary
