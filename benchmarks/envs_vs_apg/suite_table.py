@@ -58,6 +58,9 @@ def course(record: dict) -> list[str]:
     return notes
 
 
+FEW_UPDATES = 200  # below this the row says how many updates the budget left (the envs that trained made 900 or more)
+
+
 def setting(record: dict) -> str:
     """How a run trained beyond the table's protocol (C at window 128 on the env's own or surrogate
     reward), in words; "" for the protocol itself. Each setting is a row of its own."""
@@ -83,11 +86,18 @@ def row(record: dict) -> str:
     stopped = [update for update in record.get("nan_update_per_seed") or [] if update is not None]
     notes = [note for note, holds in (("trained on its dense variant's reward", dense),
                                       ("trained on its reward's surrogate", smoothed and not dense),
-                                      (f"updates non-finite on {len(stopped)} of {len(final)} seeds (at updates "
-                                       f"{min(stopped or [0])}-{max(stopped or [0])}), each scored at its last finite parameters"
-                                       + ("; the run ended there" if record.get("status") == "nan" else ""), bool(stopped)),
+                                      (f"a non-finite loss or flow gradient on {len(stopped)} of {len(final)} seeds (first at updates "
+                                       f"{min(stopped or [0])}-{max(stopped or [0])})"
+                                       + ("; the run ended once every seed had met one" if record.get("status") == "nan" else ""),
+                                       bool(stopped)),
                                       (f"{len(final) - finite.size} of {len(final)} seeds non-finite", finite.size < len(final)),
-                                      ("final interval above the initial return", finite.size > 1 and low > initial.mean()))
+                                      ("final interval above the initial return", finite.size > 1 and low > initial.mean()),
+                                      ("final interval includes the initial return", finite.size > 1 and low <= initial.mean() <= high),
+                                      ("final interval below the initial return", finite.size > 1 and high < initial.mean()),
+                                      # Why an env may not have trained: the budget left few updates after set-up and compile.
+                                      (f"{record.get('updates')} updates, after {_number(record.get('compile_s'), 0)} s of the "
+                                       f"{record['budget_s']:.0f} s set up and compiling", record.get("updates", FEW_UPDATES) < FEW_UPDATES
+                                       and record.get("status") != "nan"))
              if holds] + course(record)
     steps = record.get("env_steps_per_s_per_seed")
     label = record["env"] + (f" ({setting(record)})" if setting(record) else "")
