@@ -29,7 +29,7 @@ import math
 import os
 
 import numpy as np
-from window_study import interval, trim
+from window_study import interval, option_words, trim
 
 # PPO's returns on MuJoCo Playground's suite envs, read off the reward curves of Figure 7 of its report
 # (Zakka et al. 2025, arXiv 2502.08844v1, Appendix A.2: Brax PPO, 60M env steps, 100M for AcrobotSwingup,
@@ -65,11 +65,13 @@ def setting(record: dict) -> str:
     """How a run trained beyond the table's protocol (C at window 128 on the env's own or surrogate
     reward), in words; "" for the protocol itself. Each setting is a row of its own."""
     options = record.get("hyperparams", {})
-    parts = ["dense reward"] if options.get("dense_reward") else []
-    parts += [f"window {options['horizon']}"] if options.get("horizon", 128) != 128 else []
-    parts += [f"critic, discount {options.get('discount', 1.0):g}"] if options.get("critic") else []
-    parts += ["non-finite flows zeroed"] if options.get("nonfinite_flows") == "zero" else []
-    return ", ".join(parts)
+    window = [f"window {options['horizon']}"] if options.get("horizon", 128) != 128 else []
+    return ", ".join(window + option_words(options))
+
+
+def labelled(record: dict) -> str:
+    """The env, and its run's setting where it has one: a row's label and its key in records.json."""
+    return record["env"] + (f" ({setting(record)})" if setting(record) else "")
 
 
 def row(record: dict) -> str:
@@ -100,8 +102,7 @@ def row(record: dict) -> str:
                                        and record.get("status") != "nan"))
              if holds] + course(record)
     steps = record.get("env_steps_per_s_per_seed")
-    label = record["env"] + (f" ({setting(record)})" if setting(record) else "")
-    return (f"| {label} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
+    return (f"| {labelled(record)} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
             f"{_number(finite.mean() if finite.size else float('nan'))} [{_number(low)}, {_number(high)}] | "
             f"{_number(np.nanmean(best))} | {reference or '-'} | {share} | {_number(steps, 0)} | "
             f"{_number(record.get('compile_s'), 0)} | {'; '.join(notes)} |")
@@ -129,8 +130,8 @@ def main(argv=None) -> None:
         for path in sorted(glob.glob(os.path.join(folder, "**", "*_stablebptt_*.json"), recursive=True)):
             record = json.load(open(path))
             if record.get("status") != "error" and record.get("points"):
-                name = record["env"] + (f" ({setting(record)})" if setting(record) else "")  # another way to train it: a row of its own
-                records[name] = {**trim(record), "task_summary": record.get("task_summary", "")}
+                # Another way to train an env is a row of its own.
+                records[labelled(record)] = {**trim(record), "task_summary": record.get("task_summary", "")}
     os.makedirs(args.out, exist_ok=True)
     with open(kept, "w") as file:
         json.dump(records, file, indent=1)

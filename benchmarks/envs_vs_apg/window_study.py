@@ -63,15 +63,21 @@ def method(record: dict) -> str:
         return (BRAX_NAMES[record.get("algo", "brax_apg")] + (f" ({variant})" if variant != "shipped" else "")
                 + (f", {sharing} seeds sharing a GPU" if sharing > 1 else ""))
     options = record["hyperparams"]
-    name = f"stablebptt {record['mode']}, window {options['horizon']}"
-    name += ", critic" if options.get("critic") else ""
-    name += f", discount {options['discount']:g}" if options.get("discount", 1.0) != 1.0 else ""
-    name += f", action noise {options['action_noise']:g}" if options.get("action_noise", 0.0) else ""
-    name += f", lr decay {options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else ""
-    name += ", normalised observations" if options.get("normalize_observations") else ""
-    name += ", non-finite flows zeroed" if options.get("nonfinite_flows") == "zero" else ""
-    name += f", {options['batch']} states per seed" if options.get("batch", DEFAULT_BATCH) != DEFAULT_BATCH else ""
+    name = ", ".join([f"stablebptt {record['mode']}, window {options['horizon']}", *option_words(options)])
     return name + (f", seeds {record['seeds'][0]}-{record['seeds'][-1]}" if record["seeds"][0] != 0 else "")
+
+
+def option_words(options: dict) -> list[str]:
+    """A stablebptt run's options beyond stablebptt_half.py's defaults, in words (its window aside)."""
+    return [word for word, given in (
+        ("dense reward", options.get("dense_reward")),
+        ("critic", options.get("critic")),
+        (f"discount {options.get('discount', 1.0):g}", options.get("discount", 1.0) != 1.0),
+        (f"action noise {options.get('action_noise', 0.0):g}", options.get("action_noise", 0.0)),
+        (f"lr decay {options.get('lr_decay', 1.0):g}", options.get("lr_decay", 1.0) != 1.0),
+        ("normalised observations", options.get("normalize_observations")),
+        ("non-finite flows zeroed", options.get("nonfinite_flows") == "zero"),
+        (f"{options.get('batch')} states per seed", options.get("batch", DEFAULT_BATCH) != DEFAULT_BATCH)) if given]
 
 
 def record_name(record: dict) -> str:

@@ -273,12 +273,14 @@ def _all_finite(tree: PyTree) -> jax.Array:
     return jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in leaves])) if leaves else jnp.array(True)
 
 
-FLOW_BITS = 4  # the checks before the flows' own in the nonfinite metric: losses, update, train and test loss
+# The nonfinite metric's checks before the flows' own, in the order epoch_metrics makes them.
+CHECK_NAMES = ("batch loss", "update or optimizer state", "train loss", "test loss")
+FLOW_BITS = len(CHECK_NAMES)
 
 
 def nonfinite_names(flows: tuple[str, ...], failed: int) -> list[str]:
     """What the ``nonfinite`` metric of an epoch says was not finite, in words."""
-    names = ["batch loss", "update or optimizer state", "train loss", "test loss"] + [f"gradient of flow {f}" for f in flows]
+    names = list(CHECK_NAMES) + [f"gradient of flow {f}" for f in flows]
     return [name for bit, name in enumerate(names) if int(failed) >> bit & 1]
 
 

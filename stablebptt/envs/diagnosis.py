@@ -116,9 +116,9 @@ def start_checks(step: Callable, states: PyTree, actions: jax.Array) -> "Pending
     """``diagnose_reward`` begun as ``start_diagnosis`` begins its diagnosis: traced here, compiled
     beside the caller, run when called (a flat reward's surrogate, checked at the states its
     diagnosis sampled while the trainer's program is traced)."""
-    lowered = jax.jit(lambda samples: (_gradient_checks(step)(*samples), samples),
+    lowered = jax.jit(lambda samples: (_gradient_checks(step)(*samples), None),  # the samples are the caller's
                       compiler_options=_diagnosis_options()).lower((states, actions))
-    return PendingDiagnosis(_compiled_beside(lowered), (states, actions), [])
+    return PendingDiagnosis(_compiled_beside(lowered), (states, actions), [(states, actions)])
 
 
 def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnosis":
@@ -138,24 +138,25 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnos
         return checks(*samples), samples
 
     lowered = jax.jit(checked_samples, compiler_options=_diagnosis_options()).lower(key)
-    return PendingDiagnosis(_compiled_beside(lowered), key, [])
+    return PendingDiagnosis(_compiled_beside(lowered), key, [])  # its samples come back when it runs
 
 
 class PendingDiagnosis(NamedTuple):
     """A reward diagnosis compiling beside the caller (``start_diagnosis``)."""
 
     compiled: concurrent.futures.Future  # the diagnosis's compiled program
-    key: Any  # its argument: a PRNG key (start_diagnosis), or the samples themselves (start_checks)
-    ran: list  # once called: the states and actions its program sampled, (states, actions)
+    argument: Any  # a PRNG key (start_diagnosis), or the samples themselves (start_checks)
+    ran: list  # the states and actions checked, (states, actions): given, or once called, those it sampled
 
     def __call__(self) -> list:
         """Waits for the compile, runs the program: the fields of a ``RewardDiagnosis``."""
-        checked, samples = self.compiled.result()(self.key)
-        self.ran[:] = [samples]
+        checked, samples = self.compiled.result()(self.argument)
+        if samples is not None:
+            self.ran[:] = [samples]
         return list(_classify(*jax.device_get(checked)))
 
     def samples(self) -> tuple[PyTree, jax.Array] | None:
-        """The states and actions the program sampled, once it has run; else None."""
+        """The states and actions checked: given, or sampled once the program has run; else None."""
         return self.ran[0] if self.ran else None
 
     def done(self) -> bool:
