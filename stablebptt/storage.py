@@ -28,9 +28,11 @@ def write_temporary(path: Path, data: bytes) -> Path:
             handle.write(data)
             handle.flush()
             os.fsync(handle.fileno())
-    except OSError as error:
+    except BaseException as error:  # a full disk, or a signal mid-write: no temporary is left either way
         temporary.unlink(missing_ok=True)
-        raise StorageError(error.errno, f"cannot write {path}: {error.strerror or error}") from None
+        if isinstance(error, OSError):
+            raise StorageError(error.errno, f"cannot write {path}: {error.strerror or error}") from None
+        raise
     return temporary
 
 

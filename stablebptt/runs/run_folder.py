@@ -264,6 +264,7 @@ def create_run(path: Path, record: dict) -> RunLock:
     """
     path = Path(path)
     refuse_used(path)  # before the lock: a folder that is not ours is left untouched
+    made = not path.exists()
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as error:
@@ -281,7 +282,17 @@ def create_run(path: Path, record: dict) -> RunLock:
         finally:
             temporary.unlink(missing_ok=True)
     except BaseException:
+        # A claim that did not complete (a refusal, a signal at any point of it) leaves nothing half-made:
+        # no temporary, and no trace of a folder it made itself.
+        for temporary in path.glob(".*.tmp"):  # under the lock: only the holder writes them
+            temporary.unlink(missing_ok=True)
         lock.release()
+        if made and not (path / CONFIG_FILE).exists():
+            try:
+                (path / LOCK_FILE).unlink(missing_ok=True)
+                path.rmdir()
+            except OSError:  # another start put something there meanwhile: it is theirs
+                pass
         raise
     return lock
 

@@ -163,6 +163,29 @@ def test_signals_are_handled_while_the_work_sits_in_one_long_native_call():
         in_worker_thread(failing_work)
 
 
+@pytest.mark.parametrize("where", ["mid-write", "after the temporary"])
+def test_a_claim_interrupted_at_any_point_leaves_no_folder_and_the_same_out_starts_afresh(tmp_path, monkeypatch, where):
+    record = {"task": "repulsion", "task_config": {}, "train": {}}
+    folder = tmp_path / "run"
+    written = storage.write_temporary
+
+    def interrupted(path, data):  # Ctrl-C inside the write (its file open), or just after it returned
+        if where == "mid-write":
+            monkeypatch.setattr(os, "fsync", lambda fd: (_ for _ in ()).throw(KeyboardInterrupt()))
+            return written(path, data)
+        written(path, data)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_folder, "write_temporary", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_folder.create_run(folder, record)
+    assert not folder.exists(), sorted(entry.name for entry in folder.iterdir())
+    monkeypatch.undo()
+    lock = run_folder.create_run(folder, record)
+    assert json.loads((folder / "config.json").read_text()) == record
+    lock.release()
+
+
 def test_two_runs_given_one_folder_at_once_one_is_refused(tmp_path):
     record = {"task": "repulsion", "task_config": {}, "train": {}}
     for attempt in range(20):
