@@ -76,7 +76,7 @@ def build(env, env_name, a, mode, seeds, horizon, batch):
     # update's trace, and is waited for before the update compiles (settled).
     task = env_task(env, horizon, discount=a.discount, episode_length=a.trainer_episode_length or None,
                     hidden=tuple(a.hidden), name=env_name, defer_diagnosis=True,
-                    normalize_observations=a.normalize_observations,
+                    normalize_observations=a.normalize_observations, smoothing_scale=a.smoothing_scale,
                     # --dense-reward: a ...Sparse env trains on its dense variant's reward, scored on its own.
                     reward_env=evaluation.load_env(playground.dense_variant(env_name)) if a.dense_reward else None)
     PHASES["env_task_s"] = time.perf_counter() - b0
@@ -131,7 +131,7 @@ def run_one(env_name, mode, a, log):
                         "critic": a.critic, "critic_lr": a.critic_lr, "td_lambda": a.td_lambda,
                         "action_noise": a.action_noise, "lr_decay": a.lr_decay,
                         "normalize_observations": a.normalize_observations, "dense_reward": a.dense_reward,
-                        "nonfinite_flows": a.nonfinite_flows},
+                        "nonfinite_flows": a.nonfinite_flows, "smoothing_scale": a.smoothing_scale},
         "solver_train_env": solver_info(train_env), "solver_eval_env": solver_info(eval_env),
         "eval": {"num_envs": a.eval_envs, "seed": evaluation.EVAL_SEED, "deterministic": True,
                  "seeds_in_one_program": True},
@@ -333,6 +333,8 @@ def main(argv=None):
                    help="the policy sees observations standardised by running statistics")
     p.add_argument("--dense-reward", action="store_true", help="a ...Sparse env trains on its dense variant's reward "
                    "(as `stablebptt train --dense-reward`); every return reported stays the sparse one's")
+    p.add_argument("--smoothing-scale", type=float, default=1.0,
+                   help="a flat reward's surrogate temperatures: this times the sampled differences' median")
     p.add_argument("--nonfinite-flows", choices=("stop", "zero"), default="stop",
                    help="as `stablebptt train --nonfinite-flows`: zero (mode C) counts a flow's non-finite gradient, "
                    "left at zero by C's sign agreement, and trains the seed on")

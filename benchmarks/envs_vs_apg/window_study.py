@@ -77,6 +77,7 @@ def option_words(options: dict) -> list[str]:
         (f"lr decay {options.get('lr_decay', 1.0):g}", options.get("lr_decay", 1.0) != 1.0),
         ("normalised observations", options.get("normalize_observations")),
         ("non-finite flows zeroed", options.get("nonfinite_flows") == "zero"),
+        (f"smoothing scale {options.get('smoothing_scale', 1.0):g}", options.get("smoothing_scale", 1.0) != 1.0),
         (f"{options.get('batch')} states per seed", options.get("batch", DEFAULT_BATCH) != DEFAULT_BATCH)) if given]
 
 
