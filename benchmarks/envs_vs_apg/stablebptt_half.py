@@ -71,6 +71,7 @@ def finite_per_seed(params) -> list[bool]:
 
 def build(env, env_name, a, mode, seeds, horizon, batch):
     """Task and trainer for ``env``, named ``env_name`` (Playground's registry name) in its summary; returns (task, config, trainer, update) with update = the jitted per-update program."""
+    PHASES.clear()
     b0 = time.perf_counter()
     # As the command line sets up: the reward's diagnosis compiles beside the trainer's set-up and the
     # update's trace, and is waited for before the update compiles (settled).
@@ -107,7 +108,19 @@ def lower_update(trainer, update, seed_ids):
 
 
 _EVALUATORS: dict = {}
-PHASES: dict = {}  # set-up phases of the last build, seconds
+PHASES: dict = {}  # set-up and compile phases of the last run, seconds
+
+
+def phase_clock(start: float):
+    """A lap timer over PHASES from ``start`` (a perf_counter time): ``lap(name)`` records the seconds
+    since the previous lap (the first: since ``start``) as ``name``."""
+    last = [start]
+
+    def lap(name: str) -> None:
+        now = time.perf_counter()
+        PHASES[name] = now - last[0]
+        last[0] = now
+    return lap
 
 
 def run_one(env_name, mode, a, log):
@@ -177,14 +190,21 @@ def run_one(env_name, mode, a, log):
         # and compiled once the diagnosis has answered, so a flat reward's surrogate is the only update
         # compiled (it has a trainer of its own).
         lowered, batch_list = lower_update(trainer, update, seed_ids)
+        lap = phase_clock(c0)
+        lap("update_trace_s")
         task, settled = settled_trainer(task, trainer, config)
+        lap("diagnosis_wait_s")
         if settled is not trainer:
             trainer, update = settled, settled.epoch.update
             lowered, batch_list = lower_update(trainer, update, seed_ids)
+            lap("surrogate_trace_s")
         task = task.settled_fully()  # the surrogate's own check, compiled beside that trace
+        lap("surrogate_check_wait_s")
         compiled = lowered.compile()
+        lap("update_xla_compile_s")
         state = trainer.init(seed_ids)
         jax.block_until_ready(state)
+        lap("init_s")
         rec["update_compile_s"] = time.perf_counter() - c0  # the update's compile, the diagnosis's wait, init
         rec["task_summary"] = task.summary
         rec["task_resolved"] = task.resolved
