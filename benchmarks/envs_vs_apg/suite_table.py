@@ -97,7 +97,7 @@ def row(record: dict) -> str:
                                       ("final interval includes the initial return", finite.size > 1 and low <= initial.mean() <= high),
                                       ("final interval below the initial return", finite.size > 1 and high < initial.mean()),
                                       # Why an env may not have trained: the budget left few updates after set-up and compile.
-                                      (f"{record.get('updates')} updates, after {_number(record.get('compile_s'), 0)} s of the "
+                                      (f"{record.get('updates')} update{'' if record.get('updates') == 1 else 's'}, after {_number(record.get('compile_s'), 0)} s of the "
                                        f"{record['budget_s']:.0f} s set up and compiling", record.get("updates", FEW_UPDATES) < FEW_UPDATES
                                        and record.get("status") != "nan"))
              if holds] + course(record)
