@@ -74,6 +74,42 @@ def labelled(record: dict) -> str:
     return record["env"] + (f" ({setting(record)})" if setting(record) else "")
 
 
+def standing(record: dict) -> str | None:
+    """Where the final return's interval over seeds lies against the initial policy's return: "above",
+    "includes" or "below"; None with fewer than two finite seeds."""
+    final = np.asarray(record["final_return_per_seed"], float)
+    initial = np.asarray(record["points"][0]["return_per_seed"], float)  # the evaluation before the first update
+    finite = final[np.isfinite(final)]
+    if finite.size < 2:
+        return None
+    low, high = interval(finite)
+    return "above" if low > initial.mean() else "below" if high < initial.mean() else "includes"
+
+
+def share_of_reference(record: dict) -> float | None:
+    """The mean final return over finite seeds as a share of PPO's reference; None without one."""
+    final = np.asarray(record["final_return_per_seed"], float)
+    reference = PPO_REFERENCE.get(record["env"])
+    return float(np.mean(final[np.isfinite(final)])) / reference if reference and np.isfinite(final).any() else None
+
+
+def goals(records: list[dict]) -> list[str]:
+    """The suite's goals, env by env over every row of an env: which envs trained (a row whose final
+    interval lies above its initial return) and which reached half and 80% of PPO's reference."""
+    envs = sorted({record["env"] for record in records})
+    rows_of = {env: [record for record in records if record["env"] == env] for env in envs}
+    trained = [env for env in envs if any(standing(record) == "above" for record in rows_of[env])]
+    at_protocol = [env for env in envs if any(standing(record) == "above" and not setting(record) for record in rows_of[env])]
+    best_share = {env: max((share_of_reference(record) or 0.0) for record in rows_of[env]) for env in envs}
+    named = lambda group: ", ".join(group) or "none"  # noqa: E731
+    return [f"Trained (a row whose final interval lies above its initial return): {len(trained)} of {len(envs)} envs, "
+            f"{len(at_protocol)} of them at the table's own setting (C, window 128). Not trained in any row: "
+            f"{named([env for env in envs if env not in trained])}.", "",
+            f"At half of PPO's reference or more (any row): {named([env for env in envs if best_share[env] >= 0.5])}; "
+            f"within 80% of it: {named([env for env in envs if best_share[env] >= 0.8])}. Without a reference: "
+            f"{named([env for env in envs if env not in PPO_REFERENCE])}."]
+
+
 def row(record: dict) -> str:
     """One env's line of the table."""
     seeds = record["seeds"]
@@ -82,7 +118,8 @@ def row(record: dict) -> str:
     finite = final[np.isfinite(final)]
     low, high = interval(finite)
     reference = PPO_REFERENCE.get(record["env"])
-    share = f"{100 * finite.mean() / reference:.0f}%" if reference and finite.size else "-"
+    share = "-" if share_of_reference(record) is None else f"{100 * share_of_reference(record):.0f}%"
+    place = standing(record)
     smoothed = "smoothed" in record.get("task_summary", "") or "widened" in record.get("task_summary", "")
     dense = record.get("hyperparams", {}).get("dense_reward")
     stopped = [update for update in record.get("nan_update_per_seed") or [] if update is not None]
@@ -93,9 +130,7 @@ def row(record: dict) -> str:
                                        + ("; the run ended once every seed had met one" if record.get("status") == "nan" else ""),
                                        bool(stopped)),
                                       (f"{len(final) - finite.size} of {len(final)} seeds non-finite", finite.size < len(final)),
-                                      ("final interval above the initial return", finite.size > 1 and low > initial.mean()),
-                                      ("final interval includes the initial return", finite.size > 1 and low <= initial.mean() <= high),
-                                      ("final interval below the initial return", finite.size > 1 and high < initial.mean()),
+                                      (f"final interval {place} the initial return", place is not None),
                                       # Why an env may not have trained: the budget left few updates after set-up and compile.
                                       (f"{record.get('updates')} update{'' if record.get('updates') == 1 else 's'}, after {_number(record.get('compile_s'), 0)} s of the "
                                        f"{record['budget_s']:.0f} s set up and compiling", record.get("updates", FEW_UPDATES) < FEW_UPDATES
@@ -139,7 +174,7 @@ def main(argv=None) -> None:
              f"Written by `python benchmarks/envs_vs_apg/suite_table.py --out {args.out}` from `{kept}`; every return "
              "is evaluation.py's (64 fixed resets, 1000 steps, the deterministic policy, the true reward). PPO's "
              "references are read from MuJoCo Playground's published learning curves (approximate).", "",
-             *table(list(records.values())), ""]
+             *table(list(records.values())), "", *goals(list(records.values())), ""]
     with open(os.path.join(args.out, "suite.md"), "w") as file:
         file.write("\n".join(lines))
     print("\n".join(lines))
