@@ -154,6 +154,29 @@ def table(records: list[dict]) -> list[str]:
     return lines + [row(record) for record in sorted(records, key=lambda r: (r["env"], setting(r)))]
 
 
+PHASES = (("env_task_s", "env checks"), ("make_trainer_s", "trainer set-up"), ("update_trace_s", "update traced"),
+          ("diagnosis_wait_s", "diagnosis waited for"), ("surrogate_trace_s", "surrogate's update traced"),
+          ("surrogate_check_wait_s", "surrogate's check waited for"), ("update_xla_compile_s", "XLA compile"),
+          ("init_s", "init"))
+
+
+def phases(records: list[dict]) -> list[str]:
+    """Where each run's set-up and compile went, phase by phase (stablebptt_half.py's ``setup_phases_s``),
+    for the runs that recorded every phase."""
+    timed = sorted((record for record in records if "update_xla_compile_s" in record.get("setup_phases_s", {})),
+                   key=lambda r: -r["compile_s"])
+    if not timed:
+        return []
+    lines = ["Set-up and compile phase by phase, seconds (the runs that recorded every phase; a dash: a phase the run had no need of):", "",
+             "| env | " + " | ".join(name for _, name in PHASES) + " | total |",
+             "|---|" + "---:|" * (len(PHASES) + 1)]
+    for record in timed:
+        spent = record["setup_phases_s"]
+        lines.append(f"| {labelled(record)} | " + " | ".join(_number(spent.get(key)) for key, _ in PHASES)
+                     + f" | {_number(record['compile_s'])} |")
+    return lines + [""]
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--raw", nargs="*", default=[], help="folders holding stablebptt_half.py's records (searched below)")
@@ -174,7 +197,7 @@ def main(argv=None) -> None:
              f"Written by `python benchmarks/envs_vs_apg/suite_table.py --out {args.out}` from `{kept}`; every return "
              "is evaluation.py's (64 fixed resets, 1000 steps, the deterministic policy, the true reward). PPO's "
              "references are read from MuJoCo Playground's published learning curves (approximate).", "",
-             *table(list(records.values())), "", *goals(list(records.values())), ""]
+             *table(list(records.values())), "", *goals(list(records.values())), "", *phases(list(records.values()))]
     with open(os.path.join(args.out, "suite.md"), "w") as file:
         file.write("\n".join(lines))
     print("\n".join(lines))

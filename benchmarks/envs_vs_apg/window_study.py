@@ -33,6 +33,7 @@ import re
 import numpy as np
 
 KEEP_STABLEBPTT = ("env", "mode", "seeds", "budget_s", "hyperparams", "device", "jax", "points", "status", "compile_s",
+                   "setup_s", "update_compile_s", "setup_phases_s",
                    "nan_update_per_seed", "zeroed_updates_per_seed", "updates", "update_s", "env_steps_per_s_per_seed",
                    "final_return_per_seed", "best_return_per_seed", "argv", "machine")
 KEEP_BRAX = ("env", "seed", "algo", "variant", "budget_s", "hyperparams", "device", "jax", "points", "status", "compile_s",
