@@ -306,6 +306,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None) -> Task:
         start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
         trained_step, smoothed_terms = smoothed or (training_step, "")
+        if smoothed and dense_variant:  # measured: a sparse env's surrogate trains less far than its dense reward
+            smoothed_terms += f" ({dense_variant}'s reward, its dense variant, may train further: --dense-reward)"
         return Task(
             name=label,
             dynamics=Dynamics(step=trained_step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),

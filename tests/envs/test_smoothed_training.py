@@ -20,6 +20,10 @@ def test_a_labs_env_with_a_step_reward_trains_on_its_surrogate_and_reports_its_t
     task = env_task(Cart("step"), horizon=5)  # 1 where |position| < 0.1, else 0: flat almost everywhere
     assert "smoothed 1 comparison of the reward into sigmoids: " in task.summary and "envs_for_tests.py" in task.summary
     assert task.resolved["reward_gradient"] == "usable" and "reward_smoothing" in task.resolved
+    # A sparse env smoothed where a dense variant exists: the first line points to that variant's reward.
+    assert "dense variant" not in task.summary
+    hinted = env_task(Cart("step"), horizon=5, dense_variant="SmoothCart")
+    assert "(SmoothCart's reward, its dense variant, may train further: --dense-reward)" in hinted.summary
     states = task.sample_initial_states(jax.random.PRNGKey(0), 8)
     params = task.init_params(jax.random.PRNGKey(1), True)
     # The returns it reports are the true reward's: those of the same env trained without a check.
