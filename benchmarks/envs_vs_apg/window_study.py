@@ -68,18 +68,29 @@ def method(record: dict) -> str:
     return name + (f", seeds {record['seeds'][0]}-{record['seeds'][-1]}" if record["seeds"][0] != 0 else "")
 
 
+# A stablebptt run's options beyond stablebptt_half.py's defaults (its window aside): the option, its
+# default, the option in words (a method's name, a suite row's setting) and its tag in a record's key.
+OPTIONS = (
+    ("dense_reward", False, lambda value: "dense reward", lambda value: "_dense"),
+    ("critic", False, lambda value: "critic", lambda value: "_critic"),
+    ("discount", 1.0, lambda value: f"discount {value:g}", lambda value: f"_d{value:g}"),
+    ("action_noise", 0.0, lambda value: f"action noise {value:g}", lambda value: f"_noise{value:g}"),
+    ("lr_decay", 1.0, lambda value: f"lr decay {value:g}", lambda value: f"_decay{value:g}"),
+    ("normalize_observations", False, lambda value: "normalised observations", lambda value: "_norm"),
+    ("nonfinite_flows", "stop", lambda value: "non-finite flows zeroed", lambda value: "_zeroed"),
+    ("smoothing_scale", 1.0, lambda value: f"smoothing scale {value:g}", lambda value: f"_smoothing{value:g}"),
+    ("batch", DEFAULT_BATCH, lambda value: f"{value} states per seed", lambda value: f"_b{value}"),
+)
+
+
+def _given(options: dict) -> list:
+    """The options of ``OPTIONS`` that a run set to other than their default, with their values."""
+    return [(option, options[option[0]]) for option in OPTIONS if options.get(option[0], option[1]) != option[1]]
+
+
 def option_words(options: dict) -> list[str]:
     """A stablebptt run's options beyond stablebptt_half.py's defaults, in words (its window aside)."""
-    return [word for word, given in (
-        ("dense reward", options.get("dense_reward")),
-        ("critic", options.get("critic")),
-        (f"discount {options.get('discount', 1.0):g}", options.get("discount", 1.0) != 1.0),
-        (f"action noise {options.get('action_noise', 0.0):g}", options.get("action_noise", 0.0)),
-        (f"lr decay {options.get('lr_decay', 1.0):g}", options.get("lr_decay", 1.0) != 1.0),
-        ("normalised observations", options.get("normalize_observations")),
-        ("non-finite flows zeroed", options.get("nonfinite_flows") == "zero"),
-        (f"smoothing scale {options.get('smoothing_scale', 1.0):g}", options.get("smoothing_scale", 1.0) != 1.0),
-        (f"{options.get('batch')} states per seed", options.get("batch", DEFAULT_BATCH) != DEFAULT_BATCH)) if given]
+    return [words(value) for (_, _, words, _), value in _given(options)]
 
 
 def record_name(record: dict) -> str:
@@ -89,13 +100,8 @@ def record_name(record: dict) -> str:
         variant = record.get("variant", "shipped")
         return f"{record['env']}_{algo}{'' if variant == 'shipped' else '_' + variant}_s{record['seed']}"
     options = record["hyperparams"]
-    return (f"{record['env']}_{record['mode']}_w{options['horizon']}" + ("_critic" if options.get("critic") else "")
-            + (f"_d{options['discount']:g}" if options.get("discount", 1.0) != 1.0 else "")
-            + (f"_noise{options['action_noise']:g}" if options.get("action_noise", 0.0) else "")
-            + (f"_decay{options['lr_decay']:g}" if options.get("lr_decay", 1.0) != 1.0 else "")
-            + ("_norm" if options.get("normalize_observations") else "")
-            + ("_zeroed" if options.get("nonfinite_flows") == "zero" else "")
-            + (f"_b{options['batch']}" if options.get("batch", DEFAULT_BATCH) != DEFAULT_BATCH else "")
+    return (f"{record['env']}_{record['mode']}_w{options['horizon']}"
+            + "".join(tag(value) for (_, _, _, tag), value in _given(options))
             + (f"_seeds{record['seeds'][0]}" if record["seeds"][0] != 0 else ""))
 
 
