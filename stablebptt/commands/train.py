@@ -106,7 +106,7 @@ def train(argv: list[str], held: list) -> int:
               f"an epoch (--episodes off: one window from fixed starts)")
     if start_epoch == train_config.epochs and resuming:
         mean, std = metrics.final_mean_std(rows) if len(rows) else (float("nan"), 0.0)
-        print(f"done already: {task_label}, {start_epoch} epochs, final test loss {mean:.4g} -> {run_dir}")
+        print(f"done already: {task_label}, {_epochs(start_epoch)}, final test loss {mean:.4g} -> {run_dir}")
         return 0
 
     from stablebptt.cli import EpochProgress, in_worker_thread, out_of_memory, stop_on_signals
@@ -136,11 +136,16 @@ def train(argv: list[str], held: list) -> int:
     plot_run(run_dir)
     mean, std = metrics.final_mean_std(outcome.rows)
     spread = f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
-    print(f"done: {task_label}, mode {train_config.mode}, {outcome.epoch} epochs, final test loss {mean:.4g}{spread} -> {run_dir}")
+    print(f"done: {task_label}, mode {train_config.mode}, {_epochs(outcome.epoch)}, final test loss {mean:.4g}{spread} -> {run_dir}")
     return 0
+
+
+def _epochs(count: int) -> str:
+    return f"{count} epoch{'' if count == 1 else 's'}"
 
 
 if __name__ == "__main__":
     from stablebptt.cli import stop_at_once_on_interrupt
     stop_at_once_on_interrupt()
     sys.exit(main(sys.argv[1:]))
+
