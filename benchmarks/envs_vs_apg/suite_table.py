@@ -18,7 +18,8 @@ The runs, one env per GPU (`on_gpus.sh`), each for the same budget, compile incl
 A flat reward trains on its smooth surrogate (the record's task summary names it); every return here
 is the true reward's, scored by evaluation.py. A row's notes say how its env trained where the
 evaluations show it: flat since training began (which, below PPO's reference, says where it stopped),
-or seeds that fell below half their best.
+or seeds that fell below half their best; and a row short of the goals (not trained, or below 80% of
+PPO's reference) says what to try, each an option of the measured runs that answers how it ran.
 """
 from __future__ import annotations
 
@@ -110,6 +111,35 @@ def goals(records: list[dict]) -> list[str]:
             f"{named([env for env in envs if env not in PPO_REFERENCE])}."]
 
 
+def levers(record: dict) -> list[str]:
+    """What would change a row that is short of the goals (not trained, or below 80% of PPO's reference
+    or without one), read from how it ran: each the option of the measured runs that answers it."""
+    options = record.get("hyperparams", {})
+    share = share_of_reference(record)
+    if standing(record) == "above" and share is not None and share >= 0.8:
+        return []
+    final, best = np.asarray(record["final_return_per_seed"], float), np.asarray(record["best_return_per_seed"], float)
+    surrogate = ("smoothed" in record.get("task_summary", "") or "widened" in record.get("task_summary", "")) \
+        and not options.get("dense_reward")
+    updates, ran = record.get("updates", 0), record.get("status") != "nan"
+    few = updates < FEW_UPDATES and ran
+    return [lever for lever, holds in (
+        ("a longer budget", few),
+        # Slow updates: WalkerStand and WalkerWalk trained further at window 32 than at 128 (the window study).
+        ("windows of 32 (a quarter of each update's steps)", ran and updates < 500 and options.get("horizon", 128) > 32),
+        # Many updates: the critic lifted CartpoleSwingup and AcrobotSwingup (1100-1200 updates), not the
+        # cheetah or the walkers (160-230).
+        ("the critic (--critic --discount 0.99)", ran and updates >= 500 and not options.get("critic")),
+        ("its dense variant's reward (--dense-reward)", surrogate and record["env"].endswith("Sparse")),
+        ("a sharper surrogate (--smoothing-scale below 1)", surrogate and not record["env"].endswith("Sparse") and not few
+         and options.get("smoothing_scale", 1.0) == 1.0 and any(note.startswith("flat") for note in course(record))),
+        ("--nonfinite-flows zero", any(update is not None for update in record.get("nan_update_per_seed") or [])
+         and options.get("nonfinite_flows", "stop") == "stop"),
+        # Seeds that fall back from their best: the measured decay kept CartpoleBalance's seeds higher.
+        ("a learning-rate decay (--lr-decay)", options.get("lr_decay", 1.0) == 1.0 and not few
+         and np.nanmean(final) < 0.85 * np.nanmean(best))) if holds]
+
+
 def row(record: dict) -> str:
     """One env's line of the table."""
     seeds = record["seeds"]
@@ -136,6 +166,7 @@ def row(record: dict) -> str:
                                        f"{record['budget_s']:.0f} s set up and compiling", record.get("updates", FEW_UPDATES) < FEW_UPDATES
                                        and record.get("status") != "nan"))
              if holds] + course(record)
+    notes += [f"to try: {', '.join(levers(record))}"] if levers(record) else []
     steps = record.get("env_steps_per_s_per_seed")
     return (f"| {labelled(record)} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
             f"{_number(finite.mean() if finite.size else float('nan'))} [{_number(low)}, {_number(high)}] | "
