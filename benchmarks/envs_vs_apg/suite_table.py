@@ -62,6 +62,18 @@ def course(record: dict) -> list[str]:
 FEW_UPDATES = 200  # below this the row says how many updates the budget left (the envs that trained made 900 or more)
 
 
+def few_updates(record: dict) -> bool:
+    """Whether the budget left few updates after set-up and compile (a run that ended on non-finite
+    gradients stopped for that instead)."""
+    return record.get("updates", FEW_UPDATES) < FEW_UPDATES and record.get("status") != "nan"
+
+
+def on_surrogate(record: dict) -> bool:
+    """Whether the run trained on its reward's smooth surrogate (its task summary names one)."""
+    summary = record.get("task_summary", "")
+    return ("smoothed" in summary or "widened" in summary) and not record.get("hyperparams", {}).get("dense_reward")
+
+
 def setting(record: dict) -> str:
     """How a run trained beyond the table's protocol (C at window 128 on the env's own or surrogate
     reward), in words; "" for the protocol itself. Each setting is a row of its own."""
@@ -119,10 +131,8 @@ def levers(record: dict) -> list[str]:
     if standing(record) == "above" and share is not None and share >= 0.8:
         return []
     final, best = np.asarray(record["final_return_per_seed"], float), np.asarray(record["best_return_per_seed"], float)
-    surrogate = ("smoothed" in record.get("task_summary", "") or "widened" in record.get("task_summary", "")) \
-        and not options.get("dense_reward")
+    surrogate, few = on_surrogate(record), few_updates(record)
     updates, ran = record.get("updates", 0), record.get("status") != "nan"
-    few = updates < FEW_UPDATES and ran
     return [lever for lever, holds in (
         ("a longer budget", few),
         # Slow updates: WalkerStand and WalkerWalk trained further at window 32 than at 128 (the window study).
@@ -148,13 +158,11 @@ def row(record: dict) -> str:
     finite = final[np.isfinite(final)]
     low, high = interval(finite)
     reference = PPO_REFERENCE.get(record["env"])
-    share = "-" if share_of_reference(record) is None else f"{100 * share_of_reference(record):.0f}%"
-    place = standing(record)
-    smoothed = "smoothed" in record.get("task_summary", "") or "widened" in record.get("task_summary", "")
+    share, place, to_try = share_of_reference(record), standing(record), levers(record)
     dense = record.get("hyperparams", {}).get("dense_reward")
     stopped = [update for update in record.get("nan_update_per_seed") or [] if update is not None]
     notes = [note for note, holds in (("trained on its dense variant's reward", dense),
-                                      ("trained on its reward's surrogate", smoothed and not dense),
+                                      ("trained on its reward's surrogate", on_surrogate(record)),
                                       (f"a non-finite loss or flow gradient on {len(stopped)} of {len(final)} seeds (first at updates "
                                        f"{min(stopped or [0])}-{max(stopped or [0])})"
                                        + ("; the run ended once every seed had met one" if record.get("status") == "nan" else ""),
@@ -163,14 +171,12 @@ def row(record: dict) -> str:
                                       (f"final interval {place} the initial return", place is not None),
                                       # Why an env may not have trained: the budget left few updates after set-up and compile.
                                       (f"{record.get('updates')} update{'' if record.get('updates') == 1 else 's'}, after {_number(record.get('compile_s'), 0)} s of the "
-                                       f"{record['budget_s']:.0f} s set up and compiling", record.get("updates", FEW_UPDATES) < FEW_UPDATES
-                                       and record.get("status") != "nan"))
-             if holds] + course(record)
-    notes += [f"to try: {', '.join(levers(record))}"] if levers(record) else []
+                                       f"{record['budget_s']:.0f} s set up and compiling", few_updates(record)))
+             if holds] + course(record) + ([f"to try: {', '.join(to_try)}"] if to_try else [])
     steps = record.get("env_steps_per_s_per_seed")
     return (f"| {labelled(record)} | {len(seeds)} | {record['budget_s']:.0f} | {_number(initial.mean())} | "
             f"{_number(finite.mean() if finite.size else float('nan'))} [{_number(low)}, {_number(high)}] | "
-            f"{_number(np.nanmean(best))} | {reference or '-'} | {share} | {_number(steps, 0)} | "
+            f"{_number(np.nanmean(best))} | {reference or '-'} | {'-' if share is None else f'{100 * share:.0f}%'} | {_number(steps, 0)} | "
             f"{_number(record.get('compile_s'), 0)} | {'; '.join(notes)} |")
 
 

@@ -148,4 +148,3 @@ if __name__ == "__main__":
     from stablebptt.cli import stop_at_once_on_interrupt
     stop_at_once_on_interrupt()
     sys.exit(main(sys.argv[1:]))
-
