@@ -356,7 +356,7 @@ def _handle_cache_faults(directory: Path, note: Callable[[str], None]) -> None:
 class EpochProgress:
     """A progress bar over epochs with the current test loss, and the time to the first update.
 
-    ``on_compiled`` and ``on_epoch`` are ``fitting.train_epochs``'s callbacks; ``write``
+    ``on_compiled`` and ``on_epoch`` are ``runs.epochs.train_epochs``'s callbacks; ``write``
     prints a line without breaking the bar.
     """
 
@@ -377,13 +377,16 @@ class EpochProgress:
         import numpy as np
         if epoch == self.initial + 1:  # an epoch is one program: its first update is timed as its share
             first_update = self.compiled["ready"] + metrics["seconds"] / self.updates
+            evaluated = metrics.get("eval_seconds", 0.0)  # 0: evaluated inside the epoch, or not at all
             self.write(f"time to the first update: {first_update:.0f} s (compiling {self.compiled['seconds']:.0f} s; "
-                       f"the first epoch, {self.updates} updates and the train and test losses, "
-                       f"{metrics['seconds']:.1f} s)", sys.stdout)
+                       f"the first epoch, {self.updates} update{'s' if self.updates != 1 else ''}"
+                       + (f", {metrics['seconds']:.1f} s, its evaluation {evaluated:.2g} s)" if evaluated else
+                          f" and the train and test losses, {metrics['seconds']:.1f} s)"), sys.stdout)
         if metrics.get("notice"):  # a non-finite flow gradient left at zero: said, never silent
             self.write(f"epoch {epoch}: {metrics['notice']}")
         self.bar.update(1)
-        self.bar.set_postfix(test_loss=f"{float(np.mean(metrics['test_loss'])):.4g}")
+        if np.all(np.isfinite(metrics["test_loss"])):  # an epoch without an evaluation has none
+            self.bar.set_postfix(test_loss=f"{float(np.mean(metrics['test_loss'])):.4g}")
 
     def close(self) -> None:
         self.bar.close()

@@ -4,7 +4,7 @@ Each model (``train.py --model``) or environment (``train.py --env``) is trained
 empty compile cache, then WARM, the same command again with the cache the cold run filled. The
 times come from the command's own progress callbacks (``stablebptt.cli.EpochProgress``): set-up
 (from the process's start to the start of compiling: imports, the model, the scene analysis,
-tracing), compiling (``fitting.train_epochs``'s ahead-of-time compile of the epoch) and the first
+tracing), compiling (``runs.epochs.train_epochs``'s ahead-of-time compile of the epoch) and the first
 epoch's share of one update. ``scripts/bench.py --startup`` runs the processes; this module names
 the models and environments and writes the table and its record.
 """

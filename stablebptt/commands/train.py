@@ -21,7 +21,8 @@ from stablebptt.engine.config import TrainConfig
 from stablebptt.runs import epochs
 
 RUNS_ROOT = Path("runs")
-RESUMABLE = {"epochs"}  # what --resume may change: extending a finished run
+RESUMABLE = {"epochs", "budget"}  # what --resume may change: extending a run, in epochs or in time
+UNTIL_BUDGET = 1_000_000  # the epochs of a run given --budget and no --epochs
 
 
 def parse(argv: list[str]):
@@ -43,7 +44,7 @@ def configure(args, owners):
     if args.resume is not None:
         changed = sorted(set(given) - RESUMABLE)
         if changed or args.out is not None or args.task is not None:
-            fail(f"--resume continues a run with its saved configuration; only --epochs may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
+            fail(f"--resume continues a run with its saved configuration; only --epochs and --budget may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
         from stablebptt.apps.trained import configs_of
         from stablebptt.runs import run_folder
         record = run_folder.open_run(args.resume)
@@ -55,7 +56,9 @@ def configure(args, owners):
         return task_name, task_config, train_config, args.resume, record
     task_name = task_options.choose_task(args, owners, "train")
     module = tasks.load(task_name)
-    train_config = build(TrainConfig, {"epochs": module.DEFAULT_EPOCHS, **getattr(module, "TRAIN_DEFAULTS", {}), **given})
+    # A budget alone bounds the run in time: it trains until the budget is spent.
+    epochs = UNTIL_BUDGET if "budget" in given and given["budget"] > 0 else module.DEFAULT_EPOCHS
+    train_config = build(TrainConfig, {"epochs": epochs, **getattr(module, "TRAIN_DEFAULTS", {}), **given})
     task_config = task_options.task_config(task_name, given)
     from stablebptt.engine.checks import check_options
     check_options(train_config, task_config)  # a resumed run keeps what it recorded
@@ -104,6 +107,11 @@ def train(argv: list[str], held: list) -> int:
         print(f"training on carried episodes: {train_config.batch} per seed, each update one window of "
               f"{task.dynamics.horizon} steps from where they stand{extras}, {begun.trainer.updates_per_epoch} updates "
               f"an epoch (--episodes off: one window from fixed starts)")
+    if len(seeds) > 1:
+        from stablebptt.engine.config import seed_batching
+        print(f"{len(seeds)} seeds in one program, " + (
+            "batched (vmap; --seed-batching map: one after another, each bit-identical to the seed trained alone)"
+            if seed_batching(train_config) == "vmap" else "one after another (map), each bit-identical to the seed trained alone"))
     if start_epoch == train_config.epochs and resuming:
         mean, std = metrics.final_mean_std(rows) if len(rows) else (float("nan"), 0.0)
         print(f"done already: {task_label}, {_epochs(start_epoch)}, final test loss {mean:.4g} -> {run_dir}")
@@ -116,7 +124,8 @@ def train(argv: list[str], held: list) -> int:
         with stop_on_signals(progress.write) as should_stop:
             outcome = in_worker_thread(lambda: epochs.train_epochs(*begun.training_arguments(), progress.on_epoch,
                                                                    progress.on_compiled, should_stop, run.owner,
-                                                                   begun.program_key, begun.lowered))
+                                                                   begun.program_key, begun.lowered, started,
+                                                                   begun.phases))
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     except jax.errors.JaxRuntimeError as error:
@@ -132,6 +141,8 @@ def train(argv: list[str], held: list) -> int:
     if outcome.status == "interrupted":
         print(outcome.message, file=sys.stderr)
         return 130
+    if outcome.status == "budget":
+        print(outcome.message)
     from stablebptt.reports.plots import plot_run
     plot_run(run_dir)
     mean, std = metrics.final_mean_std(outcome.rows)

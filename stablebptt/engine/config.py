@@ -14,13 +14,14 @@ from stablebptt.errors import InputError, config_field
 from stablebptt.flows.modes import MODE_TABLE, MODES
 
 CLIP_MODES = ("value", "norm", "none")
-SEED_BATCHING = ("map", "vmap")
+SEED_BATCHING = ("auto", "map", "vmap")
 EPOCH_PROGRAMS = ("auto", "whole", "per-update")
 EPISODE_CHOICES = ("auto", "on", "off")
 NONFINITE_FLOW_CHOICES = ("stop", "zero")
 # What a run's record that lacks a field trained with: the field came later, and its default is not
 # what such a run did (an environment's run before episode training trained from fixed resets).
-RECORDED_BEFORE = {"episodes": "off"}
+# A run recorded before evaluations had a cadence evaluated inside every epoch.
+RECORDED_BEFORE = {"episodes": "off", "eval_every": "epoch"}
 # Operations in one traced step above which a scene counts as large: ``epoch_program="auto"``
 # compiles it per update, and forward mode pushes all its tangents in one pass. XLA's CPU compiler
 # can take many minutes and gigabytes for a program that inlines a contact model's step many times
@@ -53,13 +54,15 @@ class TrainConfig:
     x64: bool = field(default=False, metadata={"help": "run everything in float64"})
     unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Plan.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
-    seed_batching: str = field(default="map", metadata={"help": "how seeds share one program: map (one after another, each bit-identical to the seed trained alone) or vmap (batched: faster per seed, equal to a solo run only to float rounding)", "choices": SEED_BATCHING})
+    seed_batching: str = field(default="auto", metadata={"help": "how seeds share one program: vmap (batched: on a GPU an update of 5 seeds costs little more than one seed's; equal to a solo run only to float rounding), map (one after another, each bit-identical to the seed trained alone), auto (vmap for several seeds)", "choices": SEED_BATCHING})
     episodes: str = field(default="auto", metadata={"help": "on: train on whole episodes, --batch states carried from update to update, each update one window of the horizon from where they stand, an episode reset when it ends, an epoch one episode's length of windows; off: the paper's protocol, one window from each of the fixed training states; auto: on for tasks with episodes (environments), off for the others", "choices": EPISODE_CHOICES})
     action_noise: float = field(default=0.0, metadata={"help": "training on episodes: standard deviation of Gaussian noise added to every action of a training window (exploration; evaluation stays deterministic)"})
     critic: bool = field(default=False, metadata={"help": "training on episodes: add a learned value of the window's last state to each window's return (short-horizon actor-critic), the critic fitted to TD(lambda) targets of the windows' rewards"})
     critic_lr: float = field(default=1e-3, metadata={"help": "the critic's Adam learning rate"})
     td_lambda: float = field(default=0.95, metadata={"help": "lambda of the critic's TD(lambda) targets, in [0, 1]"})
     nonfinite_flows: str = field(default="stop", metadata={"help": "stop: a non-finite gradient of any computed flow stops training, also where the update stays finite; zero (mode C): its components, which C's sign agreement turns into zero updates, are left at zero and training goes on, each epoch where it happened named in a line", "choices": NONFINITE_FLOW_CHOICES})
+    budget: float = field(default=0.0, metadata={"help": "wall-clock seconds from the command's start (set-up and compile included) after which training stops once the epoch running ends, evaluates and saves; --resume DIR --budget S trains S seconds more (0: no budget)"})
+    eval_every: str = field(default="auto", metadata={"help": "when the train and test returns are evaluated: epoch (at every epoch's end, inside its program: the paper's test loss per epoch), N (updates: at the first epoch's end past every N), Ns (seconds of training), auto (epoch from fixed starts; on episodes, as often as keeps the evaluations within a tenth of the run); the last epoch is always evaluated"})
     epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations, and on a CPU of several cores for steps with a constraint solver (update and evaluation compile side by side)", "choices": EPOCH_PROGRAMS})
 
     def __post_init__(self):
@@ -94,15 +97,42 @@ class TrainConfig:
                                  + (f" with {config_field(self, 'seeds')} {self.seeds}" if name == "seed" else "")
                                  + f", got {getattr(self, name)}")
         if self.seed_batching not in SEED_BATCHING:
-            raise InputError(f"unknown seed batching {self.seed_batching!r}: choose map or vmap")
+            raise InputError(f"unknown seed batching {self.seed_batching!r}: choose one of {', '.join(SEED_BATCHING)}")
         if self.epoch_program not in EPOCH_PROGRAMS:
             raise InputError(f"unknown epoch program {self.epoch_program!r}: choose one of {', '.join(EPOCH_PROGRAMS)}")
         if self.episodes not in EPISODE_CHOICES:
             raise InputError(f"unknown {config_field(self, 'episodes')} {self.episodes!r}: choose one of {', '.join(EPISODE_CHOICES)}")
         if self.nonfinite_flows not in NONFINITE_FLOW_CHOICES:
             raise InputError(f"unknown {config_field(self, 'nonfinite_flows')} {self.nonfinite_flows!r}: choose stop or zero")
+        if not (math.isfinite(self.budget) and self.budget >= 0):
+            raise InputError(f"{config_field(self, 'budget')} must be a number of seconds >= 0 (0: no budget), got {self.budget}")
+        eval_cadence(self)  # refuses a cadence it cannot read
         if self.episodes == "off":
             check_batches(self)
+
+
+# The evaluations' share of a run that eval_every "auto" keeps to, training on episodes.
+EVALUATION_SHARE = 0.1
+
+
+def eval_cadence(config: TrainConfig, episodes: bool = True) -> tuple[str, float]:
+    """When ``config`` evaluates (``TrainConfig.eval_every``) a run that trains on episodes or not:
+    ("epoch", 0) inside every epoch, ("updates", N), ("seconds", S) of training, or ("share", f): as often
+    as keeps the evaluations within the share f of the training time."""
+    text = config.eval_every.strip()
+    if text == "auto":
+        return ("share", EVALUATION_SHARE) if episodes else ("epoch", 0.0)
+    if text == "epoch":
+        return "epoch", 0.0
+    kind, number = ("seconds", text[:-1]) if text.endswith("s") else ("updates", text)
+    try:
+        value = float(number) if kind == "seconds" else int(number)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(f"{config_field(config, 'eval_every')} must be epoch, auto, a number of updates (10) or of "
+                         f"seconds (30s), got {config.eval_every!r}")
+    return kind, float(value)
 
 
 def check_batches(config: TrainConfig) -> None:
@@ -110,6 +140,17 @@ def check_batches(config: TrainConfig) -> None:
     if config.train_size % config.batch:
         raise InputError(f"{config_field(config, 'batch')} {config.batch} does not divide the {config.train_size} "
                          "training states: pick a divisor")
+
+
+def seed_batching(config: TrainConfig) -> str:
+    """How ``config``'s seeds share one program: "vmap" or "map" (``TrainConfig.seed_batching``).
+
+    "auto" batches several seeds (vmap): on a GPU, mapped seeds run one after another, 5 seeds 5x
+    one seed's time per update (docs/performance.md, "Seeds in one program"); on a CPU vmap is as
+    fast or faster. Map is for seeds bit-identical to the same seed trained alone."""
+    if config.seed_batching != "auto":
+        return config.seed_batching
+    return "vmap" if config.seeds > 1 else "map"
 
 
 def seed_array(config: TrainConfig) -> jax.Array:

@@ -14,11 +14,11 @@ import jax
 import numpy as np
 
 from stablebptt.engine.checks import check_options, tracing_shapes
-from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.config import TrainConfig, eval_cadence, seed_array
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
-from stablebptt.engine.program_store import cache_dir, lower_epoch
+from stablebptt.engine.program_store import cache_dir, compile_epoch, lower_epoch
 from stablebptt.engine.training import FLOW_BITS, Trainer, make_trainer, nonfinite_names
-from stablebptt.timing import compile_ahead
+from stablebptt.errors import InputError
 
 
 def nonfinite_message(flows: tuple[str, ...], metrics: dict) -> str:
@@ -55,6 +55,10 @@ def fit(
     diverged: Callable[[dict], str] = lambda metrics: "",
     checkpoint_seconds: float = 0.0,
     noticed: Callable[[dict], str] = lambda metrics: "",
+    evaluate: Callable[[Any, dict, int, float, bool], tuple[dict, float]] = lambda state, metrics, epoch, seconds,
+    final: (metrics, 0.0),
+    out_of_time: Callable[[], bool] = lambda: False,
+    steps_per_epoch: int = 0,
 ) -> tuple[str, int, Any, np.ndarray, str]:
     """The epoch loop: epochs ``start_epoch+1 .. epochs``, checkpointing, stopping and divergence.
 
@@ -75,10 +79,14 @@ def fit(
         dropped, the last good one saved), else "".
       noticed: a message on an epoch that is kept but must not pass in silence (a non-finite flow
         gradient left at zero), else ""; ``on_epoch`` gets it under ``"notice"``.
+      evaluate: ``evaluate(state, metrics, epoch, seconds, final) -> (metrics, seconds evaluating)``
+        after every epoch, ``final`` on the last one a run trains (``Evaluations``).
+      out_of_time: polled after every epoch; true evaluates, saves and stops (a wall-clock budget).
+      steps_per_epoch: env steps a seed trains per epoch, counted in the rows (0: none to count).
 
     Returns:
       (status, last saved epoch, state, rows, message); status "complete",
-      "interrupted" or "diverged".
+      "interrupted", "budget" or "diverged".
     """
     saved_epoch = start_epoch if start_epoch > 0 else -1  # a start past epoch 0 comes from a checkpoint
     last_save = time.monotonic()
@@ -104,20 +112,65 @@ def fit(
         started = time.perf_counter()
         new_state, metrics = run_epoch(state)
         seconds = time.perf_counter() - started
+        stopping, spent = should_stop(), out_of_time()
+        metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or spent)
         problem = diverged(metrics)
         if problem:
             checkpoint(epoch - 1, state)
             return "diverged", epoch - 1, state, all_rows(), problem
         state = new_state
-        blocks.append(epoch_rows(epoch, row_ids, metrics, seconds))
-        stopping = should_stop()
+        blocks.append(epoch_rows(epoch, row_ids, metrics, seconds, eval_seconds,
+                                 epoch * steps_per_epoch if steps_per_epoch else np.nan))
         due = epoch % checkpoint_every == 0 and time.monotonic() - last_save >= checkpoint_seconds
-        if due or epoch == epochs or stopping:
+        if due or epoch == epochs or stopping or spent:
             checkpoint(epoch, state)
-        on_epoch(epoch, {**metrics, "seconds": seconds, "notice": noticed(metrics)})
-        if stopping:
-            return "interrupted", epoch, state, all_rows(), ""
+        on_epoch(epoch, {**metrics, "seconds": seconds, "eval_seconds": eval_seconds, "notice": noticed(metrics)})
+        if stopping or spent:
+            return "interrupted" if stopping else "budget", epoch, state, all_rows(), ""
     return "complete", epoch, state, all_rows(), ""
+
+
+class Evaluations:
+    """A trainer's evaluations made apart from its epochs (``Trainer.evaluation``), on its cadence
+    (``TrainConfig.eval_every``): ``fit``'s ``evaluate``. A trainer that evaluates inside every epoch
+    passes its metrics through."""
+
+    def __init__(self, trainer: Trainer, config: TrainConfig):
+        self.program = trainer.evaluation
+        self.cadence, self.every = eval_cadence(config, trainer.episodes is not None)
+        self.updates = trainer.updates_per_epoch
+        self.arguments = (trainer.train_states, trainer.test_states)
+        self.training = 0.0  # seconds trained since the last evaluation
+        self.last = None  # seconds the last evaluation took
+
+    def compile(self, state: Any) -> float:
+        """Compile the evaluation for ``state``'s parameters ahead; the seconds it took (0 where there is none)."""
+        if self.program is None:
+            return 0.0
+        started = time.perf_counter()
+        self.program = self.program.lower(state.params, *self.arguments).compile()
+        return time.perf_counter() - started
+
+    def due(self, epoch: int) -> bool:
+        if self.cadence == "updates":  # counted from the run's start: a resumed run evaluates where it would have
+            return epoch * self.updates // self.every > (epoch - 1) * self.updates // self.every
+        if self.cadence == "seconds":
+            return self.training >= self.every
+        # "share": the evaluations' time within that share of the training and evaluating time
+        return self.last is None or self.last <= self.every * (self.training + self.last)
+
+    def __call__(self, state: Any, metrics: dict, epoch: int, seconds: float, final: bool) -> tuple[dict, float]:
+        if self.program is None:
+            return metrics, 0.0
+        self.training += seconds
+        if not (final or self.due(epoch)):
+            return metrics, 0.0
+        started = time.perf_counter()
+        evaluated = jax.device_get(self.program(state.params, *self.arguments))
+        self.last, self.training = time.perf_counter() - started, 0.0
+        return {**metrics, "train_loss": evaluated["train_loss"], "test_loss": evaluated["test_loss"],
+                "finite": np.logical_and(metrics["finite"], evaluated["finite"]),
+                "nonfinite": np.bitwise_or(metrics["nonfinite"], evaluated["nonfinite"])}, self.last
 
 
 class LoweredEpoch(NamedTuple):
@@ -137,13 +190,89 @@ def state_shapes(trainer: Trainer, seeds: Any) -> Any:
         return jax.eval_shape(lambda seeds: init(seeds), seeds)
 
 
-def settled_trainer(task: Any, trainer: Trainer, config: TrainConfig) -> tuple[Any, Trainer]:
-    """``task`` once its check left running has answered (``Task.settled``, which may refuse it), with
-    ``trainer`` built for it, or a new one where the check smoothed its reward (another step). A
-    smoothed reward's task is still checking its surrogate beside the caller: ``settled_fully()``
-    waits for that check (and may refuse it) once the new trainer's program is traced."""
-    settled = task.settled()
-    return settled, trainer if settled.dynamics.step is task.dynamics.step else make_trainer(settled, config)
+class Prepared(NamedTuple):
+    """A task settled and its trainer built, in the order a run starts (``prepare``)."""
+
+    task: Any  # settled: its checks answered (a refusal raised), its reward smoothed where they said so
+    trainer: Trainer
+    lowered: LoweredEpoch | None  # the trainer's epoch traced and lowered, where asked for
+    program_key: dict | None  # what decides the run's programs, a smoothed reward's included
+    phases: dict[str, float]  # seconds of each start-up phase, in the order they ran
+
+
+def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, lower: bool = True) -> Prepared:
+    """A run's start, in the order it happens: the trainer built and (``lower``) its epoch traced while
+    a check the task left running compiles beside (``Task.settle``: an environment's reward diagnosis);
+    the check's answer, which may refuse the task; where the check smoothed the reward, the trainer
+    built and traced again for the task as settled, while the surrogate's own check runs beside; that
+    check's answer. ``program_key`` as ``train_epochs`` takes it.
+
+    Raises:
+      InputError: the task refused by its checks, or by the trainer's set-up, named.
+    """
+    phases: dict[str, float] = {}
+    lap = _lap_clock(phases)
+    program_key = _smoothed_key(program_key, task)
+
+    def build(task):
+        try:
+            return make_trainer(task, config, keep=program_key)
+        except InputError as error:  # the memory plan may refuse the scene
+            raise InputError(f"{task.name}: {error}") from None
+
+    trainer = build(task)
+    lap("trainer set-up")
+    built = task
+    task = task.settled(wait=False)  # a check that has answered by now (a refusal) ends the run here
+    lowered = lowered_epoch(trainer, config, program_key) if lower else None
+    lap("trace")
+    task = task.settled()  # a reward without a usable gradient is refused here
+    lap("check's wait")
+    if task.dynamics.step is not built.dynamics.step:  # the check smoothed the reward: train the task as settled
+        program_key = _smoothed_key(program_key, task)
+        trainer = build(task)
+        lowered = lowered_epoch(trainer, config, program_key) if lower else None
+        lap("surrogate's trace")
+    task = task.settled_fully()  # the surrogate's own check, compiled beside that trace, may refuse it here
+    lap("surrogate check's wait")
+    return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
+
+
+def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = None,
+                   program_key: dict | None = None) -> tuple[Callable, float]:
+    """The trainer's epoch compiled for ``state`` and the seconds it took: ``lowered``'s where it was
+    lowered for states of ``state``'s shapes, else traced anew (kept under ``program_key``: ``program_store``)."""
+    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
+    # Leaves alone: a carried env state's tree holds NumPy arrays in its static fields, which == cannot compare.
+    leaf_shapes = lambda tree: [_shape_of(leaf) for leaf in jax.tree.leaves(tree)]  # noqa: E731
+    if lowered is not None and leaf_shapes(state) == leaf_shapes(lowered.shapes):
+        started = time.perf_counter()
+        epoch_fn = lowered.lowered.compile()
+        return epoch_fn, time.perf_counter() - started
+    return compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(), trainer.compiler_options)
+
+
+def _shape_of(leaf) -> tuple:
+    # A checkpoint's NumPy arrays carry no weak type where init's may: such a state is lowered anew.
+    return leaf.shape, leaf.dtype, bool(getattr(leaf, "weak_type", False))
+
+
+def _smoothed_key(program_key: dict | None, task: Any) -> dict | None:
+    """The key of a run's kept programs: a task that trains a smoothed reward (``env_task(smoothing=...)``)
+    steps through other programs than the same config's unsmoothed task."""
+    smoothing = getattr(task, "resolved", {}).get("reward_smoothing")
+    return program_key if program_key is None or smoothing is None else {**program_key, "reward_smoothing": smoothing}
+
+
+def _lap_clock(phases: dict[str, float]) -> Callable[[str], None]:
+    """``lap(name)`` adds the seconds since the previous lap (the first: since this call) to ``phases[name]``."""
+    last = [time.perf_counter()]
+
+    def lap(name: str) -> None:
+        now = time.perf_counter()
+        phases[name] = phases.get(name, 0.0) + now - last[0]
+        last[0] = now
+    return lap
 
 
 def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | None = None) -> LoweredEpoch:
@@ -180,21 +309,31 @@ class NonFiniteFlowWarning(RuntimeWarning):
 
 
 def train(task: Any, config: TrainConfig = TrainConfig(),
-          on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None) -> Trained:
+          on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None,
+          progress_fn: Callable[[int, dict], None] | None = None,
+          should_stop: Callable[[], bool] = lambda: False) -> Trained:
     """Train ``task``'s controller in memory, with no run folder, and return the result.
 
     Args:
       task: a ``Task``: dynamics (policy, step, loss, horizon), network initialiser
         and initial-state sampler.
-      config: a ``TrainConfig`` (gradient flow ``mode``, ``epochs``, sizes, seeds, ...).
+      config: a ``TrainConfig`` (gradient flow ``mode``, ``epochs``, sizes, seeds, a wall-clock
+        ``budget`` counted from this call, ``eval_every``, ...).
         With ``x64`` the call trains in float64 while JAX runs in float32 elsewhere
         (``jax.enable_x64`` for the call alone; the parameters come back as float64
         NumPy arrays). Arrays the task made before are float32 and used as such:
         for float64 physics constants too, build the task under ``jax.enable_x64(True)``.
-      on_epoch: called after every epoch with its metrics (arrays over seeds).
+      on_epoch: called after every epoch with its metrics (arrays over seeds; ``seconds`` and
+        ``eval_seconds`` its training and evaluation time).
+      progress_fn: Brax's convention, ``progress_fn(env_steps, metrics)`` after every epoch: each
+        seed's env steps so far (episodes: windows times states times steps; fixed starts: the
+        training states' rollouts) and that epoch's metrics.
+      should_stop: polled as every epoch's updates end (before ``on_epoch`` hears of it) and before
+        the next: true ends training there, with that epoch evaluated, as the budget does.
 
     Returns:
-      A ``Trained``: parameters with a leading seed axis and metrics ``[epochs, seeds]``.
+      A ``Trained``: parameters with a leading seed axis and metrics ``[epochs, seeds]`` (an epoch
+      trained without an evaluation has NaN train and test losses).
 
     Raises:
       TrainingDiverged: a loss, update or gradient of a computed flow was not finite.
@@ -206,25 +345,28 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
       result = stablebptt.train(task, stablebptt.TrainConfig(mode="C", epochs=50))
       print(result.test_loss[-1])
     """
+    started = time.perf_counter()
     if isinstance(config, TrainConfig):  # anything else make_trainer names
         check_options(config)
         if config.x64 and not jax.config.jax_enable_x64:
             with jax.enable_x64(True):  # the user's own setting is back when the call ends
-                trained = _train(task, config, on_epoch)
+                trained = _train(task, config, on_epoch, progress_fn, should_stop, started)
                 return trained._replace(params=jax.device_get(trained.params))
-    return _train(task, config, on_epoch)
+    return _train(task, config, on_epoch, progress_fn, should_stop, started)
 
 
-def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]) -> Trained:
-    started = time.perf_counter()
-    # A check left running (an environment's reward diagnosis) may refuse the task here, or smooth its reward.
-    task, trainer = settled_trainer(task, make_trainer(task, config), config)
+def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None],
+           progress_fn: Callable[[int, dict], None] | None, should_stop: Callable[[], bool], started: float) -> Trained:
+    prepared = prepare(task, config)  # a check left running may refuse the task here, or smooth its reward
+    task, trainer = prepared.task, prepared.trainer
     seeds = np.asarray(seed_array(config))
     state = trainer.init(seed_array(config))
+    epoch_fn, _ = compiled_epoch(trainer, state, prepared.lowered)
+    evaluations = Evaluations(trainer, config)
+    evaluations.compile(state)
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    epoch_fn, _ = compile_ahead(trainer.epoch, state, *arguments)
-    task = task.settled_fully()  # a smoothed reward's surrogate, checked beside that compile, may refuse it here
     first_update = 0.0  # seconds from the call to the end of the first epoch
+    steps = env_steps_per_epoch(trainer, config)
 
     def run_epoch(state):
         nonlocal first_update
@@ -239,11 +381,27 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
             warnings.warn(f"{task.name}: {notice}", NonFiniteFlowWarning, stacklevel=2)
         return notice
 
+    def reported(epoch, metrics):
+        on_epoch(epoch, metrics)
+        if progress_fn is not None:
+            progress_fn(epoch * steps, metrics)
+
     status, epoch, state, rows, problem = fit(run_epoch, state, 0, config.epochs, empty_rows(), seeds,
-                                              lambda *saved: None, config.epochs, on_epoch=on_epoch,
+                                              lambda *saved: None, config.epochs, should_stop, reported,
                                               diverged=lambda metrics: nonfinite_message(trainer.flows, metrics),
-                                              noticed=noticed)
+                                              noticed=noticed, evaluate=evaluations,
+                                              out_of_time=out_of_time(config, started), steps_per_epoch=steps)
     if status == "diverged":
         raise TrainingDiverged(f"{task.name}: {problem} at epoch {epoch + 1} (TrainConfig.mode {config.mode!r})")
     per_epoch = {name: rows[:, COLUMNS.index(name)].reshape(epoch, len(seeds)) for name in METRICS}
     return Trained(state.params, per_epoch, first_update)
+
+
+def env_steps_per_epoch(trainer: Trainer, config: TrainConfig) -> int:
+    """The env steps each seed simulates in an epoch's training (its evaluations not counted)."""
+    return trainer.updates_per_epoch * config.batch * trainer.horizon
+
+
+def out_of_time(config: TrainConfig, started: float) -> Callable[[], bool]:
+    """Whether ``config.budget`` seconds have passed since ``started`` (a ``time.perf_counter()``); never without one."""
+    return lambda: bool(config.budget) and time.perf_counter() - started >= config.budget

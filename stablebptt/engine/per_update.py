@@ -23,7 +23,8 @@ class PerUpdateEpoch:
     compile side by side.
     """
 
-    def __init__(self, update: Callable, evaluate: Callable, epoch_metrics: Callable):
+    def __init__(self, update: Callable, evaluate: Callable | None, epoch_metrics: Callable):
+        # evaluate None: the epoch runs its updates alone (the trainer evaluates apart, ``Trainer.evaluation``).
         self.update, self.evaluate, self.epoch_metrics = update, evaluate, epoch_metrics
 
     def __call__(self, state, batches, train_states, test_states):
@@ -32,6 +33,8 @@ class PerUpdateEpoch:
             state, output = self.update(state, jax.tree.map(lambda a, i=index: a[i], batches))
             outputs.append(output)
         per_update = jax.tree.map(lambda *each: jnp.stack(each, axis=1), *outputs)  # [seeds, updates]
+        if self.evaluate is None:
+            return state, self.epoch_metrics(state, per_update)
         return state, self.epoch_metrics(state, per_update, self.evaluate(state.params, train_states, test_states))
 
     def lower(self, state, batches, train_states, test_states, lower_one: Callable | None = None):
@@ -45,6 +48,10 @@ class PerUpdateEpoch:
         arguments, name)``; each compiled program knows its outputs' shapes: nothing is traced twice."""
         state, batches, train_states, test_states = arguments
         update = lower_one(self.update, (state, jax.tree.map(lambda a: a[0], batches)), "update")
+        if self.evaluate is None:
+            update = update.compile()
+            metrics = lower_one(self.epoch_metrics, (state, _stacked(update.out_info[1], batches)), "epoch_metrics")
+            return PerUpdateEpoch(update, None, metrics.compile())
         evaluate = lower_one(self.evaluate, (state.params, train_states, test_states), "evaluate")
         if compile_side_by_side():
             with concurrent.futures.ThreadPoolExecutor(1) as beside:
@@ -53,8 +60,7 @@ class PerUpdateEpoch:
                 evaluate = evaluate.result()
         else:
             update, evaluate = update.compile(), evaluate.compile()
-        per_update = jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], _updates(batches)) + a.shape[1:], a.dtype),
-                                  update.out_info[1])
+        per_update = _stacked(update.out_info[1], batches)
         losses = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), evaluate.out_info)
         metrics = lower_one(self.epoch_metrics, (state, per_update, losses), "epoch_metrics").compile()
         return PerUpdateEpoch(update, evaluate, metrics)
@@ -74,6 +80,12 @@ def compile_side_by_side() -> bool:
     several cores compiles the evaluation beside the update. Not on one core (two compiles' memory
     for nothing), nor on a GPU, whose kernel autotuning would time candidates against each other."""
     return jax.default_backend() == "cpu" and usable_cores() > 1
+
+
+def _stacked(output_info: PyTree, batches: PyTree) -> PyTree:
+    """The shapes of an epoch's update outputs stacked [seeds, updates, ...] from one update's."""
+    return jax.tree.map(lambda a: jax.ShapeDtypeStruct((a.shape[0], _updates(batches)) + a.shape[1:], a.dtype),
+                        output_info)
 
 
 def _updates(batches: PyTree) -> int:

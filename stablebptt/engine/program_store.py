@@ -43,8 +43,9 @@ def run_key(task_module, task_name: str, task_config, train_config) -> dict | No
     inputs = getattr(task_module, "program_inputs", lambda config: None)(task_config)
     if inputs is None:
         return None
-    return {"task": task_name, "task_config": dataclasses.asdict(task_config),
-            "train": dataclasses.asdict(train_config), "inputs": inputs}
+    # The budget decides when a run stops, not what it compiles.
+    train = {name: value for name, value in dataclasses.asdict(train_config).items() if name != "budget"}
+    return {"task": task_name, "task_config": dataclasses.asdict(task_config), "train": train, "inputs": inputs}
 
 
 def cache_dir() -> Path | None:

@@ -17,7 +17,7 @@ import optax
 
 from stablebptt.engine.checks import check_task
 from stablebptt.engine.compiling import compiler_options, run_plan, step_size
-from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches
+from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches, eval_cadence, seed_batching
 from stablebptt.engine.critic import bootstrap, fit_to_window, init_critic
 from stablebptt.engine.episodes import (
     Episodes,
@@ -46,6 +46,15 @@ class TrainState(NamedTuple):
     critic: PyTree = None  # with ``TrainConfig.critic``: the learned value at a window's end (``Critic``)
 
 
+class UpdateOutput(NamedTuple):
+    """What one update reports of itself (per seed; stacked over an epoch's updates)."""
+
+    loss: jax.Array  # the window's loss (training on episodes: its negative return)
+    update_norm: jax.Array  # the global norm of the update applied
+    cosine: jax.Array  # cosine of g_M and g_R (NaN where they are not both computed)
+    flows_finite: jax.Array  # bool [flows]: each computed flow's gradient finite
+
+
 class Trainer(NamedTuple):
     """Compiled pieces of a run. Every function maps over a leading seed axis.
 
@@ -66,6 +75,11 @@ class Trainer(NamedTuple):
     plan: Plan  # how every function differentiates and rolls out the task
     compiler_options: dict | None = None  # XLA options every program of the trainer is compiled with
     episodes: Episodes | None = None  # the episodes it carries (``TrainConfig.episodes``); None: fixed starts
+    # With ``evaluation`` (training on episodes, unless every epoch is evaluated) ``epoch`` runs the updates
+    # alone, its train and test losses NaN; ``evaluation(params, train, test) -> metrics [S]`` gives them
+    # (``train_loss``, ``test_loss``, ``finite``, ``nonfinite``) as a program of its own, run on a cadence.
+    evaluation: Callable[..., dict] | None = None
+    horizon: int = 0  # steps of a training rollout (training on episodes: of a window)
 
     @property
     def updates_per_epoch(self) -> int:
@@ -165,7 +179,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         # Every flow's gradient, not only the update: mode C's sign agreement
         # turns a NaN of g_R into a finite zero update.
         flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])
-        return TrainState(params, opt_state, carried, critic), (loss, optax.tree.norm(updates), cosine, flows_finite)
+        return TrainState(params, opt_state, carried, critic), UpdateOutput(loss, optax.tree.norm(updates), cosine,
+                                                                            flows_finite)
 
     def evaluate_both(params, train_states, test_states, dynamics=task.dynamics):
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
@@ -174,32 +189,56 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             return task.evaluation(params, both)
         return reference_losses(dynamics, params, both, plan=plan)
 
-    def epoch_metrics(state, per_update, losses_of_both):
-        """The epoch's metrics from its updates' outputs ([updates] each) and every state's loss."""
-        losses, update_norms, cosines, flows_finite = per_update
+    def loss_checks(losses_of_both):
+        """The train and test losses (means over their states) and whether each is finite."""
         train_loss, test_loss = losses_of_both[:config.train_size].mean(), losses_of_both[config.train_size:].mean()
-        # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
-        # The carried states are not checked: a task's state may hold infinities by design; their losses tell.
-        checks = [jnp.isfinite(losses).all(),
-                  jnp.isfinite(update_norms).all() & _all_finite((state.params, state.opt_state, state.critic)),
-                  jnp.isfinite(train_loss), jnp.isfinite(test_loss)] + list(flows_finite.all(axis=0))
+        return train_loss, test_loss, [jnp.isfinite(train_loss), jnp.isfinite(test_loss)]
+
+    def failed_bits(checks):
+        """(every failed check's bit, those that stop training): the nonfinite metric and the finite flag."""
         failed = sum(jnp.where(ok, 0, 1 << bit) for bit, ok in enumerate(checks))
         # With nonfinite_flows "zero" a flow's non-finite gradient (C's update stays finite) is named, not a stop.
-        stopping = failed if config.nonfinite_flows == "stop" else failed & ((1 << FLOW_BITS) - 1)
+        return failed, failed if config.nonfinite_flows == "stop" else failed & ((1 << FLOW_BITS) - 1)
+
+    def epoch_metrics(state, per_update: UpdateOutput, losses_of_both=None):
+        """The epoch's metrics from its updates' outputs ([updates] each) and every state's loss (None: not
+        evaluated in this epoch, its train and test losses NaN)."""
+        if losses_of_both is None:
+            train_loss = test_loss = jnp.full((), jnp.nan, per_update.loss.dtype)
+            loss_ok = [jnp.array(True), jnp.array(True)]
+        else:
+            train_loss, test_loss, loss_ok = loss_checks(losses_of_both)
+        # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
+        # The carried states are not checked: a task's state may hold infinities by design; their losses tell.
+        checks = ([jnp.isfinite(per_update.loss).all(),
+                   jnp.isfinite(per_update.update_norm).all() & _all_finite((state.params, state.opt_state, state.critic))]
+                  + loss_ok + list(per_update.flows_finite.all(axis=0)))
+        failed, stopping = failed_bits(checks)
         return {
-            "batch_loss": losses.mean(),
+            "batch_loss": per_update.loss.mean(),
             "train_loss": train_loss,
             "test_loss": test_loss,
-            "update_norm": update_norms.mean(),
-            "cosine": cosines.mean(),
+            "update_norm": per_update.update_norm.mean(),
+            "cosine": per_update.cosine.mean(),
             "finite": stopping == 0,
             "nonfinite": failed,  # bit set per failed check, in the order of nonfinite_names(flows)
-            "nonfinite_flow_updates": jnp.sum(~flows_finite.all(axis=1)),  # updates with a non-finite flow gradient
+            "nonfinite_flow_updates": jnp.sum(~per_update.flows_finite.all(axis=1)),  # updates with a non-finite flow gradient
         }
+
+    def evaluation_metrics(params, train_states, test_states):
+        """The train and test losses of an evaluation made apart from the epoch, with their checks' bits."""
+        train_loss, test_loss, loss_ok = loss_checks(evaluate_both(params, train_states, test_states))
+        failed, stopping = failed_bits([jnp.array(True)] * 2 + loss_ok)
+        return {"train_loss": train_loss, "test_loss": test_loss, "finite": stopping == 0, "nonfinite": failed}
+
+    # Training on episodes, an evaluation rolls whole episodes from fresh resets: compiled apart and run on
+    # a cadence (TrainConfig.eval_every) it costs a fraction of the run, where inside every epoch it may cost most.
+    apart = not grid and eval_cadence(config, episodes is not None)[0] != "epoch"
 
     def epoch(state, batches, train_states, test_states, dynamics=task.dynamics):
         state, per_update = jax.lax.scan(lambda s, b: update(dynamics, s, b), state, batches)
-        return state, epoch_metrics(state, per_update, evaluate_both(state.params, train_states, test_states, dynamics))
+        losses = None if apart else evaluate_both(state.params, train_states, test_states, dynamics)
+        return state, epoch_metrics(state, per_update, losses)
 
     def grid_epoch(state, value, batches, train_states, test_states):
         dynamics = task.dynamics if value is None else task.cell_option.dynamics(value)
@@ -207,7 +246,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
 
     def over_seeds(function, mapped=1):
         """Map ``function(*per_seed, *shared)`` over the leading seed axis of its first ``mapped`` arguments."""
-        if config.seed_batching == "vmap":
+        if seed_batching(config) == "vmap":
             return lambda *args: jax.vmap(lambda *per_seed: function(*per_seed, *args[mapped:]))(*args[:mapped])
         # lax.map compiles the single-seed program once and loops it, so each
         # seed's numbers are bit-identical to that seed trained alone; XLA fuses
@@ -221,7 +260,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         epoch_program = jit(over_seeds(epoch))
     else:
         epoch_program = PerUpdateEpoch(jit(over_seeds(functools.partial(update, task.dynamics))),
-                                       jit(over_seeds(evaluate_both)), jit(over_seeds(epoch_metrics, mapped=3)))
+                                       None if apart else jit(over_seeds(evaluate_both)),
+                                       jit(over_seeds(epoch_metrics, mapped=3 if not apart else 2)))
     return Trainer(
         flows=flows,
         init=jit(over_seeds(init)),
@@ -233,6 +273,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         plan=plan,
         compiler_options=options,
         episodes=episodes,
+        evaluation=jit(over_seeds(evaluation_metrics)) if apart else None,
+        horizon=task.dynamics.horizon,
     )
 
 

@@ -190,6 +190,7 @@ class Prepared:
     unroll: int
     padded_cells: int
     compile_seconds: float
+    steps_per_epoch: int  # env steps a cell trains in an epoch
 
 
 def prepare(program: Program, grid: Grid, devices: list) -> Prepared:
@@ -234,7 +235,7 @@ def prepare(program: Program, grid: Grid, devices: list) -> Prepared:
     arguments = (values, trainer.batches, trainer.train_states, trainer.test_states)
     epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)
     return Prepared(program, devices, epoch_fn, arguments, state, start, rows, train_config, unroll, len(cells),
-                    compile_seconds)
+                    compile_seconds, fitting.env_steps_per_epoch(trainer, train_config))
 
 
 def _unpad(tree, count: int):
@@ -269,7 +270,8 @@ def train_prepared(prepared: Prepared, grid: Grid, log: Callable[[str], None],
 
     _, epoch, state, rows, _ = fitting.fit(run_epoch, prepared.state, start, grid.epochs, prepared.rows, cell_index, save,
                                         grid.checkpoint_every, should_stop, report,
-                                        checkpoint_seconds=grid.checkpoint_seconds)
+                                        checkpoint_seconds=grid.checkpoint_seconds,
+                                        steps_per_epoch=prepared.steps_per_epoch)
     return {"complexity": program.values, "epochs_done": int(epoch), "cells": count, "unroll": prepared.unroll,
             "train_config": prepared.train_config, "params": jax.device_get(_unpad(state, count).params),
             "devices": [str(d) for d in prepared.devices], "padded_cells": prepared.padded_cells,

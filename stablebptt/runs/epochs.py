@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from datetime import datetime
 from pathlib import Path
 from typing import Callable, NamedTuple
 
@@ -9,14 +10,31 @@ import jax
 import numpy as np
 
 from stablebptt.engine.config import TrainConfig
-from stablebptt.engine.fitting import LoweredEpoch, fit, nonfinite_message, zeroed_notice
-from stablebptt.engine.program_store import cache_dir, compile_epoch
+from stablebptt.engine.fitting import (
+    Evaluations,
+    LoweredEpoch,
+    compiled_epoch,
+    env_steps_per_epoch,
+    fit,
+    nonfinite_message,
+    out_of_time,
+    zeroed_notice,
+)
 from stablebptt.engine.training import Trainer, TrainState
-from stablebptt.runs.run_folder import METRICS_FILE, PARAMS_FILE, save_checkpoint, save_params, write_metrics
+from stablebptt.errors import InputError
+from stablebptt.runs.run_folder import (
+    METRICS_FILE,
+    PARAMS_FILE,
+    STARTUP_FILE,
+    save_checkpoint,
+    save_params,
+    write_metrics,
+)
+from stablebptt.storage import read_json, write_json
 
 
 class Outcome(NamedTuple):
-    status: str  # "complete", "interrupted" or "diverged"
+    status: str  # "complete", "interrupted", "budget" or "diverged"
     epoch: int  # last epoch whose state is saved
     state: TrainState
     rows: np.ndarray
@@ -37,29 +55,32 @@ def train_epochs(
     owner: str = "",
     program_key: dict | None = None,
     lowered: LoweredEpoch | None = None,
+    started: float | None = None,
+    phases: dict[str, float] | None = None,
 ) -> Outcome:
     """Train one run's seeds to ``config.epochs`` from ``start_epoch``, checkpointing into ``run_dir``.
 
-    Stops early when ``should_stop()`` (after saving; the command line sets it on a
-    signal) or on a non-finite loss or update (keeping the last good checkpoint).
-    ``on_compiled`` gets the seconds the epoch took to compile; ``on_epoch`` the
-    epoch's metrics, with its wall time under ``"seconds"``. Runs in any thread. With ``program_key``
+    Stops early when ``should_stop()`` (after saving; the command line sets it on a signal), when
+    ``config.budget`` seconds have passed since ``started`` (a ``time.perf_counter()``, default now;
+    the command's start), or on a non-finite loss or update (keeping the last good checkpoint). The
+    last epoch trained is always evaluated. ``on_compiled`` gets the seconds the epoch and its
+    evaluation took to compile; ``on_epoch`` the epoch's metrics, with its training and evaluation
+    time under ``"seconds"`` and ``"eval_seconds"``. Runs in any thread. With ``program_key``
     (everything that decides the epoch's program: ``program_store``) and JAX's compile cache on, the
     traced epoch is kept there, and a run with the same key skips tracing it. ``lowered``: the epoch
-    lowered already (``lowered_epoch``), used where ``state`` has its shapes; ``on_compiled`` then
-    gets the seconds of XLA's compile alone (and of a ``PerUpdateEpoch``'s tracing).
+    lowered already (``fitting.prepare``), used where ``state`` has its shapes. ``phases``: the
+    start-up's phases so far (``Prepared.phases``), recorded with the compile's in the run's
+    ``startup.json``.
     """
+    started = time.perf_counter() if started is None else started
+    phases = dict(phases or {})
+    epoch_fn, phases["compile"] = compiled_epoch(trainer, state, lowered, program_key)  # before timing epochs
+    evaluations = Evaluations(trainer, config)
+    phases["evaluation's compile"] = evaluations.compile(state)
+    on_compiled(phases["compile"] + phases["evaluation's compile"])
+    record_start(run_dir, {name: seconds for name, seconds in phases.items() if seconds},
+                 time.perf_counter() - started)
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    # Leaves alone: a carried env state's tree holds NumPy arrays in its static fields, which == cannot compare.
-    leaf_shapes = lambda tree: [_shape_of(leaf) for leaf in jax.tree.leaves(tree)]  # noqa: E731
-    if lowered is not None and leaf_shapes(state) == leaf_shapes(lowered.shapes):
-        started = time.perf_counter()
-        epoch_fn = lowered.lowered.compile()
-        compile_seconds = time.perf_counter() - started
-    else:
-        epoch_fn, compile_seconds = compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(),
-                                                  trainer.compiler_options)  # before timing epochs
-    on_compiled(compile_seconds)
 
     def run_epoch(state):
         new_state, metrics = epoch_fn(state, *arguments)
@@ -77,17 +98,31 @@ def train_epochs(
 
     status, epoch, state, rows, problem = fit(run_epoch, state, start_epoch, config.epochs, rows, seeds, save,
                                               config.checkpoint_every, should_stop, on_epoch, diverged,
-                                              noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds))
+                                              noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds),
+                                              evaluate=evaluations, out_of_time=out_of_time(config, started),
+                                              steps_per_epoch=env_steps_per_epoch(trainer, config))
     if status == "diverged":
         message = (f"{problem.format(epoch=epoch + 1)}; stopped, the last good checkpoint (epoch {epoch}) "
                    f"is kept in {run_dir}")
     elif status == "interrupted":
         message = f"interrupted after epoch {epoch}; continue with --resume {run_dir}"
+    elif status == "budget":
+        message = (f"the budget of {config.budget:g} s is spent after epoch {epoch}; train further with "
+                   f"--resume {run_dir} --budget SECONDS")
     else:
         message = ""
     return Outcome(status, epoch, state, rows, message)
 
 
-def _shape_of(leaf) -> tuple:
-    # A checkpoint's NumPy arrays carry no weak type where init's may: such a state is lowered anew.
-    return leaf.shape, leaf.dtype, bool(getattr(leaf, "weak_type", False))
+def record_start(run_dir: Path, phases: dict[str, float], seconds: float) -> None:
+    """Add a start of the run (its first, or a ``--resume``) to its ``startup.json``: when, on which
+    device, the seconds of each start-up phase and from the command's start to its first epoch's start."""
+    path = Path(run_dir) / STARTUP_FILE
+    try:
+        starts = read_json(path) if path.exists() else []
+    except (OSError, InputError):
+        starts = []  # a damaged record of earlier starts does not stop this one
+    device = jax.devices()[0]
+    starts.append({"started": datetime.now().isoformat(timespec="seconds"), "device": f"{device.platform} ({device.device_kind})",
+                   "seconds_to_training": round(seconds, 3), "phases": {name: round(value, 3) for name, value in phases.items() if round(value, 3)}})
+    write_json(path, starts)

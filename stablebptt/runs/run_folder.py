@@ -31,13 +31,14 @@ import numpy as np
 
 from stablebptt.engine.checks import check_options
 from stablebptt.engine.config import TrainConfig
-from stablebptt.engine.metrics import COLUMNS, empty_rows
+from stablebptt.engine.metrics import COLUMNS, empty_rows, widened
 from stablebptt.engine.training import TrainState
 from stablebptt.errors import InputError, StorageError
 from stablebptt.runs.model_store import copy_model
 from stablebptt.storage import atomic_write, json_bytes, read_json, write_json, write_temporary
 
 CONFIG_FILE = "config.json"
+STARTUP_FILE = "startup.json"  # each start's set-up and compile phases (``record_start``)
 METRICS_FILE = "metrics.csv"
 PARAMS_FILE = "params.npz"
 CHECKPOINT_FILE = "checkpoint.npz"
@@ -84,7 +85,7 @@ def checkpoint_rows(run_dir: Path) -> np.ndarray | None:
     """The metric rows a run's checkpoint holds (``COLUMNS`` wide), or None without a readable one."""
     try:
         with np.load(Path(run_dir) / CHECKPOINT_FILE) as data:
-            rows = np.array(data["metrics"])
+            rows = widened(np.array(data["metrics"]))
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None
     return rows if rows.ndim == 2 and rows.shape[1] == len(COLUMNS) else None
@@ -162,7 +163,7 @@ def _unflatten_like(template: Any, leaves: list[np.ndarray], path: Path) -> Any:
 
 def identity(record: dict) -> str:
     """What a checkpoint belongs to: the task and the training settings, except how long to train."""
-    train = {k: v for k, v in record.get("train", {}).items() if k not in ("epochs", "checkpoint_every")}
+    train = {k: v for k, v in record.get("train", {}).items() if k not in ("epochs", "checkpoint_every", "budget")}
     return hashlib.sha256(json.dumps([record.get("task"), record.get("task_config"), train],
                                      sort_keys=True).encode()).hexdigest()
 
@@ -179,7 +180,7 @@ def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tup
     try:
         with np.load(path) as data:
             epoch = int(data["epoch"])
-            rows = np.array(data["metrics"])
+            rows = widened(np.array(data["metrics"]))
             saved_owner = str(data["owner"]) if "owner" in data.files else ""
             leaves = _read_leaves(data, sum(name.startswith("leaf_") for name in data.files))
     except FileNotFoundError:
@@ -390,8 +391,8 @@ class Run:
     def start(self, fresh: TrainState, config: TrainConfig) -> tuple[int, TrainState, np.ndarray]:
         """(epoch, state, metric rows) to train on from: the checkpoint's, else ``fresh`` at epoch 0.
 
-        A resumed run's record takes ``config.epochs`` when it trains further; fewer epochs
-        than trained are refused and change nothing.
+        A resumed run's record takes ``config.epochs`` and ``config.budget`` when it trains further;
+        fewer epochs than trained are refused and change nothing.
         """
         start_epoch, state, rows = 0, fresh, empty_rows()
         if (self.directory / CHECKPOINT_FILE).exists():
@@ -400,7 +401,9 @@ class Run:
             self._refuse_results_without_checkpoint()
         if config.epochs < start_epoch:
             raise InputError(f"{self.directory} has trained {start_epoch} epochs: --epochs must be at least that to continue")
-        if self.resuming and config.epochs > start_epoch and config.epochs != self.record["train"]["epochs"]:
+        recorded = self.record["train"]
+        if self.resuming and config.epochs > start_epoch and (config.epochs, config.budget) != (
+                recorded["epochs"], recorded.get("budget", 0.0)):
             import dataclasses
             self.record = {**self.record, "train": dataclasses.asdict(config)}
             write_config(self.directory, self.record)

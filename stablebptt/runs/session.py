@@ -6,7 +6,7 @@
     module = tasks.load("repulsion")
     begun = session.begin(module, "repulsion", module.Config(), TrainConfig(epochs=20))
     try:
-        outcome = epochs.train_epochs(*begun.training_arguments())
+        outcome = epochs.train_epochs(*begun.training_arguments(), phases=begun.phases)
     finally:
         begun.run.close()
 
@@ -17,17 +17,19 @@ may leave a check running while its trainer is built (an environment's reward di
 """
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from types import ModuleType
 from typing import Any, NamedTuple
 
+import jax
 import numpy as np
 
 from stablebptt.engine.config import TrainConfig, seed_array
-from stablebptt.engine.fitting import LoweredEpoch, lowered_epoch
+from stablebptt.engine.fitting import LoweredEpoch, env_steps_per_epoch, prepare
 from stablebptt.engine.program_store import run_key
 from stablebptt.engine.task import Task
-from stablebptt.engine.training import Trainer, TrainState, make_trainer
+from stablebptt.engine.training import Trainer, TrainState
 from stablebptt.errors import InputError
 from stablebptt.runs.run_folder import Run, default_run_dir, new_record, refuse_used
 
@@ -45,6 +47,7 @@ class Session(NamedTuple):
     seeds: np.ndarray
     program_key: dict | None  # what decides the run's programs (``program_store.run_key``)
     lowered: LoweredEpoch | None  # a new run's epoch, traced while the task settled
+    phases: dict[str, float]  # seconds of each start-up phase so far (``Prepared.phases``, and the task's build)
 
     def training_arguments(self) -> tuple:
         """``runs.epochs.train_epochs``'s positional arguments up to its callbacks."""
@@ -71,40 +74,27 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
             run = Run.open(run_dir, record)
         elif run_dir is not None:
             refuse_used(run_dir)
+        checking = time.perf_counter()
         # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
         task = getattr(task_module, "make_deferred", task_module.make)(task_config)
-        program_key = _smoothed_key(run_key(task_module, task_name, task_config, train_config), task)  # an identical run reuses them
-        try:
-            trainer = make_trainer(task, train_config, keep=program_key)
-        except InputError as error:  # the memory plan may refuse the scene
-            raise InputError(f"{task.name}: {error}") from None
-        built = task
-        task = task.settled(wait=False)  # a check that has answered by now (a refusal) ends the run here
+        checking = time.perf_counter() - checking
         # A new run's epoch is traced while XLA may still compile the task's check beside; a resumed one,
-        # which may have nothing left to train, compiles as it starts.
-        lowered = lowered_epoch(trainer, train_config, program_key) if record is None else None
-        task = task.settled()  # a reward without a usable gradient is refused here, before any folder is made
-        if task.dynamics.step is not built.dynamics.step:  # the check smoothed the reward: train the task as settled
-            program_key = _smoothed_key(program_key, task)
-            trainer = make_trainer(task, train_config, keep=program_key)
-            lowered = lowered_epoch(trainer, train_config, program_key) if record is None else None
-        task = task.settled_fully()  # the surrogate's own check, compiled beside that trace, may refuse it here
+        # which may have nothing left to train, compiles as it starts. A refusal leaves no folder behind.
+        prepared = prepare(task, train_config, run_key(task_module, task_name, task_config, train_config),
+                           lower=record is None)
+        task, trainer = prepared.task, prepared.trainer
         if run is None:
             run_dir = run_dir or default_run_dir(runs_root, task.name)  # named as it is claimed
             # The env steps each seed simulates in an epoch's training: learning curves may be drawn against them.
-            steps = trainer.updates_per_epoch * train_config.batch * task.dynamics.horizon
-            run = Run.create(run_dir, new_record(task_name, task_config, task, train_config, steps_per_epoch=steps))
+            run = Run.create(run_dir, new_record(task_name, task_config, task, train_config,
+                                                 steps_per_epoch=env_steps_per_epoch(trainer, train_config)))
+        initializing = time.perf_counter()
         start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
+        jax.block_until_ready(state)
+        phases = {"task's build and checks": checking, **prepared.phases, "init": time.perf_counter() - initializing}
     except BaseException:
         if run is not None:
             run.close()
         raise
     return Session(run, task, trainer, train_config, state, start_epoch, rows, np.asarray(seed_array(train_config)),
-                   program_key, lowered)
-
-
-def _smoothed_key(program_key: dict | None, task: Task) -> dict | None:
-    """The key of a run's kept programs: a task that trains a smoothed reward (``env_task(smoothing=...)``)
-    steps through other programs than the same config's unsmoothed task."""
-    smoothing = task.resolved.get("reward_smoothing")
-    return program_key if program_key is None or smoothing is None else {**program_key, "reward_smoothing": smoothing}
+                   prepared.program_key, prepared.lowered, phases)

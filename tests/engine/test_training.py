@@ -46,7 +46,7 @@ def run_epochs(trainer, config, epochs):
 
 @pytest.fixture(scope="module")
 def three_seeds(task):
-    config = replace(SMALL, seeds=3, seed=7)
+    config = replace(SMALL, seeds=3, seed=7, seed_batching="map")
     return run_epochs(make_trainer(task, config), config, 3)
 
 
@@ -182,7 +182,7 @@ def test_vmapped_seeds_agree_with_mapped_seeds_to_rounding(task, three_seeds):
 def test_an_epoch_compiled_per_update_trains_as_the_epoch_compiled_whole(task, three_seeds, tmp_path):
     """The same updates and metrics from separately compiled programs (large scenes) as from one."""
     state, history = three_seeds
-    config = replace(SMALL, seeds=3, seed=7, epoch_program="per-update")
+    config = replace(SMALL, seeds=3, seed=7, epoch_program="per-update", seed_batching="map")
     trainer = make_trainer(task, config)
     assert type(trainer.epoch).__name__ == "PerUpdateEpoch"
     # Through the epoch loop of runs, which compiles ahead before timing.
@@ -218,7 +218,7 @@ def test_auto_compiles_a_step_that_solves_apart_on_several_cores_and_a_plain_ste
 
 
 def test_runs_are_bit_reproducible(task, three_seeds):
-    config = replace(SMALL, seeds=3, seed=7)
+    config = replace(SMALL, seeds=3, seed=7, seed_batching="map")
     _, again = run_epochs(make_trainer(task, config), config, 3)
     for first, second in zip(three_seeds[1], again):
         for name in ("test_loss", "update_norm"):

@@ -40,10 +40,39 @@ def test_an_environment_trains_and_flow_r_is_the_gradient_of_the_plain_rollout()
         plain = jax.jit(jax.grad(lambda p, s: reference_loss(task.dynamics, p, s)))(params, states)
         for ours, theirs in zip(jax.tree.leaves(grads), jax.tree.leaves(plain)):
             np.testing.assert_allclose(ours[0], theirs, rtol=1e-9, atol=1e-12)
-    result = sb.train(task, TINY)
+    result = sb.train(task, replace(TINY, eval_every="epoch"))
     # The train and test losses are negative episode returns (30 steps, each reward <= 0).
     assert np.all(np.isfinite(result.test_loss)) and np.all(result.test_loss >= 0)
     assert result.test_loss[-1] < result.test_loss[0]  # it learns to hold the cart at the origin
+
+
+def test_evaluations_run_apart_on_their_cadence_and_a_hook_sees_every_epoch_and_may_stop_the_run():
+    # Windows of 10 along episodes of 30: 3 updates an epoch. Every 6 updates: epochs 2 and 4, and the
+    # last one (5) - not 1 or 3, whose returns are NaN.
+    task = env_task(Cart(), horizon=10)
+    seen = []
+
+    def progress_fn(env_steps, metrics):
+        seen.append((env_steps, bool(np.all(np.isfinite(metrics["test_loss"]))), metrics["eval_seconds"] > 0))
+
+    result = sb.train(task, replace(TINY, epochs=5, eval_every="6"), progress_fn=progress_fn)
+    steps = 3 * TINY.batch * 10
+    assert seen == [(steps * epoch, epoch in (2, 4, 5), epoch in (2, 4, 5)) for epoch in range(1, 6)]
+    assert np.isfinite(result.test_loss[[1, 3, 4]]).all() and np.isnan(result.test_loss[[0, 2]]).all()
+    # A stop asked for once the hook has heard of epoch 2 ends the run before epoch 3.
+    heard = []
+    stopped = sb.train(task, replace(TINY, epochs=9, eval_every="6"), on_epoch=lambda epoch, metrics: heard.append(epoch),
+                       should_stop=lambda: len(heard) == 2)
+    assert heard == [1, 2]
+    np.testing.assert_array_equal(stopped.metrics["batch_loss"], result.metrics["batch_loss"][:2])
+    # A budget spent before the first epoch ends (in the set-up): that epoch is the last, and evaluated.
+    budgeted = sb.train(task, replace(TINY, epochs=9, eval_every="6", budget=1e-6))
+    assert budgeted.metrics["test_loss"].shape == (1, 1) and np.isfinite(budgeted.test_loss).all()
+    np.testing.assert_allclose(budgeted.metrics["batch_loss"], result.metrics["batch_loss"][:1])
+    # Evaluated inside every epoch instead, the same returns where both evaluate: evaluation changes no update.
+    inside = sb.train(task, replace(TINY, epochs=5, eval_every="epoch"))
+    np.testing.assert_allclose(inside.test_loss[[1, 3, 4]], result.test_loss[[1, 3, 4]], rtol=1e-5)
+    np.testing.assert_array_equal(inside.metrics["batch_loss"], result.metrics["batch_loss"])
 
 
 def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_starts_off_zero(tmp_path, monkeypatch):
@@ -103,7 +132,7 @@ def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_paramet
     assert settled.resolved["policy_output_start"] == "small"
     arguments = (state, trainer.batches, trainer.train_states, trainer.test_states)
     plain = jax.jit(trainer.epoch)(*arguments)
-    monkeypatch.setattr(epochs, "compile_epoch", lambda *a, **k: pytest.fail("traced again although lowered"))
+    monkeypatch.setattr(fitting, "compile_epoch", lambda *a, **k: pytest.fail("traced again although lowered"))
     (tmp_path / "run").mkdir()
     outcome = epochs.train_epochs(trainer, config, tmp_path / "run", state, 0, empty_rows(),
                                    np.asarray(seeds), lowered=lowered)
@@ -190,19 +219,28 @@ def test_an_env_module_that_fails_as_it_imports_is_one_line_and_the_current_fold
 def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_one_and_says_what_it_cannot_check(
         tmp_path, capsys):
     # Windows of 4 steps along carried episodes of 6: episodes end inside windows and are reset between them;
-    # the observation statistics ride in the parameters' checkpoint.
+    # the observation statistics ride in the parameters' checkpoint. A budget spent in the set-up stops the
+    # run after its first epoch, evaluated and saved; the resume, with no budget, trains on to --epochs.
     sizes = ["--steps", "4", "--train-size", "4", "--test-size", "4", "--batch", "4", "--episode-length", "6",
-             "--seeds", "2", "--no-progress", "--normalize-observations"]
-    assert train_in_process(capsys, "--env", "envs_for_tests:make_cart", *sizes, "--epochs", "1",
-                            "--out", str(tmp_path / "run"))[0] == 0
-    code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--epochs", "3")
+             "--seeds", "2", "--no-progress", "--normalize-observations", "--eval-every", "2"]
+    code, err = train_in_process(capsys, "--env", "envs_for_tests:make_cart", *sizes, "--epochs", "3",
+                                 "--budget", "0.001", "--out", str(tmp_path / "run"))
+    assert code == 0 and not err, err
+    assert [int(row["epoch"]) for row in run_folder.read_metrics(tmp_path / "run" / run_folder.METRICS_FILE)] == [1, 1]
+    code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--budget", "0")
     assert code == 0, err
     assert train_in_process(capsys, "--env", "envs_for_tests:make_cart", *sizes, "--epochs", "3",
                             "--out", str(tmp_path / "straight"))[0] == 0
     resumed, straight = (run_folder.read_metrics(tmp_path / name / run_folder.METRICS_FILE) for name in ("run", "straight"))
     assert len(resumed) == len(straight) == 6
+    timings = ("seconds", "eval_seconds")
     for one, other in zip(resumed, straight):
-        assert {k: v for k, v in one.items() if k != "seconds"} == {k: v for k, v in other.items() if k != "seconds"}
+        assert {k: v for k, v in one.items() if k not in timings} == {k: v for k, v in other.items() if k not in timings}
+    # Two updates of 4 windows of 4 steps an epoch; evaluated apart, every 2 updates: at every epoch.
+    assert [row["env_steps"] for row in straight] == [32.0, 32.0, 64.0, 64.0, 96.0, 96.0]
+    assert all(row["eval_seconds"] > 0 for row in straight)
+    starts = read_json(tmp_path / "run" / run_folder.STARTUP_FILE)
+    assert len(starts) == 2 and all(start["phases"]["compile"] > 0 for start in starts), starts
     assert len({row["test_loss"] for row in straight}) > 2  # it trains: the returns move
     # A run recorded before episode training trained from fixed starts, and resumes so.
     from stablebptt.apps.trained import configs_of

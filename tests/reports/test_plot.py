@@ -38,7 +38,8 @@ def write_run(path: Path, mode: str = "C", clip: str = "value", rc: float = 0.1,
             for k, seed in enumerate(seeds):
                 loss = 5.0 * np.exp(-0.1 * epoch) * (1 + 0.1 * k) + 0.1
                 norm = 0.05 / epoch if update_norm is None else update_norm
-                writer.writerow([epoch, seed, loss, loss, loss, norm, 0.9 - 0.01 * epoch if cosine else float("nan"), 0.1])
+                writer.writerow([epoch, seed, loss, loss, loss, norm, 0.9 - 0.01 * epoch if cosine else float("nan"), 0.1,
+                                 0.0, 1000 * epoch])
     return path
 
 

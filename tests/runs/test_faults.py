@@ -313,7 +313,7 @@ def test_a_full_disk_gets_one_line_leaves_no_temporary_and_the_run_resumes(tmp_p
     def fsync_until_the_disk_is_full(descriptor):
         if str(run_dir) in os.readlink(f"/proc/self/fd/{descriptor}"):  # the run's files; the compile cache's fit
             calls.append(descriptor)
-            if len(calls) > 4:  # config.json, then epoch 1's checkpoint, params and metrics fit
+            if len(calls) > 5:  # config.json, startup.json, then epoch 1's checkpoint, params and metrics fit
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         real_fsync(descriptor)
 
