@@ -88,3 +88,47 @@ def position_reward(state: State) -> jax.Array:
     """A surrogate of the step reward's own making: the squared distance from the origin, negated
     (``--surrogate-reward envs_for_tests:position_reward``)."""
     return -state.data["position"] ** 2
+
+
+class LateCart(Cart):
+    """A reward that exists only late in the episode: 0 for the first ``LATE`` steps of 100, then the
+    squared distance from the origin, negated (a target to be at once the clock has passed ``LATE``)."""
+
+    LATE = 60
+
+    def __init__(self):
+        super().__init__()
+        self._config = type("Config", (), {"episode_length": 100})()
+
+    def step(self, state: State, action: jax.Array) -> State:
+        reached = super().step(state, action)
+        late = reached.data["count"] > self.LATE
+        return reached._replace(reward=jnp.where(late, -reached.data["position"] ** 2, 0.0))
+
+
+late_reward_cart = LateCart()
+
+
+# Surrogate rewards that cannot be trained on, each as a user might write it by mistake.
+def reward_of_state_and_action(state: State, action: jax.Array) -> jax.Array:
+    return -state.data["position"] ** 2 - 0.01 * jnp.sum(action ** 2)
+
+
+def vector_reward(state: State) -> jax.Array:
+    return -state.obs ** 2  # one number per coordinate, not per state
+
+
+def raising_reward(state: State) -> jax.Array:
+    raise ValueError("no target in this state")
+
+
+def string_reward(state: State) -> str:
+    return "near"
+
+
+def nan_reward(state: State) -> jax.Array:
+    return -jnp.sqrt(-1.0 - state.data["position"] ** 2)  # the root of a negative number: NaN everywhere
+
+
+def constant_reward(state: State) -> jax.Array:
+    return jnp.ones(())

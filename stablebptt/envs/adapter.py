@@ -37,7 +37,8 @@ from stablebptt.engine.observations import StandardizedNetwork, no_observations,
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, start_checks, start_diagnosis
-from stablebptt.envs.protocol import EnvError, check_protocol, check_same_states, check_step, observation
+from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
+                                      function_name, observation)
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import mlp_apply, mlp_init
@@ -229,7 +230,11 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     # What the windows train on: the env's reward, the user's own surrogate of it, or the reward of another env's
     # step on the same states (diagnosed as the reward is).
-    training_step = step if surrogate_reward is None else jax.jit(surrogate.user_surrogate(step, surrogate_reward))
+    training_step = step
+    if surrogate_reward is not None:  # checked where it is given, from shapes: a refusal names it in one line
+        check_step(env, step, observations, label)
+        check_surrogate_reward(env, step, surrogate_reward, label)
+        training_step = jax.jit(surrogate.user_surrogate(step, surrogate_reward))
     if reward_env is not None:
         @jax.jit
         def reward_env_step(state, action):
@@ -271,8 +276,17 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     def diagnosed() -> RewardDiagnosis:
         """The diagnosis, waited for; ``EnvError`` for a reward with no usable gradient (one that is flat
-        everywhere only where smoothing is off)."""
+        everywhere only where smoothing is off, or where it is the user's own surrogate, never smoothed)."""
         diagnosis = RewardDiagnosis(*pending())
+        if surrogate_reward is not None and diagnosis.kind in ("zero", "nan"):
+            own = function_name(surrogate_reward)
+            if diagnosis.kind == "zero":
+                raise EnvError(f"{label}: the surrogate reward {own}'s gradient is zero at every sampled state and "
+                               f"action (a constant, or a step of the state such as a threshold): BPTT has nothing to "
+                               f"follow; give {own} a slope toward what it rewards (a distance's negative square, say)")
+            raise EnvError(f"{label}: the surrogate reward {own}'s gradient is NaN at {diagnosis.nan_at_random:.0%} of "
+                           f"sampled states with random actions: fix {own} (a square root or a norm taken at zero or "
+                           "below, a log of zero, a NaN it returns?)")
         if diagnosis.kind == "zero" and smoothing == "off":
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
                            f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")

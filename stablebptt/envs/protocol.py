@@ -8,6 +8,8 @@ The protocol (Brax's, which MuJoCo Playground follows): ``env.reset(key) -> Stat
 from __future__ import annotations
 
 import importlib
+import inspect
+import numbers
 import os
 import sys
 from typing import Any, Callable
@@ -115,6 +117,56 @@ def check_same_states(env: Any, step: Callable, label: str) -> bool:
     if difference:
         raise EnvError(f"{label}: the step whose reward is trained on does not return states like {label}'s: it "
                        f"{difference}; train on the reward of an env of the same model and states")
+    return True
+
+
+def function_name(function: Callable) -> str:
+    """How messages name a function of the user's: ``module:name``, as ``--surrogate-reward`` takes it."""
+    module, name = getattr(function, "__module__", None), getattr(function, "__qualname__", None)
+    return f"{module}:{name}" if module and name else repr(function)
+
+
+def check_surrogate_reward(env: Any, step: Callable, reward: Callable, label: str) -> bool:
+    """``EnvError`` in one line naming ``reward`` (a surrogate of the user's, ``reward(state reached)``)
+    where its signature or tracing it on the state ``step`` reaches shows it cannot be trained on: it
+    takes other arguments, fails (the user's own message), or returns other than one float per state.
+    Traced with shapes only; True where all holds. Its gradient is the reward diagnosis's to look at."""
+    named = f"{label}: the surrogate reward {function_name(reward)}"
+    try:
+        signature = inspect.signature(reward)
+    except (TypeError, ValueError):  # no signature to read (a builtin): calling it tells
+        signature = None
+    if signature is not None:
+        try:
+            signature.bind(None)
+        except TypeError:
+            raise EnvError(f"{named} takes ({', '.join(signature.parameters)}): it is called with one argument, the state a step reaches "
+                           "(reward(state) -> one number)") from None
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    reached = jax.eval_shape(step, state, jax.ShapeDtypeStruct((int(env.action_size),), jnp.float32))
+    returned = []  # what the reward returned, where it is not an array
+
+    def call(reached):
+        value = reward(reached)
+        if isinstance(value, (jax.Array, np.ndarray, np.generic, numbers.Number)):
+            return jnp.asarray(value)
+        returned.append(value)
+        return None
+
+    try:
+        value = jax.eval_shape(call, reached)
+    except Exception as error:  # noqa: BLE001 - the user's reward failed: one line naming it, with its message
+        raise EnvError(f"{named} fails on the state a step reaches: {first_line(error)}") from None
+    if returned:
+        shown = repr(returned[0])
+        raise EnvError(f"{named} returns {type(returned[0]).__name__} ({shown if len(shown) <= 60 else shown[:57] + '...'}), "
+                       "not a number: it must return one float per state, the reward of the state a step reaches")
+    if value.shape != ():
+        raise EnvError(f"{named} returns an array of shape {value.shape} for one state: it must return one number "
+                       "per state (the reward of the state a step reaches; a sum or a norm of a vector?)")
+    if not jnp.issubdtype(value.dtype, jnp.floating):
+        raise EnvError(f"{named} returns {value.dtype}, not a float: a reward of whole numbers or truths has no "
+                       "gradient to follow (compute it in floats, e.g. a distance's negative square)")
     return True
 
 

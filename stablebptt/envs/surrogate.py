@@ -310,8 +310,13 @@ def with_reward(state: PyTree, reward: jax.Array) -> PyTree:
 
 
 def user_surrogate(step: Callable, reward: Callable[[PyTree], jax.Array]) -> Callable:
-    """``step`` whose reward is ``reward(state reached)``: a surrogate of the user's own."""
-    return lambda state, action: (lambda reached: with_reward(reached, reward(reached)))(step(state, action))
+    """``step`` whose reward is ``reward(state reached)``, in the dtype of the step's own: a surrogate of the
+    user's own (``protocol.check_surrogate_reward`` sees that it is one float per state)."""
+    def surrogate_step(state, action):
+        reached = step(state, action)
+        return with_reward(reached, jnp.asarray(reward(reached)).astype(reached.reward.dtype))
+
+    return surrogate_step
 
 
 def smoothed_training_step(env: Any, step: Callable, key: jax.Array, scale: float = 1.0,
