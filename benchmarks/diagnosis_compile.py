@@ -38,9 +38,10 @@ OPTION_SETS["training's, again"] = OPTION_SETS["training's"]  # the first compil
 
 for name in sys.argv[1:]:
     env = protocol.load_env(name)
-    step = adapter.env_task(env, horizon=1, diagnose=False).dynamics.step
+    task = adapter.env_task(env, horizon=1, diagnose=False)
+    step, episode_length = task.dynamics.step, task.resolved["episode_length"]
     checks = diagnosis._gradient_checks(step)
-    program = jax.jit(lambda key: checks(*diagnosis.sample_for_diagnosis(env, step, key)))
+    program = jax.jit(lambda key: checks(*diagnosis.sample_for_diagnosis(env, step, key, episode_length)))
     key = jax.random.PRNGKey(0)
     started = time.perf_counter()
     lowered = program.lower(key)

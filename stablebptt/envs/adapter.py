@@ -13,8 +13,8 @@
   differentiated implicitly (``constraint_derivatives``), so solvers of any
   iteration count pass reverse mode.
 
-Before training, ``diagnose_env`` looks at the reward's gradient at sampled
-states: a reward whose gradient is zero everywhere (a step function) is
+Before training, ``diagnose_env`` looks at the reward's gradient at states
+sampled along whole episodes (where training will look): a reward whose gradient is zero everywhere (a step function) is
 refused, a NaN derivative of a known form is repaired, and a NaN at exactly
 zero action is avoided by starting the policy's output layer small instead of
 at zero (``RewardDiagnosis``).
@@ -255,12 +255,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         return resets[count](keys)
 
     answer_key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed,
-                                                     "reward_repairs": reward_repairs}
+                                                     "reward_repairs": reward_repairs, "episode_length": episode_length}
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
 
     def start() -> PendingDiagnosis:
         try:
-            started.append(start_diagnosis(env, training_step, jax.random.PRNGKey(diagnosis_seed)))
+            started.append(start_diagnosis(env, training_step, jax.random.PRNGKey(diagnosis_seed), episode_length))
         except (TypeError, ValueError):  # a step that breaks the protocol fails the diagnosis's trace: say how
             check_step(env, step, observations, label)
             raise
@@ -349,14 +349,14 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         # The diagnosis's own samples where it ran here (a kept answer has none): no program samples again.
         samples = started[0].samples() if started else None
         smooth_step, smoothing_done = surrogate.smoothed_training_step(env, training_step, jax.random.PRNGKey(diagnosis_seed),
-                                                                      smoothing_scale, samples)
+                                                                      episode_length, smoothing_scale, samples)
         if not smoothing_done.anything:
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
                            f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
         # The surrogate's step reaches the same states as the env's: its gradient is checked at those
         # samples, compiled beside whatever the caller does next (tracing the surrogate's trainer).
         checking = (start_checks(smooth_step, *samples) if samples else
-                    start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed)))
+                    start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed), episode_length))
         smoothed = (smooth_step, smoothing_done.describe())
 
         def settle_surrogate(wait: bool = True) -> Task | None:

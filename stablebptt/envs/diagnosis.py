@@ -18,8 +18,11 @@ from stablebptt.engine.compiling import compiler_options, unless_in_xla_flags
 from stablebptt.flows.dynamics import join, split
 
 PyTree = Any
-DIAGNOSIS_STATES = 8  # resets, each also a few random steps on: where the reward's gradient is looked at
-DIAGNOSIS_STEPS = 5
+# Where the reward's gradient is looked at: episodes of random actions, each at its reset and at clocks
+# spread over the episode's length (interleaved between the episodes), so that a reward that exists
+# only late in an episode, or at its end, is found where training will meet it.
+DIAGNOSIS_EPISODES = 8
+DIAGNOSIS_CLOCKS = 6  # states of each episode: its reset and DIAGNOSIS_CLOCKS - 1 later ones
 
 
 class RewardDiagnosis(NamedTuple):
@@ -83,17 +86,18 @@ def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> Rewar
 
     Args:
       step: the environment's step.
-      states: a batch of states (leading axis), e.g. resets and states a few random steps on.
+      states: a batch of states (leading axis), e.g. resets and states along episodes of random actions.
       actions: random actions, one per state; zero actions are tried too.
     """
     return _classify(*jax.device_get(jax.jit(_gradient_checks(step), compiler_options=_diagnosis_options())(states, actions)))
 
 
-def diagnose_env(env: Any, step: Callable, key: jax.Array) -> RewardDiagnosis:
-    """``diagnose_reward`` at states sampled from ``env`` (resets and a few random steps on), the
+def diagnose_env(env: Any, step: Callable, key: jax.Array, episode_length: int) -> RewardDiagnosis:
+    """``diagnose_reward`` at states sampled from ``env`` along episodes of ``episode_length`` steps
+    (``sample_for_diagnosis``), the
     sampling and the gradients compiled as ONE program: no operation runs eagerly, which on a GPU
-    would compile each one apart. States are visited in turn (``lax.map``), as the gradients are."""
-    return RewardDiagnosis(*start_diagnosis(env, step, key)())
+    would compile each one apart. The gradients are taken at the states in turn (``lax.map``)."""
+    return RewardDiagnosis(*start_diagnosis(env, step, key, episode_length)())
 
 
 def _compiled_beside(lowered) -> concurrent.futures.Future:
@@ -121,7 +125,7 @@ def start_checks(step: Callable, states: PyTree, actions: jax.Array) -> "Pending
     return PendingDiagnosis(_compiled_beside(lowered), (states, actions), [(states, actions)])
 
 
-def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnosis":
+def start_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int) -> "PendingDiagnosis":
     """``diagnose_env`` begun: its program is traced here, then XLA compiles it in a thread of its own
     while the caller goes on (XLA lets go of Python while it compiles). Calling the result waits for
     the compile, runs the program and gives the diagnosis (the fields of a ``RewardDiagnosis``).
@@ -134,7 +138,7 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array) -> "PendingDiagnos
     checks = _gradient_checks(step)
 
     def checked_samples(key):  # the samples come back too: a flat reward's surrogate is fitted and checked on them
-        samples = sample_for_diagnosis(env, step, key)
+        samples = sample_for_diagnosis(env, step, key, episode_length)
         return checks(*samples), samples
 
     lowered = jax.jit(checked_samples, compiler_options=_diagnosis_options()).lower(key)
@@ -178,23 +182,32 @@ def _diagnosis_options() -> dict | None:
     return {**(compiler_options() or {}), **unless_in_xla_flags(cheaper)} or None
 
 
-def sample_for_diagnosis(env: Any, step: Callable, key: jax.Array) -> tuple[PyTree, jax.Array]:
-    """Resets and the states a few random actions lead to, with a random action for each (traceable)."""
-    reset_key, action_key = jax.random.split(key)
+def sample_for_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int) -> tuple[PyTree, jax.Array]:
+    """States along whole episodes of random actions, with a random action for each (traceable):
+    every episode's reset, and states at clocks spread evenly over ``episode_length`` up to its last
+    step's, each clock taken from one episode in turn. The episodes step together (``vmap``) in one
+    ``lax.scan`` over the episode's length; an episode that ends (``done``) goes on from its reset."""
+    reset_key, lead_key, walk_key, action_key = jax.random.split(key, 4)
+    starts = jax.lax.map(env.reset, jax.random.split(reset_key, DIAGNOSIS_EPISODES))
+    last = episode_length - 1  # the clock of the state the episode's last step starts from
+    stride = max(1, -(-last // (DIAGNOSIS_EPISODES * (DIAGNOSIS_CLOCKS - 1))))  # steps between two sampled clocks
+    later = last // stride  # clocks sampled after the resets: lead + stride, lead + 2 stride, ..., last
+    lead = last - later * stride
 
-    def visit(key):
-        state = env.reset(key)
-        keys = jax.random.split(jax.random.fold_in(key, 1), DIAGNOSIS_STEPS + 1)
+    def advance(states, k):
+        actions = jax.random.uniform(k, (DIAGNOSIS_EPISODES, env.action_size), minval=-1.0, maxval=1.0)
+        reached = jax.vmap(step)(states, actions)
+        ended = reached.done > 0
+        return jax.tree.map(lambda start, now: jnp.where(ended.reshape(ended.shape + (1,) * (now.ndim - 1)), start, now),
+                            starts, reached), None
 
-        def advance(state, k):
-            action = jax.random.uniform(k, (env.action_size,), minval=-1.0, maxval=1.0)
-            return step(state, action), state
+    def walk(states, k, steps: int):  # every episode ``steps`` steps on
+        return jax.lax.scan(advance, states, jax.random.split(k, steps))[0]
 
-        last, visited = jax.lax.scan(advance, state, keys[:-1])
-        return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), visited, last)
-
-    states = jax.lax.map(visit, jax.random.split(reset_key, DIAGNOSIS_STATES))
-    states = jax.tree.map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), states)
-    count = jax.tree.leaves(states)[0].shape[0]
-    actions = jax.random.uniform(action_key, (count, env.action_size), minval=-1.0, maxval=1.0)
+    _, walked = jax.lax.scan(lambda states, k: (lambda on: (on, on))(walk(states, k, stride)),
+                             walk(starts, lead_key, lead), jax.random.split(walk_key, later))  # [later, episodes, ...]
+    clock = jnp.arange(later)
+    states = jax.tree.map(lambda first, along: jnp.concatenate([first, along[clock, clock % DIAGNOSIS_EPISODES]]),
+                          starts, walked)
+    actions = jax.random.uniform(action_key, (DIAGNOSIS_EPISODES + later, env.action_size), minval=-1.0, maxval=1.0)
     return states, actions

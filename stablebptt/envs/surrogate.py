@@ -319,11 +319,12 @@ def user_surrogate(step: Callable, reward: Callable[[PyTree], jax.Array]) -> Cal
     return surrogate_step
 
 
-def smoothed_training_step(env: Any, step: Callable, key: jax.Array, scale: float = 1.0,
+def smoothed_training_step(env: Any, step: Callable, key: jax.Array, episode_length: int, scale: float = 1.0,
                            samples: tuple | None = None) -> tuple[Callable, Smoothing]:
-    """``smooth_reward`` at the states a reward diagnosis samples from ``env`` (resets and a few random
-    steps on, with random actions), drawn from ``key``; ``samples``: those (states, actions) where the
-    diagnosis that drew them has them (``PendingDiagnosis.samples``), so no program samples again."""
+    """``smooth_reward`` at the states a reward diagnosis samples from ``env`` (along episodes of
+    ``episode_length`` steps of random actions, with random actions), drawn from ``key``; ``samples``:
+    those (states, actions) where the diagnosis that drew them has them (``PendingDiagnosis.samples``),
+    so no program samples again."""
     from stablebptt.envs.diagnosis import sample_for_diagnosis
-    states, actions = samples or jax.jit(lambda k: sample_for_diagnosis(env, step, k))(key)
+    states, actions = samples or jax.jit(lambda k: sample_for_diagnosis(env, step, k, episode_length))(key)
     return smooth_reward(step, states, actions, scale)

@@ -24,7 +24,7 @@ from stablebptt.runs import epochs, run_folder
 from stablebptt.storage import read_json
 
 from conftest import HAS_PLAYGROUND, ROOT, float64, run_script, train_in_process
-from envs_for_tests import Cart
+from envs_for_tests import Cart, LateCart
 
 TINY = sb.TrainConfig(mode="C", epochs=3, train_size=8, test_size=8, batch=4, clip="norm", lr=1e-2)
 
@@ -73,6 +73,18 @@ def test_evaluations_run_apart_on_their_cadence_and_a_hook_sees_every_epoch_and_
     inside = sb.train(task, replace(TINY, epochs=5, eval_every="epoch"))
     np.testing.assert_allclose(inside.test_loss[[1, 3, 4]], result.test_loss[[1, 3, 4]], rtol=1e-5)
     np.testing.assert_array_equal(inside.metrics["batch_loss"], result.metrics["batch_loss"])
+
+
+def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_on():
+    # 0 for 60 steps of 100, then a target: the diagnosis looks along whole episodes, where training will look.
+    from stablebptt.envs.diagnosis import sample_for_diagnosis
+    env = LateCart()
+    states, _ = jax.jit(lambda key: sample_for_diagnosis(env, env.step, key, 100))(jax.random.PRNGKey(0))
+    assert int(states.data["count"].min()) == 0 and int(states.data["count"].max()) == 99  # its reset to its last step
+    task = env_task(env, horizon=10)
+    assert task.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in task.resolved
+    result = sb.train(task, replace(TINY, epochs=4, batch=8, eval_every="epoch"))  # windows of 10 on carried episodes of 100
+    assert np.all(np.isfinite(result.test_loss)) and result.test_loss[-1] < 0.5 * result.test_loss[0]
 
 
 def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_starts_off_zero(tmp_path, monkeypatch):

@@ -97,15 +97,15 @@ def test_the_surrogate_is_fitted_on_the_diagnosis_own_samples_as_on_a_fresh_draw
     from stablebptt.envs.diagnosis import RewardDiagnosis, sample_for_diagnosis, start_diagnosis
     from stablebptt.envs.surrogate import smoothed_training_step
     env, key = Cart("step"), jax.random.PRNGKey(3)
-    pending = start_diagnosis(env, env.step, key)
+    pending = start_diagnosis(env, env.step, key, 30)
     assert pending.samples() is None  # not run yet
     assert RewardDiagnosis(*pending()).kind == "zero"
     states, actions = pending.samples()
-    fresh_states, fresh_actions = jax.jit(lambda k: sample_for_diagnosis(env, env.step, k))(key)
+    fresh_states, fresh_actions = jax.jit(lambda k: sample_for_diagnosis(env, env.step, k, 30))(key)
     for kept, fresh in zip(jax.tree.leaves((states, actions)), jax.tree.leaves((fresh_states, fresh_actions))):
         np.testing.assert_allclose(np.asarray(kept), np.asarray(fresh), rtol=1e-6, atol=1e-7)
-    _, from_diagnosis = smoothed_training_step(env, env.step, key, samples=(states, actions))
-    _, drawn_again = smoothed_training_step(env, env.step, key)
+    _, from_diagnosis = smoothed_training_step(env, env.step, key, 30, samples=(states, actions))
+    _, drawn_again = smoothed_training_step(env, env.step, key, 30)
     assert from_diagnosis.anything and from_diagnosis.terms == drawn_again.terms
     np.testing.assert_allclose(from_diagnosis.temperatures, drawn_again.temperatures, rtol=1e-6)
 
