@@ -154,6 +154,10 @@ def train_conflicts(config: Any) -> list[str]:
     if not config.cosine and {"M", "R"} <= set(flows_needed(config.mode, with_cosine=False)):
         problems.append(f"{field('cosine')} is off, but mode {config.mode} computes g_M and g_R anyway and logs "
                         f"their cosine: leave {field('cosine')} on")
+    for name, what in (("critic_lr", "the critic's learning rate"), ("td_lambda", "the critic's TD(lambda) targets")):
+        if not config.critic and _given(config, name):
+            problems.append(f"{field(name)} {getattr(config, name):g} sets {what}, and {field('critic')} is off: "
+                            f"drop it, or train with {field('critic')}")
     if config.nonfinite_flows == "zero" and config.mode != "C":
         problems.append(f"{field('nonfinite_flows')} zero leaves a flow's non-finite gradient at zero as mode C's "
                         f"sign agreement does, and mode {config.mode}'s update is that gradient itself: use mode C, or stop")

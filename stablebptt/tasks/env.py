@@ -60,6 +60,23 @@ class Config:
         if not 0 <= self.episode_length <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
 
+    def conflicts(self) -> list[str]:
+        """Options set together where one makes the other meaningless (``checks.check_options``): what the
+        smoothing options change happens only where the reward check finds the reward flat."""
+        field = lambda name: config_field(self, name)  # noqa: E731
+        defaults = Config()
+        problems = []
+        if not self.reward_check and self.smoothing != defaults.smoothing:
+            problems.append(f"{field('smoothing')} {self.smoothing} refuses a reward the check finds flat, and "
+                            f"{field('reward_check')} is off: drop it, or leave the check on")
+        if self.smoothing_scale != defaults.smoothing_scale and (self.smoothing == "off" or not self.reward_check):
+            off, keep = ((field("smoothing"), f"{field('smoothing')} auto") if self.smoothing == "off"
+                         else (field("reward_check"), "the check on"))
+            problems.append(f"{field('smoothing_scale')} {self.smoothing_scale:g} scales the surrogate trained where "
+                            f"the reward check finds the reward flat, and {off} is off: no surrogate is made; drop it, "
+                            f"or leave {keep}")
+        return problems
+
 
 def run_name(config: Config) -> str:
     """The environment's name in run folders: the registry name, or the attribute of package.module:attribute."""

@@ -115,6 +115,13 @@ CONFLICTS = [
     (["--poles", "2", "--steps", "50", "--horizon-seconds", "2"], ("--steps", "--horizon-seconds")),
     (["--poles", "2", "--pipeline", "mjx", "--solver-iterations", "3"], ("--solver-iterations", "--pipeline mjx")),
     (["--poles", "2", "--target-pose", "slider=0.5", "--loss-joints", "none"], ("--target-pose", "--loss-joints")),
+    (["--task", "repulsion", "--critic-lr", "0.01"], ("--critic-lr 0.01", "--critic is off")),
+    (["--task", "repulsion", "--td-lambda", "0.5"], ("--td-lambda 0.5", "--critic is off")),
+    (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing", "off"], ("--smoothing off", "--reward-check")),
+    (["--env", "envs_for_tests:make_cart", "--smoothing", "off", "--smoothing-scale", "0.5"],
+     ("--smoothing-scale 0.5", "--smoothing is off")),
+    (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing-scale", "0.5"],
+     ("--smoothing-scale 0.5", "--reward-check is off")),
 ]
 BAD_COMMAND_LINES += [(arguments, None) for arguments, _ in CONFLICTS]
 
@@ -140,10 +147,12 @@ def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_tak
     import stablebptt as sb
     from stablebptt.engine.checks import check_options
     from stablebptt.runs import run_folder
-    from stablebptt.tasks import mjcf
+    from stablebptt.tasks import env, mjcf
     train_cases = {"TrainConfig.clip_threshold 0.5 has no effect": dict(clip="none", clip_threshold=0.5),
                    "TrainConfig.seed_batching vmap": dict(seed_batching="vmap"),
-                   "TrainConfig.cosine is off, but mode C": dict(mode="C", cosine=False)}
+                   "TrainConfig.cosine is off, but mode C": dict(mode="C", cosine=False),
+                   "TrainConfig.critic_lr 0.01 sets the critic's learning rate": dict(critic_lr=0.01),
+                   "TrainConfig.td_lambda 0.5 sets the critic's": dict(td_lambda=0.5)}
     for words, fields in train_cases.items():
         with pytest.raises(sb.InputError, match=words):
             sb.train(_pendulum(), sb.TrainConfig(epochs=1, **fields))  # refused before anything compiles
@@ -154,9 +163,18 @@ def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_tak
     for words, fields in task_cases.items():
         with pytest.raises(sb.InputError, match=words):
             run_folder.new_record("mjcf", mjcf.Config(**fields), None, sb.TrainConfig())  # before a run records them
+    env_cases = {"env.Config.smoothing off refuses": dict(reward_check=False, smoothing="off"),
+                 "env.Config.smoothing_scale 0.5 .* env.Config.smoothing is off": dict(smoothing="off", smoothing_scale=0.5),
+                 "env.Config.smoothing_scale 0.5 .* env.Config.reward_check is off": dict(reward_check=False, smoothing_scale=0.5)}
+    for words, fields in env_cases.items():
+        with pytest.raises(sb.InputError, match=words):
+            run_folder.new_record("env", env.Config(env="envs_for_tests:make_cart", **fields), None, sb.TrainConfig())
     # Each option alone, or with what gives it a meaning, is taken.
-    for fields in (dict(clip="norm", clip_threshold=0.5), dict(seeds=3, seed_batching="vmap"), dict(mode="R", cosine=False)):
+    for fields in (dict(clip="norm", clip_threshold=0.5), dict(seeds=3, seed_batching="vmap"), dict(mode="R", cosine=False),
+                   dict(critic=True, critic_lr=0.01, td_lambda=0.5)):
         check_options(sb.TrainConfig(**fields))
+    for fields in (dict(smoothing="off"), dict(smoothing_scale=0.5), dict(reward_check=False)):
+        check_options(sb.TrainConfig(), env.Config(env="envs_for_tests:make_cart", **fields))
     for fields in (dict(model=str(mjcf.MODELS / "cartpole_2.xml")), dict(poles=3, steps=50), dict(horizon_seconds=2.0),
                    dict(pipeline="mjx"), dict(solver_iterations=3), dict(target_pose="slider=0.5", loss_joints="slider")):
         check_options(sb.TrainConfig(), mjcf.Config(**fields))
