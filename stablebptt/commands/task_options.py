@@ -35,14 +35,41 @@ def task_options_given(args: argparse.Namespace, owners: dict[str, set[str]], co
 def choose_task(args: argparse.Namespace, owners: dict[str, set[str]], command: str) -> str:
     """--task, else the only task whose options are all given, else the default; its registry name.
 
-    An option of another task is refused in one line."""
+    An option of another task than --task, options of no task in common, and options that leave
+    several tasks but the default are refused in one line naming the options given."""
     given = task_options_given(args, owners, command)
     candidates = set.intersection(*(owners[name] for name in given)) if given else set()
+    if args.task is None and given and not candidates:
+        first, second = _clash(sorted(given), owners)
+        fail(f"{option_name(first)} is an option of {_tasks(owners[first])}, and {option_name(second)} of "
+             f"{_tasks(owners[second])}: give the options of one task")
+    if args.task is None and len(candidates) > 1 and tasks.DEFAULT_TASK not in candidates:
+        fail(f"{', '.join(option_name(name) for name in sorted(given))} fit {_tasks(candidates)}: "
+             "give --task to choose")
     task_name = args.task or (candidates.pop() if len(candidates) == 1 else tasks.DEFAULT_TASK)
     foreign = sorted(name for name in given if task_name not in owners[name] and tasks.canonical(task_name) not in owners[name])
     if foreign:
-        fail(f"{option_name(foreign[0])} is an option of --task {'/'.join(sorted(owners[foreign[0]]))}, not of --task {task_name}")
+        fail(f"{option_name(foreign[0])} is an option of {_tasks(owners[foreign[0]])}, not of --task {task_name}")
     return tasks.canonical(task_name)
+
+
+def _clash(names: list[str], owners: dict[str, set[str]]) -> tuple[str, str]:
+    """Two of ``names`` (options of no task in common together) that no task shares, else the first
+    option and the next that leaves no task in common with those before it."""
+    for first in names:
+        for second in names:
+            if first < second and not owners[first] & owners[second]:
+                return first, second
+    common = owners[names[0]]
+    for name in names[1:]:
+        common = common & owners[name]
+        if not common:
+            break
+    return names[0], name
+
+
+def _tasks(names: set[str]) -> str:
+    return f"--task {'/'.join(sorted(names))}"
 
 
 def task_config(task_name: str, values: dict):
