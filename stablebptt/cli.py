@@ -39,11 +39,14 @@ def option_name(field_name: str) -> str:
     return "--" + field_name.replace("_", "-")
 
 
-def add_options(parser: argparse.ArgumentParser, config_class: type, title: str, present: set[str] = frozenset()) -> list[str]:
+def add_options(parser: argparse.ArgumentParser, config_class: type, title: str, present: set[str] = frozenset(),
+                defaults: dict[str, str] | None = None) -> list[str]:
     """Add one option per dataclass field; unset options stay absent from the namespace.
 
     Fields named in ``present`` already have an option (another config shares
-    the name): they are listed in the result but not added twice.
+    the name): they are listed in the result but not added twice. ``defaults``
+    says, per field, where the command defaults to another value than the field's
+    (``"--task env: norm"``): the help names it beside the field's default.
     """
     group = parser.add_argument_group(title)
     names = []
@@ -52,7 +55,8 @@ def add_options(parser: argparse.ArgumentParser, config_class: type, title: str,
             names.append(field.name)
             continue
         kind = _TYPES[field.type if isinstance(field.type, str) else field.type.__name__]
-        help_text = f"{field.metadata.get('help', '')} (default: {field.default})"
+        otherwise = f"; {defaults[field.name]}" if defaults and field.name in defaults else ""
+        help_text = f"{field.metadata.get('help', '')} (default: {field.default}{otherwise})"
         common = dict(dest=field.name, help=help_text, default=argparse.SUPPRESS)
         if kind is bool:
             group.add_argument(option_name(field.name), action=argparse.BooleanOptionalAction, **common)

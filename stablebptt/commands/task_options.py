@@ -7,6 +7,7 @@ unless ``--task`` names it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from stablebptt import tasks
@@ -25,6 +26,18 @@ def add_task_options(parser: argparse.ArgumentParser, owners: dict[str, set[str]
         for name in add_options(parser, tasks.load(task_name).Config, f"task {task_name}", set(owners)):
             owners.setdefault(name, set()).add(task_name)
     return owners
+
+
+def train_defaults_by_task(config_class: type) -> dict[str, str]:
+    """Per field of ``config_class`` (the training options) whose default some task changes
+    (``tasks.train_defaults``): the tasks and their values, for ``--help`` ("--task env: norm")."""
+    fallback = {field.name: field.default for field in dataclasses.fields(config_class)}
+    differing: dict[str, list[str]] = {}
+    for task_name in sorted(tasks.entries()):
+        for name, value in tasks.train_defaults(task_name).items():
+            if name in fallback and value != fallback[name]:
+                differing.setdefault(name, []).append(f"--task {task_name}: {value}")
+    return {name: ", ".join(words) for name, words in differing.items()}
 
 
 def task_options_given(args: argparse.Namespace, owners: dict[str, set[str]], command: str) -> dict:

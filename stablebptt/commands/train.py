@@ -33,7 +33,8 @@ def parse(argv: list[str]):
     parser.add_argument("--compile-cache", action=argparse.BooleanOptionalAction, default=True,
                         help="keep compiled programs between runs (in $STABLEBPTT_COMPILE_CACHE or ~/.cache/stablebptt; default: on)")
     # owners: option -> the configs that have it ("train" or task names)
-    owners = {name: {"train"} for name in add_options(parser, TrainConfig, "training")}
+    owners = {name: {"train"} for name in add_options(parser, TrainConfig, "training",
+                                                      defaults=task_options.train_defaults_by_task(TrainConfig))}
     owners = task_options.add_task_options(parser, owners)  # before parsing: the task options are options too
     return parser.parse_args(argv), owners
 
@@ -55,10 +56,10 @@ def configure(args, owners):
                 print(note, file=sys.stderr)
         return task_name, task_config, train_config, args.resume, record
     task_name = task_options.choose_task(args, owners, "train")
-    module = tasks.load(task_name)
-    # A budget alone bounds the run in time: it trains until the budget is spent.
-    epochs = UNTIL_BUDGET if "budget" in given and given["budget"] > 0 else module.DEFAULT_EPOCHS
-    train_config = build(TrainConfig, {"epochs": epochs, **getattr(module, "TRAIN_DEFAULTS", {}), **given})
+    defaults = tasks.train_defaults(task_name)
+    if given.get("budget", 0) > 0 and "epochs" not in given:  # a budget alone bounds the run: it trains until spent
+        defaults["epochs"] = UNTIL_BUDGET
+    train_config = build(TrainConfig, {**defaults, **given})
     task_config = task_options.task_config(task_name, given)
     from stablebptt.engine.checks import check_options
     check_options(train_config, task_config)  # a resumed run keeps what it recorded

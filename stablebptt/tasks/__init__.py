@@ -168,6 +168,13 @@ def load(name: str) -> ModuleType:
     return entry(name).load()
 
 
+def train_defaults(name: str) -> dict[str, Any]:
+    """The training options the command line defaults to for task ``name``: its ``DEFAULT_EPOCHS`` and
+    ``TRAIN_DEFAULTS``."""
+    module = load(name)
+    return {"epochs": module.DEFAULT_EPOCHS, **getattr(module, "TRAIN_DEFAULTS", {})}
+
+
 def presets() -> dict[str, tuple[str, str, tuple]]:
     """Every sweep grid: preset name -> (task, option, values)."""
     return {preset: (e.name, option, values) for e in entries().values() for preset, (option, values) in e.presets.items()}

@@ -127,3 +127,21 @@ def test_runs_recorded_under_the_mjcf_tasks_former_name_reopen(tmp_path):
               "train": dataclasses.asdict(TrainConfig(epochs=3))}
     task_config, train = configs_of(tmp_path, record)
     assert isinstance(task_config, mjcf.Config) and task_config.poles == 2 and train.epochs == 3
+
+
+def test_the_help_says_each_tasks_training_defaults_as_a_new_run_records_them(capsys):
+    import dataclasses
+    import re
+
+    from stablebptt.engine.config import TrainConfig
+    with pytest.raises(SystemExit):
+        train_command.parse(["--help"])
+    text = " ".join(capsys.readouterr().out.split())  # argparse's wrapping undone
+    recorded = {name: train_command.configure(*train_command.parse(["--task", name]))[2] for name in tasks.entries()}
+    for field in dataclasses.fields(TrainConfig):
+        option = "--" + field.name.replace("_", "-")
+        said = re.search(rf"{option}(?: {field.name.upper()}|, --no-{option[2:]}) (?!\|).*?\(default: ([^)]*)\)", text)
+        default, *by_task = said.group(1).split("; ")
+        named = dict(words.split(": ") for words in ", ".join(by_task).split(", ") if words)
+        for task_name, config in recorded.items():
+            assert str(getattr(config, field.name)) == named.get(f"--task {task_name}", default), (option, task_name)
