@@ -29,6 +29,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
+import mujoco
 
 from stablebptt.engine import program_store
 from stablebptt.engine.checks import shapes_only, whole_number
@@ -42,6 +43,7 @@ from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_state
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import mlp_apply, mlp_init
+from stablebptt.physics import scene
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
 
 PyTree = Any
@@ -135,6 +137,16 @@ def rollout_loss(discount: float) -> Callable:
 
 def _is_playground(env: Any) -> bool:
     return type(env).__module__.startswith("mujoco_playground")
+
+
+def has_constraint_solver(env: Any) -> bool:
+    """Whether ``env`` steps a MuJoCo model through MJX whose constraint solver can have rows (contacts,
+    limits, equalities, friction loss): its ``mj_model`` (Playground's), or a Brax env's on the mjx backend.
+    An env of plain JAX has none."""
+    model = getattr(env, "mj_model", None)
+    if model is None and getattr(env, "backend", None) == "mjx":
+        model = getattr(getattr(env, "sys", None), "mj_model", None)
+    return isinstance(model, mujoco.MjModel) and scene.analyze(model).constraints
 
 
 def observation_policy(params: Any, seen: jax.Array) -> jax.Array:
@@ -312,8 +324,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     summary = (f"{label}: {sizes[0]} observations{' (standardised by running statistics)' if normalize_observations else ''}, "
                f"{sizes[-1]} actions in [-1, 1]; windows of {horizon} steps, "
                f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "
-               f"train/test loss: negative return of {episode_length}-step episodes; "
-               "constraint solver differentiated at its solution")
+               f"train/test loss: negative return of {episode_length}-step episodes"
+               + ("; constraint solver differentiated at its solution" if has_constraint_solver(env) else ""))
     if reward_repairs:
         summary += f"; repaired: {reward_repairs}"
 

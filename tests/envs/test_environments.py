@@ -169,6 +169,22 @@ def test_a_wrapper_of_an_environment_that_lacks_a_size_is_refused_in_one_line():
         env_task(Wrapper(incomplete), horizon=5)
 
 
+def test_the_summary_speaks_of_a_constraint_solver_only_where_the_env_simulates_one():
+    import mujoco
+    solver = "constraint solver differentiated at its solution"
+    assert solver not in env_task(Cart(), horizon=5, diagnose=False).summary  # plain JAX: no solver
+
+    def with_model(limited: bool) -> Cart:  # the Cart's own step, beside a MuJoCo model as Playground's envs keep one
+        cart = Cart()
+        cart.mj_model = mujoco.MjModel.from_xml_string(
+            f"<mujoco><worldbody><body><joint type='slide' limited='{str(limited).lower()}' range='-1 1'/>"
+            "<geom size='.1'/></body></worldbody></mujoco>")
+        return cart
+
+    assert solver in env_task(with_model(limited=True), horizon=5, diagnose=False).summary  # a limit: the solver's rows
+    assert solver not in env_task(with_model(limited=False), horizon=5, diagnose=False).summary
+
+
 def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_in_one_line(tmp_path, capsys):
     on_path = {"PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     done = run_script("scripts/train.py", "--env", "envs_for_tests:make_cart", "--steps", "6", "--epochs", "2",
