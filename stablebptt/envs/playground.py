@@ -2,8 +2,8 @@
 
 ``load(name)`` takes an environment from Playground's registry with MJX's JAX
 implementation (``impl="jax"``; Warp has no gradients) and refuses, in one
-line, a name the registry lacks, a missing extra and an environment that runs
-on Warp only. ``repaired_rewards()`` is the context ``environments.env_task``
+line, a name the registry lacks, a missing extra, an environment that runs
+on Warp only, and a robot whose MuJoCo Menagerie models cannot be fetched. ``repaired_rewards()`` is the context ``environments.env_task``
 enters while the step traces: Playground's reward ``tolerance`` computed in a
 form whose values are the same and whose derivative is never NaN.
 """
@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import io
+import subprocess
 import sys
 from typing import Any, Iterable, Iterator
 
@@ -21,6 +22,9 @@ from stablebptt.errors import InputError
 from stablebptt.imports import imported_without
 
 EXTRA = "pip install 'stablebptt[playground]'"
+# Where MuJoCo Playground clones MuJoCo Menagerie from (mujoco_playground._src.mjx_env.ensure_menagerie_exists),
+# into its MENAGERIE_PATH at its MENAGERIE_COMMIT_SHA.
+MENAGERIE_REPOSITORY = "https://github.com/deepmind/mujoco_menagerie.git"
 REPAIRS = "Playground's reward tolerance in a form whose derivative is finite (values unchanged)"
 
 
@@ -83,15 +87,52 @@ def check_name(name: str) -> Any:
     return known
 
 
+def fetch_menagerie(name: str) -> None:
+    """Where ``name`` is one of Playground's robots (its locomotion and manipulation envs), the checkout of
+    MuJoCo Menagerie it builds them from, fetched as Playground fetches it where it is missing (git, on
+    first use); ``InputError`` naming the folder and how to provide it where that fails."""
+    playground = _module("mujoco_playground")
+    if name not in (*playground.locomotion.ALL_ENVS, *playground.manipulation.ALL_ENVS):
+        return
+    mjx_env = _module("mujoco_playground._src.mjx_env")
+    if mjx_env.MENAGERIE_PATH.exists():
+        return
+    try:
+        with contextlib.redirect_stderr(io.StringIO()):  # its progress bar and error line: the one line below says it
+            mjx_env.ensure_menagerie_exists()
+    except (subprocess.CalledProcessError, OSError) as error:
+        if isinstance(error, subprocess.CalledProcessError):
+            why = f"git clone {MENAGERIE_REPOSITORY} failed, exit status {error.returncode}: no network?"
+        elif isinstance(error, FileNotFoundError) and "git" in str(error):
+            why = "git is not installed"
+        else:  # a folder that cannot be written, say
+            why = f"{type(error).__name__}: {error}"
+        raise InputError(f"{name} is built from MuJoCo Menagerie's robot models, which MuJoCo Playground fetches "
+                         f"on first use into {mjx_env.MENAGERIE_PATH}, and fetching them failed ({why}): "
+                         f"{_menagerie_remedy(mjx_env)}") from None
+
+
+def _menagerie_remedy(mjx_env: Any) -> str:
+    path = mjx_env.MENAGERIE_PATH
+    return (f"run again with network, or provide the checkout there (git clone {MENAGERIE_REPOSITORY} {path} && "
+            f"git -C {path} checkout {mjx_env.MENAGERIE_COMMIT_SHA}, or a copy of one from a machine with network)")
+
+
 def load(name: str) -> Any:
     """The environment ``name`` of Playground's registry, simulated by MJX's JAX implementation."""
     known = check_name(name)
     config = known.get_default_config(name)
     if "impl" not in config:
         raise InputError(f"{name} has no 'impl' setting: it runs on MuJoCo Warp only, which has no gradients")
+    fetch_menagerie(name)
     try:
         env = known.load(name, config_overrides={"impl": "jax"})
     except Exception as error:  # noqa: BLE001 - an env that cannot be built on MJX's JAX implementation
+        mjx_env = _module("mujoco_playground._src.mjx_env")
+        if mjx_env.MENAGERIE_PATH.name in str(error):  # a checkout that lacks what the robot loads
+            from stablebptt.engine.checks import first_line
+            raise InputError(f"{name}: MuJoCo Menagerie's checkout at {mjx_env.MENAGERIE_PATH} lacks what it loads "
+                             f"({first_line(error)}): remove the folder and {_menagerie_remedy(mjx_env)}") from None
         raise InputError(f"{name} cannot be built with impl='jax' ({type(error).__name__}: "
                          f"{str(error).splitlines()[0] if str(error) else ''}): it needs MuJoCo Warp, which has no gradients") from None
     impl = getattr(getattr(env, "mjx_model", None), "impl", None)

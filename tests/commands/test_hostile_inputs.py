@@ -8,7 +8,7 @@ import importlib.util
 
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, needs_playground
 
 pytestmark = pytest.mark.fast  # make test-fast: closed forms, invariants, tiny horizons
 
@@ -142,6 +142,36 @@ def test_bad_command_line_is_one_line_and_exit_code_2(train_main, tmp_path, caps
     assert exit_.value.code == 2 and len(lines) == 1 and lines[0].startswith("error: "), lines
     assert not out.exists()
     assert all(option in lines[0] for option in named), lines[0]
+
+
+@needs_playground
+def test_a_playground_robot_whose_models_cannot_be_fetched_is_one_line_naming_where_they_go(
+        train_main, tmp_path, capsys, monkeypatch):
+    import importlib
+    import subprocess
+    from pathlib import Path
+
+    from stablebptt.envs import playground
+    playground.registry()
+    mjx_env = importlib.import_module("mujoco_playground._src.mjx_env")
+    menagerie = tmp_path / "external_deps" / "mujoco_menagerie"
+    monkeypatch.setattr(mjx_env, "EXTERNAL_DEPS_PATH", Path(menagerie.parent))
+    monkeypatch.setattr(mjx_env, "MENAGERIE_PATH", Path(menagerie))
+
+    def no_network(url, target, commit):  # what git clone does without network
+        raise subprocess.CalledProcessError(128, ["git", "clone"])
+
+    monkeypatch.setattr(mjx_env, "_clone_with_progress", no_network)
+    out = tmp_path / "run"
+    for made, words in ((False, "fetching them failed (git clone"), (True, "lacks what it loads")):
+        if made:
+            menagerie.mkdir()  # a checkout without the robot's files
+        with pytest.raises(SystemExit) as exit_:
+            train_main(["--env", "Go1JoystickFlatTerrain", "--epochs", "1", "--out", str(out), "--no-progress"])
+        lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert exit_.value.code == 2 and len(lines) == 1, lines
+        assert words in lines[0] and str(menagerie) in lines[0] and mjx_env.MENAGERIE_COMMIT_SHA in lines[0], lines[0]
+        assert "Warp" not in lines[0] and not out.exists()
 
 
 def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_takes_each_alone():
