@@ -1,6 +1,7 @@
-"""Shared evaluation for every policy in the envs-vs-APG benchmark.
+"""The evaluation of the Brax baselines (`apg_baseline.py`, `ppo_baseline.py`); `stablebptt train` evaluates
+its own runs (`--test-size` fresh resets, the deterministic policy, the same episode length and reward).
 
-Protocol (both the Brax APG half and the stablebptt half use it unchanged):
+Protocol:
   * env: the Playground env as shipped, `registry.load(name, config_overrides={"impl": "jax"})`,
     unwrapped (no Brax training wrappers, so no auto-reset and no action repeat);
   * reset keys: `jax.random.split(jax.random.PRNGKey(EVAL_SEED), num_envs)`, the same for all runs;

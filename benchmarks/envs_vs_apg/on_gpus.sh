@@ -3,8 +3,8 @@
 # (CUDA_VISIBLE_DEVICES=i, in the order given), its output in LOGS/gpu<i>.log; waits for all and
 # exits non-zero if any failed. Timings of methods so run never share a GPU.
 #
-#   benchmarks/envs_vs_apg/on_gpus.sh LOGS 'python3 benchmarks/envs_vs_apg/stablebptt_half.py ...' \
-#       'python3 benchmarks/envs_vs_apg/apg_baseline.py ...'
+#   benchmarks/envs_vs_apg/on_gpus.sh LOGS 'stablebptt train --env CheetahRun --seeds 5 --budget 300 --out RUNS/CheetahRun' \
+#       'python3 benchmarks/envs_vs_apg/ppo_baseline.py --envs CheetahRun ...'
 set -u
 logs=$1; shift
 mkdir -p "$logs"

@@ -21,13 +21,13 @@ from stablebptt.errors import InputError, config_field
 
 DEFAULT_EPOCHS = 200
 # Windows of 128 steps along carried episodes beat 32 and 512 for R and C on CartpoleSwingup and
-# AcrobotSwingup (docs/performance.md, "Training on carried episodes"). Runs recorded with steps 0
+# AcrobotSwingup (the window study of results/LOG.md). Runs recorded with steps 0
 # before trained windows of the former default, and keep them (``recorded_config``).
 DEFAULT_STEPS = 128
 FORMER_DEFAULT_STEPS = 100
 # Training on carried episodes: the states carried per seed, and the fresh starts of the train and test returns.
 # Norm clipping: every measured run on an environment clipped the gradient's global norm at 1
-# (docs/performance.md, "Environments"); value clipping, the paper's default, was never measured there.
+# (results/LOG.md); value clipping, the paper's default, was never measured there.
 TRAIN_DEFAULTS = {"batch": 64, "train_size": 16, "test_size": 16, "clip": "norm"}
 MAX_STEPS = 100_000
 

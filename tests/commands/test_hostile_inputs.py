@@ -43,6 +43,11 @@ CASES = {
     "huge --data-seed": ({}, ["--data-seed", str(2**70)], "--data-seed"),
     "negative --seed": ({}, ["--seed", "-1"], "--seed"),
     "seeds past the last seed": ({}, ["--seed", str(2**32 - 2), "--seeds", "3"], "--seed"),
+    "negative --budget": ({}, ["--budget", "-5"], "--budget"),
+    "NaN --budget": ({}, ["--budget", "nan"], "--budget"),
+    "--eval-every of no updates": ({}, ["--eval-every", "0"], "--eval-every"),
+    "--eval-every of negative seconds": ({}, ["--eval-every", "-3s"], "--eval-every"),
+    "--eval-every of no number": ({}, ["--eval-every", "often"], "--eval-every"),
     "a collision pair MJX lacks": (dict(extra_body='<body pos="0 0 -3"><freejoint/><geom type="cylinder" size="0.1 0.1"/>'
                                                    '</body><geom type="box" size="1 1 0.1" pos="0 0 -4"/>'),
                                    [], "cylinder-box contacts"),
