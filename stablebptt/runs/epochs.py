@@ -111,18 +111,32 @@ def train_epochs(
                    f"--resume {run_dir} --budget SECONDS")
     else:
         message = ""
+    record_end(run_dir, status, epoch, message)
     return Outcome(status, epoch, state, rows, message)
+
+
+def _starts(run_dir: Path) -> list[dict]:
+    path = Path(run_dir) / STARTUP_FILE
+    try:
+        return read_json(path) if path.exists() else []
+    except (OSError, InputError):
+        return []  # a damaged record of earlier starts does not stop this one
 
 
 def record_start(run_dir: Path, phases: dict[str, float], seconds: float) -> None:
     """Add a start of the run (its first, or a ``--resume``) to its ``startup.json``: when, on which
     device, the seconds of each start-up phase and from the command's start to its first epoch's start."""
-    path = Path(run_dir) / STARTUP_FILE
-    try:
-        starts = read_json(path) if path.exists() else []
-    except (OSError, InputError):
-        starts = []  # a damaged record of earlier starts does not stop this one
+    path, starts = Path(run_dir) / STARTUP_FILE, _starts(run_dir)
     device = jax.devices()[0]
     starts.append({"started": datetime.now().isoformat(timespec="seconds"), "device": f"{device.platform} ({device.device_kind})",
                    "seconds_to_training": round(seconds, 3), "phases": {name: round(value, 3) for name, value in phases.items() if round(value, 3)}})
     write_json(path, starts)
+
+
+def record_end(run_dir: Path, status: str, epoch: int, message: str) -> None:
+    """Say in the run's latest start (``record_start``) how it ended: its status (complete, interrupted,
+    budget, diverged), its last saved epoch and the message the command printed."""
+    starts = _starts(run_dir)
+    if starts:
+        starts[-1]["ended"] = {"status": status, "epoch": epoch, "message": message}
+        write_json(Path(run_dir) / STARTUP_FILE, starts)
