@@ -3,6 +3,7 @@ loaded and rolled out from the run's own test states.
 
     trained = open_trained(Path("runs/cartpole_3-20261122-101500"))
     states, controls, losses = rollouts_from_test_states(trained.task, trained.train, trained.seed_params(0), 3)
+    episode = episodes_from_test_states(trained.task, trained.task.episodes, trained.seed_params(0), trained.train, 3)
 """
 from __future__ import annotations
 
@@ -10,11 +11,12 @@ import functools
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 from stablebptt.cli import build
 from stablebptt.engine.compiling import compiler_options, large_step
 from stablebptt.engine.config import RECORDED_BEFORE, TrainConfig
+from stablebptt.engine.episodes import Carried, Episodes, start_window, window_dynamics
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import sample_states
 from stablebptt.errors import InputError
@@ -105,35 +107,91 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     template = jax.vmap(lambda key: task.init_params(key, train.zero_output))(keys)
     params = run_folder.load_params(run_dir / run_folder.PARAMS_FILE, template)
     try:  # the epochs params.npz holds: fewer than configured when the run was stopped early
-        epochs = f", {int(max(row['epoch'] for row in run_folder.read_metrics(run_dir / run_folder.METRICS_FILE)))} epochs"
+        trained_epochs = int(max(row['epoch'] for row in run_folder.read_metrics(run_dir / run_folder.METRICS_FILE)))
+        epochs = f", {trained_epochs} epoch{'s' if trained_epochs != 1 else ''}"
     except (OSError, ValueError, KeyError, TypeError):
         epochs = ""
     label = f"{task_entry.label(task_config)}, mode {train.mode}{epochs}"
     return ReopenedRun(run_dir, canonical(record["task"]), task_config, train, task, params, label)
 
 
+def _test_states(task: Task, train: TrainConfig, count: int):
+    """The first ``count`` test states of the run, drawn exactly as training drew them, and the XLA options of
+    a program that steps them."""
+    import jax
+
+    _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))  # make_trainer's split of the data seed
+    initial = jax.tree.map(lambda a: a[:count], sample_states(task, test_key, train.test_size))
+    return initial, compiler_options(large_step(task, train, jax.tree.map(lambda a: a[0], initial)))
+
+
+def _with_initial(initial: Any, states: Any) -> Any:
+    """States [N, T, ...] with the initial states [N, ...] put first: [N, T+1, ...]."""
+    import jax
+    import jax.numpy as jnp
+    return jax.tree.map(lambda x0, xs: jnp.concatenate([x0[:, None], xs], axis=1), initial, states)
+
+
 def rollouts_from_test_states(task: Task, train: TrainConfig, params: Any, count: int):
     """States [N, T+1, ...] (the initial state first), controls [N, T, ...] and losses [N] of the policy
     ``params`` from the first ``count`` test states, drawn exactly as training drew them."""
     import jax
-    import jax.numpy as jnp
     import numpy as np
 
     from stablebptt.flows.gradients import reference_rollout
 
-    _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))  # make_trainer's split of the data seed
-    initial = jax.tree.map(lambda a: a[:count], sample_states(task, test_key, train.test_size))
-    large = large_step(task, train, jax.tree.map(lambda a: a[0], initial))
+    initial, options = _test_states(task, train, count)
 
-    @functools.partial(jax.jit, compiler_options=compiler_options(large))
+    @functools.partial(jax.jit, compiler_options=options)
     def run(params, initial):
         trajectory = jax.vmap(lambda x0: reference_rollout(task.dynamics, params, x0))(initial)
         losses = jax.vmap(task.dynamics.loss)(trajectory.states, trajectory.controls)
-        states = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[:, None], xs], axis=1), initial, trajectory.states)
-        return states, trajectory.controls, losses
+        return _with_initial(initial, trajectory.states), trajectory.controls, losses
 
     states, controls, losses = jax.device_get(run(params, initial))
     return states, controls, np.asarray(losses)
+
+
+class Episode(NamedTuple):
+    """Whole episodes of a policy (``episodes_from_test_states``' answer)."""
+
+    states: Any  # [N, T+1, ...], the initial state first; after an episode's end, its last state before it
+    controls: Any  # [N, T, ...]
+    returns: Any  # [N]: the sum of each episode's rewards (undiscounted), as the run's evaluation reports it
+    lengths: Any  # [N]: the steps each episode ran, T unless it ended (done) before
+
+
+def episodes_from_test_states(task: Task, episodes: Episodes, params: Any, train: TrainConfig, count: int,
+                              steps: int = 0) -> Episode:
+    """Whole episodes of the deterministic policy ``params`` from the first ``count`` test states (fresh starts of
+    episodes, drawn exactly as training drew them): ``steps`` steps each (0: ``episodes.length``; an episode
+    ends at its length or where done, its last state held from there), its return the sum of the rewards of
+    ``episodes.step``, as an environment's evaluation sums them."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from stablebptt.flows.dynamics import Dynamics
+    from stablebptt.flows.gradients import reference_rollout
+
+    steps = steps or episodes.length
+    initial, options = _test_states(task, train, count)
+    step = episodes.step or task.dynamics.step
+    rolled = window_dynamics(Dynamics(step=step, policy=task.dynamics.policy, loss=task.dynamics.loss, horizon=steps),
+                             episodes, steps)
+    reward_dtype = jax.eval_shape(episodes.reward, jax.tree.map(lambda a: a[0], initial)).dtype
+
+    @functools.partial(jax.jit, compiler_options=options)
+    def run(params, initial):
+        start = start_window(Carried(initial, jnp.zeros(jax.tree.leaves(initial)[0].shape[0], jnp.int32), None),
+                             reward_dtype)
+        trajectory = jax.vmap(lambda x0: reference_rollout(rolled, params, x0))(start)
+        windows = trajectory.states
+        return (_with_initial(initial, windows.state), trajectory.controls, windows.reward.sum(axis=1),
+                windows.clock[:, -1])
+
+    states, controls, returns, lengths = jax.device_get(run(params, initial))
+    return Episode(states, controls, np.asarray(returns), np.asarray(lengths))
 
 
 def first_nonfinite_step(states: Any) -> list[int]:

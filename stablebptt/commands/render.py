@@ -6,10 +6,15 @@
     python scripts/render.py runs/quantum-20261122-101500     # rollout.mp4 and rollout-density.png
     python scripts/render.py --model stablebptt/models/cartpole_3.xml    # renders/cartpole_3-<time>.mp4 and -strip.png
 
-The controller is rolled out from the run's first test initial states, one video
-frame per step, the rollouts side by side (how MuJoCo scenes are drawn:
-stablebptt/render/mujoco_frames.py, stablebptt/render/drawing.py). Existing files are never overwritten: default names
-get a suffix -2, -3, ...; an existing --out is refused.
+The controller is rolled out from the run's first test initial states, the rollouts
+side by side: a run on carried episodes (an environment's, by default) over whole
+episodes of the run's episode length (--steps: fewer) with its deterministic policy,
+each episode's return printed; any other run over the horizon it trained on, each
+rollout's loss printed. A video draws one frame per step, or for a long rollout
+evenly spaced ones (--frame-every: a stride of your own); how MuJoCo scenes are
+drawn: stablebptt/render/mujoco_frames.py, stablebptt/render/drawing.py.
+Existing files are never overwritten: default names get a suffix -2, -3, ...; an
+existing --out is refused.
 """
 from __future__ import annotations
 
@@ -22,6 +27,7 @@ from pathlib import Path
 from stablebptt.cli import Parser, add_options, build, fail, one_line_errors
 from stablebptt.errors import InputError
 from stablebptt.render.media import fresh_outputs
+from stablebptt.render.mujoco_frames import MAX_VIDEO_FRAMES, video_indices, video_stride
 
 RENDERS_ROOT = Path("renders")
 STEM = "rollout"  # default name of the files written into a run directory
@@ -33,20 +39,21 @@ class RenderConfig:
 
     rollouts: int = field(default=3, metadata={"help": "rollouts to show, from the first test initial states (at most the run's test size)"})
     seed_index: int = field(default=0, metadata={"help": "which of the run's seeds to roll out (0: the first)"})
-    steps: int = field(default=0, metadata={"help": "with --model: simulation steps (0: the MJCF's bptt_horizon, else 100)"})
+    steps: int = field(default=0, metadata={"help": "steps of each rollout: with --model, 0 for the MJCF's bptt_horizon, else 100; a run on carried episodes, 0 for its episode length (at most that); a run from fixed starts rolls out its horizon"})
     width: int = field(default=400, metadata={"help": "width in pixels of one rollout's video panel"})
     height: int = field(default=300, metadata={"help": "height in pixels of one rollout's video panel"})
-    fps: float = field(default=30.0, metadata={"help": "video frames per second (one frame per simulation step)"})
+    fps: float = field(default=30.0, metadata={"help": "video frames per second (one frame per drawn step: --frame-every)"})
     gif: bool = field(default=False, metadata={"help": "write a GIF instead of an MP4"})
     video: bool = field(default=True, metadata={"help": "write the video (--no-video: only the pictures)"})
     strip_states: int = field(default=8, metadata={"help": "MuJoCo scenes: states overlaid in the frame strip"})
+    frame_every: int = field(default=0, metadata={"help": f"MuJoCo scenes: the video draws every this many steps' state, and the last (0: every step's up to {MAX_VIDEO_FRAMES - 1} steps, else the smallest stride that keeps the video within {MAX_VIDEO_FRAMES} frames)"})
 
     def __post_init__(self):
         for name in ("rollouts", "width", "height", "strip_states"):
             if getattr(self, name) <= 0:
                 raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
-        if self.seed_index < 0 or self.steps < 0:
-            raise InputError("--seed-index and --steps must be zero or positive")
+        if self.seed_index < 0 or self.steps < 0 or self.frame_every < 0:
+            raise InputError("--seed-index, --steps and --frame-every must be zero or positive")
         if not self.fps > 0:
             raise InputError(f"--fps must be a positive number, got {self.fps}")
         if self.width < 16 or self.height < 16:
@@ -68,8 +75,6 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, RenderConfig]:
         config = build(RenderConfig, vars(args))  # build ignores what is not a rendering option
     if args.model is not None and "seed_index" in vars(args):
         fail("--seed-index chooses a seed of a run: it needs a run directory, not --model")
-    if args.run_dir is not None and config.steps:
-        fail("--steps applies to --model only: a run is rolled out over the horizon it was trained on")
     return args, config
 
 
@@ -91,6 +96,37 @@ def build_controller(args, config: RenderConfig):
     params = trained.seed_params(config.seed_index)
     label = f"{trained.label}, seed {trained.train.seed + config.seed_index}"
     return trained.task_name, trained.task_config, trained.train, trained.task, params, label
+
+
+def roll_out(args, config: RenderConfig, task, train, params):
+    """(states [N, T+1, ...], controls [N, T, ...], a title per rollout, what was rolled out in words): whole
+    episodes for a run on carried episodes, else rollouts of the horizon the run trained on (or the --model's)."""
+    from stablebptt.apps.trained import episodes_from_test_states, rollouts_from_test_states
+    from stablebptt.engine.training import episodes_of
+
+    episodes = None if args.run_dir is None else episodes_of(task, train)
+    if episodes is None:
+        if args.run_dir is not None and config.steps:
+            raise InputError(f"--steps applies to --model and to runs on carried episodes: this run trained from fixed "
+                             f"starts and is rolled out over its horizon of {task.dynamics.horizon} steps")
+        states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
+        titles = [f"test state {i + 1}: loss {loss:.3g}" for i, loss in enumerate(losses)]
+        return states, controls, titles, (f"{plural(len(losses), 'rollout')} of {controls.shape[1]} steps, "
+                                          f"losses {', '.join(f'{loss:.4g}' for loss in losses)}")
+    if config.steps > episodes.length:
+        raise InputError(f"--steps {config.steps}: the run's episodes are {episodes.length} steps long "
+                         f"(give 1 to {episodes.length})")
+    episode = episodes_from_test_states(task, episodes, params, train, config.rollouts, config.steps)
+    steps = episode.controls.shape[1]
+    ended = [f"episode {i + 1} ended after {length} steps" for i, length in enumerate(episode.lengths) if length < steps]
+    titles = [f"test state {i + 1}: return {value:.3g}" for i, value in enumerate(episode.returns)]
+    return episode.states, episode.controls, titles, (
+        f"{plural(len(episode.returns), 'episode')} of {steps} steps from fresh resets, "
+        f"returns {', '.join(f'{value:.4g}' for value in episode.returns)}" + "".join(f"; {words}" for words in ended))
+
+
+def plural(count: int, noun: str) -> str:
+    return f"{count} {noun}{'s' if count != 1 else ''}"
 
 
 def main(argv: list[str]) -> int:
@@ -123,27 +159,30 @@ def main(argv: list[str]) -> int:
         task_name, task_config, train, task, params, label = build_controller(args, config)
     except (InputError, TypeError) as error:  # TypeError: a config.json value of the wrong type
         fail(str(error))
+    from stablebptt.apps.trained import first_nonfinite_step
 
-    from stablebptt.apps.trained import first_nonfinite_step, rollouts_from_test_states
-    from stablebptt.render.drawing import DrawRequest, DrawSettings
-    states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
+    with one_line_errors():
+        states, controls, titles, line = roll_out(args, config, task, train, params)
     for index, step in enumerate(first_nonfinite_step(states)):
         if step >= 0:  # a diverged rollout has nothing to draw
             fail(f"the rollout from test state {index + 1} is not finite from step {step} on "
                  "(the controller or the simulation diverged): nothing to draw", code=1)
-    titles = [f"test state {i + 1}: loss {loss:.3g}" for i, loss in enumerate(losses)]
-    print(f"{label}: {len(losses)} rollout{'s' if len(losses) != 1 else ''} of {controls.shape[1]} steps, "
-          f"losses {', '.join(f'{loss:.4g}' for loss in losses)}")
+    print(f"{label}: {line}")
+    from stablebptt.render.drawing import DrawRequest, DrawSettings
     video = video if config.video else None
     picture.parent.mkdir(parents=True, exist_ok=True)  # renders/ for --model
     try:
         settings = DrawSettings(width=config.width, height=config.height, fps=config.fps,
-                                strip_states=config.strip_states)
+                                strip_states=config.strip_states, frame_every=config.frame_every)
         written = entry.drawer()(DrawRequest(task_config, states, controls, titles, label, settings, video, picture))
     except InputError as error:
         fail(str(error))
     except OSError as error:  # a full disk, a directory without write permission
         fail(f"cannot write next to {picture}: {error.strerror or error}")
+    stride = video_stride(controls.shape[1] + 1, config.frame_every)
+    if video is not None and entry.mujoco_frames and stride > 1:
+        print(f"video: a frame every {stride} steps, {len(video_indices(controls.shape[1] + 1, stride))} frames "
+              f"for {controls.shape[1]} steps")
     for path in written:
         print(f"wrote {path}")
     return 0

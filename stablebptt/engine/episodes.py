@@ -46,6 +46,9 @@ class Episodes:
       length: steps of an episode.
       discount: per-step discount of a window's return, in (0, 1].
       observe: ``observe(state) -> vector``, what a learned value sees (``TrainConfig.critic``); None: no critic.
+      step: ``step(state, action) -> state``, the step of the episodes whose return is reported, where the
+        windows train on another reward (an environment's own step beside a surrogate's); None: the
+        task's ``Dynamics.step``.
     """
 
     reset: Callable[[jax.Array], PyTree]
@@ -54,11 +57,14 @@ class Episodes:
     length: int
     discount: float = 1.0
     observe: Callable[[PyTree], jax.Array] | None = None
+    step: Callable[[PyTree, PyTree], PyTree] | None = None
 
     def __post_init__(self):
         for name in ("reset", "reward", "done"):
             if not callable(getattr(self, name)):
                 raise InputError(f"Episodes.{name} must be a function, got {type(getattr(self, name)).__name__}")
+        if self.step is not None and not callable(self.step):
+            raise InputError(f"Episodes.step must be a function or None, got {type(self.step).__name__}")
         if not isinstance(self.length, numbers.Integral) or isinstance(self.length, bool) or self.length < 1:
             raise InputError(f"Episodes.length must be a positive whole number of steps, got {self.length!r}")
         discount = self.discount

@@ -318,9 +318,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         return StandardizedNetwork(params, no_observations(observations)) if normalize_observations else params
 
     evaluation = episode_dynamics(step, policy, episode_length)
-    # Training on carried episodes (the default): reset by the env's own reset, ended when done or at its length.
+    # Training on carried episodes (the default): reset by the env's own reset, ended when done or at its length;
+    # their reported returns are the env's own step's, whatever reward the windows train on.
     episodes = Episodes(reset=env.reset, reward=lambda state: state.reward, done=lambda state: state.done > 0,
-                        length=episode_length, discount=discount, observe=observation)
+                        length=episode_length, discount=discount, observe=observation, step=step)
     summary = (f"{label}: {sizes[0]} observations{' (standardised by running statistics)' if normalize_observations else ''}, "
                f"{sizes[-1]} actions in [-1, 1]; windows of {horizon} steps, "
                f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "

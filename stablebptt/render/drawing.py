@@ -10,8 +10,9 @@ drawer (``stablebptt.tasks.Entry.draw``); scripts/render.py rolls a run out and 
                           picture=Path("rollout-strip.png"))
     written = draw_mujoco_rollouts(request)
 
-The MuJoCo drawers here draw a video of the rollouts side by side and the frame
-strip of the first (``stablebptt.render.mujoco_frames``), from the positions the rollouts
+The MuJoCo drawers here draw a video of the rollouts side by side (every state of a
+rollout of up to ``MAX_VIDEO_FRAMES`` states, else evenly spaced ones) and the frame strip
+of the first (``stablebptt.render.mujoco_frames``), from the positions the rollouts
 visited; the pictures of tasks without a MuJoCo scene are ``stablebptt.apps.figures``.
 """
 from __future__ import annotations
@@ -34,6 +35,8 @@ from stablebptt.render.mujoco_frames import (
     render_model,
     rollout_extent,
     strip_indices,
+    video_indices,
+    video_stride,
 )
 
 
@@ -43,14 +46,18 @@ class DrawSettings:
 
     Attributes:
       width, height: pixels of one rollout's video panel (pictures for print are drawn larger).
-      fps: video frames per second (one frame per simulation step).
+      fps: video frames per second (one frame per drawn step).
       strip_states: MuJoCo scenes: states overlaid in the frame strip.
+      frame_every: MuJoCo scenes: the video draws every this many steps' state, and the last; 0: every
+        step's for rollouts within ``MAX_VIDEO_FRAMES`` states, else the smallest stride that keeps
+        the video within them (``video_stride``).
     """
 
     width: int = 400
     height: int = 300
     fps: float = 30.0
     strip_states: int = 8
+    frame_every: int = 0
 
     def __post_init__(self):
         if not (self.width >= 16 and self.height >= 16):
@@ -59,6 +66,8 @@ class DrawSettings:
             raise InputError(f"frames per second must be a positive number, got {self.fps}")
         if self.strip_states <= 0:
             raise InputError(f"a frame strip needs at least one state, got strip_states={self.strip_states}")
+        if self.frame_every < 0:
+            raise InputError(f"frame_every must be a number of steps, or 0 for one chosen by the rollout's length, got {self.frame_every}")
 
 
 @dataclass(frozen=True)
@@ -122,7 +131,9 @@ def _draw_qpos(model, qpos: np.ndarray, settings: DrawSettings, video: Path | No
     written = []
     cameras = [frame_camera(model, *rollout_extent(model, q), settings.width, settings.height) for q in qpos]
     if video is not None:
-        panels = [render_frames(model, q, camera, settings.width, settings.height)[0] for q, camera in zip(qpos, cameras)]
+        drawn = video_indices(len(qpos[0]), video_stride(len(qpos[0]), settings.frame_every))
+        panels = [render_frames(model, q[drawn], camera, settings.width, settings.height)[0]
+                  for q, camera in zip(qpos, cameras)]
         written.append(write_video(video, tile(panels), settings.fps))
     picks = strip_indices(len(qpos[0]), settings.strip_states)
     frames, masks = render_frames(model, qpos[0][picks], cameras[0], *strip_size, supersample=SUPERSAMPLE, with_masks=True)

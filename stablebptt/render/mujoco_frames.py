@@ -27,6 +27,9 @@ BACKGROUND = (1.0, 1.0, 1.0)  # plain white behind models without a skybox of th
 AZIMUTH = 90.0  # look along +y: a planar system moving in the x-z plane (the MJCF convention) faces the camera
 ELEVATION = -15.0  # slightly from above, so depth still reads
 SUPERSAMPLE = 2  # render at 2x and average: smooth edges in the masks that frame strips blend with
+# A longer rollout's video draws every k-th state: drawing frames is what a render's time goes to
+# (a 1000-step episode, one frame a step, took two minutes for three 400x300 panels on two busy CPU cores).
+MAX_VIDEO_FRAMES = 300
 
 
 def brighten_headlight(headlight) -> None:
@@ -207,6 +210,18 @@ def render_frames(model, qpos: np.ndarray, camera, width: int, height: int, supe
                 geom = np.where(segments[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), segments[..., 0], -1)
                 masks[t] = _downsample(moving[geom].astype(np.float32), supersample)
     return frames, masks
+
+
+def video_stride(total: int, every: int = 0) -> int:
+    """The steps between a video's frames for a rollout of ``total`` states: ``every``, or for 0 the
+    smallest stride that keeps the video within ``MAX_VIDEO_FRAMES`` frames (1 for a rollout that fits)."""
+    return every or max(1, -(-(total - 1) // (MAX_VIDEO_FRAMES - 1)))
+
+
+def video_indices(total: int, stride: int) -> np.ndarray:
+    """The states a video of a rollout of ``total`` states draws: every ``stride``-th from the first, and the last."""
+    picks = np.arange(0, total, stride)
+    return picks if picks[-1] == total - 1 else np.append(picks, total - 1)
 
 
 def strip_indices(total: int, count: int) -> np.ndarray:

@@ -22,7 +22,7 @@ from stablebptt.errors import InputError
 from stablebptt.render import gl_backend, media, mujoco_frames
 from stablebptt.runs import run_folder
 
-from conftest import ROOT
+from conftest import ROOT, needs_playground
 
 RENDER = ROOT / "scripts" / "render.py"
 TRAIN = ROOT / "scripts" / "train.py"
@@ -220,6 +220,19 @@ def test_a_video_reads_back_with_every_frame(tmp_path, suffix):
     assert [p.name for p in tmp_path.iterdir()] == [f"clip{suffix}"], "a temporary file was left behind"
 
 
+@pytest.mark.parametrize("total", [1, 2, 21, mujoco_frames.MAX_VIDEO_FRAMES, mujoco_frames.MAX_VIDEO_FRAMES + 1, 1001])
+def test_a_video_draws_evenly_spaced_states_from_the_first_to_the_last(total):
+    stride = mujoco_frames.video_stride(total)
+    drawn = mujoco_frames.video_indices(total, stride)
+    assert drawn[0] == 0 and drawn[-1] == total - 1
+    assert len(drawn) <= mujoco_frames.MAX_VIDEO_FRAMES
+    gaps = np.diff(drawn)
+    assert np.all(gaps[:-1] == stride) and np.all((0 < gaps) & (gaps <= stride))
+    if total <= mujoco_frames.MAX_VIDEO_FRAMES:
+        assert stride == 1 and len(drawn) == total  # a rollout that fits is drawn step by step
+    assert mujoco_frames.video_stride(total, every=3) == 3
+
+
 def test_a_video_needs_a_video_suffix(tmp_path):
     with pytest.raises(InputError, match=r"\.mp4 or \.gif"):
         media.write_video(tmp_path / "clip.avi", moving_square()[0])
@@ -398,3 +411,87 @@ def test_bad_input_from_the_command_line(rendered, tmp_path):
         assert len(lines) == 1 and lines[0].startswith("error: "), f"{name}: {errors[name]!r}"
     assert "broken.xml" in errors["malformed MJCF"]
     assert not (tmp_path / "renders").exists()
+
+
+# ---- a run on carried episodes: whole episodes, their returns ----
+
+EPISODE_LENGTH = 20
+
+
+@pytest.fixture(scope="module")
+def episode_renders(tmp_path_factory):
+    """A CartpoleSwingup run on carried episodes, windows of 8 steps along episodes of EPISODE_LENGTH, rendered
+    as it comes and with --steps and --frame-every."""
+    root = tmp_path_factory.mktemp("episodes")
+    run = root / "cartpole-run"
+    finish(run_script(TRAIN, "--env", "CartpoleSwingup", "--epochs", 1, "--batch", 2, "--train-size", 2,
+                      "--test-size", 2, "--steps", 8, "--episode-length", EPISODE_LENGTH, "--no-reward-check",
+                      "--no-progress", "--out", run), timeout=600)
+    small = ("--width", WIDTH, "--height", HEIGHT, "--rollouts", 2)
+    whole = run_script(RENDER, run, *small)
+    short = run_script(RENDER, run, "--steps", 10, "--frame-every", 3, "--out", root / "short.mp4", *small)
+    outputs = {name: (process.communicate(timeout=300), process.returncode) for name, process in
+               (("whole", whole), ("short", short))}
+    return root, run, outputs
+
+
+def printed(outputs: dict, name: str) -> list[str]:
+    """The lines a render of ``episode_renders`` printed, once it succeeded."""
+    (stdout, stderr), code = outputs[name]
+    assert code == 0, stderr
+    return stdout.splitlines()
+
+
+@needs_playground
+def test_an_episode_run_renders_whole_episodes_with_their_returns(episode_renders):
+    _, run, outputs = episode_renders
+    line = printed(outputs, "whole")[0]
+    assert f"2 episodes of {EPISODE_LENGTH} steps from fresh resets, returns " in line, line
+    returns = [float(value) for value in line.rpartition("returns ")[2].split(", ")]
+    # The test states are the run's own: their mean return is what the run logged as its test loss (negated).
+    test_loss = run_folder.read_metrics(run / run_folder.METRICS_FILE)[-1]["test_loss"]
+    assert np.mean(returns) == pytest.approx(-test_loss, rel=2e-3)
+    frames = iio.imread(run / "rollout.mp4")
+    assert frames.shape == (EPISODE_LENGTH + 1, HEIGHT, 2 * WIDTH + 2, 3)  # the episode and its first state
+    assert (run / "rollout-strip.png").read_bytes().startswith(PNG_SIGNATURE)
+
+
+@needs_playground
+def test_steps_shortens_the_episodes_and_frame_every_thins_the_video(episode_renders):
+    root, _, outputs = episode_renders
+    lines = printed(outputs, "short")
+    assert "2 episodes of 10 steps from fresh resets, returns " in lines[0], lines
+    assert "video: a frame every 3 steps, 5 frames for 10 steps" in lines, lines
+    assert iio.imread(root / "short.mp4").shape[0] == 5  # steps 0, 3, 6, 9 and the last, 10
+
+
+@needs_playground
+def test_steps_beyond_the_episode_length_is_one_line_and_exit_2(episode_renders):
+    _, run, _ = episode_renders
+    process = run_script(RENDER, run, "--steps", EPISODE_LENGTH + 1, "--no-video")
+    stdout, stderr = process.communicate(timeout=120)
+    assert process.returncode == 2 and stdout == ""
+    assert stderr.splitlines() == [f"error: --steps {EPISODE_LENGTH + 1}: the run's episodes are {EPISODE_LENGTH} "
+                                   f"steps long (give 1 to {EPISODE_LENGTH})"]
+    assert not list(run.glob("rollout-2*")), "a refused render wrote a file"
+
+
+def test_an_episode_return_is_the_envs_own_reward_the_runs_evaluation_sums():
+    """An env trained on a surrogate reward: its rendered episodes return what its evaluation reports, the env's
+    own reward, not the surrogate the windows trained on."""
+    from envs_for_tests import Cart
+
+    from stablebptt.apps.trained import episodes_from_test_states
+    from stablebptt.engine.training import sample_states
+    from stablebptt.envs.adapter import env_task
+
+    task = env_task(Cart(), horizon=4, episode_length=6, diagnose=False,
+                    surrogate_reward=lambda state: jax.numpy.ones_like(state.reward))
+    train = TrainConfig(test_size=3)
+    params = task.init_params(jax.random.PRNGKey(1), False)
+    episode = episodes_from_test_states(task, task.episodes, params, train, 3)
+    _, test_key = jax.random.split(jax.random.PRNGKey(train.data_seed))
+    evaluated = task.evaluation(params, sample_states(task, test_key, train.test_size))
+    np.testing.assert_allclose(episode.returns, -np.asarray(evaluated), rtol=1e-5)
+    assert np.all(episode.returns < 0), "the surrogate's reward (1 a step) was summed"
+    assert episode.controls.shape[:2] == (3, 6) and episode.lengths.tolist() == [6, 6, 6]
