@@ -18,6 +18,7 @@ import jax
 import numpy as np
 import pytest
 from conftest import ROOT
+from held_compile import COMPILING, held_command, release, stderr_through, wait_for
 
 from stablebptt import errors, storage
 from stablebptt.commands import train as train_command
@@ -58,13 +59,6 @@ def finished(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("faults") / "finished"
     assert train_command.main(SMALL + ["--epochs", "2", "--out", str(run_dir)]) == 0
     return run_dir
-
-
-def wait_for(path: Path, process: subprocess.Popen, seconds: float = 180) -> None:
-    deadline = time.monotonic() + seconds
-    while not path.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert path.exists(), process.communicate(timeout=60)
 
 
 def test_sigterm_saves_like_ctrl_c_and_resume_goes_on(tmp_path, capsys):
@@ -114,20 +108,23 @@ def test_a_signal_to_the_run_and_then_to_its_group_saves_and_stops_once(tmp_path
 
 @pytest.mark.parametrize("how", ["SIGKILL as the folder is claimed", "SIGTERM while compiling"])
 def test_a_signal_at_any_moment_leaves_a_folder_that_resumes(tmp_path, capsys, how):
-    run_dir = tmp_path / "early"
-    # No compile cache: a warm start reaches its first epoch within the second this test waits.
-    process = subprocess.Popen(TRAIN + SMALL + ["--epochs", "1", "--no-compile-cache", "--out", str(run_dir)],
+    run_dir, hold = tmp_path / "early", tmp_path / "hold"
+    # The epoch's compile waits for the test: the run cannot reach its first epoch before the signal.
+    process = subprocess.Popen(held_command(hold, *TRAIN[1:], *SMALL, "--epochs", "1", "--out", str(run_dir)),
                                cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    wait_for(run_dir / run_folder.CONFIG_FILE, process)
+    seen = ""
     if how.startswith("SIGKILL"):
+        wait_for(run_dir / run_folder.CONFIG_FILE, process)
         process.send_signal(signal.SIGKILL)
     else:
-        time.sleep(1.0)  # task built; the epoch program is being traced or compiled
+        wait_for(hold / COMPILING, process)
         process.send_signal(signal.SIGTERM)
+        seen = stderr_through(process, "SIGTERM: stopping")  # taken while compiling: it stops before epoch 1
+        release(hold)
     _, stderr = process.communicate(timeout=120)
+    stderr = seen + stderr
+    assert process.returncode == (-signal.SIGKILL if how.startswith("SIGKILL") else 130), stderr
     assert "Traceback" not in stderr
-    if process.returncode == 0:
-        pytest.skip("the run finished before the signal")  # a machine far faster than CI's
     assert not (run_dir / run_folder.CHECKPOINT_FILE).exists()
     again = train(capsys, *SMALL, "--epochs", "1", "--out", str(run_dir))  # the same command: refused, pointing on
     assert again[0] == 2 and f"--resume {run_dir}" in again[1][0], again
