@@ -8,28 +8,22 @@ import re
 import signal
 import subprocess
 import sys
-import time
 
 from conftest import ROOT
+from held_compile import COMPILING, STARTED, held_command, release, stderr_through, wait_for
 from stablebptt.cli import INTERRUPTED
 
 TRAIN = ["scripts/train.py", "--poles", "1", "--steps", "10", "--epochs", "3", "--train-size", "16",
          "--test-size", "16", "--batch", "8", "--no-progress"]
-# Seconds after the start: the imports, the scene and the tracing, the compiles, training or its end.
-DELAYS = (0.3, 1.5, 4.0, 8.0, 14.0)
+# Moments of a run, each one observed rather than guessed from the seconds since its start (the compile
+# waits for the test: tests/held_compile.py): the imports, the claimed folder (the scene built and
+# traced), the compile, training or its end.
+MOMENTS = ("loading", "claimed", "compiling", "checkpointed")
 
 
 def no_frame_in_the_repository(traceback: str) -> bool:
     """Whether none of a traceback's frames lies in the repository: no code of the command raised it."""
     return not any(frame.startswith(str(ROOT)) for frame in re.findall(r'^  File "([^"]+)"', traceback, flags=re.MULTILINE))
-
-
-def interrupted_python_itself(stderr: str) -> bool:
-    """A Ctrl-C that came while the interpreter was still starting (its own site imports, slow on a
-    loaded machine) is Python's KeyboardInterrupt from before the program's first line: no frame of
-    its traceback lies in the repository. The command cannot act before it runs, so the test does not
-    count it against the command."""
-    return stderr.rstrip().endswith("KeyboardInterrupt") and no_frame_in_the_repository(stderr)
 
 
 def after_the_command_stopped(stderr: str) -> str:
@@ -43,60 +37,63 @@ def after_the_command_stopped(stderr: str) -> str:
 
 
 def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resumes(tmp_path):
-    processes = {}
-    for index, delay in enumerate(DELAYS):
+    processes, seen = {}, dict.fromkeys(MOMENTS, "")
+    for index, moment in enumerate(MOMENTS):
         # An empty compile cache each: every phase, compiling included, takes its full time.
         env = {**os.environ, "STABLEBPTT_COMPILE_CACHE": str(tmp_path / f"cache{index}")}
-        command = [sys.executable, *TRAIN, "--out", str(tmp_path / f"run{index}")]
+        argv = [*TRAIN, "--out", str(tmp_path / f"run{index}")]
         if index == 1:  # the installed command's entry point
-            command = [sys.executable, "-m", "stablebptt.commands.main", "train", *TRAIN[1:],
-                       "--out", str(tmp_path / f"run{index}")]
-        processes[delay] = subprocess.Popen(command, cwd=ROOT, env=env, stdin=subprocess.DEVNULL,
-                                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    started = time.monotonic()
-    for delay, process in sorted(processes.items()):
-        time.sleep(max(0.0, started + delay - time.monotonic()))
-        if process.poll() is None:
-            process.send_signal(signal.SIGINT)
-    outcomes = {delay: (process.wait(timeout=600), process.stderr.read()) for delay, process in processes.items()}
-    for delay, (code, stderr) in outcomes.items():
-        lines = [line for line in stderr.splitlines() if line.strip()]
-        if code == 1 and interrupted_python_itself(stderr):  # Python's exit status for it
-            continue
-        assert code in (0, 130, -signal.SIGINT), f"{delay} s: exit {code}: {stderr}"
+            argv = ["-m", "stablebptt.commands.main", "train", *argv[1:]]
+        processes[moment] = subprocess.Popen(held_command(tmp_path / f"hold{index}", *argv), cwd=ROOT, env=env,
+                                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                             text=True)
+    for index, (moment, process) in enumerate(processes.items()):
+        hold, run = tmp_path / f"hold{index}", tmp_path / f"run{index}"
+        if moment == "checkpointed":  # compiled at once, then Ctrl-C once an epoch is saved (the last, maybe)
+            wait_for(hold / COMPILING, process)
+            release(hold)
+        wait_for({"loading": hold / STARTED, "claimed": run / "config.json", "compiling": hold / COMPILING,
+                  "checkpointed": run / "checkpoint.npz"}[moment], process)
+        process.send_signal(signal.SIGINT)
+        if moment == "compiling":  # taken while it compiles: the run stops before its first epoch
+            seen[moment] = stderr_through(process, "SIGINT: stopping")
+        release(hold)
+    outcomes = {moment: (process.wait(timeout=600), seen[moment] + process.stderr.read())
+                for moment, process in processes.items()}
+    for moment, (code, stderr) in outcomes.items():
+        assert code in (0, 130, -signal.SIGINT), f"{moment}: exit {code}: {stderr}"
         if code == 130:
             stderr = after_the_command_stopped(stderr)
-            lines = [line for line in stderr.splitlines() if line.strip()]
-        assert "Traceback" not in stderr and len(lines) <= 2, f"{delay} s: {stderr}"
-    stopped = [index for index, delay in enumerate(DELAYS) if outcomes[delay][0] in (130, -signal.SIGINT)]
-    assert stopped, "no command was still running when its Ctrl-C came"
+        lines = [line for line in stderr.splitlines() if line.strip()]
+        assert "Traceback" not in stderr and len(lines) <= 2, f"{moment}: {stderr}"
+    codes = {moment: code for moment, (code, _) in outcomes.items()}
+    assert codes["loading"] in (130, -signal.SIGINT) and codes["claimed"] == codes["compiling"] == 130, codes
+    stopped = [index for index, moment in enumerate(MOMENTS) if codes[moment] in (130, -signal.SIGINT)]
     for index in stopped:
         folder = tmp_path / f"run{index}"
         assert not folder.exists() or (folder / "config.json").is_file(), os.listdir(folder)
+    # The latest one: stopped as it compiled (its config.json alone), or one that trained a little.
     resumable = [index for index in stopped if (tmp_path / f"run{index}" / "config.json").is_file()]
-    if resumable:  # the latest one: a claimed folder, or one that trained a little
-        resumed = subprocess.run([sys.executable, "scripts/train.py", "--resume", str(tmp_path / f"run{resumable[-1]}"),
-                                  "--no-progress"], cwd=ROOT, capture_output=True, text=True, timeout=600,
-                                 env={**os.environ, "STABLEBPTT_COMPILE_CACHE": str(tmp_path / "cache-resume")})
-        assert resumed.returncode == 0, resumed.stderr
+    resumed = subprocess.run([sys.executable, "scripts/train.py", "--resume", str(tmp_path / f"run{resumable[-1]}"),
+                              "--no-progress"], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                             env={**os.environ, "STABLEBPTT_COMPILE_CACHE": str(tmp_path / "cache-resume")})
+    assert resumed.returncode == 0, resumed.stderr
 
 
 def test_the_same_stop_request_arriving_after_the_run_stopped_is_ignored_and_a_later_one_is_not():
     # timeout and batch schedulers signal the process, then its group: on a busy machine the second copy
     # may arrive after the training loop has stopped and put the handlers back.
+    # raise_signal runs the signal's handler (or its default action) before it returns: no wait for it.
     script = """if True:
-        import os, signal, sys, time
+        import signal, time
         from stablebptt.cli import REPEAT_SECONDS, stop_on_signals
         with stop_on_signals() as should_stop:
-            os.kill(os.getpid(), signal.SIGTERM)
-            while not should_stop():
-                time.sleep(0.01)
-        os.kill(os.getpid(), signal.SIGTERM)  # the same request again, after the block: ignored
-        time.sleep(0.1)
+            signal.raise_signal(signal.SIGTERM)
+            assert should_stop()
+        signal.raise_signal(signal.SIGTERM)  # the same request again, after the block: ignored
         print("survived", flush=True)
-        time.sleep(REPEAT_SECONDS)
-        os.kill(os.getpid(), signal.SIGTERM)  # a new request, later: the default action ends the process
-        time.sleep(5)
+        time.sleep(REPEAT_SECONDS)  # the window of the same request, gone by
+        signal.raise_signal(signal.SIGTERM)  # a new request, later: the default action ends the process
         print("not reached", flush=True)
     """
     done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120,
