@@ -97,7 +97,18 @@ def read_run(folder: str) -> dict:
             "first_return": returns[evaluated[0]], "final_return": returns[evaluated[-1]],
             "best_return": float(max(np.mean(values) for values in returns.values())),
             "device": starts[0]["device"],
+            "ended": _ended(starts[-1], train.get("budget", 0.0), starts[-1]["seconds_to_training"] + sum(
+                row["seconds"] + row["eval_seconds"] for row in per_seed)),
             "seconds_to_training": starts[0]["seconds_to_training"], "phases": starts[0]["phases"]}
+
+
+def _ended(start: dict, budget: float, elapsed: float) -> str:
+    """How a run's last start ended (``startup.json``); for a record from before it said so, "budget"
+    where its start-up, training and evaluations filled 90% of the budget, else "stopped early"."""
+    if "ended" in start:
+        ended = start["ended"]
+        return ended["status"] + (f" ({ended['message']})" if ended["status"] == "diverged" else "")
+    return "budget" if elapsed >= 0.9 * budget else f"stopped early, after {elapsed:.0f} s"
 
 
 def ppo_at_budget(env: str) -> str:
@@ -119,8 +130,8 @@ def table(records: list[dict]) -> str:
              "the deterministic policy, the env's reward); Brax PPO ran in Brax's own loop "
              "(`benchmarks/envs_vs_apg/ppo_baseline.py`, 5 seeds sharing one GPU) for the budget named.", "",
              "| command | device | final return [95% interval] | first evaluation | PPO reference | share | "
-             "Brax PPO | updates | s per update | s to the first epoch | evaluation's share |",
-             "|---|---|---|---:|---:|---:|---|---:|---:|---:|---:|"]
+             "Brax PPO | updates | s per update | s to the first epoch | evaluation's share | ended |",
+             "|---|---|---|---:|---:|---:|---|---:|---:|---:|---:|---|"]
     for record in sorted(records, key=lambda r: (r["env"], r["command"])):
         final = np.asarray(record["final_return"])
         low, high = interval(final)
@@ -131,7 +142,7 @@ def table(records: list[dict]) -> str:
                      f"{np.mean(record['first_return']):.1f} | {reference or '-'} | {share} | "
                      f"{ppo_at_budget(record['env'])} | {record['updates']} | {record['update_s']:.3f} | "
                      f"{record['seconds_to_training']:.0f} | "
-                     f"{record['eval_s'] / (record['train_s'] + record['eval_s']):.0%} |")
+                     f"{record['eval_s'] / (record['train_s'] + record['eval_s']):.0%} | {record['ended']} |")
     lines += ["", "Start-up, phase by phase (seconds, the run's first start; `startup.json` in its folder):", "",
               "| command | " + " | ".join(PHASES) + " |", "|---|" + "---:|" * len(PHASES)]
     for record in sorted(records, key=lambda r: (r["env"], r["command"])):
