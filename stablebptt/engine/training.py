@@ -189,47 +189,10 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             return task.evaluation(params, both)
         return reference_losses(dynamics, params, both, plan=plan)
 
-    def loss_checks(losses_of_both):
-        """The train and test losses (means over their states) and whether each is finite."""
-        train_loss, test_loss = losses_of_both[:config.train_size].mean(), losses_of_both[config.train_size:].mean()
-        return train_loss, test_loss, [jnp.isfinite(train_loss), jnp.isfinite(test_loss)]
-
-    def failed_bits(checks):
-        """(every failed check's bit, those that stop training): the nonfinite metric and the finite flag."""
-        failed = sum(jnp.where(ok, 0, 1 << bit) for bit, ok in enumerate(checks))
-        # With nonfinite_flows "zero" a flow's non-finite gradient (C's update stays finite) is named, not a stop.
-        return failed, failed if config.nonfinite_flows == "stop" else failed & ((1 << FLOW_BITS) - 1)
-
-    def epoch_metrics(state, per_update: UpdateOutput, losses_of_both=None):
-        """The epoch's metrics from its updates' outputs ([updates] each) and every state's loss (None: not
-        evaluated in this epoch, its train and test losses NaN)."""
-        if losses_of_both is None:
-            train_loss = test_loss = jnp.full((), jnp.nan, per_update.loss.dtype)
-            loss_ok = [jnp.array(True), jnp.array(True)]
-        else:
-            train_loss, test_loss, loss_ok = loss_checks(losses_of_both)
-        # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
-        # The carried states are not checked: a task's state may hold infinities by design; their losses tell.
-        checks = ([jnp.isfinite(per_update.loss).all(),
-                   jnp.isfinite(per_update.update_norm).all() & _all_finite((state.params, state.opt_state, state.critic))]
-                  + loss_ok + list(per_update.flows_finite.all(axis=0)))
-        failed, stopping = failed_bits(checks)
-        return {
-            "batch_loss": per_update.loss.mean(),
-            "train_loss": train_loss,
-            "test_loss": test_loss,
-            "update_norm": per_update.update_norm.mean(),
-            "cosine": per_update.cosine.mean(),
-            "finite": stopping == 0,
-            "nonfinite": failed,  # bit set per failed check, in the order of nonfinite_names(flows)
-            "nonfinite_flow_updates": jnp.sum(~per_update.flows_finite.all(axis=1)),  # updates with a non-finite flow gradient
-        }
+    metrics = EpochMetrics(config)
 
     def evaluation_metrics(params, train_states, test_states):
-        """The train and test losses of an evaluation made apart from the epoch, with their checks' bits."""
-        train_loss, test_loss, loss_ok = loss_checks(evaluate_both(params, train_states, test_states))
-        failed, stopping = failed_bits([jnp.array(True)] * 2 + loss_ok)
-        return {"train_loss": train_loss, "test_loss": test_loss, "finite": stopping == 0, "nonfinite": failed}
+        return metrics.of_evaluation(evaluate_both(params, train_states, test_states))
 
     # Training on episodes, an evaluation rolls whole episodes from fresh resets: compiled apart and run on
     # a cadence (TrainConfig.eval_every) it costs a fraction of the run, where inside every epoch it may cost most.
@@ -238,20 +201,13 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     def epoch(state, batches, train_states, test_states, dynamics=task.dynamics):
         state, per_update = jax.lax.scan(lambda s, b: update(dynamics, s, b), state, batches)
         losses = None if apart else evaluate_both(state.params, train_states, test_states, dynamics)
-        return state, epoch_metrics(state, per_update, losses)
+        return state, metrics.of_epoch(state, per_update, losses)
 
     def grid_epoch(state, value, batches, train_states, test_states):
         dynamics = task.dynamics if value is None else task.cell_option.dynamics(value)
         return epoch(state, batches, train_states, test_states, dynamics)
 
-    def over_seeds(function, mapped=1):
-        """Map ``function(*per_seed, *shared)`` over the leading seed axis of its first ``mapped`` arguments."""
-        if seed_batching(config) == "vmap":
-            return lambda *args: jax.vmap(lambda *per_seed: function(*per_seed, *args[mapped:]))(*args[:mapped])
-        # lax.map compiles the single-seed program once and loops it, so each
-        # seed's numbers are bit-identical to that seed trained alone; XLA fuses
-        # batched physics differently, which moves the last bits under vmap.
-        return lambda *args: jax.lax.map(lambda per_seed: function(*per_seed, *args[mapped:]), args[:mapped])
+    over_seeds = functools.partial(_over_seeds, seed_batching(config))
 
     if grid:
         epoch_program = jit(over_seeds(grid_epoch, mapped=2))
@@ -261,7 +217,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     else:
         epoch_program = PerUpdateEpoch(jit(over_seeds(functools.partial(update, task.dynamics))),
                                        None if apart else jit(over_seeds(evaluate_both)),
-                                       jit(over_seeds(epoch_metrics, mapped=3 if not apart else 2)))
+                                       jit(over_seeds(metrics.of_epoch, mapped=3 if not apart else 2)))
     return Trainer(
         flows=flows,
         init=jit(over_seeds(init)),
@@ -276,6 +232,67 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         evaluation=jit(over_seeds(evaluation_metrics)) if apart else None,
         horizon=task.dynamics.horizon,
     )
+
+
+def _over_seeds(batching: str, function: Callable, mapped: int = 1) -> Callable:
+    """``function(*per_seed, *shared)`` mapped over the leading seed axis of its first ``mapped`` arguments."""
+    if batching == "vmap":
+        return lambda *args: jax.vmap(lambda *per_seed: function(*per_seed, *args[mapped:]))(*args[:mapped])
+    # lax.map compiles the single-seed program once and loops it, so each
+    # seed's numbers are bit-identical to that seed trained alone; XLA fuses
+    # batched physics differently, which moves the last bits under vmap.
+    return lambda *args: jax.lax.map(lambda per_seed: function(*per_seed, *args[mapped:]), args[:mapped])
+
+
+class EpochMetrics:
+    """One seed's metrics of an epoch (``of_epoch``) and of an evaluation made apart (``of_evaluation``),
+    each with its checks: the ``finite`` flag that stops training and the ``nonfinite`` bits that name
+    what failed (``nonfinite_names``)."""
+
+    def __init__(self, config: TrainConfig):
+        self.train_size, self.stop_on_flows = config.train_size, config.nonfinite_flows == "stop"
+
+    def _losses(self, losses_of_both):
+        """The train and test losses (means over their states) and whether each is finite."""
+        train_loss, test_loss = losses_of_both[:self.train_size].mean(), losses_of_both[self.train_size:].mean()
+        return train_loss, test_loss, [jnp.isfinite(train_loss), jnp.isfinite(test_loss)]
+
+    def _checked(self, checks):
+        """(every failed check's bit, those that stop training), the checks in ``CHECK_NAMES``' order."""
+        failed = sum(jnp.where(ok, 0, 1 << bit) for bit, ok in enumerate(checks))
+        # With nonfinite_flows "zero" a flow's non-finite gradient (C's update stays finite) is named, not a stop.
+        return failed, failed if self.stop_on_flows else failed & ((1 << FLOW_BITS) - 1)
+
+    def of_epoch(self, state: TrainState, per_update: UpdateOutput, losses_of_both=None) -> dict:
+        """The epoch's metrics from its updates' outputs ([updates] each) and every state's loss (None: not
+        evaluated in this epoch, its train and test losses NaN)."""
+        if losses_of_both is None:
+            train_loss = test_loss = jnp.full((), jnp.nan, per_update.loss.dtype)
+            loss_ok = [jnp.array(True), jnp.array(True)]
+        else:
+            train_loss, test_loss, loss_ok = self._losses(losses_of_both)
+        # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
+        # The carried states are not checked: a task's state may hold infinities by design; their losses tell.
+        checks = ([jnp.isfinite(per_update.loss).all(),
+                   jnp.isfinite(per_update.update_norm).all() & _all_finite((state.params, state.opt_state, state.critic))]
+                  + loss_ok + list(per_update.flows_finite.all(axis=0)))
+        failed, stopping = self._checked(checks)
+        return {
+            "batch_loss": per_update.loss.mean(),
+            "train_loss": train_loss,
+            "test_loss": test_loss,
+            "update_norm": per_update.update_norm.mean(),
+            "cosine": per_update.cosine.mean(),
+            "finite": stopping == 0,
+            "nonfinite": failed,  # bit set per failed check, in the order of nonfinite_names(flows)
+            "nonfinite_flow_updates": jnp.sum(~per_update.flows_finite.all(axis=1)),  # updates with a non-finite flow gradient
+        }
+
+    def of_evaluation(self, losses_of_both) -> dict:
+        """The train and test losses of an evaluation made apart from the epoch, with their checks' bits."""
+        train_loss, test_loss, loss_ok = self._losses(losses_of_both)
+        failed, stopping = self._checked([jnp.array(True)] * 2 + loss_ok)
+        return {"train_loss": train_loss, "test_loss": test_loss, "finite": stopping == 0, "nonfinite": failed}
 
 
 def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
@@ -315,7 +332,7 @@ def _all_finite(tree: PyTree) -> jax.Array:
     return jnp.all(jnp.array([jnp.isfinite(leaf).all() for leaf in leaves])) if leaves else jnp.array(True)
 
 
-# The nonfinite metric's checks before the flows' own, in the order epoch_metrics makes them.
+# The nonfinite metric's checks before the flows' own, in the order EpochMetrics makes them.
 CHECK_NAMES = ("batch loss", "update or optimizer state", "train loss", "test loss")
 FLOW_BITS = len(CHECK_NAMES)
 
