@@ -128,7 +128,9 @@ def table(records: list[dict]) -> str:
              "`results/envs/suite/records.json`. Each row is one command's run folder; its budget counts set-up "
              "and compile, its seeds train in one program. Returns are the run's own evaluations (fresh resets, "
              "the deterministic policy, the env's reward); Brax PPO ran in Brax's own loop "
-             "(`benchmarks/envs_vs_apg/ppo_baseline.py`, 5 seeds sharing one GPU) for the budget named.", "",
+             "(`benchmarks/envs_vs_apg/ppo_baseline.py`, 5 seeds sharing one GPU) for the budget named, its runs on "
+             "record scored on 64 resets of their own (`evaluation.py` now scores a run on the 16 episodes "
+             "`stablebptt train` evaluates on).", "",
              "| command | device | final return [95% interval] | first evaluation | PPO reference | share | "
              "Brax PPO | updates | s per update | s to the first epoch | evaluation's share | ended |",
              "|---|---|---|---:|---:|---:|---|---:|---:|---:|---:|---|"]

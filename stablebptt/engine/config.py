@@ -153,5 +153,12 @@ def seed_batching(config: TrainConfig) -> str:
     return "vmap" if config.seeds > 1 else "map"
 
 
+def data_keys(data_seed: int) -> tuple[jax.Array, jax.Array]:
+    """The PRNG keys of a run's training and test initial states (``TrainConfig.data_seed``): the test
+    states of an environment's run are the fresh resets its evaluations roll whole episodes from."""
+    train_key, test_key = jax.random.split(jax.random.PRNGKey(data_seed))
+    return train_key, test_key
+
+
 def seed_array(config: TrainConfig) -> jax.Array:
     return jnp.arange(config.seed, config.seed + config.seeds, dtype=jnp.uint32)

@@ -17,7 +17,7 @@ import optax
 
 from stablebptt.engine.checks import check_task
 from stablebptt.engine.compiling import compiler_options, run_plan, step_size
-from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches, eval_cadence, seed_batching
+from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches, data_keys, eval_cadence, seed_batching
 from stablebptt.engine.critic import bootstrap, fit_to_window, init_critic
 from stablebptt.engine.episodes import (
     Episodes,
@@ -112,7 +112,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     flows = FLOWS if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
-    train_key, test_key = jax.random.split(jax.random.PRNGKey(config.data_seed))
+    train_key, test_key = data_keys(config.data_seed)
     train_states = sample_states(task, train_key, config.train_size)
     test_states = sample_states(task, test_key, config.test_size)
     # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
