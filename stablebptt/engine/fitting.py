@@ -178,6 +178,7 @@ class LoweredEpoch(NamedTuple):
 
     lowered: Any  # its compile() gives the epoch's program
     shapes: Any  # the states' shapes (jax.ShapeDtypeStruct) it was lowered for
+    compiled: Any = None  # that program, compiled already (``prepare``: beside a check still running)
 
 
 def state_shapes(trainer: Trainer, seeds: Any) -> Any:
@@ -224,18 +225,32 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, low
     lap("trainer set-up")
     built = task
     task = task.settled(wait=False)  # a check that has answered by now (a refusal) ends the run here
-    lowered = lowered_epoch(trainer, config, program_key) if lower else None
-    lap("trace")
+    lowered = _compiled_beside_check(lowered_epoch(trainer, config, program_key) if lower else None, task, lap, "trace")
     task = task.settled()  # a reward without a usable gradient is refused here
     lap("check's wait")
     if task.dynamics.step is not built.dynamics.step:  # the check smoothed the reward: train the task as settled
         program_key = _smoothed_key(program_key, task)
         trainer = build(task)
-        lowered = lowered_epoch(trainer, config, program_key) if lower else None
-        lap("surrogate's trace")
+        lowered = _compiled_beside_check(lowered_epoch(trainer, config, program_key) if lower else None, task, lap,
+                                         "surrogate's trace")
     task = task.settled_fully()  # the surrogate's own check, compiled beside that trace, may refuse it here
     lap("surrogate check's wait")
     return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
+
+
+def _compiled_beside_check(lowered: LoweredEpoch | None, task: Any, lap: Callable[[str], None],
+                           traced: str) -> LoweredEpoch | None:
+    """``lowered`` (its build and trace timed as ``traced``), compiled now where the task's check still runs beside
+    (``Task.settle``): XLA compiles the epoch while the check's program compiles in its own thread,
+    and the check's program runs once the epoch's compile has ended, so on a GPU none of its kernels
+    runs while the epoch's kernels are timed. A check that refuses the task or smooths its reward
+    leaves that compile unused."""
+    lap(traced)
+    if lowered is None or task.settle is None:
+        return lowered
+    compiled = lowered.lowered.compile()
+    lap("compile")
+    return lowered._replace(compiled=compiled)
 
 
 def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = None,
@@ -247,7 +262,7 @@ def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = 
     leaf_shapes = lambda tree: [_shape_of(leaf) for leaf in jax.tree.leaves(tree)]  # noqa: E731
     if lowered is not None and leaf_shapes(state) == leaf_shapes(lowered.shapes):
         started = time.perf_counter()
-        epoch_fn = lowered.lowered.compile()
+        epoch_fn = lowered.compiled or lowered.lowered.compile()
         return epoch_fn, time.perf_counter() - started
     return compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(), trainer.compiler_options)
 
