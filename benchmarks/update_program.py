@@ -1,12 +1,19 @@
 """A train.py run's update and evaluation programs (an epoch of separate programs), each traced,
 compiled and run alone on this machine: seconds to trace and lower, to compile, and milliseconds per
-call (the mean of five after one), with the compile cache off.
+call (the mean of five after one), with the compile cache off. Training on carried episodes, two more:
+the update's floor, the forward rollout of the same window from the same carried states with the
+same policy (every seed, every env), and jax.grad of that plain window's mean reward (the step's own
+derivative, none of the flows' machinery, no critic).
 
     python benchmarks/update_program.py --model S/hopper.xml --train-size 32 --test-size 8 --batch 8 --steps 50
+    python benchmarks/update_program.py --env CheetahRun --steps 32 --critic --discount 0.99 --seeds 5
     python benchmarks/update_program.py --flows-batched --model S/hopper.xml ...   # the reverse pass's
         # pullbacks batched over the flows (adjoint_step.pullbacks_in_turn off)
+    python benchmarks/update_program.py --programs update --env CheetahRun --mode R --no-cosine   # these alone
 
-Every other option is train.py's.
+--programs: a comma-separated choice of update, evaluation, floor, grad (default: every one there is).
+
+Every other option is train.py's (--mode R --no-cosine: one flow).
 """
 import os
 import sys
@@ -19,22 +26,49 @@ import jax  # noqa: E402
 from stablebptt import tasks  # noqa: E402
 from stablebptt.commands import train as train_script  # noqa: E402
 from stablebptt.engine.config import seed_array  # noqa: E402
-from stablebptt.engine.per_update import PerUpdateEpoch
-from stablebptt.engine.training import make_trainer
-from stablebptt.flows import adjoint_step
+from stablebptt.engine.per_update import PerUpdateEpoch  # noqa: E402
+from stablebptt.engine.training import make_trainer  # noqa: E402
+from stablebptt.flows import adjoint_step  # noqa: E402
 
 arguments = sys.argv[1:]
+chosen = {"update", "evaluation", "floor", "grad"}
+if "--programs" in arguments:
+    at = arguments.index("--programs")
+    chosen = set(arguments[at + 1].split(","))
+    del arguments[at:at + 2]
 if "--flows-batched" in arguments:
     arguments.remove("--flows-batched")
     adjoint_step.pullbacks_in_turn = lambda: False
 options, owners = train_script.parse(arguments + ["--epoch-program", "per-update"])
 task_name, task_config, train_config, _, _ = train_script.configure(options, owners)
-trainer = make_trainer(tasks.load(task_name).make(task_config), train_config)
+task = tasks.load(task_name).make(task_config)
+trainer = make_trainer(task, train_config)
 assert isinstance(trainer.epoch, PerUpdateEpoch)
 state = trainer.init(seed_array(train_config))
-programs = (("update", trainer.epoch.update, (state, jax.tree.map(lambda a: a[0], trainer.batches))),
-            ("evaluation", trainer.epoch.evaluate, (state.params, trainer.train_states, trainer.test_states)))
-for name, program, inputs in programs:
+programs = [("update", trainer.epoch.update, (state, jax.tree.map(lambda a: a[0], trainer.batches)))]
+if trainer.epoch.evaluate is not None:
+    programs.append(("evaluation", trainer.epoch.evaluate, (state.params, trainer.train_states, trainer.test_states)))
+elif trainer.evaluation is not None:
+    programs.append(("evaluation", trainer.evaluation, (state.params, trainer.train_states, trainer.test_states)))
+if trainer.episodes is not None:
+    step, policy, reward = task.dynamics.step, task.dynamics.policy, trainer.episodes.reward
+
+    def window(params, states):  # every env of one seed one window on: (final states, mean reward)
+        def advance(states, _):
+            reached = jax.vmap(lambda s: step(s, policy(params, s)))(states)
+            return reached, jax.vmap(reward)(reached).mean()
+        final, rewards = jax.lax.scan(advance, states, None, length=trainer.horizon)
+        return final, rewards.mean()
+
+    forward = jax.jit(jax.vmap(window), compiler_options=trainer.compiler_options)
+    plain_grad = jax.jit(jax.vmap(jax.grad(lambda params, states: window(params, states)[1])),
+                         compiler_options=trainer.compiler_options)
+    carried = state.carried.states
+    programs += [("floor", forward, (state.params, carried)), ("grad", plain_grad, (state.params, carried))]
+    envs = len(seed_array(train_config)) * train_config.batch
+    print(f"{' '.join(arguments)}: {envs} envs (seeds x batch), windows of {trainer.horizon} steps", flush=True)
+described = {"floor": "forward window (floor)", "grad": "jax.grad of the plain window"}
+for name, program, inputs in [program for program in programs if program[0] in chosen]:
     start = time.perf_counter()
     lowered = program.lower(*inputs)
     lowered_at = time.perf_counter()
@@ -44,5 +78,5 @@ for name, program, inputs in programs:
     run_from = time.perf_counter()
     for _ in range(5):
         jax.block_until_ready(compiled(*inputs))
-    print(f"{' '.join(arguments)}: {name}: trace and lower {lowered_at - start:.1f} s, compile "
+    print(f"{' '.join(arguments)}: {described.get(name, name)}: trace and lower {lowered_at - start:.1f} s, compile "
           f"{compiled_at - lowered_at:.1f} s, run {(time.perf_counter() - run_from) / 5 * 1000:.1f} ms", flush=True)

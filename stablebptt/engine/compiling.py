@@ -1,9 +1,12 @@
 """How a task's programs compile: XLA's options per backend, the size of a traced step, the memory plan."""
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import os
-from typing import Callable, NamedTuple
+import threading
+import time
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.extend
@@ -62,6 +65,52 @@ def compiler_options(large: bool = False) -> dict | None:
     if backend == "gpu":
         options.update(unless_in_xla_flags(gpu_options()))
     return options or None
+
+
+def untimed_options() -> dict:
+    """XLA options of a program compiled beside another (``compile_beside``) or run once: on a GPU none
+    of its kernels is timed (autotuning level 0), so that a compile timing its own kernels meanwhile
+    chooses them undisturbed."""
+    return unless_in_xla_flags({"xla_gpu_autotune_level": 0}) if jax.default_backend() == "gpu" else {}
+
+
+def beside(function: Callable[[], Any], name: str) -> concurrent.futures.Future:
+    """``function()`` run in a thread of its own, its result (or its error) in the future returned. XLA
+    lets go of Python while it compiles: a compile begun here goes on while the caller traces or
+    compiles another program. The thread runs under the caller's JAX settings (float64, matmul precision),
+    which JAX keeps per thread."""
+    result: concurrent.futures.Future = concurrent.futures.Future()
+    x64, precision = jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision
+
+    def run():
+        try:
+            with jax.enable_x64(x64), jax.default_matmul_precision(precision):
+                result.set_result(function())
+        except BaseException as error:  # noqa: BLE001 - handed to whoever waits for the result
+            result.set_exception(error)
+
+    # No daemon: a process that ends early (a refusal) waits for it to finish, since XLA cannot be
+    # stopped mid-compile and a daemon thread inside it aborts the interpreter's exit.
+    threading.Thread(target=run, name=name).start()
+    return result
+
+
+class CompiledBeside:
+    """A lowered program compiling in a thread of its own (``beside``), for arguments shaped as
+    ``shapes``; called, it waits for its compile and runs."""
+
+    def __init__(self, lowered: Any, shapes: Any, name: str, options: dict | None = None):
+        self.shapes = shapes
+        self.future = beside(lambda: lowered.compile(options or None), name)
+
+    def wait(self) -> float:
+        """Waits for the compile (its error raised here): the seconds waited."""
+        started = time.perf_counter()
+        self.future.result()
+        return time.perf_counter() - started
+
+    def __call__(self, *arguments):
+        return self.future.result()(*arguments)
 
 
 def unless_in_xla_flags(options: dict) -> dict:

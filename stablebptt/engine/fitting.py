@@ -14,10 +14,11 @@ import jax
 import numpy as np
 
 from stablebptt.engine.checks import check_options, tracing_shapes
+from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, eval_cadence, seed_array
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
 from stablebptt.engine.program_store import cache_dir, compile_epoch, lower_epoch
-from stablebptt.engine.training import FLOW_BITS, Trainer, make_trainer, nonfinite_names
+from stablebptt.engine.training import FLOW_BITS, Trainer, TrainState, make_trainer, nonfinite_names
 from stablebptt.errors import InputError
 
 
@@ -143,10 +144,15 @@ class Evaluations:
         self.training = 0.0  # seconds trained since the last evaluation
         self.last = None  # seconds the last evaluation took
 
-    def compile(self, state: Any) -> float:
-        """Compile the evaluation for ``state``'s parameters ahead; the seconds it took (0 where there is none)."""
+    def compile(self, state: Any, beside: CompiledBeside | None = None) -> float:
+        """Compile the evaluation for ``state``'s parameters ahead; the seconds it took (0 where there is none).
+        ``beside``: the evaluation compiling already (``LoweredEpoch``), waited for where it was lowered
+        for parameters of ``state``'s shapes."""
         if self.program is None:
             return 0.0
+        if beside is not None and _leaf_shapes(state.params) == _leaf_shapes(beside.shapes):
+            self.program = beside
+            return beside.wait()
         started = time.perf_counter()
         self.program = self.program.lower(state.params, *self.arguments).compile()
         return time.perf_counter() - started
@@ -179,16 +185,19 @@ class LoweredEpoch(NamedTuple):
     lowered: Any  # its compile() gives the epoch's program
     shapes: Any  # the states' shapes (jax.ShapeDtypeStruct) it was lowered for
     compiled: Any = None  # that program, compiled already (``prepare``: beside a check still running)
+    evaluation: CompiledBeside | None = None  # the trainer's evaluation, compiling beside the epoch's compile
+    init_rest: CompiledBeside | None = None  # its init's part that waits for no check (``Initializer.rest``), too
 
 
 def state_shapes(trainer: Trainer, seeds: Any) -> Any:
     """The shapes of ``trainer.init(seeds)``, traced with no values: a task's check still running need
     not have answered (it decides the parameters' start, not their shapes)."""
-    # init's function, through a function of its own, not its jit: JAX would keep a jit's trace for
+    # The policy's init through a function of its own, not its jit: JAX would keep a jit's trace for
     # the next call, and this one's parameters start before the check has decided how.
-    init = getattr(trainer.init, "__wrapped__", trainer.init)
+    policy = getattr(trainer.init.policy, "__wrapped__", trainer.init.policy)
     with tracing_shapes():
-        return jax.eval_shape(lambda seeds: init(seeds), seeds)
+        params, opt_state = jax.eval_shape(lambda seeds: policy(seeds), seeds)
+    return TrainState(params, opt_state, *jax.eval_shape(trainer.init.rest, seeds))
 
 
 class Prepared(NamedTuple):
@@ -235,6 +244,8 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, low
                                          "surrogate's trace")
     task = task.settled_fully()  # the surrogate's own check, compiled beside that trace, may refuse it here
     lap("surrogate check's wait")
+    if lowered is not None and lowered.init_rest is not None:  # init's part that waits for no check, compiling beside
+        trainer = trainer._replace(init=trainer.init._replace(rest=lowered.init_rest))
     return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
 
 
@@ -259,17 +270,17 @@ def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = 
     lowered for states of ``state``'s shapes, else traced anew (kept under ``program_key``: ``program_store``)."""
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
     # Leaves alone: a carried env state's tree holds NumPy arrays in its static fields, which == cannot compare.
-    leaf_shapes = lambda tree: [_shape_of(leaf) for leaf in jax.tree.leaves(tree)]  # noqa: E731
-    if lowered is not None and leaf_shapes(state) == leaf_shapes(lowered.shapes):
+    if lowered is not None and _leaf_shapes(state) == _leaf_shapes(lowered.shapes):
         started = time.perf_counter()
         epoch_fn = lowered.compiled or lowered.lowered.compile()
         return epoch_fn, time.perf_counter() - started
     return compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(), trainer.compiler_options)
 
 
-def _shape_of(leaf) -> tuple:
+def _leaf_shapes(tree: Any) -> list[tuple]:
+    # Leaves alone: a carried env state's tree holds NumPy arrays in its static fields, which == cannot compare.
     # A checkpoint's NumPy arrays carry no weak type where init's may: such a state is lowered anew.
-    return leaf.shape, leaf.dtype, bool(getattr(leaf, "weak_type", False))
+    return [(leaf.shape, leaf.dtype, bool(getattr(leaf, "weak_type", False))) for leaf in jax.tree.leaves(tree)]
 
 
 def _smoothed_key(program_key: dict | None, task: Any) -> dict | None:
@@ -297,9 +308,18 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
     trace. A ``PerUpdateEpoch`` (a large step; a constraint solver on a CPU of several cores) is
     traced as it compiles instead: its metrics' program takes its shapes from the update's compiled
     one. ``program_key`` as ``train_epochs`` takes it."""
-    shapes = state_shapes(trainer, seed_array(config))
+    seeds = seed_array(config)
+    shapes = state_shapes(trainer, seeds)
     arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
-    return LoweredEpoch(lower_epoch(trainer.epoch, arguments, program_key, cache_dir(), trainer.compiler_options), shapes)
+    lowered = lower_epoch(trainer.epoch, arguments, program_key, cache_dir(), trainer.compiler_options)
+    # The evaluation and the population's resets compile beside the epoch; on a GPU with none of their
+    # kernels timed while the epoch's are.
+    evaluation = None if trainer.evaluation is None else CompiledBeside(
+        trainer.evaluation.lower(shapes.params, trainer.train_states, trainer.test_states), shapes.params,
+        "stablebptt-evaluation", untimed_options())
+    init_rest = None if trainer.episodes is None else CompiledBeside(trainer.init.rest.lower(seeds), seeds,
+                                                                     "stablebptt-init", untimed_options())
+    return LoweredEpoch(lowered, shapes, evaluation=evaluation, init_rest=init_rest)
 
 
 class Trained(NamedTuple):
@@ -378,7 +398,7 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
     state = trainer.init(seed_array(config))
     epoch_fn, _ = compiled_epoch(trainer, state, prepared.lowered)
     evaluations = Evaluations(trainer, config)
-    evaluations.compile(state)
+    evaluations.compile(state, prepared.lowered and prepared.lowered.evaluation)
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
     first_update = 0.0  # seconds from the call to the end of the first epoch
     steps = env_steps_per_epoch(trainer, config)

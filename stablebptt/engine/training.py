@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import optax
 
 from stablebptt.engine.checks import check_task
-from stablebptt.engine.compiling import compiler_options, run_plan, step_size
+from stablebptt.engine.compiling import beside, compiler_options, run_plan, step_size
 from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches, data_keys, eval_cadence, seed_batching
 from stablebptt.engine.critic import bootstrap, fit_to_window, init_critic
 from stablebptt.engine.episodes import (
@@ -55,6 +55,20 @@ class UpdateOutput(NamedTuple):
     flows_finite: jax.Array  # bool [flows]: each computed flow's gradient finite
 
 
+class Initializer(NamedTuple):
+    """``init(seeds) -> TrainState`` in two programs: the policy's parameters and their optimizer state,
+    whose values may wait for a task's check still running (``Task.settle``), and the rest (the carried
+    population's resets, the critic), which waits for nothing: ``fitting.prepare`` compiles it beside
+    the epoch."""
+
+    policy: Callable[[jax.Array], tuple[PyTree, PyTree]]  # seeds [S] -> (params, opt_state)
+    rest: Callable[[jax.Array], tuple[PyTree, PyTree]]  # seeds [S] -> (carried, critic)
+
+    def __call__(self, seeds: jax.Array) -> TrainState:
+        params, opt_state = self.policy(seeds)
+        return TrainState(params, opt_state, *self.rest(seeds))
+
+
 class Trainer(NamedTuple):
     """Compiled pieces of a run. Every function maps over a leading seed axis.
 
@@ -64,7 +78,7 @@ class Trainer(NamedTuple):
     """
 
     flows: tuple[str, ...]
-    init: Callable[[jax.Array], TrainState]  # seeds [S] -> states
+    init: Initializer  # seeds [S] -> states
     # (states, batches, train, test) -> states, metrics [S]; a grid trainer takes
     # (states, values, batches, train, test), values [S] of the task's cell option (None if it has none).
     epoch: Callable[..., tuple[TrainState, dict]]
@@ -113,8 +127,10 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
     train_key, test_key = data_keys(config.data_seed)
+    # The test states' reset compiles while the training states' does (on a GPU, one program each).
+    testing = beside(lambda: sample_states(task, test_key, config.test_size), "stablebptt-test-states")
     train_states = sample_states(task, train_key, config.train_size)
-    test_states = sample_states(task, test_key, config.test_size)
+    test_states = testing.result()
     # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
     # which on a GPU compiles one program per leaf shape.
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
@@ -139,12 +155,15 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             critic_optimizer = optax.adam(config.critic_lr)
             observations = jax.eval_shape(episodes.observe, example_state).shape[0]
 
-    def init(seed):
+    def init_policy(seed):
+        params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)
+        return params, optimizer.init(params)
+
+    def init_rest(seed):
         key = jax.random.PRNGKey(seed)
-        params = task.init_params(key, config.zero_output)
         carried = None if episodes is None else first_population(key, episodes, config.batch, window)
         critic = init_critic(key, observations, critic_optimizer) if config.critic else None
-        return TrainState(params, optimizer.init(params), carried, critic)
+        return carried, critic
 
     def evaluate(params, initial_states, dynamics=task.dynamics):
         if task.evaluation is not None:
@@ -220,7 +239,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
                                        jit(over_seeds(metrics.of_epoch, mapped=3 if not apart else 2)))
     return Trainer(
         flows=flows,
-        init=jit(over_seeds(init)),
+        init=Initializer(jit(over_seeds(init_policy)), jit(over_seeds(init_rest))),
         epoch=epoch_program,
         evaluate=jit(over_seeds(evaluate)),
         train_states=train_states,

@@ -77,7 +77,7 @@ def train_epochs(
     epoch_fn, seconds = compiled_epoch(trainer, state, lowered, program_key)  # before timing epochs
     phases["compile"] = phases.get("compile", 0.0) + seconds  # prepare may have compiled it beside a check
     evaluations = Evaluations(trainer, config)
-    phases["evaluation's compile"] = evaluations.compile(state)
+    phases["evaluation's compile"] = evaluations.compile(state, lowered and lowered.evaluation)
     on_compiled(phases["compile"] + phases["evaluation's compile"])
     record_start(run_dir, {name: seconds for name, seconds in phases.items() if seconds},
                  time.perf_counter() - started)
