@@ -1,6 +1,7 @@
 """A train.py run's update and evaluation programs (an epoch of separate programs), each traced,
 compiled and run alone on this machine: seconds to trace and lower, to compile, and milliseconds per
-call (the mean of five after one), with the compile cache off. Training on carried episodes, two more:
+call (the mean of five after one), with the compile cache off; the update is an epoch's second, and its
+first (which on carried episodes draws the epoch's fresh states) is timed too. Training on carried episodes, two more:
 the update's floor, the forward rollout of the same window from the same carried states with the
 same policy (every seed, every env), and jax.grad of that plain window's mean reward (the step's own
 derivative, none of the flows' machinery, no critic).
@@ -45,7 +46,9 @@ task = tasks.load(task_name).make(task_config)
 trainer = make_trainer(task, train_config)
 assert isinstance(trainer.epoch, PerUpdateEpoch)
 state = trainer.init(seed_array(train_config))
-programs = [("update", trainer.epoch.update, (state, jax.tree.map(lambda a: a[0], trainer.batches)))]
+# An epoch's second update where it has one: on carried episodes its first also draws the epoch's fresh states.
+later = min(1, trainer.updates_per_epoch - 1)
+programs = [("update", trainer.epoch.update, (state, jax.tree.map(lambda a: a[later], trainer.batches)))]
 if trainer.epoch.evaluate is not None:
     programs.append(("evaluation", trainer.epoch.evaluate, (state.params, trainer.train_states, trainer.test_states)))
 elif trainer.evaluation is not None:
@@ -80,3 +83,11 @@ for name, program, inputs in [program for program in programs if program[0] in c
         jax.block_until_ready(compiled(*inputs))
     print(f"{' '.join(arguments)}: {described.get(name, name)}: trace and lower {lowered_at - start:.1f} s, compile "
           f"{compiled_at - lowered_at:.1f} s, run {(time.perf_counter() - run_from) / 5 * 1000:.1f} ms", flush=True)
+    if name == "update" and later:  # the same program on an epoch's first update
+        first = (state, jax.tree.map(lambda a: a[0], trainer.batches))
+        jax.block_until_ready(compiled(*first))
+        run_from = time.perf_counter()
+        for _ in range(5):
+            jax.block_until_ready(compiled(*first))
+        print(f"{' '.join(arguments)}: an epoch's first update: run {(time.perf_counter() - run_from) / 5 * 1000:.1f} ms",
+              flush=True)

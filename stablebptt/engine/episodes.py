@@ -5,11 +5,12 @@ never meets a state past the window's end. A task with ``Episodes`` may train on
 instead, as the field's first-order trainers do: a population of states is carried from update to
 update (``Carried``, part of the training state and of every checkpoint); each update rolls every
 state one window of the horizon further, the gradient stopped at the window's start; a state whose
-episode is over (done, or at the episode's length) is reset between windows; and the episodes'
-clocks start spread over an episode, so that the windows cover every phase of it from the first
-update on. A reset episode starts with the next window, so the clocks stay spread to within a
-window; the steps a window rolls past an episode's end (half a window per episode, on average)
-are simulated and count for nothing.
+episode is over (done, or at the episode's length) starts again between windows from a fresh state
+of the carried pool, which an epoch's first update draws (one reset per env: about the episodes an
+epoch ends); and the episodes' clocks start spread over an episode, so that the windows cover
+every phase of it from the first update on. An episode started again begins with the next window,
+so the clocks stay spread to within a window; the steps a window rolls past an episode's end (half
+a window per episode, on average) are simulated and count for nothing.
 
 Within a window the flows roll a ``Window``: the task's state, its episode clock, whether its
 episode still runs, and the reward of the step that reached it. Once an episode ends its state stays
@@ -79,6 +80,8 @@ class Carried(NamedTuple):
     states: PyTree  # [envs, ...] where each episode stands
     clocks: jax.Array  # int32 [envs]: steps into each episode
     key: jax.Array  # the PRNG key the next resets draw from
+    pool: PyTree = None  # [envs, ...] fresh states an ended episode starts again from (``continue_from``)
+    pool_used: jax.Array | None = None  # int32: the pool's states taken since it was drawn (``refill_pool``)
 
 
 class Window(NamedTuple):
@@ -139,19 +142,34 @@ def start_window(carried: Carried, reward_dtype, noise: bool = False) -> Window:
     return Window(carried.states, carried.clocks, jnp.ones(envs, bool), jnp.zeros(envs, reward_dtype), keys)
 
 
-def continue_from(final: Window, key: jax.Array, episodes: Episodes) -> Carried:
-    """The population after a window: each ended episode reset, the others where the window left them."""
-    envs = final.clock.shape[0]
-    key, resets = jax.random.split(key)
-    fresh = jax.vmap(episodes.reset)(jax.random.split(resets, envs))
+def continue_from(final: Window, carried: Carried) -> Carried:
+    """The population after a window: each ended episode starts again from the next fresh state of the
+    carried ``pool`` (in the envs' order; past its end, from its start again), the others go on where the
+    window left them. No reset runs here: a reset may cost far more than a window (Playground's cheetah
+    settles its model for 200 physics steps, which a GPU runs one after another), so ``refill_pool``
+    draws the fresh states once an epoch, about one per env."""
     ended = jnp.logical_not(final.running)
+    size = jax.tree.leaves(carried.pool)[0].shape[0]
+    taken = (carried.pool_used + jnp.cumsum(ended) - 1) % size  # the ended envs' pool states, in turn
+    fresh = jax.tree.map(lambda pool: pool[taken], carried.pool)
     states = jax.tree.map(lambda new, old: jnp.where(_along(ended, old), new, old), fresh, final.state)
-    return Carried(states, jnp.where(ended, 0, final.clock).astype(jnp.int32), key)
+    return carried._replace(states=states, clocks=jnp.where(ended, 0, final.clock).astype(jnp.int32),
+                            key=jax.random.split(carried.key)[0],  # the next window's noise draws anew
+                            pool_used=carried.pool_used + jnp.sum(ended, dtype=jnp.int32))
+
+
+def refill_pool(carried: Carried, episodes: Episodes) -> Carried:
+    """``carried`` with a fresh pool: one reset per env, each from a key of its own split from the carried key."""
+    key, resets = jax.random.split(carried.key)
+    envs = carried.clocks.shape[0]
+    return carried._replace(key=key, pool=jax.vmap(episodes.reset)(jax.random.split(resets, envs)),
+                            pool_used=jnp.zeros((), jnp.int32))
 
 
 def first_population(seed_key: jax.Array, episodes: Episodes, envs: int, window: int) -> Carried:
     """A seed's first population: ``envs`` fresh episodes whose clocks are spread uniformly over an
-    episode where a window is shorter than one (so that the windows cover every phase of it), else at 0."""
+    episode where a window is shorter than one (so that the windows cover every phase of it), else at 0.
+    Its pool holds those states until an epoch's first update draws fresh ones (``refill_pool``)."""
     key = jax.random.fold_in(seed_key, RESET_STREAM)
     key, resets, clocks = jax.random.split(key, 3)
     states = jax.vmap(episodes.reset)(jax.random.split(resets, envs))
@@ -159,7 +177,7 @@ def first_population(seed_key: jax.Array, episodes: Episodes, envs: int, window:
         start = jax.random.randint(clocks, (envs,), 0, episodes.length, dtype=jnp.int32)
     else:
         start = jnp.zeros(envs, jnp.int32)
-    return Carried(states, start, key)
+    return Carried(states, start, key, states, jnp.zeros((), jnp.int32))
 
 
 def updates_per_epoch(episodes: Episodes, window: int) -> int:

@@ -23,6 +23,7 @@ from stablebptt.engine.episodes import (
     Episodes,
     continue_from,
     first_population,
+    refill_pool,
     start_window,
     updates_per_epoch,
     window_dynamics,
@@ -177,12 +178,15 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             carried, counted = None, jnp.ones(jax.tree.leaves(visited)[0].shape[:2], bool)
         else:  # one window from where the carried states stand; the gradient stops at its start
             at_end = None if critic is None else bootstrap(critic, episodes.observe)
+            # The fresh states this epoch's ended episodes start from, drawn at its first update: a cond on
+            # the update's number, which no seed batches, so the other updates run no reset at all.
+            carried = jax.lax.cond(batch == 0, lambda c: refill_pool(c, episodes), lambda c: c, state.carried)
             window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end, config.action_noise), flows,
-                                        state.params, start_window(state.carried, reward_dtype, config.action_noise > 0),
+                                        state.params, start_window(carried, reward_dtype, config.action_noise > 0),
                                         window_plan)
             loss, grads = window_result.loss, window_result.grads
             visited, counted = window_result.visited.state, window_result.visited.running
-            carried = continue_from(window_result.final, state.carried.key, episodes)
+            carried = continue_from(window_result.final, carried)
             if critic is not None:
                 critic = fit_to_window(critic, window_result.visited, window_result.final, episodes.observe,
                                        episodes.discount, config.td_lambda, critic_optimizer)

@@ -157,7 +157,9 @@ def _read_leaves(data: Any, count: int) -> list[np.ndarray]:
 def _unflatten_like(template: Any, leaves: list[np.ndarray], path: Path) -> Any:
     template_leaves, treedef = jax.tree.flatten(template)
     if len(leaves) != len(template_leaves) or any(a.shape != np.shape(b) for a, b in zip(leaves, template_leaves)):
-        raise InputError(f"{path} does not match this run's configuration (different network or seeds)")
+        raise InputError(f"{path} does not match this run's configuration (different network or seeds), or was "
+                         "saved by a version whose training state differs (carried episodes saved before "
+                         "their pool of fresh states)")
     return jax.tree.unflatten(treedef, [np.asarray(a, dtype=np.asarray(b).dtype) for a, b in zip(leaves, template_leaves)])
 
 

@@ -1,6 +1,8 @@
-"""Training on carried episodes: a window's return counts only its episode's steps, ended episodes are
-reset between windows and no others, clocks start spread, and the flows' gradient of a window is the
+"""Training on carried episodes: a window's return counts only its episode's steps, ended episodes start
+again between windows from fresh states drawn once an epoch, and no others, clocks start spread, and the flows' gradient of a window is the
 gradient of its plain rollout, in both derivative modes."""
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,6 +14,7 @@ from stablebptt.engine.episodes import (
     Episodes,
     continue_from,
     first_population,
+    refill_pool,
     start_window,
     updates_per_epoch,
     window_dynamics,
@@ -63,18 +66,38 @@ def test_a_window_counts_the_steps_of_its_episode_and_no_state_past_its_end():
     np.testing.assert_array_equal(last.state, [-4.0, -8.0, -10.0, 2.0])
 
 
-def test_ended_episodes_alone_are_reset_with_their_clocks_and_the_key_moves_on():
+def test_ended_episodes_alone_start_again_from_the_pool_in_turn_and_the_key_moves_on():
     task_episodes = episodes()
     window = window_dynamics(drift(), task_episodes, 4)
-    start = start_window(carried([0.1, 0.2, 0.3], [0, 6, 8]), jnp.float32)
-    final = jax.vmap(lambda x0: jax.tree.map(lambda a: a[-1], reference_rollout(window, jnp.array([0.0, 0.0]), x0).states))(start)
-    after = continue_from(final, jax.random.PRNGKey(3), task_episodes)
+    population = refill_pool(carried([0.1, 0.2, 0.3], [0, 6, 8]), task_episodes)
+    _, resets = jax.random.split(jax.random.PRNGKey(0))
+    fresh = jax.vmap(task_episodes.reset)(jax.random.split(resets, 3))
+    np.testing.assert_array_equal(population.pool, fresh)  # one reset per env, each from a key of its own
+    final = jax.vmap(lambda x0: jax.tree.map(lambda a: a[-1], reference_rollout(window, jnp.array([0.0, 0.0]), x0).states))(
+        start_window(population, jnp.float32))
+    after = continue_from(final, population)
     np.testing.assert_array_equal(after.clocks, [4, 0, 0])  # 6 + 4 and 8 + 4 reach the length of 10
     np.testing.assert_allclose(after.states[0], 0.1 * 0.9 ** 4, rtol=1e-6)  # the running one goes on
-    _, resets = jax.random.split(jax.random.PRNGKey(3))
-    fresh = jax.vmap(task_episodes.reset)(jax.random.split(resets, 3))
-    np.testing.assert_array_equal(after.states[1:], fresh[1:])
-    assert not np.array_equal(after.key, jax.random.PRNGKey(3))
+    np.testing.assert_array_equal(after.states[1:], fresh[:2])  # the ended ones take the pool's first two
+    assert int(after.pool_used) == 2 and not np.array_equal(after.key, population.key)
+    # Two more end: the pool's last state, then its first again.
+    again = continue_from(final, after)
+    np.testing.assert_array_equal(again.states[1:], fresh[np.array([2, 0])])
+    assert int(again.pool_used) == 4
+
+
+def test_an_epoch_draws_its_pool_once_at_its_first_update_from_the_key_it_starts_with():
+    task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
+                sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)), episodes=episodes())
+    config = TrainConfig(epochs=2, batch=3, train_size=2, test_size=2, lr=1e-2)
+    trainer = make_trainer(task, config)
+    state = trainer.init(seed_array(config))
+    for _ in range(2):
+        expected = refill_pool(jax.tree.map(lambda a: a[0], state.carried), episodes()).pool
+        state, _ = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+        np.testing.assert_array_equal(state.carried.pool[0], expected)
+        # 3 windows of 4 steps pass every episode's end of 10 once: each env took one fresh state.
+        assert int(state.carried.pool_used[0]) == 3
 
 
 def test_first_clocks_are_spread_over_an_episode_unless_a_window_holds_one():
@@ -173,10 +196,16 @@ def test_a_critic_trains_beside_the_policy_and_its_target_follows_it():
         assert bool(metrics["finite"][0])
     moved = lambda a, b: float(jnp.max(jnp.abs(a - b)))  # noqa: E731
     assert moved(state.critic.params[0][0], first.params[0][0]) > 0 and moved(state.critic.target[0][0], first.target[0][0]) > 0
-    # The value of x^2-like returns: the critic learns that states far from 0 are worth less (rewards -x^2).
+    # The value of x^2-like returns: under a policy held still (u = 0, so x decays by 0.9 a step) the critic
+    # learns that states far from 0 are worth less (rewards -x^2); 3 epochs leave it at noise, 20 do not.
     from stablebptt.engine.critic import value
+    still = make_trainer(task, dataclasses.replace(config, lr=1e-9))
+    state = still.init(seed_array(config))
+    for _ in range(20):
+        state, _ = still.epoch(state, still.batches, still.train_states, still.test_states)
     one = jax.tree.map(lambda a: a[0], state.critic.params)
-    assert float(value(one, jnp.array([0.9]))) < float(value(one, jnp.array([0.0])))
+    at = lambda x: float(value(one, jnp.array([x])))  # noqa: E731
+    assert at(-0.9) < at(0.0) and at(0.9) < at(0.0)
     with pytest.raises(InputError, match="action_noise: exploration noise on a window's actions needs carried episodes"):
         make_trainer(task, TrainConfig(batch=1, train_size=2, episodes="off", action_noise=0.1))
     with pytest.raises(InputError, match="critic: a learned value at a window's end needs carried episodes"):

@@ -72,7 +72,8 @@ def test_evaluations_run_apart_on_their_cadence_and_a_hook_sees_every_epoch_and_
     # Evaluated inside every epoch instead, the same returns where both evaluate: evaluation changes no update.
     inside = sb.train(task, replace(TINY, epochs=5, eval_every="epoch"))
     np.testing.assert_allclose(inside.test_loss[[1, 3, 4]], result.test_loss[[1, 3, 4]], rtol=1e-5)
-    np.testing.assert_array_equal(inside.metrics["batch_loss"], result.metrics["batch_loss"])
+    # Two programs, fused apart by XLA: equal to float32 rounding.
+    np.testing.assert_allclose(inside.metrics["batch_loss"], result.metrics["batch_loss"], rtol=1e-6)
 
 
 def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_on():
