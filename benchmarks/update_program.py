@@ -71,23 +71,25 @@ if trainer.episodes is not None:
     envs = len(seed_array(train_config)) * train_config.batch
     print(f"{' '.join(arguments)}: {envs} envs (seeds x batch), windows of {trainer.horizon} steps", flush=True)
 described = {"floor": "forward window (floor)", "grad": "jax.grad of the plain window"}
+
+
+def milliseconds(compiled, inputs) -> float:
+    """Per call, the mean of five after one."""
+    jax.block_until_ready(compiled(*inputs))
+    started = time.perf_counter()
+    for _ in range(5):
+        jax.block_until_ready(compiled(*inputs))
+    return (time.perf_counter() - started) / 5 * 1000
+
+
 for name, program, inputs in [program for program in programs if program[0] in chosen]:
     start = time.perf_counter()
     lowered = program.lower(*inputs)
     lowered_at = time.perf_counter()
     compiled = lowered.compile()
     compiled_at = time.perf_counter()
-    jax.block_until_ready(compiled(*inputs))
-    run_from = time.perf_counter()
-    for _ in range(5):
-        jax.block_until_ready(compiled(*inputs))
     print(f"{' '.join(arguments)}: {described.get(name, name)}: trace and lower {lowered_at - start:.1f} s, compile "
-          f"{compiled_at - lowered_at:.1f} s, run {(time.perf_counter() - run_from) / 5 * 1000:.1f} ms", flush=True)
+          f"{compiled_at - lowered_at:.1f} s, run {milliseconds(compiled, inputs):.1f} ms", flush=True)
     if name == "update" and later:  # the same program on an epoch's first update
         first = (state, jax.tree.map(lambda a: a[0], trainer.batches))
-        jax.block_until_ready(compiled(*first))
-        run_from = time.perf_counter()
-        for _ in range(5):
-            jax.block_until_ready(compiled(*first))
-        print(f"{' '.join(arguments)}: an epoch's first update: run {(time.perf_counter() - run_from) / 5 * 1000:.1f} ms",
-              flush=True)
+        print(f"{' '.join(arguments)}: an epoch's first update: run {milliseconds(compiled, first):.1f} ms", flush=True)

@@ -68,7 +68,7 @@ def compiler_options(large: bool = False) -> dict | None:
 
 
 def untimed_options() -> dict:
-    """XLA options of a program compiled beside another (``compile_beside``) or run once: on a GPU none
+    """XLA options of a program compiled beside another (``beside``) or run once: on a GPU none
     of its kernels is timed (autotuning level 0), so that a compile timing its own kernels meanwhile
     chooses them undisturbed."""
     return unless_in_xla_flags({"xla_gpu_autotune_level": 0}) if jax.default_backend() == "gpu" else {}

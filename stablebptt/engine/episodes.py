@@ -149,8 +149,7 @@ def continue_from(final: Window, carried: Carried) -> Carried:
     settles its model for 200 physics steps, which a GPU runs one after another), so ``refill_pool``
     draws the fresh states once an epoch, about one per env."""
     ended = jnp.logical_not(final.running)
-    size = jax.tree.leaves(carried.pool)[0].shape[0]
-    taken = (carried.pool_used + jnp.cumsum(ended) - 1) % size  # the ended envs' pool states, in turn
+    taken = (carried.pool_used + jnp.cumsum(ended) - 1) % ended.shape[0]  # the ended envs' pool states, in turn
     fresh = jax.tree.map(lambda pool: pool[taken], carried.pool)
     states = jax.tree.map(lambda new, old: jnp.where(_along(ended, old), new, old), fresh, final.state)
     return carried._replace(states=states, clocks=jnp.where(ended, 0, final.clock).astype(jnp.int32),

@@ -269,7 +269,6 @@ def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = 
     """The trainer's epoch compiled for ``state`` and the seconds it took: ``lowered``'s where it was
     lowered for states of ``state``'s shapes, else traced anew (kept under ``program_key``: ``program_store``)."""
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    # Leaves alone: a carried env state's tree holds NumPy arrays in its static fields, which == cannot compare.
     if lowered is not None and _leaf_shapes(state) == _leaf_shapes(lowered.shapes):
         started = time.perf_counter()
         epoch_fn = lowered.compiled or lowered.lowered.compile()

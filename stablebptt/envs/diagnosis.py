@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.engine.compiling import beside, compiler_options, unless_in_xla_flags
+from stablebptt.engine.compiling import beside, compiler_options, unless_in_xla_flags, untimed_options
 from stablebptt.flows.dynamics import join, split
 
 PyTree = Any
@@ -138,10 +138,8 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: in
             return checks(*samples), samples
         return jax.jit(checked_samples, compiler_options=_diagnosis_options()).lower(key)
 
-    def along_whole_episodes() -> PendingDiagnosis:
-        program: concurrent.futures.Future = concurrent.futures.Future()
-        program.set_result(lowered(episode_length).compile())
-        return PendingDiagnosis(program, key, [])
+    def along_whole_episodes() -> PendingDiagnosis:  # traced here, waited for as it is called
+        return PendingDiagnosis(_compiled_beside(lowered(episode_length)), key, [])
 
     near = lowered(min(episode_length, NEAR_STEPS))
     further = along_whole_episodes if episode_length > NEAR_STEPS else None
@@ -186,9 +184,8 @@ def _diagnosis_options() -> dict | None:
     level 0 compiled it in 8.7 s against the training options' 8.9 s for CartpoleSwingup, 7.0 against
     8.1 s for AcrobotSwingup, each after another compile in the same process (the record:
     ``git show fb065bd:results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt``)."""
-    backend = jax.default_backend()
-    cheaper = {"cpu": {"xla_backend_optimization_level": 0}, "gpu": {"xla_gpu_autotune_level": 0}}.get(backend, {})
-    return {**(compiler_options() or {}), **unless_in_xla_flags(cheaper)} or None
+    cheaper = unless_in_xla_flags({"xla_backend_optimization_level": 0}) if jax.default_backend() == "cpu" else {}
+    return {**(compiler_options() or {}), **cheaper, **untimed_options()} or None
 
 
 def sample_for_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int,
