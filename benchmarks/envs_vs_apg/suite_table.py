@@ -122,10 +122,10 @@ def ppo_at_budget(env: str) -> str:
     return f"{np.mean(finals):.1f} [{low:.1f}, {high:.1f}] at {runs[0]['budget_s']:.0f} s"
 
 
-def table(records: list[dict]) -> str:
+def table(records: list[dict], out: str) -> str:
     lines = ["# MuJoCo Playground's suite envs trained by `stablebptt train`", "",
-             "Written by `python benchmarks/envs_vs_apg/suite_table.py --out results/envs/suite` from "
-             "`results/envs/suite/records.json`. Each row is one command's run folder; its budget counts set-up "
+             f"Written by `python benchmarks/envs_vs_apg/suite_table.py --out {out}` from "
+             f"`{out}/records.json`. Each row is one command's run folder; its budget counts set-up "
              "and compile, its seeds train in one program. Returns are the run's own evaluations (fresh resets, "
              "the deterministic policy, the env's reward); Brax PPO ran in Brax's own loop "
              "(`benchmarks/envs_vs_apg/ppo_baseline.py`, 5 seeds sharing one GPU) for the budget named, its runs on "
@@ -171,10 +171,16 @@ def main(argv=None) -> None:
     for folder in args.runs:
         record = read_run(folder)
         records[record["command"]] = record
-    with open(path, "w") as handle:
-        json.dump(sorted(records.values(), key=lambda r: r["command"]), handle, indent=1)
-    with open(os.path.join(args.out, "suite.md"), "w") as handle:
-        handle.write(table(list(records.values())))
+    out = os.path.normpath(args.out)
+    write(path, json.dumps(sorted(records.values(), key=lambda r: r["command"]), indent=1))
+    write(os.path.join(out, "suite.md"), table(list(records.values()), out))
+
+
+def write(path: str, text: str) -> None:
+    """``text`` into ``path`` whole or not at all (a stopped call leaves the records as they were)."""
+    with open(path + ".partial", "w") as handle:
+        handle.write(text)
+    os.replace(path + ".partial", path)
 
 
 if __name__ == "__main__":

@@ -85,7 +85,7 @@ def configs_of(run_dir: Path, record: dict, train_changes: dict | None = None,
 
 def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> ReopenedRun:
     """Reopen a run folder: config checked, task rebuilt, parameters loaded. Switches JAX to the
-    run's precision (``train.x64``), so call it before creating arrays of your own.
+    run's precision (``train.x64``, ``train.matmul_precision``), so call it before creating arrays of your own.
 
     Raises:
       InputError: not a run folder, an unknown task, a damaged or missing parameter file, or a
@@ -101,6 +101,7 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     if not (run_dir / run_folder.PARAMS_FILE).is_file():
         raise InputError(f"{run_dir} has no {run_folder.PARAMS_FILE}: the run has not finished an epoch yet")
     jax.config.update("jax_enable_x64", train.x64)  # before any array, as the run was trained
+    jax.config.update("jax_default_matmul_precision", train.matmul_precision)
     module = task_entry.load()
     task = module.make(getattr(module, "for_reopening", lambda config: config)(task_config))
     keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)

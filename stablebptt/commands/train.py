@@ -84,6 +84,7 @@ def train(argv: list[str], held: list) -> int:
 
     import jax  # after parsing: --x64 must be set before any array exists
     jax.config.update("jax_enable_x64", train_config.x64)
+    jax.config.update("jax_default_matmul_precision", train_config.matmul_precision)
     from stablebptt.cli import use_compile_cache
     use_compile_cache(args.compile_cache)
     from stablebptt.errors import StorageError
@@ -147,7 +148,9 @@ def train(argv: list[str], held: list) -> int:
     from stablebptt.reports.plots import plot_run
     plot_run(run_dir)
     mean, std = metrics.final_mean_std(outcome.rows)
-    spread = f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
+    scored = metrics.scored_seeds(outcome.rows)  # a seed stopped apart has no final numbers
+    spread = f" +- {std:.4g} over {scored} of {len(seeds)} seeds" if scored < len(seeds) else \
+        f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
     print(f"done: {task_label}, mode {train_config.mode}, {_epochs(outcome.epoch)}, final test loss {mean:.4g}{spread} -> {run_dir}")
     return 0
 

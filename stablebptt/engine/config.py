@@ -30,7 +30,9 @@ RECORDED_BEFORE = {"episodes": "off", "eval_every": "epoch"}
 # DeepMind Control Suite's contact scenes whose step is generated (stablebptt/physics/rigid_body.py), while
 # through MJX's stages they are large.
 LARGE_STEP = 8_000
-MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
+MAX_SEED = 2**32 - 1
+# JAX's names of float32 matrix products' precision (jax.default_matmul_precision).
+MATMUL_PRECISIONS = ("default", "high", "highest")  # seeds are unsigned 32-bit PRNG seeds
 
 
 @dataclass(frozen=True)
@@ -44,6 +46,8 @@ class TrainConfig:
     seeds: int = field(default=1, metadata={"help": "independent seeds trained in one compiled program"})
     seed: int = field(default=42, metadata={"help": "first network seed; seed k uses seed+k"})
     lr: float = field(default=1e-3, metadata={"help": "Adam learning rate"})
+    adam_b1: float = field(default=0.9, metadata={"help": "Adam's decay of its gradient average, in [0, 1), the policy's and the critic's (SHAC and Brax APG: 0.7)"})
+    adam_b2: float = field(default=0.999, metadata={"help": "Adam's decay of its squared-gradient average, in [0, 1), the policy's and the critic's (SHAC and Brax APG: 0.95)"})
     lr_decay: float = field(default=1.0, metadata={"help": "the learning rate's factor per update, in (0, 1] (1: constant; Brax APG decays by 0.997)"})
     batch: int = field(default=8, metadata={"help": "initial states per update (training on episodes: the states carried from update to update)"})
     train_size: int = field(default=256, metadata={"help": "training initial states (training on episodes: the fresh starts whose episode return the train loss reports)"})
@@ -52,6 +56,7 @@ class TrainConfig:
     zero_output: bool = field(default=True, metadata={"help": "start the output layer at zero as the original run scripts do (--no-zero-output: Glorot)"})
     cosine: bool = field(default=True, metadata={"help": "also compute g_M and g_R in every mode to log their cosine (--no-cosine: only the flows the mode needs)"})
     x64: bool = field(default=False, metadata={"help": "run everything in float64"})
+    matmul_precision: str = field(default="default", metadata={"help": "float32 matrix products: default (a GPU may take TF32, about 3 decimal digits), high, highest (full float32; a CPU always computes in full)", "choices": MATMUL_PRECISIONS})
     unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Plan.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="auto", metadata={"help": "how seeds share one program: vmap (batched: on a GPU an update of 5 seeds costs little more than one seed's; equal to a solo run only to float rounding), map (one after another, each bit-identical to the seed trained alone), auto (vmap for several seeds)", "choices": SEED_BATCHING})
@@ -85,6 +90,12 @@ class TrainConfig:
             raise InputError(f"{config_field(self, 'td_lambda')} must be in [0, 1], got {self.td_lambda}")
         if not (math.isfinite(self.lr_decay) and 0 < self.lr_decay <= 1):
             raise InputError(f"{config_field(self, 'lr_decay')} must be in (0, 1], got {self.lr_decay}")
+        for name in ("adam_b1", "adam_b2"):
+            if not (math.isfinite(getattr(self, name)) and 0 <= getattr(self, name) < 1):
+                raise InputError(f"{config_field(self, name)} must be in [0, 1), got {getattr(self, name)}")
+        if self.matmul_precision not in MATMUL_PRECISIONS:
+            raise InputError(f"unknown {config_field(self, 'matmul_precision')} {self.matmul_precision!r}: "
+                             f"choose one of {', '.join(MATMUL_PRECISIONS)}")
         if not (math.isfinite(self.action_noise) and self.action_noise >= 0):
             raise InputError(f"{config_field(self, 'action_noise')} must be a number >= 0, got {self.action_noise}")
         for name in ("lr", "clip_threshold", "critic_lr"):

@@ -16,30 +16,12 @@ import numpy as np
 from stablebptt.engine.checks import check_options, tracing_shapes
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, eval_cadence, seed_array
+from stablebptt.engine.divergence import (
+    failing, keep_retired, nonfinite_message, of_seeds, retired_in, retirement_notice, without_numbers, zeroed_notice)
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
 from stablebptt.engine.program_store import cache_dir, compile_epoch, lower_epoch
-from stablebptt.engine.training import FLOW_BITS, Trainer, TrainState, make_trainer, nonfinite_names
+from stablebptt.engine.training import Trainer, TrainState, make_trainer
 from stablebptt.errors import InputError
-
-
-def nonfinite_message(flows: tuple[str, ...], metrics: dict) -> str:
-    """"non-finite <what>" when an epoch's metrics (host arrays over seeds) failed a check, else ""."""
-    if np.all(metrics["finite"]):
-        return ""
-    what = nonfinite_names(flows, int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))))
-    return f"non-finite {', '.join(what)}"
-
-
-def zeroed_notice(flows: tuple[str, ...], metrics: dict, seeds: np.ndarray) -> str:
-    """What an epoch that went on through non-finite flow gradients (``nonfinite_flows`` "zero") left
-    at zero, in words; "" where nothing was."""
-    counts = np.atleast_1d(metrics.get("nonfinite_flow_updates", 0))
-    if not counts.any() or not np.all(metrics["finite"]):
-        return ""
-    bits = int(np.bitwise_or.reduce(np.atleast_1d(metrics["nonfinite"]))) >> FLOW_BITS << FLOW_BITS
-    where = ", ".join(f"seed {int(seed)}: {int(count)}" for seed, count in zip(seeds, counts) if count)
-    return (f"{', '.join(nonfinite_names(flows, bits))} non-finite in some updates ({where}); mode C's sign "
-            "agreement left those components at zero and training went on")
 
 
 def fit(
@@ -60,6 +42,7 @@ def fit(
     final: (metrics, 0.0),
     out_of_time: Callable[[], bool] = lambda: False,
     steps_per_epoch: int = 0,
+    seeds_apart: bool = False,
 ) -> tuple[str, int, Any, np.ndarray, str]:
     """The epoch loop: epochs ``start_epoch+1 .. epochs``, checkpointing, stopping and divergence.
 
@@ -78,6 +61,10 @@ def fit(
       on_epoch: gets each epoch's metrics, with its wall time under ``"seconds"``.
       diverged: a message when an epoch's metrics must not be kept (its state is
         dropped, the last good one saved), else "".
+      seeds_apart: the rows are seeds of one state's leading axis, and a seed that fails alone is
+        retired (``stablebptt.engine.divergence``): it keeps its last good state, its rows hold NaN,
+        ``on_epoch`` names it in its notice, and the others train on; the run stops as diverged only
+        once every seed has failed.
       noticed: a message on an epoch that is kept but must not pass in silence (a non-finite flow
         gradient left at zero), else ""; ``on_epoch`` gets it under ``"notice"``.
       evaluate: ``evaluate(state, metrics, epoch, seconds, final) -> (metrics, seconds evaluating)``
@@ -104,6 +91,7 @@ def fit(
             save(epoch, state, all_rows())
             saved_epoch, last_save = epoch, time.monotonic()
 
+    retired = retired_in(all_rows(), row_ids) if seeds_apart else np.zeros(len(row_ids), dtype=bool)
     epoch = start_epoch
     for epoch in range(start_epoch + 1, epochs + 1):
         if should_stop():
@@ -115,17 +103,26 @@ def fit(
         seconds = time.perf_counter() - started
         stopping, spent = should_stop(), out_of_time()
         metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or spent)
-        problem = diverged(metrics)
+        problem, retiring = diverged(metrics), ""
         if problem:
-            checkpoint(epoch - 1, state)
-            return "diverged", epoch - 1, state, all_rows(), problem
+            stopped = (failing(metrics) | retired) if seeds_apart else np.ones(len(row_ids), dtype=bool)
+            if stopped.all():
+                checkpoint(epoch - 1, state)
+                return "diverged", epoch - 1, state, all_rows(), problem
+            newly, retired = stopped & ~retired, stopped
+            if newly.any():
+                retiring = retirement_notice(diverged(of_seeds(metrics, newly)), row_ids[newly], epoch,
+                                             int((~stopped).sum()))
+        if retired.any():  # seeds that stopped, here or before: the others' epoch is kept
+            new_state, metrics = keep_retired(new_state, state, retired), without_numbers(metrics, retired)
         state = new_state
         blocks.append(epoch_rows(epoch, row_ids, metrics, seconds, eval_seconds,
                                  epoch * steps_per_epoch if steps_per_epoch else np.nan))
         due = epoch % checkpoint_every == 0 and time.monotonic() - last_save >= checkpoint_seconds
         if due or epoch == epochs or stopping or spent:
             checkpoint(epoch, state)
-        on_epoch(epoch, {**metrics, "seconds": seconds, "eval_seconds": eval_seconds, "notice": noticed(metrics)})
+        notice = "; ".join(line for line in (retiring, noticed(metrics)) if line)
+        on_epoch(epoch, {**metrics, "seconds": seconds, "eval_seconds": eval_seconds, "notice": notice})
         if stopping or spent:
             return "interrupted" if stopping else "budget", epoch, state, all_rows(), ""
     return "complete", epoch, state, all_rows(), ""
@@ -339,7 +336,8 @@ class TrainingDiverged(ArithmeticError):
 
 
 class NonFiniteFlowWarning(RuntimeWarning):
-    """Training went on through a flow's non-finite gradient, left at zero (``nonfinite_flows`` "zero")."""
+    """Training went on through a non-finite value: a flow's gradient left at zero (``nonfinite_flows``
+    "zero"), or a seed that failed alone and stopped while the others trained on."""
 
 
 def train(task: Any, config: TrainConfig = TrainConfig(),
@@ -357,6 +355,7 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
         (``jax.enable_x64`` for the call alone; the parameters come back as float64
         NumPy arrays). Arrays the task made before are float32 and used as such:
         for float64 physics constants too, build the task under ``jax.enable_x64(True)``.
+        ``matmul_precision`` holds for the call alone in the same way.
       on_epoch: called after every epoch with its metrics (arrays over seeds; ``seconds`` and
         ``eval_seconds`` its training and evaluation time).
       progress_fn: Brax's convention, ``progress_fn(env_steps, metrics)`` after every epoch: each
@@ -367,10 +366,12 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
 
     Returns:
       A ``Trained``: parameters with a leading seed axis and metrics ``[epochs, seeds]`` (an epoch
-      trained without an evaluation has NaN train and test losses).
+      trained without an evaluation has NaN train and test losses). A seed whose epoch went
+      non-finite while others' did not stops there with its last good parameters, its metrics NaN
+      from that epoch on, named in a ``NonFiniteFlowWarning``; the others train on.
 
     Raises:
-      TrainingDiverged: a loss, update or gradient of a computed flow was not finite.
+      TrainingDiverged: a loss, update or gradient of a computed flow was not finite, for every seed.
       InputError: a config that is not a ``TrainConfig``, options that make each other
         meaningless (``checks.check_options``), or a task that cannot train (``checks.TaskError``).
 
@@ -382,10 +383,11 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
     started = time.perf_counter()
     if isinstance(config, TrainConfig):  # anything else make_trainer names
         check_options(config)
-        if config.x64 and not jax.config.jax_enable_x64:
-            with jax.enable_x64(True):  # the user's own setting is back when the call ends
-                trained = _train(task, config, on_epoch, progress_fn, should_stop, started)
-                return trained._replace(params=jax.device_get(trained.params))
+        widened = config.x64 and not jax.config.jax_enable_x64
+        # The user's own settings are back when the call ends.
+        with jax.enable_x64(widened or jax.config.jax_enable_x64), jax.default_matmul_precision(config.matmul_precision):
+            trained = _train(task, config, on_epoch, progress_fn, should_stop, started)
+            return trained._replace(params=jax.device_get(trained.params)) if widened else trained
     return _train(task, config, on_epoch, progress_fn, should_stop, started)
 
 
@@ -409,13 +411,9 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
         first_update = first_update or time.perf_counter() - started
         return new_state, metrics
 
-    def noticed(metrics):
-        notice = zeroed_notice(trainer.flows, metrics, seeds)
-        if notice:
-            warnings.warn(f"{task.name}: {notice}", NonFiniteFlowWarning, stacklevel=2)
-        return notice
-
     def reported(epoch, metrics):
+        if metrics["notice"]:  # a flow's non-finite gradient left at zero, or seeds that stopped apart
+            warnings.warn(f"{task.name}: {metrics['notice']}", NonFiniteFlowWarning, stacklevel=2)
         on_epoch(epoch, metrics)
         if progress_fn is not None:
             progress_fn(epoch * steps, metrics)
@@ -423,8 +421,9 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
     status, epoch, state, rows, problem = fit(run_epoch, state, 0, config.epochs, empty_rows(), seeds,
                                               lambda *saved: None, config.epochs, should_stop, reported,
                                               diverged=lambda metrics: nonfinite_message(trainer.flows, metrics),
-                                              noticed=noticed, evaluate=evaluations,
-                                              out_of_time=out_of_time(config, started), steps_per_epoch=steps)
+                                              noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds),
+                                              evaluate=evaluations, out_of_time=out_of_time(config, started),
+                                              steps_per_epoch=steps, seeds_apart=True)
     if status == "diverged":
         raise TrainingDiverged(f"{task.name}: {problem} at epoch {epoch + 1} (TrainConfig.mode {config.mode!r})")
     per_epoch = {name: rows[:, COLUMNS.index(name)].reshape(epoch, len(seeds)) for name in METRICS}

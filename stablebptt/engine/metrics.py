@@ -33,6 +33,12 @@ def final_mean_std(rows: np.ndarray, column: str = "test_loss") -> tuple[float, 
     return float(values.mean()), float(values.std()) if len(values) > 1 else 0.0
 
 
+def scored_seeds(rows: np.ndarray, column: str = "test_loss") -> int:
+    """How many seeds ``final_mean_std`` scores: those with a number at the last epoch that has one."""
+    known = rows[np.isfinite(rows[:, COLUMNS.index(column)])]
+    return int((known[:, 0] == known[:, 0].max()).sum()) if len(known) else 0
+
+
 def epoch_rows(epoch: int, seeds: np.ndarray, metrics: dict, seconds: float, eval_seconds: float = 0.0,
                env_steps: float = np.nan) -> np.ndarray:
     columns = [np.full(len(seeds), epoch), seeds] + [np.asarray(metrics[m], dtype=np.float64) for m in METRICS]

@@ -23,6 +23,11 @@ def _switch(transforms: list[optax.GradientTransformation], index: jax.Array) ->
     return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
 
 
+def adam(config: TrainConfig, learning_rate) -> optax.GradientTransformation:
+    """Adam with the run's decays (``TrainConfig.adam_b1``, ``adam_b2``): the policy's and the critic's."""
+    return optax.adam(learning_rate, b1=config.adam_b1, b2=config.adam_b2)
+
+
 def make_optimizer(config: TrainConfig, flows: tuple[str, ...], per_cell: bool = False) -> optax.GradientTransformation:
     """ONE chain, for single runs and grid cells alike: the flows reduced to the mode's update ->
     clip -> Adam.
@@ -40,12 +45,12 @@ def make_optimizer(config: TrainConfig, flows: tuple[str, ...], per_cell: bool =
         if config.lr_decay != 1:  # only then: a constant rate keeps the optimizer state of earlier runs
             decay = [optax.scale_by_schedule(lambda count: config.lr_decay ** count)]
         return optax.chain(select_flow(config.mode, flows), CLIPPERS[config.clip](clip_threshold),
-                           optax.adam(learning_rate), *decay)
+                           adam(config, learning_rate), *decay)
 
     def chain_per_cell(learning_rate, clip_threshold, mode_index, clip_index):
         return optax.chain(_switch([select_flow(mode, flows) for mode in MODES], mode_index),
                            _switch([CLIPPERS[name](clip_threshold) for name in CLIP_MODES], clip_index),
-                           optax.adam(learning_rate))
+                           adam(config, learning_rate))
 
     if per_cell:
         if config.lr_decay != 1:

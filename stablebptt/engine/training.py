@@ -28,7 +28,7 @@ from stablebptt.engine.episodes import (
     updates_per_epoch,
     window_dynamics,
 )
-from stablebptt.engine.optimizer import make_grid_optimizer, make_optimizer
+from stablebptt.engine.optimizer import adam, make_grid_optimizer, make_optimizer
 from stablebptt.engine.per_update import PerUpdateEpoch, compile_side_by_side
 from stablebptt.engine.program_store import kept_answer
 from stablebptt.engine.task import Task
@@ -153,7 +153,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         # Known columns index the task's state; a window's state holds more. The window's own plan drops them.
         window_plan = dataclasses.replace(plan, known_columns=None)
         if config.critic:
-            critic_optimizer = optax.adam(config.critic_lr)
+            critic_optimizer = adam(config, config.critic_lr)
             observations = jax.eval_shape(episodes.observe, example_state).shape[0]
 
     def init_policy(seed):

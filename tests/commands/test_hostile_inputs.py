@@ -315,7 +315,7 @@ def test_a_dict_for_the_train_config_and_a_float64_trainer_made_in_float32_are_n
         sb.make_trainer(_pendulum(), sb.TrainConfig(epochs=1, x64=True))
 
 
-def test_x64_from_python_trains_in_float64_as_the_command_line_and_leaves_jax_in_float32():
+def test_x64_from_python_trains_in_float64_as_the_command_line_and_leaves_jax_as_it_was():
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -323,10 +323,12 @@ def test_x64_from_python_trains_in_float64_as_the_command_line_and_leaves_jax_in
     import stablebptt as sb
 
     from conftest import float64
-    config = sb.TrainConfig(epochs=2, train_size=8, test_size=8, x64=True)
+    config = sb.TrainConfig(epochs=2, train_size=8, test_size=8, x64=True, matmul_precision="highest")
     assert not jax.config.jax_enable_x64
+    precision = jax.config.jax_default_matmul_precision
     scoped = sb.train(_pendulum(), config)
-    assert not jax.config.jax_enable_x64 and jnp.ones(1).dtype == jnp.float32  # the user's setting is kept
+    assert not jax.config.jax_enable_x64 and jnp.ones(1).dtype == jnp.float32  # the user's settings are kept
+    assert jax.config.jax_default_matmul_precision == precision != "highest"
     assert {leaf.dtype for leaf in jax.tree.leaves(scoped.params)} == {np.dtype(np.float64)}
     with float64():  # as the command line's --x64: JAX in float64 from the start
         whole = sb.train(_pendulum(), config)

@@ -168,6 +168,23 @@ def test_a_decaying_learning_rate_scales_every_update_by_its_factor_per_update()
         TrainConfig(lr_decay=1.5)
 
 
+def test_adams_decays_are_the_runs_own_and_refused_outside_0_to_1():
+    from stablebptt.engine.optimizer import make_optimizer
+    b1, b2, lr = 0.7, 0.95, 0.1
+    optimizer = make_optimizer(TrainConfig(mode="R", clip="none", lr=lr, adam_b1=b1, adam_b2=b2), ("R",))
+    params = jnp.zeros(2)
+    state = optimizer.init(params)
+    average, squares = np.zeros(2), np.zeros(2)
+    for count, gradient in enumerate(np.array([[2.0, -1.0], [-1.0, 0.5], [0.5, 3.0]]), start=1):
+        updates, state = optimizer.update(jnp.asarray(gradient)[None], state, params)
+        average, squares = b1 * average + (1 - b1) * gradient, b2 * squares + (1 - b2) * gradient ** 2
+        expected = -lr * (average / (1 - b1 ** count)) / (np.sqrt(squares / (1 - b2 ** count)) + 1e-8)
+        np.testing.assert_allclose(updates, expected, rtol=1e-5)
+    for field, value in (("adam_b1", 1.0), ("adam_b2", -0.1), ("adam_b1", float("nan"))):
+        with pytest.raises(InputError, match=f"{field} must be in \\[0, 1\\)"):
+            TrainConfig(**{field: value})
+
+
 def test_td_lambda_targets_are_the_closed_forms_at_lambda_0_and_1_and_stop_where_an_episode_ends():
     from stablebptt.engine.critic import td_lambda_targets
     rewards = jnp.array([[1.0], [2.0], [3.0]])

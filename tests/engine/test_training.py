@@ -251,6 +251,79 @@ def test_divergence_stops_with_the_epoch_and_keeps_the_last_good_checkpoint(tmp_
     assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(saved))
 
 
+def one_seed_exploding_task():
+    """The exploding task for seeds whose key's last word is odd; the others' policy is zero (its
+    flag, the second parameter, has a zero gradient and so never moves) and their loss stays finite."""
+    def policy(p, x):
+        return jax.lax.stop_gradient(p[1]) * p[0] * x
+
+    return Task(
+        name="one-exploding",
+        dynamics=Dynamics(step=lambda x, u: x + u, policy=policy,
+                          loss=lambda states, controls: -jnp.sum(states[-1] ** 2), horizon=4),
+        init_params=lambda key, zero_output: jnp.stack([0.5, (jnp.asarray(key)[-1] % 2).astype(jnp.float32)]),
+        sample_initial_states=lambda key, n: jax.random.uniform(key, (n, 1), minval=0.5, maxval=1.0),
+    )
+
+
+def test_a_seed_that_diverges_alone_stops_with_its_last_good_state_and_the_other_trains_on_across_a_resume(
+        tmp_path):
+    config = TrainConfig(epochs=40, train_size=16, test_size=8, batch=8, lr=100.0, clip="none", mode="R", seeds=2)
+    trainer = make_trainer(one_seed_exploding_task(), config)
+    seeds = np.asarray(seed_array(config))  # 42 trains finite, 43 explodes
+    initial = trainer.init(seed_array(config))
+    notices = {}
+    first = epochs.train_epochs(trainer, replace(config, epochs=30), tmp_path, initial, 0, empty_rows(), seeds,
+                                on_epoch=lambda epoch, metrics: notices.update({epoch: metrics["notice"]}))
+    assert first.status == "complete" and first.epoch == 30
+    said = {epoch: line for epoch, line in notices.items() if line}
+    assert len(said) == 1, said
+    (stopped, line), = said.items()
+    assert stopped > 1  # an epoch of numbers before it
+    assert f"at epoch {stopped} (seed 43): it stops with the parameters of epoch {stopped - 1}" in line, line
+    assert "non-finite" in line and "the other 1 train on" in line, line
+
+    def rows_of(rows, seed):
+        return rows[rows[:, 1] == seed]
+
+    def numbers(rows):  # the metric columns that every trained epoch fills
+        return rows[:, [COLUMNS.index(name) for name in ("batch_loss", "update_norm")]]
+
+    # Seed 43 kept numbers up to the epoch before it stopped and none after; seed 42 all of them.
+    assert np.all(np.isfinite(numbers(rows_of(first.rows, 43)[:stopped - 1])))
+    assert np.all(np.isnan(numbers(rows_of(first.rows, 43)[stopped - 1:])))
+    assert np.all(np.isfinite(numbers(rows_of(first.rows, 42))))
+    params = first.state.params
+    assert np.all(np.isfinite(np.asarray(params)))
+    # Its state is the one it had after epoch stopped - 1: a run of that many epochs ends there.
+    (tmp_path / "before").mkdir()
+    before = epochs.train_epochs(trainer, replace(config, epochs=stopped - 1), tmp_path / "before", initial, 0,
+                                 empty_rows(), seeds)
+    for kept, reference in zip(jax.tree.leaves(first.state), jax.tree.leaves(before.state)):
+        np.testing.assert_array_equal(np.asarray(kept)[1], np.asarray(reference)[1])
+
+    # A resume from the checkpoint knows seed 43 stopped: it stays put and says nothing again.
+    epoch, saved, rows = run_folder.load_checkpoint(tmp_path, initial)
+    notices.clear()
+    resumed = epochs.train_epochs(trainer, config, tmp_path, saved, epoch, rows, seeds,
+                                  on_epoch=lambda epoch, metrics: notices.update({epoch: metrics["notice"]}))
+    assert resumed.status == "complete" and not any(notices.values()), notices
+    assert np.all(np.isnan(numbers(rows_of(resumed.rows, 43)[stopped - 1:])))
+    assert np.all(np.isfinite(numbers(rows_of(resumed.rows, 42)))) and len(rows_of(resumed.rows, 42)) == 40
+    for kept, reference in zip(jax.tree.leaves(resumed.state), jax.tree.leaves(before.state)):
+        np.testing.assert_array_equal(np.asarray(kept)[1], np.asarray(reference)[1])
+
+
+def test_from_python_a_seed_that_stops_apart_is_named_in_a_warning_and_every_seed_failing_raises():
+    config = TrainConfig(epochs=30, train_size=16, test_size=8, batch=8, lr=100.0, clip="none", mode="R", seeds=2)
+    with pytest.warns(fitting.NonFiniteFlowWarning, match=r"\(seed 43\): it stops"):
+        trained = fitting.train(one_seed_exploding_task(), config)
+    test_loss = trained.metrics["test_loss"]
+    assert np.isfinite(test_loss[-1, 0]) and np.isnan(test_loss[-1, 1])
+    with pytest.raises(fitting.TrainingDiverged, match="non-finite"):
+        fitting.train(exploding_task(), replace(config, epochs=50, seed=43))
+
+
 def nan_through_the_policy_input_task():
     """g_R is NaN (the policy's input passes a square root at 0, times 0) while g_M, the loss and
     mode C's sign-agreement update stay finite: C's update is a finite zero that hides the NaN."""
