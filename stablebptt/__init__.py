@@ -32,6 +32,7 @@ _HOMES = {
     "mlp_apply": "stablebptt.networks", "mlp_init": "stablebptt.networks",
     "one_cpu_thread": "stablebptt.runtime",
     "env_task": "stablebptt.envs.adapter",
+    "ContactSmoothing": "stablebptt.physics.backward_contacts",
 }
 __all__ = sorted(_HOMES)
 

@@ -132,3 +132,38 @@ def nan_reward(state: State) -> jax.Array:
 
 def constant_reward(state: State) -> jax.Array:
     return jnp.ones(())
+
+
+BALL = """<mujoco><option timestep="0.01"/><worldbody><geom type="plane" size="1 1 .1"/>
+<body pos="0 0 0.2"><joint name="z" type="slide" axis="0 0 1"/><geom type="sphere" size="0.1" mass="1"/></body>
+</worldbody><actuator><motor joint="z" gear="5"/></actuator></mujoco>"""
+
+
+class Ball:
+    """A ball on a vertical slide above a plane, pushed by a motor, that should hover 5 cm clear of the
+    plane: an env that keeps its MJX model in ``_mjx_model``, as MuJoCo Playground's do."""
+
+    observation_size = 2
+    action_size = 1
+
+    def __init__(self):
+        import mujoco
+        from mujoco import mjx
+        self._mjx_model = mjx.put_model(mujoco.MjModel.from_xml_string(BALL))
+        self._config = type("Config", (), {"episode_length": 20})()
+
+    def reset(self, key: jax.Array) -> State:
+        clearance = jax.random.uniform(key, (), minval=0.0, maxval=0.1)  # the slide starts 10 cm clear
+        data = {"qpos": (clearance - 0.1)[None], "qvel": jnp.zeros(1), "count": jnp.zeros((), jnp.int32)}
+        return State(self._observe(data), jnp.zeros(()), jnp.zeros(()), data)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        from mujoco import mjx
+        data = mjx.make_data(self._mjx_model).replace(qpos=state.data["qpos"], qvel=state.data["qvel"], ctrl=action)
+        data = mjx.step(self._mjx_model, data)
+        stepped = {"qpos": data.qpos, "qvel": data.qvel, "count": state.data["count"] + 1}
+        return State(self._observe(stepped), -(data.qpos[0] + 0.05) ** 2, jnp.zeros(()), stepped)
+
+    @staticmethod
+    def _observe(data) -> jax.Array:
+        return jnp.concatenate([data["qpos"], data["qvel"]])

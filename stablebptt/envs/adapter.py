@@ -22,6 +22,7 @@ at zero (``RewardDiagnosis``).
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import math
 import numbers
@@ -44,7 +45,9 @@ from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.physics import scene
+from stablebptt.physics.backward_contacts import ContactSmoothing, differentiated_through, smoothed_model
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
+from stablebptt.physics.mjx_internals import collision_driver
 
 PyTree = Any
 # Output weights of a policy that must not start at exactly zero action: small enough that the
@@ -88,6 +91,8 @@ def _check_arguments(**given: Any) -> None:
         refuse("smoothing_scale", "a positive number")
     if given["surrogate_reward"] is not None and not callable(given["surrogate_reward"]):
         refuse("surrogate_reward", "a function of the state a step reaches, or None")
+    if given["contact_smoothing"] is not None and not isinstance(given["contact_smoothing"], ContactSmoothing):
+        refuse("contact_smoothing", "a stablebptt.ContactSmoothing, or None")
     if given["reward_env"] is not None:
         if given["surrogate_reward"] is not None:
             raise EnvError("env_task: give a surrogate_reward or a reward_env to train on, not both")
@@ -149,6 +154,22 @@ def has_constraint_solver(env: Any) -> bool:
     return isinstance(model, mujoco.MjModel) and scene.analyze(model).constraints
 
 
+def _derivative_smoothed(traced: Callable[[Any], Callable], env: Any, smoothing: ContactSmoothing | None,
+                         label: str) -> Callable:
+    """``traced(env)``, differentiated as ``traced`` of a copy of ``env`` on its contact-smoothed model."""
+    if smoothing is None or smoothing.exact:
+        return traced(env)
+    if not hasattr(env, "_mjx_model"):
+        raise EnvError(f"{label}: contacts smoothed in the derivative need an env that keeps its MJX model in "
+                       f"_mjx_model, as MuJoCo Playground's do; {type(env).__name__} does not")
+    if next(iter(collision_driver.geom_pairs(env._mjx_model)), None) is None:
+        raise EnvError(f"{label}: its model has no pair of geoms that can touch, so contacts smoothed in the "
+                       f"derivative change nothing: drop the contact gradient's options")
+    smoothed_env = copy.copy(env)  # the same env, stepping the smoothed model
+    smoothed_env._mjx_model = smoothed_model(env._mjx_model, smoothing)
+    return differentiated_through(traced(env), traced(smoothed_env))
+
+
 def observation_policy(params: Any, seen: jax.Array) -> jax.Array:
     """An env task's deterministic policy on an observation: tanh of the MLP, the observation standardised
     first by the statistics the parameters keep where the run normalises observations."""
@@ -163,7 +184,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              dense_variant: str = "", diagnosis_key: dict | None = None, defer_diagnosis: bool = False,
              smoothing: str = "auto", smoothing_scale: float = 1.0,
              surrogate_reward: Callable[[Any], jax.Array] | None = None, normalize_observations: bool = False,
-             reward_env: Any = None) -> Task:
+             reward_env: Any = None, contact_smoothing: ContactSmoothing | None = None) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -205,6 +226,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       normalize_observations: the policy sees its observations standardised by the running mean and
         deviation of every observation its training windows met (``stablebptt.engine.observations``);
         its parameters are then a ``StandardizedNetwork``, the statistics kept with the network.
+      contact_smoothing: the step's values stay the env's, its derivative is that of the same step
+        through the env's model with contacts acting from ``margin`` metres and ``softness`` times
+        softer (``stablebptt.physics.backward_contacts``); for envs that keep their MJX model in
+        ``_mjx_model`` (MuJoCo Playground's). None: the derivative of the model as its file says.
 
     Example::
 
@@ -217,7 +242,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                      diagnosis_seed=diagnosis_seed, dense_variant=dense_variant, diagnosis_key=diagnosis_key,
                      defer_diagnosis=defer_diagnosis, smoothing=smoothing, smoothing_scale=smoothing_scale,
                      surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
-                     reward_env=reward_env)
+                     reward_env=reward_env, contact_smoothing=contact_smoothing)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
     if episode_length is None:
@@ -232,10 +257,14 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                        f"{episode_length!r}: give env_task(episode_length=...)")
     label = name or type(env).__name__
 
-    @jax.jit  # traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python
-    def step(state, action):
-        with differentiable_mjx(implicit_solver=True), reward_context():
-            return env.step(state, action)
+    def traced(stepping_env):  # the env's step as every program traces it
+        def env_step(state, action):
+            with differentiable_mjx(implicit_solver=True), reward_context():
+                return stepping_env.step(state, action)
+        return env_step
+
+    # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.
+    step = jax.jit(_derivative_smoothed(traced, env, contact_smoothing, label))
 
     def policy(params, state):
         return observation_policy(params, observation(state))
@@ -248,11 +277,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         check_surrogate_reward(env, step, surrogate_reward, label)
         training_step = jax.jit(surrogate.user_surrogate(step, surrogate_reward))
     if reward_env is not None:
-        @jax.jit
-        def reward_env_step(state, action):
-            with differentiable_mjx(implicit_solver=True), reward_context():
-                return reward_env.step(state, action)
-
+        reward_env_step = jax.jit(_derivative_smoothed(traced, reward_env, contact_smoothing, label))
         check_same_states(env, reward_env_step, label)
         training_step = reward_env_step
 
@@ -326,7 +351,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                f"{sizes[-1]} actions in [-1, 1]; windows of {horizon} steps, "
                f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "
                f"train/test loss: negative return of {episode_length}-step episodes"
-               + ("; constraint solver differentiated at its solution" if has_constraint_solver(env) else ""))
+               + ("; constraint solver differentiated at its solution" if has_constraint_solver(env) else "")
+               + ("" if contact_smoothing is None or contact_smoothing.exact else
+                  f"; contacts smoothed in the derivative alone (acting from {contact_smoothing.margin:g} m, "
+                  f"time constants x{contact_smoothing.softness:g})"))
     if reward_repairs:
         summary += f"; repaired: {reward_repairs}"
 

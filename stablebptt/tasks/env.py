@@ -18,6 +18,7 @@ from stablebptt.engine.task import Task
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import load_env, load_reward
 from stablebptt.errors import InputError, config_field
+from stablebptt.physics.backward_contacts import ContactSmoothing, check_smoothing
 
 DEFAULT_EPOCHS = 200
 # Windows of 128 steps along carried episodes beat 32 and 512 for R and C on CartpoleSwingup and
@@ -44,6 +45,8 @@ class Config:
     dense_reward: bool = field(default=False, metadata={"help": "a ...Sparse env of MuJoCo Playground's trains on its dense variant's reward (the same model and states); every reported return stays the sparse one's"})
     normalize_observations: bool = field(default=False, metadata={"help": "the policy sees its observations standardised by the running mean and deviation of all those its training windows met (the statistics are kept with its parameters)"})
     smoothing_scale: float = field(default=1.0, metadata={"help": "the surrogate's temperatures: this times the median difference each smoothed comparison meets at the sampled states"})
+    contact_gradient_margin: float = field(default=0.0, metadata={"help": "metres: the derivative is taken through the env's model with every contact acting from this far (the simulation stays the file's; 0: contacts as the file says)"})
+    contact_gradient_softness: float = field(default=1.0, metadata={"help": "the derivative is taken through the env's model with every contact's time constant this many times the file's, >= 1 (the simulation stays the file's)"})
 
     def __post_init__(self):
         if not 0 <= self.steps <= MAX_STEPS:
@@ -57,6 +60,8 @@ class Config:
         if self.surrogate_reward and self.dense_reward:
             raise InputError(f"give {config_field(self, 'surrogate_reward')} or {config_field(self, 'dense_reward')}, "
                              "not both: the windows train on one reward")
+        check_smoothing(self.contact_gradient_margin, self.contact_gradient_softness,
+                        config_field(self, "contact_gradient_margin"), config_field(self, "contact_gradient_softness"))
         if not 0 <= self.episode_length <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
 
@@ -105,14 +110,19 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
     # kept for an identical later run, like its programs.
     inputs = program_inputs(config)
     trained_reward, reward_env = trained_reward_of(config, dense)
+    smoothing = ContactSmoothing(config.contact_gradient_margin, config.contact_gradient_softness)
     task = env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
                     diagnose=config.reward_check, defer_diagnosis=defer_diagnosis, smoothing=config.smoothing,
                     smoothing_scale=config.smoothing_scale, normalize_observations=config.normalize_observations,
                     surrogate_reward=load_reward(config.surrogate_reward) if config.surrogate_reward else None,
                     reward_env=reward_env,
+                    contact_smoothing=smoothing,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
-                                                               **({"trained_reward": trained_reward} if trained_reward else {})})
+                                                               **({"trained_reward": trained_reward} if trained_reward else {}),
+                                                               # the reward's diagnosis reads the derivative
+                                                               **({} if smoothing.exact else
+                                                                  {"contact_smoothing": [smoothing.margin, smoothing.softness]})})
     if trained_reward:
         task = _trained_on(task, trained_reward)
     if ":" in config.env:

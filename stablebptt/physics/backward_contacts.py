@@ -1,0 +1,90 @@
+"""Contacts smoothed in the derivative alone: the step simulates the model as the file says, and its
+derivative is that of the same step through a model whose contacts act from a distance and are
+softer (``ContactSmoothing``).
+
+The exact derivative of a contact step says nothing about a contact that has not yet been made (a
+foot above the ground has no constraint row) and is as stiff as the contact itself where it is made.
+The smoothed model gives each contact a margin (it pushes from ``margin`` metres away, as MuJoCo's
+geom margin does) and a longer time constant (``softness`` times the file's): its derivative sees
+contacts about to be made, at a lower stiffness. Values are the exact step's, bit for bit; only
+tangents and cotangents come from the smoothed model, taken at the true state (the straight-through
+estimator of backward-only smoothing).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable
+
+import jax
+import numpy as np
+
+from stablebptt.errors import InputError
+from stablebptt.physics.mjx_internals import mjx
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactSmoothing:
+    """How the derivative's model softens contacts: ``margin`` metres added to every contact's
+    margin, its time constant times ``softness``. ``margin=0, softness=1`` is the file's model."""
+
+    margin: float = 0.0
+    softness: float = 1.0
+
+    def __post_init__(self):
+        check_smoothing(self.margin, self.softness, "ContactSmoothing.margin", "ContactSmoothing.softness")
+
+    @property
+    def exact(self) -> bool:
+        return self.margin == 0 and self.softness == 1
+
+
+def check_smoothing(margin, softness, margin_name: str, softness_name: str) -> None:
+    """``InputError`` naming the option (``margin_name``, ``softness_name``) where a smoothing is none."""
+    number = lambda value: isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)  # noqa: E731
+    if not (number(margin) and margin >= 0):
+        raise InputError(f"{margin_name} must be a number of metres >= 0 (0: contacts act as the file says), "
+                         f"got {margin!r}")
+    if not (number(softness) and softness >= 1):
+        raise InputError(f"{softness_name} must be a number >= 1 (1: the file's time constants), got {softness!r}")
+
+
+def _like(field, values):
+    """``values`` as the kind of array ``field`` is (MJX keeps some model fields in NumPy)."""
+    return np.asarray(values, dtype=np.asarray(field).dtype) if isinstance(field, np.ndarray) else \
+        jax.numpy.asarray(values, dtype=field.dtype)
+
+
+def softer(solref, softness: float) -> np.ndarray:
+    """Solrefs ``[..., 2]`` with time constants ``softness`` times longer: in MuJoCo's standard form
+    (time constant, damping ratio) the first column times ``softness``; in its direct form (negated
+    stiffness and damping) the stiffness over ``softness`` squared and the damping over ``softness``,
+    as a time constant that much longer would make them."""
+    solref = np.array(solref, dtype=np.float64)
+    direct = solref[..., 0] < 0
+    solref[..., 0] = np.where(direct, solref[..., 0] / softness ** 2, solref[..., 0] * softness)
+    solref[..., 1] = np.where(direct, solref[..., 1] / softness, solref[..., 1])
+    return solref
+
+
+def smoothed_model(model: mjx.Model, smoothing: ContactSmoothing) -> mjx.Model:
+    """``model`` with its contacts as the derivative sees them: geoms' and explicit pairs' margins
+    widened by ``smoothing.margin`` and time constants lengthened by ``smoothing.softness``."""
+    return model.replace(
+        geom_margin=_like(model.geom_margin, np.asarray(model.geom_margin) + smoothing.margin),
+        geom_solref=_like(model.geom_solref, softer(model.geom_solref, smoothing.softness)),
+        pair_margin=_like(model.pair_margin, np.asarray(model.pair_margin) + smoothing.margin),
+        pair_solref=_like(model.pair_solref, softer(model.pair_solref, smoothing.softness)))
+
+
+def differentiated_through(exact: Callable, smoothed: Callable) -> Callable:
+    """``exact``'s values with ``smoothed``'s derivative, both functions of the same arguments with
+    outputs of the same structure. Reverse mode transposes the smoothed linearisation."""
+    stepped = jax.custom_jvp(exact)
+
+    def jvp(primals, tangents):
+        _, tangents_out = jax.jvp(smoothed, primals, tangents)
+        return exact(*primals), tangents_out
+
+    stepped.defjvp(jvp)
+    return stepped

@@ -1,0 +1,60 @@
+"""An environment's contacts smoothed in the derivative alone (``env_task(contact_smoothing=...)``,
+``--contact-gradient-margin``, ``--contact-gradient-softness``): the task's step keeps the env's values
+and takes the smoothed model's derivative; an env that cannot take it, and bad values, are refused in
+one line."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import stablebptt as sb
+from stablebptt.envs.adapter import env_task
+from stablebptt.envs.protocol import EnvError
+
+from conftest import train_in_process
+from envs_for_tests import Ball, Cart
+
+SMOOTHING = sb.ContactSmoothing(margin=0.05, softness=2.0)
+
+
+def test_the_tasks_step_keeps_the_envs_values_and_sees_a_contact_before_it_is_made():
+    env = Ball()
+    exact = env_task(env, horizon=4, diagnose=False)
+    smoothed = env_task(env, horizon=4, diagnose=False, contact_smoothing=SMOOTHING)
+    assert "contacts smoothed in the derivative alone (acting from 0.05 m, time constants x2)" in smoothed.summary
+    assert "contacts smoothed" not in exact.summary
+    state = env.reset(jax.random.PRNGKey(0))
+    # The ball 3 cm clear of the plane, falling: a contact the smoothed model makes within its margin.
+    state = state._replace(data={**state.data, "qpos": jnp.array([-0.07]), "qvel": jnp.array([-0.2])})
+    action = jnp.array([0.1])
+
+    @jax.jit
+    def compare(state):
+        def velocity_after(task):
+            return lambda qpos: task.dynamics.step(state._replace(data={**state.data, "qpos": qpos}), action).data["qvel"][0]
+        values = [task.dynamics.step(state, action) for task in (exact, smoothed)]
+        slopes = [jax.grad(velocity_after(task))(state.data["qpos"])[0] for task in (exact, smoothed)]
+        return values, slopes
+
+    (exact_value, smoothed_value), (exact_slope, smoothed_slope) = compare(state)
+    for a, b in zip(jax.tree.leaves(exact_value), jax.tree.leaves(smoothed_value)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert float(exact_slope) == 0.0 and float(smoothed_slope) < -1.0  # d vz' / d z: only the smoothed sees it
+
+
+def test_an_env_without_its_mjx_model_and_bad_values_are_refused_in_one_line(tmp_path, capsys):
+    with pytest.raises(EnvError, match="Cart: contacts smoothed in the derivative need an env that keeps its MJX model"):
+        env_task(Cart(), horizon=4, diagnose=False, contact_smoothing=SMOOTHING)
+    untouchable = Ball()  # the same ball with its collisions off: no pair of geoms can touch
+    untouchable._mjx_model = untouchable._mjx_model.replace(geom_contype=np.zeros(2, np.int32),
+                                                            geom_conaffinity=np.zeros(2, np.int32))
+    with pytest.raises(EnvError, match="Ball: its model has no pair of geoms that can touch"):
+        env_task(untouchable, horizon=4, diagnose=False, contact_smoothing=SMOOTHING)
+    with pytest.raises(EnvError, match="env_task's contact_smoothing must be a stablebptt.ContactSmoothing"):
+        env_task(Cart(), horizon=4, diagnose=False, contact_smoothing=(0.05, 2.0))
+    for option, value, expected in (("--contact-gradient-margin", "-0.1", "--contact-gradient-margin must be a number of metres >= 0"),
+                                    ("--contact-gradient-softness", "0.5", "--contact-gradient-softness must be a number >= 1")):
+        code, err = train_in_process(capsys, "--env", "envs_for_tests:make_cart", option, value, "--epochs", "1",
+                                     "--out", str(tmp_path / "refused"))
+        assert code == 2 and len(err) == 1 and expected in err[0], err
+        assert not (tmp_path / "refused").exists()
