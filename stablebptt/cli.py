@@ -389,8 +389,9 @@ class EpochProgress:
         if metrics.get("notice"):  # a non-finite flow gradient left at zero: said, never silent
             self.write(f"epoch {epoch}: {metrics['notice']}")
         self.bar.update(1)
-        if np.all(np.isfinite(metrics["test_loss"])):  # an epoch without an evaluation has none
-            self.bar.set_postfix(test_loss=f"{float(np.mean(metrics['test_loss'])):.4g}")
+        scored = np.isfinite(metrics["test_loss"])  # an epoch without an evaluation has none, nor a seed stopped apart
+        if np.any(scored):
+            self.bar.set_postfix(test_loss=f"{float(np.mean(np.asarray(metrics['test_loss'])[scored])):.4g}")
 
     def close(self) -> None:
         self.bar.close()

@@ -30,9 +30,9 @@ RECORDED_BEFORE = {"episodes": "off", "eval_every": "epoch"}
 # DeepMind Control Suite's contact scenes whose step is generated (stablebptt/physics/rigid_body.py), while
 # through MJX's stages they are large.
 LARGE_STEP = 8_000
-MAX_SEED = 2**32 - 1
+MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
 # JAX's names of float32 matrix products' precision (jax.default_matmul_precision).
-MATMUL_PRECISIONS = ("default", "high", "highest")  # seeds are unsigned 32-bit PRNG seeds
+MATMUL_PRECISIONS = ("default", "high", "highest")
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class TrainConfig:
     zero_output: bool = field(default=True, metadata={"help": "start the output layer at zero as the original run scripts do (--no-zero-output: Glorot)"})
     cosine: bool = field(default=True, metadata={"help": "also compute g_M and g_R in every mode to log their cosine (--no-cosine: only the flows the mode needs)"})
     x64: bool = field(default=False, metadata={"help": "run everything in float64"})
-    matmul_precision: str = field(default="default", metadata={"help": "float32 matrix products: default (a GPU may take TF32, about 3 decimal digits), high, highest (full float32; a CPU always computes in full)", "choices": MATMUL_PRECISIONS})
+    matmul_precision: str = field(default="default", metadata={"help": "float32 matrix products: default (JAX's: a GPU may take TF32, about 3 decimal digits), high (on a GPU TF32 as well), highest (full float32; a CPU computes in full at every setting)", "choices": MATMUL_PRECISIONS})
     unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Plan.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="auto", metadata={"help": "how seeds share one program: vmap (batched: on a GPU an update of 5 seeds costs little more than one seed's; equal to a solo run only to float rounding), map (one after another, each bit-identical to the seed trained alone), auto (vmap for several seeds)", "choices": SEED_BATCHING})

@@ -41,12 +41,6 @@ def failing(metrics: dict) -> np.ndarray:
     return ~np.atleast_1d(np.asarray(metrics["finite"], dtype=bool))
 
 
-def of_seeds(metrics: dict, which: np.ndarray) -> dict:
-    """The metrics of the seeds ``which`` (bool [seeds]) alone."""
-    return {name: np.atleast_1d(value)[which] if np.ndim(value) and len(value) == len(which) else value
-            for name, value in metrics.items()}
-
-
 def retired_in(rows: np.ndarray, row_ids: np.ndarray) -> np.ndarray:
     """bool [seeds]: the seeds of ``row_ids`` whose last saved row holds no numbers (retired before a
     resume). A trained epoch's update norm is always a number; a retired seed's is NaN."""
@@ -67,13 +61,18 @@ def keep_retired(new_state, old_state, retired: jax.Array):
     return jax.tree.map(pick, new_state, old_state)
 
 
-def without_numbers(metrics: dict, retired: np.ndarray) -> dict:
-    """``metrics`` with every recorded metric of the retired seeds NaN (nothing of theirs is kept)."""
+def without_retired(metrics: dict, retired: np.ndarray) -> dict:
+    """``metrics`` as if the retired seeds had passed their checks, with none of their numbers: every
+    recorded metric of theirs NaN, their failures left out of what the others' epoch reports."""
     blanked = dict(metrics)
     for name in METRICS:
         values = np.array(np.atleast_1d(metrics[name]), dtype=np.float64)
         values[retired] = np.nan
         blanked[name] = values
+    blanked["finite"] = np.atleast_1d(np.asarray(metrics["finite"], dtype=bool)) | retired
+    for name in ("nonfinite", "nonfinite_flow_updates"):
+        if name in metrics:
+            blanked[name] = np.where(retired, 0, np.atleast_1d(metrics[name]))
     return blanked
 
 

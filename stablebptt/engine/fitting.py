@@ -6,6 +6,7 @@
 """
 from __future__ import annotations
 
+import contextlib
 import time
 import warnings
 from typing import Any, Callable, NamedTuple
@@ -17,7 +18,7 @@ from stablebptt.engine.checks import check_options, tracing_shapes
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, eval_cadence, seed_array
 from stablebptt.engine.divergence import (
-    failing, keep_retired, nonfinite_message, of_seeds, retired_in, retirement_notice, without_numbers, zeroed_notice)
+    failing, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
 from stablebptt.engine.program_store import cache_dir, compile_epoch, lower_epoch
 from stablebptt.engine.training import Trainer, TrainState, make_trainer
@@ -103,18 +104,19 @@ def fit(
         seconds = time.perf_counter() - started
         stopping, spent = should_stop(), out_of_time()
         metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or spent)
+        if retired.any():  # seeds stopped before fail again as they replay their epoch: only the others count
+            metrics = without_retired(metrics, retired)
         problem, retiring = diverged(metrics), ""
         if problem:
-            stopped = (failing(metrics) | retired) if seeds_apart else np.ones(len(row_ids), dtype=bool)
-            if stopped.all():
+            newly = failing(metrics) if seeds_apart else np.ones(len(row_ids), dtype=bool)
+            if (retired | newly).all():
                 checkpoint(epoch - 1, state)
                 return "diverged", epoch - 1, state, all_rows(), problem
-            newly, retired = stopped & ~retired, stopped
-            if newly.any():
-                retiring = retirement_notice(diverged(of_seeds(metrics, newly)), row_ids[newly], epoch,
-                                             int((~stopped).sum()))
-        if retired.any():  # seeds that stopped, here or before: the others' epoch is kept
-            new_state, metrics = keep_retired(new_state, state, retired), without_numbers(metrics, retired)
+            retired = retired | newly
+            retiring = retirement_notice(problem, row_ids[newly], epoch, int((~retired).sum()))
+            metrics = without_retired(metrics, retired)
+        if retired.any():  # the retired seeds keep their state; the others' epoch is kept
+            new_state = keep_retired(new_state, state, retired)
         state = new_state
         blocks.append(epoch_rows(epoch, row_ids, metrics, seconds, eval_seconds,
                                  epoch * steps_per_epoch if steps_per_epoch else np.nan))
@@ -327,8 +329,10 @@ class Trained(NamedTuple):
 
     @property
     def test_loss(self) -> np.ndarray:
-        """Mean test loss over seeds, per epoch."""
-        return self.metrics["test_loss"].mean(axis=1)
+        """Mean test loss over the seeds scored, per epoch (a seed stopped apart has none)."""
+        losses = self.metrics["test_loss"]
+        scored = np.isfinite(losses).sum(axis=1)
+        return np.where(scored > 0, np.nansum(losses, axis=1) / np.maximum(scored, 1), np.nan)
 
 
 class TrainingDiverged(ArithmeticError):
@@ -355,7 +359,7 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
         (``jax.enable_x64`` for the call alone; the parameters come back as float64
         NumPy arrays). Arrays the task made before are float32 and used as such:
         for float64 physics constants too, build the task under ``jax.enable_x64(True)``.
-        ``matmul_precision`` holds for the call alone in the same way.
+        A ``matmul_precision`` other than "default" holds for the call alone in the same way.
       on_epoch: called after every epoch with its metrics (arrays over seeds; ``seconds`` and
         ``eval_seconds`` its training and evaluation time).
       progress_fn: Brax's convention, ``progress_fn(env_steps, metrics)`` after every epoch: each
@@ -385,7 +389,9 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
         check_options(config)
         widened = config.x64 and not jax.config.jax_enable_x64
         # The user's own settings are back when the call ends.
-        with jax.enable_x64(widened or jax.config.jax_enable_x64), jax.default_matmul_precision(config.matmul_precision):
+        precision = (contextlib.nullcontext() if config.matmul_precision == "default" else
+                     jax.default_matmul_precision(config.matmul_precision))
+        with jax.enable_x64(widened or jax.config.jax_enable_x64), precision:
             trained = _train(task, config, on_epoch, progress_fn, should_stop, started)
             return trained._replace(params=jax.device_get(trained.params)) if widened else trained
     return _train(task, config, on_epoch, progress_fn, should_stop, started)

@@ -159,7 +159,7 @@ def _derivative_smoothed(traced: Callable[[Any], Callable], env: Any, smoothing:
     """``traced(env)``, differentiated as ``traced`` of a copy of ``env`` on its contact-smoothed model."""
     if smoothing is None or smoothing.exact:
         return traced(env)
-    if not hasattr(env, "_mjx_model"):
+    if "_mjx_model" not in vars(env):  # a wrapper's would be its inner env's, which its step keeps using
         raise EnvError(f"{label}: contacts smoothed in the derivative need an env that keeps its MJX model in "
                        f"_mjx_model, as MuJoCo Playground's do; {type(env).__name__} does not")
     if next(iter(collision_driver.geom_pairs(env._mjx_model)), None) is None:
@@ -291,8 +291,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             resets[count] = program_store.kept_function(reset, (keys,), diagnosis_key, "reset")
         return resets[count](keys)
 
-    answer_key = None if diagnosis_key is None else {**diagnosis_key, "diagnosis_seed": diagnosis_seed,
-                                                     "reward_repairs": reward_repairs, "episode_length": episode_length}
+    answer_key = None if diagnosis_key is None else {
+        **diagnosis_key, "diagnosis_seed": diagnosis_seed, "reward_repairs": reward_repairs,
+        "episode_length": episode_length,
+        # the diagnosis reads the derivative, which the contacts' smoothing changes
+        **({} if contact_smoothing is None or contact_smoothing.exact else
+           {"contact_smoothing": [contact_smoothing.margin, contact_smoothing.softness]})}
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
 
     def start() -> PendingDiagnosis:

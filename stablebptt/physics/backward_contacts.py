@@ -17,6 +17,7 @@ import math
 from typing import Callable
 
 import jax
+import mujoco
 import numpy as np
 
 from stablebptt.errors import InputError
@@ -55,26 +56,30 @@ def _like(field, values):
         jax.numpy.asarray(values, dtype=field.dtype)
 
 
-def softer(solref, softness: float) -> np.ndarray:
+def softer(solref, softness: float, shortest: float = 0.0) -> np.ndarray:
     """Solrefs ``[..., 2]`` with time constants ``softness`` times longer: in MuJoCo's standard form
-    (time constant, damping ratio) the first column times ``softness``; in its direct form (negated
-    stiffness and damping) the stiffness over ``softness`` squared and the damping over ``softness``,
-    as a time constant that much longer would make them."""
+    (time constant, damping ratio) the time constant MuJoCo simulates, at least ``shortest`` (twice the
+    time step where its refsafe flag is on), times ``softness``; in its direct form (negated stiffness
+    and damping) the stiffness over ``softness`` squared and the damping over ``softness``, as a time
+    constant that much longer would make them."""
     solref = np.array(solref, dtype=np.float64)
     direct = solref[..., 0] < 0
-    solref[..., 0] = np.where(direct, solref[..., 0] / softness ** 2, solref[..., 0] * softness)
+    solref[..., 0] = np.where(direct, solref[..., 0] / softness ** 2, np.maximum(solref[..., 0], shortest) * softness)
     solref[..., 1] = np.where(direct, solref[..., 1] / softness, solref[..., 1])
     return solref
 
 
 def smoothed_model(model: mjx.Model, smoothing: ContactSmoothing) -> mjx.Model:
-    """``model`` with its contacts as the derivative sees them: geoms' and explicit pairs' margins
-    widened by ``smoothing.margin`` and time constants lengthened by ``smoothing.softness``."""
+    """``model`` with its contacts as the derivative sees them: every contact's margin widened by
+    ``smoothing.margin`` (a geom pair's margin is the sum of its geoms': half to each geom, all to an
+    explicit pair's) and time constants lengthened by ``smoothing.softness``."""
+    refsafe = not int(model.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_REFSAFE)
+    shortest = 2 * float(model.opt.timestep) if refsafe else 0.0
     return model.replace(
-        geom_margin=_like(model.geom_margin, np.asarray(model.geom_margin) + smoothing.margin),
-        geom_solref=_like(model.geom_solref, softer(model.geom_solref, smoothing.softness)),
+        geom_margin=_like(model.geom_margin, np.asarray(model.geom_margin) + smoothing.margin / 2),
+        geom_solref=_like(model.geom_solref, softer(model.geom_solref, smoothing.softness, shortest)),
         pair_margin=_like(model.pair_margin, np.asarray(model.pair_margin) + smoothing.margin),
-        pair_solref=_like(model.pair_solref, softer(model.pair_solref, smoothing.softness)))
+        pair_solref=_like(model.pair_solref, softer(model.pair_solref, smoothing.softness, shortest)))
 
 
 def differentiated_through(exact: Callable, smoothed: Callable) -> Callable:

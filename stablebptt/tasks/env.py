@@ -119,10 +119,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
                     reward_env=reward_env,
                     contact_smoothing=smoothing,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
-                                                               **({"trained_reward": trained_reward} if trained_reward else {}),
-                                                               # the reward's diagnosis reads the derivative
-                                                               **({} if smoothing.exact else
-                                                                  {"contact_smoothing": [smoothing.margin, smoothing.softness]})})
+                                                               **({"trained_reward": trained_reward} if trained_reward else {})})
     if trained_reward:
         task = _trained_on(task, trained_reward)
     if ":" in config.env:

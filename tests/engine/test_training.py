@@ -251,9 +251,10 @@ def test_divergence_stops_with_the_epoch_and_keeps_the_last_good_checkpoint(tmp_
     assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(saved))
 
 
-def one_seed_exploding_task():
-    """The exploding task for seeds whose key's last word is odd; the others' policy is zero (its
-    flag, the second parameter, has a zero gradient and so never moves) and their loss stays finite."""
+def one_seed_exploding_task(modulus: int = 2):
+    """The exploding task, its policy scaled by the seed key's last word modulo ``modulus``: at 2, the
+    odd seeds explode and the even ones' policy is zero and their loss finite (the scale, the second
+    parameter, has a zero gradient and so never moves); at 3, seeds of scale 2 explode sooner than 1."""
     def policy(p, x):
         return jax.lax.stop_gradient(p[1]) * p[0] * x
 
@@ -261,7 +262,7 @@ def one_seed_exploding_task():
         name="one-exploding",
         dynamics=Dynamics(step=lambda x, u: x + u, policy=policy,
                           loss=lambda states, controls: -jnp.sum(states[-1] ** 2), horizon=4),
-        init_params=lambda key, zero_output: jnp.stack([0.5, (jnp.asarray(key)[-1] % 2).astype(jnp.float32)]),
+        init_params=lambda key, zero_output: jnp.stack([0.5, (jnp.asarray(key)[-1] % modulus).astype(jnp.float32)]),
         sample_initial_states=lambda key, n: jax.random.uniform(key, (n, 1), minval=0.5, maxval=1.0),
     )
 
@@ -314,12 +315,26 @@ def test_a_seed_that_diverges_alone_stops_with_its_last_good_state_and_the_other
         np.testing.assert_array_equal(np.asarray(kept)[1], np.asarray(reference)[1])
 
 
+def test_seeds_that_fail_in_turn_stop_apart_and_the_last_ends_the_run_named_alone(tmp_path):
+    config = TrainConfig(epochs=60, train_size=16, test_size=8, batch=8, lr=100.0, clip="none", mode="R", seeds=2,
+                         seed=43)
+    trainer = make_trainer(one_seed_exploding_task(modulus=3), config)  # seed 44 (scale 2) explodes first, 43 later
+    seeds = np.asarray(seed_array(config))
+    notices = {}
+    outcome = epochs.train_epochs(trainer, config, tmp_path, trainer.init(seed_array(config)), 0, empty_rows(), seeds,
+                                  on_epoch=lambda epoch, metrics: notices.update({epoch: metrics["notice"]}))
+    said = [line for line in notices.values() if line]
+    assert len(said) == 1 and "(seed 44): it stops" in said[0], said
+    assert outcome.status == "diverged" and "(seed 43); stopped" in outcome.message, outcome.message
+
+
 def test_from_python_a_seed_that_stops_apart_is_named_in_a_warning_and_every_seed_failing_raises():
     config = TrainConfig(epochs=30, train_size=16, test_size=8, batch=8, lr=100.0, clip="none", mode="R", seeds=2)
     with pytest.warns(fitting.NonFiniteFlowWarning, match=r"\(seed 43\): it stops"):
         trained = fitting.train(one_seed_exploding_task(), config)
     test_loss = trained.metrics["test_loss"]
     assert np.isfinite(test_loss[-1, 0]) and np.isnan(test_loss[-1, 1])
+    assert trained.test_loss[-1] == test_loss[-1, 0]  # the mean over the seeds scored
     with pytest.raises(fitting.TrainingDiverged, match="non-finite"):
         fitting.train(exploding_task(), replace(config, epochs=50, seed=43))
 

@@ -73,7 +73,7 @@ def test_a_softness_of_k_divides_the_contacts_stiffness_by_k_squared(ball):
 
 def test_the_smoothed_model_is_mujocos_own_with_that_margin_and_time_constant(ball):
     model, (*_, smoothed_velocities) = ball
-    model.geom_margin[:] += SMOOTHING.margin
+    model.geom_margin[:] += SMOOTHING.margin / 2  # a pair's margin is the sum of its two geoms'
     model.geom_solref[:, 0] *= SMOOTHING.softness
     data = mujoco.MjData(model)
     for height, velocities in zip(np.asarray(HEIGHTS), np.asarray(smoothed_velocities)):
@@ -89,7 +89,8 @@ def test_a_smoothing_that_is_not_one_is_refused_in_its_terms(margin, softness):
         ContactSmoothing(margin, softness)
 
 
-def test_a_longer_time_constant_in_mujocos_direct_form_is_a_stiffness_over_k_squared_and_a_damping_over_k():
+def test_the_direct_forms_stiffness_goes_over_k_squared_its_damping_over_k_and_refsafes_floor_holds():
     # Standard form (time constant, damping ratio); direct form (-stiffness, -damping).
-    solrefs = np.array([[0.02, 1.0], [-1000.0, -10.0]])
-    np.testing.assert_allclose(softer(solrefs, 2.0), [[0.04, 1.0], [-250.0, -5.0]])
+    solrefs = np.array([[0.02, 1.0], [-1000.0, -10.0], [0.005, 1.0]])
+    # The third's time constant is below twice a time step of 0.005: MuJoCo simulates 0.01 (refsafe).
+    np.testing.assert_allclose(softer(solrefs, 2.0, shortest=0.01), [[0.04, 1.0], [-250.0, -5.0], [0.02, 1.0]])
