@@ -85,7 +85,11 @@ def read_run(folder: str) -> dict:
         starts = json.load(handle)
     seeds = sorted({int(row["seed"]) for row in rows})
     evaluated = sorted({int(row["epoch"]) for row in rows if np.isfinite(row["test_loss"])})
-    returns = {epoch: [-row["test_loss"] for row in rows if row["epoch"] == epoch] for epoch in evaluated}
+    # A seed stopped apart (a non-finite epoch of its own) has no numbers from then on: scored without it.
+    returns = {epoch: [-row["test_loss"] for row in rows if row["epoch"] == epoch and np.isfinite(row["test_loss"])]
+               for epoch in evaluated}
+    stopped = sum(np.isnan(max((row for row in rows if int(row["seed"]) == seed), key=lambda row: row["epoch"])
+                           ["update_norm"]) for seed in seeds)
     per_seed = [row for row in rows if int(row["seed"]) == seeds[0]]
     train = config["train"]
     updates_per_epoch = config["steps_per_epoch"] // (train["batch"] * config["resolved_task"]["horizon_steps"])
@@ -98,7 +102,8 @@ def read_run(folder: str) -> dict:
             "best_return": float(max(np.mean(values) for values in returns.values())),
             "device": starts[0]["device"],
             "ended": _ended(starts[-1], train.get("budget", 0.0), starts[-1]["seconds_to_training"] + sum(
-                row["seconds"] + row["eval_seconds"] for row in per_seed)),
+                row["seconds"] + row["eval_seconds"] for row in per_seed))
+            + (f", {stopped} of {len(seeds)} seeds stopped apart (non-finite)" if stopped else ""),
             "seconds_to_training": starts[0]["seconds_to_training"], "phases": starts[0]["phases"]}
 
 

@@ -115,8 +115,7 @@ def train(argv: list[str], held: list) -> int:
             "batched (vmap; --seed-batching map: one after another, each bit-identical to the seed trained alone)"
             if seed_batching(train_config) == "vmap" else "one after another (map), each bit-identical to the seed trained alone"))
     if start_epoch == train_config.epochs and resuming:
-        mean, std = metrics.final_mean_std(rows) if len(rows) else (float("nan"), 0.0)
-        print(f"done already: {task_label}, {_epochs(start_epoch)}, final test loss {mean:.4g} -> {run_dir}")
+        print(f"done already: {task_label}, {_epochs(start_epoch)}, final test loss {_final(rows, seeds)} -> {run_dir}")
         return 0
 
     from stablebptt.cli import EpochProgress, in_worker_thread, out_of_memory, stop_on_signals
@@ -147,12 +146,20 @@ def train(argv: list[str], held: list) -> int:
         print(outcome.message)
     from stablebptt.reports.plots import plot_run
     plot_run(run_dir)
-    mean, std = metrics.final_mean_std(outcome.rows)
-    scored = metrics.scored_seeds(outcome.rows)  # a seed stopped apart has no final numbers
-    spread = f" +- {std:.4g} over {scored} of {len(seeds)} seeds" if scored < len(seeds) else \
-        f" +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else ""
-    print(f"done: {task_label}, mode {train_config.mode}, {_epochs(outcome.epoch)}, final test loss {mean:.4g}{spread} -> {run_dir}")
+    print(f"done: {task_label}, mode {train_config.mode}, {_epochs(outcome.epoch)}, final test loss "
+          f"{_final(outcome.rows, seeds)} -> {run_dir}")
     return 0
+
+
+def _final(rows, seeds) -> str:
+    """The final test loss over the seeds scored (a seed stopped apart has no final numbers)."""
+    if not len(rows):
+        return "nan"
+    mean, std = metrics.final_mean_std(rows)
+    scored = metrics.scored_seeds(rows)
+    if scored < len(seeds):
+        return f"{mean:.4g} +- {std:.4g} over {scored} of {len(seeds)} seeds"
+    return f"{mean:.4g} +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else f"{mean:.4g}"
 
 
 def _epochs(count: int) -> str:
