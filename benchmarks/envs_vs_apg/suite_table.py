@@ -77,6 +77,9 @@ def _option(name: str, value) -> str:
 
 def read_run(folder: str) -> dict:
     """What the table keeps of one run folder."""
+    from stablebptt.engine.divergence import retired_in
+    from stablebptt.engine.metrics import COLUMNS
+
     with open(os.path.join(folder, "config.json")) as handle:
         config = json.load(handle)
     with open(os.path.join(folder, "metrics.csv")) as handle:
@@ -88,8 +91,7 @@ def read_run(folder: str) -> dict:
     # A seed stopped apart (a non-finite epoch of its own) has no numbers from then on: scored without it.
     returns = {epoch: [-row["test_loss"] for row in rows if row["epoch"] == epoch and np.isfinite(row["test_loss"])]
                for epoch in evaluated}
-    stopped = sum(np.isnan(max((row for row in rows if int(row["seed"]) == seed), key=lambda row: row["epoch"])
-                           ["update_norm"]) for seed in seeds)
+    stopped = int(retired_in(np.array([[row[name] for name in COLUMNS] for row in rows]), np.array(seeds)).sum())
     per_seed = [row for row in rows if int(row["seed"]) == seeds[0]]
     train = config["train"]
     updates_per_epoch = config["steps_per_epoch"] // (train["batch"] * config["resolved_task"]["horizon_steps"])

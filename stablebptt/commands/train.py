@@ -13,6 +13,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from stablebptt import tasks
 from stablebptt.cli import Parser, add_options, build, fail, leave_out_unused_backends, one_line_errors, option_name
 from stablebptt.commands import task_options
@@ -156,7 +158,7 @@ def _final(rows, seeds) -> str:
     if not len(rows):
         return "nan"
     mean, std = metrics.final_mean_std(rows)
-    scored = metrics.scored_seeds(rows)
+    scored = int(np.isfinite(metrics.final_values(rows)).sum())
     if scored < len(seeds):
         return f"{mean:.4g} +- {std:.4g} over {scored} of {len(seeds)} seeds"
     return f"{mean:.4g} +- {std:.4g} over {len(seeds)} seeds" if len(seeds) > 1 else f"{mean:.4g}"

@@ -76,8 +76,12 @@ def without_retired(metrics: dict, retired: np.ndarray) -> dict:
     return blanked
 
 
+def failure(problem: str, epoch: int, seeds: np.ndarray) -> str:
+    """What failed, when and for which seeds: "non-finite loss at epoch 12 (seed 43)"."""
+    return f"{problem} at epoch {epoch} (seed {', '.join(str(int(seed)) for seed in seeds)})"
+
+
 def retirement_notice(problem: str, seeds: np.ndarray, epoch: int, remaining: int) -> str:
     """One line for seeds retired at ``epoch``: what failed, what is kept, who trains on."""
-    which = ", ".join(str(int(seed)) for seed in seeds)
-    return (f"{problem} at epoch {epoch} (seed {which}): {'it stops' if len(seeds) == 1 else 'they stop'} with "
+    return (f"{failure(problem, epoch, seeds)}: {'it stops' if len(seeds) == 1 else 'they stop'} with "
             f"the parameters of epoch {epoch - 1}, the other {remaining} train on")

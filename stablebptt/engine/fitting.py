@@ -18,7 +18,7 @@ from stablebptt.engine.checks import check_options, tracing_shapes
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, eval_cadence, seed_array
 from stablebptt.engine.divergence import (
-    failing, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
+    failing, failure, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
 from stablebptt.engine.program_store import cache_dir, compile_epoch, lower_epoch
 from stablebptt.engine.training import Trainer, TrainState, make_trainer
@@ -60,8 +60,8 @@ def fit(
         epochs spends much of its time writing.
       should_stop: polled before and after every epoch; true saves and stops.
       on_epoch: gets each epoch's metrics, with its wall time under ``"seconds"``.
-      diverged: a message when an epoch's metrics must not be kept (its state is
-        dropped, the last good one saved), else "".
+      diverged: what failed when an epoch's metrics must not be kept (its state is dropped, the
+        last good one saved), else ""; the run's message adds the epoch and the seeds.
       seeds_apart: the rows are seeds of one state's leading axis, and a seed that fails alone is
         retired (``stablebptt.engine.divergence``): it keeps its last good state, its rows hold NaN,
         ``on_epoch`` names it in its notice, and the others train on; the run stops as diverged only
@@ -111,7 +111,7 @@ def fit(
             newly = failing(metrics) if seeds_apart else np.ones(len(row_ids), dtype=bool)
             if (retired | newly).all():
                 checkpoint(epoch - 1, state)
-                return "diverged", epoch - 1, state, all_rows(), problem
+                return "diverged", epoch - 1, state, all_rows(), failure(problem, epoch, row_ids[newly])
             retired = retired | newly
             retiring = retirement_notice(problem, row_ids[newly], epoch, int((~retired).sum()))
             metrics = without_retired(metrics, retired)
@@ -431,7 +431,7 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
                                               evaluate=evaluations, out_of_time=out_of_time(config, started),
                                               steps_per_epoch=steps, seeds_apart=True)
     if status == "diverged":
-        raise TrainingDiverged(f"{task.name}: {problem} at epoch {epoch + 1} (TrainConfig.mode {config.mode!r})")
+        raise TrainingDiverged(f"{task.name}: {problem} (TrainConfig.mode {config.mode!r})")
     per_epoch = {name: rows[:, COLUMNS.index(name)].reshape(epoch, len(seeds)) for name in METRICS}
     return Trained(state.params, per_epoch, first_update)
 

@@ -26,17 +26,16 @@ def widened(rows: np.ndarray) -> np.ndarray:
 def final_mean_std(rows: np.ndarray, column: str = "test_loss") -> tuple[float, float]:
     """Mean and standard deviation over seeds of ``column`` at the last epoch that has it (an epoch
     trained without an evaluation has no train or test loss)."""
-    known = rows[np.isfinite(rows[:, COLUMNS.index(column)])]
-    last = (known if len(known) else rows)
-    last = last[last[:, 0] == last[:, 0].max()]
-    values = last[:, COLUMNS.index(column)]
+    values = final_values(rows, column)
     return float(values.mean()), float(values.std()) if len(values) > 1 else 0.0
 
 
-def scored_seeds(rows: np.ndarray, column: str = "test_loss") -> int:
-    """How many seeds ``final_mean_std`` scores: those with a number at the last epoch that has one."""
+def final_values(rows: np.ndarray, column: str = "test_loss") -> np.ndarray:
+    """``column``'s numbers at the last epoch that has any, one per seed scored there (a seed stopped
+    apart has none); the last epoch's NaNs where no epoch has a number."""
     known = rows[np.isfinite(rows[:, COLUMNS.index(column)])]
-    return int((known[:, 0] == known[:, 0].max()).sum()) if len(known) else 0
+    last = known if len(known) else rows
+    return last[last[:, 0] == last[:, 0].max(), COLUMNS.index(column)]
 
 
 def epoch_rows(epoch: int, seeds: np.ndarray, metrics: dict, seconds: float, eval_seconds: float = 0.0,

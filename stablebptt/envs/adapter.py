@@ -156,8 +156,9 @@ def has_constraint_solver(env: Any) -> bool:
 
 def _derivative_smoothed(traced: Callable[[Any], Callable], env: Any, smoothing: ContactSmoothing | None,
                          label: str) -> Callable:
-    """``traced(env)``, differentiated as ``traced`` of a copy of ``env`` on its contact-smoothed model."""
-    if smoothing is None or smoothing.exact:
+    """``traced(env)``, differentiated as ``traced`` of a copy of ``env`` on its contact-smoothed model
+    (None: as ``env``'s own)."""
+    if smoothing is None:
         return traced(env)
     if "_mjx_model" not in vars(env):  # a wrapper's would be its inner env's, which its step keeps using
         raise EnvError(f"{label}: contacts smoothed in the derivative need an env that keeps its MJX model in "
@@ -256,6 +257,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         raise EnvError(f"{type(env).__name__}'s episode_length must be a positive whole number of steps, got "
                        f"{episode_length!r}: give env_task(episode_length=...)")
     label = name or type(env).__name__
+    if contact_smoothing is not None and contact_smoothing.exact:  # the file's own contacts: nothing to smooth
+        contact_smoothing = None
 
     def traced(stepping_env):  # the env's step as every program traces it
         def env_step(state, action):
@@ -295,7 +298,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         **diagnosis_key, "diagnosis_seed": diagnosis_seed, "reward_repairs": reward_repairs,
         "episode_length": episode_length,
         # the diagnosis reads the derivative, which the contacts' smoothing changes
-        **({} if contact_smoothing is None or contact_smoothing.exact else
+        **({} if contact_smoothing is None else
            {"contact_smoothing": [contact_smoothing.margin, contact_smoothing.softness]})}
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
 
@@ -356,7 +359,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "
                f"train/test loss: negative return of {episode_length}-step episodes"
                + ("; constraint solver differentiated at its solution" if has_constraint_solver(env) else "")
-               + ("" if contact_smoothing is None or contact_smoothing.exact else
+               + ("" if contact_smoothing is None else
                   f"; contacts smoothed in the derivative alone (acting from {contact_smoothing.margin:g} m, "
                   f"time constants x{contact_smoothing.softness:g})"))
     if reward_repairs:

@@ -91,20 +91,14 @@ def train_epochs(
         save_params(run_dir / PARAMS_FILE, state.params)
         write_metrics(run_dir / METRICS_FILE, rows)
 
-    failed = []  # the seeds of the last epoch that failed
-
-    def diverged(metrics):
-        failed[:] = [int(s) for s, ok in zip(seeds, np.atleast_1d(metrics["finite"])) if not ok]
-        return nonfinite_message(trainer.flows, metrics)
-
     status, epoch, state, rows, problem = fit(run_epoch, state, start_epoch, config.epochs, rows, seeds, save,
-                                              config.checkpoint_every, should_stop, on_epoch, diverged,
+                                              config.checkpoint_every, should_stop, on_epoch,
+                                              lambda metrics: nonfinite_message(trainer.flows, metrics),
                                               noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds),
                                               evaluate=evaluations, out_of_time=out_of_time(config, started),
                                               steps_per_epoch=env_steps_per_epoch(trainer, config), seeds_apart=True)
     if status == "diverged":
-        message = (f"{problem} at epoch {epoch + 1} (seed {', '.join(map(str, failed))}); stopped, the last good "
-                   f"checkpoint (epoch {epoch}) is kept in {run_dir}")
+        message = f"{problem}; stopped, the last good checkpoint (epoch {epoch}) is kept in {run_dir}"
     elif status == "interrupted":
         message = f"interrupted after epoch {epoch}; continue with --resume {run_dir}"
     elif status == "budget":
