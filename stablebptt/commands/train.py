@@ -116,6 +116,10 @@ def train(argv: list[str], held: list) -> int:
         print(f"{len(seeds)} seeds in one program, " + (
             "batched (vmap; --seed-batching map: one after another, each bit-identical to the seed trained alone)"
             if seed_batching(train_config) == "vmap" else "one after another (map), each bit-identical to the seed trained alone"))
+    if (spread := begun.trainer.spread) is not None:
+        devices = ", ".join(str(device) for device in spread.mesh.devices.flat)
+        print(f"each update's {train_config.batch} states per seed split over {spread.count} devices ({devices}), "
+              "the parameters whole on each")
     if start_epoch == train_config.epochs and resuming:
         print(f"done already: {task_label}, {_epochs(start_epoch)}, final test loss {_final(rows, seeds)} -> {run_dir}")
         return 0

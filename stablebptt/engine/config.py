@@ -60,6 +60,7 @@ class TrainConfig:
     unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Plan.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="auto", metadata={"help": "how seeds share one program: vmap (batched: on a GPU an update of 5 seeds costs little more than one seed's; equal to a solo run only to float rounding), map (one after another, each bit-identical to the seed trained alone), auto (vmap for several seeds)", "choices": SEED_BATCHING})
+    devices: int = field(default=1, metadata={"help": "devices (GPUs) one run spreads over, the first N that JAX sees (0: all): the states each update rolls (--batch) split evenly across them, the parameters held whole on each"})
     episodes: str = field(default="auto", metadata={"help": "on: train on whole episodes, --batch states carried from update to update, each update one window of the horizon from where they stand, an ended episode started again from a fresh state (drawn once an epoch), an epoch one episode's length of windows; off: the paper's protocol, one window from each of the fixed training states; auto: on for tasks with episodes (environments), off for the others", "choices": EPISODE_CHOICES})
     action_noise: float = field(default=0.0, metadata={"help": "training on episodes: standard deviation of Gaussian noise added to every action of a training window (exploration; evaluation stays deterministic)"})
     critic: bool = field(default=False, metadata={"help": "training on episodes: add a learned value of the window's last state to each window's return (short-horizon actor-critic), the critic fitted to TD(lambda) targets of the windows' rewards"})
@@ -86,6 +87,8 @@ class TrainConfig:
         for name in ("epochs", "seeds", "batch", "train_size", "test_size", "checkpoint_every", "unroll"):
             if getattr(self, name) <= 0:
                 raise InputError(f"{config_field(self, name)} must be a positive integer, got {getattr(self, name)}")
+        if self.devices < 0:
+            raise InputError(f"{config_field(self, 'devices')} must be a whole number >= 0 (0: every device), got {self.devices}")
         if not (math.isfinite(self.td_lambda) and 0 <= self.td_lambda <= 1):
             raise InputError(f"{config_field(self, 'td_lambda')} must be in [0, 1], got {self.td_lambda}")
         if not (math.isfinite(self.lr_decay) and 0 < self.lr_decay <= 1):

@@ -272,7 +272,8 @@ def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = 
         started = time.perf_counter()
         epoch_fn = lowered.compiled or lowered.lowered.compile()
         return epoch_fn, time.perf_counter() - started
-    return compile_epoch(trainer.epoch, (state, *arguments), program_key, cache_dir(), trainer.compiler_options)
+    return compile_epoch(trainer.epoch, (state, *arguments), trainer.kept_under(program_key), cache_dir(),
+                         trainer.compiler_options)
 
 
 def _leaf_shapes(tree: Any) -> list[tuple]:
@@ -309,7 +310,8 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
     seeds = seed_array(config)
     shapes = state_shapes(trainer, seeds)
     arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
-    lowered = lower_epoch(trainer.epoch, arguments, program_key, cache_dir(), trainer.compiler_options)
+    lowered = lower_epoch(trainer.epoch, arguments, trainer.kept_under(program_key), cache_dir(),
+                          trainer.compiler_options)
     # The evaluation and the population's resets compile beside the epoch; on a GPU with none of their
     # kernels timed while the epoch's are.
     evaluation = None if trainer.evaluation is None else CompiledBeside(

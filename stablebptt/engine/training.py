@@ -31,6 +31,7 @@ from stablebptt.engine.episodes import (
 from stablebptt.engine.optimizer import adam, make_grid_optimizer, make_optimizer
 from stablebptt.engine.per_update import PerUpdateEpoch, compile_side_by_side
 from stablebptt.engine.program_store import kept_answer
+from stablebptt.engine.spread import Spread, split, split_where_even, spread_of
 from stablebptt.engine.task import Task
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows.dynamics import Plan
@@ -95,10 +96,16 @@ class Trainer(NamedTuple):
     # (``train_loss``, ``test_loss``, ``finite``, ``nonfinite``) as a program of its own, run on a cadence.
     evaluation: Callable[..., dict] | None = None
     horizon: int = 0  # steps of a training rollout (training on episodes: of a window)
+    spread: Spread | None = None  # the devices its programs span (``TrainConfig.devices``); None: one
 
     @property
     def updates_per_epoch(self) -> int:
         return len(jax.tree.leaves(self.batches)[0])
+
+    def kept_under(self, program_key: dict | None) -> dict | None:
+        """The key its epoch is kept under between runs (``program_store``): none where it is spread
+        over devices, whose placement a kept program would lose."""
+        return None if self.spread is not None else program_key
 
 
 def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan | None = None,
@@ -127,6 +134,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     flows = FLOWS if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
+    spread = spread_of(config, config.batch, config_field(config, "batch"))
     train_key, test_key = data_keys(config.data_seed)
     # The test states' reset compiles while the training states' does (on a GPU, one program each).
     testing = beside(lambda: sample_states(task, test_key, config.test_size), "stablebptt-test-states")
@@ -139,7 +147,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     operations, solves = kept("step size", lambda: list(step_size(task, config, example_state)))
     large = operations > LARGE_STEP
     options = compiler_options(large)
-    jit = functools.partial(jax.jit, compiler_options=options)
+    jit = functools.partial(jax.jit, compiler_options=options, **(spread.jit_options() if spread else {}))
     measured = lambda name, measure: kept(f"traced bytes, {name}", measure)  # noqa: E731
     plan = run_plan(task, config, example_state, large, measured) if plan is None else plan  # one for every dynamics an epoch uses
     if episodes is None:
@@ -155,6 +163,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         if config.critic:
             critic_optimizer = adam(config, config.critic_lr)
             observations = jax.eval_shape(episodes.observe, example_state).shape[0]
+    if spread is not None:  # the same every epoch: moved to every device once
+        train_states, test_states, batches = spread.placed((train_states, test_states, batches))
 
     def init_policy(seed):
         params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)
@@ -174,13 +184,14 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     def update(dynamics, state, batch):
         critic = state.critic
         if episodes is None:
-            loss, grads, _, visited = flow_window(dynamics, flows, state.params, batch, plan)
+            loss, grads, _, visited = flow_window(dynamics, flows, state.params, split(spread, batch), plan)
             carried, counted = None, jnp.ones(jax.tree.leaves(visited)[0].shape[:2], bool)
         else:  # one window from where the carried states stand; the gradient stops at its start
             at_end = None if critic is None else bootstrap(critic, episodes.observe)
             # The fresh states this epoch's ended episodes start from, drawn at its first update: a cond on
             # the update's number, which no seed batches, so the other updates run no reset at all.
-            carried = jax.lax.cond(batch == 0, lambda c: refill_pool(c, episodes), lambda c: c, state.carried)
+            carried = jax.lax.cond(batch == 0, lambda c: _split_population(spread, refill_pool(c, episodes)), lambda c: c,
+                                   _split_population(spread, state.carried))
             window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end, config.action_noise), flows,
                                         state.params, start_window(carried, reward_dtype, config.action_noise > 0),
                                         window_plan)
@@ -207,7 +218,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
 
     def evaluate_both(params, train_states, test_states, dynamics=task.dynamics):
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
-        both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), train_states, test_states)
+        both = split_where_even(spread, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), train_states, test_states))
         if task.evaluation is not None:
             return task.evaluation(params, both)
         return reference_losses(dynamics, params, both, plan=plan)
@@ -254,7 +265,17 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         episodes=episodes,
         evaluation=jit(over_seeds(evaluation_metrics)) if apart else None,
         horizon=task.dynamics.horizon,
+        spread=spread,
     )
+
+
+def _split_population(spread: Spread | None, carried: Any) -> Any:
+    """A carried population's states, clocks and pool split by env over ``spread``'s devices (its key
+    and its pool's count stay whole)."""
+    if spread is None:
+        return carried
+    return carried._replace(states=split(spread, carried.states), clocks=split(spread, carried.clocks),
+                            pool=split(spread, carried.pool))
 
 
 def _over_seeds(batching: str, function: Callable, mapped: int = 1) -> Callable:

@@ -45,6 +45,8 @@ CASES = {
     "seeds past the last seed": ({}, ["--seed", str(2**32 - 2), "--seeds", "3"], "--seed"),
     "negative --budget": ({}, ["--budget", "-5"], "--budget"),
     "NaN --budget": ({}, ["--budget", "nan"], "--budget"),
+    "negative --devices": ({}, ["--devices", "-1"], "--devices"),
+    "more --devices than JAX sees": ({}, ["--devices", "64"], "--devices 64: JAX sees"),
     "--eval-every of no updates": ({}, ["--eval-every", "0"], "--eval-every"),
     "--eval-every of negative seconds": ({}, ["--eval-every", "-3s"], "--eval-every"),
     "--eval-every of no number": ({}, ["--eval-every", "often"], "--eval-every"),

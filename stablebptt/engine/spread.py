@@ -1,0 +1,81 @@
+"""One run spread over several devices (``TrainConfig.devices``): the states an update rolls split
+evenly across them, everything else (parameters, optimizer and critic states, the evaluation's
+starts) held whole on each.
+
+Every program of a spread trainer takes and returns its arguments whole on every device of the
+mesh; inside, the rolled states are constrained to the mesh's one axis and XLA's partitioner (GSPMD)
+splits the rollout, its derivative and the resets by env, summing the parameters' gradients across
+the devices. Between programs nothing is split, so checkpoints, divergence checks and evaluations
+see the same arrays as on one device; the states go whole once per epoch's output, a gather far
+smaller than the rollout they spare.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from stablebptt.errors import InputError, config_field
+
+AXIS = "envs"
+
+
+class Spread(NamedTuple):
+    """The devices one run spans (``spread_of``)."""
+
+    mesh: Mesh
+
+    @property
+    def count(self) -> int:
+        return self.mesh.size
+
+    @property
+    def whole(self) -> NamedSharding:
+        """Every array whole on every device."""
+        return NamedSharding(self.mesh, PartitionSpec())
+
+    def jit_options(self) -> dict:
+        """``jax.jit``'s options that make a program take and give its arguments whole on every device."""
+        return {"in_shardings": self.whole, "out_shardings": self.whole}
+
+    def placed(self, tree: Any) -> Any:
+        """``tree`` whole on every device: a program's arguments that stay the same from call to call
+        move once, not at every call."""
+        return jax.device_put(tree, self.whole)
+
+
+def spread_of(config: Any, envs: int, what: str) -> Spread | None:
+    """The devices ``config.devices`` asks for (0: every device JAX sees), or None for one.
+
+    Raises:
+      InputError: more devices than JAX sees, or ``envs`` (the states each update rolls, named by
+        ``what``) not a multiple of their number.
+    """
+    visible = jax.devices()
+    count = len(visible) if config.devices == 0 else config.devices
+    if count > len(visible):
+        raise InputError(f"{config_field(config, 'devices')} {config.devices}: JAX sees {len(visible)} "
+                         f"{visible[0].platform} device{'s' if len(visible) > 1 else ''} here")
+    if count == 1:
+        return None
+    if envs % count:
+        raise InputError(f"{config_field(config, 'devices')}: {what} ({envs}) must split evenly over the "
+                         f"{count} devices: make it a multiple of {count}")
+    return Spread(Mesh(np.array(visible[:count]), (AXIS,)))
+
+
+def split(spread: Spread | None, tree: Any) -> Any:
+    """``tree``'s arrays, each with the envs on its leading axis, split by env over the spread's
+    devices inside a program (as they stand on one device: unchanged)."""
+    if spread is None:
+        return tree
+    return jax.lax.with_sharding_constraint(tree, NamedSharding(spread.mesh, PartitionSpec(AXIS)))
+
+
+def split_where_even(spread: Spread | None, tree: Any) -> Any:
+    """``split``, where the leading axis divides evenly over the devices; else ``tree`` as it stands."""
+    if spread is None or jax.tree.leaves(tree)[0].shape[0] % spread.count:
+        return tree
+    return split(spread, tree)
