@@ -23,7 +23,9 @@ from stablebptt.engine.config import TrainConfig
 from stablebptt.runs import epochs
 
 RUNS_ROOT = Path("runs")
-RESUMABLE = {"epochs", "budget"}  # what --resume may change: extending a run, in epochs or in time
+# What --resume may change: extending a run, in epochs or in time, and the devices it spans (which change
+# its numbers only in their rounding).
+RESUMABLE = {"epochs", "budget", "devices"}
 UNTIL_BUDGET = 1_000_000  # the epochs of a run given --budget and no --epochs
 
 
@@ -47,7 +49,7 @@ def configure(args, owners):
     if args.resume is not None:
         changed = sorted(set(given) - RESUMABLE)
         if changed or args.out is not None or args.task is not None:
-            fail(f"--resume continues a run with its saved configuration; only --epochs and --budget may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
+            fail(f"--resume continues a run with its saved configuration; only --epochs, --budget and --devices may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
         from stablebptt.apps.trained import configs_of
         from stablebptt.runs import run_folder
         record = run_folder.open_run(args.resume)

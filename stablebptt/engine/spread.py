@@ -57,7 +57,8 @@ def spread_of(config: Any, envs: int, what: str) -> Spread | None:
     count = len(visible) if config.devices == 0 else config.devices
     if count > len(visible):
         raise InputError(f"{config_field(config, 'devices')} {config.devices}: JAX sees {len(visible)} "
-                         f"{visible[0].platform} device{'s' if len(visible) > 1 else ''} here")
+                         f"{visible[0].platform} device{'s' if len(visible) > 1 else ''} here: ask for at most "
+                         f"{len(visible)} (a resumed run too)")
     if count == 1:
         return None
     if envs % count:

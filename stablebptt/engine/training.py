@@ -150,6 +150,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     jit = functools.partial(jax.jit, compiler_options=options, **(spread.jit_options() if spread else {}))
     measured = lambda name, measure: kept(f"traced bytes, {name}", measure)  # noqa: E731
     plan = run_plan(task, config, example_state, large, measured) if plan is None else plan  # one for every dynamics an epoch uses
+    if spread is not None and plan.jacobian_chunk:  # a loop over chunks would hold every device's examples on each
+        plan = dataclasses.replace(plan, chunk_placement=functools.partial(split_where_even, spread))
     if episodes is None:
         # Fixed order, no shuffling: minibatch i is always the same states.
         batches = jax.jit(lambda states: jax.tree.map(  # one program, not one eager reshape per leaf

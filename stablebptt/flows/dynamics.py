@@ -85,6 +85,9 @@ class Plan:
         one more policy forward pass over those states; ``"per-step"`` pulls
         every flow back through the policy at every step (cheaper where the
         policy's batched backward pass is slow: XLA's CPU convolutions).
+      chunk_placement: for ``"forward"`` with ``jacobian_chunk``: applied to each chunk of examples
+        inside the loop over chunks (a run spread over devices splits every chunk by device, which a
+        loop over a split axis would undo); None: each chunk as it stands.
     """
 
     step_derivative: str = "reverse"
@@ -94,6 +97,7 @@ class Plan:
     rematerialize: bool = False
     jacobian_per_input: bool = True
     policy_gradient: str = "batched"
+    chunk_placement: Callable[[PyTree], PyTree] | None = None
 
     def __post_init__(self):
         whole = lambda value: isinstance(value, numbers.Integral) and not isinstance(value, bool)  # noqa: E731
@@ -109,6 +113,8 @@ class Plan:
                 raise InputError(f"Plan.{name} must be True or False, got {getattr(self, name)!r}")
         if self.known_columns is not None and not isinstance(self.known_columns, KnownColumns):
             raise InputError(f"Plan.known_columns must be None or a KnownColumns, got {type(self.known_columns).__name__}")
+        if self.chunk_placement is not None and not callable(self.chunk_placement):
+            raise InputError(f"Plan.chunk_placement must be None or a function, got {type(self.chunk_placement).__name__}")
 
 
 @dataclass(frozen=True, init=False)

@@ -8,6 +8,8 @@ state (``policy_gradients``, which the reverse-mode path uses too).
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,7 +30,8 @@ from stablebptt.flows.modes import KEEPS
 
 
 def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns | None = None,
-                   chunk: int | None = None, per_input: bool = True) -> tuple[jax.Array, jax.Array]:
+                   chunk: int | None = None, per_input: bool = True,
+                   chunk_placement: Callable[[PyTree], PyTree] | None = None) -> tuple[jax.Array, jax.Array]:
     """Jacobians of ``step`` at every example of a batch, by forward mode.
 
     With ``per_input`` (the default), one forward pass per input leaf (a state
@@ -40,7 +43,8 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
     once: more work per tangent, but one copy of the differentiated step in the
     program, which compiles several times faster for large scenes. Columns in
     ``known`` are copied, not computed. ``chunk`` examples at a time (default:
-    all) bound the memory.
+    all) bound the memory; ``chunk_placement`` (``Plan.chunk_placement``) places
+    each chunk's examples where ``chunk`` divides their number.
 
     Returns:
       ``(state_jacobian [batch, state, state], control_jacobian [batch, state, control])``
@@ -91,7 +95,13 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
 
     if chunk is None:
         return jax.vmap(one)(states, controls)
-    return jax.lax.map(lambda example: one(*example), (states, controls), batch_size=chunk)
+    examples = jax.tree.leaves(states)[0].shape[0]
+    if chunk_placement is None or examples % chunk:
+        return jax.lax.map(lambda example: one(*example), (states, controls), batch_size=chunk)
+    chunks = jax.tree.map(lambda a: a.reshape((examples // chunk, chunk) + a.shape[1:]), (states, controls))
+    state_jacobian, control_jacobian = jax.lax.map(lambda pair: jax.vmap(one)(*chunk_placement(pair)), chunks)
+    whole = lambda a: a.reshape((examples,) + a.shape[2:])  # noqa: E731
+    return whole(state_jacobian), whole(control_jacobian)
 
 
 
@@ -121,7 +131,7 @@ def linearized_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyT
     # Every step's Jacobians in one batched pass over [T * batch] examples.
     state_jacobian, control_jacobian = step_jacobians(dynamics.step, merge_axes(visited, 2), merge_axes(controls, 2),
                                                        plan.known_columns, plan.jacobian_chunk,
-                                                       plan.jacobian_per_input)
+                                                       plan.jacobian_per_input, plan.chunk_placement)
     unmerge = lambda a: a.reshape((horizon, batch_size) + a.shape[1:])
     state_jacobian, control_jacobian = unmerge(state_jacobian), unmerge(control_jacobian)
 

@@ -290,7 +290,8 @@ def test_a_plan_names_its_wrong_field_and_dynamics_sends_engine_settings_to_plan
             ("policy_gradient", "bogus", "Plan.policy_gradient must be one of batched, per-step, got 'bogus'"),
             ("unroll", 0, "Plan.unroll must be a positive whole number, got 0"),
             ("jacobian_chunk", 2.5, "Plan.jacobian_chunk must be None or a positive whole number, got 2.5"),
-            ("rematerialize", "yes", "Plan.rematerialize must be True or False, got 'yes'")]:
+            ("rematerialize", "yes", "Plan.rematerialize must be True or False, got 'yes'"),
+            ("chunk_placement", "envs", "Plan.chunk_placement must be None or a function, got str")]:
         with pytest.raises(sb.InputError, match=message):
             sb.Plan(**{field: value})
     physics = {name: getattr(_pendulum().dynamics, name) for name in ("step", "policy", "loss", "horizon")}
