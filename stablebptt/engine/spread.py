@@ -1,13 +1,13 @@
 """One run spread over several devices (``TrainConfig.devices``): the states an update rolls split
-evenly across them, everything else (parameters, optimizer and critic states, the evaluation's
-starts) held whole on each.
+evenly across them, everything else (parameters, optimizer and critic states) held whole on each.
 
 Every program of a spread trainer takes and returns its arguments whole on every device of the
-mesh; inside, the rolled states are constrained to the mesh's one axis and XLA's partitioner (GSPMD)
-splits the rollout, its derivative and the resets by env, summing the parameters' gradients across
-the devices. Between programs nothing is split, so checkpoints, divergence checks and evaluations
-see the same arrays as on one device; the states go whole once per epoch's output, a gather far
-smaller than the rollout they spare.
+mesh; inside, the rolled states (and an evaluation's starts, where they divide evenly) are
+constrained to the mesh's one axis, and XLA's partitioner (GSPMD) splits the simulation, its
+derivative and the resets by env. What merges the envs with the window's steps into one axis (the
+critic's fit, the policy's batched pullback) it gathers whole on each device. Between programs
+nothing is split, so checkpoints, divergence checks and evaluations see the same arrays as on one
+device.
 """
 from __future__ import annotations
 
@@ -46,12 +46,12 @@ class Spread(NamedTuple):
         return jax.device_put(tree, self.whole)
 
 
-def spread_of(config: Any, envs: int, what: str) -> Spread | None:
+def spread_of(config: Any) -> Spread | None:
     """The devices ``config.devices`` asks for (0: every device JAX sees), or None for one.
 
     Raises:
-      InputError: more devices than JAX sees, or ``envs`` (the states each update rolls, named by
-        ``what``) not a multiple of their number.
+      InputError: more devices than JAX sees, or ``config.batch`` (the states each update rolls) not a
+        multiple of their number.
     """
     visible = jax.devices()
     count = len(visible) if config.devices == 0 else config.devices
@@ -61,9 +61,9 @@ def spread_of(config: Any, envs: int, what: str) -> Spread | None:
                          f"{len(visible)} (a resumed run too)")
     if count == 1:
         return None
-    if envs % count:
-        raise InputError(f"{config_field(config, 'devices')}: {what} ({envs}) must split evenly over the "
-                         f"{count} devices: make it a multiple of {count}")
+    if config.batch % count:
+        raise InputError(f"{config_field(config, 'devices')}: {config_field(config, 'batch')} ({config.batch}) "
+                         f"must split evenly over the {count} devices: make it a multiple of {count}")
     return Spread(Mesh(np.array(visible[:count]), (AXIS,)))
 
 

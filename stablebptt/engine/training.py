@@ -134,7 +134,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     flows = FLOWS if grid else flows_needed(config.mode, config.cosine)
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
-    spread = spread_of(config, config.batch, config_field(config, "batch"))
+    spread = spread_of(config)
     train_key, test_key = data_keys(config.data_seed)
     # The test states' reset compiles while the training states' does (on a GPU, one program each).
     testing = beside(lambda: sample_states(task, test_key, config.test_size), "stablebptt-test-states")
