@@ -33,9 +33,10 @@ def parse(argv: list[str]) -> argparse.Namespace:
                         help="centred moving average over N epochs, 0 = raw (default: 30 for runs of >= 90 epochs, else 0)")
     parser.add_argument("--band", choices=("minmax", "std"), default="minmax",
                         help="band around the mean over seeds: min to max, or +- one standard deviation (default: minmax)")
-    parser.add_argument("--x", choices=("epoch", "env-steps", "seconds"), default="epoch", dest="x_axis",
-                        help="draw against epochs, the env steps each seed simulated in training, or the training "
-                             "wall time (compiling excluded) (default: epoch)")
+    parser.add_argument("--x", choices=("epoch", "env-steps", "seconds", "wall-clock"), default="epoch", dest="x_axis",
+                        help="draw against epochs, the env steps each seed simulated in training, the training "
+                             "wall time (compiling excluded), or the wall clock from the command's start as --budget "
+                             "counts it (set-up, compile and evaluations of every start included) (default: epoch)")
     args = parser.parse_args(argv)
     if args.smooth is not None and args.smooth < 0:
         fail(f"--smooth must be zero or positive, got {args.smooth}")

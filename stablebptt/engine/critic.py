@@ -6,6 +6,8 @@ loss on the window's last state, so its gradient reaches that state and enters e
 loss's own gradient does, cut by none of them. The value is the target critic's, which follows the
 critic slowly. After each window the critic, a network of the observation with its own Adam, is
 fitted to TD(lambda) targets computed from the window's rewards and the target critic's values.
+Where asked (``TrainConfig.normalize_critic_observations``) the critic sees its observations
+standardised by statistics of its own, refreshed from every window's states before it is fitted.
 """
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from stablebptt.engine.observations import ObservationStatistics, no_observations, standardized, with_observations
 from stablebptt.flows.dynamics import PyTree
 from stablebptt.networks import mlp_apply, mlp_init
 
@@ -28,20 +31,28 @@ CRITIC_STREAM = 2
 
 
 class Critic(NamedTuple):
-    """One seed's critic: its weights, its optimizer's state, and the target critic that follows it."""
+    """One seed's critic: its weights, its optimizer's state, the target critic that follows it, and the
+    statistics that standardise what it sees (None: it sees raw observations)."""
 
     params: PyTree
     opt_state: PyTree
     target: PyTree
+    statistics: ObservationStatistics | None = None
 
 
 def value(params: PyTree, observation: jax.Array) -> jax.Array:
     return mlp_apply(params, observation)[0]
 
 
-def init_critic(seed_key: jax.Array, observations: int, optimizer: optax.GradientTransformation) -> Critic:
+def seen(critic: Critic, observation: jax.Array) -> jax.Array:
+    """What ``critic``'s networks take of an observation: it standardised where the critic keeps statistics."""
+    return observation if critic.statistics is None else standardized(critic.statistics, observation)
+
+
+def init_critic(seed_key: jax.Array, observations: int, optimizer: optax.GradientTransformation,
+                standardize: bool = False) -> Critic:
     params = mlp_init(jax.random.fold_in(seed_key, CRITIC_STREAM), (observations, *HIDDEN, 1), zero_output=False)
-    return Critic(params, optimizer.init(params), params)
+    return Critic(params, optimizer.init(params), params, no_observations(observations) if standardize else None)
 
 
 def td_lambda_targets(rewards: jax.Array, values: jax.Array, running: jax.Array, discount: float,
@@ -72,11 +83,11 @@ def fit_critic(critic: Critic, observations: jax.Array, targets: jax.Array, weig
     def step(current: Critic, _):
         error, grads = jax.value_and_grad(loss)(current.params)
         updates, opt_state = optimizer.update(grads, current.opt_state, current.params)
-        return Critic(optax.apply_updates(current.params, updates), opt_state, current.target), error
+        return current._replace(params=optax.apply_updates(current.params, updates), opt_state=opt_state), error
 
     fitted, errors = jax.lax.scan(step, critic, None, length=iterations)
     target = jax.tree.map(lambda kept, new: TARGET_KEEP * kept + (1 - TARGET_KEEP) * new, fitted.target, fitted.params)
-    return Critic(fitted.params, fitted.opt_state, target), errors[-1]
+    return fitted._replace(target=target), errors[-1]
 
 
 def fit_to_window(critic: Critic, visited: PyTree, final: PyTree, observe: Callable[[PyTree], jax.Array],
@@ -86,13 +97,16 @@ def fit_to_window(critic: Critic, visited: PyTree, final: PyTree, observe: Calla
     a task's state, its reward and whether its episode runs)."""
     reached = jax.tree.map(lambda past, last: jnp.concatenate([past[1:], last[None]]), visited, final)
     observe_all = jax.vmap(jax.vmap(observe))
-    values = jax.vmap(jax.vmap(lambda o: value(critic.target, o)))(observe_all(reached.state))
+    observed = observe_all(visited.state)  # [T, batch, observations]; a state past its episode's end weighs 0
+    flat, weights = observed.reshape((-1, observed.shape[-1])), visited.running.reshape(-1)
+    if critic.statistics is not None:  # the window's states counted first, as the policy's statistics count them
+        critic = critic._replace(statistics=with_observations(critic.statistics, flat, weights))
+    in_view = jax.vmap(lambda o: seen(critic, o))
+    values = jax.vmap(jax.vmap(lambda o: value(critic.target, seen(critic, o))))(observe_all(reached.state))
     targets = td_lambda_targets(reached.reward, values, reached.running, discount, td_lambda)
-    seen = observe_all(visited.state)  # [T, batch, observations]; a state past its episode's end weighs 0
-    return fit_critic(critic, seen.reshape((-1, seen.shape[-1])), targets.reshape(-1),
-                      visited.running.reshape(-1).astype(targets.dtype), optimizer)[0]
+    return fit_critic(critic, in_view(flat), targets.reshape(-1), weights.astype(targets.dtype), optimizer)[0]
 
 
 def bootstrap(critic: Critic, observe: Callable[[PyTree], jax.Array]) -> Callable[[PyTree], jax.Array]:
     """The value a window's loss adds at its last state: the target critic's, of the state's observation."""
-    return lambda state: value(critic.target, observe(state))
+    return lambda state: value(critic.target, seen(critic, observe(state)))

@@ -175,7 +175,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     def init_rest(seed):
         key = jax.random.PRNGKey(seed)
         carried = None if episodes is None else first_population(key, episodes, config.batch, window)
-        critic = init_critic(key, observations, critic_optimizer) if config.critic else None
+        critic = (init_critic(key, observations, critic_optimizer, config.normalize_critic_observations)
+                  if config.critic else None)
         return carried, critic
 
     def evaluate(params, initial_states, dynamics=task.dynamics):

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stablebptt.errors import InputError
-from stablebptt.runs.run_folder import CONFIG_FILE, METRICS_FILE, run_metrics
+from stablebptt.runs.run_folder import CONFIG_FILE, METRICS_FILE, STARTUP_FILE, run_metrics
 from stablebptt.storage import read_json
 
 PAPER_SMOOTH = 30  # the paper smooths its curves over 30 epochs
@@ -25,7 +25,7 @@ LOSS = ("test loss", 1.0)
 # Tasks whose test loss reads better as a score: the environment task's is the negative episode return.
 SCORES = {"env": ("episode return", -1.0)}
 # What a learning curve may be drawn against.
-X_AXES = ("epoch", "env-steps", "seconds")
+X_AXES = ("epoch", "env-steps", "seconds", "wall-clock")
 
 
 class Run(NamedTuple):
@@ -223,13 +223,17 @@ def x_values(run: Run, axis: str) -> tuple[np.ndarray, str]:
 
     ``env-steps``: the steps each seed simulated in training (``steps_per_epoch`` of its config.json,
     which runs record since they train on carried episodes); ``seconds``: the training wall time,
-    compiling excluded, summed over the epochs drawn.
+    compiling excluded, summed over the epochs drawn; ``wall-clock``: the seconds from the command's start
+    as ``--budget`` counts them, summed over its starts (a resumed run's set-ups and compiles too) and
+    the epochs' evaluations.
     """
     if axis == "epoch":
         return run.epochs.astype(float), "epoch"
     if axis == "seconds":
         per_epoch = np.nanmax(run.metrics.get("seconds", np.full((len(run.epochs), 1), np.nan)), axis=1)
         return np.cumsum(np.nan_to_num(per_epoch)), "training wall time, s (compiling excluded)"
+    if axis == "wall-clock":
+        return wall_clock(run), "wall clock, s (set-up, compile and evaluations included)"
     if axis == "env-steps":
         steps = run.config.get("steps_per_epoch")
         if not isinstance(steps, int) or isinstance(steps, bool) or steps <= 0:
@@ -237,3 +241,23 @@ def x_values(run: Run, axis: str) -> tuple[np.ndarray, str]:
                              "since they train on carried episodes): draw it against epochs or seconds")
         return run.epochs.astype(float) * steps, "env steps per seed"
     raise InputError(f"unknown x axis {axis!r}: choose one of {', '.join(X_AXES)}")
+
+
+def wall_clock(run: Run) -> np.ndarray:
+    """The seconds at each epoch's end since the run's first command started, as ``--budget`` counts them:
+    every start's seconds to its first epoch (``startup.json``; a start after the first begins at the
+    epoch after the one its predecessor ended on), and each epoch's training and evaluation seconds."""
+    path = run.path / STARTUP_FILE
+    starts = read_json(path) if path.exists() else None
+    if not (isinstance(starts, list) and starts and all(isinstance(start, dict) and "seconds_to_training" in start
+                                                        for start in starts)):
+        raise InputError(f"{run.path} has no record of its starts ({STARTUP_FILE}, written since runs time their "
+                         "set-up): draw it against seconds or epochs")
+    set_up = np.zeros(len(run.epochs))
+    first_epoch = 1
+    for start in starts:
+        set_up[run.epochs >= first_epoch] += float(start["seconds_to_training"])
+        first_epoch = int(start.get("ended", {}).get("epoch", run.epochs.max())) + 1
+    per_epoch = sum(np.nan_to_num(np.nanmax(run.metrics.get(column, np.full((len(run.epochs), 1), np.nan)), axis=1))
+                    for column in ("seconds", "eval_seconds"))
+    return set_up + np.cumsum(per_epoch)

@@ -216,7 +216,10 @@ def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None, x_axis
                 absent.append(run.mode)
                 continue
             drawn += 1
-            window = effective_window(smooth, len(run.epochs))
+            # Epochs not evaluated (an environment's cadence, --eval-every) are left out, not drawn as gaps.
+            evaluated = np.any(np.isfinite(values), axis=1)
+            x, values = x[evaluated], values[evaluated]
+            window = effective_window(smooth, len(values))
             if log:  # smooth log values: stays positive, and an exponential decay passes unchanged
                 with np.errstate(invalid="ignore"):
                     smoothed = np.exp(moving_average(np.log(values), window))

@@ -198,6 +198,40 @@ def test_td_lambda_targets_are_the_closed_forms_at_lambda_0_and_1_and_stop_where
     np.testing.assert_allclose(ended[:, 0], [1 + 0.5 * 2, 2, 3])  # nothing after x_2's end counts
 
 
+def test_a_critic_that_standardises_counts_the_running_states_and_fits_the_same_values_in_any_units():
+    """Standardised, the critic sees the same inputs whatever the observation's offset and scale, so it
+    fits the same values; raw, it does not. Its statistics are those of the window's running states."""
+    import optax
+
+    from stablebptt.engine.critic import init_critic, fit_to_window, seen, value
+    from stablebptt.engine.episodes import Window
+    steps, batch = 4, 6
+    states = jax.random.normal(jax.random.PRNGKey(3), (steps + 1, batch))
+    running = jnp.ones((steps + 1, batch), bool).at[3:, 0].set(False)  # one episode ends within the window
+    rewards = -states ** 2 * running
+    window = lambda t: Window(states[t], jnp.zeros(batch, jnp.int32), running[t], rewards[t])  # noqa: E731
+    visited = jax.tree.map(lambda *a: jnp.stack(a), *[window(t) for t in range(steps)])
+    optimizer = optax.adam(1e-2)
+
+    def fitted_values(standardize, offset, scale):
+        observe = lambda x: jnp.stack([offset + scale * x])  # noqa: E731
+        critic = init_critic(jax.random.PRNGKey(0), 1, optimizer, standardize)
+        for _ in range(3):
+            critic = fit_to_window(critic, visited, window(steps), observe, 0.9, 0.95, optimizer)
+        return critic, jax.vmap(lambda x: value(critic.params, seen(critic, observe(x))))(states[0])
+
+    critic, in_units = fitted_values(True, 0.0, 1.0)
+    counted = states[:steps][running[:steps]]
+    assert float(critic.statistics.count) == 3 * counted.size  # three windows, the ended states left out
+    np.testing.assert_allclose(critic.statistics.mean, [jnp.mean(counted)], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(critic.statistics.squares / critic.statistics.count, [jnp.var(counted)], rtol=1e-5)
+    _, in_other_units = fitted_values(True, 40.0, 1000.0)
+    np.testing.assert_allclose(in_other_units, in_units, rtol=2e-4, atol=1e-5)
+    _, raw, = fitted_values(False, 0.0, 1.0)
+    _, raw_in_other_units = fitted_values(False, 40.0, 1000.0)
+    assert float(jnp.max(jnp.abs(raw_in_other_units - raw))) > 1e-2
+
+
 @pytest.mark.slow  # trains: the full tier
 def test_a_critic_trains_beside_the_policy_and_its_target_follows_it():
     task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
@@ -223,6 +257,12 @@ def test_a_critic_trains_beside_the_policy_and_its_target_follows_it():
     one = jax.tree.map(lambda a: a[0], state.critic.params)
     at = lambda x: float(value(one, jnp.array([x])))  # noqa: E731
     assert at(-0.9) < at(0.0) and at(0.9) < at(0.0)
+    # Standardising what it sees, the trainer's critic counts every state its windows visited while running.
+    standardizing = make_trainer(task, dataclasses.replace(config, normalize_critic_observations=True))
+    state, metrics = standardizing.epoch(standardizing.init(seed_array(config)), standardizing.batches,
+                                         standardizing.train_states, standardizing.test_states)
+    windows = len(standardizing.batches) * task.dynamics.horizon * config.batch
+    assert bool(metrics["finite"][0]) and 0 < float(state.critic.statistics.count[0]) <= windows
     with pytest.raises(InputError, match="action_noise: exploration noise on a window's actions needs carried episodes"):
         make_trainer(task, TrainConfig(batch=1, train_size=2, episodes="off", action_noise=0.1))
     with pytest.raises(InputError, match="critic: a learned value at a window's end needs carried episodes"):

@@ -164,9 +164,21 @@ def test_an_environment_run_is_drawn_as_its_return_against_env_steps_and_titled_
     assert figure.get_suptitle().startswith("CartpoleSwingup: --discount 1 --no-reward-check --steps 128\n")
     seconds = plots.draw([run], x_axis="seconds").axes[0].get_lines()[0].get_data()[0]
     np.testing.assert_allclose(seconds, [0.1, 0.2, 0.3, 0.4])  # summed epoch times
+    # A run resumed after its second epoch: each start's set-up counts from the epoch it trained first.
+    storage.write_json(path / "startup.json", [{"seconds_to_training": 50.0, "ended": {"epoch": 2, "status": "budget"}},
+                                               {"seconds_to_training": 10.0}])
+    clock = plots.draw([run], x_axis="wall-clock").axes[0].get_lines()[0].get_data()[0]
+    np.testing.assert_allclose(clock, [50.1, 50.2, 60.3, 60.4])
+    # An epoch without an evaluation is left out of the return's curve, not drawn as a gap in it.
+    unevaluated = run._replace(metrics={**run.metrics, "test_loss": run.metrics["test_loss"] * np.array([[1.0], [np.nan], [1.0], [1.0]])})
+    x, y = plots.draw([unevaluated], x_axis="wall-clock").axes[0].get_lines()[0].get_data()
+    np.testing.assert_allclose(x, [50.1, 60.3, 60.4])
+    assert np.all(np.isfinite(y))
     older = curves.load_run(write_run(tmp_path / "older"))
     with pytest.raises(InputError, match="does not record its env steps per epoch"):
         plots.draw([older], x_axis="env-steps")
+    with pytest.raises(InputError, match="has no record of its starts"):
+        plots.draw([older], x_axis="wall-clock")
 
 
 
