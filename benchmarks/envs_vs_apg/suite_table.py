@@ -7,7 +7,9 @@ budget that counts set-up and compile, seeds batched in one program:
       'stablebptt train --env CartpoleSwingup --critic --discount 0.99 --seeds 5 --budget 300 --no-progress --out RUNS/CartpoleSwingup' \
       'stablebptt train --env CheetahRun --seeds 5 --budget 300 --no-progress --out RUNS/CheetahRun' ...
 
-A run longer than one sitting goes on with `stablebptt train --resume RUNS/E --budget S`. This script
+A run longer than one sitting goes on with `stablebptt train --resume RUNS/E --budget S`: its row names
+the first command (without its budget) and its starts, and a table of its returns along the wall clock
+(every start's set-up and compile counted, as `stablebptt plot --x wall-clock` draws it) follows. This script
 reads each run folder (config.json, metrics.csv, startup.json), keeps what the table needs in
 `OUT/records.json` (a later call adds to it, a run of the same command replaces its record) and writes
 `OUT/suite.md`: per run the command that made it, the final return (the last evaluation: `--test-size`
@@ -75,10 +77,15 @@ def _option(name: str, value) -> str:
     return f"{flag} {value:g}" if isinstance(value, float) else f"{flag} {value}"
 
 
+# The wall-clock marks at which a resumed run's returns are read (its last evaluation by each).
+WALL_CLOCK_MARKS = (300, 600, 900)
+
+
 def read_run(folder: str) -> dict:
     """What the table keeps of one run folder."""
     from stablebptt.engine.divergence import retired_in
     from stablebptt.engine.metrics import COLUMNS
+    from stablebptt.reports.curves import load_run, wall_clock
 
     with open(os.path.join(folder, "config.json")) as handle:
         config = json.load(handle)
@@ -95,7 +102,16 @@ def read_run(folder: str) -> dict:
     per_seed = [row for row in rows if int(row["seed"]) == seeds[0]]
     train = config["train"]
     updates_per_epoch = config["steps_per_epoch"] // (train["batch"] * config["resolved_task"]["horizon_steps"])
-    return {"env": config["task_config"]["env"], "command": command_of(config), "budget": train.get("budget", 0.0),
+    run = load_run(folder)
+    clock = dict(zip(run.epochs.tolist(), wall_clock(run).tolist()))
+    command = command_of(config)
+    last_epoch = int(per_seed[-1]["epoch"])
+    if len(starts) > 1:  # resumed: the record holds the last start's budget, not the first command's
+        command = f"{_without_budget(command)} (resumed: {len(starts)} starts)"
+    along = {str(mark): returns[max(e for e in evaluated if clock[e] <= mark)]
+             for mark in WALL_CLOCK_MARKS if any(clock[e] <= mark for e in evaluated)}
+    return {"env": config["task_config"]["env"], "command": command, "budget": train.get("budget", 0.0),
+            "wall_s": clock[last_epoch], "starts": len(starts), "returns_by_wall_clock": along,
             "seeds": seeds, "epochs": len(per_seed), "updates": len(per_seed) * updates_per_epoch,
             "update_s": float(np.median([row["seconds"] for row in per_seed[1:] or per_seed])) / updates_per_epoch,
             "train_s": float(sum(row["seconds"] for row in per_seed)),
@@ -107,6 +123,11 @@ def read_run(folder: str) -> dict:
                 row["seconds"] + row["eval_seconds"] for row in per_seed))
             + (f", {stopped} of {len(seeds)} seeds stopped apart (non-finite)" if stopped else ""),
             "seconds_to_training": starts[0]["seconds_to_training"], "phases": starts[0]["phases"]}
+
+
+def _without_budget(command: str) -> str:
+    words = command.split(" ")
+    return " ".join(word for i, word in enumerate(words) if word != "--budget" and (i == 0 or words[i - 1] != "--budget"))
 
 
 def _ended(start: dict, budget: float, elapsed: float) -> str:
@@ -152,12 +173,27 @@ def table(records: list[dict], out: str) -> str:
                      f"{ppo_at_budget(record['env'])} | {record['updates']} | {record['update_s']:.3f} | "
                      f"{record['seconds_to_training']:.0f} | "
                      f"{record['eval_s'] / (record['train_s'] + record['eval_s']):.0%} | {record['ended']} |")
+    resumed = [record for record in records if record.get("starts", 1) > 1]
+    if resumed:
+        lines += ["", "Resumed runs: the return of the last evaluation by each mark of the wall clock (every start's "
+                  "set-up and compile counted; `stablebptt plot RUN --x wall-clock` draws it):", "",
+                  "| command | wall clock, s | epochs | " + " | ".join(f"by {mark} s" for mark in WALL_CLOCK_MARKS) + " |",
+                  "|---|---:|---:|" + "---|" * len(WALL_CLOCK_MARKS)]
+        for record in sorted(resumed, key=lambda r: (r["env"], r["command"])):
+            along = record["returns_by_wall_clock"]
+            lines.append(f"| `{record['command']}` | {record['wall_s']:.0f} | {record['epochs']} | " + " | ".join(
+                _with_interval(along[str(mark)]) if str(mark) in along else "-" for mark in WALL_CLOCK_MARKS) + " |")
     lines += ["", "Start-up, phase by phase (seconds, the run's first start; `startup.json` in its folder):", "",
               "| command | " + " | ".join(PHASES) + " |", "|---|" + "---:|" * len(PHASES)]
     for record in sorted(records, key=lambda r: (r["env"], r["command"])):
         lines.append(f"| `{record['command']}` | "
                      + " | ".join(f"{record['phases'].get(name, 0.0):.1f}" for name in PHASES) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _with_interval(returns) -> str:
+    low, high = interval(returns)
+    return f"{np.mean(returns):.1f} [{low:.1f}, {high:.1f}]"
 
 
 PHASES = ("task's build and checks", "trainer set-up", "trace", "check's wait", "surrogate's trace",

@@ -217,9 +217,10 @@ def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None, x_axis
                 continue
             drawn += 1
             # Epochs not evaluated (an environment's cadence, --eval-every) are left out, not drawn as gaps.
+            # The smoothing window stays a span of epochs: over evaluations as many as fall within it.
             evaluated = np.any(np.isfinite(values), axis=1)
             x, values = x[evaluated], values[evaluated]
-            window = effective_window(smooth, len(values))
+            window = effective_window(round(smooth * len(values) / len(evaluated)), len(values))
             if log:  # smooth log values: stays positive, and an exponential decay passes unchanged
                 with np.errstate(invalid="ignore"):
                     smoothed = np.exp(moving_average(np.log(values), window))

@@ -174,6 +174,13 @@ def test_an_environment_run_is_drawn_as_its_return_against_env_steps_and_titled_
     x, y = plots.draw([unevaluated], x_axis="wall-clock").axes[0].get_lines()[0].get_data()
     np.testing.assert_allclose(x, [50.1, 60.3, 60.4])
     assert np.all(np.isfinite(y))
+    # Smoothed over 30 epochs, a run evaluated every fifth epoch averages 6 evaluations at a time.
+    long = curves.load_run(write_run(tmp_path / "long", task="env", epochs=300, seeds=(42, 43),
+                                     task_config={"env": "CartpoleSwingup", "steps": 128}))
+    every_fifth = np.where((long.epochs % 5 == 0)[:, None], long.metrics["test_loss"], np.nan)
+    long = long._replace(metrics={**long.metrics, "test_loss": every_fifth})
+    drawn = plots.draw([long], smooth=30).axes[0].get_lines()[0].get_data()[1]
+    np.testing.assert_allclose(drawn, -curves.moving_average(every_fifth[4::5], 6).mean(axis=1), rtol=1e-6)
     older = curves.load_run(write_run(tmp_path / "older"))
     with pytest.raises(InputError, match="does not record its env steps per epoch"):
         plots.draw([older], x_axis="env-steps")
