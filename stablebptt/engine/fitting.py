@@ -41,7 +41,7 @@ def fit(
     noticed: Callable[[dict], str] = lambda metrics: "",
     evaluate: Callable[[Any, dict, int, float, bool], tuple[dict, float]] = lambda state, metrics, epoch, seconds,
     final: (metrics, 0.0),
-    out_of_time: Callable[[], bool] = lambda: False,
+    out_of_time: Callable[[float], bool] = lambda ahead: False,
     steps_per_epoch: int = 0,
     seeds_apart: bool = False,
 ) -> tuple[str, int, Any, np.ndarray, str]:
@@ -70,7 +70,8 @@ def fit(
         gradient left at zero), else ""; ``on_epoch`` gets it under ``"notice"``.
       evaluate: ``evaluate(state, metrics, epoch, seconds, final) -> (metrics, seconds evaluating)``
         after every epoch, ``final`` on the last one a run trains (``Evaluations``).
-      out_of_time: polled after every epoch; true evaluates, saves and stops (a wall-clock budget).
+      out_of_time: ``out_of_time(ahead)`` after every epoch and its evaluation, ``ahead`` one more epoch's and
+        evaluation's seconds, each as long as the last; true evaluates, saves and stops (a wall-clock budget).
       steps_per_epoch: env steps a seed trains per epoch, counted in the rows (0: none to count).
 
     Returns:
@@ -93,7 +94,7 @@ def fit(
             saved_epoch, last_save = epoch, time.monotonic()
 
     retired = retired_in(all_rows(), row_ids) if seeds_apart else np.zeros(len(row_ids), dtype=bool)
-    epoch = start_epoch
+    epoch, evaluation = start_epoch, 0.0  # the last evaluation's seconds: what stopping must leave room for
     for epoch in range(start_epoch + 1, epochs + 1):
         if should_stop():
             if epoch - 1 > start_epoch:
@@ -102,8 +103,10 @@ def fit(
         started = time.perf_counter()
         new_state, metrics = run_epoch(state)
         seconds = time.perf_counter() - started
-        stopping, spent = should_stop(), out_of_time()
+        stopping, spent = should_stop(), out_of_time(seconds + evaluation)
         metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or spent)
+        evaluation = eval_seconds or evaluation  # one due on the cadence may have used the next epoch's room
+        spent = spent or out_of_time(seconds + evaluation)
         if retired.any():  # seeds stopped before fail again as they replay their epoch: only the others count
             metrics = without_retired(metrics, retired)
         problem, retiring = diverged(metrics), ""
@@ -283,8 +286,7 @@ def _leaf_shapes(tree: Any) -> list[tuple]:
 
 
 def _smoothed_key(program_key: dict | None, task: Any) -> dict | None:
-    """The key of a run's kept programs: a task that trains a smoothed reward (``env_task(smoothing=...)``)
-    steps through other programs than the same config's unsmoothed task."""
+    """The key of a run's kept programs: a task training a smoothed reward steps through other programs."""
     smoothing = getattr(task, "resolved", {}).get("reward_smoothing")
     return program_key if program_key is None or smoothing is None else {**program_key, "reward_smoothing": smoothing}
 
@@ -443,6 +445,6 @@ def env_steps_per_epoch(trainer: Trainer, config: TrainConfig) -> int:
     return trainer.updates_per_epoch * config.batch * trainer.horizon
 
 
-def out_of_time(config: TrainConfig, started: float) -> Callable[[], bool]:
-    """Whether ``config.budget`` seconds have passed since ``started`` (a ``time.perf_counter()``); never without one."""
-    return lambda: bool(config.budget) and time.perf_counter() - started >= config.budget
+def out_of_time(config: TrainConfig, started: float) -> Callable[[float], bool]:
+    """Whether ``ahead`` seconds more end past ``config.budget`` since ``started`` (never without a budget)."""
+    return lambda ahead: bool(config.budget) and time.perf_counter() - started + ahead > config.budget

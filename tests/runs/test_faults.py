@@ -379,6 +379,40 @@ def test_the_epoch_loop_saves_on_its_cadence_at_the_end_and_at_a_stop(checkpoint
     every_epoch = [float(e) for e in range(1, epoch + 1) for _ in range(2)]
     assert rows[:, 0].tolist() == every_epoch and saves[-1][1] == every_epoch
 
+@pytest.mark.parametrize("budget, last_epoch, ends_at", [(50.0, 3, 41.0), (60.0, 4, 51.0), (1.0, 1, 18.0)])
+def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_would_overrun_it(
+        monkeypatch, budget, last_epoch, ends_at):
+    """Epochs of 10 s after 5 s of set-up, an evaluation of 3 s at the first epoch and the last: the loop
+    goes on only while one more epoch and a last evaluation end within the budget; the first always trains."""
+    class Clock:
+        now = 5.0
+
+        def perf_counter(self):
+            return self.now
+
+        monotonic = perf_counter
+
+    clock, evaluated = Clock(), []
+    monkeypatch.setattr(fitting, "time", clock)
+
+    def run_epoch(state):
+        clock.now += 10.0
+        return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
+
+    def evaluate(state, metrics, epoch, seconds, final):
+        if epoch > 1 and not final:
+            return metrics, 0.0
+        clock.now += 3.0
+        evaluated.append(epoch)
+        return metrics, 3.0
+
+    status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1),
+                                    lambda *saved: None, 1, evaluate=evaluate,
+                                    out_of_time=lambda ahead: clock.now + ahead > budget)
+    assert (status, epoch, clock.now) == ("budget", last_epoch, ends_at) and evaluated[-1] == last_epoch
+    assert clock.now <= max(budget, 18.0)  # within the budget, but for the first epoch, which always trains
+
+
 ARM = """<mujoco model="arm">
   <option timestep="0.02"/>
   <include file="arm_body.xml"/>
