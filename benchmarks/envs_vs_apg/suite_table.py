@@ -106,8 +106,11 @@ def read_run(folder: str) -> dict:
     clock = dict(zip(run.epochs.tolist(), wall_clock(run).tolist()))
     command = command_of(config)
     last_epoch = int(per_seed[-1]["epoch"])
-    if len(starts) > 1:  # resumed: the record holds the last start's budget, not the first command's
-        command = f"{_without_budget(command)} (resumed: {len(starts)} starts)"
+    if len(starts) > 1:  # resumed: the record holds the last start's budget, its starts each one's where recorded
+        budgets = [start.get("budget") for start in starts]
+        command = _without_budget(command) + (
+            f" --budget {budgets[0]:g}, then " + ", then ".join(f"--resume RUN --budget {b:g}" for b in budgets[1:])
+            if all(budgets) else f" (resumed: {len(starts)} starts)")
     along = {str(mark): returns[max(e for e in evaluated if clock[e] <= mark)]
              for mark in WALL_CLOCK_MARKS if any(clock[e] <= mark for e in evaluated)}
     return {"env": config["task_config"]["env"], "command": command, "budget": train.get("budget", 0.0),

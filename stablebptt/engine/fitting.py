@@ -70,8 +70,8 @@ def fit(
         gradient left at zero), else ""; ``on_epoch`` gets it under ``"notice"``.
       evaluate: ``evaluate(state, metrics, epoch, seconds, final) -> (metrics, seconds evaluating)``
         after every epoch, ``final`` on the last one a run trains (``Evaluations``).
-      out_of_time: ``out_of_time(ahead)`` after every epoch and its evaluation, ``ahead`` one more epoch's and
-        evaluation's seconds, each as long as the last; true evaluates, saves and stops (a wall-clock budget).
+      out_of_time: ``out_of_time(ahead)`` after every epoch and its evaluation, ``ahead`` one more epoch as long
+        as the last and the longest evaluation's seconds; true evaluates, saves and stops (a wall-clock budget).
       steps_per_epoch: env steps a seed trains per epoch, counted in the rows (0: none to count).
 
     Returns:
@@ -94,7 +94,8 @@ def fit(
             saved_epoch, last_save = epoch, time.monotonic()
 
     retired = retired_in(all_rows(), row_ids) if seeds_apart else np.zeros(len(row_ids), dtype=bool)
-    epoch, evaluation = start_epoch, 0.0  # the last evaluation's seconds: what stopping must leave room for
+    # The longest evaluation so far (a resumed run's too): the room a stop must leave for its last one.
+    epoch, evaluation = start_epoch, float(np.max(np.nan_to_num(rows[:, COLUMNS.index("eval_seconds")]), initial=0.0))
     for epoch in range(start_epoch + 1, epochs + 1):
         if should_stop():
             if epoch - 1 > start_epoch:
@@ -105,8 +106,8 @@ def fit(
         seconds = time.perf_counter() - started
         stopping, spent = should_stop(), out_of_time(seconds + evaluation)
         metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or spent)
-        evaluation = eval_seconds or evaluation  # one due on the cadence may have used the next epoch's room
-        spent = spent or out_of_time(seconds + evaluation)
+        evaluation = max(evaluation, eval_seconds)  # one due on the cadence may have used the next epoch's room
+        spent = spent or (eval_seconds > 0 and out_of_time(seconds + evaluation))
         if retired.any():  # seeds stopped before fail again as they replay their epoch: only the others count
             metrics = without_retired(metrics, retired)
         problem, retiring = diverged(metrics), ""
@@ -307,8 +308,7 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
     alone: a task's check still running (``Task.settle``: an environment's reward diagnosis, which
     decides the parameters' start) need not have answered, and XLA compiles that check beside this
     trace. A ``PerUpdateEpoch`` (a large step; a constraint solver on a CPU of several cores) is
-    traced as it compiles instead: its metrics' program takes its shapes from the update's compiled
-    one. ``program_key`` as ``train_epochs`` takes it."""
+    traced as it compiles instead (its metrics' program shaped by the update's). ``program_key`` as ``train_epochs``."""
     seeds = seed_array(config)
     shapes = state_shapes(trainer, seeds)
     arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)

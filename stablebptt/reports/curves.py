@@ -245,19 +245,22 @@ def x_values(run: Run, axis: str) -> tuple[np.ndarray, str]:
 
 def wall_clock(run: Run) -> np.ndarray:
     """The seconds at each epoch's end since the run's first command started, as ``--budget`` counts them:
-    every start's seconds to its first epoch (``startup.json``; a start after the first begins at the
-    epoch after the one its predecessor ended on), and each epoch's training and evaluation seconds."""
+    every start's seconds to its first epoch (``startup.json``: the epoch each start trained first, or
+    in records without it the epoch after the one its predecessor ended on), and each epoch's training
+    and evaluation seconds."""
     path = run.path / STARTUP_FILE
     starts = read_json(path) if path.exists() else None
     if not (isinstance(starts, list) and starts and all(isinstance(start, dict) and "seconds_to_training" in start
                                                         for start in starts)):
         raise InputError(f"{run.path} has no record of its starts ({STARTUP_FILE}, written since runs time their "
                          "set-up): draw it against seconds or epochs")
-    set_up = np.zeros(len(run.epochs))
-    first_epoch = 1
-    for start in starts:
-        set_up[run.epochs >= first_epoch] += float(start["seconds_to_training"])
-        first_epoch = int(start.get("ended", {}).get("epoch", run.epochs.max())) + 1
+    set_up, after = np.zeros(len(run.epochs)), 0
+    for number, start in enumerate(starts):
+        if "first_epoch" not in start and after is None:
+            raise InputError(f"{path} does not say where its start {number + 1} began (the one before it has no end "
+                             "recorded): draw it against seconds or epochs")
+        set_up[run.epochs >= int(start.get("first_epoch", (after or 0) + 1))] += float(start["seconds_to_training"])
+        after = start.get("ended", {}).get("epoch")
     per_epoch = sum(np.nan_to_num(np.nanmax(run.metrics.get(column, np.full((len(run.epochs), 1), np.nan)), axis=1))
                     for column in ("seconds", "eval_seconds"))
     return set_up + np.cumsum(per_epoch)

@@ -208,6 +208,9 @@ def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None, x_axis
         absent, drawn = [], 0
         for run, label, (colour, linestyle), (x, x_label) in zip(runs, labels, styles, xs):
             values = run.metrics.get(column, np.full((len(run.epochs), len(run.seeds)), np.nan))
+            # Epochs not evaluated (an environment's cadence, --eval-every) are left out, not drawn as gaps;
+            # a zero a log axis cannot show stays a gap.
+            evaluated = np.any(np.isfinite(values), axis=1)
             if column == "test_loss":
                 values = score[1] * values
             if log:
@@ -216,9 +219,7 @@ def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None, x_axis
                 absent.append(run.mode)
                 continue
             drawn += 1
-            # Epochs not evaluated (an environment's cadence, --eval-every) are left out, not drawn as gaps.
             # The smoothing window stays a span of epochs: over evaluations as many as fall within it.
-            evaluated = np.any(np.isfinite(values), axis=1)
             x, values = x[evaluated], values[evaluated]
             window = effective_window(round(smooth * len(values) / len(evaluated)), len(values))
             if log:  # smooth log values: stays positive, and an exponential decay passes unchanged

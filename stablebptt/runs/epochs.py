@@ -59,9 +59,9 @@ def train_epochs(
 ) -> Outcome:
     """Train one run's seeds to ``config.epochs`` from ``start_epoch``, checkpointing into ``run_dir``.
 
-    Stops early when ``should_stop()`` (after saving; the command line sets it on a signal), when
-    ``config.budget`` seconds have passed since ``started`` (a ``time.perf_counter()``, default now;
-    the command's start), or on a non-finite loss or update (keeping the last good checkpoint). The
+    Stops early when ``should_stop()`` (after saving; the command line sets it on a signal), where one
+    more epoch would end past ``config.budget`` seconds since ``started`` (a ``time.perf_counter()``,
+    default now; the command's start: ``fitting.out_of_time``), or on a non-finite loss or update (keeping the last good checkpoint). The
     last epoch trained is always evaluated. ``on_compiled`` gets the seconds the epoch and its
     evaluation took to compile; ``on_epoch`` the epoch's metrics, with its training and evaluation
     time under ``"seconds"`` and ``"eval_seconds"``. Runs in any thread. With ``program_key``
@@ -79,7 +79,7 @@ def train_epochs(
     phases["evaluation's compile"] = evaluations.compile(state, lowered and lowered.evaluation)
     on_compiled(phases["compile"] + phases["evaluation's compile"])
     record_start(run_dir, {name: seconds for name, seconds in phases.items() if seconds},
-                 time.perf_counter() - started)
+                 time.perf_counter() - started, config.budget, start_epoch + 1)
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
 
     def run_epoch(state):
@@ -118,13 +118,16 @@ def _starts(run_dir: Path) -> list[dict]:
         return []  # a damaged record of earlier starts does not stop this one
 
 
-def record_start(run_dir: Path, phases: dict[str, float], seconds: float) -> None:
+def record_start(run_dir: Path, phases: dict[str, float], seconds: float, budget: float = 0.0,
+                 first_epoch: int = 1) -> None:
     """Add a start of the run (its first, or a ``--resume``) to its ``startup.json``: when, on which
-    device, the seconds of each start-up phase and from the command's start to its first epoch's start."""
+    device, the seconds of each start-up phase and from the command's start to its first epoch's
+    start, the budget it was given (none: left out) and the epoch it trains first."""
     path, starts = Path(run_dir) / STARTUP_FILE, _starts(run_dir)
     device = jax.devices()[0]
     starts.append({"started": datetime.now().isoformat(timespec="seconds"), "device": f"{device.platform} ({device.device_kind})",
-                   "seconds_to_training": round(seconds, 3), "phases": {name: round(value, 3) for name, value in phases.items() if round(value, 3)}})
+                   "seconds_to_training": round(seconds, 3), "phases": {name: round(value, 3) for name, value in phases.items() if round(value, 3)},
+                   "first_epoch": first_epoch, **({"budget": budget} if budget else {})})
     write_json(path, starts)
 
 

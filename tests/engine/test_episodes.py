@@ -203,7 +203,7 @@ def test_a_critic_that_standardises_counts_the_running_states_and_fits_the_same_
     fits the same values; raw, it does not. Its statistics are those of the window's running states."""
     import optax
 
-    from stablebptt.engine.critic import init_critic, fit_to_window, seen, value
+    from stablebptt.engine.critic import bootstrap, fit_to_window, init_critic, seen, value
     from stablebptt.engine.episodes import Window
     steps, batch = 4, 6
     states = jax.random.normal(jax.random.PRNGKey(3), (steps + 1, batch))
@@ -218,7 +218,9 @@ def test_a_critic_that_standardises_counts_the_running_states_and_fits_the_same_
         critic = init_critic(jax.random.PRNGKey(0), 1, optimizer, standardize)
         for _ in range(3):
             critic = fit_to_window(critic, visited, window(steps), observe, 0.9, 0.95, optimizer)
-        return critic, jax.vmap(lambda x: value(critic.params, seen(critic, observe(x))))(states[0])
+        # What the critic fits, and what a window's loss adds at its end (the target critic's value).
+        return critic, jnp.stack([jax.vmap(lambda x: value(critic.params, seen(critic, observe(x))))(states[0]),
+                                  jax.vmap(bootstrap(critic, observe))(states[0])])
 
     critic, in_units = fitted_values(True, 0.0, 1.0)
     counted = states[:steps][running[:steps]]

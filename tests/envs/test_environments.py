@@ -270,6 +270,8 @@ def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_o
     assert all(row["eval_seconds"] > 0 for row in straight)
     starts = read_json(tmp_path / "run" / run_folder.STARTUP_FILE)
     assert len(starts) == 2 and all(start["phases"]["compile"] > 0 for start in starts), starts
+    assert starts[0]["budget"] == 0.001 and "budget" not in starts[1]  # each start's own; the resume had none
+    assert [start["first_epoch"] for start in starts] == [1, 2]
     assert len({row["test_loss"] for row in straight}) > 2  # it trains: the returns move
     # A run recorded before episode training trained from fixed starts, and resumes so.
     from stablebptt.apps.trained import configs_of

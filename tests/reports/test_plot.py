@@ -169,11 +169,25 @@ def test_an_environment_run_is_drawn_as_its_return_against_env_steps_and_titled_
                                                {"seconds_to_training": 10.0}])
     clock = plots.draw([run], x_axis="wall-clock").axes[0].get_lines()[0].get_data()[0]
     np.testing.assert_allclose(clock, [50.1, 50.2, 60.3, 60.4])
+    # A start that ended without a record of it (killed): the next one's own first epoch places it.
+    storage.write_json(path / "startup.json", [{"seconds_to_training": 50.0, "first_epoch": 1},
+                                               {"seconds_to_training": 10.0, "first_epoch": 3}])
+    np.testing.assert_allclose(curves.wall_clock(run), [50.1, 50.2, 60.3, 60.4])
+    storage.write_json(path / "startup.json", [{"seconds_to_training": 50.0}, {"seconds_to_training": 10.0}])
+    with pytest.raises(InputError, match="does not say where its start 2 began"):
+        curves.wall_clock(run)
+    storage.write_json(path / "startup.json", [{"seconds_to_training": 50.0, "first_epoch": 1},
+                                               {"seconds_to_training": 10.0, "first_epoch": 3}])
     # An epoch without an evaluation is left out of the return's curve, not drawn as a gap in it.
     unevaluated = run._replace(metrics={**run.metrics, "test_loss": run.metrics["test_loss"] * np.array([[1.0], [np.nan], [1.0], [1.0]])})
     x, y = plots.draw([unevaluated], x_axis="wall-clock").axes[0].get_lines()[0].get_data()
     np.testing.assert_allclose(x, [50.1, 60.3, 60.4])
     assert np.all(np.isfinite(y))
+    # A zero update (S at a zero gradient) stays a gap on the log axis: it is no epoch without an evaluation.
+    stalled = run._replace(metrics={**run.metrics, "update_norm": run.metrics["update_norm"] * np.array([[1.0], [0.0], [1.0], [1.0]])})
+    x, y = plots.draw([stalled], x_axis="wall-clock").axes[1].get_lines()[0].get_data()
+    np.testing.assert_allclose(x, [50.1, 50.2, 60.3, 60.4])
+    assert np.isnan(y[1]) and np.isfinite(y[[0, 2, 3]]).all()
     # Smoothed over 30 epochs, a run evaluated every fifth epoch averages 6 evaluations at a time.
     long = curves.load_run(write_run(tmp_path / "long", task="env", epochs=300, seeds=(42, 43),
                                      task_config={"env": "CartpoleSwingup", "steps": 128}))

@@ -411,6 +411,14 @@ def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_wo
                                     out_of_time=lambda ahead: clock.now + ahead > budget)
     assert (status, epoch, clock.now) == ("budget", last_epoch, ends_at) and evaluated[-1] == last_epoch
     assert clock.now <= max(budget, 18.0)  # within the budget, but for the first epoch, which always trains
+    # Resumed after epoch 4, whose evaluation took 3 s: the room for the last one is kept from its first epoch on.
+    clock.now, evaluated[:] = 5.0, []
+    before = np.zeros((1, len(COLUMNS)))
+    before[0, COLUMNS.index("eval_seconds")] = 3.0
+    status, epoch, *_ = fitting.fit(run_epoch, 4, 4, 20, before, np.arange(1), lambda *saved: None, 1,
+                                    evaluate=lambda state, metrics, epoch, seconds, final: evaluate(state, metrics, 2, seconds, final),
+                                    out_of_time=lambda ahead: clock.now + ahead > 46.0)
+    assert (status, epoch, clock.now, evaluated) == ("budget", 7, 38.0, [2])
 
 
 ARM = """<mujoco model="arm">
