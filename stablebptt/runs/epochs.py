@@ -102,8 +102,8 @@ def train_epochs(
     elif status == "interrupted":
         message = f"interrupted after epoch {epoch}; continue with --resume {run_dir}"
     elif status == "budget":
-        message = (f"the budget of {config.budget:g} s is spent after epoch {epoch}; train further with "
-                   f"--resume {run_dir} --budget SECONDS")
+        message = (f"the budget of {config.budget:g} s has no room for another epoch after epoch {epoch}; "
+                   f"train further with --resume {run_dir} --budget SECONDS")
     else:
         message = ""
     record_end(run_dir, status, epoch, message)
