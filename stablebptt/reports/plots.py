@@ -112,14 +112,17 @@ def _common_settings(runs: Sequence[Run]) -> str:
         return ""
     names = {str((run.config.get("resolved_task") or {}).get("name") or run.config.get("task")) for run in runs}
     settings = [run.config.get("task_config") or {} for run in runs]
+    # The options a run's record says were set; a record without it: 0 and "" mean the task's own value,
+    # True the usual one.
+    given = [run.config.get("task_options_set") for run in runs]
     flags = []
     for key, value in sorted(settings[0].items()):
-        # 0 and "" mean the task's own value, True the usual one: only what a user set is said.
-        usual = value is True or value is None or value == "" or (not isinstance(value, bool) and value == 0)
+        usual = (all(key not in options for options in given) if all(isinstance(o, list) for o in given) else
+                 value is True or value is None or value == "" or (not isinstance(value, bool) and value == 0))
         if key in _NAMED_BY_THE_RUN or usual or any(s.get(key) != value for s in settings):
             continue
         flag = key.replace("_", "-")
-        flags.append(f"--no-{flag}" if value is False else f"--{flag} {_short(value)}")
+        flags.append(f"--no-{flag}" if value is False else f"--{flag}" if value is True else f"--{flag} {_short(value)}")
     name = names.pop() if len(names) == 1 else str(tasks.pop())
     return name + (f": {' '.join(flags)}" if flags else "")
 

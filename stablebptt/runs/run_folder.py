@@ -128,8 +128,7 @@ def save_params(path: Path, params: Any) -> None:
 
 
 def load_param_leaves(path: Path) -> list[np.ndarray]:
-    """The leaves of parameters saved by ``save_params``, in ``jax.tree.leaves`` order (seeds on their first
-    axis): no template needed, e.g. to stack the seeds of several folders."""
+    """The leaves ``save_params`` saved, in ``jax.tree.leaves`` order, seeds first: no template needed."""
     try:
         with np.load(path) as data:
             return _read_leaves(data, len(data.files))  # nothing but leaves: any other array is foreign
@@ -210,8 +209,7 @@ def default_run_dir(root: Path, task_name: str) -> Path:
 class RunLock:
     """An exclusive lock on a run folder for as long as this object lives (or the process does).
 
-    ``fcntl.flock`` is released by the OS however the process ends, SIGKILL included,
-    so a killed run never leaves its folder locked.
+    ``fcntl.flock`` is released by the OS however the process ends, SIGKILL included: none stays locked.
     """
 
     def __init__(self, run_dir: Path):
@@ -323,7 +321,8 @@ def run_record(task_name: str, task_config: Any, train_config: Any, task: Any = 
 
     Args:
       task_name: the registry's name of the task.
-      task_config: the task's options (a dataclass; a dict where it is one already).
+      task_config: the task's options (a dataclass, whose options set apart from their defaults are
+        recorded too, as ``task_options_set``: what a figure's title names; a dict where it is one already).
       train_config: the ``TrainConfig`` (a dict where it is one already).
       task: the task built from them; when given, it is recorded as resolved (``resolved_task``).
       **extra: further top-level entries: the ``environment`` of a single run, the ``sweep`` of a grid cell.
@@ -332,7 +331,11 @@ def run_record(task_name: str, task_config: Any, train_config: Any, task: Any = 
 
     as_dict = lambda config: config if isinstance(config, dict) else dataclasses.asdict(config)  # noqa: E731
     resolved = {} if task is None else {"resolved_task": {"name": task.name, **task.resolved}}
-    return {"task": task_name, "task_config": as_dict(task_config), **resolved, "train": as_dict(train_config), **extra}
+    default = lambda item: item.default_factory() if item.default is dataclasses.MISSING else item.default  # noqa: E731
+    given = {} if isinstance(task_config, dict) else {"task_options_set": sorted(
+        item.name for item in dataclasses.fields(task_config) if getattr(task_config, item.name) != default(item))}
+    return {"task": task_name, "task_config": as_dict(task_config), **given, **resolved,
+            "train": as_dict(train_config), **extra}
 
 
 def write_config(directory: Path, record: dict) -> None:

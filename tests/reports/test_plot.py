@@ -203,6 +203,30 @@ def test_an_environment_run_is_drawn_as_its_return_against_env_steps_and_titled_
 
 
 
+def test_a_title_names_the_options_a_run_set_as_its_record_says_whatever_their_values(tmp_path):
+    """A record made from the task's config says which options differ from their defaults: a flag set to
+    True is named, one left at False is not, where a record without it is read by the values alone."""
+    import dataclasses
+
+    @dataclasses.dataclass
+    class Options:
+        env: str = ""
+        steps: int = 0
+        dense_reward: bool = False
+        normalize_observations: bool = False
+        reward_check: bool = True
+
+    path = write_run(tmp_path / "env", task="env", epochs=4, seeds=(42,), task_config={})
+    record = run_folder.run_record("env", Options(env="CheetahRun", steps=32, normalize_observations=True),
+                                   {"mode": "C", "clip": "value", "epochs": 4, "seeds": 1})
+    assert record["task_options_set"] == ["env", "normalize_observations", "steps"]
+    storage.write_json(path / "config.json", record)
+    assert plots.draw([curves.load_run(path)]).get_suptitle().startswith("env: --normalize-observations --steps 32\n")
+    del record["task_options_set"]  # a record from before: True is taken for the usual value, False for one set
+    storage.write_json(path / "config.json", record)
+    assert plots.draw([curves.load_run(path)]).get_suptitle().startswith("env: --no-dense-reward --steps 32\n")
+
+
 def test_figure_orders_flows_as_the_paper_and_styles_by_flow_and_clip(tmp_path):
     runs = [curves.load_run(write_run(tmp_path / mode, mode=mode, clip=clip))
             for mode, clip in [("S", "value"), ("C", "norm"), ("R", "value"), ("M", "value")]]
