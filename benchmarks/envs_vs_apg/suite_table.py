@@ -167,11 +167,9 @@ def table(records: list[dict], out: str) -> str:
              "|---|---|---|---:|---:|---:|---|---:|---:|---:|---:|---|"]
     for record in sorted(records, key=lambda r: (r["env"], r["command"])):
         final = np.asarray(record["final_return"])
-        low, high = interval(final)
         reference = PPO_REFERENCE.get(record["env"])
         share = f"{final.mean() / reference:.0%}" if reference else "-"
-        spread = f"[{low:.1f}, {high:.1f}]" if len(final) > 1 else "(1 seed)"
-        lines.append(f"| `{record['command']}` | {record['device']} | {final.mean():.1f} {spread} | "
+        lines.append(f"| `{record['command']}` | {record['device']} | {_with_interval(final)} | "
                      f"{np.mean(record['first_return']):.1f} | {reference or '-'} | {share} | "
                      f"{ppo_at_budget(record['env'])} | {record['updates']} | {record['update_s']:.3f} | "
                      f"{record['seconds_to_training']:.0f} | "
@@ -195,6 +193,9 @@ def table(records: list[dict], out: str) -> str:
 
 
 def _with_interval(returns) -> str:
+    """The mean of ``returns`` with its 95% bootstrap interval over seeds ("(1 seed)" for one)."""
+    if len(returns) == 1:
+        return f"{np.mean(returns):.1f} (1 seed)"
     low, high = interval(returns)
     return f"{np.mean(returns):.1f} [{low:.1f}, {high:.1f}]"
 

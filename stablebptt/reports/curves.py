@@ -230,8 +230,7 @@ def x_values(run: Run, axis: str) -> tuple[np.ndarray, str]:
     if axis == "epoch":
         return run.epochs.astype(float), "epoch"
     if axis == "seconds":
-        per_epoch = np.nanmax(run.metrics.get("seconds", np.full((len(run.epochs), 1), np.nan)), axis=1)
-        return np.cumsum(np.nan_to_num(per_epoch)), "training wall time, s (compiling excluded)"
+        return np.cumsum(_epoch_seconds(run, "seconds")), "training wall time, s (compiling excluded)"
     if axis == "wall-clock":
         return wall_clock(run), "wall clock, s (set-up, compile and evaluations included)"
     if axis == "env-steps":
@@ -254,13 +253,17 @@ def wall_clock(run: Run) -> np.ndarray:
                                                         for start in starts)):
         raise InputError(f"{run.path} has no record of its starts ({STARTUP_FILE}, written since runs time their "
                          "set-up): draw it against seconds or epochs")
-    set_up, after = np.zeros(len(run.epochs)), 0
+    set_up, after = np.zeros(len(run.epochs)), 0  # after: the epoch the start before ended on
     for number, start in enumerate(starts):
-        if "first_epoch" not in start and after is None:
+        first = start.get("first_epoch")
+        if first is None and after is None:
             raise InputError(f"{path} does not say where its start {number + 1} began (the one before it has no end "
                              "recorded): draw it against seconds or epochs")
-        set_up[run.epochs >= int(start.get("first_epoch", (after or 0) + 1))] += float(start["seconds_to_training"])
+        set_up[run.epochs >= (after + 1 if first is None else int(first))] += float(start["seconds_to_training"])
         after = start.get("ended", {}).get("epoch")
-    per_epoch = sum(np.nan_to_num(np.nanmax(run.metrics.get(column, np.full((len(run.epochs), 1), np.nan)), axis=1))
-                    for column in ("seconds", "eval_seconds"))
-    return set_up + np.cumsum(per_epoch)
+    return set_up + np.cumsum(_epoch_seconds(run, "seconds") + _epoch_seconds(run, "eval_seconds"))
+
+
+def _epoch_seconds(run: Run, column: str) -> np.ndarray:
+    """Each epoch's seconds of ``column`` (the same for every seed of one program; 0 where not logged)."""
+    return np.nan_to_num(np.nanmax(run.metrics.get(column, np.full((len(run.epochs), 1), np.nan)), axis=1))

@@ -112,12 +112,13 @@ def _common_settings(runs: Sequence[Run]) -> str:
         return ""
     names = {str((run.config.get("resolved_task") or {}).get("name") or run.config.get("task")) for run in runs}
     settings = [run.config.get("task_config") or {} for run in runs]
-    # The options a run's record says were set; a record without it: 0 and "" mean the task's own value,
-    # True the usual one.
+    # The options each run's record says were set; records without them are read by the values alone:
+    # 0 and "" mean the task's own value, True the usual one.
     given = [run.config.get("task_options_set") for run in runs]
+    recorded = all(isinstance(options, list) for options in given)
     flags = []
     for key, value in sorted(settings[0].items()):
-        usual = (all(key not in options for options in given) if all(isinstance(o, list) for o in given) else
+        usual = (all(key not in options for options in given) if recorded else
                  value is True or value is None or value == "" or (not isinstance(value, bool) and value == 0))
         if key in _NAMED_BY_THE_RUN or usual or any(s.get(key) != value for s in settings):
             continue

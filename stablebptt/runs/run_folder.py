@@ -331,9 +331,8 @@ def run_record(task_name: str, task_config: Any, train_config: Any, task: Any = 
 
     as_dict = lambda config: config if isinstance(config, dict) else dataclasses.asdict(config)  # noqa: E731
     resolved = {} if task is None else {"resolved_task": {"name": task.name, **task.resolved}}
-    default = lambda item: item.default_factory() if item.default is dataclasses.MISSING else item.default  # noqa: E731
     given = {} if isinstance(task_config, dict) else {"task_options_set": sorted(
-        item.name for item in dataclasses.fields(task_config) if getattr(task_config, item.name) != default(item))}
+        item.name for item in dataclasses.fields(task_config) if getattr(task_config, item.name) != item.default)}
     return {"task": task_name, "task_config": as_dict(task_config), **given, **resolved,
             "train": as_dict(train_config), **extra}
 
