@@ -40,6 +40,11 @@ def parse(argv: list[str]):
     owners = {name: {"train"} for name in add_options(parser, TrainConfig, "training",
                                                       defaults=task_options.train_defaults_by_task(TrainConfig))}
     owners = task_options.add_task_options(parser, owners)  # before parsing: the task options are options too
+    recipes = tasks.load("env").RECIPES
+    parser.add_argument("--recipe", choices=sorted(recipes), default=None,
+                        help="options measured together, for an --env: " + "; ".join(
+                            f"{name}: {recipe_words(recipe)}" for name, recipe in sorted(recipes.items()))
+                        + " (an option given beside it wins)")
     return parser.parse_args(argv), owners
 
 
@@ -47,9 +52,11 @@ def configure(args, owners):
     """(task name, task config, train config, run dir, the run's record or None) from the command line or a run."""
     given = {name: value for name, value in vars(args).items() if name in owners}
     if args.resume is not None:
-        changed = sorted(set(given) - RESUMABLE)
-        if changed or args.out is not None or args.task is not None:
-            fail(f"--resume continues a run with its saved configuration; only --epochs, --budget and --devices may be given (got {option_name(changed[0]) if changed else '--out/--task'})")
+        changed = [option_name(name) for name in sorted(set(given) - RESUMABLE)]
+        changed += [flag for flag, value in (("--out", args.out), ("--task", args.task), ("--recipe", args.recipe))
+                    if value is not None]
+        if changed:
+            fail(f"--resume continues a run with its saved configuration; only --epochs, --budget and --devices may be given (got {changed[0]})")
         from stablebptt.apps.trained import configs_of
         from stablebptt.runs import run_folder
         record = run_folder.open_run(args.resume)
@@ -60,14 +67,33 @@ def configure(args, owners):
                 print(note, file=sys.stderr)
         return task_name, task_config, train_config, args.resume, record
     task_name = task_options.choose_task(args, owners, "train")
+    recipe = {}
+    if args.recipe is not None:
+        recipe = tasks.load("env").RECIPES[args.recipe]
+        if task_name != "env":
+            fail(f"--recipe {args.recipe} is for an environment (--env NAME), not --task {task_name}")
     defaults = tasks.train_defaults(task_name)
     if given.get("budget", 0) > 0 and "epochs" not in given:  # a budget alone bounds the run: it trains until spent
         defaults["epochs"] = UNTIL_BUDGET
-    train_config = build(TrainConfig, {**defaults, **given})
-    task_config = task_options.task_config(task_name, given)
+    chosen = {**recipe, **given}
+    train_config = build(TrainConfig, {**defaults, **chosen})
+    task_config = task_options.task_config(task_name, chosen)
     from stablebptt.engine.checks import check_options
-    check_options(train_config, task_config)  # a resumed run keeps what it recorded
+    from stablebptt.errors import InputError
+    try:
+        check_options(train_config, task_config)  # a resumed run keeps what it recorded
+    except InputError as error:
+        if not recipe:
+            raise
+        raise InputError(f"{error} (--recipe {args.recipe} sets {recipe_words(recipe)})") from None
     return task_name, task_config, train_config, args.out, None
+
+
+def recipe_words(recipe: dict) -> str:
+    """A recipe's options as typed: ``--steps 32 --critic``."""
+    return " ".join(option_name(name) if value is True else f"--no-{option_name(name)[2:]}" if value is False
+                    else f"{option_name(name)} {value:g}" if isinstance(value, float) else f"{option_name(name)} {value}"
+                    for name, value in recipe.items())
 
 
 def main(argv: list[str]) -> int:

@@ -51,7 +51,9 @@ MODE_COLORS = dict(zip(MODES, PALETTE))
 CLIP_STYLES = {"value": "-", "norm": "--", "none": ":"}
 
 # Train options that do not change what a curve means (or show on the axes anyway): never in a label.
-_UNLABELLED_TRAIN_KEYS = {"mode", "clip", "epochs", "seeds", "seed", "checkpoint_every", "seed_batching", "cosine"}
+# A budget is how long the run's last start ran, which its curve's length shows.
+_UNLABELLED_TRAIN_KEYS = {"mode", "clip", "epochs", "seeds", "seed", "checkpoint_every", "seed_batching", "cosine",
+                          "budget"}
 
 # (metrics.csv column, panel title, y label, log scale)
 PANELS = (
@@ -81,10 +83,24 @@ def run_labels(runs: Sequence[Run]) -> list[str]:
     for task_name in dict.fromkeys(task_names):
         members = [i for i, name in enumerate(task_names) if name == task_name]
         _append_differences(extras, members, [runs[i].config.get("task_config") or {} for i in members], set())
-    _append_differences(extras, range(len(runs)), [run.config.get("train") or {} for run in runs], _UNLABELLED_TRAIN_KEYS)
+    _append_differences(extras, range(len(runs)), _as_trained([run.config.get("train") or {} for run in runs]),
+                        _UNLABELLED_TRAIN_KEYS)
     labels = [", ".join([label] + extra) for label, extra in zip(labels, extras)]
     repeated = Counter(labels)
     return [f"{label} ({run.path.name})" if repeated[label] > 1 else label for label, run in zip(labels, runs)]
+
+
+def _as_trained(settings: list[dict]) -> list[dict]:
+    """Train settings with the options a record predates filled in as that run trained (the option's
+    default, or the value it had before it was recorded), so that an older run is not labelled None."""
+    keys = set().union(*settings)
+    if all(len(setting) == len(keys) for setting in settings):
+        return settings
+    from dataclasses import fields
+
+    from stablebptt.engine.config import RECORDED_BEFORE, TrainConfig  # imports JAX: only where a record is older
+    trained = {field.name: field.default for field in fields(TrainConfig)} | RECORDED_BEFORE
+    return [{**{key: trained.get(key) for key in keys}, **setting} for setting in settings]
 
 
 def _append_differences(extras: list[list[str]], members: Sequence[int], settings: list[dict], skip: set) -> None:
@@ -112,13 +128,13 @@ def _common_settings(runs: Sequence[Run]) -> str:
         return ""
     names = {str((run.config.get("resolved_task") or {}).get("name") or run.config.get("task")) for run in runs}
     settings = [run.config.get("task_config") or {} for run in runs]
-    # The options each run's record says were set; records without them are read by the values alone:
-    # 0 and "" mean the task's own value, True the usual one.
-    given = [run.config.get("task_options_set") for run in runs]
-    recorded = all(isinstance(options, list) for options in given)
+    # The options the runs' records say were set (a title names only values all runs share, so a record
+    # that says speaks for one that predates it); without any, the values alone: 0 and "" mean the
+    # task's own value, True the usual one.
+    recorded = [options for options in (run.config.get("task_options_set") for run in runs) if isinstance(options, list)]
     flags = []
     for key, value in sorted(settings[0].items()):
-        usual = (all(key not in options for options in given) if recorded else
+        usual = (all(key not in options for options in recorded) if recorded else
                  value is True or value is None or value == "" or (not isinstance(value, bool) and value == 0))
         if key in _NAMED_BY_THE_RUN or usual or any(s.get(key) != value for s in settings):
             continue

@@ -143,6 +143,19 @@ def test_labels_name_mode_clip_and_only_the_settings_that_differ(tmp_path):
     assert plots.draw(poles).get_suptitle().startswith("cartpole\n")  # no shared option to show: "" means unset
 
 
+def test_labels_read_an_option_a_record_predates_as_the_run_trained_and_leave_its_budget_out(tmp_path):
+    from stablebptt.engine.config import TrainConfig
+    runs = [curves.load_run(write_run(tmp_path / name)) for name in ("old", "new", "critic")]
+    for run, extra in zip(runs[1:], ({"normalize_critic_observations": False, "budget": 340.0},
+                                     {"normalize_critic_observations": True, "budget": 380.0})):
+        run.config["train"].update(extra)
+    assert not TrainConfig().normalize_critic_observations and "normalize_critic_observations" not in runs[0].config["train"]
+    assert plots.run_labels(runs) == ["C, clip value, normalize_critic_observations=False (old)",
+                                      "C, clip value, normalize_critic_observations=False (new)",
+                                      "C, clip value, normalize_critic_observations=True"]
+    assert plots.run_labels(runs[:2]) == ["C, clip value (old)", "C, clip value (new)"]
+
+
 # ---- the figure ----
 
 def test_an_environment_run_is_drawn_as_its_return_against_env_steps_and_titled_in_the_commands_words(tmp_path):
@@ -222,9 +235,12 @@ def test_a_title_names_the_options_a_run_set_as_its_record_says_whatever_their_v
     assert record["task_options_set"] == ["env", "normalize_observations", "steps"]
     storage.write_json(path / "config.json", record)
     assert plots.draw([curves.load_run(path)]).get_suptitle().startswith("env: --normalize-observations --steps 32\n")
+    newer = curves.load_run(path)
     del record["task_options_set"]  # a record from before: True is taken for the usual value, False for one set
     storage.write_json(path / "config.json", record)
     assert plots.draw([curves.load_run(path)]).get_suptitle().startswith("env: --no-dense-reward --steps 32\n")
+    # Beside a record that says, the older one's shared values are read as it says them.
+    assert plots.draw([curves.load_run(path), newer]).get_suptitle().startswith("env: --normalize-observations --steps 32\n")
 
 
 def test_figure_orders_flows_as_the_paper_and_styles_by_flow_and_clip(tmp_path):

@@ -145,3 +145,16 @@ def test_the_help_says_each_tasks_training_defaults_as_a_new_run_records_them(ca
         named = dict(words.split(": ") for words in ", ".join(by_task).split(", ") if words)
         for task_name, config in recorded.items():
             assert str(getattr(config, field.name)) == named.get(f"--task {task_name}", default), (option, task_name)
+
+
+def test_a_recipe_sets_its_options_for_an_env_and_an_option_given_beside_it_wins():
+    from stablebptt.tasks import env
+    recipe = env.RECIPES["locomotion"]
+    command = ["--env", "envs_for_tests:make_cart", "--recipe", "locomotion"]
+    _, task_config, train, _, _ = train_command.configure(*train_command.parse(command))
+    plain_task, plain_train = train_command.configure(*train_command.parse(command[:2]))[1:3]
+    for name, value in recipe.items():
+        config, plain = (task_config, plain_task) if hasattr(task_config, name) else (train, plain_train)
+        assert getattr(config, name) == value != getattr(plain, name), name
+    _, task_config, train, _, _ = train_command.configure(*train_command.parse(command + ["--batch", "32", "--steps", "16"]))
+    assert (train.batch, task_config.steps, train.critic, task_config.discount) == (32, 16, True, 0.99)
