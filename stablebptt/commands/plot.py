@@ -22,6 +22,7 @@ from pathlib import Path
 
 from stablebptt.cli import Parser, fail
 from stablebptt.errors import InputError
+from stablebptt.reports.choices import BANDS, X_AXES
 
 
 def parse(argv: list[str]) -> argparse.Namespace:
@@ -31,9 +32,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
                         help="figure file (.png, .pdf or .svg); default with one RUN_DIR: RUN_DIR/learning_curves.png")
     parser.add_argument("--smooth", type=int, default=None, metavar="N",
                         help="centred moving average over N epochs, 0 = raw (default: 30 for runs of >= 90 epochs, else 0)")
-    parser.add_argument("--band", choices=("minmax", "std"), default="minmax",
+    parser.add_argument("--band", choices=BANDS, default="minmax",
                         help="band around the mean over seeds: min to max, or +- one standard deviation (default: minmax)")
-    parser.add_argument("--x", choices=("epoch", "env-steps", "seconds", "wall-clock"), default="epoch", dest="x_axis",
+    parser.add_argument("--x", choices=X_AXES, default="epoch", dest="x_axis",
                         help="draw against epochs, the env steps each seed simulated in training, the training "
                              "wall time (compiling excluded), or the wall clock from the command's start as --budget "
                              "counts it (set-up, compile and evaluations of every start included) (default: epoch)")

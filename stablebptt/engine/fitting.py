@@ -214,10 +214,10 @@ class Prepared(NamedTuple):
 
 
 def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, lower: bool = True) -> Prepared:
-    """A run's start, in the order it happens: the trainer built and (``lower``) its epoch traced while
-    a check the task left running compiles beside (``Task.settle``: an environment's reward diagnosis);
-    the check's answer, which may refuse the task; where the check smoothed the reward, the trainer
-    built and traced again for the task as settled, while the surrogate's own check runs beside; that
+    """A run's start, in the order it happens: the trainer built while a check the task left running
+    compiles beside (``Task.settle``: an environment's reward diagnosis); the check's answer, which may
+    refuse the task; where it smoothed the reward, the trainer built again for the task as settled;
+    its epoch (``lower``) traced and compiled, while the surrogate's own check compiles beside; that
     check's answer. ``program_key`` as ``train_epochs`` takes it.
 
     Raises:
@@ -235,33 +235,33 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, low
 
     trainer = build(task)
     lap("trainer set-up")
-    built = task
-    task = task.settled(wait=False)  # a check that has answered by now (a refusal) ends the run here
-    lowered = _compiled_beside_check(lowered_epoch(trainer, config, program_key) if lower else None, task, lap, "trace")
+    built, checking = task, task.settle is not None
+    # The check, compiled beside the set-up, answers before the epoch is traced: a reward it smooths compiles one
+    # epoch, the surrogate's (the reward as written, compiled beside the check, was HopperStand's second compile).
     task = task.settled()  # a reward without a usable gradient is refused here
     lap("check's wait")
     if task.dynamics.step is not built.dynamics.step:  # the check smoothed the reward: train the task as settled
         program_key = _smoothed_key(program_key, task)
         trainer = build(task)
-        lowered = _compiled_beside_check(lowered_epoch(trainer, config, program_key) if lower else None, task, lap,
-                                         "surrogate's trace")
-    task = task.settled_fully()  # the surrogate's own check, compiled beside that trace, may refuse it here
+        lap("trainer set-up")
+        checking = task.settle is not None  # the surrogate's own check, compiling beside
+    lowered = lowered_epoch(trainer, config, program_key) if lower else None
+    lap("trace")
+    if lowered is not None and checking:
+        lowered = _compiled_now(lowered, lap)
+    task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
     lap("surrogate check's wait")
     if lowered is not None and lowered.init_rest is not None:  # init's part that waits for no check, compiling beside
         trainer = trainer._replace(init=trainer.init._replace(rest=lowered.init_rest))
     return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
 
 
-def _compiled_beside_check(lowered: LoweredEpoch | None, task: Any, lap: Callable[[str], None],
-                           traced: str) -> LoweredEpoch | None:
-    """``lowered`` (its build and trace timed as ``traced``), compiled now where the task's check still runs beside
-    (``Task.settle``): XLA compiles the epoch while the check's program compiles in its own thread,
-    and the check's program runs once the epoch's compile has ended, so on a GPU none of its kernels
-    runs while the epoch's kernels are timed. A check that refuses the task or smooths its reward
-    leaves that compile unused."""
-    lap(traced)
-    if lowered is None or task.settle is None:
-        return lowered
+def _compiled_now(lowered: LoweredEpoch, lap: Callable[[str], None]) -> LoweredEpoch:
+    """``lowered`` compiled here, where a task's check ran or still compiles (``Task.settle``): the
+    programs of init and the evaluation, lowered with it, compile beside it rather than after it (a
+    run's init waits for its own), and a surrogate's own check compiles beside it while its program
+    runs only once this compile has ended, so on a GPU none of its kernels runs while the epoch's are
+    timed. A check that refuses the task leaves this compile unused."""
     compiled = lowered.lowered.compile()
     lap("compile")
     return lowered._replace(compiled=compiled)
@@ -305,7 +305,7 @@ def _lap_clock(phases: dict[str, float]) -> Callable[[str], None]:
 
 def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | None = None) -> LoweredEpoch:
     """``trainer``'s epoch traced and lowered for the states ``trainer.init`` gives, from their shapes
-    alone: a task's check still running (``Task.settle``: an environment's reward diagnosis, which
+    alone: a task's check still running (``Task.settle``: a smoothed reward's own diagnosis, which
     decides the parameters' start) need not have answered, and XLA compiles that check beside this
     trace. A ``PerUpdateEpoch`` (a large step; a constraint solver on a CPU of several cores) is
     traced as it compiles instead (its metrics' program shaped by the update's). ``program_key`` as ``train_epochs``."""

@@ -15,17 +15,15 @@ from typing import NamedTuple
 import numpy as np
 
 from stablebptt.errors import InputError
+from stablebptt.reports.choices import BANDS, X_AXES
 from stablebptt.runs.run_folder import CONFIG_FILE, METRICS_FILE, STARTUP_FILE, run_metrics
 from stablebptt.storage import read_json
 
 PAPER_SMOOTH = 30  # the paper smooths its curves over 30 epochs
-BANDS = ("minmax", "std")
 REQUIRED_COLUMNS = ("epoch", "seed", "test_loss", "update_norm")
 LOSS = ("test loss", 1.0)
 # Tasks whose test loss reads better as a score: the environment task's is the negative episode return.
 SCORES = {"env": ("episode return", -1.0)}
-# What a learning curve may be drawn against.
-X_AXES = ("epoch", "env-steps", "seconds", "wall-clock")
 
 
 class Run(NamedTuple):

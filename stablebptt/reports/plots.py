@@ -28,8 +28,8 @@ from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.errors import InputError
 from stablebptt.flows.modes import MODE_ORDER, MODES
+from stablebptt.reports.choices import BANDS
 from stablebptt.reports.curves import (
-    BANDS,
     LOSS,
     Run,
     aggregate,
@@ -195,7 +195,7 @@ def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str 
       smooth: moving-average window in epochs (``moving_average``); 0 = raw curves.
       band: ``"minmax"`` or ``"std"`` over seeds (``aggregate``).
       title: the figure title; by default the task, the shared options and what line and band show.
-      x_axis: what the curves are drawn against (``curves.X_AXES``): epochs, env steps per seed, or
+      x_axis: what the curves are drawn against (``choices.X_AXES``): epochs, env steps per seed, or
         training wall time.
 
     Returns:
@@ -328,7 +328,7 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
       title: figure title; by default the shared task settings and what line and band show.
       dpi: resolution of a PNG.
       note: told where a run's metrics were read from elsewhere than its ``metrics.csv``.
-      x_axis: what the curves are drawn against (``curves.X_AXES``).
+      x_axis: what the curves are drawn against (``choices.X_AXES``).
 
     Returns:
       The path written.

@@ -120,3 +120,35 @@ def test_a_deferred_flat_reward_settles_into_its_surrogate_whose_own_check_answe
     assert final.settle is None and final.dynamics.step is smoothed.dynamics.step
     assert final.resolved == env_task(Cart("step"), horizon=5).resolved  # as the undeferred call settles it
     assert final.summary == env_task(Cart("step"), horizon=5).summary
+
+
+def test_a_flat_reward_compiles_one_epoch_at_the_start_its_surrogates_and_a_usable_one_its_own(monkeypatch):
+    """The reward check answers before the epoch compiles: the reward as written is never compiled
+    where its surrogate trains, and a usable reward's epoch compiles once, after the check ran."""
+    from stablebptt.engine import fitting
+    traced, compiled = [], []
+    trace = fitting.lowered_epoch
+
+    class Counted:  # a lowered epoch whose compiles are counted
+        def __init__(self, lowered, index):
+            self.lowered, self.index = lowered, index
+
+        def compile(self):
+            compiled.append(self.index)
+            return self.lowered.compile()
+
+    def counted(trainer, config, program_key=None):
+        lowered = trace(trainer, config, program_key)
+        traced.append(trainer)
+        return lowered._replace(lowered=Counted(lowered.lowered, len(traced) - 1))
+
+    monkeypatch.setattr(fitting, "lowered_epoch", counted)
+    config = sb.TrainConfig(mode="C", epochs=1, train_size=8, test_size=8, batch=4, clip="norm")
+    prepared = fitting.prepare(env_task(Cart("step"), horizon=5, defer_diagnosis=True), config)
+    assert "reward_smoothing" in prepared.task.resolved and prepared.task.settle is None
+    assert compiled == [len(traced) - 1] and prepared.trainer.epoch is traced[-1].epoch  # the surrogate's alone
+    assert prepared.lowered.compiled is not None  # compiled beside the surrogate's own check
+    traced.clear(), compiled.clear()
+    usable = fitting.prepare(env_task(Cart(), horizon=5, defer_diagnosis=True), config)
+    assert usable.task.resolved["reward_gradient"] == "usable" and compiled == [0] and len(traced) == 1
+    assert usable.lowered.compiled is not None  # after the check ran, init's programs compiling beside
