@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Callable
 
 from stablebptt.engine.task import Task
@@ -37,6 +37,20 @@ MAX_STEPS = 100_000
 # training or task option; an option given beside the recipe wins.
 RECIPES = {"locomotion": {"steps": 32, "discount": 0.99, "critic": True, "normalize_critic_observations": True,
                           "batch": 256}}
+
+
+def recipe(name: str) -> tuple[dict, dict]:
+    """A recipe of ``RECIPES`` from Python: ``env_task``'s keyword arguments and ``TrainConfig``'s fields.
+
+        task_options, train_options = sb.recipe("locomotion")
+        sb.train(sb.env_task(env, **task_options), sb.TrainConfig(**train_options, seeds=5))
+    """
+    if name not in RECIPES:
+        raise InputError(f"no recipe {name!r}: choose one of {', '.join(sorted(RECIPES))}")
+    task_fields = {option.name for option in fields(Config)}
+    task_options = {("horizon" if key == "steps" else key): value for key, value in RECIPES[name].items()
+                    if key in task_fields}  # the task option --steps is env_task's horizon
+    return task_options, {key: value for key, value in RECIPES[name].items() if key not in task_fields}
 
 
 @dataclass(frozen=True)

@@ -158,3 +158,21 @@ def test_a_recipe_sets_its_options_for_an_env_and_an_option_given_beside_it_wins
         assert getattr(config, name) == value != getattr(plain, name), name
     _, task_config, train, _, _ = train_command.configure(*train_command.parse(command + ["--batch", "32", "--steps", "16"]))
     assert (train.batch, task_config.steps, train.critic, task_config.discount) == (32, 16, True, 0.99)
+
+
+def test_a_recipe_from_python_is_env_tasks_arguments_and_the_train_configs_fields():
+    import inspect
+
+    import stablebptt as sb
+    from stablebptt.engine.config import TrainConfig
+    task_options, train_options = sb.recipe("locomotion")
+    assert set(task_options) <= set(inspect.signature(sb.env_task).parameters) and task_options["horizon"] == 32
+    config = TrainConfig(**train_options)
+    assert all(getattr(config, name) == value for name, value in train_options.items())
+    # The same options as the command line's --recipe sets.
+    _, task_config, train, _, _ = train_command.configure(*train_command.parse(
+        ["--env", "envs_for_tests:make_cart", "--recipe", "locomotion"]))
+    assert (task_config.steps, task_config.discount) == (task_options["horizon"], task_options["discount"])
+    assert all(getattr(train, name) == value for name, value in train_options.items())
+    with pytest.raises(InputError, match="no recipe 'swimming': choose one of locomotion"):
+        sb.recipe("swimming")
