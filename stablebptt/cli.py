@@ -39,6 +39,14 @@ def option_name(field_name: str) -> str:
     return "--" + field_name.replace("_", "-")
 
 
+def typed_option(field_name: str, value: Any) -> str:
+    """A field's value as its option is typed: ``--critic``, ``--no-critic``, ``--discount 0.99``."""
+    flag = option_name(field_name)
+    if isinstance(value, bool):
+        return flag if value else f"--no-{flag[2:]}"
+    return f"{flag} {value:g}" if isinstance(value, float) else f"{flag} {value}"
+
+
 def add_options(parser: argparse.ArgumentParser, config_class: type, title: str, present: set[str] = frozenset(),
                 defaults: dict[str, str] | None = None) -> list[str]:
     """Add one option per dataclass field; unset options stay absent from the namespace.

@@ -54,6 +54,7 @@ def command_of(record: dict) -> str:
     """The `stablebptt train` command of a run folder's config.json: the options that differ from the
     env's defaults (a budget alone bounds the run: its epochs are not said)."""
     from stablebptt import tasks
+    from stablebptt.cli import typed_option
     from stablebptt.commands.train import UNTIL_BUDGET
     from stablebptt.engine.config import TrainConfig
     from stablebptt.tasks.env import Config
@@ -61,20 +62,13 @@ def command_of(record: dict) -> str:
     for name, default in ((f.name, f.default) for f in dataclasses.fields(Config) if f.name != "env"):
         value = record["task_config"].get(name, default)
         if value != default:
-            words.append(_option(name, value))
+            words.append(typed_option(name, value))
     defaults = {**{f.name: f.default for f in dataclasses.fields(TrainConfig)}, **tasks.train_defaults("env")}
     for name, default in defaults.items():
         value = record["train"].get(name, default)
         if value != default and not (name == "epochs" and value == UNTIL_BUDGET):
-            words.append(_option(name, value))
+            words.append(typed_option(name, value))
     return " ".join(words)
-
-
-def _option(name: str, value) -> str:
-    flag = "--" + name.replace("_", "-")
-    if isinstance(value, bool):
-        return flag if value else "--no-" + flag[2:]
-    return f"{flag} {value:g}" if isinstance(value, float) else f"{flag} {value}"
 
 
 # The wall-clock marks at which a resumed run's returns are read (its last evaluation by each).

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from stablebptt import tasks
-from stablebptt.cli import Parser, add_options, build, fail, leave_out_unused_backends, one_line_errors, option_name
+from stablebptt.cli import (Parser, add_options, build, fail, leave_out_unused_backends, one_line_errors, option_name,
+                            typed_option)
 from stablebptt.commands import task_options
 from stablebptt.engine import metrics
 from stablebptt.engine.config import TrainConfig
@@ -91,9 +92,7 @@ def configure(args, owners):
 
 def recipe_words(recipe: dict) -> str:
     """A recipe's options as typed: ``--steps 32 --critic``."""
-    return " ".join(option_name(name) if value is True else f"--no-{option_name(name)[2:]}" if value is False
-                    else f"{option_name(name)} {value:g}" if isinstance(value, float) else f"{option_name(name)} {value}"
-                    for name, value in recipe.items())
+    return " ".join(typed_option(name, value) for name, value in recipe.items())
 
 
 def main(argv: list[str]) -> int:

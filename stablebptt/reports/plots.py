@@ -26,6 +26,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import LogFormatter, MaxNLocator
 
+from stablebptt.cli import typed_option
 from stablebptt.errors import InputError
 from stablebptt.flows.modes import MODE_ORDER, MODES
 from stablebptt.reports.choices import BANDS
@@ -138,8 +139,7 @@ def _common_settings(runs: Sequence[Run]) -> str:
                  value is True or value is None or value == "" or (not isinstance(value, bool) and value == 0))
         if key in _NAMED_BY_THE_RUN or usual or any(s.get(key) != value for s in settings):
             continue
-        flag = key.replace("_", "-")
-        flags.append(f"--no-{flag}" if value is False else f"--{flag}" if value is True else f"--{flag} {_short(value)}")
+        flags.append(typed_option(key, value))
     name = names.pop() if len(names) == 1 else str(tasks.pop())
     return name + (f": {' '.join(flags)}" if flags else "")
 
