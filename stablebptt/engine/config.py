@@ -33,6 +33,9 @@ LARGE_STEP = 8_000
 MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
 # JAX's names of float32 matrix products' precision (jax.default_matmul_precision).
 MATMUL_PRECISIONS = ("default", "high", "highest")
+# Training options that decide when a run stops or saves, and nothing it computes: a checkpoint and the
+# kept programs belong to a run whatever they are (a resume may ask for more epochs or another budget).
+STOPPING_OPTIONS = ("epochs", "budget", "checkpoint_every")
 
 
 @dataclass(frozen=True)

@@ -14,14 +14,15 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from stablebptt.engine.checks import check_options, tracing_shapes
+from stablebptt.engine.checks import check_options
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, eval_cadence, seed_array
 from stablebptt.engine.divergence import (
     failing, failure, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
-from stablebptt.engine.program_store import cache_dir, compile_epoch, lower_epoch
-from stablebptt.engine.training import Trainer, TrainState, make_trainer
+from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, programs_beside
+from stablebptt.engine.program_store import cache_dir, compile_epoch
+from stablebptt.engine.training import Trainer, make_trainer
 from stablebptt.errors import InputError
 
 
@@ -156,8 +157,8 @@ class Evaluations:
         if beside is not None and _leaf_shapes(state.params) == _leaf_shapes(beside.shapes):
             self.program = beside
             return beside.wait()
-        started = time.perf_counter()
-        self.program = self.program.lower(state.params, *self.arguments).compile()
+        started = time.perf_counter()  # compiled as a new run's, beside its epoch: a resume finds it cached
+        self.program = self.program.lower(state.params, *self.arguments).compile(untimed_options() or None)
         return time.perf_counter() - started
 
     def due(self, epoch: int) -> bool:
@@ -180,27 +181,6 @@ class Evaluations:
         return {**metrics, "train_loss": evaluated["train_loss"], "test_loss": evaluated["test_loss"],
                 "finite": np.logical_and(metrics["finite"], evaluated["finite"]),
                 "nonfinite": np.bitwise_or(metrics["nonfinite"], evaluated["nonfinite"])}, self.last
-
-
-class LoweredEpoch(NamedTuple):
-    """A trainer's epoch traced and lowered (``lowered_epoch``) for states shaped as ``shapes``."""
-
-    lowered: Any  # its compile() gives the epoch's program
-    shapes: Any  # the states' shapes (jax.ShapeDtypeStruct) it was lowered for
-    compiled: Any = None  # that program, compiled already (``prepare``: beside a check still running)
-    evaluation: CompiledBeside | None = None  # the trainer's evaluation, compiling beside the epoch's compile
-    init_rest: CompiledBeside | None = None  # its init's part that waits for no check (``Initializer.rest``), too
-
-
-def state_shapes(trainer: Trainer, seeds: Any) -> Any:
-    """The shapes of ``trainer.init(seeds)``, traced with no values: a task's check still running need
-    not have answered (it decides the parameters' start, not their shapes)."""
-    # The policy's init through a function of its own, not its jit: JAX would keep a jit's trace for
-    # the next call, and this one's parameters start before the check has decided how.
-    policy = getattr(trainer.init.policy, "__wrapped__", trainer.init.policy)
-    with tracing_shapes():
-        params, opt_state = jax.eval_shape(lambda seeds: policy(seeds), seeds)
-    return TrainState(params, opt_state, *jax.eval_shape(trainer.init.rest, seeds))
 
 
 class Prepared(NamedTuple):
@@ -236,8 +216,10 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, low
     trainer = build(task)
     lap("trainer set-up")
     built, checking = task, task.settle is not None
-    # The check, compiled beside the set-up, answers before the epoch is traced: a reward it smooths compiles one
-    # epoch, the surrogate's (the reward as written, compiled beside the check, was HopperStand's second compile).
+    # The epoch is traced while the check compiles beside, and compiled once it has answered: a reward it smooths
+    # compiles one epoch, the surrogate's (compiled beside the check, the reward as written was HopperStand's second).
+    lowered = lowered_epoch(trainer, config, program_key, beside=False) if lower else None
+    lap("trace")
     task = task.settled()  # a reward without a usable gradient is refused here
     lap("check's wait")
     if task.dynamics.step is not built.dynamics.step:  # the check smoothed the reward: train the task as settled
@@ -245,8 +227,10 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, low
         trainer = build(task)
         lap("trainer set-up")
         checking = task.settle is not None  # the surrogate's own check, compiling beside
-    lowered = lowered_epoch(trainer, config, program_key) if lower else None
-    lap("trace")
+        lowered = lowered_epoch(trainer, config, program_key) if lower else None
+        lap("surrogate's trace")
+    elif lowered is not None:
+        lowered = programs_beside(lowered, trainer, config)
     if lowered is not None and checking:
         lowered = _compiled_now(lowered, lap)
     task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
@@ -301,27 +285,6 @@ def _lap_clock(phases: dict[str, float]) -> Callable[[str], None]:
         phases[name] = phases.get(name, 0.0) + now - last[0]
         last[0] = now
     return lap
-
-
-def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | None = None) -> LoweredEpoch:
-    """``trainer``'s epoch traced and lowered for the states ``trainer.init`` gives, from their shapes
-    alone: a task's check still running (``Task.settle``: a smoothed reward's own diagnosis, which
-    decides the parameters' start) need not have answered, and XLA compiles that check beside this
-    trace. A ``PerUpdateEpoch`` (a large step; a constraint solver on a CPU of several cores) is
-    traced as it compiles instead (its metrics' program shaped by the update's). ``program_key`` as ``train_epochs``."""
-    seeds = seed_array(config)
-    shapes = state_shapes(trainer, seeds)
-    arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
-    lowered = lower_epoch(trainer.epoch, arguments, trainer.kept_under(program_key), cache_dir(),
-                          trainer.compiler_options)
-    # The evaluation and the population's resets compile beside the epoch; on a GPU with none of their
-    # kernels timed while the epoch's are.
-    evaluation = None if trainer.evaluation is None else CompiledBeside(
-        trainer.evaluation.lower(shapes.params, trainer.train_states, trainer.test_states), shapes.params,
-        "stablebptt-evaluation", untimed_options())
-    init_rest = None if trainer.episodes is None else CompiledBeside(trainer.init.rest.lower(seeds), seeds,
-                                                                     "stablebptt-init", untimed_options())
-    return LoweredEpoch(lowered, shapes, evaluation=evaluation, init_rest=init_rest)
 
 
 class Trained(NamedTuple):

@@ -40,11 +40,14 @@ def run_key(task_module, task_name: str, task_config, train_config) -> dict | No
     programs (the task and its options, the training config, the module's ``program_inputs``), or
     None where the task cannot say (no ``program_inputs``, or it answers None)."""
     import dataclasses
+
+    from stablebptt.engine.config import STOPPING_OPTIONS
     inputs = getattr(task_module, "program_inputs", lambda config: None)(task_config)
     if inputs is None:
         return None
-    # The budget decides when a run stops, not what it compiles.
-    train = {name: value for name, value in dataclasses.asdict(train_config).items() if name != "budget"}
+    # How long a run trains and how often it saves decide when it stops, not what it compiles: a resume
+    # with more --epochs than the first start had traced and compiled every program again (80 s on a GPU).
+    train = {name: value for name, value in dataclasses.asdict(train_config).items() if name not in STOPPING_OPTIONS}
     return {"task": task_name, "task_config": dataclasses.asdict(task_config), "train": train, "inputs": inputs}
 
 

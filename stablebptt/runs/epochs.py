@@ -10,15 +10,9 @@ import jax
 import numpy as np
 
 from stablebptt.engine.config import TrainConfig
-from stablebptt.engine.fitting import (
-    Evaluations,
-    LoweredEpoch,
-    compiled_epoch,
-    env_steps_per_epoch,
-    fit,
-    out_of_time,
-)
+from stablebptt.engine.fitting import Evaluations, compiled_epoch, env_steps_per_epoch, fit, out_of_time
 from stablebptt.engine.divergence import nonfinite_message, zeroed_notice
+from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.training import Trainer, TrainState
 from stablebptt.errors import InputError
 from stablebptt.runs.run_folder import (

@@ -24,13 +24,13 @@ import os
 import zipfile
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import numpy as np
 
 from stablebptt.engine.checks import check_options
-from stablebptt.engine.config import TrainConfig
+from stablebptt.engine.config import STOPPING_OPTIONS, TrainConfig
 from stablebptt.engine.metrics import COLUMNS, empty_rows, widened
 from stablebptt.engine.training import TrainState
 from stablebptt.errors import InputError, StorageError
@@ -155,16 +155,16 @@ def _read_leaves(data: Any, count: int) -> list[np.ndarray]:
 
 def _unflatten_like(template: Any, leaves: list[np.ndarray], path: Path) -> Any:
     template_leaves, treedef = jax.tree.flatten(template)
-    if len(leaves) != len(template_leaves) or any(a.shape != np.shape(b) for a, b in zip(leaves, template_leaves)):
+    if len(leaves) != len(template_leaves) or any(a.shape != b.shape for a, b in zip(leaves, template_leaves)):
         raise InputError(f"{path} does not match this run's configuration (different network or seeds), or was "
                          "saved by a version whose training state differs (carried episodes saved before "
                          "their pool of fresh states)")
-    return jax.tree.unflatten(treedef, [np.asarray(a, dtype=np.asarray(b).dtype) for a, b in zip(leaves, template_leaves)])
+    return jax.tree.unflatten(treedef, [np.asarray(a, dtype=b.dtype) for a, b in zip(leaves, template_leaves)])
 
 
 def identity(record: dict) -> str:
     """What a checkpoint belongs to: the task and the training settings, except how long to train."""
-    train = {k: v for k, v in record.get("train", {}).items() if k not in ("epochs", "checkpoint_every", "budget")}
+    train = {k: v for k, v in record.get("train", {}).items() if k not in STOPPING_OPTIONS}
     return hashlib.sha256(json.dumps([record.get("task"), record.get("task_config"), train],
                                      sort_keys=True).encode()).hexdigest()
 
@@ -392,17 +392,16 @@ class Run:
     def name(self) -> str:
         return self.record.get("resolved_task", {}).get("name", self.record["task"])
 
-    def start(self, fresh: TrainState, config: TrainConfig) -> tuple[int, TrainState, np.ndarray]:
-        """(epoch, state, metric rows) to train on from: the checkpoint's, else ``fresh`` at epoch 0.
-
-        A resumed run's record takes ``config.epochs`` and ``config.budget`` when it trains further;
-        fewer epochs than trained are refused and change nothing.
-        """
-        start_epoch, state, rows = 0, fresh, empty_rows()
+    def start(self, fresh: Callable[[], TrainState], shapes: Callable[[], Any], config: TrainConfig) -> tuple:
+        """(epoch, state, metric rows) to train on from: the checkpoint's, read into ``shapes()`` (traced, not
+        run: a fresh state's resets cost CheetahRun's resume 30 s on a GPU), else ``fresh()`` at epoch 0. A resumed
+        run's record takes ``config.epochs`` and ``config.budget`` when it trains further; fewer epochs are refused."""
         if (self.directory / CHECKPOINT_FILE).exists():
-            start_epoch, state, rows = load_checkpoint(self.directory, fresh, self.owner)
-        elif self.resuming:
-            self._refuse_results_without_checkpoint()
+            start_epoch, state, rows = load_checkpoint(self.directory, shapes(), self.owner)
+        else:
+            if self.resuming:
+                self._refuse_results_without_checkpoint()
+            start_epoch, state, rows = 0, fresh(), empty_rows()
         if config.epochs < start_epoch:
             raise InputError(f"{self.directory} has trained {start_epoch} epochs: --epochs must be at least that to continue")
         recorded = self.record["train"]

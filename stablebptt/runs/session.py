@@ -26,7 +26,8 @@ import jax
 import numpy as np
 
 from stablebptt.engine.config import TrainConfig, seed_array
-from stablebptt.engine.fitting import LoweredEpoch, env_steps_per_epoch, prepare
+from stablebptt.engine.fitting import env_steps_per_epoch, prepare
+from stablebptt.engine.lowering import LoweredEpoch, state_shapes
 from stablebptt.engine.program_store import run_key
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import Trainer, TrainState
@@ -89,7 +90,9 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
             run = Run.create(run_dir, new_record(task_name, task_config, task, train_config,
                                                  steps_per_epoch=env_steps_per_epoch(trainer, train_config)))
         initializing = time.perf_counter()
-        start_epoch, state, rows = run.start(trainer.init(seed_array(train_config)), train_config)
+        seeds = seed_array(train_config)
+        start_epoch, state, rows = run.start(lambda: trainer.init(seeds), lambda: state_shapes(trainer, seeds),
+                                             train_config)
         jax.block_until_ready(state)
         phases = {"task's build and checks": checking, **prepared.phases, "init": time.perf_counter() - initializing}
     except BaseException:

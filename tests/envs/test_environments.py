@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import stablebptt as sb
-from stablebptt.engine import fitting, program_store
+from stablebptt.engine import fitting, lowering, program_store
 from stablebptt.engine.config import seed_array
 from stablebptt.engine.metrics import empty_rows
 from stablebptt.envs import adapter
@@ -134,7 +134,7 @@ def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_paramet
                  smoothing="off")
     pending = env_task(Cart("norm"), horizon=5, defer_diagnosis=True)
     trainer = sb.make_trainer(pending, config)
-    lowered = fitting.lowered_epoch(trainer, config)  # the epoch traced for the parameters' shapes
+    lowered = lowering.lowered_epoch(trainer, config)  # the epoch traced for the parameters' shapes
     # init traced and run after that, with the seeds train.py gives, before settling: the start is
     # still the diagnosis's (small, not zero).
     state = trainer.init(seeds)

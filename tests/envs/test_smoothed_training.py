@@ -123,11 +123,14 @@ def test_a_deferred_flat_reward_settles_into_its_surrogate_whose_own_check_answe
 
 
 def test_a_flat_reward_compiles_one_epoch_at_the_start_its_surrogates_and_a_usable_one_its_own(monkeypatch):
-    """The reward check answers before the epoch compiles: the reward as written is never compiled
-    where its surrogate trains, and a usable reward's epoch compiles once, after the check ran."""
+    """The epoch is traced while the reward check compiles beside, and compiled once the check has answered:
+    the reward as written is never compiled where its surrogate trains, and a usable reward's epoch is
+    traced and compiled once (the check's wait behind the trace, not after it)."""
     from stablebptt.engine import fitting
-    traced, compiled = [], []
-    trace = fitting.lowered_epoch
+    from stablebptt.engine.task import Task
+    traced, compiled, events = [], [], []
+    trace, settled = fitting.lowered_epoch, Task.settled
+    monkeypatch.setattr(Task, "settled", lambda self, *a, **k: events.append("answer") or settled(self, *a, **k))
 
     class Counted:  # a lowered epoch whose compiles are counted
         def __init__(self, lowered, index):
@@ -137,9 +140,9 @@ def test_a_flat_reward_compiles_one_epoch_at_the_start_its_surrogates_and_a_usab
             compiled.append(self.index)
             return self.lowered.compile()
 
-    def counted(trainer, config, program_key=None):
-        lowered = trace(trainer, config, program_key)
-        traced.append(trainer)
+    def counted(trainer, config, program_key=None, **beside):
+        lowered = trace(trainer, config, program_key, **beside)
+        traced.append(trainer), events.append("trace")
         return lowered._replace(lowered=Counted(lowered.lowered, len(traced) - 1))
 
     monkeypatch.setattr(fitting, "lowered_epoch", counted)
@@ -148,7 +151,9 @@ def test_a_flat_reward_compiles_one_epoch_at_the_start_its_surrogates_and_a_usab
     assert "reward_smoothing" in prepared.task.resolved and prepared.task.settle is None
     assert compiled == [len(traced) - 1] and prepared.trainer.epoch is traced[-1].epoch  # the surrogate's alone
     assert prepared.lowered.compiled is not None  # compiled beside the surrogate's own check
-    traced.clear(), compiled.clear()
+    assert events[:3] == ["trace", "answer", "trace"]  # the written reward's trace, then the surrogate's
+    traced.clear(), compiled.clear(), events.clear()
     usable = fitting.prepare(env_task(Cart(), horizon=5, defer_diagnosis=True), config)
     assert usable.task.resolved["reward_gradient"] == "usable" and compiled == [0] and len(traced) == 1
+    assert events[:2] == ["trace", "answer"]
     assert usable.lowered.compiled is not None  # after the check ran, init's programs compiling beside

@@ -22,7 +22,7 @@ from held_compile import COMPILING, held_command, release, stderr_through, wait_
 
 from stablebptt import errors, storage
 from stablebptt.commands import train as train_command
-from stablebptt.engine import fitting
+from stablebptt.engine import fitting, program_store, training
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.training import make_trainer
@@ -274,6 +274,28 @@ def test_resume_given_a_file_or_fewer_epochs_changes_nothing(finished, capsys):
     code, err, out = train(capsys, "--resume", str(finished), "--no-progress")
     assert code == 0 and "done already" in out, err
     assert snapshot(finished) == before
+
+
+def test_a_resume_builds_no_fresh_state_and_traces_no_program_kept_by_the_first_start(finished, tmp_path, capsys,
+                                                                                        monkeypatch):
+    """A fresh state was built only to be replaced by the checkpoint's (its resets and their compile cost
+    CheetahRun's resume on a GPU 30 s), and a resume with more --epochs than the first start traced every
+    program again (80 s): how long a run trains is no part of what it compiles."""
+    folder = tmp_path / "resumed"
+    shutil.copytree(finished, folder)
+
+    def fresh_state(self, seeds):
+        raise AssertionError("a resume built a fresh training state")
+
+    monkeypatch.setattr(training.Initializer, "__call__", fresh_state)
+    monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("traced again although kept"))
+    code, err, _ = train(capsys, "--resume", str(folder), "--epochs", "3", "--no-progress")
+    assert code == 0, err
+    assert epochs_in(folder) == [1, 2, 3]
+    monkeypatch.undo()
+    monkeypatch.setattr(training.Initializer, "__call__", fresh_state)
+    with pytest.raises(AssertionError, match="fresh training state"):  # a new run still builds one
+        train_command.main(SMALL + ["--epochs", "1", "--out", str(tmp_path / "new")])
 
 
 @pytest.mark.parametrize("damage", ["cut mid-line", "empty", "missing"])

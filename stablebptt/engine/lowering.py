@@ -1,0 +1,60 @@
+"""A run's epoch traced and lowered before its values exist (``lowered_epoch``), from the shapes of the
+state ``Trainer.init`` gives (``state_shapes``), with the programs that compile beside it."""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+
+from stablebptt.engine.checks import tracing_shapes
+from stablebptt.engine.compiling import CompiledBeside, untimed_options
+from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.program_store import cache_dir, lower_epoch
+from stablebptt.engine.training import Trainer, TrainState
+
+
+class LoweredEpoch(NamedTuple):
+    """A trainer's epoch traced and lowered (``lowered_epoch``) for states shaped as ``shapes``."""
+
+    lowered: Any  # its compile() gives the epoch's program
+    shapes: Any  # the states' shapes (jax.ShapeDtypeStruct) it was lowered for
+    compiled: Any = None  # that program, compiled already (``prepare``: beside a check still running)
+    evaluation: CompiledBeside | None = None  # the trainer's evaluation, compiling beside the epoch's compile
+    init_rest: CompiledBeside | None = None  # its init's part that waits for no check (``Initializer.rest``), too
+
+
+def state_shapes(trainer: Trainer, seeds: Any) -> Any:
+    """The shapes of ``trainer.init(seeds)``, traced with no values: a task's check still running need
+    not have answered (it decides the parameters' start, not their shapes)."""
+    # The policy's init through a function of its own, not its jit: JAX would keep a jit's trace for
+    # the next call, and this one's parameters start before the check has decided how.
+    policy = getattr(trainer.init.policy, "__wrapped__", trainer.init.policy)
+    with tracing_shapes():
+        params, opt_state = jax.eval_shape(lambda seeds: policy(seeds), seeds)
+    return TrainState(params, opt_state, *jax.eval_shape(trainer.init.rest, seeds))
+
+
+def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | None = None,
+                  beside: bool = True) -> LoweredEpoch:
+    """``trainer``'s epoch traced and lowered for the states ``trainer.init`` gives, from their shapes
+    alone: a task's check still running (``Task.settle``, which decides the parameters' start) need
+    not have answered, and XLA compiles that check beside this trace. A ``PerUpdateEpoch`` (a large
+    step; a constraint solver on a CPU of several cores) is traced as it compiles instead (its metrics'
+    program shaped by the update's). ``program_key`` as ``train_epochs``; ``beside``: ``programs_beside``."""
+    shapes = state_shapes(trainer, seed_array(config))
+    arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
+    lowered = LoweredEpoch(lower_epoch(trainer.epoch, arguments, trainer.kept_under(program_key), cache_dir(),
+                                       trainer.compiler_options), shapes)
+    return programs_beside(lowered, trainer, config) if beside else lowered
+
+
+def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig) -> LoweredEpoch:
+    """``lowered`` with the trainer's evaluation and its population's resets compiling beside, to be
+    compiled beside the epoch; on a GPU with none of their kernels timed while the epoch's are."""
+    seeds, params = seed_array(config), lowered.shapes.params
+    evaluation = None if trainer.evaluation is None else CompiledBeside(
+        trainer.evaluation.lower(params, trainer.train_states, trainer.test_states), params,
+        "stablebptt-evaluation", untimed_options())
+    init_rest = None if trainer.episodes is None else CompiledBeside(trainer.init.rest.lower(seeds), seeds,
+                                                                     "stablebptt-init", untimed_options())
+    return lowered._replace(evaluation=evaluation, init_rest=init_rest)
