@@ -38,7 +38,8 @@ from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.observations import StandardizedNetwork, no_observations, refresh_from, standardized
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
-from stablebptt.envs.diagnosis import PendingDiagnosis, RewardDiagnosis, start_checks, start_diagnosis
+from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, sample_for_diagnosis, start_checks,
+                                       start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
                                       function_name, observation)
 from stablebptt.flows.dynamics import Dynamics
@@ -393,24 +394,30 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         diagnosis = diagnosed()
         if diagnosis.kind != "zero":
             return task(diagnosis, diagnosis.kind)
-        # Flat at every sampled state: train a smooth surrogate where one can be made, and diagnose it.
-        # The diagnosis's own samples where it ran here (a kept answer has none): no program samples again.
+        # Flat at every sampled state: train a smooth surrogate where one can be made, and diagnose it. Its
+        # temperatures come from the diagnosis's own samples where it ran here, and are kept with its answer.
         samples = started[0].samples() if started else None
-        smooth_step, smoothing_done = surrogate.smoothed_training_step(env, training_step, jax.random.PRNGKey(diagnosis_seed),
-                                                                      episode_length, smoothing_scale, samples)
+        smoothing_key = None if answer_key is None else {**answer_key, "smoothing_scale": smoothing_scale}
+        drawn = lambda: jax.jit(lambda key: sample_for_diagnosis(env, training_step, key, episode_length))(  # noqa: E731
+            jax.random.PRNGKey(diagnosis_seed))  # the diagnosis's samples drawn again, where its answer was kept
+        choices = program_store.kept_answer(smoothing_key, "reward smoothing", lambda: surrogate.smoothing_choices(
+            training_step, *(samples or drawn()), smoothing_scale))
+        smooth_step, smoothing_done = surrogate.smoothed_step(training_step, surrogate.step_example(env), choices)
         if not smoothing_done.anything:
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
                            f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
         # The surrogate's step reaches the same states as the env's: its gradient is checked at those
-        # samples, compiled beside whatever the caller does next (tracing the surrogate's trainer).
-        checking = (start_checks(smooth_step, *samples) if samples else
-                    start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed), episode_length))
+        # samples, compiled beside whatever the caller does next (tracing the surrogate's trainer); kept.
+        checking: list[PendingDiagnosis] = []
+        checked = program_store.kept_answer_later(smoothing_key, "surrogate's diagnosis", lambda: checking.append(
+            start_checks(smooth_step, *samples) if samples else
+            start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed), episode_length)) or checking[0])
         smoothed = (smooth_step, smoothing_done.describe())
 
         def settle_surrogate(wait: bool = True) -> Task | None:
-            if not wait and not checking.done():
+            if not wait and checking and not checking[0].done():
                 return None
-            again = RewardDiagnosis(*checking())
+            again = RewardDiagnosis(*checked())
             if again.kind in ("zero", "nan"):
                 raise EnvError(f"{label}: the reward's gradient is {again.kind} at every sampled state even after "
                                f"{smoothing_done.describe()}: some term of it is flat beyond these comparisons; {advice}")

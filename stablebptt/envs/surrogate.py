@@ -288,18 +288,41 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
 def smooth_reward(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0) -> tuple[Callable, Smoothing]:
     """``step`` with its reward's comparisons smoothed, temperatures from the sampled ``states`` and
     ``actions`` (module docstring); and what was smoothed. The state it returns is ``step``'s."""
-    traced = _traced(step, *jax.tree.map(lambda a: a[0], (states, actions)))  # one trace serves both passes
+    example = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), (states, actions))
+    traced = _traced(step, *example)  # one trace serves both passes
+    return smoothed_step(step, example, smoothing_choices(step, states, actions, scale, traced), traced)
+
+
+def smoothing_choices(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0,
+                      traced: tuple | None = None) -> dict:
+    """``temperatures``' choices at the sampled ``states`` and ``actions``, as a kept answer holds them:
+    per kind ("temperatures", "exponents") each smoothed place in the step's program, its number and
+    where it is written."""
     chosen, widened = temperatures(step, states, actions, scale, traced)
-    temperature_of = {place: temperature for place, (temperature, _) in chosen.items()}
-    factor_of = {place: factor for place, (factor, _) in widened.items()}
-    closed, structure, out_labels = traced
+    return {kind: [[list(place), number, where] for place, (number, where) in sorted(choices.items())]
+            for kind, choices in (("temperatures", chosen), ("exponents", widened))}
+
+
+def smoothed_step(step: Callable, example: tuple, choices: dict, traced: tuple | None = None) -> tuple[Callable, Smoothing]:
+    """``step`` with the comparisons and exponentials ``choices`` names smoothed (``smoothing_choices``), its
+    program traced at ``example`` (a state and an action, shapes without weak types: every trace numbers the
+    program's operations alike); and what was smoothed."""
+    closed, structure, out_labels = traced or _traced(step, *example)
+    temperature_of = {tuple(place): number for place, number, _ in choices["temperatures"]}
+    factor_of = {tuple(place): number for place, number, _ in choices["exponents"]}
 
     def smoothed(state, action):
         return _evaluate(closed, out_labels, structure, _Interpreter(temperature_of, factor_of), state, action)
 
-    ordered, exponents = sorted(chosen.items()), sorted(widened.items())
-    return smoothed, Smoothing(tuple(place for _, (_, place) in ordered), tuple(t for _, (t, _) in ordered),
-                               tuple(place for _, (_, place) in exponents), tuple(f for _, (f, _) in exponents))
+    named = [tuple(entry[part] for entry in choices[kind]) for kind in ("temperatures", "exponents") for part in (2, 1)]
+    return smoothed, Smoothing(*named)
+
+
+def step_example(env: Any) -> tuple:
+    """A state and an action of ``env`` as the shapes its step's program is traced at (``smoothed_step``)."""
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    action = jax.ShapeDtypeStruct((int(env.action_size),), jnp.result_type(float))
+    return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), (state, action))
 
 
 def with_reward(state: PyTree, reward: jax.Array) -> PyTree:
@@ -317,14 +340,3 @@ def user_surrogate(step: Callable, reward: Callable[[PyTree], jax.Array]) -> Cal
         return with_reward(reached, jnp.asarray(reward(reached)).astype(reached.reward.dtype))
 
     return surrogate_step
-
-
-def smoothed_training_step(env: Any, step: Callable, key: jax.Array, episode_length: int, scale: float = 1.0,
-                           samples: tuple | None = None) -> tuple[Callable, Smoothing]:
-    """``smooth_reward`` at the states a reward diagnosis samples from ``env`` (along episodes of
-    ``episode_length`` steps of random actions, with random actions), drawn from ``key``; ``samples``:
-    those (states, actions) where the diagnosis that drew them has them (``PendingDiagnosis.samples``),
-    so no program samples again."""
-    from stablebptt.envs.diagnosis import sample_for_diagnosis
-    states, actions = samples or jax.jit(lambda k: sample_for_diagnosis(env, step, k, episode_length))(key)
-    return smooth_reward(step, states, actions, scale)

@@ -95,7 +95,7 @@ def test_the_command_line_trains_on_a_surrogate_of_the_users_own_and_refuses_wha
 
 def test_the_surrogate_is_fitted_on_the_diagnosis_own_samples_as_on_a_fresh_draw_of_them():
     from stablebptt.envs.diagnosis import RewardDiagnosis, sample_for_diagnosis, start_diagnosis
-    from stablebptt.envs.surrogate import smoothed_training_step
+    from stablebptt.envs.surrogate import smooth_reward
     env, key = Cart("step"), jax.random.PRNGKey(3)
     pending = start_diagnosis(env, env.step, key, 30)
     assert pending.samples() is None  # not run yet
@@ -104,8 +104,8 @@ def test_the_surrogate_is_fitted_on_the_diagnosis_own_samples_as_on_a_fresh_draw
     fresh_states, fresh_actions = jax.jit(lambda k: sample_for_diagnosis(env, env.step, k, 30))(key)
     for kept, fresh in zip(jax.tree.leaves((states, actions)), jax.tree.leaves((fresh_states, fresh_actions))):
         np.testing.assert_allclose(np.asarray(kept), np.asarray(fresh), rtol=1e-6, atol=1e-7)
-    _, from_diagnosis = smoothed_training_step(env, env.step, key, 30, samples=(states, actions))
-    _, drawn_again = smoothed_training_step(env, env.step, key, 30)
+    _, from_diagnosis = smooth_reward(env.step, states, actions)
+    _, drawn_again = smooth_reward(env.step, fresh_states, fresh_actions)
     assert from_diagnosis.anything and from_diagnosis.terms == drawn_again.terms
     np.testing.assert_allclose(from_diagnosis.temperatures, drawn_again.temperatures, rtol=1e-6)
 
@@ -157,3 +157,21 @@ def test_a_flat_reward_compiles_one_epoch_at_the_start_its_surrogates_and_a_usab
     assert usable.task.resolved["reward_gradient"] == "usable" and compiled == [0] and len(traced) == 1
     assert events[:2] == ["trace", "answer"]
     assert usable.lowered.compiled is not None  # after the check ran, init's programs compiling beside
+
+
+def test_a_kept_smoothing_rebuilds_the_surrogate_without_sampling_or_checking_again(tmp_path, monkeypatch):
+    """The same command again, or a resume, reads the surrogate's temperatures and its check kept with the
+    reward's diagnosis: no episodes are rolled and no check runs (HopperStand's took 103 s on a GPU), and
+    the surrogate steps as the one first fitted."""
+    from stablebptt.envs import adapter
+    key = {"env": f"step {tmp_path}"}
+    first = env_task(Cart("step"), horizon=5, diagnosis_key=key)
+    for name in ("sample_for_diagnosis", "start_diagnosis", "start_checks"):
+        monkeypatch.setattr(adapter, name, lambda *a, name=name, **k: pytest.fail(f"{name} ran although kept"))
+    again = env_task(Cart("step"), horizon=5, diagnosis_key=key)
+    assert "reward_smoothing" in again.resolved and again.resolved == first.resolved
+    states = first.sample_initial_states(jax.random.PRNGKey(0), 8)
+    for position in (-0.3, 0.05, 0.2):
+        state, action = jax.tree.map(lambda a: a[0], states), jnp.array([position])
+        np.testing.assert_array_equal(again.dynamics.step(state, action).reward, first.dynamics.step(state, action).reward)
+    assert 0 < float(first.dynamics.step(state, action).reward) < 1  # the surrogate's, not the step of the written reward
