@@ -288,22 +288,28 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
 def smooth_reward(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0) -> tuple[Callable, Smoothing]:
     """``step`` with its reward's comparisons smoothed, temperatures from the sampled ``states`` and
     ``actions`` (module docstring); and what was smoothed. The state it returns is ``step``'s."""
-    example = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), (states, actions))
+    example = _one_sample(states, actions)
     traced = _traced(step, *example)  # one trace serves both passes
     return smoothed_step(step, example, smoothing_choices(step, states, actions, scale, traced), traced)
+
+
+def _one_sample(states: PyTree, actions: jax.Array) -> tuple:
+    """The shapes of one sampled state and action, weak types dropped as ``step_example`` drops them."""
+    return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), (states, actions))
 
 
 def smoothing_choices(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0,
                       traced: tuple | None = None) -> dict:
     """``temperatures``' choices at the sampled ``states`` and ``actions``, as a kept answer holds them:
     per kind ("temperatures", "exponents") each smoothed place in the step's program, its number and
-    where it is written."""
-    chosen, widened = temperatures(step, states, actions, scale, traced)
+    where it is written. The places are those of the step traced at shapes (``smoothed_step``)."""
+    chosen, widened = temperatures(step, states, actions, scale, traced or _traced(step, *_one_sample(states, actions)))
     return {kind: [[list(place), number, where] for place, (number, where) in sorted(choices.items())]
             for kind, choices in (("temperatures", chosen), ("exponents", widened))}
 
 
-def smoothed_step(step: Callable, example: tuple, choices: dict, traced: tuple | None = None) -> tuple[Callable, Smoothing]:
+def smoothed_step(step: Callable, example: tuple, choices: dict,
+                  traced: tuple | None = None) -> tuple[Callable, Smoothing]:
     """``step`` with the comparisons and exponentials ``choices`` names smoothed (``smoothing_choices``), its
     program traced at ``example`` (a state and an action, shapes without weak types: every trace numbers the
     program's operations alike); and what was smoothed."""
