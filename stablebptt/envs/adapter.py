@@ -398,11 +398,18 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         # temperatures come from the diagnosis's own samples where it ran here, and are kept with its answer.
         samples = started[0].samples() if started else None
         smoothing_key = None if answer_key is None else {**answer_key, "smoothing_scale": smoothing_scale}
-        drawn = lambda: jax.jit(lambda key: sample_for_diagnosis(env, training_step, key, episode_length))(  # noqa: E731
-            jax.random.PRNGKey(diagnosis_seed))  # the diagnosis's samples drawn again, where its answer was kept
-        choices = program_store.kept_answer(smoothing_key, "reward smoothing", lambda: surrogate.smoothing_choices(
-            training_step, *(samples or drawn()), smoothing_scale))
-        smooth_step, smoothing_done = surrogate.smoothed_step(training_step, surrogate.step_example(env), choices)
+        # One trace of the step, at shapes, serves the temperatures' choice and the surrogate: a kept choice
+        # names places in it.
+        traced = surrogate.trace_step(training_step, *(surrogate.one_sample(*samples) if samples else
+                                                       surrogate.step_example(env)))
+
+        def choose() -> dict:  # on the diagnosis's samples, drawn again where its answer was kept
+            drawn = samples or jax.jit(lambda key: sample_for_diagnosis(env, training_step, key, episode_length))(
+                jax.random.PRNGKey(diagnosis_seed))
+            return surrogate.smoothing_choices(training_step, *drawn, smoothing_scale, traced)
+
+        choices = program_store.kept_answer(smoothing_key, "reward smoothing", choose)
+        smooth_step, smoothing_done = surrogate.smoothed_step(traced, choices)
         if not smoothing_done.anything:
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
                            f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")

@@ -229,7 +229,7 @@ def _names(path) -> list:
     return [getattr(key, "name", getattr(key, "key", None)) for key in path]
 
 
-def _traced(step: Callable, state: PyTree, action: jax.Array):
+def trace_step(step: Callable, state: PyTree, action: jax.Array):
     """The step's program, its output's structure, and what each output leaf is: the reward, the
     reward's own records (a leaf under ``metrics``, as Playground logs each term of it: they follow the
     reward, and no later step reads them), or the state."""
@@ -252,9 +252,9 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
     """Each smoothable comparison's temperature: ``scale`` times the median absolute difference it
     compares over the sampled ``states`` and ``actions`` (leading axis: samples), where that is above 0;
     and each underflowing exponential's factor, 1 / (``scale`` times its median exponent's magnitude).
-    Both as place -> (number, where written). ``traced``: the step's ``_traced`` program, where the
+    Both as place -> (number, where written). ``traced``: the step's ``trace_step`` program, where the
     caller has it already."""
-    closed, structure, out_labels = traced or _traced(step, *jax.tree.map(lambda a: a[0], (states, actions)))
+    closed, structure, out_labels = traced or trace_step(step, *one_sample(states, actions))
     recorder = _Interpreter(None)
 
     def differences(state, action):
@@ -288,13 +288,13 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
 def smooth_reward(step: Callable, states: PyTree, actions: jax.Array, scale: float = 1.0) -> tuple[Callable, Smoothing]:
     """``step`` with its reward's comparisons smoothed, temperatures from the sampled ``states`` and
     ``actions`` (module docstring); and what was smoothed. The state it returns is ``step``'s."""
-    example = _one_sample(states, actions)
-    traced = _traced(step, *example)  # one trace serves both passes
-    return smoothed_step(step, example, smoothing_choices(step, states, actions, scale, traced), traced)
+    traced = trace_step(step, *one_sample(states, actions))  # one trace serves both passes
+    return smoothed_step(traced, smoothing_choices(step, states, actions, scale, traced))
 
 
-def _one_sample(states: PyTree, actions: jax.Array) -> tuple:
-    """The shapes of one sampled state and action, weak types dropped as ``step_example`` drops them."""
+def one_sample(states: PyTree, actions: jax.Array) -> tuple:
+    """The shapes of one sampled state and action, weak types dropped as ``step_example`` drops them: the
+    step traced at either numbers its operations alike (the places ``smoothing_choices`` names)."""
     return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), (states, actions))
 
 
@@ -302,18 +302,16 @@ def smoothing_choices(step: Callable, states: PyTree, actions: jax.Array, scale:
                       traced: tuple | None = None) -> dict:
     """``temperatures``' choices at the sampled ``states`` and ``actions``, as a kept answer holds them:
     per kind ("temperatures", "exponents") each smoothed place in the step's program, its number and
-    where it is written. The places are those of the step traced at shapes (``smoothed_step``)."""
-    chosen, widened = temperatures(step, states, actions, scale, traced or _traced(step, *_one_sample(states, actions)))
+    where it is written."""
+    chosen, widened = temperatures(step, states, actions, scale, traced)
     return {kind: [[list(place), number, where] for place, (number, where) in sorted(choices.items())]
             for kind, choices in (("temperatures", chosen), ("exponents", widened))}
 
 
-def smoothed_step(step: Callable, example: tuple, choices: dict,
-                  traced: tuple | None = None) -> tuple[Callable, Smoothing]:
-    """``step`` with the comparisons and exponentials ``choices`` names smoothed (``smoothing_choices``), its
-    program traced at ``example`` (a state and an action, shapes without weak types: every trace numbers the
-    program's operations alike); and what was smoothed."""
-    closed, structure, out_labels = traced or _traced(step, *example)
+def smoothed_step(traced: tuple, choices: dict) -> tuple[Callable, Smoothing]:
+    """The step ``traced`` (``trace_step``, at shapes) with the comparisons and exponentials ``choices``
+    names smoothed (``smoothing_choices``); and what was smoothed."""
+    closed, structure, out_labels = traced
     temperature_of = {tuple(place): number for place, number, _ in choices["temperatures"]}
     factor_of = {tuple(place): number for place, number, _ in choices["exponents"]}
 
@@ -325,7 +323,7 @@ def smoothed_step(step: Callable, example: tuple, choices: dict,
 
 
 def step_example(env: Any) -> tuple:
-    """A state and an action of ``env`` as the shapes its step's program is traced at (``smoothed_step``)."""
+    """A state and an action of ``env`` as the shapes its step is traced at where no samples are at hand."""
     state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     action = jax.ShapeDtypeStruct((int(env.action_size),), jnp.result_type(float))
     return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), (state, action))
