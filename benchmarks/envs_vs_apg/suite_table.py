@@ -129,10 +129,13 @@ def _without_budget(command: str) -> str:
 
 def _ended(start: dict, budget: float, elapsed: float) -> str:
     """How a run's last start ended (``startup.json``); for a record from before it said so, "budget"
-    where its start-up, training and evaluations filled 90% of the budget, else "stopped early"."""
+    where its start-up, training and evaluations filled 90% of the budget, else "stopped early"; a run
+    without a budget that never said how it ended was killed before it could."""
     if "ended" in start:
         ended = start["ended"]
         return ended["status"] + (f" ({ended['message']})" if ended["status"] == "diverged" else "")
+    if not budget:
+        return "killed"
     return "budget" if elapsed >= 0.9 * budget else f"stopped early, after {elapsed:.0f} s"
 
 

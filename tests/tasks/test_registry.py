@@ -156,8 +156,8 @@ def test_a_recipe_sets_its_options_for_an_env_and_an_option_given_beside_it_wins
     for name, value in recipe.items():
         config, plain = (task_config, plain_task) if hasattr(task_config, name) else (train, plain_train)
         assert getattr(config, name) == value != getattr(plain, name), name
-    _, task_config, train, _, _ = train_command.configure(*train_command.parse(command + ["--batch", "32", "--steps", "16"]))
-    assert (train.batch, task_config.steps, train.critic, task_config.discount) == (32, 16, True, 0.99)
+    _, task_config, train, _, _ = train_command.configure(*train_command.parse(command + ["--batch", "32", "--steps", "8"]))
+    assert (train.batch, task_config.steps, train.critic, task_config.discount) == (32, 8, True, 0.99)
 
 
 def test_a_recipe_from_python_is_env_tasks_arguments_and_the_train_configs_fields():
@@ -165,8 +165,11 @@ def test_a_recipe_from_python_is_env_tasks_arguments_and_the_train_configs_field
 
     import stablebptt as sb
     from stablebptt.engine.config import TrainConfig
+    from stablebptt.tasks import env
     task_options, train_options = sb.recipe("locomotion")
-    assert set(task_options) <= set(inspect.signature(sb.env_task).parameters) and task_options["horizon"] == 32
+    # The task option --steps is env_task's horizon.
+    assert set(task_options) <= set(inspect.signature(sb.env_task).parameters)
+    assert task_options["horizon"] == env.RECIPES["locomotion"]["steps"]
     config = TrainConfig(**train_options)
     assert all(getattr(config, name) == value for name, value in train_options.items())
     # The same options as the command line's --recipe sets.
