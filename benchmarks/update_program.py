@@ -1,7 +1,7 @@
 """A train.py run's update and evaluation programs (an epoch of separate programs), each traced,
 compiled and run alone on this machine: seconds to trace and lower, to compile, and milliseconds per
-call (the mean of five after one), with the compile cache off; the update is an epoch's second, and its
-first (which on carried episodes draws the epoch's fresh states) is timed too. Training on carried episodes, two more:
+call (the mean of five after one), with the compile cache off. Training on carried episodes, three more: the
+program every epoch starts with, which draws the fresh states its ended episodes start from (``Trainer.refill``);
 the update's floor, the forward rollout of the same window from the same carried states with the
 same policy (every seed, every env), and jax.grad of that plain window's mean reward (the step's own
 derivative, none of the flows' machinery, no critic).
@@ -12,7 +12,7 @@ derivative, none of the flows' machinery, no critic).
         # pullbacks batched over the flows (adjoint_step.pullbacks_in_turn off)
     python benchmarks/update_program.py --programs update --env CheetahRun --mode R --no-cosine   # these alone
 
---programs: a comma-separated choice of update, evaluation, floor, grad (default: every one there is).
+--programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is).
 
 Every other option is train.py's (--mode R --no-cosine: one flow).
 """
@@ -32,7 +32,7 @@ from stablebptt.engine.training import make_trainer  # noqa: E402
 from stablebptt.flows import adjoint_step  # noqa: E402
 
 arguments = sys.argv[1:]
-chosen = {"update", "evaluation", "floor", "grad"}
+chosen = {"update", "evaluation", "refill", "floor", "grad"}
 if "--programs" in arguments:
     at = arguments.index("--programs")
     chosen = set(arguments[at + 1].split(","))
@@ -46,14 +46,13 @@ task = tasks.load(task_name).make(task_config)
 trainer = make_trainer(task, train_config)
 assert isinstance(trainer.epoch, PerUpdateEpoch)
 state = trainer.init(seed_array(train_config))
-# An epoch's second update where it has one: on carried episodes its first also draws the epoch's fresh states.
-later = min(1, trainer.updates_per_epoch - 1)
-programs = [("update", trainer.epoch.update, (state, jax.tree.map(lambda a: a[later], trainer.batches)))]
+programs = [("update", trainer.epoch.update, (state, jax.tree.map(lambda a: a[0], trainer.batches)))]
 if trainer.epoch.evaluate is not None:
     programs.append(("evaluation", trainer.epoch.evaluate, (state.params, trainer.train_states, trainer.test_states)))
 elif trainer.evaluation is not None:
     programs.append(("evaluation", trainer.evaluation, (state.params, trainer.train_states, trainer.test_states)))
 if trainer.episodes is not None:
+    programs.append(("refill", trainer.refill, (state,)))
     step, policy, reward = task.dynamics.step, task.dynamics.policy, trainer.episodes.reward
 
     def window(params, states):  # every env of one seed one window on: (final states, mean reward)
@@ -70,7 +69,8 @@ if trainer.episodes is not None:
     programs += [("floor", forward, (state.params, carried)), ("grad", plain_grad, (state.params, carried))]
     envs = len(seed_array(train_config)) * train_config.batch
     print(f"{' '.join(arguments)}: {envs} envs (seeds x batch), windows of {trainer.horizon} steps", flush=True)
-described = {"floor": "forward window (floor)", "grad": "jax.grad of the plain window"}
+described = {"refill": "an epoch's fresh states (refill)", "floor": "forward window (floor)",
+             "grad": "jax.grad of the plain window"}
 
 
 def milliseconds(compiled, inputs) -> float:
@@ -90,6 +90,3 @@ for name, program, inputs in [program for program in programs if program[0] in c
     compiled_at = time.perf_counter()
     print(f"{' '.join(arguments)}: {described.get(name, name)}: trace and lower {lowered_at - start:.1f} s, compile "
           f"{compiled_at - lowered_at:.1f} s, run {milliseconds(compiled, inputs):.1f} ms", flush=True)
-    if name == "update" and later:  # the same program on an epoch's first update
-        first = (state, jax.tree.map(lambda a: a[0], trainer.batches))
-        print(f"{' '.join(arguments)}: an epoch's first update: run {milliseconds(compiled, first):.1f} ms", flush=True)

@@ -21,6 +21,7 @@ class LoweredEpoch(NamedTuple):
     compiled: Any = None  # that program, compiled already (``prepare``: beside a check still running)
     evaluation: CompiledBeside | None = None  # the trainer's evaluation, compiling beside the epoch's compile
     init_rest: CompiledBeside | None = None  # its init's part that waits for no check (``Initializer.rest``), too
+    refill: CompiledBeside | None = None  # the program each epoch starts with (``Trainer.refill``), too
 
 
 def state_shapes(trainer: Trainer, seeds: Any) -> Any:
@@ -49,12 +50,15 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
 
 
 def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig) -> LoweredEpoch:
-    """``lowered`` with the trainer's evaluation and its population's resets compiling beside, to be
-    compiled beside the epoch; on a GPU with none of their kernels timed while the epoch's are."""
+    """``lowered`` with the trainer's evaluation and its population's resets (its first and each epoch's)
+    compiling beside, to be compiled beside the epoch; on a GPU with none of their kernels timed while
+    the epoch's are."""
     seeds, params = seed_array(config), lowered.shapes.params
     evaluation = None if trainer.evaluation is None else CompiledBeside(
         trainer.evaluation.lower(params, trainer.train_states, trainer.test_states), params,
         "stablebptt-evaluation", untimed_options())
     init_rest = None if trainer.episodes is None else CompiledBeside(trainer.init.rest.lower(seeds), seeds,
                                                                      "stablebptt-init", untimed_options())
-    return lowered._replace(evaluation=evaluation, init_rest=init_rest)
+    refill = None if trainer.refill is None else CompiledBeside(trainer.refill.lower(lowered.shapes), lowered.shapes,
+                                                                 "stablebptt-refill", untimed_options())
+    return lowered._replace(evaluation=evaluation, init_rest=init_rest, refill=refill)

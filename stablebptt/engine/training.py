@@ -97,10 +97,20 @@ class Trainer(NamedTuple):
     evaluation: Callable[..., dict] | None = None
     horizon: int = 0  # steps of a training rollout (training on episodes: of a window)
     spread: Spread | None = None  # the devices its programs span (``TrainConfig.devices``); None: one
+    # Training on episodes, the program every epoch starts with: ``refill(states) -> states`` with the fresh
+    # states that epoch's ended episodes start from drawn into the carried pool (``fresh``). A program of its
+    # own, compiled beside the epoch's, not a branch of its first update: there it compiled a second
+    # simulator (an environment's reset) into the epoch's program and slowed every update (docs/performance.md,
+    # "The update against its floor").
+    refill: Callable[[TrainState], TrainState] | None = None
 
     @property
     def updates_per_epoch(self) -> int:
         return len(jax.tree.leaves(self.batches)[0])
+
+    def fresh(self, state: TrainState) -> TrainState:
+        """``state`` as an epoch starts from it: training on episodes, its pool refilled (``refill``)."""
+        return state if self.refill is None else self.refill(state)
 
     def kept_under(self, program_key: dict | None) -> dict | None:
         """The key its epoch is kept under between runs (``program_store``): none where it is spread
@@ -191,10 +201,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             carried, counted = None, jnp.ones(jax.tree.leaves(visited)[0].shape[:2], bool)
         else:  # one window from where the carried states stand; the gradient stops at its start
             at_end = None if critic is None else bootstrap(critic, episodes.observe)
-            # The fresh states this epoch's ended episodes start from, drawn at its first update: a cond on
-            # the update's number, which no seed batches, so the other updates run no reset at all.
-            carried = jax.lax.cond(batch == 0, lambda c: _split_population(spread, refill_pool(c, episodes)), lambda c: c,
-                                   _split_population(spread, state.carried))
+            carried = _split_population(spread, state.carried)  # its pool refilled as the epoch began (refill)
             window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end, config.action_noise), flows,
                                         state.params, start_window(carried, reward_dtype, config.action_noise > 0),
                                         window_plan)
@@ -244,6 +251,9 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         dynamics = task.dynamics if value is None else task.cell_option.dynamics(value)
         return epoch(state, batches, train_states, test_states, dynamics)
 
+    def refill(state):
+        return state._replace(carried=_split_population(spread, refill_pool(state.carried, episodes)))
+
     over_seeds = functools.partial(_over_seeds, seed_batching(config))
 
     if grid:
@@ -269,6 +279,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         evaluation=jit(over_seeds(evaluation_metrics)) if apart else None,
         horizon=task.dynamics.horizon,
         spread=spread,
+        refill=None if episodes is None else jit(over_seeds(refill)),
     )
 
 

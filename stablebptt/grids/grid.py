@@ -234,8 +234,10 @@ def prepare(program: Program, grid: Grid, devices: list) -> Prepared:
     values = shard(jnp.asarray([value for value, _, _, _ in cells])) if takes_values else None
     arguments = (values, trainer.batches, trainer.train_states, trainer.test_states)
     epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)
-    return Prepared(program, devices, epoch_fn, arguments, state, start, rows, train_config, unroll, len(cells),
-                    compile_seconds, fitting.env_steps_per_epoch(trainer, train_config))
+    refill, refill_seconds = fitting.compiled_refill(trainer, state)  # training on episodes: each epoch's start
+    return Prepared(program, devices, lambda state, *rest: epoch_fn(refill(state), *rest), arguments, state, start,
+                    rows, train_config, unroll, len(cells), compile_seconds + refill_seconds,
+                    fitting.env_steps_per_epoch(trainer, train_config))
 
 
 def _unpad(tree, count: int):

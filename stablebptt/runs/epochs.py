@@ -10,7 +10,14 @@ import jax
 import numpy as np
 
 from stablebptt.engine.config import TrainConfig
-from stablebptt.engine.fitting import Evaluations, compiled_epoch, env_steps_per_epoch, fit, out_of_time
+from stablebptt.engine.fitting import (
+    Evaluations,
+    compiled_epoch,
+    compiled_refill,
+    env_steps_per_epoch,
+    fit,
+    out_of_time,
+)
 from stablebptt.engine.divergence import nonfinite_message, zeroed_notice
 from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.training import Trainer, TrainState
@@ -69,6 +76,8 @@ def train_epochs(
     phases = dict(phases or {})
     epoch_fn, seconds = compiled_epoch(trainer, state, lowered, program_key)  # before timing epochs
     phases["compile"] = phases.get("compile", 0.0) + seconds  # prepare may have compiled it beside a check
+    refill, seconds = compiled_refill(trainer, state, lowered and lowered.refill)  # compiled beside the epoch
+    phases["compile"] += seconds
     evaluations = Evaluations(trainer, config)
     phases["evaluation's compile"] = evaluations.compile(state, lowered and lowered.evaluation)
     on_compiled(phases["compile"] + phases["evaluation's compile"])
@@ -77,7 +86,7 @@ def train_epochs(
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
 
     def run_epoch(state):
-        new_state, metrics = epoch_fn(state, *arguments)
+        new_state, metrics = epoch_fn(refill(state), *arguments)
         return new_state, jax.device_get(metrics)
 
     def save(epoch, state, rows):

@@ -86,18 +86,24 @@ def test_ended_episodes_alone_start_again_from_the_pool_in_turn_and_the_key_move
     assert int(again.pool_used) == 4
 
 
-def test_an_epoch_draws_its_pool_once_at_its_first_update_from_the_key_it_starts_with():
+def test_an_epoch_starts_with_its_pool_drawn_once_from_the_key_it_starts_with(tmp_path):
+    from stablebptt.engine.metrics import empty_rows
+    from stablebptt.runs import epochs
     task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
                 sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)), episodes=episodes())
     config = TrainConfig(epochs=2, batch=3, train_size=2, test_size=2, lr=1e-2)
     trainer = make_trainer(task, config)
-    state = trainer.init(seed_array(config))
+    start = state = trainer.init(seed_array(config))
     for _ in range(2):
         expected = refill_pool(jax.tree.map(lambda a: a[0], state.carried), episodes()).pool
-        state, _ = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+        state, _ = trainer.epoch(trainer.fresh(state), trainer.batches, trainer.train_states, trainer.test_states)
         np.testing.assert_array_equal(state.carried.pool[0], expected)
         # 3 windows of 4 steps pass every episode's end of 10 once: each env took one fresh state.
         assert int(state.carried.pool_used[0]) == 3
+    # A run's epochs start the same way.
+    outcome = epochs.train_epochs(trainer, config, tmp_path, start, 0, empty_rows(), np.asarray(seed_array(config)))
+    np.testing.assert_array_equal(outcome.state.carried.pool, state.carried.pool)
+    np.testing.assert_array_equal(outcome.state.carried.states, state.carried.states)
 
 
 def test_first_clocks_are_spread_over_an_episode_unless_a_window_holds_one():

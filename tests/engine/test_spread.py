@@ -29,7 +29,7 @@ PROGRAM = textwrap.dedent("""
         program = trainer.epoch.lower(state, *arguments).compile().as_text()
         history = []
         for _ in range(config.epochs):
-            state, metrics = trainer.epoch(state, *arguments)
+            state, metrics = trainer.epoch(trainer.fresh(state), *arguments)
             history.append(jax.device_get(metrics))
         evaluated = jax.device_get(trainer.evaluation(state.params, trainer.train_states, trainer.test_states))
         return trainer, state, history, evaluated, program

@@ -143,7 +143,7 @@ def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_paramet
     settled = pending.settled()
     assert settled.settle is None and settled.resolved == env_task(Cart("norm"), horizon=5).resolved
     assert settled.resolved["policy_output_start"] == "small"
-    arguments = (state, trainer.batches, trainer.train_states, trainer.test_states)
+    arguments = (trainer.fresh(state), trainer.batches, trainer.train_states, trainer.test_states)
     plain = jax.jit(trainer.epoch)(*arguments)
     monkeypatch.setattr(fitting, "compile_epoch", lambda *a, **k: pytest.fail("traced again although lowered"))
     (tmp_path / "run").mkdir()
