@@ -185,8 +185,13 @@ def table(records: list[dict], out: str) -> str:
               "| command | " + " | ".join(PHASES) + " |", "|---|" + "---:|" * len(PHASES)]
     for record in sorted(records, key=lambda r: (r["env"], r["command"])):
         lines.append(f"| `{record['command']}` | "
-                     + " | ".join(f"{record['phases'].get(name, 0.0):.1f}" for name in PHASES) + " |")
+                     + " | ".join(f"{_phase(record['phases'], name):.1f}" for name in PHASES) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _phase(phases: dict, name: str) -> float:
+    """A start-up phase's seconds, its parts' included (``trainer set-up: initial states``, ...)."""
+    return sum(seconds for part, seconds in phases.items() if part == name or part.startswith(f"{name}: "))
 
 
 def _with_interval(returns) -> str:

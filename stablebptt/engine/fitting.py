@@ -209,7 +209,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, low
 
     def build(task):
         try:
-            return make_trainer(task, config, keep=program_key)
+            return make_trainer(task, config, keep=program_key, lap=lap)
         except InputError as error:  # the memory plan may refuse the scene
             raise InputError(f"{task.name}: {error}") from None
 

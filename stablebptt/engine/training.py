@@ -119,7 +119,7 @@ class Trainer(NamedTuple):
 
 
 def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan | None = None,
-                 keep: dict | None = None) -> Trainer:
+                 keep: dict | None = None, lap: Callable[[str], None] | None = None) -> Trainer:
     """Static set-up of a run: data, flows, optimizer, plan; returns jitted pure functions.
 
     With ``grid=True`` every seed slot is a sweep cell: all flows are computed,
@@ -128,8 +128,10 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     The plan (``Trainer.plan``) is ``run_plan``'s, or ``plan`` whole where one is given.
     With ``keep`` (everything that decides the run's programs: ``program_store``), the task check's,
     the step size's and the memory plan's traced measurements are kept, and an identical later run
-    skips them.
+    skips them. ``lap(name)``, where given, is called as each part of the set-up ends (a start's phases:
+    ``fitting.prepare``).
     """
+    lap = lap or (lambda name: None)
     if not isinstance(config, TrainConfig):
         raise InputError(f"expected a stablebptt.TrainConfig, got {type(config).__name__}")
     if config.x64 and not jax.config.jax_enable_x64:
@@ -138,6 +140,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
                          "its functions under `with jax.enable_x64(True):`")
     kept = functools.partial(kept_answer, keep)
     kept("task checked", lambda: check_task(task, config.zero_output) or True)
+    lap("trainer set-up: task check")
     if plan is not None and not isinstance(plan, Plan):
         raise InputError(f"make_trainer's plan must be a stablebptt.Plan or None, got {type(plan).__name__}")
     episodes = episodes_of(task, config)
@@ -150,6 +153,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     testing = beside(lambda: sample_states(task, test_key, config.test_size), "stablebptt-test-states")
     train_states = sample_states(task, train_key, config.train_size)
     test_states = testing.result()
+    lap("trainer set-up: initial states")
     # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
     # which on a GPU compiles one program per leaf shape.
     example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
@@ -160,6 +164,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     jit = functools.partial(jax.jit, compiler_options=options, **(spread.jit_options() if spread else {}))
     measured = lambda name, measure: kept(f"traced bytes, {name}", measure)  # noqa: E731
     plan = run_plan(task, config, example_state, large, measured) if plan is None else plan  # one for every dynamics an epoch uses
+    lap("trainer set-up: step's trace and memory plan")
     if spread is not None and plan.jacobian_chunk:  # a loop over chunks would hold every device's examples on each
         plan = dataclasses.replace(plan, chunk_placement=functools.partial(split_where_even, spread))
     if episodes is None:

@@ -270,6 +270,11 @@ def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_o
     assert all(row["eval_seconds"] > 0 for row in straight)
     starts = read_json(tmp_path / "run" / run_folder.STARTUP_FILE)
     assert len(starts) == 2 and all(start["phases"]["compile"] > 0 for start in starts), starts
+    # The trainer's set-up by its parts (a part answered from the cache in no time is left out).
+    parts = [name for name in starts[0]["phases"] if name.startswith("trainer set-up")]
+    assert "trainer set-up: initial states" in parts and set(parts) <= {
+        "trainer set-up: task check", "trainer set-up: initial states",
+        "trainer set-up: step's trace and memory plan", "trainer set-up"}, parts
     assert starts[0]["budget"] == 0.001 and "budget" not in starts[1]  # each start's own; the resume had none
     assert [start["first_epoch"] for start in starts] == [1, 2]
     assert len({row["test_loss"] for row in straight}) > 2  # it trains: the returns move
