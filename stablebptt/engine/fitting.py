@@ -21,7 +21,7 @@ from stablebptt.engine.divergence import (
     failing, failure, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
 from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, programs_beside
-from stablebptt.engine.program_store import cache_dir, compile_epoch
+from stablebptt.engine.program_store import cache_dir, compile_epoch, lower_kept
 from stablebptt.engine.training import Trainer, make_trainer
 from stablebptt.errors import InputError
 
@@ -230,7 +230,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, low
         lowered = lowered_epoch(trainer, config, program_key) if lower else None
         lap("surrogate's trace")
     elif lowered is not None:
-        lowered = programs_beside(lowered, trainer, config)
+        lowered = programs_beside(lowered, trainer, config, program_key)
     if lowered is not None and checking:
         lowered = _compiled_now(lowered, lap)
     task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
@@ -264,16 +264,20 @@ def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = 
                          trainer.compiler_options)
 
 
-def compiled_refill(trainer: Trainer, state: Any, beside: CompiledBeside | None = None) -> tuple[Callable, float]:
+def compiled_refill(trainer: Trainer, state: Any, beside: CompiledBeside | None = None,
+                    program_key: dict | None = None) -> tuple[Callable, float]:
     """The program every epoch starts with (``Trainer.fresh``) compiled for ``state`` before any epoch is
     timed, and the seconds it took: ``beside``'s (``LoweredEpoch.refill``) where it was lowered for
-    ``state``'s shapes. Compiled with a first start's options, so a resume finds it in the cache."""
+    ``state``'s shapes, else from its traced program kept under ``program_key`` (a resume's: its first
+    start kept it, ``programs_beside``). Compiled with a first start's options, so a resume finds it
+    in XLA's cache."""
     if trainer.refill is None:
         return trainer.fresh, 0.0
     if beside is not None and _leaf_shapes(state) == _leaf_shapes(beside.shapes):
         return beside, beside.wait()
     started = time.perf_counter()
-    program = trainer.refill.lower(state).compile(untimed_options() or None)
+    lowered = lower_kept(trainer.refill, (state,), trainer.kept_under(program_key), "refill", trainer.compiler_options)
+    program = lowered.compile(untimed_options() or None)
     return program, time.perf_counter() - started
 
 

@@ -9,7 +9,7 @@ import jax
 from stablebptt.engine.checks import tracing_shapes
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, seed_array
-from stablebptt.engine.program_store import cache_dir, lower_epoch
+from stablebptt.engine.program_store import cache_dir, lower_epoch, lower_kept
 from stablebptt.engine.training import Trainer, TrainState
 
 
@@ -46,19 +46,22 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
     arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
     lowered = LoweredEpoch(lower_epoch(trainer.epoch, arguments, trainer.kept_under(program_key), cache_dir(),
                                        trainer.compiler_options), shapes)
-    return programs_beside(lowered, trainer, config) if beside else lowered
+    return programs_beside(lowered, trainer, config, program_key) if beside else lowered
 
 
-def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig) -> LoweredEpoch:
+def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig,
+                    program_key: dict | None = None) -> LoweredEpoch:
     """``lowered`` with the trainer's evaluation and its population's resets (its first and each epoch's)
     compiling beside, to be compiled beside the epoch; on a GPU with none of their kernels timed while
-    the epoch's are."""
+    the epoch's are. Each epoch's refill is kept under ``program_key`` as the epoch is
+    (``program_store.lower_kept``): a resume compiles it from there."""
     seeds, params = seed_array(config), lowered.shapes.params
     evaluation = None if trainer.evaluation is None else CompiledBeside(
         trainer.evaluation.lower(params, trainer.train_states, trainer.test_states), params,
         "stablebptt-evaluation", untimed_options())
     init_rest = None if trainer.episodes is None else CompiledBeside(trainer.init.rest.lower(seeds), seeds,
                                                                      "stablebptt-init", untimed_options())
-    refill = None if trainer.refill is None else CompiledBeside(trainer.refill.lower(lowered.shapes), lowered.shapes,
-                                                                 "stablebptt-refill", untimed_options())
+    refill = None if trainer.refill is None else CompiledBeside(
+        lower_kept(trainer.refill, (lowered.shapes,), trainer.kept_under(program_key), "refill", trainer.compiler_options),
+        lowered.shapes, "stablebptt-refill", untimed_options())
     return lowered._replace(evaluation=evaluation, init_rest=init_rest, refill=refill)

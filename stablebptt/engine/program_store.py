@@ -173,6 +173,20 @@ def lower_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache
     return lower_one(epoch, arguments, "epoch")
 
 
+def lower_kept(program: Callable, arguments: tuple, key_parts: dict | None, name: str,
+               compiler_options: dict | None = None):
+    """``program`` (jitted) lowered for ``arguments`` (arrays, or their shapes) from its traced program
+    kept under ``key_parts`` and ``name`` while JAX's compile cache is on, traced and kept first where
+    none is; otherwise lowered as usual. A run and its resume lower it alike, so the second finds
+    what the first compiled in XLA's cache: a checkpoint's arrays, which carry no weak types where
+    the first start's may, change no traced program. ``compiler_options``: the jit's own, which the
+    kept program is compiled with."""
+    folder = cache_dir()
+    if key_parts is None or folder is None:
+        return program.lower(*arguments)
+    return _lower_kept(program, arguments, {**key_parts, "program": name}, folder / FOLDER, compiler_options)
+
+
 def _lower_kept(program: Callable, arguments: tuple, key_parts: dict, folder: Path, compiler_options: dict | None):
     """``program`` lowered for ``arguments`` from its kept traced program, which is traced and kept
     first where none is; a program that cannot be exported is lowered as usual."""

@@ -76,7 +76,7 @@ def train_epochs(
     phases = dict(phases or {})
     epoch_fn, seconds = compiled_epoch(trainer, state, lowered, program_key)  # before timing epochs
     phases["compile"] = phases.get("compile", 0.0) + seconds  # prepare may have compiled it beside a check
-    refill, seconds = compiled_refill(trainer, state, lowered and lowered.refill)  # compiled beside the epoch
+    refill, seconds = compiled_refill(trainer, state, lowered and lowered.refill, program_key)  # beside the epoch
     phases["compile"] += seconds
     evaluations = Evaluations(trainer, config)
     phases["evaluation's compile"] = evaluations.compile(state, lowered and lowered.evaluation)

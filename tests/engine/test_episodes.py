@@ -86,7 +86,8 @@ def test_ended_episodes_alone_start_again_from_the_pool_in_turn_and_the_key_move
     assert int(again.pool_used) == 4
 
 
-def test_an_epoch_starts_with_its_pool_drawn_once_from_the_key_it_starts_with(tmp_path):
+def test_an_epoch_starts_with_its_pool_drawn_once_from_the_key_it_starts_with(tmp_path, monkeypatch):
+    from stablebptt.engine import program_store
     from stablebptt.engine.metrics import empty_rows
     from stablebptt.runs import epochs
     task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
@@ -100,10 +101,22 @@ def test_an_epoch_starts_with_its_pool_drawn_once_from_the_key_it_starts_with(tm
         np.testing.assert_array_equal(state.carried.pool[0], expected)
         # 3 windows of 4 steps pass every episode's end of 10 once: each env took one fresh state.
         assert int(state.carried.pool_used[0]) == 3
-    # A run's epochs start the same way.
-    outcome = epochs.train_epochs(trainer, config, tmp_path, start, 0, empty_rows(), np.asarray(seed_array(config)))
+    # A run's epochs start the same way; with a key, its programs (the refill's too) are kept as they are traced.
+    key = {"test": str(tmp_path)}
+    outcome = epochs.train_epochs(trainer, config, tmp_path, start, 0, empty_rows(), np.asarray(seed_array(config)),
+                                  program_key=key)
     np.testing.assert_array_equal(outcome.state.carried.pool, state.carried.pool)
     np.testing.assert_array_equal(outcome.state.carried.states, state.carried.states)
+    # A resume (a new trainer) from the checkpoint's arrays, NumPy's with no weak types where init's had
+    # them, traces neither program again.
+    from stablebptt.engine import training
+    monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("traced again although kept"))
+    monkeypatch.setattr(training, "refill_pool", lambda *a: pytest.fail("the refill traced again although kept"))
+    checkpoint = jax.tree.map(np.asarray, jax.device_get(start))
+    resumed = epochs.train_epochs(make_trainer(task, config), config, tmp_path, checkpoint, 0, empty_rows(),
+                                  np.asarray(seed_array(config)), program_key=key)
+    for again, first in zip(jax.tree.leaves(resumed.state), jax.tree.leaves(outcome.state)):
+        np.testing.assert_array_equal(again, first)
 
 
 def test_first_clocks_are_spread_over_an_episode_unless_a_window_holds_one():
