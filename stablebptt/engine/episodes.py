@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -161,8 +161,7 @@ def refill_pool(carried: Carried, episodes: Episodes) -> Carried:
     """``carried`` with a fresh pool: one reset per env, each from a key of its own split from the carried key."""
     key, resets = jax.random.split(carried.key)
     envs = carried.clocks.shape[0]
-    return carried._replace(key=key, pool=jax.vmap(episodes.reset)(jax.random.split(resets, envs)),
-                            pool_used=jnp.zeros((), jnp.int32))
+    return carried._replace(key=key, pool=_reset(episodes, resets, envs), pool_used=jnp.zeros((), jnp.int32))
 
 
 def first_population(seed_key: jax.Array, episodes: Episodes, envs: int, window: int) -> Carried:
@@ -171,12 +170,20 @@ def first_population(seed_key: jax.Array, episodes: Episodes, envs: int, window:
     Its pool holds those states until an epoch's first update draws fresh ones (``refill_pool``)."""
     key = jax.random.fold_in(seed_key, RESET_STREAM)
     key, resets, clocks = jax.random.split(key, 3)
-    states = jax.vmap(episodes.reset)(jax.random.split(resets, envs))
+    states = _reset(episodes, resets, envs)
     if window < episodes.length:
         start = jax.random.randint(clocks, (envs,), 0, episodes.length, dtype=jnp.int32)
     else:
         start = jnp.zeros(envs, jnp.int32)
     return Carried(states, start, key, states, jnp.zeros((), jnp.int32))
+
+
+def _reset(episodes: Episodes, key: jax.Array, envs: int) -> Any:
+    """``envs`` fresh states, each from a key of its own split from ``key``, every leaf strongly typed: a
+    reset may give weakly typed leaves (an MJX state's time, a Python float), which a checkpoint's
+    arrays read back do not carry, and a resume then compiled every program again for its state."""
+    states = jax.vmap(episodes.reset)(jax.random.split(key, envs))
+    return jax.tree.map(lambda leaf: jax.lax.convert_element_type(leaf, leaf.dtype), states)
 
 
 def updates_per_epoch(episodes: Episodes, window: int) -> int:

@@ -193,12 +193,13 @@ class Prepared(NamedTuple):
     phases: dict[str, float]  # seconds of each start-up phase, in the order they ran
 
 
-def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, lower: bool = True) -> Prepared:
+def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, resuming: bool = False) -> Prepared:
     """A run's start, in the order it happens: the trainer built while a check the task left running
     compiles beside (``Task.settle``: an environment's reward diagnosis); the check's answer, which may
     refuse the task; where it smoothed the reward, the trainer built again for the task as settled;
-    its epoch (``lower``) traced and compiled, while the surrogate's own check compiles beside; that
-    check's answer. ``program_key`` as ``train_epochs`` takes it.
+    its epoch traced and compiled, while the surrogate's own check compiles beside; that check's
+    answer. ``program_key`` as ``train_epochs`` takes it. ``resuming``: the state will be read from a
+    checkpoint (into ``lowered.shapes``), so init's programs are not compiled beside.
 
     Raises:
       InputError: the task refused by its checks, or by the trainer's set-up, named.
@@ -218,7 +219,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, low
     built, checking = task, task.settle is not None
     # The epoch is traced while the check compiles beside, and compiled once it has answered: a reward it smooths
     # compiles one epoch, the surrogate's (compiled beside the check, the reward as written was HopperStand's second).
-    lowered = lowered_epoch(trainer, config, program_key, beside=False) if lower else None
+    lowered = lowered_epoch(trainer, config, program_key, beside=False)
     lap("trace")
     task = task.settled()  # a reward without a usable gradient is refused here
     lap("check's wait")
@@ -227,15 +228,17 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, low
         trainer = build(task)
         lap("trainer set-up")
         checking = task.settle is not None  # the surrogate's own check, compiling beside
-        lowered = lowered_epoch(trainer, config, program_key) if lower else None
+        lowered = programs_beside(lowered_epoch(trainer, config, program_key, beside=False), trainer, config,
+                                  program_key, init=not resuming)
         lap("surrogate's trace")
-    elif lowered is not None:
-        lowered = programs_beside(lowered, trainer, config, program_key)
-    if lowered is not None and checking:
+    else:
+        lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
+        lap("trace")  # the programs compiled beside the epoch, traced
+    if checking:
         lowered = _compiled_now(lowered, lap)
     task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
     lap("surrogate check's wait")
-    if lowered is not None and lowered.init_rest is not None:  # init's part that waits for no check, compiling beside
+    if lowered.init_rest is not None:  # init's part that waits for no check, compiling beside
         trainer = trainer._replace(init=trainer.init._replace(rest=lowered.init_rest))
     return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
 

@@ -50,16 +50,16 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
 
 
 def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig,
-                    program_key: dict | None = None) -> LoweredEpoch:
-    """``lowered`` with the trainer's evaluation and its population's resets (its first and each epoch's)
-    compiling beside, to be compiled beside the epoch; on a GPU with none of their kernels timed while
-    the epoch's are. Each epoch's refill is kept under ``program_key`` as the epoch is
-    (``program_store.lower_kept``): a resume compiles it from there."""
+                    program_key: dict | None = None, init: bool = True) -> LoweredEpoch:
+    """``lowered`` with the trainer's evaluation and its population's resets (each epoch's, and with
+    ``init`` its first: a resume reads its population from the checkpoint) compiling beside, to be
+    compiled beside the epoch; on a GPU with none of their kernels timed while the epoch's are. Each
+    epoch's refill is kept under ``program_key`` as the epoch is (``program_store.lower_kept``)."""
     seeds, params = seed_array(config), lowered.shapes.params
     evaluation = None if trainer.evaluation is None else CompiledBeside(
         trainer.evaluation.lower(params, trainer.train_states, trainer.test_states), params,
         "stablebptt-evaluation", untimed_options())
-    init_rest = None if trainer.episodes is None else CompiledBeside(trainer.init.rest.lower(seeds), seeds,
+    init_rest = None if trainer.episodes is None or not init else CompiledBeside(trainer.init.rest.lower(seeds), seeds,
                                                                      "stablebptt-init", untimed_options())
     refill = None if trainer.refill is None else CompiledBeside(
         lower_kept(trainer.refill, (lowered.shapes,), trainer.kept_under(program_key), "refill", trainer.compiler_options),

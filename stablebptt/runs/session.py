@@ -27,7 +27,7 @@ import numpy as np
 
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.fitting import env_steps_per_epoch, prepare
-from stablebptt.engine.lowering import LoweredEpoch, state_shapes
+from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.program_store import run_key
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import Trainer, TrainState
@@ -79,10 +79,10 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
         # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
         task = getattr(task_module, "make_deferred", task_module.make)(task_config)
         checking = time.perf_counter() - checking
-        # A new run's epoch is traced while XLA may still compile the task's check beside; a resumed one,
-        # which may have nothing left to train, compiles as it starts. A refusal leaves no folder behind.
+        # The epoch is traced while XLA may still compile the task's check beside, a resumed run's too (its
+        # checkpoint is read into the shapes it was lowered for). A refusal leaves no folder behind.
         prepared = prepare(task, train_config, run_key(task_module, task_name, task_config, train_config),
-                           lower=record is None)
+                           resuming=record is not None)
         task, trainer = prepared.task, prepared.trainer
         if run is None:
             run_dir = run_dir or default_run_dir(runs_root, task.name)  # named as it is claimed
@@ -91,8 +91,7 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
                                                  steps_per_epoch=env_steps_per_epoch(trainer, train_config)))
         initializing = time.perf_counter()
         seeds = seed_array(train_config)
-        start_epoch, state, rows = run.start(lambda: trainer.init(seeds), lambda: state_shapes(trainer, seeds),
-                                             train_config)
+        start_epoch, state, rows = run.start(lambda: trainer.init(seeds), lambda: prepared.lowered.shapes, train_config)
         jax.block_until_ready(state)
         phases = {"task's build and checks": checking, **prepared.phases, "init": time.perf_counter() - initializing}
     except BaseException:
