@@ -13,7 +13,7 @@ import jax.extend
 import jax.numpy as jnp
 
 from stablebptt.engine.checks import parameter_shapes
-from stablebptt.engine.config import LARGE_STEP, TrainConfig
+from stablebptt.engine.config import LARGE_STEP, TrainConfig, seed_batching
 from stablebptt.engine.memory import MemoryPlan, measure_now, plan_memory
 from stablebptt.engine.task import Task
 from stablebptt.flows.dynamics import Plan, PyTree
@@ -147,13 +147,15 @@ def _holds_while(jaxpr) -> bool:
 def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Plan | None = None,
                 measured: Callable = measure_now) -> MemoryPlan:
     """The settings that fit ``task``'s gradient path (the derivative of ``plan``, default the task's own),
-    at ``config.batch`` examples per update, into memory."""
+    at ``config.batch`` examples per update and seed, every seed batched in one program (vmap) beside
+    the others, into memory."""
     dynamics, plan = task.dynamics, task.plan if plan is None else plan
     control = _example_control(task, config, initial_state)
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
     known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
+    copies = config.seeds if seed_batching(config) == "vmap" else 1  # seeds batched hold their paths at once
     return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, plan.step_derivative,
-                       tangents=size(initial_state) + size(control) - known, measured=measured)
+                       tangents=size(initial_state) + size(control) - known, measured=measured, copies=copies)
 
 
 def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable = measure_now) -> Plan:

@@ -98,7 +98,7 @@ def measure_now(name: str, measure: Callable[[], int]) -> int:
 
 def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, batch: int, step_derivative: str,
                 tangents: int, budget: int | None = None,
-                measured: Callable[[str, Callable[[], int]], int] = measure_now) -> MemoryPlan:
+                measured: Callable[[str, Callable[[], int]], int] = measure_now, copies: int = 1) -> MemoryPlan:
     """Fit the gradient path of ``batch`` rollouts of ``horizon`` steps into ``budget`` bytes.
 
     Args:
@@ -110,35 +110,40 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
       budget: bytes the path may use; default a fraction of the available memory.
       measured: ``measured(name, measure)`` gives ``measure()``, the bytes of one traced step
         (``"forward"`` or ``"reverse"``), or the answer kept from an identical earlier run.
+      copies: gradient paths held at once, each of ``batch`` rollouts (seeds batched in one program:
+        each seed's chunk of Jacobians, or its stored steps, is live beside the others').
 
     Raises:
       InputError: if not even one example fits.
     """
     budget = budget if budget is not None else int(BUDGET_FRACTION * available_bytes())
     examples = horizon * batch
+    seeds = f" x {copies} seeds in one program" if copies > 1 else ""
     if step_derivative == "forward":
         tangent_of = lambda tree: jax.tree.map(jnp.ones_like, tree)
         per_tangent = measured("forward", lambda: traced_bytes(
             lambda s, u: jax.jvp(step, (s, u), (tangent_of(s), tangent_of(u))), state, control))
         per_example = per_tangent * max(tangents, 1)
-        if per_example > budget:
-            raise InputError(f"one example's step Jacobian needs up to {_gigabytes(per_example)}, more than the "
-                             f"{_gigabytes(budget)} this machine can give it: set Plan.step_derivative to 'reverse'")
-        fitting = budget // per_example
+        if per_example * copies > budget:
+            raise InputError(f"one example's step Jacobian{seeds} needs up to {_gigabytes(per_example * copies)}, "
+                             f"more than the {_gigabytes(budget)} this machine can give it: set Plan.step_derivative "
+                             "to 'reverse'" + (" or train the seeds one after another (--seed-batching map)" if seeds else ""))
+        fitting = budget // (per_example * copies)
         if fitting >= examples:
-            return MemoryPlan(None, False, per_example * examples)
+            return MemoryPlan(None, False, per_example * examples * copies)
         # A divisor of the example count: equal chunks compile the step's Jacobian once, not twice.
         chunk = max(d for d in range(1, int(fitting) + 1) if examples % d == 0)
-        return MemoryPlan(chunk, False, per_example * examples)
+        return MemoryPlan(chunk, False, per_example * examples * copies)
     # Reverse mode stores every step's intermediates for the backward pass.
     per_step = measured("reverse", lambda: traced_bytes(lambda s, u: jax.vjp(step, s, u)[1], state, control))
-    stored = per_step * examples
+    stored = per_step * examples * copies
     if stored <= budget:
         return MemoryPlan(None, False, stored)
     state_bytes = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves((state, control)))
-    rematerialized = state_bytes * examples + per_step * batch
+    rematerialized = (state_bytes * examples + per_step * batch) * copies
     if rematerialized > budget:
-        raise InputError(f"the backward pass of {batch} examples x {horizon} steps needs up to "
+        raise InputError(f"the backward pass of {batch} examples x {horizon} steps{seeds} needs up to "
                          f"{_gigabytes(rematerialized)} even recomputing each step, more than the {_gigabytes(budget)} "
-                         f"this machine can give it: use a smaller TrainConfig.batch or a shorter Dynamics.horizon")
+                         f"this machine can give it: use a smaller TrainConfig.batch or a shorter Dynamics.horizon"
+                         + (", or train the seeds one after another (--seed-batching map)" if seeds else ""))
     return MemoryPlan(None, True, stored)

@@ -164,6 +164,13 @@ def test_the_memory_plan_chunks_recomputes_or_refuses_as_the_budget_shrinks():
     assert plan_memory(step, state, control, 10, 8, "reverse", 18, budget=stored.estimate - 1).rematerialize
     with pytest.raises(InputError, match="TrainConfig.batch"):
         plan_memory(step, state, control, 10, 8, "reverse", 18, budget=1)
+    # Seeds batched in one program hold a path each at once: 5 seeds in a budget that fits one recompute.
+    five = plan_memory(step, state, control, 10, 8, "reverse", 18, budget=stored.estimate, copies=5)
+    assert five.rematerialize and five.estimate == 5 * stored.estimate
+    assert plan_memory(step, state, control, 10, 8, "forward", 18, budget=int(7.5 * one_example),
+                       copies=5).jacobian_chunk == 1  # 1.5 examples of each seed's fit: chunks of one
+    with pytest.raises(InputError, match="--seed-batching map"):
+        plan_memory(step, state, control, 10, 8, "forward", 18, budget=2 * one_example, copies=5)
 
 
 def counted_dynamics():
