@@ -61,7 +61,13 @@ def traced_bytes(function: Callable, *example_args) -> int:
 
 
 def available_bytes() -> int:
-    """Memory the OS reports as available (MemAvailable), else the physical memory."""
+    """Memory the gradient path can take: on an accelerator its allocator's limit less what it holds
+    already (the host's memory is not where the path lives), else what the OS reports as available
+    (MemAvailable), else the physical memory."""
+    device = jax.devices()[0]
+    stats = (device.memory_stats() or {}) if device.platform != "cpu" else {}
+    if "bytes_limit" in stats:
+        return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
     try:
         with open("/proc/meminfo") as handle:
             for line in handle:

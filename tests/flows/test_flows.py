@@ -1,5 +1,7 @@
 """The gradient flows R, M, S and the combination C: closed forms, definitions, invariants."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -171,6 +173,21 @@ def test_the_memory_plan_chunks_recomputes_or_refuses_as_the_budget_shrinks():
                        copies=5).jacobian_chunk == 1  # 1.5 examples of each seed's fit: chunks of one
     with pytest.raises(InputError, match="--seed-batching map"):
         plan_memory(step, state, control, 10, 8, "forward", 18, budget=2 * one_example, copies=5)
+
+
+def test_the_memory_plan_budgets_an_accelerators_free_memory_not_the_hosts(monkeypatch):
+    from stablebptt.engine import memory
+
+    class Accelerator:  # a GPU's allocator as JAX reports it
+        platform = "gpu"
+
+        def memory_stats(self):
+            return {"bytes_limit": 24 * 2**30, "bytes_in_use": 4 * 2**30}
+
+    host = memory.available_bytes()  # this machine's CPU: the OS's figure
+    assert 0 < host <= os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    monkeypatch.setattr(jax, "devices", lambda *a: [Accelerator()])
+    assert memory.available_bytes() == 20 * 2**30
 
 
 def counted_dynamics():
