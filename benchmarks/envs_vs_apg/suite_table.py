@@ -150,6 +150,17 @@ def ppo_at_budget(env: str) -> str:
     return f"{np.mean(finals):.1f} [{low:.1f}, {high:.1f}] at {runs[0]['budget_s']:.0f} s"
 
 
+def ppo_near(env: str, mark: float, within: float = 15.0) -> list[float]:
+    """Brax PPO's return on ``env`` per seed at its evaluation nearest ``mark`` seconds of its wall clock
+    (compile included), where one lies within ``within`` s of it; empty where none does for some seed."""
+    with open(PPO_RUNS) as handle:
+        runs = [run for run in json.load(handle) if run["env"] == env]
+    nearest = [min(run["points"], key=lambda point: abs(point["train_wall_s"] - mark)) for run in runs]
+    if not nearest or any(abs(point["train_wall_s"] - mark) > within for point in nearest):
+        return []
+    return [point["return"] for point in nearest]
+
+
 def table(records: list[dict], out: str) -> str:
     lines = ["# MuJoCo Playground's suite envs trained by `stablebptt train`", "",
              f"Written by `python benchmarks/envs_vs_apg/suite_table.py --out {out}` from "
@@ -181,6 +192,11 @@ def table(records: list[dict], out: str) -> str:
             along = record["returns_by_wall_clock"]
             lines.append(f"| `{record['command']}` | {record['wall_s']:.0f} | {record['epochs']} | " + " | ".join(
                 _with_interval(along[str(mark)]) if str(mark) in along else "-" for mark in WALL_CLOCK_MARKS) + " |")
+        for env in sorted({record["env"] for record in resumed}):
+            near = [ppo_near(env, mark) for mark in WALL_CLOCK_MARKS]
+            if any(near):
+                lines.append(f"| Brax PPO on {env}: each seed's evaluation nearest the mark, within 15 s | - | - | "
+                             + " | ".join(_with_interval(returns) if returns else "-" for returns in near) + " |")
     lines += ["", "Start-up, phase by phase (seconds, the run's first start; `startup.json` in its folder):", "",
               "| command | " + " | ".join(PHASES) + " |", "|---|" + "---:|" * len(PHASES)]
     for record in sorted(records, key=lambda r: (r["env"], r["command"])):
