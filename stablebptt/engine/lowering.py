@@ -59,9 +59,10 @@ def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig
     evaluation = None if trainer.evaluation is None else CompiledBeside(
         trainer.evaluation.lower(params, trainer.train_states, trainer.test_states), params,
         "stablebptt-evaluation", untimed_options())
-    init_rest = None if trainer.episodes is None or not init else CompiledBeside(trainer.init.rest.lower(seeds), seeds,
-                                                                     "stablebptt-init", untimed_options())
+    init_rest = None if trainer.episodes is None or not init else CompiledBeside(
+        trainer.init.rest.lower(seeds), seeds, "stablebptt-init", untimed_options())
+    key = trainer.kept_under(program_key)
     refill = None if trainer.refill is None else CompiledBeside(
-        lower_kept(trainer.refill, (lowered.shapes,), trainer.kept_under(program_key), "refill", trainer.compiler_options),
-        lowered.shapes, "stablebptt-refill", untimed_options())
+        lower_kept(trainer.refill, (lowered.shapes,), key, "refill", trainer.compiler_options), lowered.shapes,
+        "stablebptt-refill", untimed_options())
     return lowered._replace(evaluation=evaluation, init_rest=init_rest, refill=refill)

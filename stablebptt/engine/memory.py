@@ -131,9 +131,10 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
             lambda s, u: jax.jvp(step, (s, u), (tangent_of(s), tangent_of(u))), state, control))
         per_example = per_tangent * max(tangents, 1)
         if per_example * copies > budget:
+            one_by_one = " or train the seeds one after another (--seed-batching map)" if seeds else ""
             raise InputError(f"one example's step Jacobian{seeds} needs up to {_gigabytes(per_example * copies)}, "
                              f"more than the {_gigabytes(budget)} this machine can give it: set Plan.step_derivative "
-                             "to 'reverse'" + (" or train the seeds one after another (--seed-batching map)" if seeds else ""))
+                             f"to 'reverse'{one_by_one}")
         fitting = budget // (per_example * copies)
         if fitting >= examples:
             return MemoryPlan(None, False, per_example * examples * copies)
