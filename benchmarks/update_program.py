@@ -12,7 +12,9 @@ derivative, none of the flows' machinery, no critic).
         # pullbacks batched over the flows (adjoint_step.pullbacks_in_turn off)
     python benchmarks/update_program.py --programs update --env CheetahRun --mode R --no-cosine   # these alone
 
---programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is).
+--programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
+and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
+(``--programs memory`` alone prints that and times nothing).
 
 Every other option is train.py's (--mode R --no-cosine: one flow).
 """
@@ -26,13 +28,14 @@ import jax  # noqa: E402
 
 from stablebptt import tasks  # noqa: E402
 from stablebptt.commands import train as train_script  # noqa: E402
-from stablebptt.engine.config import seed_array  # noqa: E402
+from stablebptt.engine.compiling import memory_plan  # noqa: E402
+from stablebptt.engine.config import seed_array, seed_batching  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch  # noqa: E402
 from stablebptt.engine.training import make_trainer  # noqa: E402
 from stablebptt.flows import adjoint_step  # noqa: E402
 
 arguments = sys.argv[1:]
-chosen = {"update", "evaluation", "refill", "floor", "grad"}
+chosen = {"memory", "update", "evaluation", "refill", "floor", "grad"}
 if "--programs" in arguments:
     at = arguments.index("--programs")
     chosen = set(arguments[at + 1].split(","))
@@ -45,6 +48,16 @@ task_name, task_config, train_config, _, _ = train_script.configure(options, own
 task = tasks.load(task_name).make(task_config)
 trainer = make_trainer(task, train_config)
 assert isinstance(trainer.epoch, PerUpdateEpoch)
+if "memory" in chosen:
+    one_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), trainer.train_states)
+    stored = memory_plan(task, train_config, one_state).estimate  # the plan's bound, every batched seed's path
+    copies = train_config.seeds if seed_batching(train_config) == "vmap" else 1
+    per_step = stored / (trainer.horizon * train_config.batch * copies)
+    print(f"{' '.join(arguments)}: memory plan: {per_step / 2**20:.2f} MiB a step stored for the backward pass, "
+          f"{stored / copies / 2**30:.1f} GiB a seed, {stored / 2**30:.1f} GiB for {copies} seed(s) "
+          f"({train_config.batch} envs x {trainer.horizon} steps each)", flush=True)
+    if chosen == {"memory"}:
+        sys.exit(0)
 state = trainer.init(seed_array(train_config))
 programs = [("update", trainer.epoch.update, (state, jax.tree.map(lambda a: a[0], trainer.batches)))]
 if trainer.epoch.evaluate is not None:

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import functools
 import json
 import os
 
@@ -139,10 +140,15 @@ def _ended(start: dict, budget: float, elapsed: float) -> str:
     return "budget" if elapsed >= 0.9 * budget else f"stopped early, after {elapsed:.0f} s"
 
 
+@functools.cache  # one read for every row of the table
+def _ppo_runs() -> tuple[dict, ...]:
+    with open(PPO_RUNS) as handle:
+        return tuple(json.load(handle))
+
+
 def ppo_at_budget(env: str) -> str:
     """Brax PPO's final return on ``env`` with its interval over seeds, and its budget; "-" without runs."""
-    with open(PPO_RUNS) as handle:
-        runs = [run for run in json.load(handle) if run["env"] == env]
+    runs = [run for run in _ppo_runs() if run["env"] == env]
     if not runs:
         return "-"
     finals = [run["final_return"] for run in runs]
@@ -153,8 +159,7 @@ def ppo_at_budget(env: str) -> str:
 def ppo_near(env: str, mark: float, within: float = 15.0) -> list[float]:
     """Brax PPO's return on ``env`` per seed at its evaluation nearest ``mark`` seconds of its wall clock
     (compile included), where one lies within ``within`` s of it; empty where none does for some seed."""
-    with open(PPO_RUNS) as handle:
-        runs = [run for run in json.load(handle) if run["env"] == env]
+    runs = [run for run in _ppo_runs() if run["env"] == env]
     nearest = [min(run["points"], key=lambda point: abs(point["train_wall_s"] - mark)) for run in runs]
     if not nearest or any(abs(point["train_wall_s"] - mark) > within for point in nearest):
         return []

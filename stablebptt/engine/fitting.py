@@ -154,7 +154,7 @@ class Evaluations:
         for parameters of ``state``'s shapes."""
         if self.program is None:
             return 0.0
-        if beside is not None and _leaf_shapes(state.params) == _leaf_shapes(beside.shapes):
+        if _lowered_for(beside, state.params):
             self.program = beside
             return beside.wait()
         started = time.perf_counter()  # compiled as a new run's, beside its epoch: a resume finds it cached
@@ -223,17 +223,15 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     lap("trace")
     task = task.settled()  # a reward without a usable gradient is refused here
     lap("check's wait")
-    if task.dynamics.step is not built.dynamics.step:  # the check smoothed the reward: train the task as settled
+    smoothed = task.dynamics.step is not built.dynamics.step
+    if smoothed:  # the check smoothed the reward: train the task as settled
         program_key = _smoothed_key(program_key, task)
         trainer = build(task)
         lap("trainer set-up")
         checking = task.settle is not None  # the surrogate's own check, compiling beside
-        lowered = programs_beside(lowered_epoch(trainer, config, program_key, beside=False), trainer, config,
-                                  program_key, init=not resuming)
-        lap("surrogate's trace")
-    else:
-        lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
-        lap("trace")  # the programs compiled beside the epoch, traced
+        lowered = lowered_epoch(trainer, config, program_key, beside=False)
+    lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
+    lap("surrogate's trace" if smoothed else "trace")  # the epoch's where smoothed, and the programs beside
     if checking:
         lowered = _compiled_now(lowered, lap)
     task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
@@ -259,7 +257,7 @@ def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = 
     """The trainer's epoch compiled for ``state`` and the seconds it took: ``lowered``'s where it was
     lowered for states of ``state``'s shapes, else traced anew (kept under ``program_key``: ``program_store``)."""
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-    if lowered is not None and _leaf_shapes(state) == _leaf_shapes(lowered.shapes):
+    if _lowered_for(lowered, state):
         started = time.perf_counter()
         epoch_fn = lowered.compiled or lowered.lowered.compile()
         return epoch_fn, time.perf_counter() - started
@@ -276,12 +274,17 @@ def compiled_refill(trainer: Trainer, state: Any, beside: CompiledBeside | None 
     in XLA's cache."""
     if trainer.refill is None:
         return trainer.fresh, 0.0
-    if beside is not None and _leaf_shapes(state) == _leaf_shapes(beside.shapes):
+    if _lowered_for(beside, state):
         return beside, beside.wait()
     started = time.perf_counter()
     lowered = lower_kept(trainer.refill, (state,), trainer.kept_under(program_key), "refill", trainer.compiler_options)
     program = lowered.compile(untimed_options() or None)
     return program, time.perf_counter() - started
+
+
+def _lowered_for(program: LoweredEpoch | CompiledBeside | None, arguments: Any) -> bool:
+    """Whether ``program`` (lowered already, beside or not) was lowered for arguments shaped as ``arguments``."""
+    return program is not None and _leaf_shapes(arguments) == _leaf_shapes(program.shapes)
 
 
 def _leaf_shapes(tree: Any) -> list[tuple]:

@@ -124,15 +124,15 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
     """
     budget = budget if budget is not None else int(BUDGET_FRACTION * available_bytes())
     examples = horizon * batch
-    seeds = f" x {copies} seeds in one program" if copies > 1 else ""
+    batched = f" x {copies} seeds in one program" if copies > 1 else ""
     if step_derivative == "forward":
         tangent_of = lambda tree: jax.tree.map(jnp.ones_like, tree)
         per_tangent = measured("forward", lambda: traced_bytes(
             lambda s, u: jax.jvp(step, (s, u), (tangent_of(s), tangent_of(u))), state, control))
         per_example = per_tangent * max(tangents, 1)
         if per_example * copies > budget:
-            one_by_one = " or train the seeds one after another (--seed-batching map)" if seeds else ""
-            raise InputError(f"one example's step Jacobian{seeds} needs up to {_gigabytes(per_example * copies)}, "
+            one_by_one = " or train the seeds one after another (--seed-batching map)" if batched else ""
+            raise InputError(f"one example's step Jacobian{batched} needs up to {_gigabytes(per_example * copies)}, "
                              f"more than the {_gigabytes(budget)} this machine can give it: set Plan.step_derivative "
                              f"to 'reverse'{one_by_one}")
         fitting = budget // (per_example * copies)
@@ -149,8 +149,8 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
     state_bytes = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves((state, control)))
     rematerialized = (state_bytes * examples + per_step * batch) * copies
     if rematerialized > budget:
-        raise InputError(f"the backward pass of {batch} examples x {horizon} steps{seeds} needs up to "
+        raise InputError(f"the backward pass of {batch} examples x {horizon} steps{batched} needs up to "
                          f"{_gigabytes(rematerialized)} even recomputing each step, more than the {_gigabytes(budget)} "
                          f"this machine can give it: use a smaller TrainConfig.batch or a shorter Dynamics.horizon"
-                         + (", or train the seeds one after another (--seed-batching map)" if seeds else ""))
+                         + (", or train the seeds one after another (--seed-batching map)" if batched else ""))
     return MemoryPlan(None, True, stored)
