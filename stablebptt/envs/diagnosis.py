@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.engine.compiling import beside, compiler_options, unless_in_xla_flags, untimed_options
+from stablebptt.engine.compiling import beside, compiler_options, untimed_options
 from stablebptt.flows.dynamics import join, split
 
 PyTree = Any
@@ -24,7 +24,8 @@ DIAGNOSIS_EPISODES = 8
 DIAGNOSIS_CLOCKS = 6  # states of each episode: its reset and DIAGNOSIS_CLOCKS - 1 later ones
 # The clocks are first spread over an episode's first steps alone (one clock a step), and over the whole
 # episode only where the reward's gradient is flat there: rolling whole episodes on before every run cost
-# a GPU 14 s of start-up on CheetahRun, 43-50 s on the walkers and 103 s on HumanoidStand.
+# a GPU 14 s of start-up on CheetahRun, 43-50 s on the walkers and 103 s on HumanoidStand. Both spreads
+# run one program, the steps between clocks its arguments: looking further costs a run, not a compile.
 NEAR_STEPS = DIAGNOSIS_EPISODES * (DIAGNOSIS_CLOCKS - 1) + 1
 
 
@@ -122,35 +123,41 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: in
     while the caller goes on (XLA lets go of Python while it compiles). Calling the result waits for
     the compile, runs the program and gives the diagnosis (the fields of a ``RewardDiagnosis``).
     The states are sampled over the episodes' first ``NEAR_STEPS`` steps; where the gradient is flat
-    at all of them, a second program samples along whole episodes (a reward that exists only late in
-    an episode), traced and compiled then, and its answer is the diagnosis.
+    at all of them, the same program runs again with its clocks spread along whole episodes (a reward
+    that exists only late in an episode), and its answer is the diagnosis.
 
     Only XLA's compile works beside the caller. The step is traced here, where the reward's repairs
     and MJX's derivative remedies are in place for this trace alone. The program runs in the
     caller, once waited for: nothing of it runs on the device while a program the caller compiles
     meanwhile times its kernels there (a GPU's autotuning), which might then choose others.
     """
+    lowered, near, whole = lowered_diagnosis(env, step, key, episode_length)
+    compiled = _compiled_beside(lowered)
+    along_whole_episodes = None if whole is None else lambda: PendingDiagnosis(compiled, whole, [])  # noqa: E731
+    return PendingDiagnosis(compiled, near, [], along_whole_episodes)  # its samples come back when it runs
+
+
+def lowered_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int) -> tuple[Any, tuple, tuple | None]:
+    """``start_diagnosis``'s program, lowered with the diagnosis's options, and its arguments: its clocks
+    over the episodes' first ``NEAR_STEPS`` steps, and along whole episodes (None where an episode is no
+    longer). The program gives the checks and the samples checked."""
     checks = _gradient_checks(step)
+    clocks = _clocks_after_reset(episode_length)
 
-    def lowered(span):
-        def checked_samples(key):  # the samples come back too: a flat reward's surrogate is fitted and checked on them
-            samples = sample_for_diagnosis(env, step, key, episode_length, span)
-            return checks(*samples), samples
-        return jax.jit(checked_samples, compiler_options=_diagnosis_options()).lower(key)
+    def checked_samples(spacing):  # the samples come back too: a flat reward's surrogate is fitted and checked on them
+        samples = _sample_spaced(env, step, *spacing, clocks)
+        return checks(*samples), samples
 
-    def along_whole_episodes() -> PendingDiagnosis:  # traced here, waited for as it is called
-        return PendingDiagnosis(_compiled_beside(lowered(episode_length)), key, [])
-
-    near = lowered(min(episode_length, NEAR_STEPS))
-    further = along_whole_episodes if episode_length > NEAR_STEPS else None
-    return PendingDiagnosis(_compiled_beside(near), key, [], further)  # its samples come back when it runs
+    near = (key, *_spacing(min(episode_length, NEAR_STEPS), clocks))
+    whole = (key, *_spacing(episode_length, clocks)) if episode_length > NEAR_STEPS else None
+    return jax.jit(checked_samples, compiler_options=_diagnosis_options()).lower(near), near, whole
 
 
 class PendingDiagnosis(NamedTuple):
     """A reward diagnosis compiling beside the caller (``start_diagnosis``)."""
 
     compiled: concurrent.futures.Future  # the diagnosis's compiled program
-    argument: Any  # a PRNG key (start_diagnosis), or the samples themselves (start_checks)
+    argument: Any  # a PRNG key and the clocks' spacing (start_diagnosis), or the samples themselves (start_checks)
     ran: list  # the states and actions checked, (states, actions): given, or once called, those it sampled
     further: Callable[[], "PendingDiagnosis"] | None = None  # where the gradient is flat at every state: look further
 
@@ -176,45 +183,67 @@ class PendingDiagnosis(NamedTuple):
 
 
 def _diagnosis_options() -> dict | None:
-    """XLA options of the diagnosis: it runs once, on a few states. On a CPU LLVM does not optimize
-    its kernels (CartpoleSwingup's compiles in 4.8 s instead of 6.1 s, by
-    ``python benchmarks/diagnosis_compile.py CartpoleSwingup``). On a GPU none of its kernels is
-    timed (autotuning level 0): it compiles beside the trainer's set-up (``start_diagnosis``), whose
-    reset program times its own kernels meanwhile, and must choose them undisturbed. On one H100
-    level 0 compiled it in 8.7 s against the training options' 8.9 s for CartpoleSwingup, 7.0 against
-    8.1 s for AcrobotSwingup, each after another compile in the same process (the record:
-    ``git show fb065bd:results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt``)."""
-    cheaper = unless_in_xla_flags({"xla_backend_optimization_level": 0}) if jax.default_backend() == "cpu" else {}
-    return {**(compiler_options() or {}), **cheaper, **untimed_options()} or None
+    """XLA options of the diagnosis: the training's, and on a GPU none of its kernels timed
+    (autotuning level 0): it compiles beside the trainer's set-up (``start_diagnosis``), whose reset
+    program times its own kernels meanwhile, and must choose them undisturbed. On one H100 level 0
+    compiled it in 8.7 s against the training options' 8.9 s for CartpoleSwingup, 7.0 against 8.1 s
+    for AcrobotSwingup, each after another compile in the same process (the record:
+    ``git show fb065bd:results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt``).
+    On a CPU LLVM optimises it as it does the training's programs: unoptimised (LLVM -O0), HopperStand's
+    diagnosis compiled in 33.1 s where optimised it took 36.5 s, but ran 38.1 s instead of 0.21 s
+    over the episodes' first steps and 989 s instead of 3.3 s along whole episodes, the 2-core CPU's
+    start of a run of that env (``python benchmarks/diagnosis_compile.py HopperStand``)."""
+    return {**(compiler_options() or {}), **untimed_options()} or None
 
 
 def sample_for_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int,
                          span: int | None = None) -> tuple[PyTree, jax.Array]:
     """States along episodes of random actions, with a random action for each (traceable):
     every episode's reset, and states at clocks spread evenly over the first ``span`` steps (default
-    ``episode_length``: up to the last step's), each clock taken from one episode in turn. The episodes step together (``vmap``) in one
-    ``lax.scan`` over the episode's length; an episode that ends (``done``) goes on from its reset."""
+    ``episode_length``: up to the last step's), each clock taken from one episode in turn. The episodes
+    step together (``vmap``); an episode that ends (``done``) goes on from its reset."""
+    clocks = _clocks_after_reset(episode_length)
+    return _sample_spaced(env, step, key, *_spacing(episode_length if span is None else min(span, episode_length),
+                                                    clocks), clocks)
+
+
+def _clocks_after_reset(episode_length: int) -> int:
+    """How many clocks are sampled after the resets: as many for every span of one episode length,
+    so that one program samples them all (``_sample_spaced``)."""
+    return min(DIAGNOSIS_EPISODES * (DIAGNOSIS_CLOCKS - 1), episode_length - 1)
+
+
+def _spacing(span: int, clocks: int) -> tuple[jax.Array, jax.Array]:
+    """Steps before the first sampled clock and between two, so that ``clocks`` clocks end at the
+    ``span``-th step: arguments of the sampling's program, not constants of it."""
+    last = span - 1
+    stride = max(1, last // max(clocks, 1))
+    return jnp.int32(last - clocks * stride), jnp.int32(stride)
+
+
+def _sample_spaced(env: Any, step: Callable, key: jax.Array, lead: jax.Array, stride: jax.Array,
+                   clocks: int) -> tuple[PyTree, jax.Array]:
+    """``sample_for_diagnosis`` with the clocks at ``lead + stride``, ``lead + 2 stride``, ... (``clocks``
+    of them): ``lead`` and ``stride`` may be traced, the walks between clocks being loops of as many steps."""
     reset_key, lead_key, walk_key, action_key = jax.random.split(key, 4)
     starts = jax.lax.map(env.reset, jax.random.split(reset_key, DIAGNOSIS_EPISODES))
-    last = (episode_length if span is None else min(span, episode_length)) - 1  # the last clock sampled
-    stride = max(1, -(-last // (DIAGNOSIS_EPISODES * (DIAGNOSIS_CLOCKS - 1))))  # steps between two sampled clocks
-    later = last // stride  # clocks sampled after the resets: lead + stride, lead + 2 stride, ..., last
-    lead = last - later * stride
 
-    def advance(states, k):
-        actions = jax.random.uniform(k, (DIAGNOSIS_EPISODES, env.action_size), minval=-1.0, maxval=1.0)
+    def advance(index, carry):
+        states, k = carry
+        actions = jax.random.uniform(jax.random.fold_in(k, index), (DIAGNOSIS_EPISODES, env.action_size),
+                                     minval=-1.0, maxval=1.0)
         reached = jax.vmap(step)(states, actions)
         ended = reached.done > 0
         return jax.tree.map(lambda start, now: jnp.where(ended.reshape(ended.shape + (1,) * (now.ndim - 1)), start, now),
-                            starts, reached), None
+                            starts, reached), k
 
-    def walk(states, k, steps: int):  # every episode ``steps`` steps on
-        return jax.lax.scan(advance, states, jax.random.split(k, steps))[0]
+    def walk(states, k, steps):  # every episode ``steps`` steps on
+        return jax.lax.fori_loop(0, steps, advance, (states, k))[0]
 
     _, walked = jax.lax.scan(lambda states, k: (lambda on: (on, on))(walk(states, k, stride)),
-                             walk(starts, lead_key, lead), jax.random.split(walk_key, later))  # [later, episodes, ...]
-    clock = jnp.arange(later)
+                             walk(starts, lead_key, lead), jax.random.split(walk_key, clocks))  # [clocks, episodes, ...]
+    clock = jnp.arange(clocks)
     states = jax.tree.map(lambda first, along: jnp.concatenate([first, along[clock, clock % DIAGNOSIS_EPISODES]]),
                           starts, walked)
-    actions = jax.random.uniform(action_key, (DIAGNOSIS_EPISODES + later, env.action_size), minval=-1.0, maxval=1.0)
+    actions = jax.random.uniform(action_key, (DIAGNOSIS_EPISODES + clocks, env.action_size), minval=-1.0, maxval=1.0)
     return states, actions

@@ -76,12 +76,23 @@ def test_evaluations_run_apart_on_their_cadence_and_a_hook_sees_every_epoch_and_
     np.testing.assert_allclose(inside.metrics["batch_loss"], result.metrics["batch_loss"], rtol=1e-6)
 
 
-def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_on():
+def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_on(monkeypatch):
     # 0 for 60 steps of 100, then a target: the diagnosis looks along whole episodes, where training will look.
-    from stablebptt.envs.diagnosis import sample_for_diagnosis
-    env = LateCart()
-    states, _ = jax.jit(lambda key: sample_for_diagnosis(env, env.step, key, 100))(jax.random.PRNGKey(0))
+    from stablebptt.envs import diagnosis
+    env, key = LateCart(), jax.random.PRNGKey(0)
+    states, actions = jax.jit(lambda key: diagnosis.sample_for_diagnosis(env, env.step, key, 100))(key)
     assert int(states.data["count"].min()) == 0 and int(states.data["count"].max()) == 99  # its reset to its last step
+    near, _ = jax.jit(lambda key: diagnosis.sample_for_diagnosis(env, env.step, key, 100, diagnosis.NEAR_STEPS))(key)
+    assert int(near.data["count"].max()) == diagnosis.NEAR_STEPS - 1  # one clock a step over the first steps
+    # Flat over the first steps, it looks along whole episodes by running its one program again: one compile.
+    compiles = []
+    monkeypatch.setattr(diagnosis, "_compiled_beside", lambda lowered: compiles.append(lowered) or
+                        diagnosis.beside(lowered.compile, "counted"))
+    pending = diagnosis.start_diagnosis(env, env.step, key, 100)
+    assert diagnosis.RewardDiagnosis(*pending()).kind == "usable" and len(compiles) == 1
+    for checked, drawn in zip(jax.tree.leaves(pending.samples()), jax.tree.leaves((states, actions))):
+        np.testing.assert_allclose(np.asarray(checked), np.asarray(drawn), rtol=1e-6, atol=1e-7)
+    monkeypatch.undo()
     task = env_task(env, horizon=10)
     assert task.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in task.resolved
     result = sb.train(task, replace(TINY, epochs=4, batch=8, eval_every="epoch"))  # windows of 10 on carried episodes of 100
