@@ -74,6 +74,7 @@ def command_of(record: dict) -> str:
 
 # The wall-clock marks at which a resumed run's returns are read (its last evaluation by each).
 WALL_CLOCK_MARKS = (300, 600, 900)
+MARK_WITHIN_S = 15  # how near a mark a run or Brax PPO's evaluation counts as at it
 
 
 def read_run(folder: str) -> dict:
@@ -101,13 +102,16 @@ def read_run(folder: str) -> dict:
     clock = dict(zip(run.epochs.tolist(), wall_clock(run).tolist()))
     command = command_of(config)
     last_epoch = int(per_seed[-1]["epoch"])
+    budgets = [start.get("budget") for start in starts]
     if len(starts) > 1:  # resumed: the record holds the last start's budget, its starts each one's where recorded
-        budgets = [start.get("budget") for start in starts]
         command = _without_budget(command) + (
             f" --budget {budgets[0]:g}, then " + ", then ".join(f"--resume RUN --budget {b:g}" for b in budgets[1:])
             if all(budgets) else f" (resumed: {len(starts)} starts)")
+    # A mark the run was not budgeted to reach (its starts' budgets summed; else its wall clock), within
+    # MARK_WITHIN_S, has no return: its last evaluation would stand there for a time it never trained.
+    reached = sum(budgets) if all(budgets) else clock[last_epoch]
     along = {str(mark): returns[max(e for e in evaluated if clock[e] <= mark)]
-             for mark in WALL_CLOCK_MARKS if any(clock[e] <= mark for e in evaluated)}
+             for mark in WALL_CLOCK_MARKS if mark <= reached + MARK_WITHIN_S and any(clock[e] <= mark for e in evaluated)}
     return {"env": config["task_config"]["env"], "command": command, "budget": train.get("budget", 0.0),
             "wall_s": clock[last_epoch], "starts": len(starts), "returns_by_wall_clock": along,
             "seeds": seeds, "epochs": len(per_seed), "updates": len(per_seed) * updates_per_epoch,
@@ -120,7 +124,9 @@ def read_run(folder: str) -> dict:
             "ended": _ended(starts[-1], train.get("budget", 0.0), starts[-1]["seconds_to_training"] + sum(
                 row["seconds"] + row["eval_seconds"] for row in per_seed))
             + (f", {stopped} of {len(seeds)} seeds stopped apart (non-finite)" if stopped else ""),
-            "seconds_to_training": starts[0]["seconds_to_training"], "phases": starts[0]["phases"]}
+            "seconds_to_training": starts[0]["seconds_to_training"], "phases": starts[0]["phases"],
+            "resumes": [{"seconds_to_training": start["seconds_to_training"], "phases": start["phases"]}
+                        for start in starts[1:]]}
 
 
 def _without_budget(command: str) -> str:
@@ -156,7 +162,7 @@ def ppo_at_budget(env: str) -> str:
     return f"{np.mean(finals):.1f} [{low:.1f}, {high:.1f}] at {runs[0]['budget_s']:.0f} s"
 
 
-def ppo_near(env: str, mark: float, within: float = 15.0) -> list[float]:
+def ppo_near(env: str, mark: float, within: float = MARK_WITHIN_S) -> list[float]:
     """Brax PPO's return on ``env`` per seed at its evaluation nearest ``mark`` seconds of its wall clock
     (compile included), where one lies within ``within`` s of it; empty where none does for some seed."""
     runs = [run for run in _ppo_runs() if run["env"] == env]
@@ -200,13 +206,16 @@ def table(records: list[dict], out: str) -> str:
         for env in sorted({record["env"] for record in resumed}):
             near = [ppo_near(env, mark) for mark in WALL_CLOCK_MARKS]
             if any(near):
-                lines.append(f"| Brax PPO on {env}: each seed's evaluation nearest the mark, within 15 s | - | - | "
+                lines.append(f"| Brax PPO on {env}: each seed's evaluation nearest the mark, within {MARK_WITHIN_S} s | - | - | "
                              + " | ".join(_with_interval(returns) if returns else "-" for returns in near) + " |")
-    lines += ["", "Start-up, phase by phase (seconds, the run's first start; `startup.json` in its folder):", "",
-              "| command | " + " | ".join(PHASES) + " |", "|---|" + "---:|" * len(PHASES)]
+    lines += ["", "Start-up, phase by phase (seconds; the run's first start, then each resume where the record "
+              "keeps them; `startup.json` in its folder):", "",
+              "| command | start | to training | " + " | ".join(PHASES) + " |", "|---|---|---:|" + "---:|" * len(PHASES)]
     for record in sorted(records, key=lambda r: (r["env"], r["command"])):
-        lines.append(f"| `{record['command']}` | "
-                     + " | ".join(f"{_phase(record['phases'], name):.1f}" for name in PHASES) + " |")
+        for number, start in enumerate([record] + record.get("resumes", []), 1):
+            lines.append(f"| `{record['command']}` | {'first' if number == 1 else f'resume {number - 1}'} | "
+                         f"{start['seconds_to_training']:.0f} | "
+                         + " | ".join(f"{_phase(start['phases'], name):.1f}" for name in PHASES) + " |")
     return "\n".join(lines) + "\n"
 
 
