@@ -191,8 +191,8 @@ def _diagnosis_options() -> dict | None:
     ``git show fb065bd:results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt``).
     On a CPU LLVM optimises it as it does the training's programs: unoptimised (LLVM -O0), HopperStand's
     diagnosis compiled in 33.1 s where optimised it took 36.5 s, but ran 38.1 s instead of 0.21 s
-    over the episodes' first steps and 989 s instead of 3.3 s along whole episodes, the 2-core CPU's
-    start of a run of that env (``python benchmarks/diagnosis_compile.py HopperStand``)."""
+    over the episodes' first steps and 989 s instead of 3.3 s along whole episodes on the 2-core CPU
+    (``python benchmarks/diagnosis_compile.py HopperStand``)."""
     return {**(compiler_options() or {}), **untimed_options()} or None
 
 
@@ -213,12 +213,13 @@ def _clocks_after_reset(episode_length: int) -> int:
     return min(DIAGNOSIS_EPISODES * (DIAGNOSIS_CLOCKS - 1), episode_length - 1)
 
 
-def _spacing(span: int, clocks: int) -> tuple[jax.Array, jax.Array]:
+def _spacing(span: int, clocks: int) -> tuple[np.int32, np.int32]:
     """Steps before the first sampled clock and between two, so that ``clocks`` clocks end at the
-    ``span``-th step: arguments of the sampling's program, not constants of it."""
+    ``span``-th step: arguments of the sampling's program, not constants of it (host numbers: the
+    set-up puts nothing on the device)."""
     last = span - 1
     stride = max(1, last // max(clocks, 1))
-    return jnp.int32(last - clocks * stride), jnp.int32(stride)
+    return np.int32(last - clocks * stride), np.int32(stride)
 
 
 def _sample_spaced(env: Any, step: Callable, key: jax.Array, lead: jax.Array, stride: jax.Array,
