@@ -29,7 +29,7 @@ import jax  # noqa: E402
 from stablebptt import tasks  # noqa: E402
 from stablebptt.commands import train as train_script  # noqa: E402
 from stablebptt.engine.compiling import memory_plan  # noqa: E402
-from stablebptt.engine.config import seed_array, seed_batching  # noqa: E402
+from stablebptt.engine.config import batched_seeds, seed_array  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch  # noqa: E402
 from stablebptt.engine.training import make_trainer  # noqa: E402
 from stablebptt.flows import adjoint_step  # noqa: E402
@@ -51,7 +51,7 @@ assert isinstance(trainer.epoch, PerUpdateEpoch)
 if "memory" in chosen:
     one_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), trainer.train_states)
     stored = memory_plan(task, train_config, one_state).estimate  # the plan's bound, every batched seed's path
-    copies = train_config.seeds if seed_batching(train_config) == "vmap" else 1
+    copies = batched_seeds(train_config)
     per_step = stored / (trainer.horizon * train_config.batch * copies)
     print(f"{' '.join(arguments)}: memory plan: {per_step / 2**20:.2f} MiB a step stored for the backward pass, "
           f"{stored / copies / 2**30:.1f} GiB a seed, {stored / 2**30:.1f} GiB for {copies} seed(s) "

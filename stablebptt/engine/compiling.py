@@ -13,7 +13,7 @@ import jax.extend
 import jax.numpy as jnp
 
 from stablebptt.engine.checks import parameter_shapes
-from stablebptt.engine.config import LARGE_STEP, TrainConfig, seed_batching
+from stablebptt.engine.config import LARGE_STEP, TrainConfig, batched_seeds
 from stablebptt.engine.memory import MemoryPlan, measure_now, plan_memory
 from stablebptt.engine.task import Task
 from stablebptt.flows.dynamics import Plan, PyTree
@@ -153,9 +153,9 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
     control = _example_control(task, config, initial_state)
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
     known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
-    copies = config.seeds if seed_batching(config) == "vmap" else 1  # seeds batched hold their paths at once
     return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, plan.step_derivative,
-                       tangents=size(initial_state) + size(control) - known, measured=measured, copies=copies)
+                       tangents=size(initial_state) + size(control) - known, measured=measured,
+                       copies=batched_seeds(config))  # seeds batched hold their paths at once
 
 
 def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable = measure_now) -> Plan:

@@ -171,6 +171,11 @@ def seed_batching(config: TrainConfig) -> str:
     return "vmap" if config.seeds > 1 else "map"
 
 
+def batched_seeds(config: TrainConfig) -> int:
+    """How many of ``config``'s seeds run at once in one program: all of them batched (vmap), else one."""
+    return config.seeds if seed_batching(config) == "vmap" else 1
+
+
 def data_keys(data_seed: int) -> tuple[jax.Array, jax.Array]:
     """The PRNG keys of a run's training and test initial states (``TrainConfig.data_seed``): the test
     states of an environment's run are the fresh resets its evaluations roll whole episodes from."""

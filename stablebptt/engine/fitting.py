@@ -20,8 +20,8 @@ from stablebptt.engine.config import TrainConfig, eval_cadence, seed_array
 from stablebptt.engine.divergence import (
     failing, failure, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
-from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, programs_beside
-from stablebptt.engine.program_store import cache_dir, compile_epoch, lower_kept
+from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, lowered_refill, programs_beside
+from stablebptt.engine.program_store import cache_dir, compile_epoch
 from stablebptt.engine.training import Trainer, make_trainer
 from stablebptt.errors import InputError
 
@@ -277,8 +277,7 @@ def compiled_refill(trainer: Trainer, state: Any, beside: CompiledBeside | None 
     if _lowered_for(beside, state):
         return beside, beside.wait()
     started = time.perf_counter()
-    lowered = lower_kept(trainer.refill, (state,), trainer.kept_under(program_key), "refill", trainer.compiler_options)
-    program = lowered.compile(untimed_options() or None)
+    program = lowered_refill(trainer, state, program_key).compile(untimed_options() or None)
     return program, time.perf_counter() - started
 
 

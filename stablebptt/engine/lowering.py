@@ -61,8 +61,12 @@ def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig
         "stablebptt-evaluation", untimed_options())
     init_rest = None if trainer.episodes is None or not init else CompiledBeside(
         trainer.init.rest.lower(seeds), seeds, "stablebptt-init", untimed_options())
-    key = trainer.kept_under(program_key)
     refill = None if trainer.refill is None else CompiledBeside(
-        lower_kept(trainer.refill, (lowered.shapes,), key, "refill", trainer.compiler_options), lowered.shapes,
-        "stablebptt-refill", untimed_options())
+        lowered_refill(trainer, lowered.shapes, program_key), lowered.shapes, "stablebptt-refill", untimed_options())
     return lowered._replace(evaluation=evaluation, init_rest=init_rest, refill=refill)
+
+
+def lowered_refill(trainer: Trainer, states: Any, program_key: dict | None = None) -> Any:
+    """The trainer's refill (``Trainer.refill``) lowered for ``states`` (arrays, or their shapes), from its
+    traced program kept under ``program_key`` as the epoch is (``program_store.lower_kept``)."""
+    return lower_kept(trainer.refill, (states,), trainer.kept_under(program_key), "refill", trainer.compiler_options)

@@ -229,17 +229,15 @@ def _sample_spaced(env: Any, step: Callable, key: jax.Array, lead: jax.Array, st
     reset_key, lead_key, walk_key, action_key = jax.random.split(key, 4)
     starts = jax.lax.map(env.reset, jax.random.split(reset_key, DIAGNOSIS_EPISODES))
 
-    def advance(index, carry):
-        states, k = carry
-        actions = jax.random.uniform(jax.random.fold_in(k, index), (DIAGNOSIS_EPISODES, env.action_size),
-                                     minval=-1.0, maxval=1.0)
+    def advance(states, k):
+        actions = jax.random.uniform(k, (DIAGNOSIS_EPISODES, env.action_size), minval=-1.0, maxval=1.0)
         reached = jax.vmap(step)(states, actions)
         ended = reached.done > 0
         return jax.tree.map(lambda start, now: jnp.where(ended.reshape(ended.shape + (1,) * (now.ndim - 1)), start, now),
-                            starts, reached), k
+                            starts, reached)
 
-    def walk(states, k, steps):  # every episode ``steps`` steps on
-        return jax.lax.fori_loop(0, steps, advance, (states, k))[0]
+    def walk(states, k, steps):  # every episode ``steps`` steps on, each step's actions from k and its number
+        return jax.lax.fori_loop(0, steps, lambda index, on: advance(on, jax.random.fold_in(k, index)), states)
 
     _, walked = jax.lax.scan(lambda states, k: (lambda on: (on, on))(walk(states, k, stride)),
                              walk(starts, lead_key, lead), jax.random.split(walk_key, clocks))  # [clocks, episodes, ...]
