@@ -24,6 +24,7 @@ MuJoCo Playground's published PPO return as the reference.
 from __future__ import annotations
 
 import argparse
+import collections
 import csv
 import dataclasses
 import functools
@@ -112,7 +113,8 @@ def read_run(folder: str) -> dict:
     reached = sum(budgets) if all(budgets) else clock[last_epoch]
     along = {str(mark): returns[max(e for e in evaluated if clock[e] <= mark)]
              for mark in WALL_CLOCK_MARKS if mark <= reached + MARK_WITHIN_S and any(clock[e] <= mark for e in evaluated)}
-    return {"env": config["task_config"]["env"], "command": command, "budget": train.get("budget", 0.0),
+    return {"env": config["task_config"]["env"], "command": command, "started": starts[0].get("started", ""),
+            "budget": train.get("budget", 0.0),
             "wall_s": clock[last_epoch], "starts": len(starts), "returns_by_wall_clock": along,
             "seeds": seeds, "epochs": len(per_seed), "updates": len(per_seed) * updates_per_epoch,
             "update_s": float(np.median([row["seconds"] for row in per_seed[1:] or per_seed])) / updates_per_epoch,
@@ -184,11 +186,12 @@ def table(records: list[dict], out: str) -> str:
              "| command | device | final return [95% interval] | first evaluation | PPO reference | share | "
              "Brax PPO | updates | s per update | s to the first epoch | evaluation's share | ended |",
              "|---|---|---|---:|---:|---:|---|---:|---:|---:|---:|---|"]
-    for record in sorted(records, key=lambda r: (r["env"], r["command"])):
+    labels = _labels(records)
+    for record in sorted(records, key=lambda r: (r["env"], *_run_of(r))):
         final = np.asarray(record["final_return"])
         reference = PPO_REFERENCE.get(record["env"])
         share = f"{final.mean() / reference:.0%}" if reference else "-"
-        lines.append(f"| `{record['command']}` | {record['device']} | {_with_interval(final)} | "
+        lines.append(f"| {labels[_run_of(record)]} | {record['device']} | {_with_interval(final)} | "
                      f"{np.mean(record['first_return']):.1f} | {reference or '-'} | {share} | "
                      f"{ppo_at_budget(record['env'])} | {record['updates']} | {record['update_s']:.3f} | "
                      f"{record['seconds_to_training']:.0f} | "
@@ -199,9 +202,9 @@ def table(records: list[dict], out: str) -> str:
                   "set-up and compile counted; `stablebptt plot RUN --x wall-clock` draws it):", "",
                   "| command | wall clock, s | epochs | " + " | ".join(f"by {mark} s" for mark in WALL_CLOCK_MARKS) + " |",
                   "|---|---:|---:|" + "---|" * len(WALL_CLOCK_MARKS)]
-        for record in sorted(resumed, key=lambda r: (r["env"], r["command"])):
+        for record in sorted(resumed, key=lambda r: (r["env"], *_run_of(r))):
             along = record["returns_by_wall_clock"]
-            lines.append(f"| `{record['command']}` | {record['wall_s']:.0f} | {record['epochs']} | " + " | ".join(
+            lines.append(f"| {labels[_run_of(record)]} | {record['wall_s']:.0f} | {record['epochs']} | " + " | ".join(
                 _with_interval(along[str(mark)]) if str(mark) in along else "-" for mark in WALL_CLOCK_MARKS) + " |")
         for env in sorted({record["env"] for record in resumed}):
             near = [ppo_near(env, mark) for mark in WALL_CLOCK_MARKS]
@@ -211,9 +214,9 @@ def table(records: list[dict], out: str) -> str:
     lines += ["", "Start-up, phase by phase (seconds; the run's first start, then each resume where the record "
               "keeps them; `startup.json` in its folder):", "",
               "| command | start | to training | " + " | ".join(PHASES) + " |", "|---|---|---:|" + "---:|" * len(PHASES)]
-    for record in sorted(records, key=lambda r: (r["env"], r["command"])):
+    for record in sorted(records, key=lambda r: (r["env"], *_run_of(r))):
         for number, start in enumerate([record] + record.get("resumes", []), 1):
-            lines.append(f"| `{record['command']}` | {'first' if number == 1 else f'resume {number - 1}'} | "
+            lines.append(f"| {labels[_run_of(record)]} | {'first' if number == 1 else f'resume {number - 1}'} | "
                          f"{start['seconds_to_training']:.0f} | "
                          + " | ".join(f"{_phase(start['phases'], name):.1f}" for name in PHASES) + " |")
     return "\n".join(lines) + "\n"
@@ -246,13 +249,30 @@ def main(argv=None) -> None:
     records = {}
     if os.path.exists(path):
         with open(path) as handle:
-            records = {record["command"]: record for record in json.load(handle)}
+            records = {_run_of(record): record for record in json.load(handle)}
     for folder in args.runs:
         record = read_run(folder)
-        records[record["command"]] = record
+        records[_run_of(record)] = record  # the same folder read again replaces its record
     out = os.path.normpath(args.out)
-    write(path, json.dumps(sorted(records.values(), key=lambda r: r["command"]), indent=1))
+    write(path, json.dumps(sorted(records.values(), key=_run_of), indent=1))
     write(os.path.join(out, "suite.md"), table(list(records.values()), out))
+
+
+def _run_of(record: dict) -> tuple[str, str]:
+    """A record's key: its command and its first start's time, so that a command run again adds a row
+    rather than replacing the earlier run's."""
+    return record["command"], record.get("started", "")
+
+
+def _labels(records: list[dict]) -> dict:
+    """Each record's command cell: a command with several runs names each run's first start."""
+    runs = collections.Counter(record["command"] for record in records)
+
+    def label(record):
+        if runs[record["command"]] == 1:
+            return f"`{record['command']}`"
+        return f"`{record['command']}` (" + (f"started {record['started']}" if record.get("started") else "an earlier run") + ")"
+    return {_run_of(record): label(record) for record in records}
 
 
 def write(path: str, text: str) -> None:

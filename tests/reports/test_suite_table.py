@@ -1,0 +1,67 @@
+"""The suite table's records (benchmarks/envs_vs_apg/suite_table.py): returns read at the marks of the
+wall clock a run was budgeted to reach, and a command run again kept beside its earlier run."""
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+from pathlib import Path
+
+from stablebptt.engine.metrics import COLUMNS
+
+from conftest import ROOT
+
+_spec = importlib.util.spec_from_file_location("suite_table", ROOT / "benchmarks" / "envs_vs_apg" / "suite_table.py")
+suite_table = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(suite_table)
+
+START_S, EPOCH_S = 50.0, 25.0  # each start's seconds to training, each epoch's
+
+
+def env_run(path: Path, budgets: tuple[float, ...], started: str, epochs_per_start: int = 10) -> Path:
+    """A run folder as `stablebptt train --env CheetahRun` writes it, one start per budget, each
+    training ``epochs_per_start`` epochs; seed k's return at epoch e is 10 e + k."""
+    path.mkdir(parents=True)
+    config = {"task": "env", "task_config": {"env": "CheetahRun", "steps": 16},
+              "train": {"batch": 4, "seeds": 2, "budget": budgets[-1], "epochs": 1_000_000},
+              "steps_per_epoch": 64, "resolved_task": {"horizon_steps": 16}}
+    (path / "config.json").write_text(json.dumps(config))
+    epochs = epochs_per_start * len(budgets)
+    with open(path / "metrics.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, COLUMNS)
+        writer.writeheader()
+        for epoch in range(1, epochs + 1):
+            for k, seed in enumerate((42, 43)):
+                writer.writerow({name: 0.0 for name in COLUMNS} | {
+                    "epoch": epoch, "seed": seed, "test_loss": -(10.0 * epoch + k), "seconds": EPOCH_S,
+                    "eval_seconds": 0.0})
+    starts = [{"budget": budget, "device": "cpu", "seconds_to_training": START_S, "phases": {"compile": 30.0},
+               "first_epoch": 1 + number * epochs_per_start,
+               "ended": {"epoch": (number + 1) * epochs_per_start, "status": "budget"},
+               "started": f"{started}:{number:02d}"} for number, budget in enumerate(budgets)]
+    (path / "startup.json").write_text(json.dumps(starts))
+    return path
+
+
+def test_returns_stand_at_the_marks_a_run_was_budgeted_to_reach_and_no_further(tmp_path):
+    # One start of 300 s: 50 s of set-up and 10 epochs of 25 s end at 300 s.
+    once = suite_table.read_run(env_run(tmp_path / "once", (300.0,), "2026-01-01T10:00"))
+    assert once["returns_by_wall_clock"] == {"300": [100.0, 101.0]} and once["wall_s"] == 300.0
+    # Resumed for 300 s more: its second start's set-up counted, 20 epochs end at 600 s.
+    resumed = suite_table.read_run(env_run(tmp_path / "resumed", (300.0, 300.0), "2026-01-01T11:00"))
+    assert resumed["returns_by_wall_clock"] == {"300": [100.0, 101.0], "600": [200.0, 201.0]}
+    assert resumed["command"].endswith("--budget 300, then --resume RUN --budget 300") and resumed["starts"] == 2
+
+
+def test_a_command_run_again_adds_a_row_and_a_folder_read_again_replaces_its_own(tmp_path):
+    first = env_run(tmp_path / "first", (300.0,), "2026-01-01T10:00")
+    again = env_run(tmp_path / "again", (300.0,), "2026-01-02T10:00")
+    out = tmp_path / "table"
+    suite_table.main(["--runs", str(first), "--out", str(out)])
+    suite_table.main(["--runs", str(again), str(first), "--out", str(out)])
+    records = json.loads((out / "records.json").read_text())
+    assert [record["started"] for record in records] == ["2026-01-01T10:00:00", "2026-01-02T10:00:00"]
+    assert len({record["command"] for record in records}) == 1
+    table = (out / "suite.md").read_text()
+    for started in ("2026-01-01T10:00:00", "2026-01-02T10:00:00"):
+        assert f"(started {started}) | cpu |" in table
