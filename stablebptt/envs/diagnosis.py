@@ -225,24 +225,30 @@ def _spacing(span: int, clocks: int) -> tuple[np.int32, np.int32]:
 def _sample_spaced(env: Any, step: Callable, key: jax.Array, lead: jax.Array, stride: jax.Array,
                    clocks: int) -> tuple[PyTree, jax.Array]:
     """``sample_for_diagnosis`` with the clocks at ``lead + stride``, ``lead + 2 stride``, ... (``clocks``
-    of them): ``lead`` and ``stride`` may be traced, the walks between clocks being loops of as many steps."""
-    reset_key, lead_key, walk_key, action_key = jax.random.split(key, 4)
+    of them): ``lead`` and ``stride`` may be traced. The episodes walk in ONE loop of ``lead + clocks
+    stride`` steps that keeps each clock's state as it passes, so the program holds one copy of the
+    step (a loop to the first clock and another between clocks would hold, and compile, one each)."""
+    reset_key, walk_key, action_key = jax.random.split(key, 3)
     starts = jax.lax.map(env.reset, jax.random.split(reset_key, DIAGNOSIS_EPISODES))
+    kept = jax.tree.map(lambda leaf: jnp.zeros((clocks,) + leaf.shape[1:], leaf.dtype), starts)
 
-    def advance(states, k):
-        actions = jax.random.uniform(k, (DIAGNOSIS_EPISODES, env.action_size), minval=-1.0, maxval=1.0)
+    def advance(index, carried):  # every episode one step on; the clock it reaches kept, from one episode in turn
+        states, kept = carried
+        actions = jax.random.uniform(jax.random.fold_in(walk_key, index), (DIAGNOSIS_EPISODES, env.action_size),
+                                     minval=-1.0, maxval=1.0)
         reached = jax.vmap(step)(states, actions)
         ended = reached.done > 0
-        return jax.tree.map(lambda start, now: jnp.where(ended.reshape(ended.shape + (1,) * (now.ndim - 1)), start, now),
-                            starts, reached)
+        states = jax.tree.map(lambda start, now: jnp.where(ended.reshape(ended.shape + (1,) * (now.ndim - 1)), start, now),
+                              starts, reached)
+        since_lead = index + 1 - lead
+        clock = since_lead // stride - 1
+        at_clock = (since_lead > 0) & (since_lead % stride == 0)
+        slot = jnp.clip(clock, 0, clocks - 1)
+        kept = jax.tree.map(lambda all_kept, now: all_kept.at[slot].set(
+            jnp.where(at_clock, now[slot % DIAGNOSIS_EPISODES], all_kept[slot])), kept, states)
+        return states, kept
 
-    def walk(states, k, steps):  # every episode ``steps`` steps on, each step's actions from k and its number
-        return jax.lax.fori_loop(0, steps, lambda index, on: advance(on, jax.random.fold_in(k, index)), states)
-
-    _, walked = jax.lax.scan(lambda states, k: (lambda on: (on, on))(walk(states, k, stride)),
-                             walk(starts, lead_key, lead), jax.random.split(walk_key, clocks))  # [clocks, episodes, ...]
-    clock = jnp.arange(clocks)
-    states = jax.tree.map(lambda first, along: jnp.concatenate([first, along[clock, clock % DIAGNOSIS_EPISODES]]),
-                          starts, walked)
+    _, kept = jax.lax.fori_loop(0, lead + clocks * stride, advance, (starts, kept))
+    states = jax.tree.map(lambda first, along: jnp.concatenate([first, along]), starts, kept)
     actions = jax.random.uniform(action_key, (DIAGNOSIS_EPISODES + clocks, env.action_size), minval=-1.0, maxval=1.0)
     return states, actions

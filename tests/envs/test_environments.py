@@ -81,7 +81,10 @@ def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_o
     from stablebptt.envs import diagnosis
     env, key = LateCart(), jax.random.PRNGKey(0)
     states, actions = jax.jit(lambda key: diagnosis.sample_for_diagnosis(env, env.step, key, 100))(key)
-    assert int(states.data["count"].min()) == 0 and int(states.data["count"].max()) == 99  # its reset to its last step
+    lead, stride = diagnosis._spacing(100, diagnosis._clocks_after_reset(100))  # 19 and 2: clocks 21, 23, ..., 99
+    np.testing.assert_array_equal(states.data["count"][:diagnosis.DIAGNOSIS_EPISODES], 0)  # the resets
+    np.testing.assert_array_equal(states.data["count"][diagnosis.DIAGNOSIS_EPISODES:],
+                                  lead + stride * np.arange(1, diagnosis._clocks_after_reset(100) + 1))
     near, _ = jax.jit(lambda key: diagnosis.sample_for_diagnosis(env, env.step, key, 100, diagnosis.NEAR_STEPS))(key)
     assert int(near.data["count"].max()) == diagnosis.NEAR_STEPS - 1  # one clock a step over the first steps
     # Flat over the first steps, it looks along whole episodes by running its one program again: one compile.
