@@ -15,6 +15,7 @@ import jax.numpy as jnp
 from stablebptt.engine.checks import parameter_shapes
 from stablebptt.engine.config import LARGE_STEP, TrainConfig, batched_seeds
 from stablebptt.engine.memory import MemoryPlan, measure_now, plan_memory
+from stablebptt.engine.spread import device_count
 from stablebptt.engine.task import Task
 from stablebptt.flows.dynamics import Plan, PyTree
 from stablebptt.timing import usable_cores
@@ -148,14 +149,15 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
                 measured: Callable = measure_now) -> MemoryPlan:
     """The settings that fit ``task``'s gradient path (the derivative of ``plan``, default the task's own),
     at ``config.batch`` examples per update and seed, every seed batched in one program (vmap) beside
-    the others, into memory."""
+    the others, into one device's memory: the examples split evenly over ``config.devices``."""
     dynamics, plan = task.dynamics, task.plan if plan is None else plan
     control = _example_control(task, config, initial_state)
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
     known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
     return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, plan.step_derivative,
                        tangents=size(initial_state) + size(control) - known, measured=measured,
-                       copies=batched_seeds(config))  # seeds batched hold their paths at once
+                       copies=batched_seeds(config),  # seeds batched hold their paths at once
+                       devices=device_count(config))
 
 
 def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable = measure_now) -> Plan:

@@ -104,7 +104,8 @@ def measure_now(name: str, measure: Callable[[], int]) -> int:
 
 def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, batch: int, step_derivative: str,
                 tangents: int, budget: int | None = None,
-                measured: Callable[[str, Callable[[], int]], int] = measure_now, copies: int = 1) -> MemoryPlan:
+                measured: Callable[[str, Callable[[], int]], int] = measure_now, copies: int = 1,
+                devices: int = 1) -> MemoryPlan:
     """Fit the gradient path of ``batch`` rollouts of ``horizon`` steps into ``budget`` bytes.
 
     Args:
@@ -118,12 +119,16 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
         (``"forward"`` or ``"reverse"``), or the answer kept from an identical earlier run.
       copies: gradient paths held at once, each of ``batch`` rollouts (seeds batched in one program:
         each seed's chunk of Jacobians, or its stored steps, is live beside the others').
+      devices: devices the rollouts are split over evenly (``TrainConfig.devices``): each holds its
+        share of every path, and ``budget`` is one device's. A chunk of Jacobians is then a multiple
+        of ``devices``, so that each device computes its share of it.
 
     Raises:
       InputError: if not even one example fits.
     """
     budget = budget if budget is not None else int(BUDGET_FRACTION * available_bytes())
     examples = horizon * batch
+    share = lambda whole: -(-whole // devices)  # one device's part of a path split over the devices
     batched = f" x {copies} seeds in one program" if copies > 1 else ""
     if step_derivative == "forward":
         tangent_of = lambda tree: jax.tree.map(jnp.ones_like, tree)
@@ -135,19 +140,21 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
             raise InputError(f"one example's step Jacobian{batched} needs up to {_gigabytes(per_example * copies)}, "
                              f"more than the {_gigabytes(budget)} this machine can give it: set Plan.step_derivative "
                              f"to 'reverse'{one_by_one}")
-        fitting = budget // (per_example * copies)
+        fitting = budget // (per_example * copies) * devices  # examples at once over all the devices
+        estimate = per_example * share(examples) * copies
         if fitting >= examples:
-            return MemoryPlan(None, False, per_example * examples * copies)
-        # A divisor of the example count: equal chunks compile the step's Jacobian once, not twice.
-        chunk = max(d for d in range(1, int(fitting) + 1) if examples % d == 0)
-        return MemoryPlan(chunk, False, per_example * examples * copies)
+            return MemoryPlan(None, False, estimate)
+        # A divisor of the example count: equal chunks compile the step's Jacobian once, not twice;
+        # split evenly over the devices (a chunk that does not divide stays whole on each of them).
+        chunks = [size for size in range(devices, int(fitting) + 1, devices) if examples % size == 0]
+        return MemoryPlan(max(chunks or [1]), False, estimate)
     # Reverse mode stores every step's intermediates for the backward pass.
     per_step = measured("reverse", lambda: traced_bytes(lambda s, u: jax.vjp(step, s, u)[1], state, control))
-    stored = per_step * examples * copies
+    stored = per_step * share(examples) * copies
     if stored <= budget:
         return MemoryPlan(None, False, stored)
     state_bytes = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves((state, control)))
-    rematerialized = (state_bytes * examples + per_step * batch) * copies
+    rematerialized = (state_bytes * share(examples) + per_step * share(batch)) * copies
     if rematerialized > budget:
         raise InputError(f"the backward pass of {batch} examples x {horizon} steps{batched} needs up to "
                          f"{_gigabytes(rematerialized)} even recomputing each step, more than the {_gigabytes(budget)} "

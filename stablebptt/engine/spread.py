@@ -54,7 +54,7 @@ def spread_of(config: Any) -> Spread | None:
         multiple of their number.
     """
     visible = jax.devices()
-    count = len(visible) if config.devices == 0 else config.devices
+    count = device_count(config)
     if count > len(visible):
         raise InputError(f"{config_field(config, 'devices')} {config.devices}: JAX sees {len(visible)} "
                          f"{visible[0].platform} device{'s' if len(visible) > 1 else ''} here: ask for at most "
@@ -65,6 +65,11 @@ def spread_of(config: Any) -> Spread | None:
         raise InputError(f"{config_field(config, 'devices')}: {config_field(config, 'batch')} ({config.batch}) "
                          f"must split evenly over the {count} devices: make it a multiple of {count}")
     return Spread(Mesh(np.array(visible[:count]), (AXIS,)))
+
+
+def device_count(config: Any) -> int:
+    """How many devices ``config.devices`` asks for (0: every device JAX sees)."""
+    return len(jax.devices()) if config.devices == 0 else config.devices
 
 
 def split(spread: Spread | None, tree: Any) -> Any:

@@ -173,6 +173,14 @@ def test_the_memory_plan_chunks_recomputes_or_refuses_as_the_budget_shrinks():
                        copies=5).jacobian_chunk == 1  # 1.5 examples of each seed's fit: chunks of one
     with pytest.raises(InputError, match="--seed-batching map"):
         plan_memory(step, state, control, 10, 8, "forward", 18, budget=2 * one_example, copies=5)
+    # Split over 2 devices, each holds half of every path in its own budget: the stored steps fit
+    # where on one device they are recomputed; 7 examples fit a device, so a chunk is 10 of the 80 (the
+    # largest divisor within 14 that splits evenly), 5 on each device.
+    halved = plan_memory(step, state, control, 10, 8, "reverse", 18, budget=stored.estimate // 2, devices=2)
+    assert not halved.rematerialize and halved.estimate == stored.estimate // 2
+    assert plan_memory(step, state, control, 10, 8, "reverse", 18, budget=stored.estimate // 2).rematerialize
+    assert plan_memory(step, state, control, 10, 8, "forward", 18, budget=int(7.5 * one_example),
+                       devices=2).jacobian_chunk == 10
 
 
 def test_the_memory_plan_budgets_an_accelerators_free_memory_not_the_hosts(monkeypatch):
