@@ -14,7 +14,9 @@ the traced program, it smooths a lab's own reward as it does MuJoCo Playground's
 Each comparison's temperature is the median of the absolute difference it compared, over sampled
 states (``temperatures``), times a scale the user may give: a typical sampled state then sits
 within about one temperature of the threshold, where the sigmoid's slope is large. The two bounds
-of an interval (two comparisons joined by ``and``) share the larger of their temperatures.
+of an interval (two comparisons joined by ``and``) share the larger of their temperatures, except
+where every sampled state keeps one of them and some cross the other: that one stays as written, so
+the surrogate rises from below the box into it and is 1 across it.
 
 A reward can also be flat because an exponential that reaches it underflows: a Gaussian tolerance
 whose margin is small next to the sampled distances (``exp(-d**2 / margin**2)`` is 0 in float32 once
@@ -270,10 +272,17 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
         positive = magnitudes[magnitudes > 0]
         if place in recorder.used and positive.size:
             chosen[place] = (float(scale * np.median(positive)), recorder.places[place])
-    # The two bounds of an interval share the larger temperature: a state inside a narrow box sits close
-    # to both, and the bound it rarely nears (cos(angle) <= 1) would otherwise get a step's temperature.
-    for pair in recorder.bounds:
+    for pair in recorder.bounds:  # the two bounds of an interval
         if len(pair) == 2 and pair <= chosen.keys():
+            # A bound every sampled state keeps while some cross the other (HopperStand's height <= 2, an
+            # upright pole's cos <= 1) stays as written: smoothed, it only slopes the reward down across
+            # the box, and at a temperature wider than the box leaves the box level with the states below
+            # it (HopperStand: 2.0 against a box 1.4 wide).
+            kept = [place for place in pair if np.all(np.asarray(sampled[place]) > 0)]
+            if len(kept) == 1:
+                del chosen[kept[0]]
+                continue
+            # Otherwise they share the larger temperature: a state inside a narrow box sits close to both.
             shared = max(chosen[place][0] for place in pair)
             for place in pair:
                 chosen[place] = (shared, chosen[place][1])

@@ -90,6 +90,31 @@ def test_the_surrogate_has_a_gradient_where_the_reward_has_none_and_it_points_th
 
 
 
+LOW, HIGH = 0.6, 2.0  # HopperStand's box of heights; its sampled hoppers all lie below it
+
+
+@jax.jit
+def stand_step(state: Slider, action: jax.Array) -> Slider:
+    x = state.x + DT * action[0]
+    standing = jnp.where(jnp.logical_and(LOW <= x, x <= HIGH), 1.0, 0.0)
+    return Slider(x, state.v, standing, {"in_target": standing})
+
+
+def test_a_box_the_sampled_states_all_lie_below_rises_into_it_and_keeps_its_far_bound_as_written():
+    states, actions = samples()
+    below = states._replace(x=states.x * 0.4 - 0.6)  # in [-0.8, 0.4]: under LOW, far under HIGH
+    smooth_step, smoothing = smooth_reward(stand_step, below, actions)
+    x = np.asarray(below.x + DT * actions[:, 0], float)
+    # Only the bound the states cross is smoothed, at its own median distance.
+    assert len(smoothing.terms) == 1 and np.isclose(smoothing.temperatures[0], np.median(np.abs(x - LOW)), rtol=1e-5)
+    heights = jnp.array([-0.5, 0.2, LOW, 1.0, 1.5, 1.99, 2.5])
+    rewards = np.asarray(jax.vmap(smooth_step)(Slider(heights, jnp.zeros(7), jnp.zeros(7), {"in_target": jnp.zeros(7)}),
+                                               jnp.zeros((7, 1))).reward)
+    assert np.all(np.diff(rewards[:-1]) > 0), rewards  # higher is better all the way up the box (the slope to follow)
+    np.testing.assert_allclose(rewards[2], 0.5, rtol=1e-5)  # at the bound crossed, half
+    assert rewards[-1] == 0.0  # above the box, as written
+
+
 NARROW, WIDE = 0.01, 1.0  # Gaussian margins: far smaller than the sampled distances, and of their size
 
 
