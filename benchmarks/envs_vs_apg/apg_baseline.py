@@ -90,7 +90,8 @@ def reward_context(variant: str):
 _EVALUATORS: dict = {}
 
 
-def run_one(env_name, variant, seed, budget, eval_every, updates_per_epoch, hp, eval_envs, log, brax_eval="all"):
+def run_one(env_name, variant, seed, budget, eval_every, updates_per_epoch, hp, eval_envs, log, brax_eval="all",
+            keep=lambda rec: None):
     """One APG training run; returns its JSON record."""
     shipped = evaluation.load_env(env_name)
     episode_length = int(shipped._config.episode_length)
@@ -153,7 +154,7 @@ def run_one(env_name, variant, seed, budget, eval_every, updates_per_epoch, hp, 
 
     return brax_runs.timed_run(train, rec, evaluate=eval_shipped, evaluate_variant=eval_variant, budget=budget,
                                eval_every=eval_every, updates_per_epoch=updates_per_epoch,
-                               env_steps_per_update=num_envs * horizon, brax_eval=brax_eval, log=log)
+                               env_steps_per_update=num_envs * horizon, brax_eval=brax_eval, log=log, keep=keep)
 
 
 def main(argv=None):
@@ -196,8 +197,12 @@ def main(argv=None):
         for seed in range(a.seed0, a.seed0 + a.seeds):
             for variant in variants:
                 log(f"== {env_name} variant={variant} seed={seed} budget={a.budget}s")
+                # A run's record is written at every point scored: a run stopped by a wall-clock limit keeps them.
+                path = os.path.join(a.out, f"{env_name}_{variant}_s{seed}.json")
+                keep = (lambda rec: None) if a.throughput else (
+                    lambda rec, path=path: brax_runs.write_record(path, {**rec, "preset": a.preset, "argv": sys.argv}))
                 rec = run_one(env_name, variant, seed, a.budget, eval_every, a.updates_per_epoch, hp, a.eval_envs, log,
-                              a.brax_eval)
+                              a.brax_eval, keep=keep)
                 rec["preset"] = a.preset
                 rec["argv"] = sys.argv
                 if a.throughput:
@@ -215,8 +220,6 @@ def main(argv=None):
                     if rec["status"] in ("budget", "finished") and not a.all_variants:
                         break
                     continue
-                with open(os.path.join(a.out, f"{env_name}_{variant}_s{seed}.json"), "w") as f:
-                    json.dump(rec, f, indent=1)
                 keys = ("env", "variant", "seed", "status", "final_return", "best_return", "compile_s",
                         "env_steps_per_s", "update_s", "nan_epoch", "error_type")
                 summary.append({k: rec.get(k) for k in keys})

@@ -10,7 +10,9 @@ off the training clock.
 
 from __future__ import annotations
 
+import json
 import math
+import os
 import statistics
 import time
 import traceback
@@ -71,6 +73,15 @@ def solver_info(env) -> dict:
     }
 
 
+def write_record(path: str, record: dict) -> None:
+    """``record`` as JSON at ``path``, whole or not at all (written beside it, then renamed over it): a
+    run stopped while it writes keeps the record it wrote last."""
+    partial = f"{path}.partial"
+    with open(partial, "w") as handle:
+        json.dump(record, handle, indent=1)
+    os.replace(partial, path)
+
+
 def finite_or_text(x):
     x = float(np.asarray(x))
     return x if math.isfinite(x) else str(x)
@@ -88,11 +99,15 @@ def timed_run(
     env_steps_per_update: int,
     brax_eval: str,
     log: Callable[[str], None],
+    keep: Callable[[dict], None] = lambda rec: None,
 ) -> dict:
     """Runs `train()` (a Brax trainer's call) under the budget; fills and returns `rec`.
 
     An epoch is what Brax runs between two calls of its evaluator: `updates_per_epoch` updates of
-    `env_steps_per_update` env steps each."""
+    `env_steps_per_update` env steps each. `keep(rec)` is called after every point scored (status
+    "running") and once the run has ended, so a run stopped from outside keeps the points it scored:
+    at once where a wall-clock limit's SIGINT (or Ctrl-C) stops it, which is then raised again as
+    `KeyboardInterrupt` (status "interrupted"); at its last point where the process is killed."""
     from brax.training import acting
 
     label = f"[{rec['env']}/{rec.get('variant', rec['algo'])}/s{rec['seed']}]"
@@ -127,6 +142,7 @@ def timed_run(
         clock["last_eval_train_s"] = t
         log(f"  {label} t={t:7.1f}s ep={clock['epoch']} steps={point['env_steps']} "
             f"return={point['return']:.2f} brax={point.get('brax_eval_return')}")
+        keep(summarised(rec, budget))
 
     class TimedEvaluator(acting.Evaluator):
         def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
@@ -177,6 +193,8 @@ def timed_run(
         rec["status"] = "budget"
     except NaNReached:
         rec["status"] = "nan"
+    except KeyboardInterrupt:
+        rec["status"] = "interrupted"
     except Exception as e:  # noqa: BLE001 - the failure itself is the measurement
         rec["status"] = "error"
         rec["error_type"] = type(e).__name__
@@ -200,6 +218,16 @@ def timed_run(
         rec["env_steps_per_s"] = env_steps_per_update / rec["update_s"]
         sps = [e["sps"] for e in epochs[1:] if not isinstance(e["sps"], str)]
         rec["brax_sps_median"] = statistics.median(sps) if sps else None
+    summarised(rec, budget)
+    keep(rec)
+    if rec["status"] == "interrupted":
+        raise KeyboardInterrupt
+    return rec
+
+
+def summarised(rec: dict, budget: float) -> dict:
+    """``rec`` with its returns summed up from its points so far: the last, the best, and the last
+    scored within the budget."""
     finite = [p["return"] for p in rec["points"] if math.isfinite(p["return"])]
     rec["final_return"] = rec["points"][-1]["return"] if rec["points"] else None
     rec["best_return"] = max(finite) if finite else None

@@ -58,7 +58,7 @@ def training_steps_per_epoch(hp: dict) -> int:
     return int(per_epoch) * max(hp["num_resets_per_eval"], 1)
 
 
-def run_one(env_name, seed, budget, eval_every, hp, eval_envs, log, brax_eval="none"):
+def run_one(env_name, seed, budget, eval_every, hp, eval_envs, log, brax_eval="none", keep=lambda rec: None):
     env = evaluation.load_env(env_name)
     episode_length = int(env._config.episode_length)
     rec = {
@@ -88,7 +88,8 @@ def run_one(env_name, seed, budget, eval_every, hp, eval_envs, log, brax_eval="n
 
     return brax_runs.timed_run(train, rec, evaluate=evaluate, evaluate_variant=None, budget=budget, eval_every=eval_every,
                                updates_per_epoch=training_steps_per_epoch(hp),
-                               env_steps_per_update=env_steps_per_training_step(hp), brax_eval=brax_eval, log=log)
+                               env_steps_per_update=env_steps_per_training_step(hp), brax_eval=brax_eval, log=log,
+                               keep=keep)
 
 
 def main(argv=None):
@@ -110,13 +111,17 @@ def main(argv=None):
             hp = playground_config(env_name, overrides)
             log(f"jax {jax.__version__} devices {jax.devices()} {env_name} hp {hp}")
             for seed in range(a.seed0, a.seed0 + a.seeds):
-                rec = run_one(env_name, seed, a.budget, a.eval_every or a.budget / 10, hp, a.eval_envs, log, a.brax_eval)
-                rec["argv"] = sys.argv
-                with open(os.path.join(a.out, f"{env_name}_ppo_s{seed}.json"), "w") as f:
-                    json.dump(rec, f, indent=1)
+                # The record is written at every point scored: a run stopped by a wall-clock limit keeps them.
+                path = os.path.join(a.out, f"{env_name}_ppo_s{seed}.json")
+                rec = run_one(env_name, seed, a.budget, a.eval_every or a.budget / 10, hp, a.eval_envs, log, a.brax_eval,
+                              keep=lambda rec, path=path: brax_runs.write_record(path, {**rec, "argv": sys.argv}))
                 log(f"   -> {env_name} s{seed} {rec['status']} final {rec['final_return']} within budget "
                     f"{rec['return_within_budget']} compile {rec.get('compile_s')} env steps/s {rec.get('env_steps_per_s')}")
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:  # a wall-clock limit's SIGINT: the records keep the points scored
+        print("stopped: each seed's record keeps the points it scored", file=sys.stderr)
+        sys.exit(130)
