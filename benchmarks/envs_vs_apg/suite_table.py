@@ -16,7 +16,8 @@ reads each run folder (config.json, metrics.csv, startup.json), keeps what the t
 fresh resets, the deterministic policy, the env's own reward) with a 95% bootstrap interval over
 seeds, the first evaluation's, the update's and the start-up's seconds, and Brax PPO's return at its
 budget where `results/envs/baselines/ppo.json` has one (Brax's own loop, `ppo_baseline.py`), with
-MuJoCo Playground's published PPO return as the reference.
+MuJoCo Playground's published PPO return as the reference; then, per env with a reference, its best
+return by 300 s in a run of 5 seeds or more, and how many envs stand at half of it or more.
 
   python benchmarks/envs_vs_apg/suite_table.py --runs RUNS/* --out results/envs/suite
   python benchmarks/envs_vs_apg/suite_table.py --out results/envs/suite      # from OUT/records.json again
@@ -211,6 +212,7 @@ def table(records: list[dict], out: str) -> str:
             if any(near):
                 lines.append(f"| Brax PPO on {env}: each seed's evaluation nearest the mark, within {MARK_WITHIN_S} s | - | - | "
                              + " | ".join(_with_interval(returns) if returns else "-" for returns in near) + " |")
+    lines += ["", *against_reference(records, labels)]
     lines += ["", "Start-up, phase by phase (seconds; the run's first start, then each resume where the record "
               "keeps them; `startup.json` in its folder):", "",
               "| command | start | to training | " + " | ".join(PHASES) + " |", "|---|---|---:|" + "---:|" * len(PHASES)]
@@ -220,6 +222,44 @@ def table(records: list[dict], out: str) -> str:
                          f"{start['seconds_to_training']:.0f} | "
                          + " | ".join(f"{_phase(start['phases'], name):.1f}" for name in PHASES) + " |")
     return "\n".join(lines) + "\n"
+
+
+HALF = 0.5  # the issue's mark: an env counts where a run stands at half of PPO's reference or more
+AT_S = 300  # ... by this mark of the wall clock, set-up and compile counted
+MIN_SEEDS = 5  # ... in a run of this many seeds or more
+
+
+def by_mark(record: dict, mark: int = AT_S) -> list[float] | None:
+    """A run's returns by ``mark`` seconds of its wall clock: read at the mark where the run passed it,
+    its final returns where it ended within MARK_WITHIN_S of it in one start; None where it did neither."""
+    along = record.get("returns_by_wall_clock", {})
+    if str(mark) in along:
+        return along[str(mark)]
+    ended_by_mark = record.get("starts", 1) == 1 and 0 < record.get("budget", 0.0) <= mark + MARK_WITHIN_S
+    return record["final_return"] if ended_by_mark else None
+
+
+def against_reference(records: list[dict], labels: dict) -> list[str]:
+    """Per env with a PPO reference, its best run's mean return by AT_S seconds (runs of MIN_SEEDS seeds
+    or more) and that share of the reference; and how many envs stand at HALF of it or more."""
+    best = {}
+    for record in records:
+        returns = by_mark(record)
+        if record["env"] in PPO_REFERENCE and returns is not None and len(record["seeds"]) >= MIN_SEEDS:
+            mean = float(np.mean(returns))
+            if record["env"] not in best or mean > best[record["env"]][0]:
+                best[record["env"]] = (mean, returns, labels[_run_of(record)])
+    at_half = sorted(env for env, (mean, _, _) in best.items() if mean >= HALF * PPO_REFERENCE[env])
+    lines = [f"Against MuJoCo Playground's published PPO return, by {AT_S} s of wall clock (set-up and compile "
+             f"counted; each env's best run above of {MIN_SEEDS} seeds or more): {len(at_half)} of the {len(PPO_REFERENCE)} envs with a "
+             f"reference stand at {HALF:.0%} of it or more" + (f" ({', '.join(at_half)})" if at_half else "") +
+             f"; {len(PPO_REFERENCE) - len(best)} have no such run on record.", "",
+             f"| env | PPO reference | best by {AT_S} s | share | command |", "|---|---:|---|---:|---|"]
+    for env in sorted(best):
+        mean, returns, label = best[env]
+        lines.append(f"| {env} | {PPO_REFERENCE[env]} | {_with_interval(returns)} | "
+                     f"{mean / PPO_REFERENCE[env]:.0%} | {label} |")
+    return lines
 
 
 def _phase(phases: dict, name: str) -> float:

@@ -65,3 +65,22 @@ def test_a_command_run_again_adds_a_row_and_a_folder_read_again_replaces_its_own
     table = (out / "suite.md").read_text()
     for started in ("2026-01-01T10:00:00", "2026-01-02T10:00:00"):
         assert f"(started {started}) | cpu |" in table
+
+
+def test_an_env_counts_against_ppos_reference_by_its_best_return_at_300_s_in_a_run_of_five_seeds():
+    def record(env, command, returns, budget, along=None, seeds=5):
+        return {"env": env, "command": command, "started": "2026-01-01T10:00:00", "budget": budget, "starts": 1,
+                "seeds": list(range(seeds)), "final_return": returns, "returns_by_wall_clock": along or {}}
+    records = [
+        record("CheetahRun", "cheetah", [430.0] * 5, 300.0),  # 51% of 850
+        record("CheetahRun", "cheetah alone", [800.0], 300.0, seeds=1),  # one seed: not counted
+        record("WalkerWalk", "walker", [400.0] * 5, 550.0, along={"300": [100.0] * 5}),  # read at 300 s
+        record("PointMass", "point mass", [890.0] * 5, 900.0),  # never read at 300 s: no return by then
+        record("HopperStand", "hopper", [900.0] * 5, 300.0),  # no reference
+    ]
+    lines = suite_table.against_reference(records, suite_table._labels(records))
+    assert f"1 of the {len(suite_table.PPO_REFERENCE)} envs" in lines[0] and "(CheetahRun)" in lines[0]
+    rows = {line.split(" | ")[0].strip("| "): line for line in lines[4:]}
+    assert set(rows) == {"CheetahRun", "WalkerWalk"}
+    assert "| 430.0 [430.0, 430.0] | 51% | `cheetah` |" in rows["CheetahRun"]
+    assert "| 100.0 [100.0, 100.0] | 10% | `walker` |" in rows["WalkerWalk"]
