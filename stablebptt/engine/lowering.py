@@ -69,4 +69,5 @@ def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig
 def lowered_refill(trainer: Trainer, states: Any, program_key: dict | None = None) -> Any:
     """The trainer's refill (``Trainer.refill``) lowered for ``states`` (arrays, or their shapes), from its
     traced program kept under ``program_key`` as the epoch is (``program_store.lower_kept``)."""
-    return lower_kept(trainer.refill, (states,), trainer.kept_under(program_key), "refill", trainer.compiler_options)
+    return lower_kept(trainer.refill, (states,), trainer.kept_under(program_key), "refill", trainer.compiler_options,
+                      cache_dir())

@@ -161,12 +161,8 @@ def lower_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache
     host callback), it is lowered as usual. A ``PerUpdateEpoch`` lowers its pieces as it compiles
     (the metrics' program takes its shapes from the update's compiled program).
     """
-    if key_parts is None or cache_dir is None:
-        return epoch.lower(*arguments)
-
     def lower_one(program: Callable, program_arguments: tuple, name: str):
-        return _lower_kept(program, program_arguments, {**key_parts, "program": name},
-                           Path(cache_dir) / FOLDER, compiler_options)
+        return lower_kept(program, program_arguments, key_parts, name, compiler_options, cache_dir)
 
     if hasattr(epoch, "compile_pieces"):
         return epoch.lower(*arguments, lower_one=lower_one)
@@ -174,17 +170,16 @@ def lower_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache
 
 
 def lower_kept(program: Callable, arguments: tuple, key_parts: dict | None, name: str,
-               compiler_options: dict | None = None):
+               compiler_options: dict | None, folder: Path | None):
     """``program`` (jitted) lowered for ``arguments`` (arrays, or their shapes) from its traced program
-    kept under ``key_parts`` and ``name`` while JAX's compile cache is on, traced and kept first where
-    none is; otherwise lowered as usual. A run and its resume lower it alike, so the second finds
-    what the first compiled in XLA's cache: a checkpoint's arrays, which carry no weak types where
-    the first start's may, change no traced program. ``compiler_options``: the jit's own, which the
-    kept program is compiled with."""
-    folder = cache_dir()
+    kept under ``key_parts`` and ``name`` in ``folder`` (JAX's compile cache, ``cache_dir()``), traced
+    and kept first where none is; without a key or a folder, lowered as usual. A run and its resume lower it alike,
+    so the second finds what the first compiled in XLA's cache: a checkpoint's arrays, which carry no
+    weak types where the first start's may, change no traced program. ``compiler_options``: the jit's
+    own, which the kept program is compiled with."""
     if key_parts is None or folder is None:
         return program.lower(*arguments)
-    return _lower_kept(program, arguments, {**key_parts, "program": name}, folder / FOLDER, compiler_options)
+    return _lower_kept(program, arguments, {**key_parts, "program": name}, Path(folder) / FOLDER, compiler_options)
 
 
 def _lower_kept(program: Callable, arguments: tuple, key_parts: dict, folder: Path, compiler_options: dict | None):
