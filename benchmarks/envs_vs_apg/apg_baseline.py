@@ -21,6 +21,7 @@ import argparse
 import json
 import os
 import sys
+from pathlib import Path
 
 import jax
 
@@ -33,6 +34,7 @@ brax_runs.install_jax_shims()
 from brax.training.agents.apg import networks as apg_networks  # noqa: E402
 from brax.training.agents.apg import train as apg_train  # noqa: E402
 from mujoco_playground import wrapper as mjp_wrapper  # noqa: E402
+from stablebptt.storage import write_json  # noqa: E402
 
 # apg.train's own defaults, spelled out so the record says what ran.
 APG_DEFAULTS = dict(
@@ -198,9 +200,9 @@ def main(argv=None):
             for variant in variants:
                 log(f"== {env_name} variant={variant} seed={seed} budget={a.budget}s")
                 # A run's record is written at every point scored: a run stopped by a wall-clock limit keeps them.
-                path = os.path.join(a.out, f"{env_name}_{variant}_s{seed}.json")
+                path = Path(a.out) / f"{env_name}_{variant}_s{seed}.json"
                 keep = (lambda rec: None) if a.throughput else (
-                    lambda rec, path=path: brax_runs.write_record(path, {**rec, "preset": a.preset, "argv": sys.argv}))
+                    lambda rec, path=path: write_json(path, {**rec, "preset": a.preset, "argv": sys.argv}))
                 rec = run_one(env_name, variant, seed, a.budget, eval_every, a.updates_per_epoch, hp, a.eval_envs, log,
                               a.brax_eval, keep=keep)
                 rec["preset"] = a.preset
@@ -235,4 +237,8 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:  # a wall-clock limit's SIGINT: the records keep the points scored
+        print("stopped: each run's record keeps the points it scored", file=sys.stderr)
+        sys.exit(130)

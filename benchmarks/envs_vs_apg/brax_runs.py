@@ -10,9 +10,7 @@ off the training clock.
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import statistics
 import time
 import traceback
@@ -71,15 +69,6 @@ def solver_info(env) -> dict:
         "disableflags": int(o.disableflags),
         "n_limited_joints": int(env._mj_model.jnt_limited.sum()),
     }
-
-
-def write_record(path: str, record: dict) -> None:
-    """``record`` as JSON at ``path``, whole or not at all (written beside it, then renamed over it): a
-    run stopped while it writes keeps the record it wrote last."""
-    partial = f"{path}.partial"
-    with open(partial, "w") as handle:
-        json.dump(record, handle, indent=1)
-    os.replace(partial, path)
 
 
 def finite_or_text(x):

@@ -20,6 +20,7 @@ import argparse
 import json
 import os
 import sys
+from pathlib import Path
 
 import jax
 
@@ -34,6 +35,7 @@ from brax.training.agents.ppo import networks as ppo_networks  # noqa: E402
 from brax.training.agents.ppo import train as ppo_train  # noqa: E402
 from mujoco_playground import wrapper as mjp_wrapper  # noqa: E402
 from mujoco_playground.config import dm_control_suite_params  # noqa: E402
+from stablebptt.storage import write_json  # noqa: E402
 
 EVALS_UNBOUNDED = 1_000_001  # the budget ends the run, not the count of evaluations
 
@@ -112,9 +114,9 @@ def main(argv=None):
             log(f"jax {jax.__version__} devices {jax.devices()} {env_name} hp {hp}")
             for seed in range(a.seed0, a.seed0 + a.seeds):
                 # The record is written at every point scored: a run stopped by a wall-clock limit keeps them.
-                path = os.path.join(a.out, f"{env_name}_ppo_s{seed}.json")
+                path = Path(a.out) / f"{env_name}_ppo_s{seed}.json"
                 rec = run_one(env_name, seed, a.budget, a.eval_every or a.budget / 10, hp, a.eval_envs, log, a.brax_eval,
-                              keep=lambda rec, path=path: brax_runs.write_record(path, {**rec, "argv": sys.argv}))
+                              keep=lambda rec, path=path: write_json(path, {**rec, "argv": sys.argv}))
                 log(f"   -> {env_name} s{seed} {rec['status']} final {rec['final_return']} within budget "
                     f"{rec['return_within_budget']} compile {rec.get('compile_s')} env steps/s {rec.get('env_steps_per_s')}")
 

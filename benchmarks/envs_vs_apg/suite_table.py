@@ -31,6 +31,7 @@ import dataclasses
 import functools
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 
@@ -188,7 +189,7 @@ def table(records: list[dict], out: str) -> str:
              "Brax PPO | updates | s per update | s to the first epoch | evaluation's share | ended |",
              "|---|---|---|---:|---:|---:|---|---:|---:|---:|---:|---|"]
     labels = _labels(records)
-    for record in sorted(records, key=lambda r: (r["env"], *_run_of(r))):
+    for record in _ordered(records):
         final = np.asarray(record["final_return"])
         reference = PPO_REFERENCE.get(record["env"])
         share = f"{final.mean() / reference:.0%}" if reference else "-"
@@ -203,7 +204,7 @@ def table(records: list[dict], out: str) -> str:
                   "set-up and compile counted; `stablebptt plot RUN --x wall-clock` draws it):", "",
                   "| command | wall clock, s | epochs | " + " | ".join(f"by {mark} s" for mark in WALL_CLOCK_MARKS) + " |",
                   "|---|---:|---:|" + "---|" * len(WALL_CLOCK_MARKS)]
-        for record in sorted(resumed, key=lambda r: (r["env"], *_run_of(r))):
+        for record in _ordered(resumed):
             along = record["returns_by_wall_clock"]
             lines.append(f"| {labels[_run_of(record)]} | {record['wall_s']:.0f} | {record['epochs']} | " + " | ".join(
                 _with_interval(along[str(mark)]) if str(mark) in along else "-" for mark in WALL_CLOCK_MARKS) + " |")
@@ -216,7 +217,7 @@ def table(records: list[dict], out: str) -> str:
     lines += ["", "Start-up, phase by phase (seconds; the run's first start, then each resume where the record "
               "keeps them; `startup.json` in its folder):", "",
               "| command | start | to training | " + " | ".join(PHASES) + " |", "|---|---|---:|" + "---:|" * len(PHASES)]
-    for record in sorted(records, key=lambda r: (r["env"], *_run_of(r))):
+    for record in _ordered(records):
         for number, start in enumerate([record] + record.get("resumes", []), 1):
             lines.append(f"| {labels[_run_of(record)]} | {'first' if number == 1 else f'resume {number - 1}'} | "
                          f"{start['seconds_to_training']:.0f} | "
@@ -304,6 +305,11 @@ def _run_of(record: dict) -> tuple[str, str]:
     return record["command"], record.get("started", "")
 
 
+def _ordered(records: list[dict]) -> list[dict]:
+    """The records in the table's order: by env, then command, then first start."""
+    return sorted(records, key=lambda record: (record["env"], *_run_of(record)))
+
+
 def _labels(records: list[dict]) -> dict:
     """Each record's command cell: a command with several runs names each run's first start."""
     runs = collections.Counter(record["command"] for record in records)
@@ -317,9 +323,8 @@ def _labels(records: list[dict]) -> dict:
 
 def write(path: str, text: str) -> None:
     """``text`` into ``path`` whole or not at all (a stopped call leaves the records as they were)."""
-    with open(path + ".partial", "w") as handle:
-        handle.write(text)
-    os.replace(path + ".partial", path)
+    from stablebptt.storage import atomic_write
+    atomic_write(Path(path), text.encode())
 
 
 if __name__ == "__main__":

@@ -8,6 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from stablebptt.storage import write_json
+
 from conftest import ROOT
 
 _spec = importlib.util.spec_from_file_location("brax_runs", ROOT / "benchmarks" / "envs_vs_apg" / "brax_runs.py")
@@ -21,7 +23,7 @@ def timed(tmp_path, stop_at: int | None, budget: float = 1e9):
     """A timed run whose trainer calls Brax's evaluator once per epoch (each a point: eval_every 0),
     raising KeyboardInterrupt (a limit's SIGINT) after call ``stop_at``; its kept records, in turn."""
     from brax.training import acting
-    path, kept = str(tmp_path / "CheetahRun_ppo_s0.json"), []
+    path, kept = tmp_path / "CheetahRun_ppo_s0.json", []
     scores = iter(RETURNS)
 
     def train():
@@ -31,9 +33,9 @@ def timed(tmp_path, stop_at: int | None, budget: float = 1e9):
             if call == stop_at:
                 raise KeyboardInterrupt
 
-    def keep(rec):
-        brax_runs.write_record(path, rec)
-        kept.append(json.loads(open(path).read()))
+    def keep(rec):  # as the baselines keep theirs
+        write_json(path, rec)
+        kept.append(json.loads(path.read_text()))
 
     rec = {"env": "CheetahRun", "algo": "brax_ppo", "seed": 0}
     run = lambda: brax_runs.timed_run(  # noqa: E731
@@ -47,17 +49,17 @@ def test_a_run_stopped_by_a_limits_sigint_keeps_the_points_it_scored_and_stops(t
     run, kept, path = timed(tmp_path, stop_at=2)
     with pytest.raises(KeyboardInterrupt):
         run()
-    record = json.loads(open(path).read())
+    record = json.loads(path.read_text())
     assert record["status"] == "interrupted"
     assert [point["return"] for point in record["points"]] == RETURNS[:3]
     assert record["final_return"] == RETURNS[2] and record["best_return"] == max(RETURNS[:3])
     assert [len(each["points"]) for each in kept] == [1, 2, 3, 3]  # a record at every point, then the last
     assert [each["status"] for each in kept] == ["running"] * 3 + ["interrupted"]
-    assert not (tmp_path / "CheetahRun_ppo_s0.json.partial").exists()
+    assert list(tmp_path.iterdir()) == [path]  # no temporary file left beside it
 
 
 def test_a_run_its_budget_ends_keeps_its_record_with_the_budgets_status(tmp_path):
     run, kept, path = timed(tmp_path, stop_at=None, budget=0.0)
     rec = run()  # the first point is past a budget of 0 s: the run ends there
-    assert rec["status"] == "budget" and json.loads(open(path).read()) == json.loads(json.dumps(rec))
+    assert rec["status"] == "budget" and json.loads(path.read_text()) == json.loads(json.dumps(rec))
     assert [each["status"] for each in kept] == ["running", "budget"]
