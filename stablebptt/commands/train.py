@@ -133,7 +133,12 @@ def train(argv: list[str], held: list) -> int:
     if begun.trainer.episodes is not None:
         extras = (f", its return bootstrapped by a learned value of its last state (TD({train_config.td_lambda:g}) "
                   "targets)") if train_config.critic else ""
-        if train_config.action_noise:
+        if train_config.learn_action_noise:
+            extras += (f", Gaussian noise on its actions of standard deviations learned from "
+                       f"{train_config.action_noise:g}")
+            if train_config.entropy:
+                extras += f", the noise's entropy weighed {train_config.entropy:g} in its loss"
+        elif train_config.action_noise:
             extras += f", Gaussian noise of standard deviation {train_config.action_noise:g} on its actions"
         print(f"training on carried episodes: {train_config.batch} per seed, each update one window of "
               f"{task.dynamics.horizon} steps from where they stand{extras}, {begun.trainer.updates_per_epoch} updates "

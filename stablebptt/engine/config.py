@@ -66,6 +66,8 @@ class TrainConfig:
     devices: int = field(default=1, metadata={"help": "devices (GPUs) one run spreads over, the first N that JAX sees (0: all): the states each update rolls (--batch) split evenly across them, the parameters held whole on each"})
     episodes: str = field(default="auto", metadata={"help": "on: train on whole episodes, --batch states carried from update to update, each update one window of the horizon from where they stand, an ended episode started again from a fresh state (drawn once an epoch), an epoch one episode's length of windows; off: the paper's protocol, one window from each of the fixed training states; auto: on for tasks with episodes (environments), off for the others", "choices": EPISODE_CHOICES})
     action_noise: float = field(default=0.0, metadata={"help": "training on episodes: standard deviation of Gaussian noise added to every action of a training window (exploration; evaluation stays deterministic)"})
+    learn_action_noise: bool = field(default=False, metadata={"help": "training on episodes: learn the standard deviation of each action's noise, starting at --action-noise, by the windows' own gradient through the noisy actions (a stochastic actor, as short-horizon actor-critic's); kept within [0.001, 1]"})
+    entropy: float = field(default=0.0, metadata={"help": "with --learn-action-noise: each window's loss less this times the noise's entropy at each step, discounted as the rewards (a maximum-entropy actor at a fixed temperature)"})
     critic: bool = field(default=False, metadata={"help": "training on episodes: add a learned value of the window's last state to each window's return (short-horizon actor-critic), the critic fitted to TD(lambda) targets of the windows' rewards"})
     critic_lr: float = field(default=1e-3, metadata={"help": "the critic's Adam learning rate"})
     normalize_critic_observations: bool = field(default=False, metadata={"help": "training with the critic: it sees its observations standardised by the running mean and deviation of all those the training windows met (statistics of its own, kept with it), as the policy does under an environment's --normalize-observations"})
@@ -105,6 +107,14 @@ class TrainConfig:
                              f"choose one of {', '.join(MATMUL_PRECISIONS)}")
         if not (math.isfinite(self.action_noise) and self.action_noise >= 0):
             raise InputError(f"{config_field(self, 'action_noise')} must be a number >= 0, got {self.action_noise}")
+        if self.learn_action_noise and self.action_noise == 0:
+            raise InputError(f"{config_field(self, 'learn_action_noise')} learns the noise's deviation from "
+                             f"{config_field(self, 'action_noise')}, which is 0: give it a starting deviation > 0")
+        if not (math.isfinite(self.entropy) and self.entropy >= 0):
+            raise InputError(f"{config_field(self, 'entropy')} must be a number >= 0, got {self.entropy}")
+        if self.entropy and not self.learn_action_noise:
+            raise InputError(f"{config_field(self, 'entropy')} weighs the entropy of a learned noise: it needs "
+                             f"{config_field(self, 'learn_action_noise')}")
         for name in ("lr", "clip_threshold", "critic_lr"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):

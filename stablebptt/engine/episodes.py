@@ -94,8 +94,17 @@ class Window(NamedTuple):
     noise_key: jax.Array | None = None  # with exploration noise: the key its actions' noise draws from
 
 
+class Exploring(NamedTuple):
+    """What a window differentiates where its noise's scale is learned (``window_dynamics(learned_noise=True)``):
+    the policy's parameters and the log standard deviation of each action's noise, a tree shaped as the action."""
+
+    policy: PyTree
+    log_std: PyTree
+
+
 def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
-                    value: Callable[[PyTree], jax.Array] | None = None, action_noise: float = 0.0) -> Dynamics:
+                    value: Callable[[PyTree], jax.Array] | None = None, action_noise: float = 0.0,
+                    learned_noise: bool = False) -> Dynamics:
     """``dynamics`` over ``Window`` states: a window of ``window`` steps whose loss is its negative
     (discounted) return, rewards after its episode's end left out; with ``value`` (of a task's state),
     plus the discounted value of the window's last state where its episode still runs there.
@@ -103,7 +112,9 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
     With ``action_noise``, every action gets Gaussian noise of that standard deviation, drawn from the
     state's ``noise_key`` and its clock (``start_window``), so a flow that evaluates the policy again at a
     visited state sees the same noise. The noise does not depend on the parameters: the gradient is the
-    policy's own, taken along the noisy trajectory."""
+    policy's own, taken along the noisy trajectory. With ``learned_noise`` the parameters are ``Exploring``:
+    each action's noise is its standard deviation ``exp(log_std)`` times the same draw, so the window's
+    gradient reaches the deviations too (reparameterised, as SHAC's stochastic actor learns them)."""
     def step(current: Window, control) -> Window:
         reached = dynamics.step(current.state, control)
         clock = current.clock + 1
@@ -122,16 +133,43 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
         return -total
 
     def policy(params, current: Window):
+        if learned_noise:
+            params, deviations = params.policy, jax.tree.map(jnp.exp, params.log_std)
         control = dynamics.policy(params, current.state)
-        if action_noise == 0:
+        if action_noise == 0 and not learned_noise:
             return control
+        if not learned_noise:
+            deviations = jax.tree.map(lambda _: action_noise, control)
         keys = jax.random.split(jax.random.fold_in(current.noise_key, current.clock), len(jax.tree.leaves(control)))
         noise = jax.tree.unflatten(jax.tree.structure(control), [
             jax.random.normal(key, jnp.shape(leaf), jnp.result_type(leaf)) for key, leaf in
             zip(keys, jax.tree.leaves(control))])
-        return jax.tree.map(lambda c, n: c + action_noise * n, control, noise)
+        return jax.tree.map(lambda c, d, n: c + d * n, control, deviations, noise)
 
     return Dynamics(step=step, policy=policy, loss=loss, horizon=window)
+
+
+# The learned noise's deviations stay within these (an action's range is [-1, 1] where a policy squashes it):
+# the entropy's pull has no other counterweight where the return is flat in the noise.
+DEVIATION_BOUNDS = (1e-3, 1.0)
+
+
+def initial_log_std(control: PyTree, action_noise: float) -> PyTree:
+    """The learned noise's first log deviations: ``action_noise`` for every action (a tree shaped as ``control``)."""
+    return jax.tree.map(lambda leaf: jnp.full(jnp.shape(leaf), math.log(action_noise), jnp.result_type(leaf)), control)
+
+
+def bounded_log_std(log_std: PyTree) -> PyTree:
+    low, high = (math.log(bound) for bound in DEVIATION_BOUNDS)
+    return jax.tree.map(lambda leaf: jnp.clip(leaf, low, high), log_std)
+
+
+def entropy_gradient(log_std: PyTree, discount: float, window: int, coefficient: float) -> PyTree:
+    """The gradient, in the log deviations, of a window loss's entropy term: less ``coefficient`` times the
+    noise's entropy at each step, discounted as the rewards are. A Gaussian's entropy is its log deviation
+    plus a constant per action, the same at every state, so the gradient is a constant."""
+    weight = coefficient * sum(discount ** step for step in range(window))
+    return jax.tree.map(lambda leaf: jnp.full_like(leaf, -weight), log_std)
 
 
 def start_window(carried: Carried, reward_dtype, noise: bool = False) -> Window:

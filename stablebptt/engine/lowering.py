@@ -31,8 +31,8 @@ def state_shapes(trainer: Trainer, seeds: Any) -> Any:
     # the next call, and this one's parameters start before the check has decided how.
     policy = getattr(trainer.init.policy, "__wrapped__", trainer.init.policy)
     with tracing_shapes():
-        params, opt_state = jax.eval_shape(lambda seeds: policy(seeds), seeds)
-    return TrainState(params, opt_state, *jax.eval_shape(trainer.init.rest, seeds))
+        params, opt_state, log_std = jax.eval_shape(lambda seeds: policy(seeds), seeds)
+    return TrainState(params, opt_state, *jax.eval_shape(trainer.init.rest, seeds), log_std)
 
 
 def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | None = None,

@@ -21,8 +21,12 @@ from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches, dat
 from stablebptt.engine.critic import bootstrap, fit_to_window, init_critic
 from stablebptt.engine.episodes import (
     Episodes,
+    Exploring,
+    bounded_log_std,
     continue_from,
+    entropy_gradient,
     first_population,
+    initial_log_std,
     refill_pool,
     start_window,
     updates_per_epoch,
@@ -46,6 +50,9 @@ class TrainState(NamedTuple):
     opt_state: PyTree
     carried: PyTree = None  # training on episodes: the population carried from update to update (``Carried``)
     critic: PyTree = None  # with ``TrainConfig.critic``: the learned value at a window's end (``Critic``)
+    # With ``TrainConfig.learn_action_noise``: the log deviation of each action's noise (shaped as an action),
+    # updated with the parameters by one optimizer (``opt_state`` is then that of ``Exploring``).
+    log_std: PyTree = None
 
 
 class UpdateOutput(NamedTuple):
@@ -58,17 +65,17 @@ class UpdateOutput(NamedTuple):
 
 
 class Initializer(NamedTuple):
-    """``init(seeds) -> TrainState`` in two programs: the policy's parameters and their optimizer state,
-    whose values may wait for a task's check still running (``Task.settle``), and the rest (the carried
-    population's resets, the critic), which waits for nothing: ``fitting.prepare`` compiles it beside
-    the epoch."""
+    """``init(seeds) -> TrainState`` in two programs: the policy's parameters, the learned noise's deviations
+    and their optimizer state, whose values may wait for a task's check still running (``Task.settle``),
+    and the rest (the carried population's resets, the critic), which waits for nothing:
+    ``fitting.prepare`` compiles it beside the epoch."""
 
-    policy: Callable[[jax.Array], tuple[PyTree, PyTree]]  # seeds [S] -> (params, opt_state)
+    policy: Callable[[jax.Array], tuple[PyTree, PyTree, PyTree]]  # seeds [S] -> (params, opt_state, log_std)
     rest: Callable[[jax.Array], tuple[PyTree, PyTree]]  # seeds [S] -> (carried, critic)
 
     def __call__(self, seeds: jax.Array) -> TrainState:
-        params, opt_state = self.policy(seeds)
-        return TrainState(params, opt_state, *self.rest(seeds))
+        params, opt_state, log_std = self.policy(seeds)
+        return TrainState(params, opt_state, *self.rest(seeds), log_std)
 
 
 class Trainer(NamedTuple):
@@ -185,7 +192,10 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
 
     def init_policy(seed):
         params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)
-        return params, optimizer.init(params)
+        if not config.learn_action_noise:
+            return params, optimizer.init(params), None
+        log_std = initial_log_std(jax.eval_shape(task.dynamics.policy, params, example_state), config.action_noise)
+        return params, optimizer.init(Exploring(params, log_std)), log_std
 
     def init_rest(seed):
         key = jax.random.PRNGKey(seed)
@@ -201,23 +211,29 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
 
     def update(dynamics, state, batch):
         critic = state.critic
+        differentiated = state.params if state.log_std is None else Exploring(state.params, state.log_std)
         if episodes is None:
             loss, grads, _, visited = flow_window(dynamics, flows, state.params, split(spread, batch), plan)
             carried, counted = None, jnp.ones(jax.tree.leaves(visited)[0].shape[:2], bool)
         else:  # one window from where the carried states stand; the gradient stops at its start
             at_end = None if critic is None else bootstrap(critic, episodes.observe)
             carried = _split_population(spread, state.carried)  # its pool refilled as the epoch began (refill)
-            window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end, config.action_noise), flows,
-                                        state.params, start_window(carried, reward_dtype, config.action_noise > 0),
-                                        window_plan)
+            window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end, config.action_noise,
+                                                        config.learn_action_noise), flows, differentiated,
+                                        start_window(carried, reward_dtype, config.action_noise > 0), window_plan)
             loss, grads = window_result.loss, window_result.grads
+            if config.entropy:
+                grads = grads._replace(log_std=jax.tree.map(
+                    jnp.add, grads.log_std, entropy_gradient(state.log_std, episodes.discount, window, config.entropy)))
             visited, counted = window_result.visited.state, window_result.visited.running
             carried = continue_from(window_result.final, carried)
             if critic is not None:
                 critic = fit_to_window(critic, window_result.visited, window_result.final, episodes.observe,
                                        episodes.discount, config.td_lambda, critic_optimizer)
-        updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
+        updates, opt_state = optimizer.update(grads, state.opt_state, differentiated)
+        params, log_std = optax.apply_updates(differentiated, updates), None
+        if state.log_std is not None:
+            params, log_std = params.policy, bounded_log_std(params.log_std)
         if task.refresh_statistics is not None:  # what the policy saw in this window, after the update that used it
             params = task.refresh_statistics(params, visited, counted)
         if "M" in flows and "R" in flows:
@@ -228,7 +244,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         # Every flow's gradient, not only the update: mode C's sign agreement
         # turns a NaN of g_R into a finite zero update.
         flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])
-        return TrainState(params, opt_state, carried, critic), UpdateOutput(loss, optax.tree.norm(updates), cosine,
+        return TrainState(params, opt_state, carried, critic, log_std), UpdateOutput(loss, optax.tree.norm(updates), cosine,
                                                                             flows_finite)
 
     def evaluate_both(params, train_states, test_states, dynamics=task.dynamics):

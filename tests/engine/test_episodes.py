@@ -10,8 +10,10 @@ import pytest
 
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.episodes import (
+    DEVIATION_BOUNDS,
     Carried,
     Episodes,
+    Exploring,
     continue_from,
     first_population,
     refill_pool,
@@ -128,22 +130,31 @@ def test_first_clocks_are_spread_over_an_episode_unless_a_window_holds_one():
 
 
 @pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
-@pytest.mark.parametrize("at_end, action_noise", [(None, 0.0), (lambda x: 3.0 * x ** 2 - x, 0.0), (None, 0.3)],
-                         ids=["window", "with a value at its end", "with exploration noise"])
+@pytest.mark.parametrize("at_end, action_noise, learned_noise",
+                         [(None, 0.0, False), (lambda x: 3.0 * x ** 2 - x, 0.0, False), (None, 0.3, False),
+                          (None, 0.3, True)],
+                         ids=["window", "with a value at its end", "with exploration noise", "with learned noise"])
 def test_each_flow_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_where_it_does(step_derivative, at_end,
-                                                                                         action_noise):
+                                                                                         action_noise, learned_noise):
     # Episodes that end inside the window, by their clock and by done: the masks must hold in the gradient too;
     # a value of the last state is a loss on it, which every flow keeps; noise on the actions is part of the
-    # trajectory, which the flows evaluate the policy along again.
-    window = window_dynamics(drift(1.0), episodes(done_beyond=0.8), 5, value=at_end, action_noise=action_noise)
+    # trajectory, which the flows evaluate the policy along again; a learned deviation is a parameter as the
+    # policy's are.
+    window = window_dynamics(drift(1.0), episodes(done_beyond=0.8), 5, value=at_end, action_noise=action_noise,
+                             learned_noise=learned_noise)
     with float64():
         start = start_window(Carried(jnp.array([0.3, -0.5, 0.7, 0.1, 0.05]), jnp.array([0, 7, 2, 9, 1], jnp.int32),
                                      jax.random.PRNGKey(0)), jnp.float64, noise=action_noise > 0)
         theta = jnp.array([0.2, -0.1])
+        if learned_noise:
+            theta = Exploring(theta, jnp.log(jnp.array([action_noise])))
         loss, grads, final, _ = flow_window(window, ("R", "M"), theta, start, Plan(step_derivative=step_derivative))
         for index, flow in enumerate(("R", "M")):
             plain = jax.grad(lambda p, flow=flow: reference_loss(window, p, start, flow))(theta)
-            np.testing.assert_allclose(grads[index], plain, rtol=1e-10)
+            for ours, theirs in zip(jax.tree.leaves(grads), jax.tree.leaves(plain)):
+                np.testing.assert_allclose(ours[index], theirs, rtol=1e-10)
+        if learned_noise:  # the deviation moves the loss: its gradient is no zero that would pass by itself
+            assert abs(float(grads.log_std[0, 0])) > 1e-3
         np.testing.assert_allclose(loss, reference_loss(window, theta, start), rtol=1e-12)
         reached = jax.vmap(lambda x0: jax.tree.map(lambda a: a[-1], reference_rollout(window, theta, x0).states))(start)
         for ours, theirs in zip(jax.tree.leaves(final), jax.tree.leaves(reached)):
@@ -170,6 +181,35 @@ def test_exploration_noise_is_gaussian_of_its_deviation_fresh_at_every_step_and_
     assert start_window(population, jnp.float32).noise_key is None
     np.testing.assert_array_equal(jax.vmap(lambda x: plain.policy(theta, x))(start_window(population, jnp.float32)),
                                   theta[0] * population.states[:, None] + theta[1])
+
+
+def test_a_learned_deviation_follows_the_windows_gradient_and_the_entropys_pull_within_its_bounds():
+    # Rewards -x^2: noise on the actions only costs, so without an entropy term the deviation shrinks; a large
+    # entropy weight outpulls that cost and the deviation grows to its upper bound, no further. The evaluation
+    # stays the deterministic policy's: its parameters are the policy's alone.
+    task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
+                sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)), episodes=episodes())
+    config = TrainConfig(epochs=1, batch=16, train_size=2, test_size=2, lr=5e-2, action_noise=0.3,
+                         learn_action_noise=True, clip="none")
+    deviations = {}
+    for entropy in (0.0, 10.0):
+        trainer = make_trainer(task, dataclasses.replace(config, entropy=entropy))
+        state = trainer.init(seed_array(config))
+        np.testing.assert_allclose(jnp.exp(state.log_std), [[0.3]], rtol=1e-6)
+        for _ in range(10):
+            state, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
+            assert bool(metrics["finite"][0])
+        deviations[entropy] = float(jnp.exp(state.log_std[0, 0]))
+        assert jax.tree.structure(state.params) == jax.tree.structure(jnp.zeros((1, 2)))
+        np.testing.assert_array_equal(trainer.evaluate(state.params, trainer.test_states),
+                                      trainer.evaluate(state.params, trainer.test_states))
+    assert deviations[0.0] < 0.2 and deviations[10.0] == pytest.approx(DEVIATION_BOUNDS[1], rel=1e-5)
+    with pytest.raises(InputError, match="learn_action_noise learns the noise's deviation from TrainConfig.action_noise"):
+        TrainConfig(learn_action_noise=True)
+    with pytest.raises(InputError, match="entropy weighs the entropy of a learned noise"):
+        TrainConfig(action_noise=0.1, entropy=0.1)
+    with pytest.raises(InputError, match="entropy must be a number >= 0"):
+        TrainConfig(action_noise=0.1, learn_action_noise=True, entropy=-1.0)
 
 
 def test_a_decaying_learning_rate_scales_every_update_by_its_factor_per_update():
