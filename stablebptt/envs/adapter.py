@@ -173,11 +173,16 @@ def _derivative_smoothed(traced: Callable[[Any], Callable], env: Any, smoothing:
 
 
 def observation_policy(params: Any, seen: jax.Array) -> jax.Array:
-    """An env task's deterministic policy on an observation: tanh of the MLP, the observation standardised
-    first by the statistics the parameters keep where the run normalises observations."""
+    """An env task's deterministic policy on an observation: tanh of ``squashed_output``."""
+    return jnp.tanh(squashed_output(params, seen))
+
+
+def squashed_output(params: Any, seen: jax.Array) -> jax.Array:
+    """What an env task's policy squashes into its action: the MLP of the observation, standardised first by
+    the statistics the parameters keep where the run normalises observations."""
     if isinstance(params, StandardizedNetwork):
         params, seen = params.network, standardized(params.statistics, seen)
-    return jnp.tanh(mlp_apply(params, seen))
+    return mlp_apply(params, seen)
 
 
 def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,

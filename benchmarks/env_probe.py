@@ -1,0 +1,130 @@
+"""Two looks at a MuJoCo Playground environment where a run does not train: is the step's derivative
+right, and what does the trained policy do.
+
+  python benchmarks/env_probe.py gradient ReacherEasy [--surrogate-reward env_probe:reacher_distance_reward]
+          [--window 16] [--set-qpos 1=2.79]
+      One reset (then one step with zero action, so every derived quantity is current), the joint
+      positions set as given; a window of constant actions 0.3 from there. The gradient of the window's
+      summed reward (the env's, or ``M:F`` of the state each step reaches) in each action of its first,
+      middle and last step: the step's derivative as training takes it (the constraint solver
+      differentiated at its solution) against central finite differences, in float64.
+  python benchmarks/env_probe.py rollout RUN_DIR [--steps 300] [--seed-index 0]
+      A trained environment run's policy for one episode from a reset: the env's return, the share of
+      actions whose pre-squash output lies past +-2 (tanh > 0.96: saturated), and each joint position's
+      first, last, smallest and largest value.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+ACTION = 0.3
+EPSILON = 1e-5
+
+
+def reacher_distance_reward(state) -> jax.Array:
+    """ReacherEasy's and ReacherHard's finger-to-target distance, negated: a dense reward of the state
+    (its observation holds the joint positions, then the finger-to-target vector). Train on it with
+    ``PYTHONPATH=benchmarks stablebptt train --env ReacherEasy --surrogate-reward env_probe:reacher_distance_reward``."""
+    return -jnp.linalg.norm(state.obs[2:4])
+
+
+def _stepper(env, name: str):
+    from stablebptt.envs import playground
+    from stablebptt.physics.constraint_derivatives import differentiable_mjx
+
+    def step(state, action):
+        with differentiable_mjx(implicit_solver=True), playground.repaired_rewards():
+            return env.step(state, action)
+    return step
+
+
+def gradient(name: str, window: int, surrogate: str, set_qpos: list[str]) -> None:
+    jax.config.update("jax_enable_x64", True)
+    from stablebptt.envs import playground
+    from stablebptt.envs.protocol import load_reward
+    env = playground.load(name)
+    step = _stepper(env, name)
+    reward = load_reward(surrogate) if surrogate else (lambda state: state.reward)
+    state = jax.jit(env.reset)(jax.random.PRNGKey(3))
+    qpos = state.data.qpos
+    for item in set_qpos:
+        index, value = item.split("=")
+        qpos = qpos.at[int(index)].set(float(value))
+    zero = jnp.zeros(env.action_size)
+    state = jax.jit(step)(state.replace(data=state.data.replace(qpos=qpos)), zero)
+
+    def summed(actions):
+        def body(current, action):
+            reached = step(current, action)
+            return reached, reward(reached)
+        return jnp.sum(jax.lax.scan(body, state, actions)[1])
+
+    actions = jnp.full((window, env.action_size), ACTION)
+    value, derivative = jax.jit(summed), jax.jit(jax.grad(summed))(actions)
+    print(f"{name}: a window of {window} steps, summed {'surrogate ' if surrogate else ''}reward "
+          f"{float(value(actions)):.6g}, joint positions {np.round(np.asarray(qpos), 4)}")
+    for t in sorted({0, window // 2, window - 1}):
+        differences = []
+        for j in range(env.action_size):
+            nudge = jnp.zeros_like(actions).at[t, j].set(EPSILON)
+            differences.append((value(actions + nudge) - value(actions - nudge)) / (2 * EPSILON))
+        ours, theirs = np.asarray(derivative[t]), np.asarray(differences)
+        worst = np.max(np.abs(ours - theirs) / np.maximum(np.abs(theirs), 1e-12))
+        print(f"  step {t}: derivative {np.array2string(ours, precision=8)}, finite differences "
+              f"{np.array2string(theirs, precision=8)}, largest relative difference {worst:.1e}")
+
+
+def rollout(run_dir: Path, steps: int, seed_index: int) -> None:
+    from stablebptt.apps.trained import open_trained
+    from stablebptt.envs import playground
+    from stablebptt.envs.adapter import squashed_output
+    trained = open_trained(run_dir)
+    name = trained.task_config.env
+    env = playground.load(name)
+    params = trained.seed_params(seed_index)
+    step, output = jax.jit(_stepper(env, name)), jax.jit(lambda obs: squashed_output(params, obs))
+    state = jax.jit(env.reset)(jax.random.PRNGKey(7))
+    total, saturated, positions = 0.0, [], []
+    for _ in range(steps):
+        raw = output(state.obs)
+        saturated.append(np.abs(np.asarray(raw)) > 2)
+        state = step(state, jnp.tanh(raw))
+        total += float(state.reward)
+        positions.append(np.asarray(state.data.qpos))
+    positions = np.array(positions)
+    print(f"{name} ({run_dir}, seed index {seed_index}): return {total:.1f} over {steps} steps; actions saturated "
+          f"(|pre-squash| > 2): {np.mean(saturated):.0%}")
+    for index in range(positions.shape[1]):
+        column = positions[:, index]
+        print(f"  qpos[{index}]: first {column[0]:.3f}, last {column[-1]:.3f}, from {column.min():.3f} "
+              f"to {column.max():.3f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    looks = parser.add_subparsers(dest="look", required=True)
+    one = looks.add_parser("gradient")
+    one.add_argument("env")
+    one.add_argument("--window", type=int, default=16)
+    one.add_argument("--surrogate-reward", default="")
+    one.add_argument("--set-qpos", action="append", default=[], metavar="INDEX=VALUE")
+    other = looks.add_parser("rollout")
+    other.add_argument("run_dir", type=Path)
+    other.add_argument("--steps", type=int, default=300)
+    other.add_argument("--seed-index", type=int, default=0)
+    arguments = parser.parse_args()
+    with contextlib.suppress(KeyboardInterrupt):
+        if arguments.look == "gradient":
+            gradient(arguments.env, arguments.window, arguments.surrogate_reward, arguments.set_qpos)
+        else:
+            rollout(arguments.run_dir, arguments.steps, arguments.seed_index)
+
+
+if __name__ == "__main__":
+    main()
