@@ -184,6 +184,10 @@ def train(argv: list[str], held: list) -> int:
         print(outcome.message)
     from stablebptt.reports.plots import plot_run
     plot_run(run_dir)
+    if outcome.state.log_std is not None:
+        deviations = np.exp(np.concatenate([np.ravel(leaf) for leaf in jax.tree.leaves(outcome.state.log_std)]))
+        print(f"the actions' noise, learned: deviations {deviations.min():.3g} to {deviations.max():.3g} over "
+              f"actions and seeds (from {train_config.action_noise:g})")
     print(f"done: {task_label}, mode {train_config.mode}, {_epochs(outcome.epoch)}, final test loss "
           f"{_final(outcome.rows, seeds)} -> {run_dir}")
     return 0

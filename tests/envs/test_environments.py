@@ -262,10 +262,12 @@ def test_an_env_module_that_fails_as_it_imports_is_one_line_and_the_current_fold
 def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_one_and_says_what_it_cannot_check(
         tmp_path, capsys, monkeypatch):
     # Windows of 4 steps along carried episodes of 6: episodes end inside windows and are reset between them;
-    # the observation statistics ride in the parameters' checkpoint. A budget spent in the set-up stops the
-    # run after its first epoch, evaluated and saved; the resume, with no budget, trains on to --epochs.
+    # the observation statistics ride in the parameters' checkpoint, the learned noise's deviations in the
+    # state's. A budget spent in the set-up stops the run after its first epoch, evaluated and saved; the
+    # resume, with no budget, trains on to --epochs.
     sizes = ["--steps", "4", "--train-size", "4", "--test-size", "4", "--batch", "4", "--episode-length", "6",
-             "--seeds", "2", "--no-progress", "--normalize-observations", "--eval-every", "2"]
+             "--seeds", "2", "--no-progress", "--normalize-observations", "--eval-every", "2",
+             "--action-noise", "0.2", "--learn-action-noise", "--entropy", "0.01"]
     code, err = train_in_process(capsys, "--env", "envs_for_tests:make_cart", *sizes, "--epochs", "3",
                                  "--budget", "0.001", "--out", str(tmp_path / "run"))
     assert code == 0 and not err, err
@@ -276,8 +278,10 @@ def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_o
         patched.setattr(fitting, "compile_epoch", lambda *a, **k: pytest.fail("the resume's epoch traced again"))
         code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--budget", "0")
     assert code == 0, err
-    assert train_in_process(capsys, "--env", "envs_for_tests:make_cart", *sizes, "--epochs", "3",
-                            "--out", str(tmp_path / "straight"))[0] == 0
+    from stablebptt.commands import train as train_command
+    assert train_command.main(["--env", "envs_for_tests:make_cart", *sizes, "--epochs", "3",
+                               "--out", str(tmp_path / "straight")]) == 0
+    assert "the actions' noise, learned: deviations" in capsys.readouterr().out
     resumed, straight = (run_folder.read_metrics(tmp_path / name / run_folder.METRICS_FILE) for name in ("run", "straight"))
     assert len(resumed) == len(straight) == 6
     timings = ("seconds", "eval_seconds")
