@@ -16,7 +16,7 @@ right, and what does the trained policy do.
 from __future__ import annotations
 
 import argparse
-import contextlib
+import sys
 from pathlib import Path
 
 import jax
@@ -34,22 +34,18 @@ def reacher_distance_reward(state) -> jax.Array:
     return -jnp.linalg.norm(state.obs[2:4])
 
 
-def _stepper(env, name: str):
-    from stablebptt.envs import playground
-    from stablebptt.physics.constraint_derivatives import differentiable_mjx
-
-    def step(state, action):
-        with differentiable_mjx(implicit_solver=True), playground.repaired_rewards():
-            return env.step(state, action)
-    return step
-
-
 def gradient(name: str, window: int, surrogate: str, set_qpos: list[str]) -> None:
     jax.config.update("jax_enable_x64", True)
     from stablebptt.envs import playground
     from stablebptt.envs.protocol import load_reward
+    from stablebptt.physics.constraint_derivatives import differentiable_mjx
     env = playground.load(name)
-    step = _stepper(env, name)
+
+    # The step as env_task traces it, not env_task's own: its checks refuse Playground's step in float64,
+    # whose scans change their carry's dtype.
+    def step(state, action):
+        with differentiable_mjx(implicit_solver=True), playground.repaired_rewards():
+            return env.step(state, action)
     reward = load_reward(surrogate) if surrogate else (lambda state: state.reward)
     state = jax.jit(env.reset)(jax.random.PRNGKey(3))
     qpos = state.data.qpos
@@ -82,24 +78,21 @@ def gradient(name: str, window: int, surrogate: str, set_qpos: list[str]) -> Non
 
 def rollout(run_dir: Path, steps: int, seed_index: int) -> None:
     from stablebptt.apps.trained import open_trained
-    from stablebptt.envs import playground
     from stablebptt.envs.adapter import squashed_output
     trained = open_trained(run_dir)
-    name = trained.task_config.env
-    env = playground.load(name)
-    params = trained.seed_params(seed_index)
-    step, output = jax.jit(_stepper(env, name)), jax.jit(lambda obs: squashed_output(params, obs))
-    state = jax.jit(env.reset)(jax.random.PRNGKey(7))
+    episodes, params = trained.task.episodes, trained.seed_params(seed_index)
+    output = jax.jit(lambda state: squashed_output(params, episodes.observe(state)))
+    state = jax.jit(episodes.reset)(jax.random.PRNGKey(7))
     total, saturated, positions = 0.0, [], []
     for _ in range(steps):
-        raw = output(state.obs)
+        raw = output(state)
         saturated.append(np.abs(np.asarray(raw)) > 2)
-        state = step(state, jnp.tanh(raw))
+        state = episodes.step(state, jnp.tanh(raw))  # the env's own step: its reward, not a surrogate's
         total += float(state.reward)
         positions.append(np.asarray(state.data.qpos))
     positions = np.array(positions)
-    print(f"{name} ({run_dir}, seed index {seed_index}): return {total:.1f} over {steps} steps; actions saturated "
-          f"(|pre-squash| > 2): {np.mean(saturated):.0%}")
+    print(f"{trained.task.name} ({run_dir}, seed index {seed_index}): return {total:.1f} over {steps} steps; "
+          f"actions saturated (|pre-squash| > 2): {np.mean(saturated):.0%}")
     for index in range(positions.shape[1]):
         column = positions[:, index]
         print(f"  qpos[{index}]: first {column[0]:.3f}, last {column[-1]:.3f}, from {column.min():.3f} "
@@ -119,11 +112,14 @@ def main() -> None:
     other.add_argument("--steps", type=int, default=300)
     other.add_argument("--seed-index", type=int, default=0)
     arguments = parser.parse_args()
-    with contextlib.suppress(KeyboardInterrupt):
+    try:
         if arguments.look == "gradient":
             gradient(arguments.env, arguments.window, arguments.surrogate_reward, arguments.set_qpos)
         else:
             rollout(arguments.run_dir, arguments.steps, arguments.seed_index)
+    except KeyboardInterrupt:
+        print("stopped", file=sys.stderr)
+        sys.exit(130)
 
 
 if __name__ == "__main__":

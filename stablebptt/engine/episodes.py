@@ -133,13 +133,14 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
         return -total
 
     def policy(params, current: Window):
-        if learned_noise:
-            params, deviations = params.policy, jax.tree.map(jnp.exp, params.log_std)
-        control = dynamics.policy(params, current.state)
-        if action_noise == 0 and not learned_noise:
-            return control
         if not learned_noise:
+            control = dynamics.policy(params, current.state)
+            if action_noise == 0:
+                return control
             deviations = jax.tree.map(lambda _: action_noise, control)
+        else:
+            control = dynamics.policy(params.policy, current.state)
+            deviations = jax.tree.map(jnp.exp, params.log_std)
         keys = jax.random.split(jax.random.fold_in(current.noise_key, current.clock), len(jax.tree.leaves(control)))
         noise = jax.tree.unflatten(jax.tree.structure(control), [
             jax.random.normal(key, jnp.shape(leaf), jnp.result_type(leaf)) for key, leaf in

@@ -201,8 +201,9 @@ def test_a_learned_deviation_follows_the_windows_gradient_and_the_entropys_pull_
             assert bool(metrics["finite"][0])
         deviations[entropy] = float(jnp.exp(state.log_std[0, 0]))
         assert jax.tree.structure(state.params) == jax.tree.structure(jnp.zeros((1, 2)))
+        noiseless = make_trainer(task, dataclasses.replace(config, action_noise=0.0, learn_action_noise=False))
         np.testing.assert_array_equal(trainer.evaluate(state.params, trainer.test_states),
-                                      trainer.evaluate(state.params, trainer.test_states))
+                                      noiseless.evaluate(state.params, noiseless.test_states))
     assert deviations[0.0] < 0.2 and deviations[10.0] == pytest.approx(DEVIATION_BOUNDS[1], rel=1e-5)
     with pytest.raises(InputError, match="learn_action_noise learns the noise's deviation from TrainConfig.action_noise"):
         TrainConfig(learn_action_noise=True)
