@@ -164,7 +164,7 @@ def train(argv: list[str], held: list) -> int:
             outcome = in_worker_thread(lambda: epochs.train_epochs(*begun.training_arguments(), progress.on_epoch,
                                                                    progress.on_compiled, should_stop, run.owner,
                                                                    begun.program_key, begun.lowered, started,
-                                                                   begun.phases))
+                                                                   begun.phases, begun.compile_saved_mark))
     except StorageError as error:
         fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
     except jax.errors.JaxRuntimeError as error:

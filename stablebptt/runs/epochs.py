@@ -20,6 +20,7 @@ from stablebptt.engine.fitting import (
 )
 from stablebptt.engine.divergence import nonfinite_message, zeroed_notice
 from stablebptt.engine.lowering import LoweredEpoch
+from stablebptt.engine.program_store import compile_seconds_saved
 from stablebptt.engine.training import Trainer, TrainState
 from stablebptt.errors import InputError
 from stablebptt.runs.run_folder import (
@@ -57,6 +58,7 @@ def train_epochs(
     lowered: LoweredEpoch | None = None,
     started: float | None = None,
     phases: dict[str, float] | None = None,
+    compile_saved_mark: float | None = None,
 ) -> Outcome:
     """Train one run's seeds to ``config.epochs`` from ``start_epoch``, checkpointing into ``run_dir``.
 
@@ -70,7 +72,8 @@ def train_epochs(
     traced epoch is kept there, and a run with the same key skips tracing it. ``lowered``: the epoch
     lowered already (``fitting.prepare``), used where ``state`` has its shapes. ``phases``: the
     start-up's phases so far (``Prepared.phases``), recorded with the compile's in the run's
-    ``startup.json``.
+    ``startup.json``; ``compile_saved_mark``: ``program_store.compile_seconds_saved()`` as the start
+    began (``Session.compile_saved_mark``), to record the compile the persistent cache saved it.
     """
     started = time.perf_counter() if started is None else started
     phases = dict(phases or {})
@@ -82,7 +85,8 @@ def train_epochs(
     phases["evaluation's compile"] = evaluations.compile(state, lowered and lowered.evaluation)
     on_compiled(phases["compile"] + phases["evaluation's compile"])
     record_start(run_dir, {name: seconds for name, seconds in phases.items() if seconds},
-                 time.perf_counter() - started, config.budget, start_epoch + 1)
+                 time.perf_counter() - started, config.budget, start_epoch + 1,
+                 None if compile_saved_mark is None else compile_seconds_saved() - compile_saved_mark)
     arguments = (trainer.batches, trainer.train_states, trainer.test_states)
 
     def run_epoch(state):
@@ -122,15 +126,19 @@ def _starts(run_dir: Path) -> list[dict]:
 
 
 def record_start(run_dir: Path, phases: dict[str, float], seconds: float, budget: float = 0.0,
-                 first_epoch: int = 1) -> None:
+                 first_epoch: int = 1, compile_seconds_from_cache: float | None = None) -> None:
     """Add a start of the run (its first, or a ``--resume``) to its ``startup.json``: when, on which
     device, the seconds of each start-up phase and from the command's start to its first epoch's
-    start, the budget it was given (none: left out) and the epoch it trains first."""
+    start, the budget it was given (none: left out), the epoch it trains first and the seconds of
+    compile that JAX's persistent cache saved it (where measured: a fresh machine's start saves none,
+    a start after the same programs ran on the machine most of its compile)."""
     path, starts = Path(run_dir) / STARTUP_FILE, _starts(run_dir)
     device = jax.devices()[0]
     starts.append({"started": datetime.now().isoformat(timespec="seconds"), "device": f"{device.platform} ({device.device_kind})",
                    "seconds_to_training": round(seconds, 3), "phases": {name: round(value, 3) for name, value in phases.items() if round(value, 3)},
-                   "first_epoch": first_epoch, **({"budget": budget} if budget else {})})
+                   "first_epoch": first_epoch, **({"budget": budget} if budget else {}),
+                   **({} if compile_seconds_from_cache is None
+                      else {"compile_seconds_from_cache": round(compile_seconds_from_cache, 3)})})
     write_json(path, starts)
 
 

@@ -6,7 +6,8 @@
     module = tasks.load("repulsion")
     begun = session.begin(module, "repulsion", module.Config(), TrainConfig(epochs=20))
     try:
-        outcome = epochs.train_epochs(*begun.training_arguments(), phases=begun.phases)
+        outcome = epochs.train_epochs(*begun.training_arguments(), phases=begun.phases,
+                                      compile_saved_mark=begun.compile_saved_mark)
     finally:
         begun.run.close()
 
@@ -28,7 +29,7 @@ import numpy as np
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.fitting import env_steps_per_epoch, prepare
 from stablebptt.engine.lowering import LoweredEpoch
-from stablebptt.engine.program_store import run_key
+from stablebptt.engine.program_store import compile_seconds_saved, run_key
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import Trainer, TrainState
 from stablebptt.errors import InputError
@@ -49,6 +50,7 @@ class Session(NamedTuple):
     program_key: dict | None  # what decides the run's programs (``program_store.run_key``)
     lowered: LoweredEpoch | None  # a new run's epoch, traced while the task settled
     phases: dict[str, float]  # seconds of each start-up phase so far (``Prepared.phases``, and the task's build)
+    compile_saved_mark: float  # ``program_store.compile_seconds_saved()`` as the start began
 
     def training_arguments(self) -> tuple:
         """``runs.epochs.train_epochs``'s positional arguments up to its callbacks."""
@@ -70,6 +72,7 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
       StorageError: the folder cannot be written.
     """
     run = None
+    compile_saved_mark = compile_seconds_saved()
     try:
         if record is not None:
             run = Run.open(run_dir, record)
@@ -99,4 +102,4 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
             run.close()
         raise
     return Session(run, task, trainer, train_config, state, start_epoch, rows, np.asarray(seed_array(train_config)),
-                   prepared.program_key, prepared.lowered, phases)
+                   prepared.program_key, prepared.lowered, phases, compile_saved_mark)

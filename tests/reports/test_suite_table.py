@@ -38,7 +38,8 @@ def env_run(path: Path, budgets: tuple[float, ...], started: str, epochs_per_sta
     starts = [{"budget": budget, "device": "cpu", "seconds_to_training": START_S, "phases": {"compile": 30.0},
                "first_epoch": 1 + number * epochs_per_start,
                "ended": {"epoch": (number + 1) * epochs_per_start, "status": "budget"},
-               "started": f"{started}:{number:02d}"} for number, budget in enumerate(budgets)]
+               "started": f"{started}:{number:02d}", "compile_seconds_from_cache": 25.0 * number}
+              for number, budget in enumerate(budgets)]
     (path / "startup.json").write_text(json.dumps(starts))
     return path
 
@@ -51,6 +52,8 @@ def test_returns_stand_at_the_marks_a_run_was_budgeted_to_reach_and_no_further(t
     resumed = suite_table.read_run(env_run(tmp_path / "resumed", (300.0, 300.0), "2026-01-01T11:00"))
     assert resumed["returns_by_wall_clock"] == {"300": [100.0, 101.0], "600": [200.0, 201.0]}
     assert resumed["command"].endswith("--budget 300, then --resume RUN --budget 300") and resumed["starts"] == 2
+    # Each start's compile loaded from the cache: none at the first, 25 s at the resume.
+    assert resumed["compile_seconds_from_cache"] == 0.0 and resumed["resumes"][0]["compile_seconds_from_cache"] == 25.0
 
 
 def test_a_command_run_again_adds_a_row_and_a_folder_read_again_replaces_its_own(tmp_path):
@@ -77,6 +80,8 @@ def test_an_env_counts_against_ppos_reference_by_its_best_return_at_300_s_in_a_r
         record("WalkerWalk", "walker", [400.0] * 5, 550.0, along={"300": [100.0] * 5}),  # read at 300 s
         record("PointMass", "point mass", [890.0] * 5, 900.0),  # never read at 300 s: no return by then
         record("HopperStand", "hopper", [900.0] * 5, 300.0),  # no reference
+        # Its programs loaded from the cache, compiled by a run before on the machine: not a fresh start.
+        record("WalkerWalk", "walker warm", [600.0] * 5, 300.0) | {"compile_seconds_from_cache": 60.0},
     ]
     lines = suite_table.against_reference(records, suite_table._labels(records))
     assert f"1 of the {len(suite_table.PPO_REFERENCE)} envs" in lines[0] and "(CheetahRun)" in lines[0]
