@@ -77,11 +77,11 @@ def configure(args, owners):
     if given.get("budget", 0) > 0 and "epochs" not in given:  # a budget alone bounds the run: it trains until spent
         defaults["epochs"] = UNTIL_BUDGET
     chosen = {**recipe, **given}
-    train_config = build(TrainConfig, {**defaults, **chosen})
-    task_config = task_options.task_config(task_name, chosen)
     from stablebptt.engine.checks import check_options
     from stablebptt.errors import InputError
     try:
+        train_config = build(TrainConfig, {**defaults, **chosen})
+        task_config = task_options.task_config(task_name, chosen)
         check_options(train_config, task_config)  # a resumed run keeps what it recorded
     except InputError as error:
         if not recipe:
