@@ -130,6 +130,8 @@ CONFLICTS = [
     (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing", "off"], ("--smoothing off", "--reward-check")),
     (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--no-critic"],
      ("--normalize-critic-observations", "--critic is off", "--recipe locomotion sets")),
+    (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--action-noise", "0"],
+     ("--learn-action-noise", "--action-noise, which is 0", "--recipe locomotion sets")),
     (["--recipe", "locomotion", "--poles", "3"], ("--recipe locomotion", "--env NAME", "--task mjcf")),
     (["--resume", "{dir}/run", "--recipe", "locomotion"], ("--resume", "got --recipe")),
     (["--env", "envs_for_tests:make_cart", "--smoothing", "off", "--smoothing-scale", "0.5"],
