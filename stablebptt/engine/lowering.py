@@ -43,7 +43,7 @@ def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | Non
     step; a constraint solver on a CPU of several cores) is traced as it compiles instead (its metrics'
     program shaped by the update's). ``program_key`` as ``train_epochs``; ``beside``: ``programs_beside``."""
     shapes = state_shapes(trainer, seed_array(config))
-    arguments = (shapes, trainer.batches, trainer.train_states, trainer.test_states)
+    arguments = (shapes, trainer.batches, *trainer.initial_states.shapes)  # the states may still be drawn
     lowered = LoweredEpoch(lower_epoch(trainer.epoch, arguments, trainer.kept_under(program_key), cache_dir(),
                                        trainer.compiler_options), shapes)
     return programs_beside(lowered, trainer, config, program_key) if beside else lowered
@@ -57,7 +57,7 @@ def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig
     epoch's refill is kept under ``program_key`` as the epoch is (``program_store.lower_kept``)."""
     seeds, params = seed_array(config), lowered.shapes.params
     evaluation = None if trainer.evaluation is None else CompiledBeside(
-        trainer.evaluation.lower(params, trainer.train_states, trainer.test_states), params,
+        trainer.evaluation.lower(params, *trainer.initial_states.shapes), params,
         "stablebptt-evaluation", untimed_options())
     init_rest = None if trainer.episodes is None or not init else CompiledBeside(
         trainer.init.rest.lower(seeds), seeds, "stablebptt-init", untimed_options())

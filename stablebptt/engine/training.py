@@ -6,6 +6,7 @@ the plan of how to differentiate the task) and returns pure functions;
 """
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 from typing import Any, Callable, NamedTuple
@@ -78,6 +79,21 @@ class Initializer(NamedTuple):
         return TrainState(params, opt_state, *self.rest(seeds), log_std)
 
 
+class InitialStates(NamedTuple):
+    """A run's training and test initial states, drawn while the rest of its set-up goes on
+    (``make_trainer``): their shapes at once, their values once drawn."""
+
+    shapes: tuple[PyTree, PyTree]  # (train, test): jax.ShapeDtypeStruct trees, or the arrays themselves
+    drawn: concurrent.futures.Future  # -> (train, test) arrays
+
+    @classmethod
+    def at_hand(cls, train: PyTree, test: PyTree) -> "InitialStates":
+        """States drawn already: their shapes are the arrays (placed on a spread's devices, as lowering needs)."""
+        drawn: concurrent.futures.Future = concurrent.futures.Future()
+        drawn.set_result((train, test))
+        return cls((train, test), drawn)
+
+
 class Trainer(NamedTuple):
     """Compiled pieces of a run. Every function maps over a leading seed axis.
 
@@ -92,8 +108,7 @@ class Trainer(NamedTuple):
     # (states, values, batches, train, test), values [S] of the task's cell option (None if it has none).
     epoch: Callable[..., tuple[TrainState, dict]]
     evaluate: Callable[[PyTree, PyTree], jax.Array]  # (params [S], initial states) -> loss [S]
-    train_states: PyTree
-    test_states: PyTree
+    initial_states: InitialStates  # ``train_states`` and ``test_states``, and their shapes for lowering
     batches: PyTree
     plan: Plan  # how every function differentiates and rolls out the task
     compiler_options: dict | None = None  # XLA options every program of the trainer is compiled with
@@ -110,6 +125,16 @@ class Trainer(NamedTuple):
     # simulator (an environment's reset) into the epoch's program and slowed every update (docs/performance.md,
     # "The update against its floor").
     refill: Callable[[TrainState], TrainState] | None = None
+
+    @property
+    def train_states(self) -> PyTree:
+        """The training initial states (waiting for them where they are still being drawn)."""
+        return self.initial_states.drawn.result()[0]
+
+    @property
+    def test_states(self) -> PyTree:
+        """The test initial states (waiting for them where they are still being drawn)."""
+        return self.initial_states.drawn.result()[1]
 
     @property
     def updates_per_epoch(self) -> int:
@@ -155,15 +180,14 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     optimizer = make_grid_optimizer(config) if grid else make_optimizer(config, flows)
 
     spread = spread_of(config)
-    train_key, test_key = data_keys(config.data_seed)
-    # The test states' reset compiles while the training states' does (on a GPU, one program each).
-    testing = beside(lambda: sample_states(task, test_key, config.test_size), "stablebptt-test-states")
-    train_states = sample_states(task, train_key, config.train_size)
-    test_states = testing.result()
+    # Carried episodes draw their initial states only to evaluate, so those are drawn while the set-up and
+    # the epoch's trace go on, from their shapes alone (an environment's reset compiles and runs a large
+    # program: the cheetah's settles each state for 200 physics steps); fixed starts are the batches.
+    initial = draw_initial_states(task, config, deferred=episodes is not None and spread is None)
     lap("trainer set-up: initial states")
     # Shapes only (the plan and the step's size are traced, never run): no eager slice of every leaf,
     # which on a GPU compiles one program per leaf shape.
-    example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), train_states)
+    example_state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype, weak_type=getattr(a, "weak_type", False)), initial.shapes[0])
     # One trace of one step, kept too: its size, and whether it solves for constraints (a loop).
     operations, solves = kept("step size", lambda: list(step_size(task, config, example_state)))
     large = operations > LARGE_STEP
@@ -177,7 +201,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     if episodes is None:
         # Fixed order, no shuffling: minibatch i is always the same states.
         batches = jax.jit(lambda states: jax.tree.map(  # one program, not one eager reshape per leaf
-            lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), states))(train_states)
+            lambda a: a.reshape((config.train_size // config.batch, config.batch) + a.shape[1:]), states))(
+                initial.drawn.result()[0])
     else:  # the updates of an epoch take the carried states: the scan runs over their numbers alone
         window = task.dynamics.horizon
         batches = jnp.arange(updates_per_epoch(episodes, window))
@@ -188,7 +213,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             critic_optimizer = adam(config, config.critic_lr)
             observations = jax.eval_shape(episodes.observe, example_state).shape[0]
     if spread is not None:  # the same every epoch: moved to every device once
-        train_states, test_states, batches = spread.placed((train_states, test_states, batches))
+        train_states, test_states, batches = spread.placed((*initial.drawn.result(), batches))
+        initial = InitialStates.at_hand(train_states, test_states)
 
     def init_policy(seed):
         params = task.init_params(jax.random.PRNGKey(seed), config.zero_output)
@@ -291,8 +317,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         init=Initializer(jit(over_seeds(init_policy)), jit(over_seeds(init_rest))),
         epoch=epoch_program,
         evaluate=jit(over_seeds(evaluate)),
-        train_states=train_states,
-        test_states=test_states,
+        initial_states=initial,
         batches=batches,
         plan=plan,
         compiler_options=options,
@@ -392,6 +417,23 @@ def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
         raise InputError(f"{config_field(config, 'critic')}: {task.name}'s Episodes has no observe(state), what the "
                          "critic sees")
     return task.episodes
+
+
+def draw_initial_states(task: Task, config: TrainConfig, deferred: bool) -> InitialStates:
+    """The run's training and test initial states (``TrainConfig.data_seed``), the test states' reset
+    compiling while the training states' does (on a GPU, one program each). ``deferred``: drawn in a
+    thread of their own, their shapes traced here (the values are the same either way)."""
+    train_key, test_key = data_keys(config.data_seed)
+
+    def draw():
+        testing = beside(lambda: sample_states(task, test_key, config.test_size), "stablebptt-test-states")
+        return sample_states(task, train_key, config.train_size), testing.result()
+
+    if not deferred:
+        return InitialStates.at_hand(*draw())
+    shapes = tuple(jax.eval_shape(lambda key, count=count: task.sample_initial_states(key, count), key)
+                   for key, count in ((train_key, config.train_size), (test_key, config.test_size)))
+    return InitialStates(shapes, beside(draw, "stablebptt-initial-states"))
 
 
 def sample_states(task: Task, key: jax.Array, count: int) -> PyTree:

@@ -351,3 +351,36 @@ def test_a_trainer_carries_episodes_where_the_task_has_them_and_refuses_to_where
         make_trainer(no_episodes, TrainConfig(batch=1, train_size=2, episodes="on"))
     with pytest.raises(InputError, match="batch 3 does not divide"):
         make_trainer(no_episodes, TrainConfig(batch=3, train_size=2))
+
+
+def test_carried_episodes_draw_their_initial_states_while_the_epoch_is_lowered_and_draw_the_same_states(
+        monkeypatch):
+    import threading
+
+    from stablebptt.engine import training
+    from stablebptt.engine.config import data_keys
+    from stablebptt.engine.lowering import lowered_epoch
+    task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
+                sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)), episodes=episodes())
+    config = TrainConfig(epochs=1, batch=3, train_size=2, test_size=5, lr=1e-2)
+    drawing, released = training.sample_states, threading.Event()
+
+    def held(*arguments):  # the draw waits until the epoch is lowered; a lowering that needs it gets it late
+        released.wait(timeout=120)
+        return drawing(*arguments)
+    monkeypatch.setattr(training, "sample_states", held)
+    trainer = make_trainer(task, config)
+    lowered = lowered_epoch(trainer, config)
+    assert not trainer.initial_states.drawn.done()  # lowered from the states' shapes alone
+    released.set()
+    train_key, test_key = data_keys(config.data_seed)
+    for states, key, count, shapes in zip((trainer.train_states, trainer.test_states), (train_key, test_key),
+                                          (2, 5), trainer.initial_states.shapes):
+        np.testing.assert_array_equal(states, drawing(task, key, count))  # as drawn at once
+        assert (states.shape, states.dtype) == (shapes.shape, shapes.dtype) == ((count,), jnp.float32)
+    # The epoch lowered from the shapes runs on the drawn states; fixed starts draw theirs at once.
+    state, metrics = lowered.lowered.compile()(trainer.init(seed_array(config)), trainer.batches,
+                                               trainer.train_states, trainer.test_states)
+    assert bool(metrics["finite"][0])
+    fixed = make_trainer(task, TrainConfig(epochs=1, batch=1, train_size=2, test_size=2, episodes="off"))
+    assert fixed.initial_states.drawn.done()
