@@ -431,6 +431,7 @@ def draw_initial_states(task: Task, config: TrainConfig, deferred: bool) -> Init
 
     if not deferred:
         return InitialStates.at_hand(*draw())
+    # check_task refuses a sampler that does not trace on shapes alone.
     shapes = tuple(jax.eval_shape(lambda key, count=count: task.sample_initial_states(key, count), key)
                    for key, count in ((train_key, config.train_size), (test_key, config.test_size)))
     return InitialStates(shapes, beside(draw, "stablebptt-initial-states"))
