@@ -18,7 +18,7 @@ from stablebptt.engine.compiling import compiler_options, large_step
 from stablebptt.engine.config import RECORDED_BEFORE, TrainConfig
 from stablebptt.engine.episodes import Carried, Episodes, start_window, window_dynamics
 from stablebptt.engine.task import Task
-from stablebptt.engine.training import sample_states
+from stablebptt.engine.initial_states import sample_states
 from stablebptt.errors import InputError
 from stablebptt.runs import model_store, run_folder
 from stablebptt.tasks import canonical, entries, entry

@@ -6,7 +6,6 @@ the plan of how to differentiate the task) and returns pure functions;
 """
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import functools
 from typing import Any, Callable, NamedTuple
@@ -17,8 +16,8 @@ import jax.numpy as jnp
 import optax
 
 from stablebptt.engine.checks import check_task
-from stablebptt.engine.compiling import beside, compiler_options, run_plan, step_size
-from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches, data_keys, eval_cadence, seed_batching
+from stablebptt.engine.compiling import compiler_options, run_plan, step_size
+from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches, eval_cadence, seed_batching
 from stablebptt.engine.critic import bootstrap, fit_to_window, init_critic
 from stablebptt.engine.episodes import (
     Episodes,
@@ -33,6 +32,7 @@ from stablebptt.engine.episodes import (
     updates_per_epoch,
     window_dynamics,
 )
+from stablebptt.engine.initial_states import InitialStates, draw_initial_states
 from stablebptt.engine.optimizer import adam, make_grid_optimizer, make_optimizer
 from stablebptt.engine.per_update import PerUpdateEpoch, compile_side_by_side
 from stablebptt.engine.program_store import kept_answer
@@ -77,21 +77,6 @@ class Initializer(NamedTuple):
     def __call__(self, seeds: jax.Array) -> TrainState:
         params, opt_state, log_std = self.policy(seeds)
         return TrainState(params, opt_state, *self.rest(seeds), log_std)
-
-
-class InitialStates(NamedTuple):
-    """A run's training and test initial states, drawn while the rest of its set-up goes on
-    (``make_trainer``): their shapes at once, their values once drawn."""
-
-    shapes: tuple[PyTree, PyTree]  # (train, test): jax.ShapeDtypeStruct trees, or the arrays themselves
-    drawn: concurrent.futures.Future  # -> (train, test) arrays
-
-    @classmethod
-    def at_hand(cls, train: PyTree, test: PyTree) -> "InitialStates":
-        """States drawn already: their shapes are the arrays (placed on a spread's devices, as lowering needs)."""
-        drawn: concurrent.futures.Future = concurrent.futures.Future()
-        drawn.set_result((train, test))
-        return cls((train, test), drawn)
 
 
 class Trainer(NamedTuple):
@@ -417,36 +402,6 @@ def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
         raise InputError(f"{config_field(config, 'critic')}: {task.name}'s Episodes has no observe(state), what the "
                          "critic sees")
     return task.episodes
-
-
-def draw_initial_states(task: Task, config: TrainConfig, deferred: bool) -> InitialStates:
-    """The run's training and test initial states (``TrainConfig.data_seed``), the test states' reset
-    compiling while the training states' does (on a GPU, one program each). ``deferred``: drawn in a
-    thread of their own, their shapes traced here (the values are the same either way)."""
-    train_key, test_key = data_keys(config.data_seed)
-
-    def draw():
-        testing = beside(lambda: sample_states(task, test_key, config.test_size), "stablebptt-test-states")
-        return sample_states(task, train_key, config.train_size), testing.result()
-
-    if not deferred:
-        return InitialStates.at_hand(*draw())
-    # check_task refuses a sampler that does not trace on shapes alone.
-    shapes = tuple(jax.eval_shape(lambda key, count=count: task.sample_initial_states(key, count), key)
-                   for key, count in ((train_key, config.train_size), (test_key, config.test_size)))
-    return InitialStates(shapes, beside(draw, "stablebptt-initial-states"))
-
-
-def sample_states(task: Task, key: jax.Array, count: int) -> PyTree:
-    """``count`` initial states of ``task`` from ``key``, as every run draws them.
-
-    On a GPU by a program compiled with the GPU's options (an environment's reset is a large one);
-    on a CPU eagerly: fused by jit, the states of cartpole_3 and quantum would differ in their last
-    bits from the ones CPU runs have trained from.
-    """
-    if jax.default_backend() != "gpu":
-        return task.sample_initial_states(key, count)
-    return jax.jit(task.sample_initial_states, static_argnums=1, compiler_options=compiler_options())(key, count)
 
 
 def _all_finite(tree: PyTree) -> jax.Array:

@@ -357,18 +357,18 @@ def test_carried_episodes_draw_their_initial_states_while_the_epoch_is_lowered_a
         monkeypatch):
     import threading
 
-    from stablebptt.engine import training
+    from stablebptt.engine import initial_states
     from stablebptt.engine.config import data_keys
     from stablebptt.engine.lowering import lowered_epoch
     task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
                 sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)), episodes=episodes())
     config = TrainConfig(epochs=1, batch=3, train_size=2, test_size=5, lr=1e-2)
-    drawing, released = training.sample_states, threading.Event()
+    drawing, released = initial_states.sample_states, threading.Event()
 
     def held(*arguments):  # the draw waits until the epoch is lowered; a lowering that needs it gets it late
         released.wait(timeout=120)
         return drawing(*arguments)
-    monkeypatch.setattr(training, "sample_states", held)
+    monkeypatch.setattr(initial_states, "sample_states", held)
     trainer = make_trainer(task, config)
     lowered = lowered_epoch(trainer, config)
     assert not trainer.initial_states.drawn.done()  # lowered from the states' shapes alone

@@ -482,7 +482,7 @@ def test_an_episode_return_is_the_envs_own_reward_the_runs_evaluation_sums():
     from envs_for_tests import Cart
 
     from stablebptt.apps.trained import episodes_from_test_states
-    from stablebptt.engine.training import sample_states
+    from stablebptt.engine.initial_states import sample_states
     from stablebptt.envs.adapter import env_task
 
     task = env_task(Cart(), horizon=4, episode_length=6, diagnose=False,
