@@ -41,10 +41,13 @@ def parse(argv: list[str]):
     owners = {name: {"train"} for name in add_options(parser, TrainConfig, "training",
                                                       defaults=task_options.train_defaults_by_task(TrainConfig))}
     owners = task_options.add_task_options(parser, owners)  # before parsing: the task options are options too
-    recipes = tasks.load("env").RECIPES
-    parser.add_argument("--recipe", choices=sorted(recipes), default=None,
+    env_module = tasks.load("env")
+    parser.add_argument("--recipe", choices=sorted(env_module.RECIPES), default=None,
                         help="options measured together, for an --env: " + "; ".join(
-                            f"{name}: {recipe_words(recipe)}" for name, recipe in sorted(recipes.items()))
+                            f"{name}: {recipe_words(recipe)}" + "".join(
+                                f", on {env}: {recipe_words(options)}"
+                                for env, options in env_module.RECIPES_BY_ENV.get(name, {}).items())
+                            for name, recipe in sorted(env_module.RECIPES.items()))
                         + " (an option given beside it wins)")
     return parser.parse_args(argv), owners
 
@@ -70,7 +73,7 @@ def configure(args, owners):
     task_name = task_options.choose_task(args, owners, "train")
     recipe = {}
     if args.recipe is not None:
-        recipe = tasks.load("env").RECIPES[args.recipe]
+        recipe = tasks.load("env").recipe_options(args.recipe, given.get("env", ""))
         if task_name != "env":
             fail(f"--recipe {args.recipe} is for an environment (--env NAME), not --task {task_name}")
     defaults = tasks.train_defaults(task_name)

@@ -179,3 +179,21 @@ def test_a_recipe_from_python_is_env_tasks_arguments_and_the_train_configs_field
     assert all(getattr(train, name) == value for name, value in train_options.items())
     with pytest.raises(InputError, match="no recipe 'swimming': choose one of locomotion"):
         sb.recipe("swimming")
+
+
+def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_option_beside_still_wins():
+    import stablebptt as sb
+    from stablebptt.tasks import env
+    for name, by_env in env.RECIPES_BY_ENV.items():
+        for env_name, options in by_env.items():
+            command = ["--env", env_name, "--recipe", name]
+            _, task_config, train, _, _ = train_command.configure(*train_command.parse(command))
+            task_options, train_options = sb.recipe(name, env_name)
+            for option, value in {**env.RECIPES[name], **options}.items():
+                config = task_config if hasattr(task_config, option) else train
+                assert getattr(config, option) == value, (env_name, option)
+                assert {**task_options, **train_options}["horizon" if option == "steps" else option] == value
+            assert train_command.configure(*train_command.parse(command + ["--steps", "12"]))[1].steps == 12
+    # An env the recipe has nothing of its own for takes the recipe as it is.
+    assert sb.recipe("locomotion", "CheetahRun") == sb.recipe("locomotion")
+    assert sb.recipe("locomotion", "WalkerWalk")[0]["horizon"] == 8 != env.RECIPES["locomotion"]["steps"]
