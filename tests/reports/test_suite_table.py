@@ -82,6 +82,8 @@ def test_an_env_counts_against_ppos_reference_by_its_best_return_at_300_s_in_a_r
         record("HopperStand", "hopper", [900.0] * 5, 300.0),  # no reference
         # Its programs loaded from the cache, compiled by a run before on the machine: not a fresh start.
         record("WalkerWalk", "walker warm", [600.0] * 5, 300.0) | {"compile_seconds_from_cache": 60.0},
+        # A screen of fixed epochs, given no budget (its GPU perhaps shared): its wall clock is not counted.
+        record("WalkerWalk", "walker screen", [700.0] * 5, 0.0, along={"300": [700.0] * 5}),
     ]
     lines = suite_table.against_reference(records, suite_table._labels(records))
     assert f"1 of the {len(suite_table.PPO_REFERENCE)} envs" in lines[0] and "(CheetahRun)" in lines[0]
