@@ -41,7 +41,7 @@ from stablebptt.envs import surrogate
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, sample_for_diagnosis, start_checks,
                                        start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
-                                      function_name, observation)
+                                      function_name, observation, with_reset_traced_once)
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import mlp_apply, mlp_init
@@ -250,6 +250,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                      defer_diagnosis=defer_diagnosis, smoothing=smoothing, smoothing_scale=smoothing_scale,
                      surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
                      reward_env=reward_env, contact_smoothing=contact_smoothing)
+    env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
     if episode_length is None:

@@ -1,4 +1,5 @@
-"""Brax's environment protocol: loading an environment by name, and the checks that it keeps the protocol.
+"""Brax's environment protocol: loading an environment by name, the checks that it keeps the protocol,
+and its reset traced once for every program that resets it.
 
 The protocol (Brax's, which MuJoCo Playground follows): ``env.reset(key) -> State`` and
 ``env.step(State, action) -> State``, where ``State`` is a pytree with ``obs``, ``reward`` and ``done``
@@ -8,6 +9,7 @@ The protocol (Brax's, which MuJoCo Playground follows): ``env.reset(key) -> Stat
 from __future__ import annotations
 
 import importlib
+import copy
 import inspect
 import numbers
 import os
@@ -239,3 +241,18 @@ def import_attribute(spec: str, what: str) -> tuple[Any, str]:
     if not attribute or not hasattr(module, attribute):
         raise EnvError(f"{what} {spec}: {module_name} has no attribute {attribute!r}")
     return getattr(module, attribute), attribute
+
+
+def with_reset_traced_once(env: Any) -> Any:
+    """A shallow copy of ``env`` whose ``reset`` is jitted, so that JAX traces the env's reset once per key
+    shape and every program and check that resets reuses that trace: the protocol's check, the reward
+    diagnosis, the initial states, init's first population and each epoch's refill. CheetahRun's reset
+    settles its states for 200 physics steps: traced by each of them, it made the start's trace phase
+    27-32 s on the 2-core CPU, traced once 4-5 s (docs/performance.md, "Start-up against Brax PPO's
+    compile"). ``env`` itself is left as it is; one whose attributes cannot be set is used as it is."""
+    copied = copy.copy(env)
+    try:
+        copied.reset = jax.jit(env.reset)
+    except (AttributeError, TypeError):  # a frozen dataclass's FrozenInstanceError is an AttributeError
+        return env
+    return copied

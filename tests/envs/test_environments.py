@@ -46,6 +46,24 @@ def test_an_environment_trains_and_flow_r_is_the_gradient_of_the_plain_rollout()
     assert result.test_loss[-1] < result.test_loss[0]  # it learns to hold the cart at the origin
 
 
+def test_every_program_and_check_that_resets_reuses_one_trace_of_the_env_s_reset_and_the_env_is_left_as_it_was():
+    # The protocol's check, the reward diagnosis, the initial states, init's first population and the
+    # refill each reset: an env whose reset is costly to trace (CheetahRun's settles 200 physics steps)
+    # is traced once for them all.
+    traced = []
+
+    class CountedCart(Cart):
+        def reset(self, key):
+            traced.append(key.shape)
+            return super().reset(key)
+
+    env = CountedCart()
+    result = sb.train(env_task(env, horizon=10), replace(TINY, epochs=1))
+    assert np.all(np.isfinite(result.test_loss))
+    assert traced == [(2,)]
+    assert "reset" not in vars(env)  # the user's env keeps its own method
+
+
 def test_evaluations_run_apart_on_their_cadence_and_a_hook_sees_every_epoch_and_may_stop_the_run():
     # Windows of 10 along episodes of 30: 3 updates an epoch. Every 6 updates: epochs 2 and 4, and the
     # last one (5) - not 1 or 3, whose returns are NaN.
