@@ -264,7 +264,7 @@ def against_reference(records: list[dict], labels: dict) -> list[str]:
     best = {}
     for record in records:
         returns = by_mark(record)
-        # A run given a wall-clock budget alone: a screen of fixed epochs may have shared its GPU.
+        # Only runs given a wall-clock budget: a screen of fixed epochs may have shared its GPU.
         if (record["env"] in PPO_REFERENCE and returns is not None and len(record["seeds"]) >= MIN_SEEDS
                 and fresh_start(record) and record.get("budget", 0.0) > 0):
             mean = float(np.mean(returns))

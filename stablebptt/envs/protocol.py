@@ -8,8 +8,8 @@ The protocol (Brax's, which MuJoCo Playground follows): ``env.reset(key) -> Stat
 """
 from __future__ import annotations
 
-import importlib
 import copy
+import importlib
 import inspect
 import numbers
 import os

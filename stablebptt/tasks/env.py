@@ -50,6 +50,8 @@ def recipe_options(name: str, env: str = "") -> dict:
     registry) where ``RECIPES_BY_ENV`` has values of its own for it."""
     if name not in RECIPES:
         raise InputError(f"no recipe {name!r}: choose one of {', '.join(sorted(RECIPES))}")
+    if not isinstance(env, str):
+        raise InputError(f"a recipe's env is the env's name (a string, as --env takes it), got {type(env).__name__}")
     return {**RECIPES[name], **RECIPES_BY_ENV.get(name, {}).get(env, {})}
 
 

@@ -182,6 +182,8 @@ def test_a_recipe_from_python_is_env_tasks_arguments_and_the_train_configs_field
 
 
 def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_option_beside_still_wins():
+    from envs_for_tests import Cart
+
     import stablebptt as sb
     from stablebptt.tasks import env
     for name, by_env in env.RECIPES_BY_ENV.items():
@@ -197,3 +199,5 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
     # An env the recipe has nothing of its own for takes the recipe as it is.
     assert sb.recipe("locomotion", "CheetahRun") == sb.recipe("locomotion")
     assert sb.recipe("locomotion", "WalkerWalk")[0]["horizon"] == 8 != env.RECIPES["locomotion"]["steps"]
+    with pytest.raises(InputError, match="a recipe's env is the env's name .* got Cart"):
+        sb.recipe("locomotion", Cart())  # the env itself, not its name
