@@ -106,8 +106,10 @@ def timed_run(
     def train_s():
         return time.perf_counter() - clock["t0"] - clock["eval_s"]
 
-    def record_point(params, brax_metrics):
-        t = train_s()
+    def record_point(params, brax_metrics, t):
+        # ``t``: the training seconds its call was judged due at. Read again here, it would be later
+        # than the next call's (the evaluation's seconds come off the clock), and with eval_every 0
+        # a quick epoch would then not be due.
         e0 = time.perf_counter()
         # Host copies: the same argument types at every call, so the evaluator compiles once (the
         # replicated training state's arrays may carry another sharding than the initial ones).
@@ -151,8 +153,8 @@ def timed_run(
                     "finite": all(math.isfinite(float(np.asarray(v))) for v in training_metrics.values()
                                   if np.ndim(v) == 0),
                 })
-            e0 = time.perf_counter()
             t = train_s()
+            e0 = time.perf_counter()  # after t: the evaluation's seconds then never outrun the next call's t
             nan = (not first) and not rec["epochs"][-1]["finite"]
             due = first or nan or t >= budget or t - clock["last_eval_train_s"] >= eval_every
             metrics = dict(training_metrics)
@@ -161,7 +163,7 @@ def timed_run(
                 if brax_eval == "all":  # Brax's own evaluator (compiles once per run), a cross-check
                     brax_metrics = super().run_evaluation(policy_params, training_metrics, aggregate_episodes)
                     metrics = brax_metrics
-                record_point(policy_params, brax_metrics)
+                record_point(policy_params, brax_metrics, t)
             clock["eval_s"] += time.perf_counter() - e0
             clock["last_epoch_end"] = time.perf_counter()
             if nan:
