@@ -1,6 +1,7 @@
 """MJX's own step of an environment's model, alone: milliseconds of a rollout of ``--physics-steps``
 physics steps of ``--batch`` states, and of jax.grad of a function of its end, which is MJX's
-reverse-mode derivative through those steps (no policy, no reward, none of the library's flows).
+reverse-mode derivative through those steps (no policy, no reward, none of the library's flows);
+the median over rounds of one call each (``stablebptt.timing.round_robin``).
 It prices the step's derivative against its forward where the update stands far above its floor.
 
     python benchmarks/mjx_step_derivative.py FishSwim
@@ -10,23 +11,13 @@ Reverse mode cannot pass MJX's constraint solver loop: a model with constraints 
 """
 import argparse
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
 
 from stablebptt.physics import scene
 from stablebptt.physics.mjx_internals import mjx
-
-
-def milliseconds(program, *arguments, calls: int = 5) -> float:
-    """The mean of ``calls`` calls after one."""
-    jax.block_until_ready(program(*arguments))
-    started = time.perf_counter()
-    for _ in range(calls):
-        result = program(*arguments)
-    jax.block_until_ready(result)
-    return (time.perf_counter() - started) / calls * 1e3
+from stablebptt.timing import compile_ahead, round_robin
 
 
 def main() -> int:
@@ -35,6 +26,7 @@ def main() -> int:
     parser.add_argument("--physics-steps", type=int, default=40)
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--density", type=float, default=None, help="the fluid's density in place of the file's")
+    parser.add_argument("--rounds", type=int, default=7, help="rounds of one call each, round-robin (the median)")
     args = parser.parse_args()
     from mujoco_playground import registry
     model = registry.load(args.env).mj_model
@@ -54,8 +46,10 @@ def main() -> int:
         data, _ = jax.lax.scan(physics_step, data, None, length=args.physics_steps)
         return jnp.sum(data.qpos ** 2) + jnp.sum(data.qvel ** 2)
 
-    forward, derivative = jax.jit(end), jax.jit(jax.grad(end))
-    forward_ms, derivative_ms = milliseconds(forward, velocities), milliseconds(derivative, velocities)
+    forward = compile_ahead(jax.jit(end), velocities)[0]
+    derivative = compile_ahead(jax.jit(jax.grad(end)), velocities)[0]
+    seconds = round_robin({"forward": lambda: forward(velocities), "grad": lambda: derivative(velocities)}, args.rounds)
+    forward_ms, derivative_ms = 1e3 * seconds["forward"], 1e3 * seconds["grad"]
     print(f"{args.env} (density {model.opt.density:g}), {args.batch} states x {args.physics_steps} physics steps on "
           f"{jax.default_backend()}: forward {forward_ms:.1f} ms, jax.grad {derivative_ms:.1f} ms "
           f"({derivative_ms / forward_ms:.1f}x)")

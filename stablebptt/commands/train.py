@@ -44,10 +44,7 @@ def parse(argv: list[str]):
     env_module = tasks.load("env")
     parser.add_argument("--recipe", choices=sorted(env_module.RECIPES), default=None,
                         help="options measured together, for an --env: " + "; ".join(
-                            f"{name}: {recipe_words(recipe)}" + "".join(
-                                f", on {env}: {recipe_words(options)}"
-                                for env, options in env_module.RECIPES_BY_ENV.get(name, {}).items())
-                            for name, recipe in sorted(env_module.RECIPES.items()))
+                            recipe_help(name, env_module) for name in sorted(env_module.RECIPES))
                         + " (an option given beside it wins)")
     return parser.parse_args(argv), owners
 
@@ -91,6 +88,13 @@ def configure(args, owners):
             raise
         raise InputError(f"{error} (--recipe {args.recipe} sets {recipe_words(recipe)})") from None
     return task_name, task_config, train_config, args.out, None
+
+
+def recipe_help(name: str, env_module) -> str:
+    """A recipe as ``--help`` names it: its options, then those it sets on particular envs."""
+    on_envs = env_module.RECIPES_BY_ENV.get(name, {}).items()
+    return f"{name}: {recipe_words(env_module.RECIPES[name])}" + "".join(
+        f", on {env}: {recipe_words(options)}" for env, options in on_envs)
 
 
 def recipe_words(recipe: dict) -> str:
