@@ -69,7 +69,7 @@ class Initializer(NamedTuple):
     """``init(seeds) -> TrainState`` in two programs: the policy's parameters, the learned noise's deviations
     and their optimizer state, whose values may wait for a task's check still running (``Task.settle``),
     and the rest (the carried population's resets, the critic), which waits for nothing:
-    ``fitting.prepare`` compiles it beside the epoch."""
+    ``starting.prepare`` compiles it beside the epoch."""
 
     policy: Callable[[jax.Array], tuple[PyTree, PyTree, PyTree]]  # seeds [S] -> (params, opt_state, log_std)
     rest: Callable[[jax.Array], tuple[PyTree, PyTree]]  # seeds [S] -> (carried, critic)
@@ -146,7 +146,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     With ``keep`` (everything that decides the run's programs: ``program_store``), the task check's,
     the step size's and the memory plan's traced measurements are kept, and an identical later run
     skips them. ``lap(name)``, where given, is called as each part of the set-up ends (a start's phases:
-    ``fitting.prepare``).
+    ``starting.prepare``).
     """
     lap = lap or (lambda name: None)
     if not isinstance(config, TrainConfig):

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt import storage
-from stablebptt.engine import fitting
+from stablebptt.engine import fitting, starting
 from stablebptt.engine.config import CLIP_MODES, TrainConfig
 from stablebptt.engine.metrics import empty_rows
 from stablebptt.engine.program_store import code_digest
@@ -234,7 +234,7 @@ def prepare(program: Program, grid: Grid, devices: list) -> Prepared:
     values = shard(jnp.asarray([value for value, _, _, _ in cells])) if takes_values else None
     arguments = (values, trainer.batches, trainer.train_states, trainer.test_states)
     epoch_fn, compile_seconds = compile_ahead(trainer.epoch, state, *arguments)
-    refill, refill_seconds = fitting.compiled_refill(trainer, state)  # training on episodes: each epoch's start
+    refill, refill_seconds = starting.compiled_refill(trainer, state)  # training on episodes: each epoch's start
     return Prepared(program, devices, lambda state, *rest: epoch_fn(refill(state), *rest), arguments, state, start,
                     rows, train_config, unroll, len(cells), compile_seconds + refill_seconds,
                     fitting.env_steps_per_epoch(trainer, train_config))

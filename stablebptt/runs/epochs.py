@@ -10,14 +10,8 @@ import jax
 import numpy as np
 
 from stablebptt.engine.config import TrainConfig
-from stablebptt.engine.fitting import (
-    Evaluations,
-    compiled_epoch,
-    compiled_refill,
-    env_steps_per_epoch,
-    fit,
-    out_of_time,
-)
+from stablebptt.engine.fitting import Evaluations, env_steps_per_epoch, fit, out_of_time
+from stablebptt.engine.starting import compiled_epoch, compiled_refill
 from stablebptt.engine.divergence import nonfinite_message, zeroed_notice
 from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.program_store import compile_seconds_saved
@@ -70,7 +64,7 @@ def train_epochs(
     time under ``"seconds"`` and ``"eval_seconds"``. Runs in any thread. With ``program_key``
     (everything that decides the epoch's program: ``program_store``) and JAX's compile cache on, the
     traced epoch is kept there, and a run with the same key skips tracing it. ``lowered``: the epoch
-    lowered already (``fitting.prepare``), used where ``state`` has its shapes. ``phases``: the
+    lowered already (``starting.prepare``), used where ``state`` has its shapes. ``phases``: the
     start-up's phases so far (``Prepared.phases``), recorded with the compile's in the run's
     ``startup.json``; ``compile_saved_mark``: ``program_store.compile_seconds_saved()`` as the start
     began (``Session.compile_saved_mark``), to record the compile the persistent cache saved it.

@@ -27,7 +27,8 @@ import jax
 import numpy as np
 
 from stablebptt.engine.config import TrainConfig, seed_array
-from stablebptt.engine.fitting import env_steps_per_epoch, prepare
+from stablebptt.engine.fitting import env_steps_per_epoch
+from stablebptt.engine.starting import prepare
 from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.program_store import compile_seconds_saved, run_key
 from stablebptt.engine.task import Task

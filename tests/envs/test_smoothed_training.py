@@ -126,10 +126,10 @@ def test_a_flat_reward_compiles_one_epoch_at_the_start_its_surrogates_and_a_usab
     """The epoch is traced while the reward check compiles beside, and compiled once the check has answered:
     the reward as written is never compiled where its surrogate trains, and a usable reward's epoch is
     traced and compiled once (the check's wait behind the trace, not after it)."""
-    from stablebptt.engine import fitting
+    from stablebptt.engine import starting
     from stablebptt.engine.task import Task
     traced, compiled, events = [], [], []
-    trace, settled = fitting.lowered_epoch, Task.settled
+    trace, settled = starting.lowered_epoch, Task.settled
     monkeypatch.setattr(Task, "settled", lambda self, *a, **k: events.append("answer") or settled(self, *a, **k))
 
     class Counted:  # a lowered epoch whose compiles are counted
@@ -145,15 +145,15 @@ def test_a_flat_reward_compiles_one_epoch_at_the_start_its_surrogates_and_a_usab
         traced.append(trainer), events.append("trace")
         return lowered._replace(lowered=Counted(lowered.lowered, len(traced) - 1))
 
-    monkeypatch.setattr(fitting, "lowered_epoch", counted)
+    monkeypatch.setattr(starting, "lowered_epoch", counted)
     config = sb.TrainConfig(mode="C", epochs=1, train_size=8, test_size=8, batch=4, clip="norm")
-    prepared = fitting.prepare(env_task(Cart("step"), horizon=5, defer_diagnosis=True), config)
+    prepared = starting.prepare(env_task(Cart("step"), horizon=5, defer_diagnosis=True), config)
     assert "reward_smoothing" in prepared.task.resolved and prepared.task.settle is None
     assert compiled == [len(traced) - 1] and prepared.trainer.epoch is traced[-1].epoch  # the surrogate's alone
     assert prepared.lowered.compiled is not None  # compiled beside the surrogate's own check
     assert events[:3] == ["trace", "answer", "trace"]  # the written reward's trace, then the surrogate's
     traced.clear(), compiled.clear(), events.clear()
-    usable = fitting.prepare(env_task(Cart(), horizon=5, defer_diagnosis=True), config)
+    usable = starting.prepare(env_task(Cart(), horizon=5, defer_diagnosis=True), config)
     assert usable.task.resolved["reward_gradient"] == "usable" and compiled == [0] and len(traced) == 1
     assert events[:2] == ["trace", "answer"]
     assert usable.lowered.compiled is not None  # after the check ran, init's programs compiling beside

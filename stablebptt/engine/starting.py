@@ -1,0 +1,142 @@
+"""A run's start, in the order it happens (``prepare``): the task's checks settled while its epoch is
+traced and compiled, the trainer rebuilt where a check smoothed the reward; and the epoch's and each
+epoch's first program compiled for a state (``compiled_epoch``, ``compiled_refill``)."""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, NamedTuple
+
+import jax
+
+from stablebptt.engine.compiling import CompiledBeside, untimed_options
+from stablebptt.engine.config import TrainConfig
+from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, lowered_refill, programs_beside
+from stablebptt.engine.program_store import cache_dir, compile_epoch
+from stablebptt.engine.training import Trainer, make_trainer
+from stablebptt.errors import InputError
+
+
+class Prepared(NamedTuple):
+    """A task settled and its trainer built, in the order a run starts (``prepare``)."""
+
+    task: Any  # settled: its checks answered (a refusal raised), its reward smoothed where they said so
+    trainer: Trainer
+    lowered: LoweredEpoch | None  # the trainer's epoch traced and lowered, where asked for
+    program_key: dict | None  # what decides the run's programs, a smoothed reward's included
+    phases: dict[str, float]  # seconds of each start-up phase, in the order they ran
+
+
+def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, resuming: bool = False) -> Prepared:
+    """A run's start, in the order it happens: the trainer built while a check the task left running
+    compiles beside (``Task.settle``: an environment's reward diagnosis); the check's answer, which may
+    refuse the task; where it smoothed the reward, the trainer built again for the task as settled;
+    its epoch traced and compiled, while the surrogate's own check compiles beside; that check's
+    answer. ``program_key`` as ``train_epochs`` takes it. ``resuming``: the state will be read from a
+    checkpoint (into ``lowered.shapes``), so init's programs are not compiled beside.
+
+    Raises:
+      InputError: the task refused by its checks, or by the trainer's set-up, named.
+    """
+    phases: dict[str, float] = {}
+    lap = _lap_clock(phases)
+    program_key = _smoothed_key(program_key, task)
+
+    def build(task):
+        try:
+            return make_trainer(task, config, keep=program_key, lap=lap)
+        except InputError as error:  # the memory plan may refuse the scene
+            raise InputError(f"{task.name}: {error}") from None
+
+    trainer = build(task)
+    lap("trainer set-up")
+    built, checking = task, task.settle is not None
+    # The epoch is traced while the check compiles beside, and compiled once it has answered: a reward it smooths
+    # compiles one epoch, the surrogate's (compiled beside the check, the reward as written was HopperStand's second).
+    lowered = lowered_epoch(trainer, config, program_key, beside=False)
+    lap("trace")
+    task = task.settled()  # a reward without a usable gradient is refused here
+    lap("check's wait")
+    smoothed = task.dynamics.step is not built.dynamics.step
+    if smoothed:  # the check smoothed the reward: train the task as settled
+        program_key = _smoothed_key(program_key, task)
+        trainer = build(task)
+        lap("trainer set-up")
+        checking = task.settle is not None  # the surrogate's own check, compiling beside
+        lowered = lowered_epoch(trainer, config, program_key, beside=False)
+    lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
+    lap("surrogate's trace" if smoothed else "trace")  # the epoch's where smoothed, and the programs beside
+    if checking:
+        lowered = _compiled_now(lowered, lap)
+    task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
+    lap("surrogate check's wait")
+    if lowered.init_rest is not None:  # init's part that waits for no check, compiling beside
+        trainer = trainer._replace(init=trainer.init._replace(rest=lowered.init_rest))
+    return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
+
+
+def _compiled_now(lowered: LoweredEpoch, lap: Callable[[str], None]) -> LoweredEpoch:
+    """``lowered`` compiled here, where a task's check ran or still compiles (``Task.settle``): the
+    programs of init and the evaluation, lowered with it, compile beside it rather than after it (a
+    run's init waits for its own), and a surrogate's own check compiles beside it while its program
+    runs only once this compile has ended, so on a GPU none of its kernels runs while the epoch's are
+    timed. A check that refuses the task leaves this compile unused."""
+    compiled = lowered.lowered.compile()
+    lap("compile")
+    return lowered._replace(compiled=compiled)
+
+
+def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = None,
+                   program_key: dict | None = None) -> tuple[Callable, float]:
+    """The trainer's epoch compiled for ``state`` and the seconds it took: ``lowered``'s where it was
+    lowered for states of ``state``'s shapes, else traced anew (kept under ``program_key``: ``program_store``)."""
+    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
+    if lowered_for(lowered, state):
+        started = time.perf_counter()
+        epoch_fn = lowered.compiled or lowered.lowered.compile()
+        return epoch_fn, time.perf_counter() - started
+    return compile_epoch(trainer.epoch, (state, *arguments), trainer.kept_under(program_key), cache_dir(),
+                         trainer.compiler_options)
+
+
+def compiled_refill(trainer: Trainer, state: Any, beside: CompiledBeside | None = None,
+                    program_key: dict | None = None) -> tuple[Callable, float]:
+    """The program every epoch starts with (``Trainer.fresh``) compiled for ``state`` before any epoch is
+    timed, and the seconds it took: ``beside``'s (``LoweredEpoch.refill``) where it was lowered for
+    ``state``'s shapes, else from its traced program kept under ``program_key`` (a resume's: its first
+    start kept it, ``programs_beside``). Compiled with a first start's options, so a resume finds it
+    in XLA's cache."""
+    if trainer.refill is None:
+        return trainer.fresh, 0.0
+    if lowered_for(beside, state):
+        return beside, beside.wait()
+    started = time.perf_counter()
+    program = lowered_refill(trainer, state, program_key).compile(untimed_options() or None)
+    return program, time.perf_counter() - started
+
+
+def lowered_for(program: LoweredEpoch | CompiledBeside | None, arguments: Any) -> bool:
+    """Whether ``program`` (lowered already, beside or not) was lowered for arguments shaped as ``arguments``."""
+    return program is not None and _leaf_shapes(arguments) == _leaf_shapes(program.shapes)
+
+
+def _leaf_shapes(tree: Any) -> list[tuple]:
+    # Leaves alone: a carried env state's tree holds NumPy arrays in its static fields, which == cannot compare.
+    # A checkpoint's NumPy arrays carry no weak type where init's may: such a state is lowered anew.
+    return [(leaf.shape, leaf.dtype, bool(getattr(leaf, "weak_type", False))) for leaf in jax.tree.leaves(tree)]
+
+
+def _smoothed_key(program_key: dict | None, task: Any) -> dict | None:
+    """The key of a run's kept programs: a task training a smoothed reward steps through other programs."""
+    smoothing = getattr(task, "resolved", {}).get("reward_smoothing")
+    return program_key if program_key is None or smoothing is None else {**program_key, "reward_smoothing": smoothing}
+
+
+def _lap_clock(phases: dict[str, float]) -> Callable[[str], None]:
+    """``lap(name)`` adds the seconds since the previous lap (the first: since this call) to ``phases[name]``."""
+    last = [time.perf_counter()]
+
+    def lap(name: str) -> None:
+        now = time.perf_counter()
+        phases[name] = phases.get(name, 0.0) + now - last[0]
+        last[0] = now
+    return lap
