@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import stablebptt as sb
-from stablebptt.engine import fitting, lowering, program_store
+from stablebptt.engine import lowering, program_store, starting
 from stablebptt.engine.config import seed_array
 from stablebptt.engine.metrics import empty_rows
 from stablebptt.envs import adapter
@@ -177,7 +177,7 @@ def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_paramet
     assert settled.resolved["policy_output_start"] == "small"
     arguments = (trainer.fresh(state), trainer.batches, trainer.train_states, trainer.test_states)
     plain = jax.jit(trainer.epoch)(*arguments)
-    monkeypatch.setattr(fitting, "compile_epoch", lambda *a, **k: pytest.fail("traced again although lowered"))
+    monkeypatch.setattr(starting, "compile_epoch", lambda *a, **k: pytest.fail("traced again although lowered"))
     (tmp_path / "run").mkdir()
     outcome = epochs.train_epochs(trainer, config, tmp_path / "run", state, 0, empty_rows(),
                                    np.asarray(seeds), lowered=lowered)
@@ -293,7 +293,7 @@ def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_o
     # The resume lowers its epoch as a first start does, for the shapes its checkpoint is read into (the
     # reset's weakly typed leaves stored strongly): the lowered program serves it, none is traced after.
     with monkeypatch.context() as patched:
-        patched.setattr(fitting, "compile_epoch", lambda *a, **k: pytest.fail("the resume's epoch traced again"))
+        patched.setattr(starting, "compile_epoch", lambda *a, **k: pytest.fail("the resume's epoch traced again"))
         code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--budget", "0")
     assert code == 0, err
     from stablebptt.commands import train as train_command
