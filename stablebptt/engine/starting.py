@@ -1,6 +1,7 @@
-"""A run's start, in the order it happens (``prepare``): the task's checks settled while its epoch is
-traced and compiled, the trainer rebuilt where a check smoothed the reward; and the epoch's and each
-epoch's first program compiled for a state (``compiled_epoch``, ``compiled_refill``)."""
+"""A run's start, in the order it happens (``prepare``): the epoch traced while the task's check
+compiles beside, the trainer rebuilt where the check's answer smoothed the reward, the epoch compiled
+once it has answered; and the epoch's and each epoch's first program compiled for a state
+(``compiled_epoch``, ``compiled_refill``)."""
 from __future__ import annotations
 
 import time

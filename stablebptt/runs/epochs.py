@@ -10,11 +10,11 @@ import jax
 import numpy as np
 
 from stablebptt.engine.config import TrainConfig
-from stablebptt.engine.fitting import Evaluations, env_steps_per_epoch, fit, out_of_time
-from stablebptt.engine.starting import compiled_epoch, compiled_refill
 from stablebptt.engine.divergence import nonfinite_message, zeroed_notice
+from stablebptt.engine.fitting import Evaluations, env_steps_per_epoch, fit, out_of_time
 from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.program_store import compile_seconds_saved
+from stablebptt.engine.starting import compiled_epoch, compiled_refill
 from stablebptt.engine.training import Trainer, TrainState
 from stablebptt.errors import InputError
 from stablebptt.runs.run_folder import (

@@ -28,9 +28,9 @@ import numpy as np
 
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.fitting import env_steps_per_epoch
-from stablebptt.engine.starting import prepare
 from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.program_store import compile_seconds_saved, run_key
+from stablebptt.engine.starting import prepare
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import Trainer, TrainState
 from stablebptt.errors import InputError
