@@ -100,6 +100,7 @@ BAD_COMMAND_LINES = [
     (["--task", "repulsion", "--batch", "0"], None),
     (["--task", "repulsion", "--batch", "7"], None),
     (["--task", "repulsion", "--poles", "3"], None),
+    (["--env", "envs_for_tests:make_cart", "--sloped-reward-tails", "--epochs", "1"], None),
     (["--epochs", "many"], None),
     (["--resume", "/nonexistent/run"], None),
     (["--poles", "5"], None),
