@@ -10,8 +10,9 @@ right, and what does the trained policy do.
       differentiated at its solution) against central finite differences, in float64.
   python benchmarks/env_probe.py rollout RUN_DIR [--steps 300] [--seed-index 0]
       A trained environment run's policy for one episode from a reset: the env's return, the share of
-      actions whose pre-squash output lies past +-2 (tanh > 0.96: saturated), and each joint position's
-      first, last, smallest and largest value.
+      actions whose pre-squash output lies past +-2 (tanh > 0.96: saturated), each joint position's
+      first, last, smallest and largest value, and each reward term the env records (Playground's
+      ``metrics["reward/..."]``): its mean over the steps and the share of steps where it is exactly 0.
 """
 from __future__ import annotations
 
@@ -83,13 +84,16 @@ def rollout(run_dir: Path, steps: int, seed_index: int) -> None:
     episodes, params = trained.task.episodes, trained.seed_params(seed_index)
     output = jax.jit(lambda state: squashed_output(params, episodes.observe(state)))
     state = jax.jit(episodes.reset)(jax.random.PRNGKey(7))
-    total, saturated, positions = 0.0, [], []
+    total, saturated, positions, terms = 0.0, [], [], {}
     for _ in range(steps):
         raw = output(state)
         saturated.append(np.abs(np.asarray(raw)) > 2)
         state = episodes.step(state, jnp.tanh(raw))  # the env's own step: its reward, not a surrogate's
         total += float(state.reward)
         positions.append(np.asarray(state.data.qpos))
+        for name, value in getattr(state, "metrics", {}).items():
+            if name.startswith("reward/"):
+                terms.setdefault(name, []).append(float(value))
     positions = np.array(positions)
     print(f"{trained.task.name} ({run_dir}, seed index {seed_index}): return {total:.1f} over {steps} steps; "
           f"actions saturated (|pre-squash| > 2): {np.mean(saturated):.0%}")
@@ -97,6 +101,8 @@ def rollout(run_dir: Path, steps: int, seed_index: int) -> None:
         column = positions[:, index]
         print(f"  qpos[{index}]: first {column[0]:.3f}, last {column[-1]:.3f}, from {column.min():.3f} "
               f"to {column.max():.3f}")
+    for name, values in terms.items():  # a term exactly 0 on many steps may be flat there (no gradient)
+        print(f"  {name}: mean {np.mean(values):.3f}, exactly 0 at {np.mean(np.array(values) == 0):.0%} of steps")
 
 
 def main() -> None:

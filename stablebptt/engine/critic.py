@@ -21,7 +21,6 @@ from stablebptt.engine.observations import ObservationStatistics, no_observation
 from stablebptt.flows.dynamics import PyTree
 from stablebptt.networks import mlp_apply, mlp_init
 
-HIDDEN = (64, 64)
 # Short-horizon actor-critic's settings: Adam steps on a window's targets, and the share of the target
 # critic kept at each window (the rest is the critic's).
 ITERATIONS = 16
@@ -49,9 +48,10 @@ def seen(critic: Critic, observation: jax.Array) -> jax.Array:
     return observation if critic.statistics is None else standardized(critic.statistics, observation)
 
 
-def init_critic(seed_key: jax.Array, observations: int, optimizer: optax.GradientTransformation,
+def init_critic(seed_key: jax.Array, observations: int, optimizer: optax.GradientTransformation, hidden: tuple[int, ...],
                 standardize: bool = False) -> Critic:
-    params = mlp_init(jax.random.fold_in(seed_key, CRITIC_STREAM), (observations, *HIDDEN, 1), zero_output=False)
+    """A seed's critic: tanh hidden layers of the widths ``hidden`` (``TrainConfig.critic_width``, ``critic_depth``)."""
+    params = mlp_init(jax.random.fold_in(seed_key, CRITIC_STREAM), (observations, *hidden, 1), zero_output=False)
     return Critic(params, optimizer.init(params), params, no_observations(observations) if standardize else None)
 
 

@@ -211,7 +211,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     def init_rest(seed):
         key = jax.random.PRNGKey(seed)
         carried = None if episodes is None else first_population(key, episodes, config.batch, window)
-        critic = (init_critic(key, observations, critic_optimizer, config.normalize_critic_observations)
+        critic = (init_critic(key, observations, critic_optimizer, (config.critic_width,) * config.critic_depth,
+                              config.normalize_critic_observations)
                   if config.critic else None)
         return carried, critic
 

@@ -5,17 +5,20 @@ implementation (``impl="jax"``; Warp has no gradients) and refuses, in one
 line, a name the registry lacks, a missing extra, an environment that runs
 on Warp only, and a robot whose MuJoCo Menagerie models cannot be fetched. ``repaired_rewards()`` is the context ``environments.env_task``
 enters while the step traces: Playground's reward ``tolerance`` computed in a
-form whose values are the same and whose derivative is never NaN.
+form whose values are the same and whose derivative is never NaN; ``repaired_rewards(sloped_tails=True)``
+also gives the derivative a slope past where a tolerance's sigmoid ends at zero.
 """
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib
 import io
 import subprocess
 import sys
 from typing import Any, Iterable, Iterator
 
+import jax
 import jax.numpy as jnp
 
 from stablebptt.errors import InputError
@@ -26,6 +29,8 @@ EXTRA = "pip install 'stablebptt[playground]'"
 # into its MENAGERIE_PATH at its MENAGERIE_COMMIT_SHA.
 MENAGERIE_REPOSITORY = "https://github.com/deepmind/mujoco_menagerie.git"
 REPAIRS = "Playground's reward tolerance in a form whose derivative is finite (values unchanged)"
+SLOPED_TAILS = (REPAIRS + "; past the end of a tolerance's linear, quadratic or cosine sigmoid its derivative keeps "
+                "the sigmoid's mean slope (values unchanged)")
 
 
 # Playground's torch and RSL-RL wrappers import these wherever they are installed; no command runs
@@ -141,8 +146,10 @@ def load(name: str) -> Any:
     return env
 
 
-def _sigmoid(distance: jnp.ndarray, value_at_1: float, kind: str) -> jnp.ndarray:
-    """dm_control's tolerance sigmoids: 1 at distance 0, ``value_at_1`` at distance 1."""
+def _sigmoid(distance: jnp.ndarray, value_at_1: float, kind: str, sloped_tail: bool = False) -> jnp.ndarray:
+    """dm_control's tolerance sigmoids: 1 at distance 0, ``value_at_1`` at distance 1. The linear, quadratic
+    and cosine ones reach 0 at a finite distance and stay there, flat; with ``sloped_tail`` their derivative
+    past that end is the sigmoid's mean slope over its reach (the value stays 0)."""
     if kind == "gaussian":
         return jnp.exp(-0.5 * (distance * jnp.sqrt(-2 * jnp.log(value_at_1))) ** 2)
     if kind == "hyperbolic":
@@ -153,16 +160,21 @@ def _sigmoid(distance: jnp.ndarray, value_at_1: float, kind: str) -> jnp.ndarray
         return 1 / (jnp.abs(distance) * (1 / value_at_1 - 1) + 1)
     if kind == "tanh_squared":
         return 1 - jnp.tanh(distance * jnp.arctanh(jnp.sqrt(1 - value_at_1))) ** 2
-    scaled = distance * {"cosine": jnp.arccos(2 * value_at_1 - 1) / jnp.pi, "linear": 1 - value_at_1,
-                         "quadratic": jnp.sqrt(1 - value_at_1)}[kind]
-    inside = jnp.abs(scaled) < 1
-    scaled = jnp.where(inside, scaled, 0.0)  # outside, the constant 0: no slope from an unused branch
+    reach = distance * {"cosine": jnp.arccos(2 * value_at_1 - 1) / jnp.pi, "linear": 1 - value_at_1,
+                        "quadratic": jnp.sqrt(1 - value_at_1)}[kind]  # 0 at the bounds, 1 where the sigmoid ends
+    inside = jnp.abs(reach) < 1
+    scaled = jnp.where(inside, reach, 0.0)  # outside, the constant 0: no slope from an unused branch
     shape = {"cosine": (1 + jnp.cos(jnp.pi * scaled)) / 2, "linear": 1 - scaled, "quadratic": 1 - scaled ** 2}[kind]
-    return jnp.where(inside, shape, 0.0)
+    value = jnp.where(inside, shape, 0.0)
+    if not sloped_tail:
+        return value
+    # Past its end the sigmoid's mean slope over its reach (from 1 to 0 as reach goes from 0 to 1), in the derivative only.
+    return value + jnp.where(inside, 0.0, jax.lax.stop_gradient(reach) - reach)
 
 
-def safe_tolerance(x, bounds=(0.0, 0.0), margin=0.0, sigmoid="gaussian", value_at_margin=0.1):
-    """Playground's ``reward.tolerance`` with the same values and a derivative that is never NaN.
+def safe_tolerance(x, bounds=(0.0, 0.0), margin=0.0, sigmoid="gaussian", value_at_margin=0.1, sloped_tails=False):
+    """Playground's ``reward.tolerance`` with the same values and a derivative that is never NaN (with
+    ``sloped_tails``, sloped past the sigmoid's end: ``_sigmoid``).
 
     Playground evaluates the sigmoid at the distance to the bounds everywhere
     and keeps 1 inside them. With an infinite bound that distance is infinite
@@ -178,15 +190,18 @@ def safe_tolerance(x, bounds=(0.0, 0.0), margin=0.0, sigmoid="gaussian", value_a
         return jnp.where(inside, 1.0, 0.0)
     # Differences are linear: an infinite one in an unused branch passes a finite (zero) slope.
     distance = jnp.where(inside, 0.0, jnp.where(x < lower, lower - x, x - upper)) / margin
-    return jnp.where(inside, 1.0, _sigmoid(distance, value_at_margin, sigmoid))
+    return jnp.where(inside, 1.0, _sigmoid(distance, value_at_margin, sigmoid, sloped_tails))
 
 
 @contextlib.contextmanager
-def repaired_rewards() -> Iterator[None]:
-    """Within the block, Playground's rewards use ``safe_tolerance`` (enter it while a step traces)."""
+def repaired_rewards(sloped_tails: bool = False) -> Iterator[None]:
+    """Within the block, Playground's rewards use ``safe_tolerance`` (enter it while a step traces). With
+    ``sloped_tails`` a tolerance flat past its sigmoid's end (the walker's move reward at speed <= 0,
+    the cheetah's run reward) has a slope there in the derivative only: the rewards' values, and so
+    every return, stay as written."""
     from mujoco_playground._src import reward
     original = reward.tolerance
-    reward.tolerance = safe_tolerance
+    reward.tolerance = functools.partial(safe_tolerance, sloped_tails=sloped_tails)
     try:
         yield
     finally:

@@ -9,6 +9,7 @@ and Brax report it (``stablebptt.envs.adapter``).
 """
 from __future__ import annotations
 
+import functools
 import importlib.metadata
 import math
 from dataclasses import dataclass, field, fields, replace
@@ -82,6 +83,7 @@ class Config:
     normalize_observations: bool = field(default=False, metadata={"help": "the policy sees its observations standardised by the running mean and deviation of all those its training windows met (the statistics are kept with its parameters)"})
     smoothing_scale: float = field(default=1.0, metadata={"help": "the surrogate's temperatures: this times the median difference each smoothed comparison meets at the sampled states"})
     contact_gradient_margin: float = field(default=0.0, metadata={"help": "metres: the derivative is taken through the env's model with every contact acting from this far (the simulation stays the file's; 0: contacts as the file says)"})
+    sloped_reward_tails: bool = field(default=False, metadata={"help": "a MuJoCo Playground env's tolerance rewards whose linear, quadratic or cosine sigmoid ends at 0 (the walker's move reward at speed <= 0, the cheetah's run reward) keep, in the derivative only, the sigmoid's mean slope past that end: where the reward was flat the windows' gradient points towards its bounds; its values, and every return, stay as written"})
     contact_gradient_softness: float = field(default=1.0, metadata={"help": "the derivative is taken through the env's model with every contact's time constant this many times the file's, >= 1 (the simulation stays the file's)"})
 
     def __post_init__(self):
@@ -138,10 +140,16 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
     if not config.env:
         raise InputError(f"give {config_field(config, 'env')}: a MuJoCo Playground name or package.module:attribute")
     env = load_env(config.env)
-    dense = ""
+    dense, reward_context, reward_repairs = "", None, ""
     if ":" not in config.env:  # a name of MuJoCo Playground's registry (load_env has imported it)
         from stablebptt.envs import playground
         dense = playground.dense_variant(config.env)
+        if config.sloped_reward_tails:
+            reward_context = functools.partial(playground.repaired_rewards, sloped_tails=True)
+            reward_repairs = playground.SLOPED_TAILS
+    elif config.sloped_reward_tails:
+        raise InputError(f"{config_field(config, 'sloped_reward_tails')} slopes MuJoCo Playground's reward tolerances "
+                         f"in a registry env's step, and {config.env} is not a registry name: drop it")
     # A registry env's name and the package versions say what its reward computes: its diagnosis is
     # kept for an identical later run, like its programs.
     inputs = program_inputs(config)
@@ -149,6 +157,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
     smoothing = ContactSmoothing(config.contact_gradient_margin, config.contact_gradient_softness)
     task = env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
+                    reward_context=reward_context, reward_repairs=reward_repairs,
                     diagnose=config.reward_check, defer_diagnosis=defer_diagnosis, smoothing=config.smoothing,
                     smoothing_scale=config.smoothing_scale, normalize_observations=config.normalize_observations,
                     surrogate_reward=load_reward(config.surrogate_reward) if config.surrogate_reward else None,

@@ -100,6 +100,7 @@ BAD_COMMAND_LINES = [
     (["--task", "repulsion", "--batch", "0"], None),
     (["--task", "repulsion", "--batch", "7"], None),
     (["--task", "repulsion", "--poles", "3"], None),
+    (["--env", "envs_for_tests:make_cart", "--sloped-reward-tails", "--epochs", "1"], None),
     (["--epochs", "many"], None),
     (["--resume", "/nonexistent/run"], None),
     (["--poles", "5"], None),
@@ -126,6 +127,7 @@ CONFLICTS = [
     (["--env", "envs_for_tests:make_cart", "--model", "{models}/cartpole_2.xml"], ("--model of --task mjcf", "--env")),
     (["--task", "repulsion", "--critic-lr", "0.01"], ("--critic-lr 0.01", "--critic is off")),
     (["--task", "repulsion", "--td-lambda", "0.5"], ("--td-lambda 0.5", "--critic is off")),
+    (["--task", "repulsion", "--critic-width", "256"], ("--critic-width 256", "--critic is off")),
     (["--task", "repulsion", "--normalize-critic-observations"], ("--normalize-critic-observations", "--critic is off")),
     (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing", "off"], ("--smoothing off", "--reward-check")),
     (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--no-critic"],
@@ -198,6 +200,7 @@ def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_tak
                    "TrainConfig.cosine is off, but mode C": dict(mode="C", cosine=False),
                    "TrainConfig.critic_lr 0.01 sets the critic's learning rate": dict(critic_lr=0.01),
                    "TrainConfig.td_lambda 0.5 sets the critic's": dict(td_lambda=0.5),
+                   "TrainConfig.critic_depth 3 sets the critic's layers": dict(critic_depth=3),
                    "TrainConfig.normalize_critic_observations standardises": dict(normalize_critic_observations=True)}
     for words, fields in train_cases.items():
         with pytest.raises(sb.InputError, match=words):
@@ -217,7 +220,8 @@ def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_tak
             run_folder.new_record("env", env.Config(env="envs_for_tests:make_cart", **fields), None, sb.TrainConfig())
     # Each option alone, or with what gives it a meaning, is taken.
     for fields in (dict(clip="norm", clip_threshold=0.5), dict(seeds=3, seed_batching="vmap"), dict(mode="R", cosine=False),
-                   dict(critic=True, critic_lr=0.01, td_lambda=0.5, normalize_critic_observations=True)):
+                   dict(critic=True, critic_lr=0.01, td_lambda=0.5, normalize_critic_observations=True, critic_width=256,
+                        critic_depth=3)):
         check_options(sb.TrainConfig(**fields))
     for fields in (dict(smoothing="off"), dict(smoothing_scale=0.5), dict(reward_check=False)):
         check_options(sb.TrainConfig(), env.Config(env="envs_for_tests:make_cart", **fields))

@@ -275,7 +275,7 @@ def test_a_critic_that_standardises_counts_the_running_states_and_fits_the_same_
 
     def fitted_values(standardize, offset, scale):
         observe = lambda x: jnp.stack([offset + scale * x])  # noqa: E731
-        critic = init_critic(jax.random.PRNGKey(0), 1, optimizer, standardize)
+        critic = init_critic(jax.random.PRNGKey(0), 1, optimizer, (64, 64), standardize)
         for _ in range(3):
             critic = fit_to_window(critic, visited, window(steps), observe, 0.9, 0.95, optimizer)
         # What the critic fits, and what a window's loss adds at its end (the target critic's value).
@@ -325,6 +325,11 @@ def test_a_critic_trains_beside_the_policy_and_its_target_follows_it():
                                          standardizing.train_states, standardizing.test_states)
     windows = len(standardizing.batches) * task.dynamics.horizon * config.batch
     assert bool(metrics["finite"][0]) and 0 < float(state.critic.statistics.count[0]) <= windows
+    # Its layers as asked: three of 8 between the observation and the value, the target critic alike.
+    narrow = make_trainer(task, dataclasses.replace(config, critic_width=8, critic_depth=3)).init(seed_array(config)).critic
+    shapes = [tuple(a.shape[1:]) for a in jax.tree.leaves(narrow.params)]
+    assert sorted(shapes) == sorted([(1, 8), (8,), (8, 8), (8,), (8, 8), (8,), (8, 1), (1,)]), shapes
+    assert [a.shape for a in jax.tree.leaves(narrow.target)] == [a.shape for a in jax.tree.leaves(narrow.params)]
     with pytest.raises(InputError, match="action_noise: exploration noise on a window's actions needs carried episodes"):
         make_trainer(task, TrainConfig(batch=1, train_size=2, episodes="off", action_noise=0.1))
     with pytest.raises(InputError, match="critic: a learned value at a window's end needs carried episodes"):

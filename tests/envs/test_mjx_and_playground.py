@@ -74,6 +74,33 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
                 np.testing.assert_allclose(slope[finite], their_slope[finite], atol=1e-5)
                 repaired += int((~finite).sum())
     assert repaired > 0  # the infinite upper bound's NaN is there to repair
+    # Sloped tails: the same values everywhere; past a compact sigmoid's end, where the tolerance was flat, a
+    # slope towards the bounds equal to the sigmoid's mean slope over its reach (1 over its reach in x).
+    x = jnp.linspace(-12.0, 12.0, 241)
+    for sigmoid, value_at_margin, reach in (("linear", 0.5, 2.0), ("linear", 0.0, 1.0), ("quadratic", 0.19, 1 / 0.9),
+                                            ("cosine", 0.5, 2.0)):
+        for bounds, margin in (((1.0, np.inf), 0.5), ((-1.0, 1.0), 2.0)):
+            flat = lambda v: safe_tolerance(v, bounds, margin, sigmoid, value_at_margin)  # noqa: E731
+            sloped = lambda v: safe_tolerance(v, bounds, margin, sigmoid, value_at_margin, sloped_tails=True)  # noqa: E731
+            np.testing.assert_array_equal(sloped(x), flat(x))
+            slope, flat_slope = jax.vmap(jax.grad(sloped))(x), jax.vmap(jax.grad(flat))(x)
+            beyond = np.maximum(bounds[0] - x, x - bounds[1]) - reach * margin  # the distance past the end
+            past_end, before_end = beyond > 1e-4, beyond < -1e-4  # a point at the end itself falls either way
+            np.testing.assert_array_equal(flat_slope[past_end], 0.0)
+            towards_bounds = np.where(x < bounds[0], 1.0, -1.0) / (reach * margin)
+            np.testing.assert_allclose(slope[past_end], towards_bounds[past_end], rtol=1e-5)
+            np.testing.assert_array_equal(slope[before_end], flat_slope[before_end])
+            assert past_end.sum() >= 10 and before_end.sum() >= 10
+    # The task option puts the sloped form in the registry env's step, and says so; outside the step nothing changes.
+    from stablebptt.envs.playground import SLOPED_TAILS, repaired_rewards
+    from stablebptt.tasks import env as env_tasks
+    task = env_tasks.make(env_tasks.Config(env="CartpoleSwingup", sloped_reward_tails=True, reward_check=False))
+    assert SLOPED_TAILS in task.summary and SLOPED_TAILS not in env_tasks.make(
+        env_tasks.Config(env="CartpoleSwingup", reward_check=False)).summary
+    moving = lambda v: reward.tolerance(v, (1.0, np.inf), 0.5, "linear", 0.5)  # noqa: E731 - the walker's move reward
+    with repaired_rewards(sloped_tails=True):
+        assert float(jax.grad(moving)(-1.0)) == 1.0 and float(moving(-1.0)) == 0.0
+    assert float(jax.grad(moving)(-1.0)) == 0.0 and reward.tolerance is not safe_tolerance
     # A refusal suggests the dense variant only where the registry has one.
     from stablebptt.envs.playground import dense_variant
     assert dense_variant("CartpoleSwingupSparse") == "CartpoleSwingup" and dense_variant("PendulumSwingup") == ""
