@@ -33,7 +33,6 @@ from stablebptt.engine.program_store import compile_seconds_saved, run_key
 from stablebptt.engine.starting import prepare
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import Trainer, TrainState
-from stablebptt.errors import InputError
 from stablebptt.runs.run_folder import Run, default_run_dir, new_record, refuse_used
 
 
