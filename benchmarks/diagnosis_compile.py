@@ -20,10 +20,12 @@ from stablebptt.envs import adapter, diagnosis, protocol  # noqa: E402
 from stablebptt.timing import usable_cores
 
 leave_out_unused_backends()
+# Beside an accelerator the diagnosis compiles and runs on the host's CPU (diagnosis.check_device): the CPU's sets.
+ON_GPU = jax.default_backend() == "gpu" and diagnosis.check_device() is None
 OPTION_SETS = {  # name -> XLA options added to the diagnosis's own (diagnosis._diagnosis_options)
-    "training's": compiler_options() or {},
+    "training's": (compiler_options() if ON_GPU else None) or {},
 }
-if jax.default_backend() == "gpu":
+if ON_GPU:
     OPTION_SETS.update({
         "autotune 0": {"xla_gpu_autotune_level": 0, "xla_gpu_force_compilation_parallelism": usable_cores()},
         "autotune 0, ptxas -O0": {"xla_gpu_autotune_level": 0, "xla_gpu_force_compilation_parallelism": usable_cores(),

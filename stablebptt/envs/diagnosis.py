@@ -3,7 +3,7 @@
 A reward whose gradient is zero at every sampled state (a step function) is refused, a NaN
 derivative of a known form is repaired, and a NaN at exactly zero action is avoided by starting the
 policy's output layer small instead of at zero. ``start_diagnosis`` compiles it beside the caller's
-set-up (``PendingDiagnosis``)."""
+set-up (``PendingDiagnosis``), on the host's CPU where an accelerator trains (``check_device``)."""
 from __future__ import annotations
 
 import concurrent.futures
@@ -93,7 +93,8 @@ def diagnose_reward(step: Callable, states: PyTree, actions: jax.Array) -> Rewar
       states: a batch of states (leading axis), e.g. resets and states along episodes of random actions.
       actions: random actions, one per state; zero actions are tried too.
     """
-    return _classify(*jax.device_get(jax.jit(_gradient_checks(step), compiler_options=_diagnosis_options())(states, actions)))
+    return _classify(*jax.device_get(jax.jit(_gradient_checks(step), compiler_options=_diagnosis_options())(
+        *on_check_device((states, actions)))))
 
 
 def diagnose_env(env: Any, step: Callable, key: jax.Array, episode_length: int) -> RewardDiagnosis:
@@ -113,9 +114,10 @@ def start_checks(step: Callable, states: PyTree, actions: jax.Array) -> "Pending
     """``diagnose_reward`` begun as ``start_diagnosis`` begins its diagnosis: traced here, compiled
     beside the caller, run when called (a flat reward's surrogate, checked at the states its
     diagnosis sampled while the trainer's program is traced)."""
+    samples = on_check_device((states, actions))
     lowered = jax.jit(lambda samples: (_gradient_checks(step)(*samples), None),  # the samples are the caller's
-                      compiler_options=_diagnosis_options()).lower((states, actions))
-    return PendingDiagnosis(_compiled_beside(lowered), (states, actions), [(states, actions)])
+                      compiler_options=_diagnosis_options()).lower(samples)
+    return PendingDiagnosis(_compiled_beside(lowered), samples, [samples])
 
 
 def start_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int) -> "PendingDiagnosis":
@@ -127,9 +129,9 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: in
     that exists only late in an episode), and its answer is the diagnosis.
 
     Only XLA's compile works beside the caller. The step is traced here, where the reward's repairs
-    and MJX's derivative remedies are in place for this trace alone. The program runs in the
-    caller, once waited for: nothing of it runs on the device while a program the caller compiles
-    meanwhile times its kernels there (a GPU's autotuning), which might then choose others.
+    and MJX's derivative remedies are in place for this trace alone. The program runs in the caller,
+    once waited for, on the host's CPU beside an accelerator (``check_device``): on a GPU nothing of it
+    could run while a program the caller compiles meanwhile times its kernels there (autotuning).
     """
     lowered, near, whole = lowered_diagnosis(env, step, key, episode_length)
     compiled = _compiled_beside(lowered)
@@ -148,6 +150,7 @@ def lowered_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: 
         samples = _sample_spaced(env, step, *spacing, clocks)
         return checks(*samples), samples
 
+    key = on_check_device(key)  # the program runs where its arguments lie
     near = (key, *_spacing(min(episode_length, NEAR_STEPS), clocks))
     whole = (key, *_spacing(episode_length, clocks)) if episode_length > NEAR_STEPS else None
     return jax.jit(checked_samples, compiler_options=_diagnosis_options()).lower(near), near, whole
@@ -182,10 +185,33 @@ class PendingDiagnosis(NamedTuple):
         return self.compiled.done()
 
 
+def check_device() -> jax.Device | None:
+    """Where the diagnosis runs: the host's CPU beside an accelerator, else the default device (None).
+
+    On a GPU its compile outlasted the set-up and the trace (the run then waited 20-43 s for it on
+    CheetahRun and the walkers), and its kernels could not run while the epoch's compile timed its
+    own there (a GPU's autotuning), so the epoch could not compile before the check had answered. On
+    the host's CPU the check compiles and runs whatever the GPU does meanwhile."""
+    if jax.default_backend() == "cpu":
+        return None
+    try:
+        return jax.devices("cpu")[0]
+    except RuntimeError:  # JAX_PLATFORMS without the CPU: the default device
+        return None
+
+
+def on_check_device(tree: PyTree) -> PyTree:
+    """``tree``'s arrays put where the diagnosis runs (``check_device``): a compiled program runs where its
+    arguments lie, and its closed-over model follows them."""
+    device = check_device()
+    return tree if device is None else jax.device_put(tree, device)
+
+
 def _diagnosis_options() -> dict | None:
-    """XLA options of the diagnosis: the training's, and on a GPU none of its kernels timed
-    (autotuning level 0): it compiles beside the trainer's set-up (``start_diagnosis``), whose reset
-    program times its own kernels meanwhile, and must choose them undisturbed. On one H100 level 0
+    """XLA options of the diagnosis. On the host's CPU beside an accelerator (``check_device``), the
+    CPU's defaults. On a GPU, the training's with none of its kernels timed (autotuning level 0): it
+    compiles beside the trainer's set-up (``start_diagnosis``), whose reset program times its own
+    kernels meanwhile, and must choose them undisturbed. On one H100 level 0
     compiled it in 8.7 s against the training options' 8.9 s for CartpoleSwingup, 7.0 against 8.1 s
     for AcrobotSwingup, each after another compile in the same process (the record:
     ``git show fb065bd:results/startup/gpu-diagnosis-in-turn/diagnosis-compile-after.txt``).
@@ -193,6 +219,8 @@ def _diagnosis_options() -> dict | None:
     diagnosis compiled in 33.1 s where optimised it took 36.5 s, but ran 38.1 s instead of 0.21 s
     over the episodes' first steps and 989 s instead of 3.3 s along whole episodes on the 2-core CPU
     (``python benchmarks/diagnosis_compile.py HopperStand`` at 02b1d6d, before the walk became one loop)."""
+    if check_device() is not None:
+        return None
     return {**(compiler_options() or {}), **untimed_options()} or None
 
 

@@ -120,6 +120,21 @@ def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_o
     assert np.all(np.isfinite(result.test_loss)) and result.test_loss[-1] < 0.5 * result.test_loss[0]
 
 
+def test_beside_an_accelerator_the_reward_check_compiles_and_runs_on_the_hosts_cpu(monkeypatch):
+    # Its kernels never meet the epoch's compile on a GPU, which times its own there; its answer stays the same.
+    from stablebptt.envs import diagnosis
+    env, key, cpu = LateCart(), jax.random.PRNGKey(0), jax.devices("cpu")[0]
+    assert diagnosis.check_device() is None and diagnosis.on_check_device(key) is key  # a CPU run: as it was
+    monkeypatch.setattr(diagnosis.jax, "default_backend", lambda: "gpu")
+    assert diagnosis.check_device() == cpu and diagnosis._diagnosis_options() is None  # the CPU's own options
+    pending = diagnosis.start_diagnosis(env, env.step, key, 100)
+    assert pending.argument[0].committed and pending.argument[0].devices() == {cpu}
+    assert diagnosis.RewardDiagnosis(*pending()).kind == "usable"
+    assert all(leaf.devices() == {cpu} for leaf in jax.tree.leaves(pending.samples()))
+    checks = diagnosis.start_checks(env.step, *pending.samples())  # a surrogate's check, at the same samples
+    assert checks.argument[0].data["count"].committed and diagnosis.RewardDiagnosis(*checks()).kind == "usable"
+
+
 def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_starts_off_zero(tmp_path, monkeypatch):
     # Under a key (a registry env's name), the diagnosis is kept in the compile cache with the programs.
     key = lambda reward: {"env": f"Cart {reward} {tmp_path}"}  # noqa: E731
