@@ -169,24 +169,37 @@ def _ppo_runs() -> tuple[dict, ...]:
         return tuple(json.load(handle))
 
 
+def _ppo_campaigns(env: str) -> list[list[dict]]:
+    """Brax PPO's runs on ``env`` grouped by the budget they were started with, the shortest first: each
+    group one campaign of seeds that shared a GPU under the same protocol."""
+    by_budget = collections.defaultdict(list)
+    for run in _ppo_runs():
+        if run["env"] == env:
+            by_budget[run["budget_s"]].append(run)
+    return [by_budget[budget] for budget in sorted(by_budget)]
+
+
 def ppo_at_budget(env: str) -> str:
-    """Brax PPO's final return on ``env`` with its interval over seeds, and its budget; "-" without runs."""
-    runs = [run for run in _ppo_runs() if run["env"] == env]
-    if not runs:
-        return "-"
-    finals = [run["final_return"] for run in runs]
-    low, high = interval(finals)
-    return f"{np.mean(finals):.1f} [{low:.1f}, {high:.1f}] at {runs[0]['budget_s']:.0f} s"
+    """Brax PPO's final return on ``env`` with its interval over seeds, at each budget its runs reached
+    ("; " between budgets); "-" without runs. Runs stopped before their budget are left out here."""
+    cells = []
+    for runs in _ppo_campaigns(env):
+        finals = [run["final_return"] for run in runs if run["status"] == "budget"]
+        if len(finals) == len(runs):
+            low, high = interval(finals)
+            cells.append(f"{np.mean(finals):.1f} [{low:.1f}, {high:.1f}] at {runs[0]['budget_s']:.0f} s")
+    return "; ".join(cells) or "-"
 
 
 def ppo_near(env: str, mark: float, within: float = MARK_WITHIN_S) -> list[float]:
     """Brax PPO's return on ``env`` per seed at its evaluation nearest ``mark`` seconds of its wall clock
-    (compile included), where one lies within ``within`` s of it; empty where none does for some seed."""
-    runs = [run for run in _ppo_runs() if run["env"] == env]
-    nearest = [min(run["points"], key=lambda point: abs(point["train_wall_s"] - mark)) for run in runs]
-    if not nearest or any(abs(point["train_wall_s"] - mark) > within for point in nearest):
-        return []
-    return [point["return"] for point in nearest]
+    (compile included), from the shortest-budget campaign whose every seed evaluated within ``within``
+    s of it; empty where none did."""
+    for runs in _ppo_campaigns(env):
+        nearest = [min(run["points"], key=lambda point: abs(point["train_wall_s"] - mark)) for run in runs]
+        if all(abs(point["train_wall_s"] - mark) <= within for point in nearest):
+            return [point["return"] for point in nearest]
+    return []
 
 
 def table(records: list[dict], out: str) -> str:

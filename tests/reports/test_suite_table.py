@@ -91,3 +91,21 @@ def test_an_env_counts_against_ppos_reference_by_its_best_return_at_300_s_in_a_r
     assert set(rows) == {"CheetahRun", "WalkerWalk"}
     assert "| 430.0 [430.0, 430.0] | 51% | `cheetah` |" in rows["CheetahRun"]
     assert "| 100.0 [100.0, 100.0] | 10% | `walker` |" in rows["WalkerWalk"]
+
+
+def test_brax_ppos_runs_are_read_campaign_by_campaign_each_at_the_budget_it_was_started_with(monkeypatch):
+    def run(seed, budget, returns, status="budget"):  # an evaluation every 100 s from 100 s, one return each
+        points = [{"train_wall_s": 100.0 * (i + 1), "env_steps": i, "return": value} for i, value in enumerate(returns)]
+        return {"env": "CheetahRun", "seed": seed, "budget_s": budget, "status": status,
+                "final_return": returns[-1], "points": points}
+    short = [run(seed, 300.0, [10.0, 20.0, 30.0 + seed]) for seed in range(2)]
+    long = [run(0, 900.0, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]),
+            run(1, 900.0, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0], status="stopped")]  # stopped at 700 s
+    monkeypatch.setattr(suite_table, "_ppo_runs", lambda: tuple(long + short))
+    # At 300 s the shorter campaign's seeds, never the two campaigns' seeds mixed.
+    assert suite_table.ppo_near("CheetahRun", 300.0) == [30.0, 31.0]
+    # At 600 s the long campaign, where every seed evaluated near it; at 900 s one of its seeds had stopped.
+    assert suite_table.ppo_near("CheetahRun", 600.0) == [6.0, 6.0] and suite_table.ppo_near("CheetahRun", 900.0) == []
+    # At its budget a campaign with a seed stopped before it has no final return.
+    assert suite_table.ppo_at_budget("CheetahRun") == "30.5 [30.0, 31.0] at 300 s"
+    assert suite_table.ppo_at_budget("WalkerWalk") == "-"
