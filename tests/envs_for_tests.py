@@ -167,3 +167,30 @@ class Ball:
     @staticmethod
     def _observe(data) -> jax.Array:
         return jnp.concatenate([data["qpos"], data["qvel"]])
+
+
+class SubsteppedBall(Ball):
+    """The ball stepped as MuJoCo Playground steps its envs: a control step of ``dt`` seconds in
+    ``n_substeps`` physics steps of ``_sim_dt`` each (the model's time step)."""
+
+    dt = 0.02
+
+    def __init__(self, sim_dt: float = 0.002):
+        super().__init__()
+        self._sim_dt = sim_dt
+        self._mjx_model = self._mjx_model.replace(opt=self._mjx_model.opt.replace(timestep=sim_dt))
+
+    @property
+    def n_substeps(self) -> int:
+        return int(round(self.dt / self._sim_dt))
+
+    def step(self, state: State, action: jax.Array) -> State:
+        from mujoco import mjx
+        data = mjx.make_data(self._mjx_model).replace(qpos=state.data["qpos"], qvel=state.data["qvel"], ctrl=action)
+        data = jax.lax.fori_loop(0, self.n_substeps, lambda _, data: mjx.step(self._mjx_model, data), data)
+        stepped = {"qpos": data.qpos, "qvel": data.qvel, "count": state.data["count"] + 1}
+        return State(self._observe(stepped), -(data.qpos[0] + 0.05) ** 2, jnp.zeros(()), stepped)
+
+
+def make_substepped_ball() -> SubsteppedBall:
+    return SubsteppedBall()

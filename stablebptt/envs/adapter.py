@@ -22,7 +22,6 @@ at zero (``RewardDiagnosis``).
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import math
 import numbers
@@ -38,6 +37,7 @@ from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.observations import StandardizedNetwork, no_observations, refresh_from, standardized
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
+from stablebptt.envs.derivative_model import derivative_through, own_substeps
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, sample_for_diagnosis, start_checks,
                                        start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
@@ -46,9 +46,8 @@ from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.physics import scene
-from stablebptt.physics.backward_contacts import ContactSmoothing, differentiated_through, smoothed_model
+from stablebptt.physics.backward_contacts import ContactSmoothing
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
-from stablebptt.physics.mjx_internals import collision_driver
 
 PyTree = Any
 # Output weights of a policy that must not start at exactly zero action: small enough that the
@@ -94,6 +93,9 @@ def _check_arguments(**given: Any) -> None:
         refuse("surrogate_reward", "a function of the state a step reaches, or None")
     if given["contact_smoothing"] is not None and not isinstance(given["contact_smoothing"], ContactSmoothing):
         refuse("contact_smoothing", "a stablebptt.ContactSmoothing, or None")
+    substeps = given["gradient_substeps"]
+    if substeps is not None and not (whole_number(substeps) and substeps >= 1):
+        refuse("gradient_substeps", "a whole number of physics steps >= 1, or None")
     if given["reward_env"] is not None:
         if given["surrogate_reward"] is not None:
             raise EnvError("env_task: give a surrogate_reward or a reward_env to train on, not both")
@@ -155,23 +157,6 @@ def has_constraint_solver(env: Any) -> bool:
     return isinstance(model, mujoco.MjModel) and scene.analyze(model).constraints
 
 
-def _derivative_smoothed(traced: Callable[[Any], Callable], env: Any, smoothing: ContactSmoothing | None,
-                         label: str) -> Callable:
-    """``traced(env)``, differentiated as ``traced`` of a copy of ``env`` on its contact-smoothed model
-    (None: as ``env``'s own)."""
-    if smoothing is None:
-        return traced(env)
-    if "_mjx_model" not in vars(env):  # a wrapper's would be its inner env's, which its step keeps using
-        raise EnvError(f"{label}: contacts smoothed in the derivative need an env that keeps its MJX model in "
-                       f"_mjx_model, as MuJoCo Playground's do; {type(env).__name__} does not")
-    if next(iter(collision_driver.geom_pairs(env._mjx_model)), None) is None:
-        raise EnvError(f"{label}: its model has no pair of geoms that can touch, so contacts smoothed in the "
-                       f"derivative change nothing: drop the contact gradient's options")
-    smoothed_env = copy.copy(env)  # the same env, stepping the smoothed model
-    smoothed_env._mjx_model = smoothed_model(env._mjx_model, smoothing)
-    return differentiated_through(traced(env), traced(smoothed_env))
-
-
 def observation_policy(params: Any, seen: jax.Array) -> jax.Array:
     """An env task's deterministic policy on an observation: tanh of ``squashed_output``."""
     return jnp.tanh(squashed_output(params, seen))
@@ -191,7 +176,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              dense_variant: str = "", diagnosis_key: dict | None = None, defer_diagnosis: bool = False,
              smoothing: str = "auto", smoothing_scale: float = 1.0,
              surrogate_reward: Callable[[Any], jax.Array] | None = None, normalize_observations: bool = False,
-             reward_env: Any = None, contact_smoothing: ContactSmoothing | None = None) -> Task:
+             reward_env: Any = None, contact_smoothing: ContactSmoothing | None = None,
+             gradient_substeps: int | None = None) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -237,6 +223,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         through the env's model with contacts acting from ``margin`` metres and ``softness`` times
         softer (``stablebptt.physics.backward_contacts``); for envs that keep their MJX model in
         ``_mjx_model`` (MuJoCo Playground's). None: the derivative of the model as its file says.
+      gradient_substeps: the step's values stay the env's, its derivative is that of the same control step
+        taken in this many physics steps of equal length (a divisor of the env's own ``n_substeps``; MuJoCo
+        Playground's envs). None: through every physics step the env simulates.
 
     Example::
 
@@ -249,7 +238,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                      diagnosis_seed=diagnosis_seed, dense_variant=dense_variant, diagnosis_key=diagnosis_key,
                      defer_diagnosis=defer_diagnosis, smoothing=smoothing, smoothing_scale=smoothing_scale,
                      surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
-                     reward_env=reward_env, contact_smoothing=contact_smoothing)
+                     reward_env=reward_env, contact_smoothing=contact_smoothing, gradient_substeps=gradient_substeps)
     env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -266,6 +255,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     label = name or type(env).__name__
     if contact_smoothing is not None and contact_smoothing.exact:  # the file's own contacts: nothing to smooth
         contact_smoothing = None
+    if gradient_substeps is not None and gradient_substeps == own_substeps(env):  # the env's own steps
+        gradient_substeps = None
 
     def traced(stepping_env):  # the env's step as every program traces it
         def env_step(state, action):
@@ -274,7 +265,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         return env_step
 
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.
-    step = jax.jit(_derivative_smoothed(traced, env, contact_smoothing, label))
+    step = jax.jit(derivative_through(traced, env, contact_smoothing, gradient_substeps, label))
 
     def policy(params, state):
         return observation_policy(params, observation(state))
@@ -287,7 +278,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         check_surrogate_reward(env, step, surrogate_reward, label)
         training_step = jax.jit(surrogate.user_surrogate(step, surrogate_reward))
     if reward_env is not None:
-        reward_env_step = jax.jit(_derivative_smoothed(traced, reward_env, contact_smoothing, label))
+        reward_env_step = jax.jit(derivative_through(traced, reward_env, contact_smoothing, gradient_substeps, label))
         check_same_states(env, reward_env_step, label)
         training_step = reward_env_step
 
@@ -306,7 +297,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         "episode_length": episode_length,
         # the diagnosis reads the derivative, which the contacts' smoothing changes
         **({} if contact_smoothing is None else
-           {"contact_smoothing": [contact_smoothing.margin, contact_smoothing.softness]})}
+           {"contact_smoothing": [contact_smoothing.margin, contact_smoothing.softness]}),
+        **({} if gradient_substeps is None else {"gradient_substeps": gradient_substeps})}
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
 
     def start() -> PendingDiagnosis:
@@ -368,7 +360,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                + ("; constraint solver differentiated at its solution" if has_constraint_solver(env) else "")
                + ("" if contact_smoothing is None else
                   f"; contacts smoothed in the derivative alone (acting from {contact_smoothing.margin:g} m, "
-                  f"time constants x{contact_smoothing.softness:g})"))
+                  f"time constants x{contact_smoothing.softness:g})")
+               + ("" if gradient_substeps is None else f"; derivative through {gradient_substeps} physics steps per control step"))
     if reward_repairs:
         summary += f"; repaired: {reward_repairs}"
 

@@ -1,0 +1,60 @@
+"""An environment's step differentiated through another model than the one it simulates: its contacts
+smoothed (``ContactSmoothing``), or its control step's physics taken in fewer, longer steps
+(``gradient_substeps``). The step's values stay the env's own, bit for bit; only its derivative is
+the other model's, linearised at the true state (``differentiated_through``).
+
+Fewer physics steps in the derivative make the backward pass that much shorter: MuJoCo Playground's
+walkers simulate 10 physics steps per control step, and a window's derivative runs through all of
+them."""
+from __future__ import annotations
+
+import copy
+from typing import Any, Callable
+
+from stablebptt.envs.protocol import EnvError
+from stablebptt.physics.backward_contacts import ContactSmoothing, differentiated_through, smoothed_model
+from stablebptt.physics.mjx_internals import collision_driver
+
+
+def derivative_through(traced: Callable[[Any], Callable], env: Any, smoothing: ContactSmoothing | None,
+                       substeps: int | None, label: str) -> Callable:
+    """``traced(env)``, differentiated as ``traced`` of a copy of ``env`` on its contact-smoothed model and
+    with ``substeps`` physics steps per control step (None for either: as ``env``'s own)."""
+    if smoothing is None and substeps is None:
+        return traced(env)
+    if "_mjx_model" not in vars(env):  # a wrapper's would be its inner env's, which its step keeps using
+        needs = "contacts smoothed" if smoothing is not None else "fewer physics steps"
+        raise EnvError(f"{label}: {needs} in the derivative need an env that keeps its MJX model in _mjx_model, "
+                       f"as MuJoCo Playground's do; {type(env).__name__} does not")
+    other = copy.copy(env)  # the same env, stepping the derivative's model
+    if smoothing is not None:
+        if next(iter(collision_driver.geom_pairs(env._mjx_model)), None) is None:
+            raise EnvError(f"{label}: its model has no pair of geoms that can touch, so contacts smoothed in the "
+                           f"derivative change nothing: drop the contact gradient's options")
+        other._mjx_model = smoothed_model(env._mjx_model, smoothing)
+    if substeps is not None:
+        _take_substeps(other, substeps, label)
+    return differentiated_through(traced(env), traced(other))
+
+
+def own_substeps(env: Any) -> int | None:
+    """The physics steps ``env`` simulates per control step, where it says (MuJoCo Playground's
+    ``n_substeps``, from its ``_sim_dt``); else None."""
+    count = getattr(env, "n_substeps", None) if "_sim_dt" in vars(env) else None
+    return count if isinstance(count, int) else None
+
+
+def _take_substeps(env: Any, substeps: int, label: str) -> None:
+    """``env`` (a copy) set to step its control step in ``substeps`` physics steps of equal length."""
+    own = own_substeps(env)
+    if own is None:
+        raise EnvError(f"{label}: fewer physics steps in the derivative need an env that keeps its physics step in "
+                       f"_sim_dt and its count per control step in n_substeps, as MuJoCo Playground's do; "
+                       f"{type(env).__name__} does not")
+    if substeps < 1 or own % substeps:
+        raise EnvError(f"{label} simulates {own} physics steps per control step: the derivative's count must divide "
+                       f"it, got {substeps}")
+    factor = own // substeps
+    env._sim_dt = env._sim_dt * factor
+    model = env._mjx_model
+    env._mjx_model = model.replace(opt=model.opt.replace(timestep=model.opt.timestep * factor))

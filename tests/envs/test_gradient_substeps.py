@@ -1,0 +1,57 @@
+"""A control step differentiated in fewer physics steps than it simulates (``env_task(gradient_substeps=...)``,
+``--gradient-substeps``): the task's step keeps the env's values, and its derivative is the closed form of
+semi-implicit Euler in that many steps; an env that cannot take it, and bad counts, are refused in one line."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from stablebptt.envs.adapter import env_task
+from stablebptt.envs.protocol import EnvError
+
+from conftest import train_in_process
+from envs_for_tests import Ball, SubsteppedBall
+
+GEAR, MASS, CONTROL_STEP = 5.0, 1.0, 0.02  # envs_for_tests.BALL's motor and ball, SubsteppedBall.dt
+
+
+def test_the_tasks_step_keeps_the_envs_values_and_takes_the_derivative_of_fewer_longer_steps():
+    env = SubsteppedBall()  # 10 physics steps of 2 ms per control step
+    tasks = {count: env_task(env, horizon=4, diagnose=False, gradient_substeps=count or None) for count in (0, 10, 5, 1)}
+    assert "derivative through 5 physics steps per control step" in tasks[5].summary
+    assert "physics steps per control step" not in tasks[10].summary  # the env's own count: nothing changes
+    state = env.reset(jax.random.PRNGKey(0))
+    state = state._replace(data={**state.data, "qpos": jnp.array([0.05])})  # 15 cm clear: no contact
+
+    @jax.jit
+    def values_and_slopes(state):
+        def position_after(task):
+            return lambda action: task.dynamics.step(state, action).data["qpos"][0]
+        action = jnp.array([0.3])
+        return ({count: task.dynamics.step(state, action) for count, task in tasks.items()},
+                {count: jax.grad(position_after(task))(action)[0] for count, task in tasks.items()})
+
+    values, slopes = values_and_slopes(state)
+    for count in (10, 5, 1):
+        for a, b in zip(jax.tree.leaves(values[0]), jax.tree.leaves(values[count])):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # Semi-implicit Euler in n steps of h = T / n: d position / d action = (gear / mass) h^2 n (n + 1) / 2.
+    for count in (0, 5, 1):  # 0: the env's own count
+        n = count or 10
+        expected = GEAR / MASS * (CONTROL_STEP / n) ** 2 * n * (n + 1) / 2
+        np.testing.assert_allclose(float(slopes[count]), expected, rtol=1e-5)
+
+
+def test_an_env_without_substeps_and_bad_counts_are_refused_in_one_line(tmp_path, capsys):
+    with pytest.raises(EnvError, match="Ball: fewer physics steps in the derivative need an env that keeps its physics step"):
+        env_task(Ball(), horizon=4, diagnose=False, gradient_substeps=1)
+    with pytest.raises(EnvError, match="SubsteppedBall simulates 10 physics steps per control step: the derivative's count must divide it, got 3"):
+        env_task(SubsteppedBall(), horizon=4, diagnose=False, gradient_substeps=3)
+    with pytest.raises(EnvError, match="env_task's gradient_substeps must be a whole number of physics steps >= 1"):
+        env_task(SubsteppedBall(), horizon=4, diagnose=False, gradient_substeps=0)
+    for value, expected in (("-1", "--gradient-substeps must be a whole number of physics steps >= 1"),
+                            ("3", "make_substepped_ball simulates 10 physics steps per control step")):
+        code, err = train_in_process(capsys, "--env", "envs_for_tests:make_substepped_ball", "--gradient-substeps", value,
+                                     "--epochs", "1", "--out", str(tmp_path / "refused"))
+        assert code == 2 and len(err) == 1 and expected in err[0], err
+        assert not (tmp_path / "refused").exists()
