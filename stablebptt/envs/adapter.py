@@ -330,13 +330,22 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             raise EnvError(f"{label}: the surrogate reward {own}'s gradient is NaN at {diagnosis.nan_at_random:.0%} of "
                            f"sampled states with random actions: fix {own} (a square root or a norm taken at zero or "
                            "below, a log of zero, a NaN it returns?)")
+        if diagnosis.kind == "zero" and smoothing == "auto" and (contact_smoothing or gradient_substeps):
+            # The surrogate rewrites the reward inside the step, which the other model's derivative wraps whole.
+            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and its smooth "
+                           "surrogate cannot be made while the derivative is taken through another model (contacts "
+                           "smoothed, or fewer physics steps): drop those options, or " + advice)
         if diagnosis.kind == "zero" and smoothing == "off":
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
                            f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")
         if diagnosis.kind == "nan":
+            coarser = "" if gradient_substeps is None else (
+                f", its derivative taken through {gradient_substeps} physics steps per control step where the env "
+                f"simulates {own_substeps(env)} (a longer step's derivative can diverge where the env's does not: "
+                "take more of them)")
             raise EnvError(f"{label}: the reward's gradient is NaN at {diagnosis.nan_at_random:.0%} of sampled states "
-                           f"with random actions{' even after repairing ' + reward_repairs if reward_repairs else ''}: "
-                           f"{advice} (a norm taken at zero, a tolerance with an infinite bound and no margin?)")
+                           f"with random actions{' even after repairing ' + reward_repairs if reward_repairs else ''}"
+                           f"{coarser}: {advice} (a norm taken at zero, a tolerance with an infinite bound and no margin?)")
         return diagnosis
 
     def init_params(key, zero_output):

@@ -55,3 +55,30 @@ def test_an_env_without_substeps_and_bad_counts_are_refused_in_one_line(tmp_path
                                      "--epochs", "1", "--out", str(tmp_path / "refused"))
         assert code == 2 and len(err) == 1 and expected in err[0], err
         assert not (tmp_path / "refused").exists()
+
+
+class FragileBall(SubsteppedBall):
+    """The ball whose step's derivative is NaN at a physics step of 20 ms (as a stiff env's can be), and
+    zero at 15 ms."""
+
+    def __init__(self, breaks_at: float = 0.015):
+        super().__init__()
+        self.breaks_at = breaks_at
+
+    def step(self, state, action):
+        stepped = super().step(state, action)
+        return stepped._replace(reward=stepped.reward * jnp.sqrt(self.breaks_at - self._sim_dt))
+
+
+def test_a_nan_derivative_of_the_longer_steps_is_refused_naming_them_and_a_flat_one_is_not_smoothed():
+    fragile = FragileBall()
+    assert env_task(fragile, horizon=4, gradient_substeps=2).settled().settle is None  # 10 ms: finite, not flat
+    with pytest.raises(EnvError, match="FragileBall: the reward's gradient is NaN at 100% of sampled states with random "
+                                       "actions, its derivative taken through 1 physics steps per control step where "
+                                       "the env simulates 10"):
+        env_task(fragile, horizon=4, gradient_substeps=1).settled()
+    # Flat through the longer steps: the surrogate would rewrite the reward inside the wrapped step; refused.
+    with pytest.raises(EnvError, match="FragileBall: the reward's gradient is zero at every sampled state and action, "
+                                       "and its smooth surrogate cannot be made while the derivative is taken through "
+                                       "another model"):
+        env_task(FragileBall(breaks_at=0.01), horizon=4, gradient_substeps=2).settled()
