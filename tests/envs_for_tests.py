@@ -160,9 +160,14 @@ class Ball:
     def step(self, state: State, action: jax.Array) -> State:
         from mujoco import mjx
         data = mjx.make_data(self._mjx_model).replace(qpos=state.data["qpos"], qvel=state.data["qvel"], ctrl=action)
-        data = mjx.step(self._mjx_model, data)
+        data = self._advance(data)
         stepped = {"qpos": data.qpos, "qvel": data.qvel, "count": state.data["count"] + 1}
         return State(self._observe(stepped), -(data.qpos[0] + 0.05) ** 2, jnp.zeros(()), stepped)
+
+    def _advance(self, data):
+        """One control step of the MJX data: here one physics step."""
+        from mujoco import mjx
+        return mjx.step(self._mjx_model, data)
 
     @staticmethod
     def _observe(data) -> jax.Array:
@@ -184,12 +189,9 @@ class SubsteppedBall(Ball):
     def n_substeps(self) -> int:
         return int(round(self.dt / self._sim_dt))
 
-    def step(self, state: State, action: jax.Array) -> State:
+    def _advance(self, data):
         from mujoco import mjx
-        data = mjx.make_data(self._mjx_model).replace(qpos=state.data["qpos"], qvel=state.data["qvel"], ctrl=action)
-        data = jax.lax.fori_loop(0, self.n_substeps, lambda _, data: mjx.step(self._mjx_model, data), data)
-        stepped = {"qpos": data.qpos, "qvel": data.qvel, "count": state.data["count"] + 1}
-        return State(self._observe(stepped), -(data.qpos[0] + 0.05) ** 2, jnp.zeros(()), stepped)
+        return jax.lax.fori_loop(0, self.n_substeps, lambda _, data: mjx.step(self._mjx_model, data), data)
 
 
 def make_substepped_ball() -> SubsteppedBall:

@@ -7,13 +7,16 @@ its returns are its own evaluations (`stablebptt plot RUN --x wall-clock` draws 
 are its runs in results/envs/baselines/ppo.json (`ppo_baseline.py`, 5 seeds sharing one GPU), the
 campaign of the longest budget on the env, its clock compile included and its evaluations off it;
 its seeds evaluate at nearby but not equal times, so each seed is interpolated onto a common grid
-between the first and last times every seed evaluated at.
+between the first and last times every seed evaluated at. It also prints, env by env, the numbers
+docs/performance.md reads off the figure: each side's last return and env steps, PPO's return at the
+run's last env steps and at each mark of the wall clock, and where PPO's mean passes the run's.
 
   python benchmarks/envs_vs_apg/against_ppo.py --runs RUNS/CheetahRun RUNS/WalkerWalk --out results/envs/suite/against_ppo_900s.png
 """
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -29,24 +32,63 @@ GRID_POINTS = 200  # where each PPO seed is read between evaluations
 
 def ours(run: curves.Run) -> dict[str, np.ndarray]:
     """A run's evaluated epochs: returns (E, seeds), wall clock (E,), env steps per seed (E,)."""
-    name, sign = curves.score_of(run)
+    _, sign = curves.score_of(run)
     returns = sign * run.metrics["test_loss"]
     evaluated = ~np.isnan(returns).any(axis=1)
     return {"returns": returns[evaluated], "wall-clock": curves.wall_clock(run)[evaluated],
             "env-steps": curves.x_values(run, "env-steps")[0][evaluated]}
 
 
+def campaign(env: str) -> list[dict]:
+    """Brax PPO's runs on ``env`` of the longest budget; empty without runs."""
+    campaigns = suite_table.ppo_campaigns(env)
+    return campaigns[-1] if campaigns else []
+
+
 def brax_ppo(env: str, axis: str) -> tuple[np.ndarray, np.ndarray] | None:
     """Brax PPO's returns on ``env`` on a common grid of ``axis``: (grid (G,), returns (G, seeds)); None
     without runs."""
-    campaigns = suite_table._ppo_campaigns(env)
-    if not campaigns:
-        return None
     key = {"wall-clock": "train_wall_s", "env-steps": "env_steps"}[axis]
     seeds = [(np.array([p[key] for p in run["points"]], float), np.array([p["return"] for p in run["points"]], float))
-             for run in campaigns[-1]]
+             for run in campaign(env)]
+    if not seeds:
+        return None
     grid = np.linspace(max(x[0] for x, _ in seeds), min(x[-1] for x, _ in seeds), GRID_POINTS)
     return grid, np.stack([np.interp(grid, x, y) for x, y in seeds], axis=1)
+
+
+def _mean_interval(values) -> str:
+    low, high = suite_table.interval(values)
+    return f"{np.mean(values):.1f} [{low:.1f}, {high:.1f}]"
+
+
+def summary(run: curves.Run) -> list[str]:
+    """What the figure shows of ``run`` beside Brax PPO, in numbers."""
+    env, mine = run.config["task_config"]["env"], ours(run)
+    runs = campaign(env)
+    lines = [f"{env}: the run's last evaluation {_mean_interval(mine['returns'][-1])} at {mine['wall-clock'][-1]:.0f} s, "
+             f"{mine['env-steps'][-1] / 1e6:.1f}M env steps a seed"]
+    if not runs:
+        return lines
+    last_steps = [run["points"][-1]["env_steps"] for run in runs]
+    at_steps = [np.interp(mine["env-steps"][-1], [p["env_steps"] for p in run["points"]],
+                          [p["return"] for p in run["points"]]) for run in runs]
+    lines.append(f"  Brax PPO ({runs[0]['budget_s']:.0f} s campaign): last evaluations at "
+                 f"{min(r['points'][-1]['train_wall_s'] for r in runs):.0f}-{max(r['points'][-1]['train_wall_s'] for r in runs):.0f} s "
+                 f"{_mean_interval([r['points'][-1]['return'] for r in runs])}, "
+                 f"{min(last_steps) / 1e6:.1f}M-{max(last_steps) / 1e6:.1f}M env steps a seed "
+                 f"({min(last_steps) / mine['env-steps'][-1]:.1f}-{max(last_steps) / mine['env-steps'][-1]:.1f}x the run's); "
+                 f"at the run's last env steps {_mean_interval(at_steps)}")
+    for mark in suite_table.WALL_CLOCK_MARKS:  # each seed's evaluation nearest the mark, however far
+        times = [min((p["train_wall_s"] for p in run["points"]), key=lambda t: abs(t - mark)) for run in runs]
+        lines.append(f"  Brax PPO's evaluations nearest {mark} s, at {min(times):.0f}-{max(times):.0f} s: "
+                     + _mean_interval(suite_table.nearest_returns(runs, mark, within=math.inf)))
+    grid, returns = brax_ppo(env, "wall-clock")
+    gap = returns.mean(axis=1) - np.interp(grid, mine["wall-clock"], mine["returns"].mean(axis=1), left=np.nan,
+                                           right=np.nan)
+    passing = grid[1:][(gap[1:] > 0) & (gap[:-1] <= 0)]
+    lines.append("  Brax PPO's mean passes the run's at " + (", ".join(f"{t:.0f} s" for t in passing) or "no time"))
+    return lines
 
 
 def draw(run_dirs: list[Path], out: Path) -> Path:
@@ -59,11 +101,11 @@ def draw(run_dirs: list[Path], out: Path) -> Path:
     figure, axes = plt.subplots(len(runs), 2, figsize=(10, 3.4 * len(runs)), squeeze=False)
     for row, run in zip(axes, runs):
         env, mine = run.config["task_config"]["env"], ours(run)
+        mine_mean, mine_low, mine_high = curves.aggregate(mine["returns"])
         for ax, axis, label in ((row[0], "wall-clock", "wall clock, s (set-up and compile included)"),
                                 (row[1], "env-steps", "env steps per seed")):
-            mean, low, high = curves.aggregate(mine["returns"])
-            ax.plot(mine[axis], mean, color="C0", label=f"stablebptt ({len(run.seeds)} seeds)")
-            ax.fill_between(mine[axis], low, high, color="C0", alpha=0.2)
+            ax.plot(mine[axis], mine_mean, color="C0", label=f"stablebptt ({len(run.seeds)} seeds)")
+            ax.fill_between(mine[axis], mine_low, mine_high, color="C0", alpha=0.2)
             ppo = brax_ppo(env, axis)
             if ppo is not None:
                 mean, low, high = curves.aggregate(ppo[1])
@@ -85,6 +127,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--runs", nargs="+", type=Path, required=True, help="run folders of `stablebptt train --env`")
     parser.add_argument("--out", type=Path, required=True, help="figure file (.png, .pdf or .svg)")
     args = parser.parse_args(argv)
+    for path in args.runs:
+        print("\n".join(summary(curves.load_run(path))))
     print(f"wrote {draw(args.runs, args.out)}")
     return 0
 

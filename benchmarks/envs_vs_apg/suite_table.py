@@ -169,7 +169,7 @@ def _ppo_runs() -> tuple[dict, ...]:
         return tuple(json.load(handle))
 
 
-def _ppo_campaigns(env: str) -> list[list[dict]]:
+def ppo_campaigns(env: str) -> list[list[dict]]:
     """Brax PPO's runs on ``env`` grouped by the budget they were started with, the shortest first: each
     group one campaign of seeds that shared a GPU under the same protocol."""
     by_budget = collections.defaultdict(list)
@@ -183,7 +183,7 @@ def ppo_at_budget(env: str) -> str:
     """Brax PPO's final return on ``env`` with its interval over seeds, at each budget its runs reached
     ("; " between budgets); "-" without runs. Runs stopped before their budget are left out here."""
     cells = []
-    for runs in _ppo_campaigns(env):
+    for runs in ppo_campaigns(env):
         finals = [run["final_return"] for run in runs if run["status"] == "budget"]
         if len(finals) == len(runs):
             low, high = interval(finals)
@@ -195,11 +195,20 @@ def ppo_near(env: str, mark: float, within: float = MARK_WITHIN_S) -> list[float
     """Brax PPO's return on ``env`` per seed at its evaluation nearest ``mark`` seconds of its wall clock
     (compile included), from the shortest-budget campaign whose every seed evaluated within ``within``
     s of it; empty where none did."""
-    for runs in _ppo_campaigns(env):
-        nearest = [min(run["points"], key=lambda point: abs(point["train_wall_s"] - mark)) for run in runs]
-        if all(abs(point["train_wall_s"] - mark) <= within for point in nearest):
-            return [point["return"] for point in nearest]
+    for runs in ppo_campaigns(env):
+        returns = nearest_returns(runs, mark, within)
+        if returns:
+            return returns
     return []
+
+
+def nearest_returns(runs: list[dict], mark: float, within: float = MARK_WITHIN_S) -> list[float]:
+    """Each run's return at its evaluation nearest ``mark`` s of its wall clock; empty unless every run has
+    one within ``within`` s of it."""
+    nearest = [min(run["points"], key=lambda point: abs(point["train_wall_s"] - mark)) for run in runs]
+    if not all(abs(point["train_wall_s"] - mark) <= within for point in nearest):
+        return []
+    return [point["return"] for point in nearest]
 
 
 def table(records: list[dict], out: str) -> str:

@@ -330,7 +330,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             raise EnvError(f"{label}: the surrogate reward {own}'s gradient is NaN at {diagnosis.nan_at_random:.0%} of "
                            f"sampled states with random actions: fix {own} (a square root or a norm taken at zero or "
                            "below, a log of zero, a NaN it returns?)")
-        if diagnosis.kind == "zero" and smoothing == "auto" and (contact_smoothing or gradient_substeps):
+        if diagnosis.kind == "zero" and smoothing == "auto" and (contact_smoothing is not None
+                                                                   or gradient_substeps is not None):
             # The surrogate rewrites the reward inside the step, which the other model's derivative wraps whole.
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and its smooth "
                            "surrogate cannot be made while the derivative is taken through another model (contacts "

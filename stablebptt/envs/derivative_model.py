@@ -51,7 +51,7 @@ def _take_substeps(env: Any, substeps: int, label: str) -> None:
         raise EnvError(f"{label}: fewer physics steps in the derivative need an env that keeps its physics step in "
                        f"_sim_dt and its count per control step in n_substeps, as MuJoCo Playground's do; "
                        f"{type(env).__name__} does not")
-    if substeps < 1 or own % substeps:
+    if own % substeps:  # env_task refuses a count below 1
         raise EnvError(f"{label} simulates {own} physics steps per control step: the derivative's count must divide "
                        f"it, got {substeps}")
     factor = own // substeps

@@ -58,8 +58,8 @@ def test_an_env_without_substeps_and_bad_counts_are_refused_in_one_line(tmp_path
 
 
 class FragileBall(SubsteppedBall):
-    """The ball whose step's derivative is NaN at a physics step of 20 ms (as a stiff env's can be), and
-    zero at 15 ms."""
+    """The ball whose step's derivative is NaN where its physics step is longer than ``breaks_at`` (as a
+    stiff env's can be), and zero where it is exactly that long."""
 
     def __init__(self, breaks_at: float = 0.015):
         super().__init__()
