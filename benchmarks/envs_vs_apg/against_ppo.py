@@ -79,7 +79,8 @@ def summary(run: curves.Run) -> list[str]:
                  f"{min(last_steps) / 1e6:.1f}M-{max(last_steps) / 1e6:.1f}M env steps a seed "
                  f"({min(last_steps) / mine['env-steps'][-1]:.1f}-{max(last_steps) / mine['env-steps'][-1]:.1f}x the run's); "
                  f"at the run's last env steps {_mean_interval(at_steps)}")
-    for mark in suite_table.WALL_CLOCK_MARKS:  # each seed's evaluation nearest the mark, however far
+    # each seed's evaluation nearest a mark the campaign reached, however far
+    for mark in (mark for mark in suite_table.WALL_CLOCK_MARKS if mark <= runs[0]["budget_s"]):
         times = [min((p["train_wall_s"] for p in run["points"]), key=lambda t: abs(t - mark)) for run in runs]
         lines.append(f"  Brax PPO's evaluations nearest {mark} s, at {min(times):.0f}-{max(times):.0f} s: "
                      + _mean_interval(suite_table.nearest_returns(runs, mark, within=math.inf)))
@@ -104,8 +105,9 @@ def draw(run_dirs: list[Path], out: Path) -> Path:
         mine_mean, mine_low, mine_high = curves.aggregate(mine["returns"])
         for ax, axis, label in ((row[0], "wall-clock", "wall clock, s (set-up and compile included)"),
                                 (row[1], "env-steps", "env steps per seed")):
-            ax.plot(mine[axis], mine_mean, color="C0", label=f"stablebptt ({len(run.seeds)} seeds)")
+            ax.plot(mine[axis], mine_mean, color="C0", marker=".", label=f"stablebptt ({len(run.seeds)} seeds)")
             ax.fill_between(mine[axis], mine_low, mine_high, color="C0", alpha=0.2)
+            ax.vlines(mine[axis], mine_low, mine_high, color="C0", alpha=0.4)  # a run of one evaluation has no band
             ppo = brax_ppo(env, axis)
             if ppo is not None:
                 mean, low, high = curves.aggregate(ppo[1])
