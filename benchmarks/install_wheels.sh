@@ -2,7 +2,13 @@
 # one): installs the cp312 wheels in .whl/ once per machine into /tmp/site and puts it and the
 # checkout on the path (stablebptt is imported from the checkout). The wheels: mujoco, mujoco-core,
 # mujoco-mjx and their dependencies, and for the environments playground and brax (warp-lang is not
-# needed: MJX runs with impl="jax").
+# needed: MJX runs with impl="jax"); on a machine whose Python already holds JAX, optax, flax,
+# orbax-checkpoint, matplotlib, scipy, etils, lxml and absl, these, at constraints.txt's versions:
+#   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+#     --platform any -d .whl mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 mujoco-mjx==3.17.0 \
+#     playground==0.2.0 brax==0.14.2 trimesh==5.2.0 ml_collections==1.1.0 mediapy==1.2.7 jaxopt==0.8.5 \
+#     glfw==2.11.0 PyOpenGL==3.1.10
 # The packages are byte-compiled as pip installs them for a user: the machine's Python writes no
 # bytecode of its own (PYTHONDONTWRITEBYTECODE), and compiling every module's source at each start
 # cost about 1.8 s of a warm start there. So is the checkout, at every call (only what changed).
