@@ -16,7 +16,6 @@ run's last env steps and at each mark of the wall clock, and where PPO's mean pa
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -79,11 +78,11 @@ def summary(run: curves.Run) -> list[str]:
                  f"{min(last_steps) / 1e6:.1f}M-{max(last_steps) / 1e6:.1f}M env steps a seed "
                  f"({min(last_steps) / mine['env-steps'][-1]:.1f}-{max(last_steps) / mine['env-steps'][-1]:.1f}x the run's); "
                  f"at the run's last env steps {_mean_interval(at_steps)}")
-    # each seed's evaluation nearest a mark the campaign reached, however far
     for mark in (mark for mark in suite_table.WALL_CLOCK_MARKS if mark <= runs[0]["budget_s"]):
-        times = [min((p["train_wall_s"] for p in run["points"]), key=lambda t: abs(t - mark)) for run in runs]
+        nearest = suite_table.nearest_points(runs, mark)  # each seed's, however far: the times are printed
+        times = [point["train_wall_s"] for point in nearest]
         lines.append(f"  Brax PPO's evaluations nearest {mark} s, at {min(times):.0f}-{max(times):.0f} s: "
-                     + _mean_interval(suite_table.nearest_returns(runs, mark, within=math.inf)))
+                     + _mean_interval([point["return"] for point in nearest]))
     grid, returns = brax_ppo(env, "wall-clock")
     gap = returns.mean(axis=1) - np.interp(grid, mine["wall-clock"], mine["returns"].mean(axis=1), left=np.nan,
                                            right=np.nan)

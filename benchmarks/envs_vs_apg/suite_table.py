@@ -202,10 +202,15 @@ def ppo_near(env: str, mark: float, within: float = MARK_WITHIN_S) -> list[float
     return []
 
 
+def nearest_points(runs: list[dict], mark: float) -> list[dict]:
+    """Each run's evaluation nearest ``mark`` s of its wall clock, however far."""
+    return [min(run["points"], key=lambda point: abs(point["train_wall_s"] - mark)) for run in runs]
+
+
 def nearest_returns(runs: list[dict], mark: float, within: float = MARK_WITHIN_S) -> list[float]:
     """Each run's return at its evaluation nearest ``mark`` s of its wall clock; empty unless every run has
     one within ``within`` s of it."""
-    nearest = [min(run["points"], key=lambda point: abs(point["train_wall_s"] - mark)) for run in runs]
+    nearest = nearest_points(runs, mark)
     if not all(abs(point["train_wall_s"] - mark) <= within for point in nearest):
         return []
     return [point["return"] for point in nearest]
