@@ -25,6 +25,25 @@ def fail(message: str, code: int = 2) -> NoReturn:
     """Print one line on stderr and exit (2 = bad input); config fields are named as their options."""
     from stablebptt.errors import as_options
     print(f"error: {as_options(message)}", file=sys.stderr)
+    leave(code)
+
+
+# Set where this process is a command's (``stop_at_once_on_interrupt``): only there may it end without unwinding.
+_COMMAND_PROCESS = threading.Event()
+
+
+def leave(code: int) -> NoReturn:
+    """Exit with ``code``. In a command's process where work still runs in another thread (a compile
+    begun beside, which XLA cannot stop, and which a plain exit waits for: a run refused on the 2-core
+    CPU waited 31 s for its reward check's compile to end), the process ends at once without
+    unwinding, its output flushed first: every file is written atomically and run folders resume from
+    any state, so nothing is lost. A library user's process exits as Python does (``SystemExit``)."""
+    working = [thread for thread in threading.enumerate()
+               if thread.is_alive() and not thread.daemon and thread is not threading.main_thread()]
+    if working and _COMMAND_PROCESS.is_set() and threading.current_thread() is threading.main_thread():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
     sys.exit(code)
 
 
@@ -162,6 +181,7 @@ def stop_at_once_on_interrupt() -> None:
     """
     if threading.current_thread() is not threading.main_thread():
         return
+    _COMMAND_PROCESS.set()
     readable, writable = os.pipe()
     os.set_blocking(writable, False)
     signal.signal(signal.SIGINT, _stop_at_once)

@@ -350,3 +350,40 @@ def test_x64_from_python_trains_in_float64_as_the_command_line_and_leaves_jax_as
     for a, b in zip(jax.tree.leaves(scoped.params), jax.tree.leaves(whole.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     np.testing.assert_array_equal(scoped.metrics["test_loss"], whole.metrics["test_loss"])
+
+
+# A refusal while a compile runs beside (the reward check's, XLA cannot stop it): work that never ends by itself.
+REFUSED_WHILE_WORKING = """
+import threading
+from stablebptt.cli import fail, stop_at_once_on_interrupt
+from stablebptt.engine.compiling import beside
+{arm}
+never = threading.Event()
+beside(never.wait, "stablebptt-held")
+print("written before", end="")
+fail("refused")
+"""
+
+
+def test_a_command_refused_while_a_compile_runs_beside_exits_at_once_with_its_output_flushed():
+    """A plain exit waits for every thread that is not a daemon; the command's exits without waiting, so the
+    held thread (which never ends) cannot hold its one line and exit code 2 back. Without that this hangs."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-c", REFUSED_WHILE_WORKING.format(arm="stop_at_once_on_interrupt()")],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert (done.returncode, done.stdout, done.stderr) == (2, "written before", "error: refused\n")
+
+
+def test_a_library_users_process_refused_while_work_runs_beside_exits_as_python_does():
+    import threading
+    from stablebptt.cli import fail
+    from stablebptt.engine.compiling import beside
+    release = threading.Event()
+    beside(release.wait, "stablebptt-held")
+    try:
+        with pytest.raises(SystemExit) as exited:  # the test's own process goes on
+            fail("refused")
+        assert exited.value.code == 2
+    finally:
+        release.set()
