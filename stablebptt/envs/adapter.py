@@ -37,7 +37,7 @@ from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.observations import StandardizedNetwork, no_observations, refresh_from, standardized
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
-from stablebptt.envs.derivative_model import derivative_through, own_substeps
+from stablebptt.envs.derivative_model import derivative_steps, joined, own_substeps
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, sample_for_diagnosis, start_checks,
                                        start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
@@ -265,22 +265,23 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         return env_step
 
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.
-    step = jax.jit(derivative_through(traced, env, contact_smoothing, gradient_substeps, label))
+    own_steps = derivative_steps(traced, env, contact_smoothing, gradient_substeps, label)  # values, derivative
+    step = jax.jit(joined(*own_steps))
 
     def policy(params, state):
         return observation_policy(params, observation(state))
 
     # What the windows train on: the env's reward, the user's own surrogate of it, or the reward of another env's
     # step on the same states (diagnosed as the reward is).
-    training_step = step
+    training_step, training_steps = step, own_steps
     if surrogate_reward is not None:  # checked where it is given, from shapes: a refusal names it in one line
         check_step(env, step, observations, label)
         check_surrogate_reward(env, step, surrogate_reward, label)
         training_step = jax.jit(surrogate.user_surrogate(step, surrogate_reward))
     if reward_env is not None:
-        reward_env_step = jax.jit(derivative_through(traced, reward_env, contact_smoothing, gradient_substeps, label))
-        check_same_states(env, reward_env_step, label)
-        training_step = reward_env_step
+        training_steps = derivative_steps(traced, reward_env, contact_smoothing, gradient_substeps, label)
+        training_step = jax.jit(joined(*training_steps))
+        check_same_states(env, training_step, label)
 
     sizes = (observations, *hidden, int(env.action_size))
     reset = jax.jit(jax.vmap(env.reset))
@@ -330,12 +331,6 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             raise EnvError(f"{label}: the surrogate reward {own}'s gradient is NaN at {diagnosis.nan_at_random:.0%} of "
                            f"sampled states with random actions: fix {own} (a square root or a norm taken at zero or "
                            "below, a log of zero, a NaN it returns?)")
-        if diagnosis.kind == "zero" and smoothing == "auto" and (contact_smoothing is not None
-                                                                   or gradient_substeps is not None):
-            # The surrogate rewrites the reward inside the step, which the other model's derivative wraps whole.
-            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and its smooth "
-                           "surrogate cannot be made while the derivative is taken through another model (contacts "
-                           "smoothed, or fewer physics steps): drop those options, or " + advice)
         if diagnosis.kind == "zero" and smoothing == "off":
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
                            f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")
@@ -408,9 +403,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         samples = started[0].samples() if started else None
         smoothing_key = None if answer_key is None else {**answer_key, "smoothing_scale": smoothing_scale}
         # One trace of the step, at shapes, serves the temperatures' choice and the surrogate: a kept choice
-        # names places in it.
-        traced = surrogate.trace_step(training_step, *(surrogate.one_sample(*samples) if samples else
-                                                       surrogate.step_example(env)))
+        # names places in it. Where the derivative is another model's, the values' step is traced.
+        example = surrogate.one_sample(*samples) if samples else surrogate.step_example(env)
+        value_step, derivative_step = training_steps
+        traced = surrogate.trace_step(training_step if derivative_step is None else jax.jit(value_step), *example)
 
         def choose() -> dict:  # on the diagnosis's samples, drawn again where its answer was kept
             drawn = samples or jax.jit(lambda key: sample_for_diagnosis(env, training_step, key, episode_length))(
@@ -422,6 +418,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if not smoothing_done.anything:
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
                            f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
+        if derivative_step is not None:  # the derivative's model smoothed alike, then joined as the step was
+            smooth_step = joined(smooth_step, surrogate.smoothed_alike(jax.jit(derivative_step), choices, example, label))
         # The surrogate's step reaches the same states as the env's: its gradient is checked at those
         # samples, compiled beside whatever the caller does next (tracing the surrogate's trainer); kept.
         checking: list[PendingDiagnosis] = []

@@ -16,12 +16,13 @@ from stablebptt.physics.backward_contacts import ContactSmoothing, differentiate
 from stablebptt.physics.mjx_internals import collision_driver
 
 
-def derivative_through(traced: Callable[[Any], Callable], env: Any, smoothing: ContactSmoothing | None,
-                       substeps: int | None, label: str) -> Callable:
-    """``traced(env)``, differentiated as ``traced`` of a copy of ``env`` on its contact-smoothed model and
-    with ``substeps`` physics steps per control step (None for either: as ``env``'s own)."""
+def derivative_steps(traced: Callable[[Any], Callable], env: Any, smoothing: ContactSmoothing | None,
+                     substeps: int | None, label: str) -> tuple[Callable, Callable | None]:
+    """The step whose values a task keeps, ``traced(env)``, and the one whose derivative it takes (``joined``):
+    ``traced`` of a copy of ``env`` on its contact-smoothed model and with ``substeps`` physics steps per
+    control step; None where both are as ``env``'s own."""
     if smoothing is None and substeps is None:
-        return traced(env)
+        return traced(env), None
     if "_mjx_model" not in vars(env):  # a wrapper's would be its inner env's, which its step keeps using
         needs = "contacts smoothed" if smoothing is not None else "fewer physics steps"
         raise EnvError(f"{label}: {needs} in the derivative need an env that keeps its MJX model in _mjx_model, "
@@ -34,7 +35,13 @@ def derivative_through(traced: Callable[[Any], Callable], env: Any, smoothing: C
         other._mjx_model = smoothed_model(env._mjx_model, smoothing)
     if substeps is not None:
         _take_substeps(other, substeps, label)
-    return differentiated_through(traced(env), traced(other))
+    return traced(env), traced(other)
+
+
+def joined(value_step: Callable, derivative_step: Callable | None) -> Callable:
+    """``value_step``'s values with ``derivative_step``'s derivative (``derivative_steps``); ``value_step``
+    itself where there is no other model."""
+    return value_step if derivative_step is None else differentiated_through(value_step, derivative_step)
 
 
 def own_substeps(env: Any) -> int | None:

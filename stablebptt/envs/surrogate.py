@@ -37,6 +37,8 @@ import numpy as np
 from jax._src import source_info_util
 from jax.extend import core
 
+from stablebptt.envs.protocol import EnvError
+
 PyTree = Any
 COMPARISONS = {"lt": -1, "le": -1, "gt": 1, "ge": 1}  # the sign of (a - b) where the comparison is true
 LOGICAL = {"and", "or", "not", "xor"}
@@ -329,6 +331,24 @@ def smoothed_step(traced: tuple, choices: dict) -> tuple[Callable, Smoothing]:
 
     named = [tuple(entry[part] for entry in choices[kind]) for kind in ("temperatures", "exponents") for part in (2, 1)]
     return smoothed, Smoothing(*named)
+
+
+def smoothed_alike(step: Callable, choices: dict, example: tuple, label: str) -> Callable:
+    """``step`` (the derivative's model of the step ``choices`` were made for: ``derivative_model``) with the
+    same comparisons and exponentials smoothed by the same numbers, traced at ``example``'s shapes.
+    ``EnvError`` naming the env ``label`` where its program does not make them at the same places, written
+    in the same lines."""
+    traced = closed, structure, out_labels = trace_step(step, *example)
+    recorder = _Interpreter(None)  # records where its program compares, at shapes alone
+    jax.eval_shape(lambda state, action: _evaluate(closed, out_labels, structure, recorder, state, action), *example)
+    for kind in ("temperatures", "exponents"):
+        for place, _, where in choices[kind]:
+            if recorder.places.get(tuple(place)) != where:
+                raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and the "
+                               f"derivative's model (contacts smoothed, or fewer physics steps) computes the reward "
+                               f"otherwise than the env's step (nothing at {where}, where the env's step compares), so "
+                               "its smooth surrogate cannot be made alike: drop those options")
+    return smoothed_step(traced, choices)[0]
 
 
 def step_example(env: Any) -> tuple:
