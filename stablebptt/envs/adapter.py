@@ -44,7 +44,7 @@ from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_state
                                       function_name, observation, with_reset_traced_once)
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
-from stablebptt.networks import mlp_apply, mlp_init
+from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
 from stablebptt.physics import scene
 from stablebptt.physics.backward_contacts import ContactSmoothing
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
@@ -96,6 +96,9 @@ def _check_arguments(**given: Any) -> None:
     substeps = given["gradient_substeps"]
     if substeps is not None and not (whole_number(substeps) and substeps >= 1):
         refuse("gradient_substeps", "a whole number of physics steps >= 1, or None")
+    floor = given["squash_gradient_floor"]
+    if not (isinstance(floor, numbers.Real) and not isinstance(floor, bool) and 0 <= floor < 1):
+        refuse("squash_gradient_floor", "a number in [0, 1)")
     if given["reward_env"] is not None:
         if given["surrogate_reward"] is not None:
             raise EnvError("env_task: give a surrogate_reward or a reward_env to train on, not both")
@@ -157,9 +160,9 @@ def has_constraint_solver(env: Any) -> bool:
     return isinstance(model, mujoco.MjModel) and scene.analyze(model).constraints
 
 
-def observation_policy(params: Any, seen: jax.Array) -> jax.Array:
-    """An env task's deterministic policy on an observation: tanh of ``squashed_output``."""
-    return jnp.tanh(squashed_output(params, seen))
+def observation_policy(params: Any, seen: jax.Array, squash: Callable = jnp.tanh) -> jax.Array:
+    """An env task's deterministic policy on an observation: tanh (``squash``) of ``squashed_output``."""
+    return squash(squashed_output(params, seen))
 
 
 def squashed_output(params: Any, seen: jax.Array) -> jax.Array:
@@ -177,48 +180,41 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              smoothing: str = "auto", smoothing_scale: float = 1.0,
              surrogate_reward: Callable[[Any], jax.Array] | None = None, normalize_observations: bool = False,
              reward_env: Any = None, contact_smoothing: ContactSmoothing | None = None,
-             gradient_substeps: int | None = None) -> Task:
+             gradient_substeps: int | None = None, squash_gradient_floor: float = 0.0) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
       env: the environment (``reset``, ``step``, ``observation_size``, ``action_size``).
       horizon: steps of one training rollout (the BPTT horizon).
       discount: per-step discount of the training loss's return (1: the plain return).
-      episode_length: steps of the evaluation episodes whose return the train and
-        test losses report (negated); None: the environment's own
-        (``env._config.episode_length``, as Playground and Brax evaluate), else 1000.
+      episode_length: steps of the evaluation episodes whose return the train and test losses report (negated);
+        None: the env's own (``env._config.episode_length``, as Playground and Brax evaluate), else 1000.
       hidden: widths of the policy's hidden layers.
       name: the task's name in run folders (default: the environment's class name).
-      reward_context: a context manager entered whenever the step is traced (a
-        repair of the reward's derivative; ``reward_repairs`` names it for the summary).
-        None: for MuJoCo Playground's environments ``playground.repaired_rewards``, else none.
-      diagnose: look at the reward's gradient before training (``diagnose_env``);
-        a reward with no usable gradient raises ``EnvError``.
-      dense_variant: the name of an environment with the same task and a dense reward,
-        which the refusal of a reward without a gradient then suggests.
-      diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its
-        registry name): while JAX's compile cache is on, the diagnosis is kept under it (with
-        ``reward_repairs``) beside the compiled programs (``program_store.kept_answer``), and an
-        identical later run reads it instead of tracing the step's derivative again; so are the
-        traced reset (``program_store.kept_function``) and the observation's size, which
-        Playground finds by tracing the reset. None: diagnosed and traced every time.
-      defer_diagnosis: return while the diagnosis compiles and runs beside the caller
-        (``start_diagnosis``): the task's ``settled()`` waits for it and refuses a reward with no
-        usable gradient; the parameters' values wait for it too, their shapes do not, so a
-        trainer can be built meanwhile (``scripts/train.py`` does).
-      smoothing: "auto": where the diagnosis finds the reward's gradient zero at every sampled state,
-        train on a smooth surrogate of it instead (``stablebptt.envs.surrogate``: the comparisons the
-        reward makes numbers of become sigmoids), diagnosed in turn; every reported return stays the
-        true reward's. "off": refuse such a reward.
+      reward_context: a context manager entered whenever the step is traced (a repair of the reward's derivative;
+        ``reward_repairs`` names it for the summary). None: for Playground's envs ``playground.repaired_rewards``.
+      diagnose: look at the reward's gradient before training (``diagnose_env``); a reward with no usable
+        gradient raises ``EnvError``.
+      dense_variant: an environment with the same task and a dense reward, which a flat reward's refusal suggests.
+      diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its registry name):
+        while JAX's compile cache is on, the diagnosis is kept under it (with ``reward_repairs``) beside the
+        compiled programs (``program_store.kept_answer``) for an identical later run to read instead of tracing
+        the step's derivative again; so are the traced reset and the observation's size (Playground traces the
+        reset to find it). None: diagnosed and traced every time.
+      defer_diagnosis: return while the diagnosis compiles and runs beside the caller (``start_diagnosis``): the
+        task's ``settled()`` waits for it and refuses a reward with no usable gradient; the parameters' values wait
+        for it too, their shapes do not, so a trainer can be built meanwhile (``scripts/train.py`` does).
+      smoothing: "auto": where the diagnosis finds the reward's gradient zero at every sampled state, train on a
+        smooth surrogate of it instead (``envs.surrogate``: the comparisons the reward makes numbers of become
+        sigmoids), diagnosed in turn; every reported return stays the true reward's. "off": refuse such a reward.
       smoothing_scale: the surrogate's temperatures are this times the sampled differences' median.
-      surrogate_reward: ``reward(state) -> scalar`` of the state a step reaches, trained on in place of
-        the env's reward (diagnosed, not smoothed); the reported returns stay the env's.
-      reward_env: an environment whose step takes and returns ``env``'s states (the dense variant of a
-        ``...Sparse`` env: the same model, another reward): the windows train on its steps' rewards
-        (diagnosed as the env's would be), while every reported return stays ``env``'s.
-      normalize_observations: the policy sees its observations standardised by the running mean and
-        deviation of every observation its training windows met (``stablebptt.engine.observations``);
-        its parameters are then a ``StandardizedNetwork``, the statistics kept with the network.
+      surrogate_reward: ``reward(state) -> scalar`` of the state a step reaches, trained on in place of the env's
+        reward (diagnosed, not smoothed); the reported returns stay the env's.
+      reward_env: an environment whose step takes and returns ``env``'s states (a ``...Sparse`` env's dense variant):
+        the windows train on its rewards (diagnosed as the env's would be); every reported return stays ``env``'s.
+      normalize_observations: the policy sees its observations standardised by the running mean and deviation of
+        every observation its training windows met (``engine.observations``); its parameters are then a
+        ``StandardizedNetwork``, the statistics kept with the network.
       contact_smoothing: the step's values stay the env's, its derivative is that of the same step
         through the env's model with contacts acting from ``margin`` metres and ``softness`` times
         softer (``stablebptt.physics.backward_contacts``); for envs that keep their MJX model in
@@ -226,6 +222,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       gradient_substeps: the step's values stay the env's, its derivative is that of the same control step
         taken in this many physics steps of equal length (a divisor of the env's own ``n_substeps``; MuJoCo
         Playground's envs). None: through every physics step the env simulates.
+      squash_gradient_floor: the derivative of the policy's tanh kept at least this, in [0, 1), its values
+        unchanged (``networks.floored_tanh``): a saturated action still passes that share of its gradient on.
 
     Example::
 
@@ -238,7 +236,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                      diagnosis_seed=diagnosis_seed, dense_variant=dense_variant, diagnosis_key=diagnosis_key,
                      defer_diagnosis=defer_diagnosis, smoothing=smoothing, smoothing_scale=smoothing_scale,
                      surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
-                     reward_env=reward_env, contact_smoothing=contact_smoothing, gradient_substeps=gradient_substeps)
+                     reward_env=reward_env, contact_smoothing=contact_smoothing, gradient_substeps=gradient_substeps,
+                     squash_gradient_floor=squash_gradient_floor)
     env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -268,8 +267,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     own_steps = derivative_steps(traced, env, contact_smoothing, gradient_substeps, label)  # values, derivative
     step = jax.jit(joined(*own_steps))
 
+    squash = floored_tanh(squash_gradient_floor)
+
     def policy(params, state):
-        return observation_policy(params, observation(state))
+        return observation_policy(params, observation(state), squash)
 
     # What the windows train on: the env's reward, the user's own surrogate of it, or the reward of another env's
     # step on the same states (diagnosed as the reward is).
@@ -366,7 +367,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                + ("" if contact_smoothing is None else
                   f"; contacts smoothed in the derivative alone (acting from {contact_smoothing.margin:g} m, "
                   f"time constants x{contact_smoothing.softness:g})")
-               + ("" if gradient_substeps is None else f"; derivative through {gradient_substeps} physics steps per control step"))
+               + ("" if gradient_substeps is None else f"; derivative through {gradient_substeps} physics steps per control step")
+               + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else ""))
     if reward_repairs:
         summary += f"; repaired: {reward_repairs}"
 
@@ -385,6 +387,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                       "hidden": list(hidden), "reward_gradient": gradient,
                       "reward_repairs": reward_repairs, "policy_output_start": start,
                       **({"normalize_observations": True} if normalize_observations else {}),
+                      **({"squash_gradient_floor": squash_gradient_floor} if squash_gradient_floor else {}),
                       **({"reward_smoothing": smoothed_terms} if smoothed_terms else {})},
             evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
                 states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),

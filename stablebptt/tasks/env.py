@@ -85,6 +85,7 @@ class Config:
     contact_gradient_margin: float = field(default=0.0, metadata={"help": "metres: the derivative is taken through the env's model with every contact acting from this far (the simulation stays the file's; 0: contacts as the file says)"})
     contact_gradient_softness: float = field(default=1.0, metadata={"help": "the derivative is taken through the env's model with every contact's time constant this many times the file's, >= 1 (the simulation stays the file's)"})
     gradient_substeps: int = field(default=0, metadata={"help": "the derivative is taken through each control step in this many physics steps of equal length, a divisor of the env's own count (MuJoCo Playground's WalkerWalk simulates 10; 0: the env's own): a shorter backward pass; the simulation stays the file's"})
+    squash_gradient_floor: float = field(default=0.0, metadata={"help": "the derivative of the policy's tanh squash is kept at least this, in [0, 1): an action at its bound, where tanh's slope is nearly 0, still passes this share of its gradient back to the policy; its values, and every action taken, stay tanh's (0: tanh's own derivative)"})
     sloped_reward_tails: bool = field(default=False, metadata={"help": "a MuJoCo Playground env's tolerance rewards whose linear, quadratic or cosine sigmoid ends at 0 (the walker's move reward at speed <= 0, the cheetah's run reward) keep, in the derivative only, the sigmoid's mean slope past that end: where the reward was flat the windows' gradient points towards its bounds; its values, and every return, stay as written"})
 
     def __post_init__(self):
@@ -104,6 +105,8 @@ class Config:
         if self.gradient_substeps < 0:
             raise InputError(f"{config_field(self, 'gradient_substeps')} must be a whole number of physics steps >= 1 "
                              f"(or 0 for the env's own), got {self.gradient_substeps}")
+        if not (math.isfinite(self.squash_gradient_floor) and 0 <= self.squash_gradient_floor < 1):
+            raise InputError(f"{config_field(self, 'squash_gradient_floor')} must be in [0, 1), got {self.squash_gradient_floor}")
         if not 0 <= self.episode_length <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
 
@@ -167,6 +170,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
                     surrogate_reward=load_reward(config.surrogate_reward) if config.surrogate_reward else None,
                     reward_env=reward_env,
                     contact_smoothing=smoothing, gradient_substeps=config.gradient_substeps or None,
+                    squash_gradient_floor=config.squash_gradient_floor,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})
     if trained_reward:

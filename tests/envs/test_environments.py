@@ -247,7 +247,9 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
                             "gradient is zero at every sampled state"),
                            (["--env", "no_such_module:env"], "cannot import no_such_module"),
                            (["--env", "envs_for_tests:nothing"], "has no attribute 'nothing'"),
-                           (["--env", "envs_for_tests:make_cart", "--discount", "0"], "--discount must be in (0, 1]")):
+                           (["--env", "envs_for_tests:make_cart", "--discount", "0"], "--discount must be in (0, 1]"),
+                           (["--env", "envs_for_tests:make_cart", "--squash-gradient-floor", "-0.1"],
+                            "--squash-gradient-floor must be in [0, 1)")):
         code, err = train_in_process(capsys, *args, "--epochs", "1", "--out", str(tmp_path / "refused"))
         assert code == 2 and len(err) == 1 and expected in err[0], err
         assert not (tmp_path / "refused").exists()
@@ -257,7 +259,8 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
 # Newton solver runs 4 iterations, which plain reverse mode cannot pass (a while loop).
 @pytest.mark.parametrize("argument, value", [("discount", "0.5"), ("discount", None), ("discount", True),
                                              ("episode_length", True), ("episode_length", 2.5), ("horizon", 2.5),
-                                             ("hidden", "64"), ("diagnose", "yes"), ("name", 3)])
+                                             ("hidden", "64"), ("diagnose", "yes"), ("name", 3),
+                                             ("squash_gradient_floor", 1.0), ("squash_gradient_floor", float("nan"))])
 def test_every_argument_of_env_task_is_refused_in_the_librarys_terms(argument, value):
     arguments = {"horizon": 5, argument: value}
     with pytest.raises(EnvError, match=f"env_task's {argument} must be"):
@@ -364,3 +367,24 @@ def test_an_environment_of_degenerate_sizes_is_refused_rather_than_trained_with_
 
     with pytest.raises(EnvError, match=f"Degenerate's {words}"):
         env_task(Degenerate(), horizon=5)
+
+
+def test_a_squash_gradient_floor_leaves_the_policys_actions_and_passes_a_saturated_actions_gradient_on():
+    """The task's policy takes the same actions with a floor as without; where an action saturates, its
+    gradient in the output layer's bias is the floor, where tanh's own is nearly 0."""
+    cart = Cart()
+    plain, floored = (env_task(cart, horizon=5, diagnose=False, squash_gradient_floor=floor) for floor in (0.0, 0.2))
+    assert "squash's derivative at least 0.2" in floored.summary and floored.resolved["squash_gradient_floor"] == 0.2
+    params = plain.init_params(jax.random.PRNGKey(0), False)
+    params[-1] = (params[-1][0], params[-1][1] + 5.0)  # every pre-squash output near 5: tanh' about 2e-4
+    state = cart.reset(jax.random.PRNGKey(1))
+
+    def action_and_bias_slope(task):
+        action = task.dynamics.policy(params, state)
+        slope = jax.grad(lambda bias: task.dynamics.policy([*params[:-1], (params[-1][0], bias)], state).sum())(params[-1][1])
+        return action, slope
+
+    (plain_action, plain_slope), (floored_action, floored_slope) = (action_and_bias_slope(t) for t in (plain, floored))
+    np.testing.assert_array_equal(np.asarray(plain_action), np.asarray(floored_action))
+    assert float(jnp.max(plain_slope)) < 1e-2
+    np.testing.assert_allclose(np.asarray(floored_slope), 0.2, rtol=1e-6)

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from stablebptt.networks import mlp_apply, mlp_init
+from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
 from stablebptt.physics.integrators import INTEGRATORS
 
 from conftest import float64
@@ -53,3 +53,15 @@ def test_a_zero_output_layer_gives_zero_control_and_a_nonzero_gradient():
     for (weights, bias), (fan_in, fan_out) in zip(glorot, [(5, 16), (16, 16), (16, 3)]):
         assert weights.shape == (fan_in, fan_out) and float(jnp.abs(weights).max()) <= np.sqrt(6 / (fan_in + fan_out))
         np.testing.assert_array_equal(bias, 0.0)
+
+
+def test_a_floored_tanh_keeps_tanh_s_values_and_its_slope_where_above_the_floor():
+    """Its derivative is max(1 - tanh(x)^2, floor): tanh's own near 0, the floor where the action saturates,
+    in forward and reverse mode and under vmap."""
+    x = jnp.linspace(-6.0, 6.0, 121)
+    squash = floored_tanh(0.1)
+    np.testing.assert_array_equal(np.asarray(jax.vmap(squash)(x)), np.asarray(jnp.tanh(x)))
+    expected = np.maximum(1 - np.tanh(np.asarray(x, np.float64)) ** 2, 0.1)
+    np.testing.assert_allclose(np.asarray(jax.vmap(jax.grad(squash))(x)), expected, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(jax.jvp(squash, (x,), (jnp.ones_like(x),))[1]), expected, rtol=1e-6, atol=1e-7)
+    assert floored_tanh(0.0) is jnp.tanh  # no floor: tanh itself, its derivative untouched
