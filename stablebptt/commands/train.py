@@ -140,6 +140,9 @@ def train(argv: list[str], held: list) -> int:
     if begun.trainer.episodes is not None:
         extras = (f", its return bootstrapped by a learned value of its last state (TD({train_config.td_lambda:g}) "
                   "targets)") if train_config.critic else ""
+        if train_config.value_at_time_limit:
+            extras += ", and of the state where its episode's length cuts it"
+
         if train_config.learn_action_noise:
             extras += (f", Gaussian noise on its actions of standard deviations learned from "
                        f"{train_config.action_noise:g}")

@@ -159,6 +159,9 @@ def train_conflicts(config: Any) -> list[str]:
         if not config.critic and _given(config, name):
             problems.append(f"{field(name)} {getattr(config, name):g} sets {what}, and {field('critic')} is off: "
                             f"drop it, or train with {field('critic')}")
+    if not config.critic and config.value_at_time_limit:
+        problems.append(f"{field('value_at_time_limit')} values the state a time limit cuts an episode at by the "
+                        f"critic, and {field('critic')} is off: drop it, or train with {field('critic')}")
     if not config.critic and config.normalize_critic_observations:
         problems.append(f"{field('normalize_critic_observations')} standardises what the critic sees, and "
                         f"{field('critic')} is off: drop it, or train with {field('critic')}")

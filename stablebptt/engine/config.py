@@ -72,6 +72,7 @@ class TrainConfig:
     critic_lr: float = field(default=1e-3, metadata={"help": "the critic's Adam learning rate"})
     normalize_critic_observations: bool = field(default=False, metadata={"help": "training with the critic: it sees its observations standardised by the running mean and deviation of all those the training windows met (statistics of its own, kept with it), as the policy does under an environment's --normalize-observations"})
     td_lambda: float = field(default=0.95, metadata={"help": "lambda of the critic's TD(lambda) targets, in [0, 1]"})
+    value_at_time_limit: bool = field(default=False, metadata={"help": "training with the critic: an episode cut at its length (a time limit, not its task's end) is valued there, the critic's value of the state it reached standing for what follows, in the critic's targets and the window's loss (off: nothing after the length counts)"})
     critic_width: int = field(default=64, metadata={"help": "units in each of the critic's hidden layers (tanh)"})
     critic_depth: int = field(default=2, metadata={"help": "the critic's hidden layers"})
     nonfinite_flows: str = field(default="stop", metadata={"help": "stop: a non-finite gradient of any computed flow stops training, also where the update stays finite; zero (mode C): its components, which C's sign agreement turns into zero updates, are left at zero and training goes on, each epoch where it happened named in a line", "choices": NONFINITE_FLOW_CHOICES})

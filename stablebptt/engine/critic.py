@@ -56,19 +56,23 @@ def init_critic(seed_key: jax.Array, observations: int, optimizer: optax.Gradien
 
 
 def td_lambda_targets(rewards: jax.Array, values: jax.Array, running: jax.Array, discount: float,
-                      td_lambda: float) -> jax.Array:
+                      td_lambda: float, cut: jax.Array | None = None) -> jax.Array:
     """TD(lambda) targets of the states a window starts each step from, [T, batch].
 
     ``rewards[t]``: the reward of step t (to x_{t+1}); ``values[t]``: the value of x_{t+1};
-    ``running[t]``: whether x_{t+1}'s episode still runs (where it does not, nothing after it counts).
+    ``running[t]``: whether x_{t+1}'s episode still runs (where it does not, nothing after it counts);
+    ``cut[t]``: whether a time limit cut it at x_{t+1}, whose value then stands for all that follows.
     The last step's target bootstraps from the value of the window's last state.
     """
+    cut = jnp.zeros_like(running) if cut is None else cut
+
     def back(after, step):
-        reward, value_next, still = step
-        target = reward + discount * jnp.where(still, (1 - td_lambda) * value_next + td_lambda * after, 0.0)
+        reward, value_next, still, cut_here = step
+        beyond = jnp.where(still, (1 - td_lambda) * value_next + td_lambda * after, jnp.where(cut_here, value_next, 0.0))
+        target = reward + discount * beyond
         return target, target
 
-    _, targets = jax.lax.scan(back, values[-1], (rewards, values, running), reverse=True)
+    _, targets = jax.lax.scan(back, values[-1], (rewards, values, running, cut), reverse=True)
     return targets
 
 
@@ -103,7 +107,7 @@ def fit_to_window(critic: Critic, visited: PyTree, final: PyTree, observe: Calla
         critic = critic._replace(statistics=with_observations(critic.statistics, flat, weights))
     in_view = jax.vmap(lambda o: seen(critic, o))
     values = jax.vmap(jax.vmap(lambda o: value(critic.target, seen(critic, o))))(observe_all(reached.state))
-    targets = td_lambda_targets(reached.reward, values, reached.running, discount, td_lambda)
+    targets = td_lambda_targets(reached.reward, values, reached.running, discount, td_lambda, reached.cut)
     return fit_critic(critic, in_view(flat), targets.reshape(-1), weights.astype(targets.dtype), optimizer)[0]
 
 

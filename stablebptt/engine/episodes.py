@@ -15,7 +15,9 @@ a window per episode, on average) are simulated and count for nothing.
 Within a window the flows roll a ``Window``: the task's state, its episode clock, whether its
 episode still runs, and the reward of the step that reached it. Once an episode ends its state stays
 as it was before the end and its rewards count no more, so no state past an episode's end (a NaN
-one, say) reaches the policy or the loss.
+one, say) reaches the policy or the loss. An episode that reaches its length is cut there, not ended
+by its task; with ``window_dynamics(value_at_time_limit=True)`` the state it reached is kept and
+valued (``Window.cut``), as if the episode went on.
 """
 from __future__ import annotations
 
@@ -92,6 +94,9 @@ class Window(NamedTuple):
     running: jax.Array  # bool: its episode has not ended
     reward: jax.Array  # the reward of the step that reached it (0 once the episode has ended)
     noise_key: jax.Array | None = None  # with exploration noise: the key its actions' noise draws from
+    # bool: the step that reached it cut its episode at the episode's length (a time limit, not the task's end),
+    # and the state is valued there (``window_dynamics(value_at_time_limit=True)``); else None, the program unchanged
+    cut: jax.Array | None = None
 
 
 class Exploring(NamedTuple):
@@ -104,7 +109,7 @@ class Exploring(NamedTuple):
 
 def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
                     value: Callable[[PyTree], jax.Array] | None = None, action_noise: float = 0.0,
-                    learned_noise: bool = False) -> Dynamics:
+                    learned_noise: bool = False, value_at_time_limit: bool = False) -> Dynamics:
     """``dynamics`` over ``Window`` states: a window of ``window`` steps whose loss is its negative
     (discounted) return, rewards after its episode's end left out; with ``value`` (of a task's state),
     plus the discounted value of the window's last state where its episode still runs there.
@@ -114,15 +119,23 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
     visited state sees the same noise. The noise does not depend on the parameters: the gradient is the
     policy's own, taken along the noisy trajectory. With ``learned_noise`` the parameters are ``Exploring``:
     each action's noise is its standard deviation ``exp(log_std)`` times the same draw, so the window's
-    gradient reaches the deviations too (reparameterised, as SHAC's stochastic actor learns them)."""
+    gradient reaches the deviations too (reparameterised, as SHAC's stochastic actor learns them).
+
+    With ``value_at_time_limit``, an episode the window cuts at its length (a time limit: the task did not
+    end it) keeps the state it reached, marked ``cut``, and with ``value`` the loss adds that state's
+    discounted value where the window's last state would have added its own: the time limit is not
+    taken for the end of what the policy can still earn, which its observations do not show."""
     def step(current: Window, control) -> Window:
         reached = dynamics.step(current.state, control)
         clock = current.clock + 1
-        still = current.running & jnp.logical_not(episodes.done(reached)) & (clock < episodes.length)
+        goes_on = current.running & jnp.logical_not(episodes.done(reached))
+        still = goes_on & (clock < episodes.length)
+        cut = goes_on & (clock >= episodes.length) if value_at_time_limit else None
         # where, not a product: the value of a step past the end (a NaN, say) must not leak in.
         reward = jnp.where(current.running, episodes.reward(reached), 0.0)
-        state = jax.tree.map(lambda new, old: jnp.where(still, new, old), reached, current.state)
-        return Window(state, jnp.where(current.running, clock, current.clock), still, reward, current.noise_key)
+        kept = still if cut is None else still | cut
+        state = jax.tree.map(lambda new, old: jnp.where(kept, new, old), reached, current.state)
+        return Window(state, jnp.where(current.running, clock, current.clock), still, reward, current.noise_key, cut)
 
     def loss(states: Window, controls) -> jax.Array:
         weights = episodes.discount ** jnp.arange(window, dtype=states.reward.dtype)
@@ -130,6 +143,9 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
         if value is not None:  # a loss on the last state: its gradient reaches that state, in every flow
             last = jax.tree.map(lambda a: a[-1], states)
             total = total + episodes.discount ** window * jnp.where(last.running, value(last.state), 0.0)
+            if value_at_time_limit:  # and on the state where a time limit cut the episode
+                values = jnp.where(states.cut, jax.vmap(value)(states.state), 0.0)
+                total = total + jnp.sum(episodes.discount * weights * values)
         return -total
 
     def policy(params, current: Window):
@@ -173,12 +189,14 @@ def entropy_gradient(log_std: PyTree, discount: float, window: int, coefficient:
     return jax.tree.map(lambda leaf: jnp.full_like(leaf, -weight), log_std)
 
 
-def start_window(carried: Carried, reward_dtype, noise: bool = False) -> Window:
+def start_window(carried: Carried, reward_dtype, noise: bool = False, value_at_time_limit: bool = False) -> Window:
     """The carried states as the first states of a window: every episode running; with ``noise``, each
-    with a key of its own for the window's exploration noise."""
+    with a key of its own for the window's exploration noise; with ``value_at_time_limit``, none yet cut
+    (as ``window_dynamics`` is given)."""
     envs = carried.clocks.shape[0]
     keys = jax.random.split(jax.random.fold_in(carried.key, NOISE_STREAM), envs) if noise else None
-    return Window(carried.states, carried.clocks, jnp.ones(envs, bool), jnp.zeros(envs, reward_dtype), keys)
+    return Window(carried.states, carried.clocks, jnp.ones(envs, bool), jnp.zeros(envs, reward_dtype), keys,
+                  jnp.zeros(envs, bool) if value_at_time_limit else None)
 
 
 def continue_from(final: Window, carried: Carried) -> Carried:

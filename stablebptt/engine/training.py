@@ -231,8 +231,10 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             at_end = None if critic is None else bootstrap(critic, episodes.observe)
             carried = _split_population(spread, state.carried)  # its pool refilled as the epoch began (refill)
             window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end, config.action_noise,
-                                                        config.learn_action_noise), flows, differentiated,
-                                        start_window(carried, reward_dtype, config.action_noise > 0), window_plan)
+                                                        config.learn_action_noise, config.value_at_time_limit),
+                                        flows, differentiated,
+                                        start_window(carried, reward_dtype, config.action_noise > 0,
+                                                     config.value_at_time_limit), window_plan)
             loss, grads = window_result.loss, window_result.grads
             if config.entropy:
                 grads = grads._replace(log_std=jax.tree.map(

@@ -129,6 +129,7 @@ CONFLICTS = [
     (["--task", "repulsion", "--td-lambda", "0.5"], ("--td-lambda 0.5", "--critic is off")),
     (["--task", "repulsion", "--critic-width", "256"], ("--critic-width 256", "--critic is off")),
     (["--task", "repulsion", "--normalize-critic-observations"], ("--normalize-critic-observations", "--critic is off")),
+    (["--task", "repulsion", "--value-at-time-limit"], ("--value-at-time-limit", "--critic is off")),
     (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing", "off"], ("--smoothing off", "--reward-check")),
     (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--no-critic"],
      ("--normalize-critic-observations", "--critic is off", "--recipe locomotion sets")),
@@ -201,7 +202,8 @@ def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_tak
                    "TrainConfig.critic_lr 0.01 sets the critic's learning rate": dict(critic_lr=0.01),
                    "TrainConfig.td_lambda 0.5 sets the critic's": dict(td_lambda=0.5),
                    "TrainConfig.critic_depth 3 sets the critic's layers": dict(critic_depth=3),
-                   "TrainConfig.normalize_critic_observations standardises": dict(normalize_critic_observations=True)}
+                   "TrainConfig.normalize_critic_observations standardises": dict(normalize_critic_observations=True),
+                   "TrainConfig.value_at_time_limit values": dict(value_at_time_limit=True)}
     for words, fields in train_cases.items():
         with pytest.raises(sb.InputError, match=words):
             sb.train(_pendulum(), sb.TrainConfig(epochs=1, **fields))  # refused before anything compiles

@@ -68,6 +68,32 @@ def test_a_window_counts_the_steps_of_its_episode_and_no_state_past_its_end():
     np.testing.assert_array_equal(last.state, [-4.0, -8.0, -10.0, 2.0])
 
 
+def test_a_time_limit_valued_keeps_the_state_it_cut_at_and_adds_its_discounted_value_where_the_task_ended_none():
+    counting = Episodes(reset=lambda key: jnp.zeros(()), reward=lambda x: jnp.ones(()), done=lambda x: x > 2.5,
+                        length=LENGTH, discount=0.5)
+    step_by_one = Dynamics(step=lambda x, u: x + 1.0, policy=lambda theta, x: jnp.zeros(1), loss=lambda s, c: 0.0,
+                           horizon=6)
+    value = lambda x: 100.0 + x  # noqa: E731
+    returns, lasts, cuts = {}, {}, {}
+    for valued in (False, True):
+        window = window_dynamics(step_by_one, counting, 6, value=value, value_at_time_limit=valued)
+        start = start_window(carried([-10.0, -10.0, 0.0], [0, 7, 0]), jnp.float32, value_at_time_limit=valued)
+        trajectory = jax.vmap(lambda x0: reference_rollout(window, None, x0))(start)
+        returns[valued] = -jax.vmap(window.loss)(trajectory.states, trajectory.controls)
+        lasts[valued] = jax.tree.map(lambda a: a[:, -1], trajectory.states)
+        cuts[valued] = trajectory.states.cut
+    rewards = np.array([sum(0.5 ** t for t in range(n)) for n in (6, 3, 3)])
+    # The first runs the whole window (its last state, -4, valued either way); the second is cut at clock 10,
+    # at -7 after 3 steps; the third ends by its task at 3.0 after 3 steps: valued nowhere.
+    np.testing.assert_allclose(returns[False], rewards + [0.5 ** 6 * 96.0, 0.0, 0.0], rtol=1e-6)
+    np.testing.assert_allclose(returns[True], rewards + [0.5 ** 6 * 96.0, 0.5 ** 3 * 93.0, 0.0], rtol=1e-6)
+    np.testing.assert_array_equal(lasts[True].state, [-4.0, -7.0, 2.0])  # the cut state kept, the ended one not
+    np.testing.assert_array_equal(lasts[False].state, [-4.0, -8.0, 2.0])
+    np.testing.assert_array_equal(cuts[True], np.arange(6)[None] == np.array([[-1], [2], [-1]]))  # at its cut alone
+    assert cuts[False] is None  # off, a window holds what it held before the option: its programs unchanged
+    np.testing.assert_array_equal(lasts[True].running, lasts[False].running)  # the cut episode starts again all the same
+
+
 def test_ended_episodes_alone_start_again_from_the_pool_in_turn_and_the_key_moves_on():
     task_episodes = episodes()
     window = window_dynamics(drift(), task_episodes, 4)
@@ -130,21 +156,25 @@ def test_first_clocks_are_spread_over_an_episode_unless_a_window_holds_one():
 
 
 @pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
-@pytest.mark.parametrize("at_end, action_noise, learned_noise",
-                         [(None, 0.0, False), (lambda x: 3.0 * x ** 2 - x, 0.0, False), (None, 0.3, False),
-                          (None, 0.3, True)],
-                         ids=["window", "with a value at its end", "with exploration noise", "with learned noise"])
+@pytest.mark.parametrize("at_end, action_noise, learned_noise, at_time_limit",
+                         [(None, 0.0, False, False), (lambda x: 3.0 * x ** 2 - x, 0.0, False, False),
+                          (lambda x: 3.0 * x ** 2 - x, 0.0, False, True), (None, 0.3, False, False),
+                          (None, 0.3, True, False)],
+                         ids=["window", "with a value at its end", "with values where time limits cut",
+                              "with exploration noise", "with learned noise"])
 def test_each_flow_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_where_it_does(step_derivative, at_end,
-                                                                                         action_noise, learned_noise):
+                                                                                         action_noise, learned_noise,
+                                                                                         at_time_limit):
     # Episodes that end inside the window, by their clock and by done: the masks must hold in the gradient too;
-    # a value of the last state is a loss on it, which every flow keeps; noise on the actions is part of the
-    # trajectory, which the flows evaluate the policy along again; a learned deviation is a parameter as the
-    # policy's are.
+    # a value of the last state is a loss on it, which every flow keeps, as it keeps the value of a state a
+    # time limit cuts an episode at; noise on the actions is part of the trajectory, which the flows evaluate
+    # the policy along again; a learned deviation is a parameter as the policy's are.
     window = window_dynamics(drift(1.0), episodes(done_beyond=0.8), 5, value=at_end, action_noise=action_noise,
-                             learned_noise=learned_noise)
+                             learned_noise=learned_noise, value_at_time_limit=at_time_limit)
     with float64():
         start = start_window(Carried(jnp.array([0.3, -0.5, 0.7, 0.1, 0.05]), jnp.array([0, 7, 2, 9, 1], jnp.int32),
-                                     jax.random.PRNGKey(0)), jnp.float64, noise=action_noise > 0)
+                                     jax.random.PRNGKey(0)), jnp.float64, noise=action_noise > 0,
+                             value_at_time_limit=at_time_limit)
         theta = jnp.array([0.2, -0.1])
         if learned_noise:
             theta = Exploring(theta, jnp.log(jnp.array([action_noise])))
@@ -160,6 +190,9 @@ def test_each_flow_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_whe
         for ours, theirs in zip(jax.tree.leaves(final), jax.tree.leaves(reached)):
             np.testing.assert_allclose(ours, theirs, rtol=1e-12)
         assert not np.all(final.running) and np.any(final.running)  # some episodes end inside the window, some not
+        if at_time_limit:  # the clock-9 episode reaches the length of 10 (the clock-7 one its task ends first)
+            cut = jax.vmap(lambda x0: reference_rollout(window, theta, x0).states.cut.any())(start)
+            np.testing.assert_array_equal(cut, [False, False, False, True, False])
 
 
 def test_exploration_noise_is_gaussian_of_its_deviation_fresh_at_every_step_and_window_and_absent_without_it():
@@ -256,6 +289,12 @@ def test_td_lambda_targets_are_the_closed_forms_at_lambda_0_and_1_and_stop_where
     np.testing.assert_allclose(whole[:, 0], [1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 30, 2 + 0.5 * 3 + 0.25 * 30, 3 + 0.5 * 30])
     ended = td_lambda_targets(rewards, values, jnp.array([[True], [False], [False]]), 0.5, 1.0)
     np.testing.assert_allclose(ended[:, 0], [1 + 0.5 * 2, 2, 3])  # nothing after x_2's end counts
+    # A time limit cut x_2's episode: x_2's value stands for what follows it, at any lambda.
+    cut = jnp.array([[False], [True], [False]])
+    for td_lambda in (0.0, 0.7, 1.0):
+        valued = td_lambda_targets(rewards, values, jnp.array([[True], [False], [False]]), 0.5, td_lambda, cut)
+        second = 1 + 0.5 * ((1 - td_lambda) * 10 + td_lambda * (2 + 0.5 * 20))
+        np.testing.assert_allclose(valued[:, 0], [second, 2 + 0.5 * 20, 3])
 
 
 def test_a_critic_that_standardises_counts_the_running_states_and_fits_the_same_values_in_any_units():
