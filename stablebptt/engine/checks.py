@@ -159,12 +159,10 @@ def train_conflicts(config: Any) -> list[str]:
         if not config.critic and _given(config, name):
             problems.append(f"{field(name)} {getattr(config, name):g} sets {what}, and {field('critic')} is off: "
                             f"drop it, or train with {field('critic')}")
-    if not config.critic and config.value_at_time_limit:
-        problems.append(f"{field('value_at_time_limit')} values the state a time limit cuts an episode at by the "
-                        f"critic, and {field('critic')} is off: drop it, or train with {field('critic')}")
-    if not config.critic and config.normalize_critic_observations:
-        problems.append(f"{field('normalize_critic_observations')} standardises what the critic sees, and "
-                        f"{field('critic')} is off: drop it, or train with {field('critic')}")
+    for name, what in (("normalize_critic_observations", "standardises what the critic sees"),
+                       ("value_at_time_limit", "values the state a time limit cuts an episode at by the critic")):
+        if not config.critic and getattr(config, name):
+            problems.append(f"{field(name)} {what}, and {field('critic')} is off: drop it, or train with {field('critic')}")
     if config.nonfinite_flows == "zero" and config.mode != "C":
         problems.append(f"{field('nonfinite_flows')} zero leaves a flow's non-finite gradient at zero as mode C's "
                         f"sign agreement does, and mode {config.mode}'s update is that gradient itself: use mode C, or stop")

@@ -64,15 +64,13 @@ def td_lambda_targets(rewards: jax.Array, values: jax.Array, running: jax.Array,
     ``cut[t]``: whether a time limit cut it at x_{t+1}, whose value then stands for all that follows.
     The last step's target bootstraps from the value of the window's last state.
     """
-    cut = jnp.zeros_like(running) if cut is None else cut
-
     def back(after, step):
-        reward, value_next, still, cut_here = step
-        beyond = jnp.where(still, (1 - td_lambda) * value_next + td_lambda * after, jnp.where(cut_here, value_next, 0.0))
-        target = reward + discount * beyond
+        reward, value_next, still, *cut_here = step  # no cut given: the program is the one without the option
+        at_end = jnp.where(cut_here[0], value_next, 0.0) if cut_here else 0.0
+        target = reward + discount * jnp.where(still, (1 - td_lambda) * value_next + td_lambda * after, at_end)
         return target, target
 
-    _, targets = jax.lax.scan(back, values[-1], (rewards, values, running, cut), reverse=True)
+    _, targets = jax.lax.scan(back, values[-1], (rewards, values, running) + (() if cut is None else (cut,)), reverse=True)
     return targets
 
 
