@@ -34,12 +34,14 @@ TRAIN_DEFAULTS = {"batch": 64, "train_size": 16, "test_size": 16, "clip": "norm"
 MAX_STEPS = 100_000
 # Options measured together on the contact-rich envs, named so that one word trains with them
 # (``--recipe``; docs/performance.md, "The locomotion recipe"): windows of 16 steps whose return a
-# critic of standardised observations bootstraps, discounted, 256 carried envs per seed, and a
-# stochastic actor (noise of deviations learned from 0.3, its entropy weighed 0.01). An epoch's time
-# follows its env steps, not its windows, so windows of 16 make twice the updates of 32 in a second.
+# critic of standardised observations bootstraps, discounted, 256 carried envs per seed, a
+# stochastic actor (noise of deviations learned from 0.3, its entropy weighed 0.01), and the state a
+# time limit cuts an episode at valued by the critic. An epoch's time follows its env steps, not its
+# windows, so windows of 16 make twice the updates of 32 in a second.
 # Each key is a training or task option; an option given beside the recipe wins.
 RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normalize_critic_observations": True,
-                          "batch": 256, "action_noise": 0.3, "learn_action_noise": True, "entropy": 0.01}}
+                          "batch": 256, "action_noise": 0.3, "learn_action_noise": True, "entropy": 0.01,
+                          "value_at_time_limit": True}}
 # A recipe's values for the envs that measured better with others (docs/performance.md, "Windows of 8 on
 # the walker"): the walker's control step spans 10 physics steps, and on each of its three tasks,
 # windows of 8 steps (80 physics steps) learned faster than 16 at every epoch.
