@@ -1,5 +1,5 @@
-"""Two looks at a MuJoCo Playground environment where a run does not train: is the step's derivative
-right, and what does the trained policy do.
+"""Three looks at a MuJoCo Playground environment where a run does not train: is the step's derivative
+right, what does the trained policy do, and can a policy of the observation learn the task at all.
 
   python benchmarks/env_probe.py gradient ReacherEasy [--surrogate-reward env_probe:reacher_distance_reward]
           [--window 16] [--set-qpos 1=2.79]
@@ -13,6 +13,16 @@ right, and what does the trained policy do.
       actions whose pre-squash output lies past +-2 (tanh > 0.96: saturated), each joint position's
       first, last, smallest and largest value, and each reward term the env records (Playground's
       ``metrics["reward/..."]``): its mean over the steps and the share of steps where it is exactly 0.
+  python benchmarks/env_probe.py features ReacherEasy [--inputs observation|arm-frame] [--window 20]
+          [--updates 400] [--batch 64] [--lr 1e-3] [--seed 1]
+      Plain BPTT, none of the library's flows, critic or carried episodes: windows of the env's step from
+      fresh resets, the loss the window's mean finger-to-target distance, jax.grad of it through the step
+      as training takes it, Adam on a tanh MLP of 64 x 64 (the library's env policy). Inputs: the env's
+      observation, or (arm-frame) the target seen in the joints' terms, J(q)^T (target - finger) with
+      J the finger's Jacobian in the joint angles, beside the joint velocities. Every 50 updates: the
+      window's mean distance and the env's return over 16 episodes of 1,000 steps (the deterministic
+      policy). Where arm-frame learns and the observation does not, the derivative leads and what
+      fails is the policy's fit of the observation.
 """
 from __future__ import annotations
 
@@ -77,6 +87,71 @@ def gradient(name: str, window: int, surrogate: str, set_qpos: list[str]) -> Non
               f"{np.array2string(theirs, precision=8)}, largest relative difference {worst:.1e}")
 
 
+ARM, HAND = 0.12, 0.12  # the reacher's shoulder-to-wrist and wrist-to-finger lengths (reacher.xml)
+
+
+def arm_frame(observation: jax.Array) -> jax.Array:
+    """The reacher's target in its joints' terms: J(q)^T (target - finger), scaled to order one, and the
+    joint velocities; ``observation`` is the joint angles, the finger-to-target vector, the velocities."""
+    shoulder, wrist = observation[0], observation[1]
+    reach = jnp.array([[-ARM * jnp.sin(shoulder) - HAND * jnp.sin(shoulder + wrist), -HAND * jnp.sin(shoulder + wrist)],
+                       [ARM * jnp.cos(shoulder) + HAND * jnp.cos(shoulder + wrist), HAND * jnp.cos(shoulder + wrist)]])
+    return jnp.concatenate([reach.T @ observation[2:4] * 100, observation[4:6] * 0.2])
+
+
+def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: float, seed: int) -> None:
+    import optax
+
+    from stablebptt.envs import playground
+    from stablebptt.networks import mlp_apply, mlp_init
+    from stablebptt.physics.constraint_derivatives import differentiable_mjx
+    env = playground.load(name)
+    seen = arm_frame if inputs == "arm-frame" else (lambda observation: observation)
+
+    def step(state, action):
+        with differentiable_mjx(implicit_solver=True), playground.repaired_rewards():
+            return env.step(state, action)
+
+    def act(params, state):
+        return jnp.tanh(mlp_apply(params, seen(state.obs)))
+
+    def fresh(key, count):  # a reset, then one still step: the reset's observation places the target stale
+        states = jax.vmap(env.reset)(jax.random.split(key, count))
+        return jax.vmap(step)(states, jnp.zeros((count, env.action_size)))
+
+    def mean_distance(params, states):
+        def body(current, _):
+            reached = jax.vmap(step)(current, jax.vmap(act, (None, 0))(params, current))
+            return reached, jnp.sqrt(jnp.sum(reached.obs[:, 2:4] ** 2, axis=-1) + 1e-12)
+        return jnp.mean(jax.lax.scan(body, states, None, length=window)[1])
+
+    def episode_return(params, state):
+        def body(current, _):
+            reached = step(current, act(params, current))
+            return reached, reached.reward
+        return jnp.sum(jax.lax.scan(body, state, None, length=1000)[1])
+
+    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(lr))
+
+    @jax.jit
+    def update(params, opt_state, key):
+        distance, grads = jax.value_and_grad(mean_distance)(params, fresh(key, batch))
+        moves, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, moves), opt_state, distance
+
+    evaluate = jax.jit(lambda params: jnp.mean(jax.vmap(episode_return, (None, 0))(params, fresh(jax.random.PRNGKey(7), 16))))
+    key = jax.random.PRNGKey(seed)
+    key, init_key = jax.random.split(key)
+    params = mlp_init(init_key, (int(seen(jnp.zeros(env.observation_size)).shape[0]), 64, 64, env.action_size))
+    opt_state = optimizer.init(params)
+    for number in range(1, updates + 1):
+        key, update_key = jax.random.split(key)
+        params, opt_state, distance = update(params, opt_state, update_key)
+        if number % 50 == 0 or number == updates:
+            print(f"{name}, inputs {inputs}: update {number}: window's mean distance {float(distance):.4f}, "
+                  f"return {float(evaluate(params)):.1f}", flush=True)
+
+
 def rollout(run_dir: Path, steps: int, seed_index: int) -> None:
     from stablebptt.apps.trained import open_trained
     from stablebptt.envs.adapter import squashed_output
@@ -117,10 +192,21 @@ def main() -> None:
     other.add_argument("run_dir", type=Path)
     other.add_argument("--steps", type=int, default=300)
     other.add_argument("--seed-index", type=int, default=0)
+    third = looks.add_parser("features")
+    third.add_argument("env", choices=("ReacherEasy", "ReacherHard"))
+    third.add_argument("--inputs", choices=("observation", "arm-frame"), default="observation")
+    third.add_argument("--window", type=int, default=20)
+    third.add_argument("--updates", type=int, default=400)
+    third.add_argument("--batch", type=int, default=64)
+    third.add_argument("--lr", type=float, default=1e-3)
+    third.add_argument("--seed", type=int, default=1)
     arguments = parser.parse_args()
     try:
         if arguments.look == "gradient":
             gradient(arguments.env, arguments.window, arguments.surrogate_reward, arguments.set_qpos)
+        elif arguments.look == "features":
+            features(arguments.env, arguments.inputs, arguments.window, arguments.updates, arguments.batch,
+                     arguments.lr, arguments.seed)
         else:
             rollout(arguments.run_dir, arguments.steps, arguments.seed_index)
     except KeyboardInterrupt:
