@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -87,16 +88,19 @@ def gradient(name: str, window: int, surrogate: str, set_qpos: list[str]) -> Non
               f"{np.array2string(theirs, precision=8)}, largest relative difference {worst:.1e}")
 
 
-ARM, HAND = 0.12, 0.12  # the reacher's shoulder-to-wrist and wrist-to-finger lengths (reacher.xml)
-
-
-def arm_frame(observation: jax.Array) -> jax.Array:
+def arm_frame(model) -> Callable[[jax.Array], jax.Array]:
     """The reacher's target in its joints' terms: J(q)^T (target - finger), scaled to order one, and the
-    joint velocities; ``observation`` is the joint angles, the finger-to-target vector, the velocities."""
-    shoulder, wrist = observation[0], observation[1]
-    reach = jnp.array([[-ARM * jnp.sin(shoulder) - HAND * jnp.sin(shoulder + wrist), -HAND * jnp.sin(shoulder + wrist)],
-                       [ARM * jnp.cos(shoulder) + HAND * jnp.cos(shoulder + wrist), HAND * jnp.cos(shoulder + wrist)]])
-    return jnp.concatenate([reach.T @ observation[2:4] * 100, observation[4:6] * 0.2])
+    joint velocities, of an observation of the joint angles, the finger-to-target vector, the velocities.
+    The arm's two lengths are ``model``'s (the hand's and the finger's offsets from their parents)."""
+    arm, hand = float(model.body("hand").pos[0]), float(model.body("finger").pos[0])
+
+    def seen(observation: jax.Array) -> jax.Array:
+        shoulder, wrist = observation[0], observation[1]
+        elbow_to_finger = hand * jnp.array([-jnp.sin(shoulder + wrist), jnp.cos(shoulder + wrist)])
+        to_finger = arm * jnp.array([-jnp.sin(shoulder), jnp.cos(shoulder)]) + elbow_to_finger
+        reach = jnp.stack([to_finger, elbow_to_finger], axis=1)  # the finger's Jacobian in the two angles
+        return jnp.concatenate([reach.T @ observation[2:4] * 100, observation[4:6] * 0.2])
+    return seen
 
 
 def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: float, seed: int) -> None:
@@ -106,7 +110,7 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
     from stablebptt.networks import mlp_apply, mlp_init
     from stablebptt.physics.constraint_derivatives import differentiable_mjx
     env = playground.load(name)
-    seen = arm_frame if inputs == "arm-frame" else (lambda observation: observation)
+    seen = arm_frame(env.mj_model) if inputs == "arm-frame" else (lambda observation: observation)
 
     def step(state, action):
         with differentiable_mjx(implicit_solver=True), playground.repaired_rewards():

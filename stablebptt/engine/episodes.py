@@ -142,10 +142,11 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
         total = jnp.sum(weights * states.reward)
         if value is not None:  # a loss on the last state: its gradient reaches that state, in every flow
             last = jax.tree.map(lambda a: a[-1], states)
-            total = total + episodes.discount ** window * jnp.where(last.running, value(last.state), 0.0)
-            if value_at_time_limit:  # and on the state where a time limit cut the episode
-                values = jnp.where(states.cut, jax.vmap(value)(states.state), 0.0)
-                total = total + jnp.sum(episodes.discount * weights * values)
+            last_value = value(last.state)
+            total = total + episodes.discount ** window * jnp.where(last.running, last_value, 0.0)
+            if value_at_time_limit:  # a cut episode's state stays where the limit cut it: the last state, valued
+                at_cut = jnp.sum(jnp.where(states.cut, episodes.discount * weights, 0.0))  # at the cut's discount
+                total = total + jnp.where(jnp.any(states.cut), at_cut * last_value, 0.0)
         return -total
 
     def policy(params, current: Window):
