@@ -1,5 +1,6 @@
-"""Three looks at a MuJoCo Playground environment where a run does not train: is the step's derivative
-right, what does the trained policy do, and can a policy of the observation learn the task at all.
+"""Four looks at a MuJoCo Playground environment where a run does not train: is the step's derivative
+right, what does the trained policy do, can a policy of the observation learn the task at all, and
+how hard do its contacts push (where ``--contact-gradient-cut`` would cut).
 
   python benchmarks/env_probe.py gradient ReacherEasy [--surrogate-reward env_probe:reacher_distance_reward]
           [--window 16] [--set-qpos 1=2.79]
@@ -24,6 +25,11 @@ right, what does the trained policy do, and can a policy of the observation lear
       policy) and the share of its actions saturated in their first 20 steps (as ``rollout`` counts
       them). Where arm-frame learns and the observation does not, the derivative leads and what
       fails is the policy's fit of the observation.
+  python benchmarks/env_probe.py loads WalkerWalk [--envs 32] [--steps 150] [--scale 0.5] [--seed 0]
+      The contact load of the states a population reaches from resets under uniform random actions in
+      +-scale: the norm of MJX's constraint forces (qfrc_constraint) in the model's body weights, as
+      ``--contact-gradient-cut`` reads it. Its percentiles, and the share of states above 1, 2, 5 and
+      10 body weights: the share of the windows' steps a cut at that load would stop.
 """
 from __future__ import annotations
 
@@ -191,6 +197,31 @@ def rollout(run_dir: Path, steps: int, seed_index: int) -> None:
         print(f"  {name}: mean {np.mean(values):.3f}, exactly 0 at {np.mean(np.array(values) == 0):.0%} of steps")
 
 
+def loads(name: str, envs: int, steps: int, scale: float, seed: int) -> None:
+    from stablebptt.envs import playground
+    env = playground.load(name)
+    model = env._mjx_model
+    weight = float(np.sum(model.body_mass) * np.linalg.norm(model.opt.gravity))
+
+    @jax.jit
+    def reached_loads(key):
+        reset_key, action_key = jax.random.split(key)
+        states = jax.vmap(env.reset)(jax.random.split(reset_key, envs))
+
+        def body(current, key):
+            actions = scale * jax.random.uniform(key, (envs, env.action_size), minval=-1, maxval=1)
+            reached = jax.vmap(env.step)(current, actions)
+            return reached, jnp.linalg.norm(reached.data.qfrc_constraint, axis=-1) / weight
+        return jax.lax.scan(body, states, jax.random.split(action_key, steps))[1]
+
+    load = np.asarray(reached_loads(jax.random.PRNGKey(seed)))
+    percentiles = ", ".join(f"{p}%: {value:.2f}" for p, value in zip((50, 75, 90, 95, 99),
+                                                                      np.percentile(load, (50, 75, 90, 95, 99))))
+    above = ", ".join(f"{k}: {np.mean(load > k):.1%}" for k in (1, 2, 5, 10))
+    print(f"{name}: weight {weight:.1f} N; contact load over {envs} envs x {steps} steps (actions uniform in "
+          f"+-{scale:g}), in body weights: {percentiles}, largest {load.max():.1f}; share of states above {above}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     looks = parser.add_subparsers(dest="look", required=True)
@@ -211,10 +242,18 @@ def main() -> None:
     third.add_argument("--batch", type=int, default=64)
     third.add_argument("--lr", type=float, default=1e-3)
     third.add_argument("--seed", type=int, default=1)
+    fourth = looks.add_parser("loads")
+    fourth.add_argument("env")
+    fourth.add_argument("--envs", type=int, default=32)
+    fourth.add_argument("--steps", type=int, default=150)
+    fourth.add_argument("--scale", type=float, default=0.5)
+    fourth.add_argument("--seed", type=int, default=0)
     arguments = parser.parse_args()
     try:
         if arguments.look == "gradient":
             gradient(arguments.env, arguments.window, arguments.surrogate_reward, arguments.set_qpos)
+        elif arguments.look == "loads":
+            loads(arguments.env, arguments.envs, arguments.steps, arguments.scale, arguments.seed)
         elif arguments.look == "features":
             features(arguments.env, arguments.inputs, arguments.window, arguments.updates, arguments.batch,
                      arguments.lr, arguments.seed)

@@ -196,3 +196,23 @@ class SubsteppedBall(Ball):
 
 def make_substepped_ball() -> SubsteppedBall:
     return SubsteppedBall()
+
+
+class MjxDataBall(Ball):
+    """The ball whose state carries MJX's whole data, as MuJoCo Playground's states do: its constraint
+    forces (``data.qfrc_constraint``) among them."""
+
+    def reset(self, key: jax.Array) -> State:
+        from mujoco import mjx
+        clearance = jax.random.uniform(key, (), minval=0.0, maxval=0.1)
+        data = mjx.forward(self._mjx_model, mjx.make_data(self._mjx_model).replace(qpos=(clearance - 0.1)[None]))
+        return State(self._observe({"qpos": data.qpos, "qvel": data.qvel}), jnp.zeros(()), jnp.zeros(()), data)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        data = self._advance(state.data.replace(ctrl=action))
+        return State(self._observe({"qpos": data.qpos, "qvel": data.qvel}), -(data.qpos[0] + 0.05) ** 2,
+                     jnp.zeros(()), data)
+
+
+def make_mjx_data_ball() -> MjxDataBall:
+    return MjxDataBall()

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
-import numbers
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -37,7 +35,8 @@ from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.observations import StandardizedNetwork, no_observations, refresh_from, standardized
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
-from stablebptt.envs.derivative_model import derivative_steps, joined, own_substeps
+from stablebptt.envs.arguments import check_env_task_arguments
+from stablebptt.envs.derivative_model import cut_at_contact_load, derivative_steps, joined, own_substeps
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, sample_for_diagnosis, start_checks,
                                        start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
@@ -53,57 +52,6 @@ PyTree = Any
 # Output weights of a policy that must not start at exactly zero action: small enough that the
 # first actions stay near zero, large enough that the reward's derivative is taken off zero.
 SMALL_OUTPUT_SCALE = 1e-2
-
-
-def _check_arguments(**given: Any) -> None:
-    """``EnvError`` naming the first argument of ``env_task`` of the wrong type or range."""
-    def refuse(name: str, wanted: str) -> None:
-        raise EnvError(f"env_task's {name} must be {wanted}, got {given[name]!r}")
-
-    if not whole_number(given["horizon"]) or given["horizon"] < 1:
-        refuse("horizon", "a positive whole number of steps")
-    discount = given["discount"]
-    if not (isinstance(discount, numbers.Real) and not isinstance(discount, bool) and math.isfinite(discount)
-            and 0 < discount <= 1):
-        refuse("discount", "a number in (0, 1]")
-    if given["episode_length"] is not None and (not whole_number(given["episode_length"]) or given["episode_length"] < 1):
-        refuse("episode_length", "a positive whole number of steps, or None for the environment's own")
-    hidden = given["hidden"]
-    if isinstance(hidden, (str, bytes)) or not isinstance(hidden, Sequence) or \
-            not all(whole_number(width) and width >= 1 for width in hidden):
-        refuse("hidden", "a sequence of positive whole numbers, the hidden layers' widths")
-    for name in ("name", "reward_repairs", "dense_variant"):
-        if not isinstance(given[name], str):
-            refuse(name, "a string")
-    for name in ("diagnose", "defer_diagnosis", "normalize_observations"):
-        if not isinstance(given[name], bool):
-            refuse(name, "True or False")
-    if not whole_number(given["diagnosis_seed"]):
-        refuse("diagnosis_seed", "a whole number")
-    if given["reward_context"] is not None and not callable(given["reward_context"]):
-        refuse("reward_context", "a context manager's factory, or None")
-    if given["diagnosis_key"] is not None and not isinstance(given["diagnosis_key"], dict):
-        refuse("diagnosis_key", "a dict, or None")
-    if given["smoothing"] not in ("auto", "off"):
-        refuse("smoothing", '"auto" or "off"')
-    scale = given["smoothing_scale"]
-    if not (isinstance(scale, numbers.Real) and not isinstance(scale, bool) and math.isfinite(scale) and scale > 0):
-        refuse("smoothing_scale", "a positive number")
-    if given["surrogate_reward"] is not None and not callable(given["surrogate_reward"]):
-        refuse("surrogate_reward", "a function of the state a step reaches, or None")
-    if given["contact_smoothing"] is not None and not isinstance(given["contact_smoothing"], ContactSmoothing):
-        refuse("contact_smoothing", "a stablebptt.ContactSmoothing, or None")
-    substeps = given["gradient_substeps"]
-    if substeps is not None and not (whole_number(substeps) and substeps >= 1):
-        refuse("gradient_substeps", "a whole number of physics steps >= 1, or None")
-    floor = given["squash_gradient_floor"]
-    if not (isinstance(floor, numbers.Real) and not isinstance(floor, bool) and 0 <= floor < 1):
-        refuse("squash_gradient_floor", "a number in [0, 1)")
-    if given["reward_env"] is not None:
-        if given["surrogate_reward"] is not None:
-            raise EnvError("env_task: give a surrogate_reward or a reward_env to train on, not both")
-        if not callable(getattr(given["reward_env"], "step", None)):
-            refuse("reward_env", "an environment whose step takes the env's states, or None")
 
 
 def _count(states: PyTree) -> int:
@@ -180,7 +128,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              smoothing: str = "auto", smoothing_scale: float = 1.0,
              surrogate_reward: Callable[[Any], jax.Array] | None = None, normalize_observations: bool = False,
              reward_env: Any = None, contact_smoothing: ContactSmoothing | None = None,
-             gradient_substeps: int | None = None, squash_gradient_floor: float = 0.0) -> Task:
+             gradient_substeps: int | None = None, squash_gradient_floor: float = 0.0,
+             contact_gradient_cut: float = 0.0) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -224,6 +173,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         Playground's envs). None: through every physics step the env simulates.
       squash_gradient_floor: the derivative of the policy's tanh kept at least this, in [0, 1), its values
         unchanged (``networks.floored_tanh``): a saturated action still passes that share of its gradient on.
+      contact_gradient_cut: the windows' derivative stops at a state under constraint forces above this many
+        body weights (``derivative_model.cut_at_contact_load``; MJX's data in the state); 0: never.
 
     Example::
 
@@ -231,13 +182,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         task = sb.env_task(env, horizon=100)
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
-    _check_arguments(horizon=horizon, discount=discount, episode_length=episode_length, hidden=hidden, name=name,
+    check_env_task_arguments(horizon=horizon, discount=discount, episode_length=episode_length, hidden=hidden, name=name,
                      reward_context=reward_context, reward_repairs=reward_repairs, diagnose=diagnose,
                      diagnosis_seed=diagnosis_seed, dense_variant=dense_variant, diagnosis_key=diagnosis_key,
                      defer_diagnosis=defer_diagnosis, smoothing=smoothing, smoothing_scale=smoothing_scale,
                      surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
                      reward_env=reward_env, contact_smoothing=contact_smoothing, gradient_substeps=gradient_substeps,
-                     squash_gradient_floor=squash_gradient_floor)
+                     squash_gradient_floor=squash_gradient_floor, contact_gradient_cut=contact_gradient_cut)
     env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -268,6 +219,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     step = jax.jit(joined(*own_steps))
 
     squash = floored_tanh(squash_gradient_floor)
+    cut = (lambda trained: trained) if not contact_gradient_cut else (  # the windows' derivative alone
+        lambda trained: cut_at_contact_load(trained, env, contact_gradient_cut, label))
+    cut(step)  # an env that cannot take the cut is refused here, in one line
 
     def policy(params, state):
         return observation_policy(params, observation(state), squash)
@@ -368,7 +322,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                   f"; contacts smoothed in the derivative alone (acting from {contact_smoothing.margin:g} m, "
                   f"time constants x{contact_smoothing.softness:g})")
                + ("" if gradient_substeps is None else f"; derivative through {gradient_substeps} physics steps per control step")
-               + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else ""))
+               + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else "")
+               + (f"; the derivative cut at contact loads above {contact_gradient_cut:g} body weights" if contact_gradient_cut else ""))
     if reward_repairs:
         summary += f"; repaired: {reward_repairs}"
 
@@ -379,7 +334,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             smoothed_terms += f" ({dense_variant}'s reward, its dense variant, may train further: --dense-reward)"
         return Task(
             name=label,
-            dynamics=Dynamics(step=trained_step, policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
+            dynamics=Dynamics(step=cut(trained_step), policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
             init_params=init_params,
             sample_initial_states=sample_initial_states,
             summary=summary + "".join(f"; {part}" for part in (smoothed_terms, diagnosis and diagnosis.describe()) if part),
@@ -388,6 +343,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                       "reward_repairs": reward_repairs, "policy_output_start": start,
                       **({"normalize_observations": True} if normalize_observations else {}),
                       **({"squash_gradient_floor": squash_gradient_floor} if squash_gradient_floor else {}),
+                      **({"contact_gradient_cut": contact_gradient_cut} if contact_gradient_cut else {}),
                       **({"reward_smoothing": smoothed_terms} if smoothed_terms else {})},
             evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
                 states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),

@@ -1,15 +1,23 @@
-"""An environment's step differentiated through another model than the one it simulates: its contacts
-smoothed (``ContactSmoothing``), or its control step's physics taken in fewer, longer steps
-(``gradient_substeps``). The step's values stay the env's own, bit for bit; only its derivative is
-the other model's, linearised at the true state (``differentiated_through``).
+"""An environment's step whose derivative is not the one of what it simulates, its values the env's
+own, bit for bit. Differentiated through another model: its contacts smoothed (``ContactSmoothing``),
+or its control step's physics taken in fewer, longer steps (``gradient_substeps``), that model
+linearised at the true state (``differentiated_through``).
 
 Fewer physics steps in the derivative make the backward pass that much shorter: MuJoCo Playground's
 walkers simulate 10 physics steps per control step, and a window's derivative runs through all of
-them."""
+them.
+
+Or cut where contacts push hard (``cut_at_contact_load``): the derivative stops at a state whose
+constraint forces pass a number of the model's body weights, so a window's later rewards reach no
+earlier state or action through it (a foot's strike, whose derivative is the stiffest of a gait)."""
 from __future__ import annotations
 
 import copy
 from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
 
 from stablebptt.envs.protocol import EnvError
 from stablebptt.physics.backward_contacts import ContactSmoothing, differentiated_through, smoothed_model
@@ -65,3 +73,31 @@ def _take_substeps(env: Any, substeps: int, label: str) -> None:
     env._sim_dt = env._sim_dt * factor
     model = env._mjx_model
     env._mjx_model = model.replace(opt=model.opt.replace(timestep=model.opt.timestep * factor))
+
+
+def cut_at_contact_load(step: Callable, env: Any, body_weights: float, label: str) -> Callable:
+    """``step`` whose values stay its own and whose derivative stops at a state starting it under a
+    contact load above ``body_weights``: the norm of its constraint forces (``qfrc_constraint``, what
+    MJX's solver applied) over the model's weight. The state the step reaches keeps its derivative,
+    so the reward of a state under that load still reaches the actions before it; what follows it
+    does not. For envs whose states carry MJX's data and that keep their model in ``_mjx_model``."""
+    model = vars(env).get("_mjx_model")
+    if model is None:
+        raise EnvError(f"{label}: a derivative cut at contact loads needs an env that keeps its MJX model in "
+                       f"_mjx_model, as MuJoCo Playground's do; {type(env).__name__} does not")
+    weight = float(np.sum(model.body_mass) * np.linalg.norm(model.opt.gravity))
+    if weight <= 0:
+        raise EnvError(f"{label}: its model weighs nothing (no mass under gravity), so a contact load in body "
+                       "weights has no scale: drop the contact gradient cut")
+
+    def cut_step(state, action):
+        forces = getattr(getattr(state, "data", None), "qfrc_constraint", None)
+        if forces is None:
+            raise EnvError(f"{label}: a derivative cut at contact loads reads the constraint forces of MJX's data in "
+                           f"the state (state.data.qfrc_constraint), as MuJoCo Playground's states carry them; "
+                           f"{type(env).__name__}'s state does not")
+        loaded = jnp.linalg.norm(jax.lax.stop_gradient(forces)) > body_weights * weight
+        held = jax.tree.map(lambda leaf: jnp.where(loaded, jax.lax.stop_gradient(leaf), leaf)
+                            if jnp.issubdtype(leaf.dtype, jnp.floating) else leaf, state)
+        return step(held, action)
+    return cut_step

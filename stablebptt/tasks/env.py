@@ -88,6 +88,7 @@ class Config:
     contact_gradient_softness: float = field(default=1.0, metadata={"help": "the derivative is taken through the env's model with every contact's time constant this many times the file's, >= 1 (the simulation stays the file's)"})
     gradient_substeps: int = field(default=0, metadata={"help": "the derivative is taken through each control step in this many physics steps of equal length, a divisor of the env's own count (MuJoCo Playground's WalkerWalk simulates 10; 0: the env's own): a shorter backward pass; the simulation stays the file's"})
     squash_gradient_floor: float = field(default=0.0, metadata={"help": "the derivative of the policy's tanh squash is kept at least this, in [0, 1): an action at its bound, where tanh's slope is nearly 0, still passes this share of its gradient back to the policy; its values, and every action taken, stay tanh's (0: tanh's own derivative)"})
+    contact_gradient_cut: float = field(default=0.0, metadata={"help": "the windows' derivative stops at a state whose constraint forces pass this many body weights (the norm of MJX's qfrc_constraint over the model's weight): a window's later rewards reach no earlier state or action through a hard contact, the reward of that state still does; its values, and every return, stay the env's (0: no cut; MuJoCo Playground's envs)"})
     sloped_reward_tails: bool = field(default=False, metadata={"help": "a MuJoCo Playground env's tolerance rewards whose linear, quadratic or cosine sigmoid ends at 0 (the walker's move reward at speed <= 0, the cheetah's run reward) keep, in the derivative only, the sigmoid's mean slope past that end: where the reward was flat the windows' gradient points towards its bounds; its values, and every return, stay as written"})
 
     def __post_init__(self):
@@ -109,6 +110,9 @@ class Config:
                              f"(or 0 for the env's own), got {self.gradient_substeps}")
         if not (math.isfinite(self.squash_gradient_floor) and 0 <= self.squash_gradient_floor < 1):
             raise InputError(f"{config_field(self, 'squash_gradient_floor')} must be in [0, 1), got {self.squash_gradient_floor}")
+        if not (math.isfinite(self.contact_gradient_cut) and self.contact_gradient_cut >= 0):
+            raise InputError(f"{config_field(self, 'contact_gradient_cut')} must be a number of body weights >= 0 (0: no cut), "
+                             f"got {self.contact_gradient_cut}")
         if not 0 <= self.episode_length <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
 
@@ -173,6 +177,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
                     reward_env=reward_env,
                     contact_smoothing=smoothing, gradient_substeps=config.gradient_substeps or None,
                     squash_gradient_floor=config.squash_gradient_floor,
+                    contact_gradient_cut=config.contact_gradient_cut,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})
     if trained_reward:
