@@ -199,9 +199,9 @@ def rollout(run_dir: Path, steps: int, seed_index: int) -> None:
 
 def loads(name: str, envs: int, steps: int, scale: float, seed: int) -> None:
     from stablebptt.envs import playground
+    from stablebptt.envs.derivative_model import contact_load
     env = playground.load(name)
-    model = env._mjx_model
-    weight = float(np.sum(model.body_mass) * np.linalg.norm(model.opt.gravity))
+    load_of = contact_load(env, name)  # as --contact-gradient-cut reads it
 
     @jax.jit
     def reached_loads(key):
@@ -211,14 +211,14 @@ def loads(name: str, envs: int, steps: int, scale: float, seed: int) -> None:
         def body(current, key):
             actions = scale * jax.random.uniform(key, (envs, env.action_size), minval=-1, maxval=1)
             reached = jax.vmap(env.step)(current, actions)
-            return reached, jnp.linalg.norm(reached.data.qfrc_constraint, axis=-1) / weight
+            return reached, jax.vmap(load_of)(reached)
         return jax.lax.scan(body, states, jax.random.split(action_key, steps))[1]
 
     load = np.asarray(reached_loads(jax.random.PRNGKey(seed)))
     percentiles = ", ".join(f"{p}%: {value:.2f}" for p, value in zip((50, 75, 90, 95, 99),
                                                                       np.percentile(load, (50, 75, 90, 95, 99))))
     above = ", ".join(f"{k}: {np.mean(load > k):.1%}" for k in (1, 2, 5, 10))
-    print(f"{name}: weight {weight:.1f} N; contact load over {envs} envs x {steps} steps (actions uniform in "
+    print(f"{name}: contact load over {envs} envs x {steps} steps (actions uniform in "
           f"+-{scale:g}), in body weights: {percentiles}, largest {load.max():.1f}; share of states above {above}")
 
 

@@ -36,7 +36,7 @@ from stablebptt.engine.observations import StandardizedNetwork, no_observations,
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.arguments import check_env_task_arguments
-from stablebptt.envs.derivative_model import cut_at_contact_load, derivative_steps, joined, own_substeps
+from stablebptt.envs.derivative_model import contact_cut, derivative_steps, joined, own_substeps
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, sample_for_diagnosis, start_checks,
                                        start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
@@ -174,7 +174,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       squash_gradient_floor: the derivative of the policy's tanh kept at least this, in [0, 1), its values
         unchanged (``networks.floored_tanh``): a saturated action still passes that share of its gradient on.
       contact_gradient_cut: the windows' derivative stops at a state under constraint forces above this many
-        body weights (``derivative_model.cut_at_contact_load``; MJX's data in the state); 0: never.
+        body weights (``derivative_model.contact_cut``; MJX's data in the state); 0: never.
 
     Example::
 
@@ -219,9 +219,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     step = jax.jit(joined(*own_steps))
 
     squash = floored_tanh(squash_gradient_floor)
-    cut = (lambda trained: trained) if not contact_gradient_cut else (  # the windows' derivative alone
-        lambda trained: cut_at_contact_load(trained, env, contact_gradient_cut, label))
-    cut(step)  # an env that cannot take the cut is refused here, in one line
+    # The windows' step alone is cut; an env that cannot take the cut is refused here, in one line.
+    cut = contact_cut(env, contact_gradient_cut, label) if contact_gradient_cut else (lambda trained: trained)
 
     def policy(params, state):
         return observation_policy(params, observation(state), squash)

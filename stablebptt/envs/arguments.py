@@ -11,6 +11,11 @@ from stablebptt.envs.protocol import EnvError
 from stablebptt.physics.backward_contacts import ContactSmoothing
 
 
+def _real(value: Any) -> bool:
+    """A finite real number, not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def check_env_task_arguments(**given: Any) -> None:
     """``EnvError`` naming the first argument of ``env_task`` of the wrong type or range."""
     def refuse(name: str, wanted: str) -> None:
@@ -19,8 +24,7 @@ def check_env_task_arguments(**given: Any) -> None:
     if not whole_number(given["horizon"]) or given["horizon"] < 1:
         refuse("horizon", "a positive whole number of steps")
     discount = given["discount"]
-    if not (isinstance(discount, numbers.Real) and not isinstance(discount, bool) and math.isfinite(discount)
-            and 0 < discount <= 1):
+    if not (_real(discount) and 0 < discount <= 1):
         refuse("discount", "a number in (0, 1]")
     if given["episode_length"] is not None and (not whole_number(given["episode_length"]) or given["episode_length"] < 1):
         refuse("episode_length", "a positive whole number of steps, or None for the environment's own")
@@ -43,7 +47,7 @@ def check_env_task_arguments(**given: Any) -> None:
     if given["smoothing"] not in ("auto", "off"):
         refuse("smoothing", '"auto" or "off"')
     scale = given["smoothing_scale"]
-    if not (isinstance(scale, numbers.Real) and not isinstance(scale, bool) and math.isfinite(scale) and scale > 0):
+    if not (_real(scale) and scale > 0):
         refuse("smoothing_scale", "a positive number")
     if given["surrogate_reward"] is not None and not callable(given["surrogate_reward"]):
         refuse("surrogate_reward", "a function of the state a step reaches, or None")
@@ -53,10 +57,10 @@ def check_env_task_arguments(**given: Any) -> None:
     if substeps is not None and not (whole_number(substeps) and substeps >= 1):
         refuse("gradient_substeps", "a whole number of physics steps >= 1, or None")
     floor = given["squash_gradient_floor"]
-    if not (isinstance(floor, numbers.Real) and not isinstance(floor, bool) and 0 <= floor < 1):
+    if not (_real(floor) and 0 <= floor < 1):
         refuse("squash_gradient_floor", "a number in [0, 1)")
     cut = given["contact_gradient_cut"]
-    if not (isinstance(cut, numbers.Real) and not isinstance(cut, bool) and math.isfinite(cut) and cut >= 0):
+    if not (_real(cut) and cut >= 0):
         refuse("contact_gradient_cut", "a number of body weights >= 0 (0: no cut)")
     if given["reward_env"] is not None:
         if given["surrogate_reward"] is not None:

@@ -7,7 +7,7 @@ Fewer physics steps in the derivative make the backward pass that much shorter: 
 walkers simulate 10 physics steps per control step, and a window's derivative runs through all of
 them.
 
-Or cut where contacts push hard (``cut_at_contact_load``): the derivative stops at a state whose
+Or cut where contacts push hard (``contact_cut``): the derivative stops at a state whose
 constraint forces pass a number of the model's body weights, so a window's later rewards reach no
 earlier state or action through it (a foot's strike, whose derivative is the stiffest of a gait)."""
 from __future__ import annotations
@@ -75,12 +75,10 @@ def _take_substeps(env: Any, substeps: int, label: str) -> None:
     env._mjx_model = model.replace(opt=model.opt.replace(timestep=model.opt.timestep * factor))
 
 
-def cut_at_contact_load(step: Callable, env: Any, body_weights: float, label: str) -> Callable:
-    """``step`` whose values stay its own and whose derivative stops at a state starting it under a
-    contact load above ``body_weights``: the norm of its constraint forces (``qfrc_constraint``, what
-    MJX's solver applied) over the model's weight. The state the step reaches keeps its derivative,
-    so the reward of a state under that load still reaches the actions before it; what follows it
-    does not. For envs whose states carry MJX's data and that keep their model in ``_mjx_model``."""
+def contact_load(env: Any, label: str) -> Callable[[Any], jax.Array]:
+    """``load(state)``: the norm of the constraint forces MJX's solver applied (``qfrc_constraint``, from
+    the state's MJX data) over the weight of ``env``'s model, in body weights. For envs that keep their
+    model in ``_mjx_model`` and whose states carry MJX's data, as MuJoCo Playground's do."""
     model = vars(env).get("_mjx_model")
     if model is None:
         raise EnvError(f"{label}: a derivative cut at contact loads needs an env that keeps its MJX model in "
@@ -90,14 +88,28 @@ def cut_at_contact_load(step: Callable, env: Any, body_weights: float, label: st
         raise EnvError(f"{label}: its model weighs nothing (no mass under gravity), so a contact load in body "
                        "weights has no scale: drop the contact gradient cut")
 
-    def cut_step(state, action):
+    def load(state) -> jax.Array:
         forces = getattr(getattr(state, "data", None), "qfrc_constraint", None)
         if forces is None:
             raise EnvError(f"{label}: a derivative cut at contact loads reads the constraint forces of MJX's data in "
                            f"the state (state.data.qfrc_constraint), as MuJoCo Playground's states carry them; "
                            f"{type(env).__name__}'s state does not")
-        loaded = jnp.linalg.norm(jax.lax.stop_gradient(forces)) > body_weights * weight
-        held = jax.tree.map(lambda leaf: jnp.where(loaded, jax.lax.stop_gradient(leaf), leaf)
-                            if jnp.issubdtype(leaf.dtype, jnp.floating) else leaf, state)
-        return step(held, action)
-    return cut_step
+        return jnp.linalg.norm(jax.lax.stop_gradient(forces), axis=-1) / weight
+    return load
+
+
+def contact_cut(env: Any, body_weights: float, label: str) -> Callable[[Callable], Callable]:
+    """``cut(step)``: ``step`` whose values stay its own and whose derivative stops at a state starting
+    it under a ``contact_load`` above ``body_weights``. The state the step reaches keeps its derivative,
+    so the reward of a state under that load still reaches the actions before it; what follows it
+    does not. An env that cannot take it is refused here."""
+    load = contact_load(env, label)
+
+    def cut(step: Callable) -> Callable:
+        def cut_step(state, action):
+            loaded = load(state) > body_weights
+            held = jax.tree.map(lambda leaf: jnp.where(loaded, jax.lax.stop_gradient(leaf), leaf)
+                                if jnp.issubdtype(leaf.dtype, jnp.floating) else leaf, state)
+            return step(held, action)
+        return cut_step
+    return cut
