@@ -70,7 +70,7 @@ def configure(args, owners):
     task_name = task_options.choose_task(args, owners, "train")
     recipe = {}
     if args.recipe is not None:
-        recipe = tasks.load("env").recipe_options(args.recipe, given.get("env", ""))
+        recipe = tasks.load("env").recipe_options(args.recipe, given.get("env", ""), given)
         if task_name != "env":
             fail(f"--recipe {args.recipe} is for an environment (--env NAME), not --task {task_name}")
     defaults = tasks.train_defaults(task_name)

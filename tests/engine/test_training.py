@@ -179,6 +179,16 @@ def test_vmapped_seeds_agree_with_mapped_seeds_to_rounding(task, three_seeds):
     np.testing.assert_allclose(vmapped[0]["test_loss"], history[0]["test_loss"], rtol=1e-5)
 
 
+def test_mode_r_without_the_cosine_follows_the_same_gradient_as_with_it(task):
+    """--no-cosine drops g_M from mode R's backward pass (the locomotion recipe's cheetah trains so):
+    the update it takes is R's with the cosine on, to rounding, and only the cosine goes unlogged."""
+    config = replace(SMALL, mode="R", epochs=2)
+    (with_cosine, logged), (without, unlogged) = (
+        run_epochs(make_trainer(task, replace(config, cosine=cosine)), config, 2) for cosine in (True, False))
+    for a, b in zip(jax.tree.leaves(with_cosine.params), jax.tree.leaves(without.params)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    assert np.all(np.isfinite(logged[-1]["cosine"])) and np.all(np.isnan(unlogged[-1]["cosine"]))
+
 def test_an_epoch_compiled_per_update_trains_as_the_epoch_compiled_whole(task, three_seeds, tmp_path):
     """The same updates and metrics from separately compiled programs (large scenes) as from one."""
     state, history = three_seeds

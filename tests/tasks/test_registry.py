@@ -197,7 +197,13 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
                 assert {**task_options, **train_options}["horizon" if option == "steps" else option] == value
             assert train_command.configure(*train_command.parse(command + ["--steps", "12"]))[1].steps == 12
     # An env the recipe has nothing of its own for takes the recipe as it is.
-    assert sb.recipe("locomotion", "CheetahRun") == sb.recipe("locomotion")
+    assert sb.recipe("locomotion", "HopperStand") == sb.recipe("locomotion")
+    # The cheetah's R trains without g_M; another mode given beside takes its own flows, not a refusal.
+    cheetah = ["--env", "CheetahRun", "--recipe", "locomotion"]
+    chosen = lambda *beside: train_command.configure(*train_command.parse(cheetah + list(beside)))[2]
+    assert (chosen().mode, chosen().cosine) == ("R", False)
+    assert (chosen("--mode", "C").mode, chosen("--mode", "C").cosine) == ("C", True)
+    assert (chosen("--mode", "R").cosine, chosen("--cosine").cosine, chosen("--cosine").mode) == (False, True, "R")
     assert sb.recipe("locomotion", "WalkerWalk")[0]["horizon"] == 8 != env.RECIPES["locomotion"]["steps"]
     with pytest.raises(InputError, match="a recipe's env is the env's name .* got Cart"):
         sb.recipe("locomotion", Cart())  # the env itself, not its name
