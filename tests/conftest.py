@@ -65,6 +65,15 @@ def train_in_process(capsys, *argv):
         code = exit_.code
     return code, [line for line in capsys.readouterr().err.splitlines() if line.strip()]
 
+
+def refused_in_one_line(capsys, out, expected: str, *argv) -> str:
+    """scripts/train.py's main given ``argv`` and ``--out out`` refuses it as bad input: exit code 2, one
+    line on stderr naming ``expected``, and no run folder made. Returns the line."""
+    code, err = train_in_process(capsys, *argv, "--out", str(out))
+    assert code == 2 and len(err) == 1 and expected in err[0], err
+    assert not os.path.exists(out), f"{out} was made by a refused command"
+    return err[0]
+
 @contextlib.contextmanager
 def float64():
     """Run a block in float64 without flipping the whole session (other tests are float32)."""

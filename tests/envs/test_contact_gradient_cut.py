@@ -11,7 +11,7 @@ import pytest
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import EnvError
 
-from conftest import train_in_process
+from conftest import refused_in_one_line
 from envs_for_tests import Ball, Cart, MjxDataBall
 
 WEIGHT = 9.81  # envs_for_tests.BALL: one body of 1 kg under MuJoCo's default gravity
@@ -72,7 +72,5 @@ def test_bad_values_and_envs_without_what_the_cut_reads_are_refused_in_one_line(
         ball.dynamics.step(Ball().reset(jax.random.PRNGKey(0)), jnp.zeros(1))
     for value, expected in (("-1", "--contact-gradient-cut must be a number of body weights >= 0 (0: no cut), got -1"),
                             ("nan", "--contact-gradient-cut must be a number of body weights >= 0 (0: no cut), got nan")):
-        code, err = train_in_process(capsys, "--env", "envs_for_tests:make_mjx_data_ball", "--contact-gradient-cut", value,
-                                     "--epochs", "1", "--out", str(tmp_path / "refused"))
-        assert code == 2 and len(err) == 1 and expected in err[0], err
-        assert not (tmp_path / "refused").exists()
+        refused_in_one_line(capsys, tmp_path / "refused", expected, "--env", "envs_for_tests:make_mjx_data_ball",
+                            "--contact-gradient-cut", value, "--epochs", "1")

@@ -23,7 +23,7 @@ from stablebptt.flows.gradients import flow_gradients, reference_loss
 from stablebptt.runs import epochs, run_folder
 from stablebptt.storage import read_json
 
-from conftest import HAS_PLAYGROUND, ROOT, float64, run_script, train_in_process
+from conftest import HAS_PLAYGROUND, ROOT, float64, refused_in_one_line, run_script, train_in_process
 from envs_for_tests import Cart, LateCart
 
 TINY = sb.TrainConfig(mode="C", epochs=3, train_size=8, test_size=8, batch=4, clip="norm", lr=1e-2)
@@ -250,9 +250,7 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
                            (["--env", "envs_for_tests:make_cart", "--discount", "0"], "--discount must be in (0, 1]"),
                            (["--env", "envs_for_tests:make_cart", "--squash-gradient-floor", "-0.1"],
                             "--squash-gradient-floor must be in [0, 1)")):
-        code, err = train_in_process(capsys, *args, "--epochs", "1", "--out", str(tmp_path / "refused"))
-        assert code == 2 and len(err) == 1 and expected in err[0], err
-        assert not (tmp_path / "refused").exists()
+        refused_in_one_line(capsys, tmp_path / "refused", expected, *args, "--epochs", "1")
 
 
 # A hinge pressed past its limit and a ball in sliding contact with the floor; the model's own
@@ -286,13 +284,10 @@ def test_an_env_module_that_fails_as_it_imports_is_one_line_and_the_current_fold
     with pytest.raises(EnvError, match=r"importing lab_env_typo failed \(line 1\): SyntaxError"):
         load_env("lab_env_typo:make")
     assert isinstance(load_env("lab_env_good:make"), Cart)
-    code, err = train_in_process(capsys, "--env", "lab_env_divides:make", "--out", str(tmp_path / "refused"))
-    assert code == 2 and len(err) == 1 and "ZeroDivisionError" in err[0], err
-    code, err = train_in_process(capsys, "--env", "envs_for_tests:tree_changing_cart", "--no-reward-check",
-                                 "--out", str(tmp_path / "refused"))
-    assert code == 2 and len(err) == 1 and "step(state, action) must return a state of the tree" in err[0], err
-    assert "--step" not in err[0]
-    assert not (tmp_path / "refused").exists()
+    refused_in_one_line(capsys, tmp_path / "refused", "ZeroDivisionError", "--env", "lab_env_divides:make")
+    line = refused_in_one_line(capsys, tmp_path / "refused", "step(state, action) must return a state of the tree",
+                               "--env", "envs_for_tests:tree_changing_cart", "--no-reward-check")
+    assert "--step" not in line
 
 
 def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_one_and_says_what_it_cannot_check(

@@ -2,7 +2,7 @@
 float per state) and, in the reward diagnosis, at sampled states (a NaN or flat gradient); every
 refusal is one line naming the function, from Python an ``EnvError``, from the command line exit 2."""
 import pytest
-from conftest import train_in_process
+from conftest import refused_in_one_line
 from envs_for_tests import (Cart, constant_reward, nan_reward, raising_reward, reward_of_state_and_action,
                             string_reward, vector_reward)
 
@@ -45,8 +45,6 @@ def test_a_nan_or_flat_surrogate_is_refused_as_the_users_function_not_the_envs_r
 
 def test_the_command_line_refuses_a_bad_surrogate_in_one_line_with_exit_2(tmp_path, capsys):
     for reward, words in MALFORMED + [(nan_reward, "nan_reward's gradient is NaN at 100% of sampled states")]:
-        code, err = train_in_process(capsys, "--env", "envs_for_tests:make_cart", "--surrogate-reward",
-                                     f"envs_for_tests:{reward.__name__}", "--steps", "5", "--epochs", "1",
-                                     "--no-progress", "--out", str(tmp_path / "no"))
-        assert code == 2 and len(err) == 1 and f"the surrogate reward envs_for_tests:{words}" in err[0], err
-    assert not (tmp_path / "no").exists()
+        refused_in_one_line(capsys, tmp_path / "no", f"the surrogate reward envs_for_tests:{words}", "--env",
+                            "envs_for_tests:make_cart", "--surrogate-reward", f"envs_for_tests:{reward.__name__}",
+                            "--steps", "5", "--epochs", "1", "--no-progress")
