@@ -142,6 +142,8 @@ def train(argv: list[str], held: list) -> int:
                   "targets)") if train_config.critic else ""
         if train_config.value_at_time_limit:
             extras += ", and of the state where its episode's length cuts it"
+        if train_config.value_at_gradient_cut:
+            extras += ", the states where its step cuts the derivative valued for the actions before them"
         if train_config.learn_action_noise:
             extras += (f", Gaussian noise on its actions of standard deviations learned from "
                        f"{train_config.action_noise:g}")

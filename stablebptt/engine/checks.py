@@ -160,7 +160,8 @@ def train_conflicts(config: Any) -> list[str]:
             problems.append(f"{field(name)} {getattr(config, name):g} sets {what}, and {field('critic')} is off: "
                             f"drop it, or train with {field('critic')}")
     for name, what in (("normalize_critic_observations", "standardises what the critic sees"),
-                       ("value_at_time_limit", "values the state a time limit cuts an episode at by the critic")):
+                       ("value_at_time_limit", "values the state a time limit cuts an episode at by the critic"),
+                       ("value_at_gradient_cut", "values the states the task's step cuts the derivative at by the critic")):
         if not config.critic and getattr(config, name):
             problems.append(f"{field(name)} {what}, and {field('critic')} is off: drop it, or train with {field('critic')}")
     if config.nonfinite_flows == "zero" and config.mode != "C":

@@ -52,6 +52,9 @@ class Episodes:
       step: ``step(state, action) -> state``, the step of the episodes whose return is reported, where the
         windows train on another reward (an environment's own step beside a surrogate's); None: the
         task's ``Dynamics.step``.
+      gradient_cut: ``gradient_cut(state) -> bool``, whether the task's step stops a window's derivative at
+        ``state`` (its ``Dynamics.step`` holds such a state constant as it starts from it), which a critic
+        may value there (``window_dynamics(value_at_gradient_cut=True)``); None: the step cuts nowhere.
     """
 
     reset: Callable[[jax.Array], PyTree]
@@ -61,13 +64,15 @@ class Episodes:
     discount: float = 1.0
     observe: Callable[[PyTree], jax.Array] | None = None
     step: Callable[[PyTree, PyTree], PyTree] | None = None
+    gradient_cut: Callable[[PyTree], jax.Array] | None = None
 
     def __post_init__(self):
         for name in ("reset", "reward", "done"):
             if not callable(getattr(self, name)):
                 raise InputError(f"Episodes.{name} must be a function, got {type(getattr(self, name)).__name__}")
-        if self.step is not None and not callable(self.step):
-            raise InputError(f"Episodes.step must be a function or None, got {type(self.step).__name__}")
+        for name in ("step", "gradient_cut"):
+            if getattr(self, name) is not None and not callable(getattr(self, name)):
+                raise InputError(f"Episodes.{name} must be a function or None, got {type(getattr(self, name)).__name__}")
         if not isinstance(self.length, numbers.Integral) or isinstance(self.length, bool) or self.length < 1:
             raise InputError(f"Episodes.length must be a positive whole number of steps, got {self.length!r}")
         discount = self.discount
@@ -109,7 +114,8 @@ class Exploring(NamedTuple):
 
 def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
                     value: Callable[[PyTree], jax.Array] | None = None, action_noise: float = 0.0,
-                    learned_noise: bool = False, value_at_time_limit: bool = False) -> Dynamics:
+                    learned_noise: bool = False, value_at_time_limit: bool = False,
+                    value_at_gradient_cut: bool = False) -> Dynamics:
     """``dynamics`` over ``Window`` states: a window of ``window`` steps whose loss is its negative
     (discounted) return, rewards after its episode's end left out; with ``value`` (of a task's state),
     plus the discounted value of the window's last state where its episode still runs there.
@@ -124,7 +130,12 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
     With ``value_at_time_limit``, an episode the window cuts at its length (a time limit: the task did not
     end it) keeps the state it reached, marked ``cut``, and with ``value`` the loss adds that state's
     discounted value where the window's last state would have added its own: the time limit is not
-    taken for the end of what the policy can still earn, which its observations do not show."""
+    taken for the end of what the policy can still earn, which its observations do not show.
+
+    With ``value_at_gradient_cut`` and ``value``, where the task's step stops the derivative at a state
+    (``Episodes.gradient_cut``), the actions before that state are also pulled by its discounted value's
+    derivative, as a window ended there would be (AHAC's windows end where contact forces spike); the
+    loss's value is unchanged, the later rewards reaching those actions through the cut no more."""
     def step(current: Window, control) -> Window:
         reached = dynamics.step(current.state, control)
         clock = current.clock + 1
@@ -147,6 +158,12 @@ def window_dynamics(dynamics: Dynamics, episodes: Episodes, window: int,
             if value_at_time_limit:  # a cut episode's state stays where the limit cut it: the last state, valued
                 at_cut = jnp.sum(jnp.where(states.cut, episodes.discount * weights, 0.0))  # at the cut's discount
                 total = total + jnp.where(jnp.any(states.cut), at_cut * last_value, 0.0)
+            if value_at_gradient_cut:  # the last state is valued above; before it, a value of zero with a slope
+                inner = jax.tree.map(lambda a: a[:-1], states)
+                values = jax.vmap(value)(inner.state)
+                held = jax.vmap(episodes.gradient_cut)(inner.state) & inner.running
+                slope_only = values - jax.lax.stop_gradient(values)
+                total = total + jnp.sum(jnp.where(held, episodes.discount * weights[:-1] * slope_only, 0.0))
         return -total
 
     def policy(params, current: Window):

@@ -231,7 +231,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             at_end = None if critic is None else bootstrap(critic, episodes.observe)
             carried = _split_population(spread, state.carried)  # its pool refilled as the epoch began (refill)
             window_result = flow_window(window_dynamics(dynamics, episodes, window, at_end, config.action_noise,
-                                                        config.learn_action_noise, config.value_at_time_limit),
+                                                        config.learn_action_noise, config.value_at_time_limit,
+                                                        config.value_at_gradient_cut),
                                         flows, differentiated,
                                         start_window(carried, reward_dtype, config.action_noise > 0,
                                                      config.value_at_time_limit), window_plan)
@@ -404,6 +405,9 @@ def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
     if config.critic and task.episodes.observe is None:
         raise InputError(f"{config_field(config, 'critic')}: {task.name}'s Episodes has no observe(state), what the "
                          "critic sees")
+    if config.value_at_gradient_cut and task.episodes.gradient_cut is None:
+        raise InputError(f"{config_field(config, 'value_at_gradient_cut')}: {task.name}'s step cuts no window's "
+                         "derivative to value (an environment cuts where --contact-gradient-cut says)")
     return task.episodes
 
 

@@ -36,7 +36,7 @@ from stablebptt.engine.observations import StandardizedNetwork, no_observations,
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.arguments import check_env_task_arguments
-from stablebptt.envs.derivative_model import contact_cut, derivative_steps, joined, own_substeps
+from stablebptt.envs.derivative_model import contact_cut, derivative_steps, joined, loaded_states, own_substeps
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, sample_for_diagnosis, start_checks,
                                        start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
@@ -220,7 +220,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     squash = floored_tanh(squash_gradient_floor)
     # The windows' step alone is cut; an env that cannot take the cut is refused here, in one line.
-    cut = contact_cut(env, contact_gradient_cut, label) if contact_gradient_cut else (lambda trained: trained)
+    loaded = loaded_states(env, contact_gradient_cut, label) if contact_gradient_cut else None
+    cut = contact_cut(loaded) if loaded else (lambda trained: trained)
 
     def policy(params, state):
         return observation_policy(params, observation(state), squash)
@@ -311,7 +312,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     # Training on carried episodes (the default): reset by the env's own reset, ended when done or at its length;
     # their reported returns are the env's own step's, whatever reward the windows train on.
     episodes = Episodes(reset=env.reset, reward=lambda state: state.reward, done=lambda state: state.done > 0,
-                        length=episode_length, discount=discount, observe=observation, step=step)
+                        length=episode_length, discount=discount, observe=observation, step=step, gradient_cut=loaded)
     summary = (f"{label}: {sizes[0]} observations{' (standardised by running statistics)' if normalize_observations else ''}, "
                f"{sizes[-1]} actions in [-1, 1]; windows of {horizon} steps, "
                f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "

@@ -9,7 +9,8 @@ them.
 
 Or cut where contacts push hard (``contact_cut``): the derivative stops at a state whose
 constraint forces pass a number of the model's body weights, so a window's later rewards reach no
-earlier state or action through it (a foot's strike, whose derivative is the stiffest of a gait)."""
+earlier state or action through it (a foot's strike, whose derivative is the stiffest of a gait).
+The loaded states are the task's ``Episodes.gradient_cut``, where a critic may value them."""
 from __future__ import annotations
 
 import copy
@@ -98,17 +99,21 @@ def contact_load(env: Any, label: str) -> Callable[[Any], jax.Array]:
     return load
 
 
-def contact_cut(env: Any, body_weights: float, label: str) -> Callable[[Callable], Callable]:
-    """``cut(step)``: ``step`` whose values stay its own and whose derivative stops at a state starting
-    it under a ``contact_load`` above ``body_weights``. The state the step reaches keeps its derivative,
-    so the reward of a state under that load still reaches the actions before it; what follows it
-    does not. An env that cannot take it is refused here."""
+def loaded_states(env: Any, body_weights: float, label: str) -> Callable[[Any], jax.Array]:
+    """``loaded(state)``: whether the state's ``contact_load`` passes ``body_weights``. An env that cannot
+    take it is refused here."""
     load = contact_load(env, label)
+    return lambda state: load(state) > body_weights
 
+
+def contact_cut(loaded: Callable[[Any], jax.Array]) -> Callable[[Callable], Callable]:
+    """``cut(step)``: ``step`` whose values stay its own and whose derivative stops at a state starting
+    it that is ``loaded`` (``loaded_states``). The state the step reaches keeps its derivative, so the
+    reward of a loaded state still reaches the actions before it; what follows it does not."""
     def cut(step: Callable) -> Callable:
         def cut_step(state, action):
-            loaded = load(state) > body_weights
-            held = jax.tree.map(lambda leaf: jnp.where(loaded, jax.lax.stop_gradient(leaf), leaf)
+            held_now = loaded(state)
+            held = jax.tree.map(lambda leaf: jnp.where(held_now, jax.lax.stop_gradient(leaf), leaf)
                                 if jnp.issubdtype(leaf.dtype, jnp.floating) else leaf, state)
             return step(held, action)
         return cut_step

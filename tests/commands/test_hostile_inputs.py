@@ -203,7 +203,8 @@ def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_tak
                    "TrainConfig.td_lambda 0.5 sets the critic's": dict(td_lambda=0.5),
                    "TrainConfig.critic_depth 3 sets the critic's layers": dict(critic_depth=3),
                    "TrainConfig.normalize_critic_observations standardises": dict(normalize_critic_observations=True),
-                   "TrainConfig.value_at_time_limit values": dict(value_at_time_limit=True)}
+                   "TrainConfig.value_at_time_limit values": dict(value_at_time_limit=True),
+                   "TrainConfig.value_at_gradient_cut values": dict(value_at_gradient_cut=True)}
     for words, fields in train_cases.items():
         with pytest.raises(sb.InputError, match=words):
             sb.train(_pendulum(), sb.TrainConfig(epochs=1, **fields))  # refused before anything compiles

@@ -195,6 +195,51 @@ def test_each_flow_of_a_window_is_the_gradient_of_its_plain_rollout_and_ends_whe
             np.testing.assert_array_equal(cut, [False, False, False, True, False])
 
 
+def test_a_state_the_step_cuts_the_derivative_at_is_valued_in_the_gradient_alone_as_its_closed_form_says():
+    # x' = x + u with u = theta: the step holds x constant where |x| > 0.4; no reward, V(x) = x, discount 0.5.
+    # From x0 = 0 with theta = 0.6 the window of two reaches x1 = 0.6 (cut there) and x2 = 1.2, valued at its end:
+    # the loss is -0.25 x2 either way; its slope in theta -0.25 through x2 = x1 + theta with x1 held, and with
+    # x1 valued -0.5 more, the slope of its value 0.5 x1; uncut, x2 = 2 theta: -0.5.
+    cut_at = lambda x: jnp.abs(x) > 0.4  # noqa: E731
+    held = lambda x: jnp.where(cut_at(x), jax.lax.stop_gradient(x), x)  # noqa: E731
+    value = lambda x: x  # noqa: E731
+    start = start_window(carried([0.0], [0]), jnp.float32)
+    theta = jnp.array([0.6])
+    found = {}
+    for cuts, valued in ((False, False), (True, False), (True, True)):
+        dynamics = Dynamics(step=lambda x, u, cuts=cuts: (held(x) if cuts else x) + u[0],
+                            policy=lambda th, x: jnp.stack([th[0]]), loss=lambda s, c: 0.0, horizon=2)
+        episodes_here = Episodes(reset=lambda key: jnp.zeros(()), reward=lambda x: 0.0 * x, done=lambda x: x > 9.0,
+                                 length=LENGTH, discount=0.5, gradient_cut=cut_at if cuts else None)
+        window = window_dynamics(dynamics, episodes_here, 2, value=value, value_at_gradient_cut=valued)
+        loss, grads, _, _ = flow_window(window, ("R", "M"), theta, start, Plan())
+        found[cuts, valued] = float(loss), np.asarray(grads)[:, 0]
+    for (cuts, valued), slope in (((False, False), -0.5), ((True, False), -0.25), ((True, True), -0.75)):
+        loss, slopes = found[cuts, valued]
+        np.testing.assert_allclose(loss, -0.25 * 1.2, rtol=1e-6)  # the value is the same in all three
+        np.testing.assert_allclose(slopes, [slope, slope], rtol=1e-6)  # flows R and M alike
+
+
+@pytest.mark.parametrize("step_derivative", ["reverse", "forward"])
+def test_each_flow_of_a_window_valued_where_its_step_cuts_is_the_gradient_of_its_plain_rollout(step_derivative):
+    cut_at = lambda x: jnp.abs(x) > 0.4  # noqa: E731
+    plain = drift(1.0)
+    dynamics = Dynamics(step=lambda x, u: plain.step(jnp.where(cut_at(x), jax.lax.stop_gradient(x), x), u),
+                        policy=plain.policy, loss=plain.loss, horizon=plain.horizon)
+    cutting = dataclasses.replace(episodes(done_beyond=0.8), gradient_cut=cut_at)
+    window = window_dynamics(dynamics, cutting, 5, value=lambda x: 3.0 * x ** 2 - x, value_at_gradient_cut=True)
+    with float64():
+        start = start_window(Carried(jnp.array([0.3, -0.5, 0.7, 0.1, 0.05]), jnp.array([0, 7, 2, 9, 1], jnp.int32),
+                                     jax.random.PRNGKey(0)), jnp.float64)
+        theta = jnp.array([0.2, -0.1])
+        _, grads, _, _ = flow_window(window, ("R", "M"), theta, start, Plan(step_derivative=step_derivative))
+        for index, flow in enumerate(("R", "M")):
+            expected = jax.grad(lambda p, flow=flow: reference_loss(window, p, start, flow))(theta)
+            np.testing.assert_allclose(grads[index], expected, rtol=1e-10)
+        states = jax.vmap(lambda x0: reference_rollout(window, theta, x0).states.state)(start)
+        assert np.any(np.abs(np.asarray(states[:, :-1])) > 0.4)  # some window passes a state it cuts at
+
+
 def test_exploration_noise_is_gaussian_of_its_deviation_fresh_at_every_step_and_window_and_absent_without_it():
     sigma, envs = 0.3, 4096
     window = window_dynamics(drift(), episodes(), 3, action_noise=sigma)

@@ -8,7 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from stablebptt.engine.config import TrainConfig
+from stablebptt.engine.training import make_trainer
 from stablebptt.envs.adapter import env_task
+from stablebptt.errors import InputError
 from stablebptt.envs.protocol import EnvError
 
 from conftest import refused_in_one_line
@@ -47,6 +50,10 @@ def test_values_stay_and_the_derivative_stops_only_through_a_state_under_the_loa
         return ({cut: task.dynamics.step(state, action) for cut, task in tasks.items()},
                 {cut: jax.grad(height_after, argnums=(1, 2))(task, state.data.qpos, action) for cut, task in tasks.items()})
 
+    # The states the step cuts at are the episodes' too, where a critic may value them.
+    assert tasks[0.0].episodes.gradient_cut is None
+    assert [bool(tasks[cut].episodes.gradient_cut(state)) for cut in CUTS[1:] for state in (resting, clear)] == [
+        True, False, False, False]
     for state, cut_below in ((resting, True), (clear, False)):
         values, slopes = values_and_slopes(state)
         for cut in CUTS[1:]:
@@ -65,6 +72,9 @@ def test_values_stay_and_the_derivative_stops_only_through_a_state_under_the_loa
 def test_bad_values_and_envs_without_what_the_cut_reads_are_refused_in_one_line(tmp_path, capsys):
     with pytest.raises(EnvError, match=r"env_task's contact_gradient_cut must be a number of body weights >= 0 \(0: no cut\), got -1"):
         env_task(MjxDataBall(), horizon=4, diagnose=False, contact_gradient_cut=-1.0)
+    with pytest.raises(InputError, match="TrainConfig.value_at_gradient_cut: .* cuts no window's derivative to value"):
+        make_trainer(env_task(MjxDataBall(), horizon=4, diagnose=False),
+                     TrainConfig(critic=True, value_at_gradient_cut=True, epochs=1, batch=2, train_size=2, test_size=2))
     with pytest.raises(EnvError, match="Cart: a derivative cut at contact loads needs an env that keeps its MJX model in _mjx_model"):
         env_task(Cart(), horizon=4, diagnose=False, contact_gradient_cut=1.0)
     ball = env_task(Ball(), horizon=4, diagnose=False, contact_gradient_cut=1.0)  # its state's data is a dict
