@@ -74,6 +74,7 @@ def refused_in_one_line(capsys, out, expected: str, *argv) -> str:
     assert not os.path.exists(out), f"{out} was made by a refused command"
     return err[0]
 
+
 @contextlib.contextmanager
 def float64():
     """Run a block in float64 without flipping the whole session (other tests are float32)."""

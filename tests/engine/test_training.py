@@ -189,6 +189,7 @@ def test_mode_r_without_the_cosine_follows_the_same_gradient_as_with_it(task):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
     assert np.all(np.isfinite(logged[-1]["cosine"])) and np.all(np.isnan(unlogged[-1]["cosine"]))
 
+
 def test_an_epoch_compiled_per_update_trains_as_the_epoch_compiled_whole(task, three_seeds, tmp_path):
     """The same updates and metrics from separately compiled programs (large scenes) as from one."""
     state, history = three_seeds

@@ -11,8 +11,8 @@ import pytest
 from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.training import make_trainer
 from stablebptt.envs.adapter import env_task
-from stablebptt.errors import InputError
 from stablebptt.envs.protocol import EnvError
+from stablebptt.errors import InputError
 
 from conftest import refused_in_one_line
 from envs_for_tests import Ball, Cart, MjxDataBall
