@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -221,7 +222,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     squash = floored_tanh(squash_gradient_floor)
     # The windows' step alone is cut; an env that cannot take the cut is refused here, in one line.
     loaded = loaded_states(env, contact_gradient_cut, label) if contact_gradient_cut else None
-    cut = contact_cut(loaded) if loaded else (lambda trained: trained)
+    # One cut step per step cut: the task its check settles into keeps the pending task's step, so a run's
+    # start traces its epoch once (a new function there reads as a smoothed reward: engine/starting.py).
+    cut = functools.cache(contact_cut(loaded)) if loaded else (lambda trained: trained)
 
     def policy(params, state):
         return observation_policy(params, observation(state), squash)

@@ -84,3 +84,12 @@ def test_bad_values_and_envs_without_what_the_cut_reads_are_refused_in_one_line(
                             ("nan", "--contact-gradient-cut must be a number of body weights >= 0 (0: no cut), got nan")):
         refused_in_one_line(capsys, tmp_path / "refused", expected, "--env", "envs_for_tests:make_mjx_data_ball",
                             "--contact-gradient-cut", value, "--epochs", "1")
+
+
+def test_the_settled_task_keeps_the_cut_step_so_a_start_traces_its_epoch_once():
+    # engine/starting.py rebuilds the trainer and traces the epoch again where the settled task's step is
+    # another function (a smoothed reward's); the cut alone must not make it one.
+    pending = env_task(MjxDataBall(), horizon=4, defer_diagnosis=True, contact_gradient_cut=2.0)
+    settled = pending.settled_fully()
+    assert "reward_smoothing" not in settled.resolved
+    assert settled.dynamics.step is pending.dynamics.step
