@@ -50,21 +50,24 @@ RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normal
 # on the cheetah").
 RECIPES_BY_ENV = {"locomotion": {**{env: {"steps": 8} for env in ("WalkerWalk", "WalkerStand", "WalkerRun")},
                                  "CheetahRun": {"mode": "R", "cosine": False}}}
+# A recipe's value chosen for its value of another option: given another value of that option beside the
+# recipe, the user's choice keeps its own default of this one (the cheetah's R runs without the cosine for
+# its speed; a mode given beside it computes its own flows and reports their cosine).
+RECIPE_VALUES_CHOSEN_FOR = {"cosine": "mode"}
 
 
 def recipe_options(name: str, env: str = "", given: Mapping[str, object] | None = None) -> dict:
     """The options recipe ``name`` sets, for the env named ``env`` (its name in MuJoCo Playground's
     registry) where ``RECIPES_BY_ENV`` has values of its own for it. ``given``: the options a user sets
-    beside it, which win; another mode given takes its own flows, so the recipe's ``cosine`` (off for
-    its own mode's speed) is then left out."""
+    beside it, which win, and which leave out the recipe's values chosen for the values they replace
+    (``RECIPE_VALUES_CHOSEN_FOR``)."""
     if name not in RECIPES:
         raise InputError(f"no recipe {name!r}: choose one of {', '.join(sorted(RECIPES))}")
     if not isinstance(env, str):
         raise InputError(f"a recipe's env is the env's name (a string, as --env takes it), got {type(env).__name__}")
     options = {**RECIPES[name], **RECIPES_BY_ENV.get(name, {}).get(env, {})}
-    if given and "mode" in given and given["mode"] != options.get("mode"):
-        options.pop("cosine", None)
-    return options
+    replaced = {option for option, value in (given or {}).items() if option in options and value != options[option]}
+    return {option: value for option, value in options.items() if RECIPE_VALUES_CHOSEN_FOR.get(option) not in replaced}
 
 
 def recipe(name: str, env: str = "") -> tuple[dict, dict]:
