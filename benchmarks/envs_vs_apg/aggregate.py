@@ -27,6 +27,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import suite_table  # noqa: E402
 
+from stablebptt.storage import atomic_write  # noqa: E402
+
 RECIPE = "locomotion"
 # The envs the locomotion study names (the issue of locomotion at PPO's level): the contact-rich ones.
 STUDY_ENVS = ("CheetahRun", "WalkerWalk", "WalkerStand", "WalkerRun", "HopperStand", "HopperHop", "FishSwim",
@@ -76,11 +78,11 @@ def trained_to(record: dict, mark: int) -> bool:
         and suite_table.by_mark(record, mark) is not None
 
 
-def scores(records: list[dict], mark: int, ppo_near=suite_table.ppo_near) -> tuple[dict, dict[str, str]]:
+def scores(records: list[dict], mark: int, ppo_near=None) -> tuple[dict, dict[str, str]]:
     """``({"envs": [...], OURS: [seeds, envs], PPO: [seeds, envs], "runs": {env: command}}, missing)``:
     the returns by ``mark`` over MAXIMUM_RETURN, of the envs where both have SEEDS seeds;
     ``missing``: env -> why it is left out."""
-    ours = recipe_runs(records, mark)
+    ours, ppo_near = recipe_runs(records, mark), ppo_near or suite_table.ppo_near
     envs, columns, missing = [], {OURS: [], PPO: []}, {}
     for env in STUDY_ENVS:
         theirs = ppo_near(env, mark)
@@ -140,6 +142,33 @@ def report(scored: dict, missing: dict[str, str], summary: dict | None, mark: in
     return "\n".join(lines)
 
 
+def draw(summary: dict, envs: list[str], mark: int, out: Path) -> Path:
+    """The aggregates as intervals, a panel each, the methods one above the other; and the probability of
+    improvement with 0.5 marked."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from stablebptt.reports.plots import render
+    metrics = list(summary[OURS])
+    figure, axes = plt.subplots(1, len(metrics) + 1, figsize=(3.0 * (len(metrics) + 1), 2.2))
+    for ax, metric in zip(axes, metrics):
+        for row, (name, colour) in enumerate(((PPO, "tab:gray"), (OURS, "tab:blue"))):
+            point, low, high = summary[name][metric]
+            ax.barh(row, high - low, left=low, height=0.5, color=colour, alpha=0.6)
+            ax.plot([point, point], [row - 0.25, row + 0.25], color="black")
+        ax.set_yticks([0, 1], [PPO, OURS] if ax is axes[0] else ["", ""])
+        ax.set_title(metric)
+        ax.set_xlabel("return / 1000")
+    point, low, high = summary["P(ours > PPO)"]
+    axes[-1].barh(0, high - low, left=low, height=0.5, color="tab:blue", alpha=0.6)
+    axes[-1].plot([point, point], [-0.25, 0.25], color="black")
+    axes[-1].axvline(0.5, color="tab:gray", linestyle="--")
+    axes[-1].set(xlim=(0, 1), yticks=[], title="P(ours > PPO)")
+    figure.suptitle(f"By {mark} s over {', '.join(envs)} (95% stratified bootstrap intervals)", fontsize=9)
+    figure.tight_layout()
+    return render(figure, out)
+
+
 def _published(env: str) -> str:
     return str(suite_table.PPO_REFERENCE.get(env, "-"))
 
@@ -154,17 +183,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--records", default="results/envs/suite", help="the folder of suite_table.py's records.json")
     parser.add_argument("--mark", type=int, default=suite_table.AT_S, choices=suite_table.WALL_CLOCK_MARKS,
                         help="seconds of the wall clock, set-up and compile counted")
-    parser.add_argument("--out", required=True, help="OUT.md is written")
+    parser.add_argument("--out", required=True, help="OUT.md is written, and OUT.png where there is an aggregate")
     args = parser.parse_args(argv)
     with open(Path(args.records) / "records.json") as handle:
         records = json.load(handle)
     scored, missing = scores(records, args.mark)
-    summary = aggregates(scored) if scored["envs"] else None
+    summary = aggregates(scored, BOOTSTRAP_DRAWS) if scored["envs"] else None
     text = report(scored, missing, summary, args.mark, args.out)
-    target = Path(f"{args.out}.md")
-    partial = target.with_suffix(".md.partial")
-    partial.write_text(text)
-    partial.replace(target)  # whole or not at all
+    atomic_write(Path(f"{args.out}.md"), text.encode())
+    if summary is not None:
+        draw(summary, scored["envs"], args.mark, Path(f"{args.out}.png"))
     print(text)
     return 0
 

@@ -4,6 +4,7 @@ and rliable's aggregates agree with their closed forms."""
 from __future__ import annotations
 
 import importlib.util
+import json
 
 import numpy as np
 import pytest
@@ -84,12 +85,16 @@ def test_the_aggregates_are_their_closed_forms_with_intervals_about_them():
     assert point == pytest.approx((1 + 23 / 25) / 2) and low <= point <= high <= 1.0
 
 
-def test_the_report_is_written_whole_and_names_the_envs_left_out(tmp_path):
+def test_the_report_and_its_figure_name_the_envs_left_out_and_an_empty_one_has_no_figure(tmp_path, monkeypatch):
+    monkeypatch.setattr(aggregate.suite_table, "ppo_near", ppo_near)
+    monkeypatch.setattr(aggregate, "BOOTSTRAP_DRAWS", 200)
     records = tmp_path / "records"
     records.mkdir()
-    (records / "records.json").write_text("[]")
-    out = tmp_path / "aggregate_300s"
-    assert aggregate.main(["--records", str(records), "--mark", "300", "--out", str(out)]) == 0
-    text = (tmp_path / "aggregate_300s.md").read_text()
-    assert "nothing to aggregate" in text and not list(tmp_path.glob("*.partial"))
-    assert all(f"| {env} | - | - |" in text for env in aggregate.STUDY_ENVS)
+    (records / "records.json").write_text(json.dumps([record(env, returns) for env, returns in RETURNS.items()]))
+    for mark in (300, 600):
+        assert aggregate.main(["--records", str(records), "--mark", str(mark), "--out", str(tmp_path / f"at{mark}")]) == 0
+    text, empty = (tmp_path / "at300.md").read_text(), (tmp_path / "at600.md").read_text()
+    assert "Over 2 envs (CheetahRun, WalkerWalk)" in text and "| CheetahRun | 694.0 [" in text
+    assert "| HopperStand | - | - |" in text and (tmp_path / "at300.png").stat().st_size > 0
+    assert "nothing to aggregate" in empty and not (tmp_path / "at600.png").exists()
+    assert all(f"| {env} | - | - |" in empty for env in aggregate.STUDY_ENVS)
