@@ -101,17 +101,21 @@ def scores(records: list[dict], mark: int, ppo_near=None) -> tuple[dict, dict[st
 def aggregates(scored: dict, draws: int = BOOTSTRAP_DRAWS, seed: int = 0) -> dict:
     """rliable's point estimates and 95% stratified bootstrap intervals: per method the IQM, mean and
     median of the normalised scores; and P(ours > PPO)."""
-    import warnings
     from rliable import library, metrics
-    # rliable hands arch a RandomState, which arch now warns of; the draws stay those of ``seed``.
-    warnings.filterwarnings("ignore", "random_state is deprecated", FutureWarning)
     named = {"IQM": metrics.aggregate_iqm, "mean": metrics.aggregate_mean, "median": metrics.aggregate_median}
     all_three = lambda x: np.array([function(x) for function in named.values()])
-    points, intervals = library.get_interval_estimates({name: scored[name] for name in (OURS, PPO)}, all_three,
-                                                       reps=draws, random_state=np.random.RandomState(seed))
     pair = {(OURS, PPO): (scored[OURS], scored[PPO])}
-    improvement, improvement_interval = library.get_interval_estimates(
-        pair, metrics.probability_of_improvement, reps=draws, random_state=np.random.RandomState(seed))
+    # rliable draws its resamples from NumPy's global generator (its random_state reaches arch alone):
+    # seeded here, and given back as it was, so the same records give the same intervals.
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        points, intervals = library.get_interval_estimates({name: scored[name] for name in (OURS, PPO)}, all_three,
+                                                           reps=draws)
+        improvement, improvement_interval = library.get_interval_estimates(pair, metrics.probability_of_improvement,
+                                                                           reps=draws)
+    finally:
+        np.random.set_state(state)
     result = {name: {metric: (float(points[name][i]), float(intervals[name][0][i]), float(intervals[name][1][i]))
                      for i, metric in enumerate(named)} for name in (OURS, PPO)}
     result["P(ours > PPO)"] = (float(improvement[(OURS, PPO)]), *map(float, np.ravel(improvement_interval[(OURS, PPO)])))

@@ -73,7 +73,10 @@ def test_only_the_latest_run_of_the_recipe_as_it_stands_that_trained_until_the_m
 
 def test_the_aggregates_are_their_closed_forms_with_intervals_about_them():
     scored, _ = aggregate.scores([record(env, returns) for env, returns in RETURNS.items()], 300, ppo_near=ppo_near)
+    state = np.random.get_state()
     summary = aggregate.aggregates(scored, draws=500)
+    assert summary == aggregate.aggregates(scored, draws=500)  # the same records, the same intervals
+    assert np.random.get_state()[1].tolist() == state[1].tolist()  # NumPy's global generator given back
     for name in (aggregate.OURS, aggregate.PPO):
         closed = {"IQM": scipy.stats.trim_mean(scored[name], 0.25, axis=None), "mean": scored[name].mean(),
                   "median": np.median(scored[name].mean(axis=0))}  # rliable's median: of the envs' means
