@@ -30,7 +30,7 @@ import suite_table  # noqa: E402
 from stablebptt.storage import atomic_write  # noqa: E402
 
 RECIPE = "locomotion"
-# The envs the locomotion study names (the issue of locomotion at PPO's level): the contact-rich ones.
+# The envs of the locomotion study (docs/performance.md, "The locomotion study, env by env").
 STUDY_ENVS = ("CheetahRun", "WalkerWalk", "WalkerStand", "WalkerRun", "HopperStand", "HopperHop", "FishSwim",
               "HumanoidStand")
 SEEDS = 5
