@@ -139,7 +139,8 @@ def train(argv: list[str], held: list) -> int:
         print(task.summary)
     if begun.trainer.episodes is not None:
         extras = (f", its return bootstrapped by a learned value of its last state (TD({train_config.td_lambda:g}) "
-                  "targets)") if train_config.critic else ""
+                  "targets" + (f"; the least of {train_config.critics} networks'" if train_config.critics > 1 else "")
+                  + ")") if train_config.critic else ""
         if train_config.value_at_time_limit:
             extras += ", and of the state where its episode's length cuts it"
         if train_config.value_at_gradient_cut:

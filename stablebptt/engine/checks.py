@@ -155,7 +155,8 @@ def train_conflicts(config: Any) -> list[str]:
         problems.append(f"{field('cosine')} is off, but mode {config.mode} computes g_M and g_R anyway and logs "
                         f"their cosine: leave {field('cosine')} on")
     for name, what in (("critic_lr", "the critic's learning rate"), ("td_lambda", "the critic's TD(lambda) targets"),
-                       ("critic_width", "the critic's layers' width"), ("critic_depth", "the critic's layers")):
+                       ("critic_width", "the critic's layers' width"), ("critic_depth", "the critic's layers"),
+                       ("critics", "the critic's networks")):
         if not config.critic and _given(config, name):
             problems.append(f"{field(name)} {getattr(config, name):g} sets {what}, and {field('critic')} is off: "
                             f"drop it, or train with {field('critic')}")

@@ -76,6 +76,7 @@ class TrainConfig:
     value_at_gradient_cut: bool = field(default=False, metadata={"help": "training with the critic, where the task's step cuts the windows' derivative (an env's --contact-gradient-cut): the actions before a state it cuts at are pulled by that state's discounted value's derivative too, as if the window ended there (AHAC); the loss's value unchanged"})
     critic_width: int = field(default=64, metadata={"help": "units in each of the critic's hidden layers (tanh)"})
     critic_depth: int = field(default=2, metadata={"help": "the critic's hidden layers"})
+    critics: int = field(default=1, metadata={"help": "training with the critic: its networks, each fitted to the same targets; of 2 or more the least value is the critic's, in its targets and the window's loss (TD3's clipped double learning: the actor finds no state one network alone overvalues)"})
     nonfinite_flows: str = field(default="stop", metadata={"help": "stop: a non-finite gradient of any computed flow stops training, also where the update stays finite; zero (mode C): its components, which C's sign agreement turns into zero updates, are left at zero and training goes on, each epoch where it happened named in a line", "choices": NONFINITE_FLOW_CHOICES})
     budget: float = field(default=0.0, metadata={"help": "wall-clock seconds from the command's start (set-up and compile included) that the run keeps within: it evaluates, saves and stops after the epoch past which one more epoch as long as the last and an evaluation as long as the longest so far would overrun them (the first epoch always trains); --resume DIR --budget S trains S seconds more (0: no budget)"})
     eval_every: str = field(default="auto", metadata={"help": "when the train and test returns are evaluated: epoch (at every epoch's end, inside its program: the paper's test loss per epoch), N (updates: at the first epoch's end past every N), Ns (seconds of training), auto (epoch from fixed starts; on episodes, as often as keeps the evaluations within a tenth of the run); the last epoch is always evaluated"})
@@ -95,7 +96,7 @@ class TrainConfig:
         if self.clip not in CLIP_MODES:
             raise InputError(f"unknown clip mode {self.clip!r}: choose one of {', '.join(CLIP_MODES)}")
         for name in ("epochs", "seeds", "batch", "train_size", "test_size", "checkpoint_every", "unroll", "critic_width",
-                     "critic_depth"):
+                     "critic_depth", "critics"):
             if getattr(self, name) <= 0:
                 raise InputError(f"{config_field(self, name)} must be a positive integer, got {getattr(self, name)}")
         if self.devices < 0:

@@ -8,6 +8,10 @@ critic slowly. After each window the critic, a network of the observation with i
 fitted to TD(lambda) targets computed from the window's rewards and the target critic's values.
 Where asked (``TrainConfig.normalize_critic_observations``) the critic sees its observations
 standardised by statistics of its own, refreshed from every window's states before it is fitted.
+With several networks (``TrainConfig.critics``, ``Members``) each is fitted to the same targets and
+the least of their values is the critic's, in the targets and in the window's loss (TD3's clipped
+double learning): the actor, which follows the value's gradient, finds no state one network alone
+overvalues.
 """
 from __future__ import annotations
 
@@ -29,6 +33,12 @@ TARGET_KEEP = 0.2
 CRITIC_STREAM = 2
 
 
+class Members(NamedTuple):
+    """Several networks' weights stacked along a leading axis, valued as one by their least value."""
+
+    stacked: PyTree
+
+
 class Critic(NamedTuple):
     """One seed's critic: its weights, its optimizer's state, the target critic that follows it, and the
     statistics that standardise what it sees (None: it sees raw observations)."""
@@ -40,7 +50,15 @@ class Critic(NamedTuple):
 
 
 def value(params: PyTree, observation: jax.Array) -> jax.Array:
+    """The value of one observation: the network's, or the least of ``Members``'."""
+    if isinstance(params, Members):
+        return jnp.min(members_values(params, observation))
     return mlp_apply(params, observation)[0]
+
+
+def members_values(params: Members, observation: jax.Array) -> jax.Array:
+    """Each member network's value of one observation, [members]."""
+    return jax.vmap(lambda member: mlp_apply(member, observation)[0])(params.stacked)
 
 
 def seen(critic: Critic, observation: jax.Array) -> jax.Array:
@@ -49,9 +67,17 @@ def seen(critic: Critic, observation: jax.Array) -> jax.Array:
 
 
 def init_critic(seed_key: jax.Array, observations: int, optimizer: optax.GradientTransformation, hidden: tuple[int, ...],
-                standardize: bool = False) -> Critic:
-    """A seed's critic: tanh hidden layers of the widths ``hidden`` (``TrainConfig.critic_width``, ``critic_depth``)."""
-    params = mlp_init(jax.random.fold_in(seed_key, CRITIC_STREAM), (observations, *hidden, 1), zero_output=False)
+                standardize: bool = False, members: int = 1) -> Critic:
+    """A seed's critic: tanh hidden layers of the widths ``hidden`` (``TrainConfig.critic_width``, ``critic_depth``);
+    ``members`` > 1: that many such networks (``Members``), each from keys of its own (the first one's are
+    the single network's)."""
+    key = jax.random.fold_in(seed_key, CRITIC_STREAM)
+    sizes = (observations, *hidden, 1)
+    if members == 1:
+        params = mlp_init(key, sizes, zero_output=False)
+    else:
+        keys = jnp.stack([key, *(jax.random.fold_in(key, member) for member in range(1, members))])
+        params = Members(jax.vmap(lambda member_key: mlp_init(member_key, sizes, zero_output=False))(keys))
     return Critic(params, optimizer.init(params), params, no_observations(observations) if standardize else None)
 
 
@@ -77,9 +103,13 @@ def td_lambda_targets(rewards: jax.Array, values: jax.Array, running: jax.Array,
 def fit_critic(critic: Critic, observations: jax.Array, targets: jax.Array, weights: jax.Array,
                optimizer: optax.GradientTransformation, iterations: int = ITERATIONS) -> tuple[Critic, jax.Array]:
     """``iterations`` Adam steps of the critic on the weighted squared error to ``targets`` (all examples
-    at once), then the target critic moved towards it. Returns the critic and its last loss."""
+    at once; of ``Members``, each network's error, summed), then the target critic moved towards it.
+    Returns the critic and its last loss."""
     def loss(params):
-        errors = jax.vmap(lambda o: value(params, o))(observations) - targets
+        if isinstance(params, Members):  # each network to the targets, not their least value
+            errors = jax.vmap(lambda o: members_values(params, o), out_axes=1)(observations) - targets
+        else:
+            errors = jax.vmap(lambda o: value(params, o))(observations) - targets
         return jnp.sum(weights * errors ** 2) / jnp.maximum(jnp.sum(weights), 1.0)
 
     def step(current: Critic, _):

@@ -212,7 +212,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         key = jax.random.PRNGKey(seed)
         carried = None if episodes is None else first_population(key, episodes, config.batch, window)
         critic = (init_critic(key, observations, critic_optimizer, (config.critic_width,) * config.critic_depth,
-                              config.normalize_critic_observations)
+                              config.normalize_critic_observations, config.critics)
                   if config.critic else None)
         return carried, critic
 

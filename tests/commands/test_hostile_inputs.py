@@ -202,6 +202,8 @@ def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_tak
                    "TrainConfig.critic_lr 0.01 sets the critic's learning rate": dict(critic_lr=0.01),
                    "TrainConfig.td_lambda 0.5 sets the critic's": dict(td_lambda=0.5),
                    "TrainConfig.critic_depth 3 sets the critic's layers": dict(critic_depth=3),
+                   "TrainConfig.critics 2 sets the critic's networks": dict(critics=2),
+                   "TrainConfig.critics must be a positive integer, got 0": dict(critic=True, critics=0),
                    "TrainConfig.normalize_critic_observations standardises": dict(normalize_critic_observations=True),
                    "TrainConfig.value_at_time_limit values": dict(value_at_time_limit=True),
                    "TrainConfig.value_at_gradient_cut values": dict(value_at_gradient_cut=True)}
@@ -224,7 +226,7 @@ def test_the_python_api_refuses_options_that_make_each_other_meaningless_and_tak
     # Each option alone, or with what gives it a meaning, is taken.
     for fields in (dict(clip="norm", clip_threshold=0.5), dict(seeds=3, seed_batching="vmap"), dict(mode="R", cosine=False),
                    dict(critic=True, critic_lr=0.01, td_lambda=0.5, normalize_critic_observations=True, critic_width=256,
-                        critic_depth=3)):
+                        critic_depth=3, critics=2)):
         check_options(sb.TrainConfig(**fields))
     for fields in (dict(smoothing="off"), dict(smoothing_scale=0.5), dict(reward_check=False)):
         check_options(sb.TrainConfig(), env.Config(env="envs_for_tests:make_cart", **fields))

@@ -378,6 +378,39 @@ def test_a_critic_that_standardises_counts_the_running_states_and_fits_the_same_
     assert float(jnp.max(jnp.abs(raw_in_other_units - raw))) > 1e-2
 
 
+def test_several_critics_each_fit_the_targets_as_alone_and_their_least_value_is_the_critics():
+    """Of ``Members``, each network is fitted as if alone (the loss sums their errors, Adam acts per weight),
+    the first is the single critic of the same seed, and the critic's value, in the window's loss and in
+    the TD targets, is the least of the target networks'."""
+    import optax
+
+    from stablebptt.engine.critic import Critic, Members, bootstrap, fit_critic, init_critic, members_values, value
+    from stablebptt.networks import mlp_apply
+    optimizer = optax.adam(1e-2)
+    observations = jax.random.normal(jax.random.PRNGKey(1), (12, 2))
+    targets, weights = jnp.sin(observations[:, 0]) + observations[:, 1], jnp.ones(12).at[:3].set(0.0)
+    single, pair = (init_critic(jax.random.PRNGKey(0), 2, optimizer, (16,), members=count) for count in (1, 2))
+    assert isinstance(pair.params, Members) and jax.tree.leaves(pair.params)[0].shape[0] == 2
+    member = lambda params, k: jax.tree.map(lambda a: a[k], params.stacked)  # noqa: E731
+    for a, b in zip(jax.tree.leaves(member(pair.params, 0)), jax.tree.leaves(single.params)):
+        np.testing.assert_array_equal(a, b)
+    at = observations[0]
+    both = [float(mlp_apply(member(pair.params, k), at)[0]) for k in (0, 1)]
+    assert both[0] != both[1] and float(value(pair.params, at)) == min(both)
+    np.testing.assert_allclose(members_values(pair.params, at), both, rtol=1e-6)
+
+    fitted, _ = fit_critic(pair, observations, targets, weights, optimizer, iterations=5)
+    for k in (0, 1):
+        alone = Critic(member(pair.params, k), optimizer.init(member(pair.params, k)), member(pair.params, k))
+        fitted_alone, _ = fit_critic(alone, observations, targets, weights, optimizer, iterations=5)
+        for a, b in zip(jax.tree.leaves((member(fitted.params, k), member(fitted.target, k))),
+                        jax.tree.leaves((fitted_alone.params, fitted_alone.target))):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    observe = lambda x: x  # noqa: E731
+    least = min(float(mlp_apply(member(fitted.target, k), at)[0]) for k in (0, 1))
+    assert float(bootstrap(fitted, observe)(at)) == pytest.approx(least, rel=1e-6)
+
+
 @pytest.mark.slow  # trains: the full tier
 def test_a_critic_trains_beside_the_policy_and_its_target_follows_it():
     task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
@@ -414,6 +447,11 @@ def test_a_critic_trains_beside_the_policy_and_its_target_follows_it():
     shapes = [tuple(a.shape[1:]) for a in jax.tree.leaves(narrow.params)]
     assert sorted(shapes) == sorted([(1, 8), (8,), (8, 8), (8,), (8, 8), (8,), (8, 1), (1,)]), shapes
     assert [a.shape for a in jax.tree.leaves(narrow.target)] == [a.shape for a in jax.tree.leaves(narrow.params)]
+    # Two networks, trained beside the policy: each seed's critic holds both, and an epoch stays finite.
+    doubled = make_trainer(task, dataclasses.replace(config, critics=2))
+    state, metrics = doubled.epoch(doubled.init(seed_array(config)), doubled.batches, doubled.train_states,
+                                   doubled.test_states)
+    assert bool(metrics["finite"][0]) and [a.shape[:2] for a in jax.tree.leaves(state.critic.target)][0] == (1, 2)
     with pytest.raises(InputError, match="action_noise: exploration noise on a window's actions needs carried episodes"):
         make_trainer(task, TrainConfig(batch=1, train_size=2, episodes="off", action_noise=0.1))
     with pytest.raises(InputError, match="critic: a learned value at a window's end needs carried episodes"):
