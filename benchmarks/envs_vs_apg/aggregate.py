@@ -51,7 +51,7 @@ def recipe_command(env: str, recipe: str = RECIPE) -> str:
 
 def spelled_without_budgets(command: str) -> str:
     """A record's command less its budgets and resumes (``--budget S, then --resume RUN --budget S``)."""
-    return suite_table._without_budget(command.split(",")[0])
+    return suite_table.without_budget(command.split(",")[0])
 
 
 def recipe_runs(records: list[dict], mark: int, envs: tuple[str, ...] = STUDY_ENVS) -> dict[str, dict]:
@@ -63,19 +63,10 @@ def recipe_runs(records: list[dict], mark: int, envs: tuple[str, ...] = STUDY_EN
         runs = [record for record in records if record["env"] == env
                 and spelled_without_budgets(record["command"]) == wanted and len(record["seeds"]) >= SEEDS
                 and record.get("budget", 0.0) > 0 and suite_table.fresh_start(record)
-                and trained_to(record, mark)]
+                and suite_table.by_mark(record, mark) is not None]
         if runs:
             chosen[env] = max(runs, key=lambda record: record.get("started", ""))
     return chosen
-
-
-def trained_to(record: dict, mark: int) -> bool:
-    """Whether a run trained until ``mark`` s of its wall clock (within suite_table.MARK_WITHIN_S): its
-    returns there are those it stood at by then, not those of a run that had stopped before."""
-    if str(mark) in record.get("returns_by_wall_clock", {}):
-        return True
-    return record.get("starts", 1) == 1 and record.get("budget", 0.0) >= mark - suite_table.MARK_WITHIN_S \
-        and suite_table.by_mark(record, mark) is not None
 
 
 def scores(records: list[dict], mark: int, ppo_near=None) -> tuple[dict, dict[str, str]]:

@@ -107,7 +107,7 @@ def read_run(folder: str) -> dict:
     last_epoch = int(per_seed[-1]["epoch"])
     budgets = [start.get("budget") for start in starts]
     if len(starts) > 1:  # resumed: the record holds the last start's budget, its starts each one's where recorded
-        command = _without_budget(command) + (
+        command = without_budget(command) + (
             f" --budget {budgets[0]:g}, then " + ", then ".join(f"--resume RUN --budget {b:g}" for b in budgets[1:])
             if all(budgets) else f" (resumed: {len(starts)} starts)")
     # A mark the run was not budgeted to reach (its starts' budgets summed; else its wall clock), within
@@ -146,7 +146,7 @@ def fresh_start(record: dict) -> bool:
     return record.get("compile_seconds_from_cache", 0.0) <= WARM_S
 
 
-def _without_budget(command: str) -> str:
+def without_budget(command: str) -> str:
     words = command.split(" ")
     return " ".join(word for i, word in enumerate(words) if word != "--budget" and (i == 0 or words[i - 1] != "--budget"))
 
@@ -281,8 +281,8 @@ def by_mark(record: dict, mark: int = AT_S) -> list[float] | None:
     along = record.get("returns_by_wall_clock", {})
     if str(mark) in along:
         return along[str(mark)]
-    ended_by_mark = record.get("starts", 1) == 1 and 0 < record.get("budget", 0.0) <= mark + MARK_WITHIN_S
-    return record["final_return"] if ended_by_mark else None
+    ended_at_mark = record.get("starts", 1) == 1 and abs(record.get("budget", 0.0) - mark) <= MARK_WITHIN_S
+    return record["final_return"] if ended_at_mark else None
 
 
 def against_reference(records: list[dict], labels: dict) -> list[str]:
