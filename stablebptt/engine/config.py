@@ -60,7 +60,7 @@ class TrainConfig:
     cosine: bool = field(default=True, metadata={"help": "also compute g_M and g_R in every mode to log their cosine (--no-cosine: only the flows the mode needs)"})
     x64: bool = field(default=False, metadata={"help": "run everything in float64"})
     matmul_precision: str = field(default="default", metadata={"help": "float32 matrix products: default (JAX's: a GPU may take TF32, about 3 decimal digits), high (on a GPU TF32 as well), highest (full float32; a CPU computes in full at every setting)", "choices": MATMUL_PRECISIONS})
-    unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU; 5-10 on a GPU, see Plan.unroll)"})
+    unroll: int = field(default=1, metadata={"help": "rollout steps per loop iteration (1 is fastest on a CPU, and for envs on a GPU; 5-10 for the paper's tasks on a GPU, see Plan.unroll)"})
     checkpoint_every: int = field(default=1, metadata={"help": "epochs between checkpoints"})
     seed_batching: str = field(default="auto", metadata={"help": "how seeds share one program: vmap (batched: on a GPU an update of 5 seeds costs little more than one seed's; equal to a solo run only to float rounding), map (one after another, each bit-identical to the seed trained alone), auto (vmap for several seeds)", "choices": SEED_BATCHING})
     devices: int = field(default=1, metadata={"help": "devices (GPUs) one run spreads over, the first N that JAX sees (0: all): the states each update rolls (--batch) split evenly across them, the parameters held whole on each"})
