@@ -11,6 +11,8 @@ derivative, none of the flows' machinery, no critic).
     python benchmarks/update_program.py --flows-batched --model S/hopper.xml ...   # the reverse pass's
         # pullbacks batched over the flows (adjoint_step.pullbacks_in_turn off)
     python benchmarks/update_program.py --programs update --env CheetahRun --mode R --no-cosine   # these alone
+    python benchmarks/update_program.py --bounded-solver-loop --env WalkerWalk ...   # MJX's solver loop run
+        # exactly the model's iterations, MJX's values to the bit (constraint_derivatives.BOUNDED_SOLVER_ITERATIONS)
 
 --programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
@@ -33,6 +35,7 @@ from stablebptt.engine.config import batched_seeds, seed_array  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch  # noqa: E402
 from stablebptt.engine.training import make_trainer  # noqa: E402
 from stablebptt.flows import adjoint_step  # noqa: E402
+from stablebptt.physics import constraint_derivatives  # noqa: E402
 
 arguments = sys.argv[1:]
 chosen = {"memory", "update", "evaluation", "refill", "floor", "grad"}
@@ -40,6 +43,10 @@ if "--programs" in arguments:
     at = arguments.index("--programs")
     chosen = set(arguments[at + 1].split(","))
     del arguments[at:at + 2]
+if "--bounded-solver-loop" in arguments:
+    arguments.remove("--bounded-solver-loop")
+    constraint_derivatives.BOUNDED_SOLVER_ITERATIONS = 8
+    print("MJX's solver loop runs exactly the model's iterations (--bounded-solver-loop)", flush=True)
 if "--flows-batched" in arguments:
     arguments.remove("--flows-batched")
     adjoint_step.pullbacks_in_turn = lambda: False

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+import types
 
 import jax
 import jax.numpy as jnp
@@ -43,9 +44,12 @@ def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
     optimal: a joint at rest in friction loss (dm_control's finger) keeps the
     unconstrained acceleration's tangent, off by 10x in the constraint force.
     The iterations themselves are not differentiated at all, so reverse mode
-    passes the model's own solver (its while loop) as forward mode does.
+    passes the model's own solver (its while loop) as forward mode does. Where
+    the model allows at most ``BOUNDED_SOLVER_ITERATIONS``, that loop runs as one
+    of exactly its iterations (``_solver_while_loop``): the same solution.
     """
-    solved = _SOLVE(model, jax.lax.stop_gradient(data))
+    with _solver_loop_bound(model.opt.iterations):
+        solved = _SOLVE(model, jax.lax.stop_gradient(data))
     newton = model.replace(opt=model.opt.replace(solver=mjx_types.SolverType.NEWTON))
     at_solution = solver.Context.create(newton, data.replace(qacc=solved.qacc), grad=False)
     # The theorem holds H where the solution is: only g's tangent is taken, not H's (whose term,
@@ -93,6 +97,60 @@ def _quotient_carrier_jvp(primals, tangents):
 
 
 _SOLVE = solver.solve
+
+# MJX's solver loops while its own test says go on: at most the model's iterations, ending early where
+# the cost stops improving. On a GPU a loop of unknown length sends its test to the host and waits for
+# the answer after every iteration, once per physics step; a loop of known length runs without. With a
+# bound here, a model allowing at most that many iterations (MuJoCo Playground's envs allow 2-4) runs
+# exactly its iterations, each taken only where MJX's test still says go on and otherwise keeping the
+# state as it stood, as a batch's while loop already steps every state until the last is done and keeps
+# each one where its own test stopped it: MJX's values (bit for bit in float64; in float32 XLA may fuse
+# the two loops' arithmetic apart, the last digit; tests/envs/test_mjx_and_playground.py). 0: MJX's loop everywhere, the
+# default until a GPU has timed the bound (`benchmarks/update_program.py --bounded-solver-loop`); on the
+# 2-core CPU it made the walker's forward window 10-25% slower (docs/performance.md, "The update
+# against its floor").
+BOUNDED_SOLVER_ITERATIONS = 0
+_loop_bound = threading.local()
+
+
+@contextlib.contextmanager
+def _solver_loop_bound(iterations: int):
+    """MJX's solver loop, traced within, runs exactly ``iterations`` times where they are few enough."""
+    outer = getattr(_loop_bound, "iterations", None)
+    _loop_bound.iterations = iterations if 1 < iterations <= BOUNDED_SOLVER_ITERATIONS else None
+    try:
+        yield
+    finally:
+        _loop_bound.iterations = outer
+
+
+def _solver_while_loop(cond_fun, body_fun, init_val):
+    """``jax.lax.while_loop`` for MJX's solver module: bounded where ``_solver_loop_bound`` set a bound."""
+    bound = getattr(_loop_bound, "iterations", None)
+    if bound is None:
+        return jax.lax.while_loop(cond_fun, body_fun, init_val)
+
+    def iteration(_, value):
+        going = cond_fun(value)
+        return jax.tree.map(lambda new, old: jnp.where(going, new, old), body_fun(value), value)
+
+    return jax.lax.fori_loop(0, bound, iteration, init_val)
+
+
+class _Forwarding(types.ModuleType):
+    """A module that is ``original`` but for the attributes given."""
+
+    def __init__(self, original: types.ModuleType, **replaced):
+        super().__init__(f"{original.__name__}, the solver's loop bounded")
+        self._original = original
+        self.__dict__.update(replaced)
+
+    def __getattr__(self, name):  # only for what is not replaced
+        return getattr(self._original, name)
+
+
+# MJX's solver module takes its loop from here (jax.lax.while_loop) and everything else from JAX.
+_SOLVER_JAX = _Forwarding(jax, lax=_Forwarding(jax.lax, while_loop=_solver_while_loop))
 _LS_POINT_CREATE = solver._LSPoint.create
 
 
@@ -223,7 +281,7 @@ def differentiable_mjx(implicit_solver: bool = False):
     with contextlib.ExitStack() as stack:
         stack.enter_context(_applied("remedies", _REMEDIES))
         if implicit_solver:
-            stack.enter_context(_applied("implicit", ((solver, "solve", solve_implicitly),)))
+            stack.enter_context(_applied("implicit", ((solver, "solve", solve_implicitly), (solver, "jax", _SOLVER_JAX))))
         yield
 
 
