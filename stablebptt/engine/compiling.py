@@ -129,7 +129,8 @@ class StepSize(NamedTuple):
     """What one traced simulator step holds."""
 
     operations: int  # inner loops' bodies counted once
-    solves: bool  # a loop of data-dependent length: a constraint solver's iterations
+    solves: bool  # a loop of data-dependent length: a constraint solver's iterations (not where
+    # physics.constraint_derivatives.BOUNDED_SOLVER_ITERATIONS gives them a known length)
 
 
 def step_size(task: Task, config: TrainConfig, initial_state: PyTree) -> StepSize:
