@@ -94,6 +94,8 @@ class Config:
     smoothing: str = field(default="auto", metadata={"help": "auto: where the reward check finds the reward's gradient zero at every sampled state, train on a smooth surrogate (the comparisons the reward makes numbers of become sigmoids; the reported returns stay the true reward's); off: refuse such a reward", "choices": ("auto", "off")})
     surrogate_reward: str = field(default="", metadata={"help": "package.module:function, a reward of the state a step reaches that the windows train on in place of the env's (its gradient diagnosed, not smoothed); every reported return stays the env's"})
     dense_reward: bool = field(default=False, metadata={"help": "a ...Sparse env of MuJoCo Playground's trains on its dense variant's reward (the same model and states); every reported return stays the sparse one's"})
+    policy_width: int = field(default=64, metadata={"help": "units in each of the policy's hidden layers (tanh)"})
+    policy_depth: int = field(default=2, metadata={"help": "the policy's hidden layers (0: actions linear in the observations, then squashed)"})
     normalize_observations: bool = field(default=False, metadata={"help": "the policy sees its observations standardised by the running mean and deviation of all those its training windows met (the statistics are kept with its parameters)"})
     smoothing_scale: float = field(default=1.0, metadata={"help": "the surrogate's temperatures: this times the median difference each smoothed comparison meets at the sampled states"})
     contact_gradient_margin: float = field(default=0.0, metadata={"help": "metres: the derivative is taken through the env's model with every contact acting from this far (the simulation stays the file's; 0: contacts as the file says)"})
@@ -125,6 +127,10 @@ class Config:
         if not (math.isfinite(self.contact_gradient_cut) and self.contact_gradient_cut >= 0):
             raise InputError(f"{config_field(self, 'contact_gradient_cut')} must be a number of body weights >= 0 (0: no cut), "
                              f"got {self.contact_gradient_cut}")
+        if self.policy_width < 1:
+            raise InputError(f"{config_field(self, 'policy_width')} must be a whole number of units >= 1, got {self.policy_width}")
+        if self.policy_depth < 0:
+            raise InputError(f"{config_field(self, 'policy_depth')} must be a whole number of layers >= 0, got {self.policy_depth}")
         if not 0 <= self.episode_length <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
 
@@ -181,6 +187,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
     trained_reward, reward_env = trained_reward_of(config, dense)
     smoothing = ContactSmoothing(config.contact_gradient_margin, config.contact_gradient_softness)
     task = env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
+                    hidden=(config.policy_width,) * config.policy_depth,
                     episode_length=config.episode_length or None, name=run_name(config), dense_variant=dense,
                     reward_context=reward_context, reward_repairs=reward_repairs,
                     diagnose=config.reward_check, defer_diagnosis=defer_diagnosis, smoothing=config.smoothing,

@@ -236,20 +236,25 @@ def test_the_summary_speaks_of_a_constraint_solver_only_where_the_env_simulates_
 def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_in_one_line(tmp_path, capsys):
     on_path = {"PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     done = run_script("scripts/train.py", "--env", "envs_for_tests:make_cart", "--steps", "6", "--epochs", "2",
-                      "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
-                      "--out", str(tmp_path / "run"), env=on_path)
+                      "--train-size", "4", "--test-size", "4", "--batch", "4", "--policy-width", "8",
+                      "--policy-depth", "3", "--no-progress", "--out", str(tmp_path / "run"), env=on_path)
     assert done.returncode == 0, done.stderr
     assert "make_cart" in done.stdout and "reward gradient: usable" in done.stdout
     assert "training on carried episodes: 4 per seed, each update one window of 6 steps" in done.stdout
     record = read_json(tmp_path / "run" / "config.json")
     assert record["task"] == "env" and record["task_config"]["env"] == "envs_for_tests:make_cart"
+    assert record["resolved_task"]["hidden"] == [8, 8, 8]
     for args, expected in ((["--env", "envs_for_tests:step_reward_cart", "--smoothing", "off"],
                             "gradient is zero at every sampled state"),
                            (["--env", "no_such_module:env"], "cannot import no_such_module"),
                            (["--env", "envs_for_tests:nothing"], "has no attribute 'nothing'"),
                            (["--env", "envs_for_tests:make_cart", "--discount", "0"], "--discount must be in (0, 1]"),
                            (["--env", "envs_for_tests:make_cart", "--squash-gradient-floor", "-0.1"],
-                            "--squash-gradient-floor must be in [0, 1)")):
+                            "--squash-gradient-floor must be in [0, 1)"),
+                           (["--env", "envs_for_tests:make_cart", "--policy-width", "0"],
+                            "--policy-width must be a whole number of units >= 1, got 0"),
+                           (["--env", "envs_for_tests:make_cart", "--policy-depth", "-1"],
+                            "--policy-depth must be a whole number of layers >= 0, got -1")):
         refused_in_one_line(capsys, tmp_path / "refused", expected, *args, "--epochs", "1")
 
 
