@@ -105,10 +105,10 @@ _SOLVE = solver.solve
 # exactly its iterations, each taken only where MJX's test still says go on and otherwise keeping the
 # state as it stood, as a batch's while loop already steps every state until the last is done and keeps
 # each one where its own test stopped it: MJX's values (bit for bit in float64; in float32 XLA may fuse
-# the two loops' arithmetic apart, the last digit; tests/envs/test_mjx_and_playground.py). 0: MJX's loop everywhere, the
-# default until a GPU has timed the bound (`benchmarks/update_program.py --bounded-solver-loop`); on the
-# 2-core CPU it made the walker's forward window 10-25% slower (docs/performance.md, "The update
-# against its floor").
+# the two loops' arithmetic apart, the last digit; tests/envs/test_mjx_and_playground.py).
+# 0: MJX's loop everywhere, the default until a GPU has timed the bound (`benchmarks/update_program.py
+# --bounded-solver-loop`); on the 2-core CPU it made the walker's forward window 10-25% slower
+# (docs/performance.md, "The update against its floor").
 BOUNDED_SOLVER_ITERATIONS = 0
 _loop_bound = threading.local()
 
@@ -281,7 +281,8 @@ def differentiable_mjx(implicit_solver: bool = False):
     with contextlib.ExitStack() as stack:
         stack.enter_context(_applied("remedies", _REMEDIES))
         if implicit_solver:
-            stack.enter_context(_applied("implicit", ((solver, "solve", solve_implicitly), (solver, "jax", _SOLVER_JAX))))
+            stack.enter_context(_applied("implicit", ((solver, "solve", solve_implicitly),
+                                                      (solver, "jax", _SOLVER_JAX))))
         yield
 
 
