@@ -12,7 +12,8 @@ derivative, none of the flows' machinery, no critic).
         # pullbacks batched over the flows (adjoint_step.pullbacks_in_turn off)
     python benchmarks/update_program.py --programs update --env CheetahRun --mode R --no-cosine   # these alone
     python benchmarks/update_program.py --bounded-solver-loop --env WalkerWalk ...   # MJX's solver loop run
-        # exactly the model's iterations, MJX's values to the bit (constraint_derivatives.BOUNDED_SOLVER_ITERATIONS)
+        # exactly the model's iterations, MJX's values (bit for bit in float64, the last digit in float32 may
+        # differ; constraint_derivatives.BOUNDED_SOLVER_ITERATIONS)
 
 --programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
@@ -45,7 +46,7 @@ if "--programs" in arguments:
     del arguments[at:at + 2]
 if "--bounded-solver-loop" in arguments:
     arguments.remove("--bounded-solver-loop")
-    constraint_derivatives.BOUNDED_SOLVER_ITERATIONS = 8
+    constraint_derivatives.BOUNDED_SOLVER_ITERATIONS = constraint_derivatives.BOUND_OVER_PLAYGROUND_ITERATIONS
     print("MJX's solver loop runs exactly the model's iterations (--bounded-solver-loop)", flush=True)
 if "--flows-batched" in arguments:
     arguments.remove("--flows-batched")

@@ -137,11 +137,12 @@ def step_size(task: Task, config: TrainConfig, initial_state: PyTree) -> StepSiz
     """One trace of one simulator step, measured (``StepSize``)."""
     control = _example_control(task, config, initial_state)
     jaxpr = jax.make_jaxpr(task.dynamics.step)(initial_state, control).jaxpr
-    return StepSize(_operations(jaxpr), _holds_while(jaxpr))
+    return StepSize(_operations(jaxpr), holds_while(jaxpr))
 
 
-def _holds_while(jaxpr) -> bool:
-    return any(equation.primitive.name == "while" or any(_holds_while(inner) for inner in
+def holds_while(jaxpr) -> bool:
+    """Whether a program holds a loop whose length is known only as it runs, in its inner programs too."""
+    return any(equation.primitive.name == "while" or any(holds_while(inner) for inner in
                                                           jax.extend.core.jaxprs_in_params(equation.params))
                for equation in jaxpr.eqns)
 

@@ -7,6 +7,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from stablebptt.engine.compiling import holds_while
 from stablebptt.physics import constraint_derivatives
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import mjx
@@ -56,12 +57,6 @@ def test_mjx_step_inside_an_environment_is_differentiated_at_the_solver_solution
     np.testing.assert_allclose(reverse, central, atol=1e-7)
 
 
-def _holds_while(jaxpr) -> bool:
-    return any(equation.primitive.name == "while" or any(_holds_while(inner) for inner in
-                                                          jax.extend.core.jaxprs_in_params(equation.params))
-               for equation in jaxpr.eqns)
-
-
 def test_the_solver_loop_bounded_by_the_models_iterations_keeps_mjxs_values_to_the_bit_and_no_loop_of_unknown_length(
         monkeypatch):
     # In float64 to the bit (in float32 XLA may fuse the two loops' arithmetic apart: the last digit).
@@ -83,11 +78,11 @@ def _bounded_and_mjxs_loop_step_alike(monkeypatch):
 
     def stepped(bound):
         monkeypatch.setattr(constraint_derivatives, "BOUNDED_SOLVER_ITERATIONS", bound)
-        loops = _holds_while(jax.make_jaxpr(jax.vmap(step))(states).jaxpr)
+        loops = holds_while(jax.make_jaxpr(jax.vmap(step))(states).jaxpr)
         return loops, jax.jit(jax.vmap(step))(states), [jax.jit(step)(x) for x in states]
 
     mjx_loops, mjx_batch, mjx_alone = stepped(0)
-    bounded_loops, bounded_batch, bounded_alone = stepped(constraint_derivatives.BOUNDED_SOLVER_ITERATIONS or 8)
+    bounded_loops, bounded_batch, bounded_alone = stepped(constraint_derivatives.BOUND_OVER_PLAYGROUND_ITERATIONS)
     assert mjx_loops and not bounded_loops
     np.testing.assert_array_equal(bounded_batch, mjx_batch)
     for bounded, own in zip(bounded_alone, mjx_alone):
@@ -96,7 +91,7 @@ def _bounded_and_mjxs_loop_step_alike(monkeypatch):
     many = mjx.put_model(mujoco.MjModel.from_xml_string(LIMIT_AND_CONTACT.replace('iterations="4"', 'iterations="100"')),
                          impl="jax")
     with differentiable_mjx(implicit_solver=True):  # a file's default of 100 keeps MJX's early end
-        assert _holds_while(jax.make_jaxpr(lambda: mjx.step(many, mjx.make_data(many, impl="jax")))().jaxpr)
+        assert holds_while(jax.make_jaxpr(lambda: mjx.step(many, mjx.make_data(many, impl="jax")))().jaxpr)
 
 
 @needs_playground
