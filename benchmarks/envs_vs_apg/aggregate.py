@@ -70,9 +70,9 @@ def recipe_runs(records: list[dict], mark: int, envs: tuple[str, ...] = STUDY_EN
 
 
 def scores(records: list[dict], mark: int, ppo_near=None) -> tuple[dict, dict[str, str]]:
-    """``({"envs": [...], OURS: [seeds, envs], PPO: [seeds, envs], "runs": {env: command}}, missing)``:
-    the returns by ``mark`` over MAXIMUM_RETURN, of the envs where both have SEEDS seeds;
-    ``missing``: env -> why it is left out."""
+    """``({"envs": [...], OURS: [seeds, envs], PPO: [seeds, envs], "returns": {OURS: ..., PPO: ...},
+    "runs": {env: command}}, missing)``: the returns by ``mark`` over MAXIMUM_RETURN (under "returns", as
+    they are), of the envs where both have SEEDS seeds; ``missing``: env -> why it is left out."""
     ours, ppo_near = recipe_runs(records, mark), ppo_near or suite_table.ppo_near
     envs, columns, missing = [], {OURS: [], PPO: []}, {}
     for env in STUDY_ENVS:
@@ -83,10 +83,11 @@ def scores(records: list[dict], mark: int, ppo_near=None) -> tuple[dict, dict[st
             missing[env] = "no Brax PPO campaign whose 5 seeds each evaluated near this mark"
         else:
             envs.append(env)
-            columns[OURS].append(np.asarray(suite_table.by_mark(ours[env], mark)[:SEEDS]) / MAXIMUM_RETURN)
-            columns[PPO].append(np.asarray(theirs[:SEEDS]) / MAXIMUM_RETURN)
-    table = {name: np.stack(column, axis=1) if column else np.zeros((SEEDS, 0)) for name, column in columns.items()}
-    return {"envs": envs, **table, "runs": {env: ours[env]["command"] for env in envs}}, missing
+            columns[OURS].append(np.asarray(suite_table.by_mark(ours[env], mark)[:SEEDS]))
+            columns[PPO].append(np.asarray(theirs[:SEEDS]))
+    returns = {name: np.stack(column, axis=1) if column else np.zeros((SEEDS, 0)) for name, column in columns.items()}
+    normalised = {name: table / MAXIMUM_RETURN for name, table in returns.items()}
+    return {"envs": envs, **normalised, "returns": returns, "runs": {env: ours[env]["command"] for env in envs}}, missing
 
 
 def aggregates(scored: dict, draws: int = BOOTSTRAP_DRAWS, seed: int = 0) -> dict:
@@ -120,7 +121,7 @@ def report(scored: dict, missing: dict[str, str], summary: dict | None, mark: in
              f"scores: returns over {MAXIMUM_RETURN:g}, with 95% stratified bootstrap intervals (rliable).", "",
              "| env | stablebptt | Brax PPO | published PPO | the run |", "|---|---|---|---:|---|"]
     for i, env in enumerate(scored["envs"]):
-        ours, theirs = scored[OURS][:, i] * MAXIMUM_RETURN, scored[PPO][:, i] * MAXIMUM_RETURN
+        ours, theirs = scored["returns"][OURS][:, i], scored["returns"][PPO][:, i]
         lines.append(f"| {env} | {_mean_interval(ours)} | {_mean_interval(theirs)} | {_published(env)} | "
                      f"`{scored['runs'][env]}` |")
     lines += [f"| {env} | - | - | {_published(env)} | {why} |" for env, why in missing.items()]

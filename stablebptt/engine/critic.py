@@ -51,14 +51,14 @@ class Critic(NamedTuple):
 
 def value(params: PyTree, observation: jax.Array) -> jax.Array:
     """The value of one observation: the network's, or the least of ``Members``'."""
+    return jnp.min(members_values(params, observation))
+
+
+def members_values(params: PyTree, observation: jax.Array) -> jax.Array:
+    """Each network's value of one observation, [members] (one network, not ``Members``: [1])."""
     if isinstance(params, Members):
-        return jnp.min(members_values(params, observation))
-    return mlp_apply(params, observation)[0]
-
-
-def members_values(params: Members, observation: jax.Array) -> jax.Array:
-    """Each member network's value of one observation, [members]."""
-    return jax.vmap(lambda member: mlp_apply(member, observation)[0])(params.stacked)
+        return jax.vmap(lambda member: mlp_apply(member, observation)[0])(params.stacked)
+    return mlp_apply(params, observation)[:1]
 
 
 def seen(critic: Critic, observation: jax.Array) -> jax.Array:
@@ -105,11 +105,8 @@ def fit_critic(critic: Critic, observations: jax.Array, targets: jax.Array, weig
     """``iterations`` Adam steps of the critic on the weighted squared error to ``targets`` (all examples
     at once; of ``Members``, each network's error, summed), then the target critic moved towards it.
     Returns the critic and its last loss."""
-    def loss(params):
-        if isinstance(params, Members):  # each network to the targets, not their least value
-            errors = jax.vmap(lambda o: members_values(params, o), out_axes=1)(observations) - targets
-        else:
-            errors = jax.vmap(lambda o: value(params, o))(observations) - targets
+    def loss(params):  # each network to the targets, not their least value
+        errors = jax.vmap(lambda o: members_values(params, o), out_axes=1)(observations) - targets
         return jnp.sum(weights * errors ** 2) / jnp.maximum(jnp.sum(weights), 1.0)
 
     def step(current: Critic, _):

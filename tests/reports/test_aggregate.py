@@ -64,6 +64,7 @@ def test_only_the_latest_run_of_the_recipe_as_it_stands_that_trained_until_the_m
     scored, missing = aggregate.scores(records, 300, ppo_near=ppo_near)
     assert scored["envs"] == ["CheetahRun", "WalkerWalk"]
     np.testing.assert_allclose(scored[aggregate.OURS], np.array([RETURNS["CheetahRun"], RETURNS["WalkerWalk"]]).T / 1000)
+    np.testing.assert_array_equal(scored["returns"][aggregate.OURS], np.array([RETURNS["CheetahRun"], RETURNS["WalkerWalk"]]).T)
     np.testing.assert_allclose(scored[aggregate.PPO],
                                np.array([PPO_RETURNS["CheetahRun"], PPO_RETURNS["WalkerWalk"]]).T / 1000)
     assert missing["HopperStand"] == "no run of the recipe as it stands that trained until this mark"
