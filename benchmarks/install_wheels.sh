@@ -12,11 +12,18 @@
 # The packages are byte-compiled as pip installs them for a user: the machine's Python writes no
 # bytecode of its own (PYTHONDONTWRITEBYTECODE), and compiling every module's source at each start
 # cost about 1.8 s of a warm start there. So is the checkout, at every call (only what changed).
+# Commands started at once (one per GPU) install one after another: two pip installs into one target
+# fail each other.
+mkdir -p /tmp/site
+exec {install_lock}> /tmp/site.lock
+flock "$install_lock"
 if [ ! -f /tmp/site/.installed ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
     && python3 -m compileall -q -j 0 /tmp/site > /dev/null \
     && touch /tmp/site/.installed || { echo "wheel install failed"; exit 1; }
 fi
+flock -u "$install_lock"
+exec {install_lock}>&-
 compile_checkout() { python3 -m compileall -q -j 0 ${1:-.}/stablebptt > /dev/null; }
 compile_checkout
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=disable
