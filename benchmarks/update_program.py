@@ -18,6 +18,8 @@ derivative, none of the flows' machinery, no critic).
 --programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
 (``--programs memory`` alone prints that and times nothing).
+--sizes: each chosen program's size as lowered (lines of StableHLO, while loops), nothing compiled or timed:
+what a program holds, where its compile on a GPU is what costs (the same program on any backend).
 
 Every other option is train.py's (--mode R --no-cosine: one flow).
 """
@@ -48,6 +50,9 @@ if "--bounded-solver-loop" in arguments:
     arguments.remove("--bounded-solver-loop")
     constraint_derivatives.BOUNDED_SOLVER_ITERATIONS = constraint_derivatives.BOUND_OVER_PLAYGROUND_ITERATIONS
     print("MJX's solver loop runs exactly the model's iterations (--bounded-solver-loop)", flush=True)
+sizes_only = "--sizes" in arguments
+if sizes_only:
+    arguments.remove("--sizes")
 if "--flows-batched" in arguments:
     arguments.remove("--flows-batched")
     adjoint_step.pullbacks_in_turn = lambda: False
@@ -107,6 +112,11 @@ for name, program, inputs in [program for program in programs if program[0] in c
     start = time.perf_counter()
     lowered = program.lower(*inputs)
     lowered_at = time.perf_counter()
+    if sizes_only:
+        text = lowered.as_text()
+        print(f"{' '.join(arguments)}: {described.get(name, name)}: {text.count(chr(10))} lines of StableHLO, "
+              f"{text.count('stablehlo.while')} while loops", flush=True)
+        continue
     compiled = lowered.compile()
     compiled_at = time.perf_counter()
     print(f"{' '.join(arguments)}: {described.get(name, name)}: trace and lower {lowered_at - start:.1f} s, compile "
