@@ -14,6 +14,9 @@ derivative, none of the flows' machinery, no critic).
     python benchmarks/update_program.py --bounded-solver-loop --env WalkerWalk ...   # MJX's solver loop run
         # exactly the model's iterations, MJX's values (bit for bit in float64, the last digit in float32 may
         # differ; constraint_derivatives.BOUNDED_SOLVER_ITERATIONS)
+    python benchmarks/update_program.py --collision-held --env HumanoidStand ... --sizes   # what if the
+        # contacts' geometry (points, frames, distances) were held in the derivative: MJX's collision
+        # functions then have no derivative in the program (a what-if: no training option takes it)
 
 --programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
@@ -50,6 +53,16 @@ if "--bounded-solver-loop" in arguments:
     arguments.remove("--bounded-solver-loop")
     constraint_derivatives.BOUNDED_SOLVER_ITERATIONS = constraint_derivatives.BOUND_OVER_PLAYGROUND_ITERATIONS
     print("MJX's solver loop runs exactly the model's iterations (--bounded-solver-loop)", flush=True)
+if "--collision-held" in arguments:
+    arguments.remove("--collision-held")
+    from mujoco.mjx._src import collision_driver  # noqa: E402  (forward.py calls it through its module)
+    collide = collision_driver.collision
+
+    def collision_held(model, data):
+        found = collide(model, data)
+        return found.tree_replace({"_impl.contact": jax.lax.stop_gradient(found._impl.contact)})
+    collision_driver.collision = collision_held
+    print("the contacts' geometry held in the derivative (--collision-held)", flush=True)
 sizes_only = "--sizes" in arguments
 if sizes_only:
     arguments.remove("--sizes")
