@@ -55,7 +55,7 @@ if "--bounded-solver-loop" in arguments:
     print("MJX's solver loop runs exactly the model's iterations (--bounded-solver-loop)", flush=True)
 if "--collision-held" in arguments:
     arguments.remove("--collision-held")
-    from mujoco.mjx._src import collision_driver  # noqa: E402  (forward.py calls it through its module)
+    from stablebptt.physics.mjx_internals import collision_driver  # noqa: E402  (MJX calls it through its module)
     collide = collision_driver.collision
 
     def collision_held(model, data):
