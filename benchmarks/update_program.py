@@ -38,8 +38,9 @@ from stablebptt import tasks  # noqa: E402
 from stablebptt.commands import train as train_script  # noqa: E402
 from stablebptt.engine.compiling import memory_plan  # noqa: E402
 from stablebptt.engine.config import batched_seeds, seed_array  # noqa: E402
+from stablebptt.engine.lowering import state_shapes  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch  # noqa: E402
-from stablebptt.engine.training import TrainState, make_trainer  # noqa: E402
+from stablebptt.engine.training import make_trainer  # noqa: E402
 from stablebptt.flows import adjoint_step  # noqa: E402
 from stablebptt.physics import constraint_derivatives  # noqa: E402
 
@@ -85,11 +86,8 @@ if "memory" in chosen:
     if chosen == {"memory"}:
         sys.exit(0)
 seeds = seed_array(train_config)
-if sizes_only:  # the state's shapes alone: its values would cost init's two compiles and runs first
-    params, opt_state, log_std = trainer.init.policy.eval_shape(seeds)
-    state = TrainState(params, opt_state, *trainer.init.rest.eval_shape(seeds), log_std)
-else:
-    state = trainer.init(seeds)
+# Sizes need the state's shapes alone: its values would cost init's compiles and runs first.
+state = state_shapes(trainer, seeds) if sizes_only else trainer.init(seeds)
 programs = [("update", trainer.epoch.update, (state, jax.tree.map(lambda a: a[0], trainer.batches)))]
 if trainer.epoch.evaluate is not None:
     programs.append(("evaluation", trainer.epoch.evaluate, (state.params, trainer.train_states, trainer.test_states)))
