@@ -1,15 +1,16 @@
 """A run's start, in the order it happens (``prepare``): the epoch traced while the task's check
-compiles beside, the trainer rebuilt where the check's answer smoothed the reward, the epoch compiled
-once it has answered; and the epoch's and each epoch's first program compiled for a state
-(``compiled_epoch``, ``compiled_refill``)."""
+compiles beside, then compiled beside the check's run; the trainer rebuilt where the check's answer
+smoothed the reward, and the surrogate's epoch compiled; and the epoch's and each epoch's first program
+compiled for a state (``compiled_epoch``, ``compiled_refill``)."""
 from __future__ import annotations
 
+import concurrent.futures
 import time
 from typing import Any, Callable, NamedTuple
 
 import jax
 
-from stablebptt.engine.compiling import CompiledBeside, untimed_options
+from stablebptt.engine.compiling import CompiledBeside, beside, untimed_options
 from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, lowered_refill, programs_beside
 from stablebptt.engine.program_store import cache_dir, compile_epoch
@@ -28,11 +29,11 @@ class Prepared(NamedTuple):
 
 
 def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, resuming: bool = False) -> Prepared:
-    """A run's start, in the order it happens: the trainer built while a check the task left running
-    compiles beside (``Task.settle``: an environment's reward diagnosis); the check's answer, which may
-    refuse the task; where it smoothed the reward, the trainer built again for the task as settled;
-    its epoch traced and compiled, while the surrogate's own check compiles beside; that check's
-    answer. ``program_key`` as ``train_epochs`` takes it. ``resuming``: the state will be read from a
+    """A run's start, in the order it happens: the trainer built and its epoch traced while a check the
+    task left running compiles beside (``Task.settle``: an environment's reward diagnosis); the epoch's
+    compile begun beside the check's answer, which may refuse the task; where it smoothed the reward,
+    the trainer built again for the task as settled, its epoch traced and compiled (once the first
+    compile has ended) while the surrogate's own check compiles beside; that check's answer. ``program_key`` as ``train_epochs`` takes it. ``resuming``: the state will be read from a
     checkpoint (into ``lowered.shapes``), so init's programs are not compiled beside.
 
     Raises:
@@ -51,10 +52,13 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     trainer = build(task)
     lap("trainer set-up")
     built, checking = task, task.settle is not None
-    # The epoch is traced while the check compiles beside, and compiled once it has answered: a reward it smooths
-    # compiles one epoch, the surrogate's (compiled beside the check, the reward as written was HopperStand's second).
+    # The epoch is traced while the check compiles beside, and compiles while the check runs: most rewards are
+    # usable as written (the walkers waited 21-23 s for the check after the trace, the humanoid 45 s). One the
+    # check smooths leaves that compile unused, and the surrogate's epoch compiles once it has ended, so that on
+    # a GPU no other program's kernels run while its own are timed (HopperStand's check outlasts the compile).
     lowered = lowered_epoch(trainer, config, program_key, beside=False)
     lap("trace")
+    as_written = beside(lowered.lowered.compile, "stablebptt-epoch") if checking else None
     task = task.settled()  # a reward without a usable gradient is refused here
     lap("check's wait")
     smoothed = task.dynamics.step is not built.dynamics.step
@@ -66,8 +70,11 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
         lowered = lowered_epoch(trainer, config, program_key, beside=False)
     lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
     lap("surrogate's trace" if smoothed else "trace")  # the epoch's where smoothed, and the programs beside
+    if smoothed and as_written is not None:
+        concurrent.futures.wait([as_written])  # its program (or its error) unused
+        lap("unused compile's wait")
     if checking:
-        lowered = _compiled_now(lowered, lap)
+        lowered = _compiled_now(lowered, lap, None if smoothed else as_written)
     task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
     lap("surrogate check's wait")
     if lowered.init_rest is not None:  # init's part that waits for no check, compiling beside
@@ -75,13 +82,15 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
 
 
-def _compiled_now(lowered: LoweredEpoch, lap: Callable[[str], None]) -> LoweredEpoch:
-    """``lowered`` compiled here, where a task's check ran or still compiles (``Task.settle``): the
-    programs of init and the evaluation, lowered with it, compile beside it rather than after it (a
-    run's init waits for its own), and a surrogate's own check compiles beside it while its program
-    runs only once this compile has ended, so on a GPU none of its kernels runs while the epoch's are
-    timed. A check that refuses the task leaves this compile unused."""
-    compiled = lowered.lowered.compile()
+def _compiled_now(lowered: LoweredEpoch, lap: Callable[[str], None],
+                  begun: concurrent.futures.Future | None = None) -> LoweredEpoch:
+    """``lowered`` compiled here (or its compile ``begun`` beside, waited for), where a task's check ran
+    or still compiles (``Task.settle``): the programs of init and the evaluation, lowered with it,
+    compile beside it rather than after it (a run's init waits for its own), and a surrogate's own
+    check compiles beside it while its program runs only once this compile has ended, so on a GPU none
+    of its kernels runs while the epoch's are timed. A check that refuses the task leaves this compile
+    unused."""
+    compiled = lowered.lowered.compile() if begun is None else begun.result()
     lap("compile")
     return lowered._replace(compiled=compiled)
 

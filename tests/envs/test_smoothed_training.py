@@ -119,23 +119,25 @@ def test_a_deferred_flat_reward_settles_into_its_surrogate_whose_own_check_answe
     assert final.summary == env_task(Cart("step"), horizon=5).summary
 
 
-def test_a_flat_reward_compiles_one_epoch_at_the_start_its_surrogates_and_a_usable_one_its_own(monkeypatch):
-    """The epoch is traced while the reward check compiles beside, and compiled once the check has answered:
-    the reward as written is never compiled where its surrogate trains, and a usable reward's epoch is
-    traced and compiled once (the check's wait behind the trace, not after it)."""
+def test_the_epoch_compiles_beside_the_reward_check_and_a_flat_reward_trains_its_surrogates_alone(monkeypatch):
+    """The epoch is traced while the reward check compiles beside, and its compile begins before the check
+    answers: a usable reward's epoch is traced and compiled once, that compile the one trained; where the
+    check smooths the reward, the surrogate's epoch is compiled once the unused one has ended, and trained."""
     from stablebptt.engine import starting
     from stablebptt.engine.task import Task
     traced, compiled, events = [], [], []
-    trace, settled = starting.lowered_epoch, Task.settled
+    trace, settled, begin = starting.lowered_epoch, Task.settled, starting.beside
     monkeypatch.setattr(Task, "settled", lambda self, *a, **k: events.append("answer") or settled(self, *a, **k))
+    monkeypatch.setattr(starting, "beside", lambda function, name: events.append("compile begun") or begin(function, name))
 
-    class Counted:  # a lowered epoch whose compiles are counted
+    class Counted:  # a lowered epoch whose compiles are counted, and the programs they gave
         def __init__(self, lowered, index):
             self.lowered, self.index = lowered, index
 
         def compile(self):
-            compiled.append(self.index)
-            return self.lowered.compile()
+            program = self.lowered.compile()
+            compiled.append((self.index, program))
+            return program
 
     def counted(trainer, config, program_key=None, **beside):
         lowered = trace(trainer, config, program_key, **beside)
@@ -146,14 +148,14 @@ def test_a_flat_reward_compiles_one_epoch_at_the_start_its_surrogates_and_a_usab
     config = sb.TrainConfig(mode="C", epochs=1, train_size=8, test_size=8, batch=4, clip="norm")
     prepared = starting.prepare(env_task(Cart("step"), horizon=5, defer_diagnosis=True), config)
     assert "reward_smoothing" in prepared.task.resolved and prepared.task.settle is None
-    assert compiled == [len(traced) - 1] and prepared.trainer.epoch is traced[-1].epoch  # the surrogate's alone
-    assert prepared.lowered.compiled is not None  # compiled beside the surrogate's own check
-    assert events[:3] == ["trace", "answer", "trace"]  # the written reward's trace, then the surrogate's
+    assert events[:4] == ["trace", "compile begun", "answer", "trace"]  # the written reward's, then the surrogate's
+    assert [index for index, _ in compiled] == [0, 1] and prepared.trainer.epoch is traced[1].epoch
+    assert prepared.lowered.compiled is compiled[1][1]  # the surrogate's trains, compiled beside its own check
     traced.clear(), compiled.clear(), events.clear()
     usable = starting.prepare(env_task(Cart(), horizon=5, defer_diagnosis=True), config)
-    assert usable.task.resolved["reward_gradient"] == "usable" and compiled == [0] and len(traced) == 1
-    assert events[:2] == ["trace", "answer"]
-    assert usable.lowered.compiled is not None  # after the check ran, init's programs compiling beside
+    assert usable.task.resolved["reward_gradient"] == "usable" and len(traced) == 1
+    assert events[:3] == ["trace", "compile begun", "answer"]
+    assert [index for index, _ in compiled] == [0] and usable.lowered.compiled is compiled[0][1]
 
 
 def test_a_kept_smoothing_rebuilds_the_surrogate_without_sampling_or_checking_again(tmp_path, monkeypatch):
