@@ -325,7 +325,7 @@ def _with_interval(returns) -> str:
 
 
 PHASES = ("task's build and checks", "trainer set-up", "trace", "check's wait", "surrogate's trace",
-          "surrogate check's wait", "compile", "evaluation's compile", "init")
+          "unused compile's wait", "surrogate check's wait", "compile", "evaluation's compile", "init")
 
 
 def main(argv=None) -> None:

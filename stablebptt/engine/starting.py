@@ -1,7 +1,8 @@
 """A run's start, in the order it happens (``prepare``): the epoch traced while the task's check
-compiles beside, then compiled beside the check's run; the trainer rebuilt where the check's answer
-smoothed the reward, and the surrogate's epoch compiled; and the epoch's and each epoch's first program
-compiled for a state (``compiled_epoch``, ``compiled_refill``)."""
+compiles beside, then compiled beside the check's run where it most likely keeps the step; the
+trainer rebuilt where the check's answer smoothed the reward, and the surrogate's epoch compiled; and
+the epoch's and each epoch's first program compiled for a state (``compiled_epoch``,
+``compiled_refill``)."""
 from __future__ import annotations
 
 import concurrent.futures
@@ -30,11 +31,16 @@ class Prepared(NamedTuple):
 
 def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, resuming: bool = False) -> Prepared:
     """A run's start, in the order it happens: the trainer built and its epoch traced while a check the
-    task left running compiles beside (``Task.settle``: an environment's reward diagnosis); the epoch's
-    compile begun beside the check's answer, which may refuse the task; where it smoothed the reward,
-    the trainer built again for the task as settled, its epoch traced and compiled (once the first
-    compile has ended) while the surrogate's own check compiles beside; that check's answer. ``program_key`` as ``train_epochs`` takes it. ``resuming``: the state will be read from a
-    checkpoint (into ``lowered.shapes``), so init's programs are not compiled beside.
+    task left running compiles beside (``Task.settle``: an environment's reward diagnosis); where the
+    check most likely keeps the step (``Task.compile_while_settling``), the epoch's compile begun
+    beside the check's answer, which may refuse the task; where it smoothed the reward, the trainer
+    built again for the task as settled, its epoch traced and compiled (once an early compile has
+    ended) while the surrogate's own check compiles beside; that check's answer. ``program_key`` as
+    ``train_epochs`` takes it. ``resuming``: the state will be read from a checkpoint (into
+    ``lowered.shapes``), so init's programs are not compiled beside.
+
+    A task its check refuses leaves an early compile running in its thread (XLA cannot stop it): a
+    command's process ends at once all the same (``cli.leave``), a library caller's goes on beside it.
 
     Raises:
       InputError: the task refused by its checks, or by the trainer's set-up, named.
@@ -52,13 +58,15 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     trainer = build(task)
     lap("trainer set-up")
     built, checking = task, task.settle is not None
-    # The epoch is traced while the check compiles beside, and compiles while the check runs: most rewards are
-    # usable as written (the walkers waited 21-23 s for the check after the trace, the humanoid 45 s). One the
-    # check smooths leaves that compile unused, and the surrogate's epoch compiles once it has ended, so that on
-    # a GPU no other program's kernels run while its own are timed (HopperStand's check outlasts the compile).
+    # The epoch is traced while the check compiles beside. Where the check most likely keeps the step, the epoch
+    # compiles while it runs (the walkers waited 19-23 s for the check after the trace, the humanoid 45 s);
+    # elsewhere (HopperStand's reward, which it smooths) once it has answered, the surrogate's alone. A reward
+    # smoothed all the same leaves the early compile unused, and the surrogate's epoch compiles once it has
+    # ended, so that on a GPU no other program's kernels run while its own are timed.
     lowered = lowered_epoch(trainer, config, program_key, beside=False)
     lap("trace")
-    as_written = beside(lowered.lowered.compile, "stablebptt-epoch") if checking else None
+    early = checking and task.compile_while_settling
+    as_written = beside(lowered.lowered.compile, "stablebptt-epoch") if early else None
     task = task.settled()  # a reward without a usable gradient is refused here
     lap("check's wait")
     smoothed = task.dynamics.step is not built.dynamics.step

@@ -51,6 +51,11 @@ class Task:
         parameters' values wait for it (their shapes do not): a trainer may be built meanwhile.
         ``settle(wait)``: the task as checked, or None where ``wait`` is false and the check has
         not answered yet.
+      compile_while_settling: whether a program traced before the pending check answers is worth
+        compiling meanwhile: the answer most likely keeps ``dynamics.step`` (an environment whose
+        reward turns no comparison into a number: its check could only smooth an exponential that
+        underflows), and the check runs apart from the accelerator the program's compile times its
+        kernels on. False where none is pending, or where either may well not hold.
       episodes: what the task knows of its episodes (reset, reward, done, length): a trainer
         may then train on carried episodes (``TrainConfig.episodes``; ``stablebptt.engine.episodes``),
         an environment's by default. None: the paper's protocol only.
@@ -71,6 +76,7 @@ class Task:
     evaluation: Callable[[PyTree, PyTree], jax.Array] | None = None
     plan: Plan = Plan()
     settle: Callable[[bool], "Task | None"] | None = None
+    compile_while_settling: bool = False
     episodes: Episodes | None = None
     refresh_statistics: Callable[[PyTree, PyTree, jax.Array], PyTree] | None = None
 

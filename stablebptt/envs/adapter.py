@@ -38,8 +38,8 @@ from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.arguments import check_env_task_arguments
 from stablebptt.envs.derivative_model import contact_cut, derivative_steps, joined, loaded_states, own_substeps
-from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, sample_for_diagnosis, start_checks,
-                                       start_diagnosis)
+from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
+                                       start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
                                       function_name, observation, with_reset_traced_once)
 from stablebptt.flows.dynamics import Dynamics
@@ -401,9 +401,22 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
         return dataclasses.replace(task(None, "pending", smoothed), settle=settle_surrogate)
 
+    def reward_compares() -> bool:
+        """Whether the trained reward turns a comparison into a number, which the check may smooth (read
+        from the step a surrogate would be made of, at shapes); where its reward cannot be told, True."""
+        example = surrogate.step_example(env)
+        value_step, derivative_step = training_steps
+        try:
+            traced = surrogate.trace_step(training_step if derivative_step is None else jax.jit(value_step), *example)
+        except ValueError:  # no single leaf of the state is named reward (a surrogate would say so in one line)
+            return True
+        return surrogate.turns_comparisons_into_numbers(traced, example)
+
     if not diagnose:
         return task(None, "not checked")
     if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
-        return dataclasses.replace(task(None, "pending"), settle=settle)
+        return dataclasses.replace(task(None, "pending"), settle=settle, compile_while_settling=(
+            (check_device() is not None or jax.default_backend() == "cpu")
+            and (smoothing == "off" or surrogate_reward is not None or not reward_compares())))
     answered = settle()  # a flat reward's surrogate may still be checked beside: deferred, the caller waits
     return answered if defer_diagnosis else answered.settled_fully()

@@ -303,6 +303,17 @@ def smooth_reward(step: Callable, states: PyTree, actions: jax.Array, scale: flo
     return smoothed_step(traced, smoothing_choices(step, states, actions, scale, traced))
 
 
+def turns_comparisons_into_numbers(traced: tuple, example: tuple) -> bool:
+    """Whether the reward of the step ``traced`` (``trace_step``, at ``example``'s shapes) turns a
+    comparison into a number, which a flat reward's surrogate makes a sigmoid: read at shapes, nothing
+    run. Where none does, a surrogate could only widen an exponential that underflows at the sampled
+    states (none of the study's rewards that are not smoothed turns one: walkers, cheetah, humanoid, fish)."""
+    closed, structure, out_labels = traced
+    recorder = _Interpreter(None)
+    jax.eval_shape(lambda state, action: _evaluate(closed, out_labels, structure, recorder, state, action), *example)
+    return bool(recorder.used)
+
+
 def one_sample(states: PyTree, actions: jax.Array) -> tuple:
     """The shapes of one sampled state and action, weak types dropped as ``step_example`` drops them: the
     step traced at either numbers its operations alike (the places ``smoothing_choices`` names)."""

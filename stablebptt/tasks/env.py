@@ -47,7 +47,7 @@ RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normal
 # control step spans 10 physics steps, and on each of its three tasks windows of 8 steps (80 physics
 # steps) learned faster than 16 at every epoch ("Windows of 8 on the walker"); on WalkerWalk and
 # WalkerStand windows of 4 faster again by 300 s, twice the updates for the same env steps ("Windows
-# of 4 on the walker"; WalkerRun's not yet measured); on the cheetah, C and R learn alike epoch for
+# of 4 on the walker"; WalkerRun learned no faster with them); on the cheetah, C and R learn alike epoch for
 # epoch, and R alone (no g_M for the cosine) updates in 0.84x C's time ("R alone on the cheetah").
 RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 4}, "WalkerStand": {"steps": 4}, "WalkerRun": {"steps": 8},
                                  "CheetahRun": {"mode": "R", "cosine": False}}}

@@ -119,10 +119,13 @@ def test_a_deferred_flat_reward_settles_into_its_surrogate_whose_own_check_answe
     assert final.summary == env_task(Cart("step"), horizon=5).summary
 
 
-def test_the_epoch_compiles_beside_the_reward_check_and_a_flat_reward_trains_its_surrogates_alone(monkeypatch):
-    """The epoch is traced while the reward check compiles beside, and its compile begins before the check
-    answers: a usable reward's epoch is traced and compiled once, that compile the one trained; where the
-    check smooths the reward, the surrogate's epoch is compiled once the unused one has ended, and trained."""
+def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_the_reward(monkeypatch):
+    """The epoch is traced while the reward check compiles beside. A reward that turns no comparison into a
+    number (smooth, or an underflowing Gaussian) begins its epoch's compile before the check answers; a usable
+    one trains that compile, traced and compiled once. Where the check smooths the reward, the surrogate's epoch
+    is compiled and trained: after the answer where the reward compares (the reward as written never compiled),
+    after the unused early compile has ended where a Gaussian underflowed. A refusal leaves the early compile
+    unused."""
     from stablebptt.engine import starting
     from stablebptt.engine.task import Task
     traced, compiled, events = [], [], []
@@ -146,16 +149,31 @@ def test_the_epoch_compiles_beside_the_reward_check_and_a_flat_reward_trains_its
 
     monkeypatch.setattr(starting, "lowered_epoch", counted)
     config = sb.TrainConfig(mode="C", epochs=1, train_size=8, test_size=8, batch=4, clip="norm")
-    prepared = starting.prepare(env_task(Cart("step"), horizon=5, defer_diagnosis=True), config)
-    assert "reward_smoothing" in prepared.task.resolved and prepared.task.settle is None
-    assert events[:4] == ["trace", "compile begun", "answer", "trace"]  # the written reward's, then the surrogate's
-    assert [index for index, _ in compiled] == [0, 1] and prepared.trainer.epoch is traced[1].epoch
-    assert prepared.lowered.compiled is compiled[1][1]  # the surrogate's trains, compiled beside its own check
-    traced.clear(), compiled.clear(), events.clear()
-    usable = starting.prepare(env_task(Cart(), horizon=5, defer_diagnosis=True), config)
-    assert usable.task.resolved["reward_gradient"] == "usable" and len(traced) == 1
-    assert events[:3] == ["trace", "compile begun", "answer"]
+
+    def started(reward):
+        traced.clear(), compiled.clear(), events.clear()
+        task = env_task(Cart(reward), horizon=5, defer_diagnosis=True)
+        return task, starting.prepare(task, config)
+
+    task, prepared = started("step")
+    assert not task.compile_while_settling and "reward_smoothing" in prepared.task.resolved
+    assert events[:3] == ["trace", "answer", "trace"] and "compile begun" not in events
+    assert [index for index, _ in compiled] == [1] and prepared.trainer.epoch is traced[1].epoch  # the surrogate's
+    assert prepared.lowered.compiled is compiled[0][1] and prepared.task.settle is None
+    task, usable = started("smooth")
+    assert task.compile_while_settling and usable.task.resolved["reward_gradient"] == "usable"
+    assert events[:3] == ["trace", "compile begun", "answer"] and len(traced) == 1
     assert [index for index, _ in compiled] == [0] and usable.lowered.compiled is compiled[0][1]
+    task, widened = started("narrow")
+    assert task.compile_while_settling and "underflowing exponential" in widened.task.resolved["reward_smoothing"]
+    assert events[:4] == ["trace", "compile begun", "answer", "trace"]
+    assert [index for index, _ in compiled] == [0, 1] and widened.trainer.epoch is traced[1].epoch
+    assert widened.lowered.compiled is compiled[1][1] and "unused compile's wait" in widened.phases
+    traced.clear(), compiled.clear(), events.clear()
+    refused = env_task(Cart("root"), horizon=5, defer_diagnosis=True)  # its gradient NaN: compiled early, refused
+    with pytest.raises(EnvError, match="NaN"):
+        starting.prepare(refused, config)
+    assert refused.compile_while_settling and events == ["trace", "compile begun", "answer"]
 
 
 def test_a_kept_smoothing_rebuilds_the_surrogate_without_sampling_or_checking_again(tmp_path, monkeypatch):
