@@ -408,7 +408,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         value_step, derivative_step = training_steps
         try:
             traced = surrogate.trace_step(training_step if derivative_step is None else jax.jit(value_step), *example)
-        except ValueError:  # no single leaf of the state is named reward (a surrogate would say so in one line)
+        except ValueError:  # no single leaf of the state is named reward: no surrogate could be made of it either
             return True
         return surrogate.turns_comparisons_into_numbers(traced, example)
 
