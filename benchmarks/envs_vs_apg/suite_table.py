@@ -324,8 +324,9 @@ def _with_interval(returns) -> str:
     return f"{np.mean(returns):.1f} [{low:.1f}, {high:.1f}]"
 
 
-PHASES = ("task's build and checks", "trainer set-up", "trace", "check's wait", "surrogate's trace",
-          "unused compile's wait", "surrogate check's wait", "compile", "evaluation's compile", "init")
+PHASES = ("task's build and checks", "trainer set-up", "trace", "compile beside the check", "check's wait",
+          "surrogate's trace", "unused compile's wait", "surrogate check's wait", "compile", "evaluation's compile",
+          "init")
 
 
 def main(argv=None) -> None:

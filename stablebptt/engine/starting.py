@@ -66,8 +66,17 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     lowered = lowered_epoch(trainer, config, program_key, beside=False)
     lap("trace")
     early = checking and task.compile_while_settling
-    as_written = beside(lowered.lowered.compile, "stablebptt-epoch") if early else None
+    compile_ended: list[float] = []  # when the early compile ended, once it has
+
+    def compile_as_written():
+        program = lowered.lowered.compile()
+        compile_ended.append(time.perf_counter())
+        return program
+
+    as_written = beside(compile_as_written, "stablebptt-epoch") if early else None
     task = task.settled()  # a reward without a usable gradient is refused here
+    if early:  # what the start waited while the epoch compiled beside the check, then for the check alone
+        lap("compile beside the check", until=min(compile_ended or [time.perf_counter()]))
     lap("check's wait")
     smoothed = task.dynamics.step is not built.dynamics.step
     if smoothed:  # the check smoothed the reward: train the task as settled
@@ -90,7 +99,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
 
 
-def _compiled_now(lowered: LoweredEpoch, lap: Callable[[str], None],
+def _compiled_now(lowered: LoweredEpoch, lap: Callable[..., None],
                   begun: concurrent.futures.Future | None = None) -> LoweredEpoch:
     """``lowered`` compiled here (or its compile ``begun`` beside, waited for), where a task's check ran
     or still compiles (``Task.settle``): the programs of init and the evaluation, lowered with it,
@@ -149,12 +158,13 @@ def _smoothed_key(program_key: dict | None, task: Any) -> dict | None:
     return program_key if program_key is None or smoothing is None else {**program_key, "reward_smoothing": smoothing}
 
 
-def _lap_clock(phases: dict[str, float]) -> Callable[[str], None]:
-    """``lap(name)`` adds the seconds since the previous lap (the first: since this call) to ``phases[name]``."""
+def _lap_clock(phases: dict[str, float]) -> Callable[..., None]:
+    """``lap(name)`` adds the seconds since the previous lap (the first: since this call) to ``phases[name]``;
+    ``lap(name, until=t)`` those until ``t``, a ``time.perf_counter()`` already passed."""
     last = [time.perf_counter()]
 
-    def lap(name: str) -> None:
-        now = time.perf_counter()
+    def lap(name: str, until: float | None = None) -> None:
+        now = time.perf_counter() if until is None else until
         phases[name] = phases.get(name, 0.0) + now - last[0]
         last[0] = now
     return lap

@@ -168,6 +168,8 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
     # the epoch (evaluation, init, refill) traced once the check has answered: on two cores, traced while it ran,
     # they shared the cores with both compiles and the start took longer (docs/performance.md)
     assert [index for index, _ in compiled] == [0] and usable.lowered.compiled is compiled[0][1]
+    assert "compile beside the check" in usable.phases  # the start's wait while both ran: the compile's part
+    assert "compile beside the check" not in prepared.phases
     task, widened = started("narrow")
     assert task.compile_while_settling and "underflowing exponential" in widened.task.resolved["reward_smoothing"]
     assert events == ["trace", "compile begun", "answer", "trace", "beside", "answer"]
