@@ -76,7 +76,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     as_written = beside(compile_as_written, "stablebptt-epoch") if early else None
     task = task.settled()  # a reward without a usable gradient is refused here
     if early:  # what the start waited while the epoch compiled beside the check, then for the check alone
-        lap("compile beside the check", until=min(compile_ended or [time.perf_counter()]))
+        lap("compile beside the check", until=compile_ended[0] if compile_ended else None)
     lap("check's wait")
     smoothed = task.dynamics.step is not built.dynamics.step
     if smoothed:  # the check smoothed the reward: train the task as settled

@@ -240,6 +240,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         training_steps = derivative_steps(traced, reward_env, contact_smoothing, gradient_substeps, label)
         training_step = jax.jit(joined(*training_steps))
         check_same_states(env, training_step, label)
+    # The step a flat reward's surrogate reads, one jit for every trace of it: where the derivative is another
+    # model's, the values' step.
+    values_step = training_step if training_steps[1] is None else jax.jit(training_steps[0])
 
     sizes = (observations, *hidden, int(env.action_size))
     reset = jax.jit(jax.vmap(env.reset))
@@ -367,8 +370,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         # One trace of the step, at shapes, serves the temperatures' choice and the surrogate: a kept choice
         # names places in it. Where the derivative is another model's, the values' step is traced.
         example = surrogate.one_sample(*samples) if samples else surrogate.step_example(env)
-        value_step, derivative_step = training_steps
-        traced = surrogate.trace_step(training_step if derivative_step is None else jax.jit(value_step), *example)
+        derivative_step = training_steps[1]
+        traced = surrogate.trace_step(values_step, *example)
 
         def choose() -> dict:  # on the diagnosis's samples, drawn again where its answer was kept
             drawn = samples or jax.jit(lambda key: sample_for_diagnosis(env, training_step, key, episode_length))(
@@ -405,9 +408,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         """Whether the trained reward turns a comparison into a number, which the check may smooth (read
         from the step a surrogate would be made of, at shapes); where its reward cannot be told, True."""
         example = surrogate.step_example(env)
-        value_step, derivative_step = training_steps
         try:
-            traced = surrogate.trace_step(training_step if derivative_step is None else jax.jit(value_step), *example)
+            traced = surrogate.trace_step(values_step, *example)
         except ValueError:  # no single leaf of the state is named reward: no surrogate could be made of it either
             return True
         return surrogate.turns_comparisons_into_numbers(traced, example)
