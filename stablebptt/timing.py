@@ -7,7 +7,9 @@ processes), so ratios measured in one run compare like with like.
 from __future__ import annotations
 
 import os
+import platform
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 
@@ -17,6 +19,18 @@ def usable_cores() -> int:
     if hasattr(os, "sched_getaffinity"):
         return len(os.sched_getaffinity(0))
     return os.cpu_count() or 1
+
+
+def machine() -> str:
+    """The machine in words: architecture, processor, cores this process may use."""
+    model = ""
+    try:
+        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                      if line.startswith("model name")), "")
+    except OSError:
+        pass
+    return (f"{platform.machine()}{f' ({model})' if model else ''}, {usable_cores()} of "
+            f"{os.cpu_count()} cores, {platform.system()} {platform.release()}")
 
 
 def compile_ahead(function: Callable, *arguments) -> tuple[Callable, float]:

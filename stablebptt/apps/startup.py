@@ -10,12 +10,9 @@ the models and environments and writes the table and its record.
 """
 from __future__ import annotations
 
-import os
-import platform
 from pathlib import Path
 
 from stablebptt.errors import InputError
-from stablebptt.timing import usable_cores
 
 # dm_control's suite models that train (tests/physics/test_suite_models.py), smallest first.
 SUITE_MODELS = ("pendulum", "acrobot", "point_mass", "hopper", "ball_in_cup", "reacher", "fish", "walker",
@@ -53,18 +50,6 @@ def resolve_envs(names: list[str]) -> list[str]:
         if ":" not in name:
             playground.check_name(name)
     return names
-
-
-def machine() -> str:
-    """The machine in words: architecture, processor, cores this process may use."""
-    model = ""
-    try:
-        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                      if line.startswith("model name")), "")
-    except OSError:
-        pass
-    return (f"{platform.machine()}{f' ({model})' if model else ''}, {usable_cores()} of "
-            f"{os.cpu_count()} cores, {platform.system()} {platform.release()}")
 
 
 def _seconds(run: dict, part: str) -> str:

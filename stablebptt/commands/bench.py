@@ -38,7 +38,7 @@ from pathlib import Path
 from stablebptt.apps.bench import TABLES, BenchConfig
 from stablebptt.cli import fail, parse_config
 from stablebptt.errors import InputError
-from stablebptt.timing import usable_cores
+from stablebptt.timing import machine, usable_cores
 
 
 def main(argv: list[str]) -> int:
@@ -135,7 +135,7 @@ def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
 
 def startup(config, argv: list[str]) -> int:
     """The start-up table (``--startup``): cold and warm fresh processes per model and environment, a row at a time."""
-    from stablebptt.apps.startup import machine, resolve_envs, resolve_models, table
+    from stablebptt.apps.startup import resolve_envs, resolve_models, table
     from stablebptt.errors import InputError
     from stablebptt.storage import atomic_write
     try:  # the default models only where neither models nor environments are named

@@ -26,6 +26,7 @@ from stablebptt.runs.run_folder import (
     write_metrics,
 )
 from stablebptt.storage import read_json, write_json
+from stablebptt.timing import machine
 
 
 class Outcome(NamedTuple):
@@ -122,13 +123,15 @@ def _starts(run_dir: Path) -> list[dict]:
 def record_start(run_dir: Path, phases: dict[str, float], seconds: float, budget: float = 0.0,
                  first_epoch: int = 1, compile_seconds_from_cache: float | None = None) -> None:
     """Add a start of the run (its first, or a ``--resume``) to its ``startup.json``: when, on which
-    device, the seconds of each start-up phase and from the command's start to its first epoch's
+    device and host, the seconds of each start-up phase and from the command's start to its first epoch's
     start, the budget it was given (none: left out), the epoch it trains first and the seconds of
     compile that JAX's persistent cache saved it (where measured: a fresh machine's start saves none,
     a start after the same programs ran on the machine most of its compile)."""
     path, starts = Path(run_dir) / STARTUP_FILE, _starts(run_dir)
     device = jax.devices()[0]
+    # The host too: the same start took 167 and 225 s on two hosts lent as one GPU kind (docs/performance.md).
     starts.append({"started": datetime.now().isoformat(timespec="seconds"), "device": f"{device.platform} ({device.device_kind})",
+                   "host": machine(),
                    "seconds_to_training": round(seconds, 3), "phases": {name: round(value, 3) for name, value in phases.items() if round(value, 3)},
                    "first_epoch": first_epoch, **({"budget": budget} if budget else {}),
                    **({} if compile_seconds_from_cache is None

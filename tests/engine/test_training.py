@@ -503,3 +503,4 @@ def test_compiled_programs_are_kept_between_runs_unless_turned_off(tmp_path):
     assert warm.returncode == 0, warm.stderr
     start, = storage.read_json(tmp_path / "again" / run_folder.STARTUP_FILE)
     assert start["compile_seconds_from_cache"] > 0, (start, warm.stderr)
+    assert start["host"] == timing.machine()  # the host named, so that starts on different hosts are told apart
