@@ -287,7 +287,7 @@ TASK_CASES = {
     "step changes structure": "Dynamics.step must return a state like the one it is given",
     "vector loss": "Dynamics.loss must return one float for a trajectory",
     "wrong control shape": "Dynamics.step must return a state like the one it is given",  # it broadcast the control
-    "sampler size": "Task.sample_initial_states(key, 2) must return 2 states",
+    "sampler size": "Task.sample_initial_states(key, 8) must return 8 states",  # the training states' count
     "integer parameters": "Task.init_params must return float parameters",
 }
 

@@ -511,3 +511,16 @@ def test_carried_episodes_draw_their_initial_states_while_the_epoch_is_lowered_a
     assert bool(metrics["finite"][0])
     fixed = make_trainer(task, TrainConfig(epochs=1, batch=1, train_size=2, test_size=2, episodes="off"))
     assert fixed.initial_states.drawn.done()
+
+
+def test_the_task_check_samples_at_the_training_states_count_so_the_set_up_traces_one_count():
+    """The trainer's set-up checks the task's sampler at the count its training states are drawn at: an
+    environment's batched reset, a large trace (the cheetah's settles 200 physics steps), is traced for one
+    count where the check's own count made it two (docs/performance.md)."""
+    counts = []
+    task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
+                sample_initial_states=lambda key, n: counts.append(n) or jax.random.uniform(key, (n,)),
+                episodes=episodes())
+    trainer = make_trainer(task, TrainConfig(epochs=1, batch=3, train_size=6, test_size=6))
+    trainer.initial_states.drawn.result()
+    assert set(counts) == {6}
