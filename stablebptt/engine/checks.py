@@ -11,15 +11,14 @@ meaningless, before a run records both as if they applied.
 """
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import dataclasses
 import numbers
-from typing import Any, Iterator
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 
+from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.task import Task
 from stablebptt.errors import InputError, config_field
 from stablebptt.flows.dynamics import Plan
@@ -28,28 +27,6 @@ from stablebptt.flows.modes import flows_needed
 
 class TaskError(InputError):
     """A ``Task`` or its ``Dynamics`` that cannot train: the message names the field."""
-
-
-_shapes_only = contextvars.ContextVar("stablebptt_shapes_only", default=False)
-
-
-@contextlib.contextmanager
-def tracing_shapes() -> Iterator[None]:
-    """Within the block, ``init_params`` is traced for its parameters' shapes alone: ``shapes_only()``
-    is true, and a task whose parameters' values wait for a check still running (``Task.settle``: an
-    environment's reward diagnosis) gives its shapes without waiting. Trace a function made for the
-    trace (``jax.eval_shape(lambda ...: ...)``): JAX keeps a function's trace, ``eval_shape``'s too,
-    for a later jit of the same function, which would then compute values without waiting."""
-    token = _shapes_only.set(True)
-    try:
-        yield
-    finally:
-        _shapes_only.reset(token)
-
-
-def shapes_only() -> bool:
-    """Whether the caller traces for shapes alone (``tracing_shapes``)."""
-    return _shapes_only.get()
 
 
 def parameter_shapes(task: Any, zero_output: bool) -> Any:

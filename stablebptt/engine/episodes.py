@@ -29,6 +29,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from stablebptt.engine.shapes import shapes_only
 from stablebptt.errors import InputError
 from stablebptt.flows.dynamics import Dynamics, PyTree
 
@@ -256,8 +257,15 @@ def first_population(seed_key: jax.Array, episodes: Episodes, envs: int, window:
 def _reset(episodes: Episodes, key: jax.Array, envs: int) -> Any:
     """``envs`` fresh states, each from a key of its own split from ``key``, every leaf strongly typed: a
     reset may give weakly typed leaves (an MJX state's time, a Python float), which a checkpoint's
-    arrays read back do not carry, and a resume then compiled every program again for its state."""
-    states = jax.vmap(episodes.reset)(jax.random.split(key, envs))
+    arrays read back do not carry, and a resume then compiled every program again for its state.
+    Traced for shapes alone (``tracing_shapes``), stand-ins of one reset's shapes: the batched reset is
+    a large trace (4.4 s of the cheetah's start before the epoch's trace, on a CPU), and its shapes are
+    one reset's with a leading axis of ``envs``."""
+    keys = jax.random.split(key, envs)
+    if shapes_only():
+        one = jax.eval_shape(episodes.reset, jax.ShapeDtypeStruct(keys.shape[1:], keys.dtype))
+        return jax.tree.map(lambda leaf: jnp.zeros((envs, *leaf.shape), leaf.dtype), one)
+    states = jax.vmap(episodes.reset)(keys)
     return jax.tree.map(lambda leaf: jax.lax.convert_element_type(leaf, leaf.dtype), states)
 
 

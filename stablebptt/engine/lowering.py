@@ -6,7 +6,7 @@ from typing import Any, NamedTuple
 
 import jax
 
-from stablebptt.engine.checks import tracing_shapes
+from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.program_store import cache_dir, lower_epoch, lower_kept
@@ -26,13 +26,16 @@ class LoweredEpoch(NamedTuple):
 
 def state_shapes(trainer: Trainer, seeds: Any) -> Any:
     """The shapes of ``trainer.init(seeds)``, traced with no values: a task's check still running need
-    not have answered (it decides the parameters' start, not their shapes)."""
-    # The policy's init through a function of its own, not its jit: JAX would keep a jit's trace for
-    # the next call, and this one's parameters start before the check has decided how.
+    not have answered (it decides the parameters' start, not their shapes), and a carried population's
+    shapes come from one reset's (``tracing_shapes``)."""
+    # Each part through a function of its own, not its jit: JAX would keep a jit's trace for the next
+    # call, and this one's parameters start before the check has decided how, its population unreset.
     policy = getattr(trainer.init.policy, "__wrapped__", trainer.init.policy)
+    rest = getattr(trainer.init.rest, "__wrapped__", trainer.init.rest)
     with tracing_shapes():
         params, opt_state, log_std = jax.eval_shape(lambda seeds: policy(seeds), seeds)
-    return TrainState(params, opt_state, *jax.eval_shape(trainer.init.rest, seeds), log_std)
+        carried_and_critic = jax.eval_shape(lambda seeds: rest(seeds), seeds)
+    return TrainState(params, opt_state, *carried_and_critic, log_std)
 
 
 def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | None = None,

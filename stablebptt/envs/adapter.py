@@ -31,9 +31,10 @@ import jax.numpy as jnp
 import mujoco
 
 from stablebptt.engine import program_store
-from stablebptt.engine.checks import shapes_only, whole_number
+from stablebptt.engine.checks import whole_number
 from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.observations import StandardizedNetwork, no_observations, refresh_from, standardized
+from stablebptt.engine.shapes import shapes_only
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.arguments import check_env_task_arguments

@@ -64,6 +64,28 @@ def test_every_program_and_check_that_resets_reuses_one_trace_of_the_env_s_reset
     assert "reset" not in vars(env)  # the user's env keeps its own method
 
 
+def test_the_epoch_is_lowered_for_its_population_s_shapes_taken_from_one_reset_without_batching_the_reset(
+        monkeypatch):
+    """A start lowers the epoch for the shapes init gives (``lowering.state_shapes``). Its carried
+    population's come from one reset's: the batched reset, a large trace (the cheetah's settles 200
+    physics steps), is left to init's own program, traced while the epoch compiles. The shapes are
+    init's, weak types and all, so the epoch lowered for them runs on init's state."""
+    task = env_task(Cart(), horizon=5)
+    trainer = sb.make_trainer(task, TINY)
+    seeds = seed_array(TINY)
+    batched, vmap = [], jax.vmap
+    monkeypatch.setattr(jax, "vmap", lambda function, *a, **k: batched.append(function) or vmap(function, *a, **k))
+    shapes = lowering.state_shapes(trainer, seeds)
+    assert task.episodes.reset not in batched
+    state = trainer.init(seeds)
+    assert task.episodes.reset in batched  # init's own program resets the population
+    assert jax.tree.structure(shapes) == jax.tree.structure(state)
+    described = lambda tree: [(leaf.shape, leaf.dtype, getattr(leaf, "weak_type", False))  # noqa: E731
+                              for leaf in jax.tree.leaves(tree)]
+    assert described(shapes) == described(state)
+    assert starting.lowered_for(lowering.LoweredEpoch(None, shapes), state)
+
+
 def test_evaluations_run_apart_on_their_cadence_and_a_hook_sees_every_epoch_and_may_stop_the_run():
     # Windows of 10 along episodes of 30: 3 updates an epoch. Every 6 updates: epochs 2 and 4, and the
     # last one (5) - not 1 or 3, whose returns are NaN.
