@@ -6,10 +6,10 @@ from typing import Any, NamedTuple
 
 import jax
 
-from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, seed_array
 from stablebptt.engine.program_store import cache_dir, lower_epoch, lower_kept
+from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.training import Trainer, TrainState
 
 
