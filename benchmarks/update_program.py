@@ -24,7 +24,9 @@ and memory: the memory plan's bytes stored for the update's backward pass, from 
 --sizes: each chosen program's size as lowered (lines of StableHLO, while loops), nothing compiled or timed:
 what a program holds, where its compile on a GPU is what costs (the same program on any backend).
 
-Every other option is train.py's (--mode R --no-cosine: one flow).
+Every other option is train.py's (--mode R --no-cosine: one flow). The task is built as train.py builds it,
+its reward check run first; where the check keeps the reward as written (HumanoidStand's, the walkers'),
+--no-reward-check gives the same programs sooner (the humanoid's check and init took minutes on a GPU's host).
 """
 import os
 import sys
