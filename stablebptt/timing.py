@@ -25,8 +25,8 @@ def machine() -> str:
     """The machine in words: architecture, processor, cores this process may use."""
     model = ""
     try:
-        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                      if line.startswith("model name")), "")
+        lines = Path("/proc/cpuinfo").read_text(errors="replace").splitlines()
+        model = next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), "")
     except OSError:
         pass
     return (f"{platform.machine()}{f' ({model})' if model else ''}, {usable_cores()} of "

@@ -61,8 +61,10 @@ def check_dynamics(dynamics: Any) -> None:
             raise TaskError(f"Dynamics.{name} must be a function, got {getattr(dynamics, name)!r}")
 
 
-def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
-    """Trace ``task`` with shapes only and raise ``TaskError`` naming the first field that does not fit."""
+def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2,)) -> None:
+    """Trace ``task`` with shapes only and raise ``TaskError`` naming the first field that does not fit;
+    its sampler at each of ``counts`` (a trainer's: the counts it draws, so that an environment's batched
+    reset, a large trace, is traced for no other)."""
     if not isinstance(task, Task):
         raise TaskError(f"expected a stablebptt.Task, got {type(task).__name__}")
     dynamics = task.dynamics
@@ -77,14 +79,15 @@ def check_task(task: Any, zero_output: bool = True, count: int = 2) -> None:
     not_float = [leaf for leaf in jax.tree.leaves(params) if not jnp.issubdtype(leaf.dtype, jnp.floating)]
     if not jax.tree.leaves(params) or not_float:
         raise TaskError(f"Task.init_params must return float parameters to train, got {_describe(params)}")
-    try:
-        states = jax.eval_shape(lambda k: task.sample_initial_states(k, count), key)
-    except Exception as error:  # noqa: BLE001
-        raise TaskError(f"Task.sample_initial_states(key, {count}) fails: {first_line(error)}") from None
-    sizes = {leaf.shape[0] if leaf.ndim else None for leaf in jax.tree.leaves(states)}
-    if sizes != {count}:
-        raise TaskError(f"Task.sample_initial_states(key, {count}) must return {count} states (every leaf's leading "
-                        f"axis {count}), got {_describe(states)}")
+    for count in dict.fromkeys(counts):
+        try:
+            states = jax.eval_shape(lambda k, count=count: task.sample_initial_states(k, count), key)
+        except Exception as error:  # noqa: BLE001
+            raise TaskError(f"Task.sample_initial_states(key, {count}) fails: {first_line(error)}") from None
+        sizes = {leaf.shape[0] if leaf.ndim else None for leaf in jax.tree.leaves(states)}
+        if sizes != {count}:
+            raise TaskError(f"Task.sample_initial_states(key, {count}) must return {count} states (every leaf's "
+                            f"leading axis {count}), got {_describe(states)}")
     state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype), states)
     try:
         control = jax.eval_shape(dynamics.policy, params, state)

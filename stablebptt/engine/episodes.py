@@ -259,8 +259,8 @@ def _reset(episodes: Episodes, key: jax.Array, envs: int) -> Any:
     reset may give weakly typed leaves (an MJX state's time, a Python float), which a checkpoint's
     arrays read back do not carry, and a resume then compiled every program again for its state.
     Traced for shapes alone (``tracing_shapes``), stand-ins of one reset's shapes: the batched reset is
-    a large trace (12 s of the cheetah's start before its epoch's compile, on a 2-core CPU), and its
-    shapes are one reset's with a leading axis of ``envs``."""
+    a large trace (docs/performance.md, "The population's shapes from one reset"), and its shapes are
+    one reset's with a leading axis of ``envs``."""
     keys = jax.random.split(key, envs)
     if shapes_only():
         one = jax.eval_shape(episodes.reset, jax.ShapeDtypeStruct(keys.shape[1:], keys.dtype))

@@ -156,9 +156,9 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
                          "trains such a config in float64 by itself; with make_trainer, build the trainer and call "
                          "its functions under `with jax.enable_x64(True):`")
     kept = functools.partial(kept_answer, keep)
-    # At the training states' count, which the initial states draw next: an environment's batched reset is traced
-    # once for both (the cheetah's, which settles 200 physics steps, took 4.4 s a count on a GPU's host).
-    kept("task checked", lambda: check_task(task, config.zero_output, count=config.train_size) or True)
+    # At the counts the initial states are drawn at, and no other (docs/performance.md, "One count of the env's
+    # reset in the trainer's set-up").
+    kept("task checked", lambda: check_task(task, config.zero_output, (config.train_size, config.test_size)) or True)
     lap("trainer set-up: task check")
     if plan is not None and not isinstance(plan, Plan):
         raise InputError(f"make_trainer's plan must be a stablebptt.Plan or None, got {type(plan).__name__}")

@@ -129,7 +129,7 @@ def record_start(run_dir: Path, phases: dict[str, float], seconds: float, budget
     a start after the same programs ran on the machine most of its compile)."""
     path, starts = Path(run_dir) / STARTUP_FILE, _starts(run_dir)
     device = jax.devices()[0]
-    # The host too: the same start took 167 and 225 s on two hosts lent as one GPU kind (docs/performance.md).
+    # The host too: the same start on two H200 hosts differed by a third (docs/performance.md).
     starts.append({"started": datetime.now().isoformat(timespec="seconds"), "device": f"{device.platform} ({device.device_kind})",
                    "host": machine(),
                    "seconds_to_training": round(seconds, 3), "phases": {name: round(value, 3) for name, value in phases.items() if round(value, 3)},

@@ -513,14 +513,17 @@ def test_carried_episodes_draw_their_initial_states_while_the_epoch_is_lowered_a
     assert fixed.initial_states.drawn.done()
 
 
-def test_the_task_check_samples_at_the_training_states_count_so_the_set_up_traces_one_count():
-    """The trainer's set-up checks the task's sampler at the count its training states are drawn at: an
-    environment's batched reset, a large trace (the cheetah's settles 200 physics steps), is traced for one
-    count where the check's own count made it two (docs/performance.md)."""
+def test_the_task_check_samples_at_the_counts_the_states_are_drawn_at_and_no_other():
+    """The trainer's set-up checks the task's sampler at the counts its training and test states are drawn
+    at: an environment's batched reset, a large trace, is traced for no count of the check's own
+    (docs/performance.md). A sampler that ignores the count is refused at the test states' count too."""
     counts = []
     task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
                 sample_initial_states=lambda key, n: counts.append(n) or jax.random.uniform(key, (n,)),
                 episodes=episodes())
-    trainer = make_trainer(task, TrainConfig(epochs=1, batch=3, train_size=6, test_size=6))
+    trainer = make_trainer(task, TrainConfig(epochs=1, batch=3, train_size=6, test_size=4))
     trainer.initial_states.drawn.result()
-    assert set(counts) == {6}
+    assert set(counts) == {6, 4}
+    fixed = dataclasses.replace(task, sample_initial_states=lambda key, n: jax.random.uniform(key, (6,)))
+    with pytest.raises(InputError, match=r"sample_initial_states\(key, 4\) must return 4 states"):
+        make_trainer(fixed, TrainConfig(epochs=1, batch=3, train_size=6, test_size=4))

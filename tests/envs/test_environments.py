@@ -67,10 +67,19 @@ def test_every_program_and_check_that_resets_reuses_one_trace_of_the_env_s_reset
 def test_the_epoch_is_lowered_for_its_population_s_shapes_taken_from_one_reset_without_batching_the_reset(
         monkeypatch):
     """A start lowers the epoch for the shapes init gives (``lowering.state_shapes``). Its carried
-    population's come from one reset's: the batched reset, a large trace (the cheetah's settles 200
-    physics steps), is left to init's own program, traced while the epoch compiles. The shapes are
-    init's, weak types and all, so the epoch lowered for them runs on init's state."""
-    task = env_task(Cart(), horizon=5)
+    population's come from one reset's: the batched reset, a large trace, is left to init's own program,
+    traced while the epoch compiles. The shapes are init's, a reset's weakly typed leaf (an MJX state's
+    time) included, so the epoch lowered for them runs on init's state; init's population is reset."""
+    class TimedCart(Cart):
+        def reset(self, key):
+            state = super().reset(key)
+            return state._replace(data={**state.data, "time": 0.0})  # a Python float: weakly typed
+
+        def step(self, state, action):
+            reached = super().step(state, action)
+            return reached._replace(data={**reached.data, "time": state.data["time"] + 0.1})
+
+    task = env_task(TimedCart(), horizon=5)
     trainer = sb.make_trainer(task, TINY)
     seeds = seed_array(TINY)
     batched, vmap = [], jax.vmap
@@ -84,6 +93,8 @@ def test_the_epoch_is_lowered_for_its_population_s_shapes_taken_from_one_reset_w
                               for leaf in jax.tree.leaves(tree)]
     assert described(shapes) == described(state)
     assert starting.lowered_for(lowering.LoweredEpoch(None, shapes), state)
+    positions = np.asarray(state.carried.states.data["position"])  # drawn in [-1, 1], none zero
+    assert positions.shape == (TINY.seeds, TINY.batch) and np.all(positions != 0)
 
 
 def test_evaluations_run_apart_on_their_cadence_and_a_hook_sees_every_epoch_and_may_stop_the_run():
