@@ -29,21 +29,28 @@ class InitialStates(NamedTuple):
         return cls((train, test), drawn)
 
 
+def drawn_counts(config: TrainConfig) -> tuple[int, int]:
+    """How many training and test initial states a run draws (``draw_initial_states``): the counts the
+    trainer's task check samples at, so that an environment's batched reset is traced for no other."""
+    return config.train_size, config.test_size
+
+
 def draw_initial_states(task: Task, config: TrainConfig, deferred: bool) -> InitialStates:
     """The run's training and test initial states (``TrainConfig.data_seed``), the test states' reset
     compiling while the training states' does (on a GPU, one program each). ``deferred``: drawn in a
     thread of their own, their shapes traced here (the values are the same either way)."""
     train_key, test_key = data_keys(config.data_seed)
+    train_count, test_count = drawn_counts(config)
 
     def draw():
-        testing = beside(lambda: sample_states(task, test_key, config.test_size), "stablebptt-test-states")
-        return sample_states(task, train_key, config.train_size), testing.result()
+        testing = beside(lambda: sample_states(task, test_key, test_count), "stablebptt-test-states")
+        return sample_states(task, train_key, train_count), testing.result()
 
     if not deferred:
         return InitialStates.at_hand(*draw())
     # check_task refuses a sampler that does not trace on shapes alone.
     shapes = tuple(jax.eval_shape(lambda key, count=count: task.sample_initial_states(key, count), key)
-                   for key, count in ((train_key, config.train_size), (test_key, config.test_size)))
+                   for key, count in ((train_key, train_count), (test_key, test_count)))
     return InitialStates(shapes, beside(draw, "stablebptt-initial-states"))
 
 

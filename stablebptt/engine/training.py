@@ -32,7 +32,7 @@ from stablebptt.engine.episodes import (
     updates_per_epoch,
     window_dynamics,
 )
-from stablebptt.engine.initial_states import InitialStates, draw_initial_states
+from stablebptt.engine.initial_states import InitialStates, draw_initial_states, drawn_counts
 from stablebptt.engine.optimizer import adam, make_grid_optimizer, make_optimizer
 from stablebptt.engine.per_update import PerUpdateEpoch, compile_side_by_side
 from stablebptt.engine.program_store import kept_answer
@@ -156,9 +156,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
                          "trains such a config in float64 by itself; with make_trainer, build the trainer and call "
                          "its functions under `with jax.enable_x64(True):`")
     kept = functools.partial(kept_answer, keep)
-    # At the counts the initial states are drawn at, and no other (docs/performance.md, "One count of the env's
-    # reset in the trainer's set-up").
-    kept("task checked", lambda: check_task(task, config.zero_output, (config.train_size, config.test_size)) or True)
+    kept("task checked", lambda: check_task(task, config.zero_output, drawn_counts(config)) or True)
     lap("trainer set-up: task check")
     if plan is not None and not isinstance(plan, Plan):
         raise InputError(f"make_trainer's plan must be a stablebptt.Plan or None, got {type(plan).__name__}")
