@@ -17,6 +17,8 @@ derivative, none of the flows' machinery, no critic).
     python benchmarks/update_program.py --collision-held --env HumanoidStand ... --sizes   # what if the
         # contacts' geometry (points, frames, distances) were held in the derivative: MJX's collision
         # functions then have no derivative in the program (a what-if: no training option takes it)
+    python benchmarks/update_program.py --self-collision-held --env HumanoidStand ...   # the same for the
+        # contacts with no plane or height field in them (a body's own limbs), those with the floor differentiated
 
 --programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
@@ -67,6 +69,22 @@ if "--collision-held" in arguments:
         return found.tree_replace({"_impl.contact": jax.lax.stop_gradient(found._impl.contact)})
     collision_driver.collision = collision_held
     print("the contacts' geometry held in the derivative (--collision-held)", flush=True)
+if "--self-collision-held" in arguments:
+    arguments.remove("--self-collision-held")
+    from stablebptt.physics.mjx_internals import collision_driver  # noqa: E402
+    from stablebptt.physics.mjx_internals import types as mjx_types  # noqa: E402
+    grounds = {mjx_types.GeomType.PLANE, mjx_types.GeomType.HFIELD}
+
+    def held(function):  # the pairs' collision function on the data held: it has no derivative in the program
+        def collide_held(model, data, key, geoms):
+            return function(model, jax.lax.stop_gradient(data), key, geoms)
+        collide_held.ncon = function.ncon
+        return collide_held
+    # Before the groups' contacts are joined: held after, every group's derivative would still run, times zero.
+    collision_driver._COLLISION_FUNC.update({types: held(function) for types, function in
+                                             collision_driver._COLLISION_FUNC.items() if not set(types) & grounds})
+    print("the geometry of contacts with no plane or height field in them held in the derivative "
+          "(--self-collision-held)", flush=True)
 sizes_only = "--sizes" in arguments
 if sizes_only:
     arguments.remove("--sizes")
