@@ -18,7 +18,8 @@ derivative, none of the flows' machinery, no critic).
         # contacts' geometry (points, frames, distances) were held in the derivative: MJX's collision
         # functions then have no derivative in the program (a what-if: no training option takes it)
     python benchmarks/update_program.py --self-collision-held --env HumanoidStand ...   # the same for the
-        # contacts with no plane or height field in them (a body's own limbs), those with the floor differentiated
+        # contacts with no plane or height field in them (the humanoid's limbs against each other; in general
+        # any pair without the ground), those with the floor differentiated
 
 --programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
