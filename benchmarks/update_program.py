@@ -20,11 +20,21 @@ derivative, none of the flows' machinery, no critic).
     python benchmarks/update_program.py --self-collision-held --env HumanoidStand ...   # the same for the
         # contacts with no plane or height field in them (the humanoid's limbs against each other; in general
         # any pair without the ground), those with the floor differentiated
+    python benchmarks/update_program.py --contact-gradient-geometry held --env HumanoidStand ...   # train.py's
+        # option: the contacts' points and frames held, their distances by the closed form n . (v2 - v1)
+    python benchmarks/update_program.py --substeps-unrolled --env HumanoidStand ...   # MuJoCo Playground's
+        # loop over a control step's physics steps unrolled (no residuals stacked per physics step), or
+        # with --substeps-rematerialized each physics step recomputed in the backward pass
+    python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time
+        # by MJX stage and by name stack, from one call under JAX's profiler (benchmarks/device_time.py)
+    python benchmarks/update_program.py --programs grad --gradient-file G.npy ...   # the plain window's
+        # gradient per seed written to G.npy, or compared with the one there (cosine, relative difference)
 
 --programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
 (``--programs memory`` alone prints that and times nothing).
---sizes: each chosen program's size as lowered (lines of StableHLO, while loops), nothing compiled or timed:
+--sizes: each chosen program's size as lowered (lines of StableHLO, while loops, dynamic_update_slice ops),
+nothing compiled or timed:
 what a program holds, where its compile on a GPU is what costs (the same program on any backend).
 
 Every other option is train.py's (--mode R --no-cosine: one flow). The task is built as train.py builds it,
@@ -39,6 +49,9 @@ import time
 os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "false")
 
 import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+import device_time  # noqa: E402  (beside this script)
 
 from stablebptt import tasks  # noqa: E402
 from stablebptt.commands import train as train_script  # noqa: E402
@@ -70,6 +83,22 @@ if "--collision-held" in arguments:
         return found.tree_replace({"_impl.contact": jax.lax.stop_gradient(found._impl.contact)})
     collision_driver.collision = collision_held
     print("the contacts' geometry held in the derivative (--collision-held)", flush=True)
+for substeps_option in ("--substeps-unrolled", "--substeps-rematerialized"):
+    if substeps_option in arguments:  # MuJoCo Playground's loop over a control step's physics steps, otherwise
+        arguments.remove(substeps_option)
+        from mujoco_playground._src import mjx_env  # noqa: E402  (its envs call it through the module)
+        from stablebptt.physics.mjx_internals import mjx  # noqa: E402
+
+        def physics_steps(model, data, action, n_substeps=1, unrolled=substeps_option == "--substeps-unrolled"):
+            def physics_step(data, _):
+                return mjx.step(model, data.replace(ctrl=action)), None
+            if unrolled:  # no loop: no stacked residuals for the backward pass
+                return jax.lax.scan(physics_step, data, (), n_substeps, unroll=n_substeps)[0]
+            # each physics step recomputed in the backward pass: the loop stacks its data alone
+            return jax.lax.scan(jax.checkpoint(physics_step), data, (), n_substeps)[0]
+        mjx_env.step = physics_steps
+        print(f"MuJoCo Playground's physics steps per control step {substeps_option[11:]} ({substeps_option})",
+              flush=True)
 if "--self-collision-held" in arguments:
     arguments.remove("--self-collision-held")
     from stablebptt.physics.mjx_internals import collision_driver  # noqa: E402
@@ -86,6 +115,14 @@ if "--self-collision-held" in arguments:
                                              collision_driver._COLLISION_FUNC.items() if not set(types) & grounds})
     print("the geometry of contacts with no plane or height field in them held in the derivative "
           "(--self-collision-held)", flush=True)
+gradient_file = None
+if "--gradient-file" in arguments:
+    at = arguments.index("--gradient-file")
+    gradient_file = arguments[at + 1]
+    del arguments[at:at + 2]
+profiled = "--profile" in arguments
+if profiled:
+    arguments.remove("--profile")
 sizes_only = "--sizes" in arguments
 if sizes_only:
     arguments.remove("--sizes")
@@ -146,6 +183,22 @@ def milliseconds(compiled, inputs) -> float:
     return (time.perf_counter() - started) / 5 * 1000
 
 
+def compare_gradients(gradient, path: str, label: str) -> None:
+    """Writes each seed's gradient (its parameters' leaves flattened) to ``path``, or where it holds one
+    already, compares with it: the cosine and the relative difference per seed."""
+    flat = np.concatenate([np.asarray(leaf).reshape(leaf.shape[0], -1) for leaf in jax.tree.leaves(gradient)], 1)
+    if not os.path.exists(path):
+        np.save(path, flat)
+        print(f"{label}: gradient written to {path}", flush=True)
+        return
+    reference = np.load(path)
+    norms = np.linalg.norm(flat, axis=1) * np.linalg.norm(reference, axis=1)
+    cosine = np.sum(flat * reference, 1) / norms
+    relative = np.linalg.norm(flat - reference, axis=1) / np.linalg.norm(reference, axis=1)
+    print(f"{label}: against {path}, per seed: cosine {np.array2string(cosine, precision=5)}, relative difference "
+          f"{np.array2string(relative, precision=4)}", flush=True)
+
+
 for name, program, inputs in [program for program in programs if program[0] in chosen]:
     start = time.perf_counter()
     lowered = program.lower(*inputs)
@@ -153,9 +206,14 @@ for name, program, inputs in [program for program in programs if program[0] in c
     if sizes_only:
         text = lowered.as_text()
         print(f"{' '.join(arguments)}: {described.get(name, name)}: {text.count(chr(10))} lines of StableHLO, "
-              f"{text.count('stablehlo.while')} while loops", flush=True)
+              f"{text.count('stablehlo.while')} while loops, {text.count('stablehlo.dynamic_update_slice')} "
+              f"dynamic_update_slice ops (a loop's stores of what its backward pass reads among them)", flush=True)
         continue
     compiled = lowered.compile()
     compiled_at = time.perf_counter()
     print(f"{' '.join(arguments)}: {described.get(name, name)}: trace and lower {lowered_at - start:.1f} s, compile "
           f"{compiled_at - lowered_at:.1f} s, run {milliseconds(compiled, inputs):.1f} ms", flush=True)
+    if name == "grad" and gradient_file is not None:
+        compare_gradients(compiled(*inputs), gradient_file, f"{' '.join(arguments)}: {described[name]}")
+    if profiled:
+        device_time.split(compiled, inputs, f"{' '.join(arguments)}: {described.get(name, name)}")

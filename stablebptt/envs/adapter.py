@@ -38,7 +38,8 @@ from stablebptt.engine.shapes import shapes_only
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.arguments import check_env_task_arguments
-from stablebptt.envs.derivative_model import contact_cut, derivative_steps, joined, loaded_states, own_substeps
+from stablebptt.envs.derivative_model import (check_contacts, contact_cut, derivative_steps, joined, loaded_states,
+                                              own_substeps)
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
                                        start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
@@ -131,7 +132,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              surrogate_reward: Callable[[Any], jax.Array] | None = None, normalize_observations: bool = False,
              reward_env: Any = None, contact_smoothing: ContactSmoothing | None = None,
              gradient_substeps: int | None = None, squash_gradient_floor: float = 0.0,
-             contact_gradient_cut: float = 0.0) -> Task:
+             contact_gradient_cut: float = 0.0, contact_geometry_held: bool = False) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -177,6 +178,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         unchanged (``networks.floored_tanh``): a saturated action still passes that share of its gradient on.
       contact_gradient_cut: the windows' derivative stops at a state under constraint forces above this many
         body weights (``derivative_model.contact_cut``; MJX's data in the state); 0: never.
+      contact_geometry_held: the step's values stay the env's; its derivative holds each contact's point and
+        frame and differentiates its distance by the closed form n . (v2 - v1), first-order exact
+        (``backward_contacts.geometry_held``): MJX's collision functions are not differentiated. False: MJX's own
+        derivative of its collision.
 
     Example::
 
@@ -190,7 +195,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                      defer_diagnosis=defer_diagnosis, smoothing=smoothing, smoothing_scale=smoothing_scale,
                      surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
                      reward_env=reward_env, contact_smoothing=contact_smoothing, gradient_substeps=gradient_substeps,
-                     squash_gradient_floor=squash_gradient_floor, contact_gradient_cut=contact_gradient_cut)
+                     squash_gradient_floor=squash_gradient_floor, contact_gradient_cut=contact_gradient_cut,
+                     contact_geometry_held=contact_geometry_held)
     env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -209,10 +215,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         contact_smoothing = None
     if gradient_substeps is not None and gradient_substeps == own_substeps(env):  # the env's own steps
         gradient_substeps = None
+    if contact_geometry_held:
+        check_contacts(env, "contacts' points and frames held in the derivative", label)
 
     def traced(stepping_env):  # the env's step as every program traces it
         def env_step(state, action):
-            with differentiable_mjx(implicit_solver=True), reward_context():
+            with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held), reward_context():
                 return stepping_env.step(state, action)
         return env_step
 
@@ -261,7 +269,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         # the diagnosis reads the derivative, which the contacts' smoothing changes
         **({} if contact_smoothing is None else
            {"contact_smoothing": [contact_smoothing.margin, contact_smoothing.softness]}),
-        **({} if gradient_substeps is None else {"gradient_substeps": gradient_substeps})}
+        **({} if gradient_substeps is None else {"gradient_substeps": gradient_substeps}),
+        **({"contact_geometry": "held"} if contact_geometry_held else {})}
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
 
     def start() -> PendingDiagnosis:
@@ -329,6 +338,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                   f"; contacts smoothed in the derivative alone (acting from {contact_smoothing.margin:g} m, "
                   f"time constants x{contact_smoothing.softness:g})")
                + ("" if gradient_substeps is None else f"; derivative through {gradient_substeps} physics steps per control step")
+               + ("; the contacts' points and frames held in the derivative" if contact_geometry_held else "")
                + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else "")
                + (f"; the derivative cut at contact loads above {contact_gradient_cut:g} body weights" if contact_gradient_cut else ""))
     if reward_repairs:

@@ -38,13 +38,23 @@ def derivative_steps(traced: Callable[[Any], Callable], env: Any, smoothing: Con
                        f"as MuJoCo Playground's do; {type(env).__name__} does not")
     other = copy.copy(env)  # the same env, stepping the derivative's model
     if smoothing is not None:
-        if next(iter(collision_driver.geom_pairs(env._mjx_model)), None) is None:
-            raise EnvError(f"{label}: its model has no pair of geoms that can touch, so contacts smoothed in the "
-                           f"derivative change nothing: drop the contact gradient's options")
+        check_contacts(env, "contacts smoothed in the derivative", label)
         other._mjx_model = smoothed_model(env._mjx_model, smoothing)
     if substeps is not None:
         _take_substeps(other, substeps, label)
     return traced(env), traced(other)
+
+
+def check_contacts(env: Any, what: str, label: str) -> None:
+    """``EnvError`` where ``env``'s model cannot be seen to have contacts, so that ``what`` (an option on
+    its contacts' derivative) would change nothing: no MJX model in ``_mjx_model``, or no pair of geoms
+    that can touch."""
+    if "_mjx_model" not in vars(env):
+        raise EnvError(f"{label}: {what} need an env that keeps its MJX model in _mjx_model, as MuJoCo "
+                       f"Playground's do; {type(env).__name__} does not")
+    if next(iter(collision_driver.geom_pairs(env._mjx_model)), None) is None:
+        raise EnvError(f"{label}: its model has no pair of geoms that can touch, so {what} change nothing: drop "
+                       f"the contact gradient's options")
 
 
 def joined(value_step: Callable, derivative_step: Callable | None) -> Callable:

@@ -93,3 +93,28 @@ def differentiated_through(exact: Callable, smoothed: Callable) -> Callable:
 
     stepped.defjvp(jvp)
     return stepped
+
+
+def geometry_held(data: mjx.Data) -> mjx.Data:
+    """``data`` after MJX's collision, its contacts' points and frames held in the derivative and each
+    contact's distance differentiated by its closed form: d dist = n . (v2 - v1), the velocities of the
+    two geoms' bodies at the contact point along the normal (n points from geom 1 to geom 2).
+
+    That form is exact to first order for the convex pairs MJX collides: the witness points slide on
+    their surfaces perpendicular to the normal, and the normal's own change is perpendicular to the gap
+    it measures, so neither moves the distance. What is held is the contact point's and the frame's
+    motion, which turn the constraint rows' directions (a second-order effect of the contact force's
+    lever). Values are MJX's, bit for bit: the closed form enters as ``x - stop_gradient(x)``."""
+    contact = jax.lax.stop_gradient(data._impl.contact)
+    if contact.dist.shape[0] == 0:
+        return data
+    normal = contact.frame[:, 0]
+
+    def point_moving_with(geom):  # the contact point fixed in the geom's frame: its position moves as the body does
+        position, rotation = data.geom_xpos[geom], data.geom_xmat[geom]
+        in_geom = jax.numpy.einsum("cji,cj->ci", jax.lax.stop_gradient(rotation),
+                                   contact.pos - jax.lax.stop_gradient(position))
+        return position + jax.numpy.einsum("cij,cj->ci", rotation, in_geom)
+
+    gap = jax.numpy.sum(normal * (point_moving_with(contact.geom[:, 1]) - point_moving_with(contact.geom[:, 0])), -1)
+    return data.tree_replace({"_impl.contact": contact.replace(dist=contact.dist + (gap - jax.lax.stop_gradient(gap)))})

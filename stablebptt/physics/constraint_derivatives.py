@@ -28,7 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.physics import mjx_internals
-from stablebptt.physics.mjx_internals import collision_convex, mjx, solver, support
+from stablebptt.physics.backward_contacts import geometry_held
+from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, solver, support
 from stablebptt.physics.mjx_internals import types as mjx_types
 
 
@@ -247,7 +248,7 @@ _REMEDIES = (
     (collision_convex, "_closest_segment_point_plane", _closest_segment_point_plane_stable),
 )
 _lock = threading.RLock()
-_depth = {"remedies": 0, "implicit": 0}
+_depth = {"remedies": 0, "implicit": 0, "geometry": 0}
 _originals: dict[str, list] = {}
 
 
@@ -270,9 +271,33 @@ def _applied(kind: str, patches):
                     setattr(owner, name, original)
 
 
+_MJX_COLLISION = collision_driver.collision
+_tracing = threading.local()  # what this thread's trace asks of the contacts' derivative
+
+
+def _collision_as_asked(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """MJX's collision, its contacts' geometry held where this thread's trace asks (``geometry_held``).
+    A flag of the thread, not a patch of its own: programs are traced in several threads at once."""
+    found = _MJX_COLLISION(model, data)
+    return geometry_held(found) if getattr(_tracing, "geometry_held", False) else found
+
+
 @contextlib.contextmanager
-def differentiable_mjx(implicit_solver: bool = False):
-    """Trace MJX code with its derivative traps remedied (and, optionally, its solver differentiated implicitly).
+def _contact_geometry_held():
+    with _applied("geometry", ((collision_driver, "collision", _collision_as_asked),)):
+        before = getattr(_tracing, "geometry_held", False)
+        _tracing.geometry_held = True
+        try:
+            yield
+        finally:
+            _tracing.geometry_held = before
+
+
+@contextlib.contextmanager
+def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: bool = False):
+    """Trace MJX code with its derivative traps remedied (and, optionally, its solver differentiated implicitly,
+    its contacts' points and frames held in the derivative and their distances differentiated by the closed
+    form: ``backward_contacts.geometry_held``).
 
     Values are MJX's own either way. Reentrant; undone on exit, so MJX outside
     this library is unchanged. Use it around the tracing of a step::
@@ -285,6 +310,8 @@ def differentiable_mjx(implicit_solver: bool = False):
         if implicit_solver:
             stack.enter_context(_applied("implicit", ((solver, "solve", solve_implicitly),
                                                       (solver, "jax", _SOLVER_JAX))))
+        if contact_geometry_held:
+            stack.enter_context(_contact_geometry_held())
         yield
 
 

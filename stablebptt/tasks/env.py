@@ -101,6 +101,7 @@ class Config:
     smoothing_scale: float = field(default=1.0, metadata={"help": "the surrogate's temperatures: this times the median difference each smoothed comparison meets at the sampled states"})
     contact_gradient_margin: float = field(default=0.0, metadata={"help": "metres: the derivative is taken through the env's model with every contact acting from this far (the simulation stays the file's; 0: contacts as the file says)"})
     contact_gradient_softness: float = field(default=1.0, metadata={"help": "the derivative is taken through the env's model with every contact's time constant this many times the file's, >= 1 (the simulation stays the file's)"})
+    contact_gradient_geometry: str = field(default="exact", metadata={"help": "held: the derivative holds each contact's point and frame and differentiates its distance by the closed form n . (v2 - v1), first-order exact, so MJX's collision functions are not differentiated (a shorter update: docs/performance.md); exact: MJX's own derivative of its collision. The simulation stays the file's", "choices": ("exact", "held")})
     gradient_substeps: int = field(default=0, metadata={"help": "the derivative is taken through each control step in this many physics steps of equal length, a divisor of the env's own count (MuJoCo Playground's WalkerWalk simulates 10; 0: the env's own): a shorter backward pass; the simulation stays the file's"})
     squash_gradient_floor: float = field(default=0.0, metadata={"help": "the derivative of the policy's tanh squash is kept at least this, in [0, 1): an action at its bound, where tanh's slope is nearly 0, still passes this share of its gradient back to the policy; its values, and every action taken, stay tanh's (0: tanh's own derivative)"})
     contact_gradient_cut: float = field(default=0.0, metadata={"help": "the windows' derivative stops at a state whose constraint forces pass this many body weights (the norm of MJX's qfrc_constraint over the model's weight): a window's later rewards reach no earlier state or action through a hard contact, the reward of that state still does; its values, and every return, stay the env's (0: no cut; MuJoCo Playground's envs)"})
@@ -120,6 +121,9 @@ class Config:
                              "not both: the windows train on one reward")
         check_smoothing(self.contact_gradient_margin, self.contact_gradient_softness,
                         config_field(self, "contact_gradient_margin"), config_field(self, "contact_gradient_softness"))
+        if self.contact_gradient_geometry not in ("exact", "held"):
+            raise InputError(f"{config_field(self, 'contact_gradient_geometry')} must be exact or held, "
+                             f"got {self.contact_gradient_geometry!r}")
         if self.gradient_substeps < 0:
             raise InputError(f"{config_field(self, 'gradient_substeps')} must be a whole number of physics steps >= 1 "
                              f"(or 0 for the env's own), got {self.gradient_substeps}")
@@ -198,6 +202,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
                     contact_smoothing=smoothing, gradient_substeps=config.gradient_substeps or None,
                     squash_gradient_floor=config.squash_gradient_floor,
                     contact_gradient_cut=config.contact_gradient_cut,
+                    contact_geometry_held=config.contact_gradient_geometry == "held",
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})
     if trained_reward:

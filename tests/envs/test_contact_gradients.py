@@ -12,7 +12,7 @@ from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import EnvError
 
 from conftest import train_in_process
-from envs_for_tests import Ball, Cart
+from envs_for_tests import Ball, Cart, MjxDataBall
 
 SMOOTHING = sb.ContactSmoothing(margin=0.05, softness=2.0)
 
@@ -56,5 +56,50 @@ def test_an_env_without_its_mjx_model_and_bad_values_are_refused_in_one_line(tmp
                                     ("--contact-gradient-softness", "0.5", "--contact-gradient-softness must be a number >= 1")):
         code, err = train_in_process(capsys, "--env", "envs_for_tests:make_cart", option, value, "--epochs", "1",
                                      "--out", str(tmp_path / "refused"))
+        assert code == 2 and len(err) == 1 and expected in err[0], err
+        assert not (tmp_path / "refused").exists()
+
+
+def test_the_contacts_geometry_held_keeps_values_and_distances_derivative_and_holds_the_points():
+    env = MjxDataBall()  # its state carries MJX's data, the step's contacts among it
+    exact = env_task(env, horizon=4, diagnose=False)
+    held = env_task(env, horizon=4, diagnose=False, contact_geometry_held=True)
+    assert "the contacts' points and frames held in the derivative" in held.summary
+    assert "points and frames held" not in exact.summary
+    state = env.reset(jax.random.PRNGKey(0))
+    state = state._replace(data=state.data.replace(qpos=jnp.array([-0.103])))  # the ball 3 mm in the plane
+    action = jnp.array([0.1])
+
+    @jax.jit
+    def tangents(state):
+        def stepped(task):
+            step = lambda qpos: task.dynamics.step(state._replace(data=state.data.replace(qpos=qpos)), action)  # noqa: E731
+            return jax.jvp(step, (state.data.qpos,), (jnp.ones(1),))
+        return stepped(exact), stepped(held)
+
+    (exact_value, exact_tangent), (held_value, held_tangent) = tangents(state)
+    for a, b in zip(jax.tree.leaves(exact_value), jax.tree.leaves(held_value)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    exact_contact, held_contact = exact_tangent.data._impl.contact, held_tangent.data._impl.contact
+    # The slide lifts the ball: its gap to the plane grows as fast, in both; the contact point, midway, at
+    # half that speed in MJX's derivative and not at all where the geometry is held.
+    np.testing.assert_allclose(np.asarray(held_contact.dist), np.asarray(exact_contact.dist), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(exact_contact.dist), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(exact_contact.pos)[..., 2], 0.5, rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(held_contact.pos), 0.0)
+    # The ball moves as a whole along the slide: the Jacobian at any point is the same, so the velocity's
+    # derivative is MJX's own.
+    np.testing.assert_allclose(np.asarray(held_tangent.data.qvel), np.asarray(exact_tangent.data.qvel), rtol=1e-5)
+
+
+def test_the_contacts_geometry_held_is_refused_where_it_would_change_nothing(tmp_path, capsys):
+    with pytest.raises(EnvError, match="Cart: contacts' points and frames held in the derivative need an env"):
+        env_task(Cart(), horizon=4, diagnose=False, contact_geometry_held=True)
+    with pytest.raises(EnvError, match="env_task's contact_geometry_held must be True or False"):
+        env_task(Ball(), horizon=4, diagnose=False, contact_geometry_held="held")
+    for value, expected in (("held", "make_cart: contacts' points and frames held in the derivative need an env"),
+                            ("loose", "--contact-gradient-geometry")):
+        code, err = train_in_process(capsys, "--env", "envs_for_tests:make_cart", "--contact-gradient-geometry", value,
+                                     "--epochs", "1", "--out", str(tmp_path / "refused"))
         assert code == 2 and len(err) == 1 and expected in err[0], err
         assert not (tmp_path / "refused").exists()

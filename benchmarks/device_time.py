@@ -1,0 +1,103 @@
+"""Where one call of a compiled program spends its time on the device, by the JAX scope of each XLA op:
+the profiler's op events (``jax.profiler.trace``) matched to the compiled HLO's instructions, whose
+metadata carries the name stack JAX traced them under. MJX names the stages of its step
+(``fwd_position``: kinematics, collision and the constraint rows; ``fwd_velocity``; ``fwd_actuation``;
+``fwd_acceleration``; ``solve``: the constraint solver; the integrator), and reverse mode's ops sit under
+``transpose(...)``. XLA fuses ops of different scopes into one kernel: a fusion counts where its root
+op was traced, so the split is as fine as the fusions.
+
+Used by ``benchmarks/update_program.py --profile``.
+"""
+from __future__ import annotations
+
+import collections
+import glob
+import os
+import re
+import shutil
+import tempfile
+
+import jax
+
+STAGES = ("fwd_position", "fwd_velocity", "fwd_actuation", "fwd_acceleration", "solve", "solve_implicitly", "euler",
+          "implicit", "rungekutta4")
+_INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*op_name=\"([^\"]*)\"")
+
+
+def op_names(compiled) -> dict[str, str]:
+    """Each instruction of ``compiled``'s optimised HLO that carries a name stack, by its name."""
+    found = {}
+    for line in compiled.as_text().splitlines():
+        matched = _INSTRUCTION.match(line)
+        if matched:
+            found[matched.group(1)] = matched.group(2)
+    return found
+
+
+def stage_of(op_name: str) -> str:
+    """The MJX stage whose scope ``op_name`` lies in (the innermost named), else ``other``."""
+    parts = re.split(r"[/()]", op_name)
+    for part in reversed(parts):
+        if part in STAGES:
+            return part
+    return "other"
+
+
+def op_times(compiled, inputs, calls: int = 1) -> dict[str, float]:
+    """Device seconds per HLO instruction over ``calls`` calls of ``compiled`` under the profiler."""
+    from jax._src.lib import _profile_data  # the profiler's reader of its own trace, shipped with jaxlib
+    with tempfile.TemporaryDirectory() as folder:
+        with jax.profiler.trace(folder):
+            for _ in range(calls):
+                jax.block_until_ready(compiled(*inputs))
+        paths = glob.glob(f"{folder}/**/*.xplane.pb", recursive=True)
+        data = _profile_data.ProfileData.from_file(paths[-1])
+        if os.environ.get("DEVICE_TIME_TRACES"):  # a folder to keep the trace in, for a closer look
+            os.makedirs(os.environ["DEVICE_TIME_TRACES"], exist_ok=True)
+            shutil.copy(paths[-1], os.path.join(os.environ["DEVICE_TIME_TRACES"], f"{len(os.listdir(os.environ['DEVICE_TIME_TRACES']))}.xplane.pb"))
+    seconds: collections.Counter = collections.Counter()
+    device_planes = [plane for plane in data.planes if plane.name.startswith("/device:")]
+    for plane in device_planes or [plane for plane in data.planes if plane.name == "/host:CPU"]:
+        lines = list(plane.lines)
+        derived = [line for line in lines if line.name == "XLA Ops"]  # where the profiler derived it, its ops once
+        for line in derived or lines:
+            ops = sorted((event.start_ns, event.duration_ns, str(dict(event.stats)["hlo_op"]))
+                         for event in line.events if "hlo_op" in dict(event.stats))
+            for op, spent in _self_times(ops):
+                seconds[op] += spent * 1e-9 / calls
+    return dict(seconds)
+
+
+def _self_times(ops):
+    """(op, time less the ops nested in it) for ``ops`` as (start, duration, op) in order of start: a
+    loop's event spans its body's ops, which count on their own."""
+    open_ops: list[list] = []  # [end, op, self time] of the ops enclosing the current one
+    for start, duration, op in ops:
+        while open_ops and open_ops[-1][0] <= start:
+            _, done, spent = open_ops.pop()
+            yield done, spent
+        if open_ops:
+            open_ops[-1][2] -= duration
+        open_ops.append([start + duration, op, duration])
+    for _, done, spent in reversed(open_ops):
+        yield done, spent
+
+
+def split(compiled, inputs, label: str, top: int = 12) -> None:
+    """Prints ``compiled``'s device time per call by direction (forward, reverse) and MJX stage, then its
+    ``top`` costliest name stacks."""
+    names = op_names(compiled)
+    times = op_times(compiled, inputs)
+    total = sum(times.values())
+    by_part: collections.Counter = collections.Counter()
+    by_name: collections.Counter = collections.Counter()
+    for op, spent in times.items():
+        name = names.get(op, "")
+        direction = "reverse" if "transpose(" in name else "forward"
+        by_part[(direction, stage_of(name))] += spent
+        by_name[re.sub(r"\d+", "#", name.split("/", 1)[-1])[-160:] or op] += spent
+    print(f"{label}: {total * 1e3:.1f} ms of device time a call, over {len(times)} ops", flush=True)
+    for (direction, stage), spent in by_part.most_common():
+        print(f"  {direction:8s} {stage:18s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}", flush=True)
+    for name, spent in by_name.most_common(top):
+        print(f"  {spent * 1e3:8.1f} ms  {name}", flush=True)
