@@ -1,0 +1,43 @@
+"""A program's device time by the scope its ops were traced in (benchmarks/device_time.py): ops nested
+in a loop's event counted once, the innermost MJX stage named, and the profiler's ops matched to the
+compiled program's instructions."""
+from __future__ import annotations
+
+import importlib.util
+
+import jax
+import jax.numpy as jnp
+
+from conftest import ROOT
+
+_spec = importlib.util.spec_from_file_location("device_time", ROOT / "benchmarks" / "device_time.py")
+device_time = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(device_time)
+
+
+def test_an_op_nested_in_a_loops_event_counts_once():
+    # A loop's event spans two ops of its body, then a separate op; a second loop holds a nested loop.
+    events = [(0, 100, "while"), (10, 20, "add"), (40, 20, "mul"), (100, 10, "copy"),
+              (200, 50, "outer"), (205, 40, "inner"), (210, 5, "sin")]
+    times = dict(device_time._self_times(sorted(events)))
+    assert times == {"while": 60, "add": 20, "mul": 20, "copy": 10, "outer": 10, "inner": 35, "sin": 5}
+    assert sum(times.values()) == 100 + 10 + 50  # the lines' busy time, each nanosecond once
+
+
+def test_an_op_counts_in_the_innermost_mjx_stage_it_was_traced_in():
+    assert device_time.stage_of("jit(update)/transpose(jvp(env_step))/step/forward/fwd_position/vmap()/add") \
+        == "fwd_position"
+    assert device_time.stage_of("jit(f)/step/forward/solve_implicitly/while/body/jit(_cholesky)/cholesky") \
+        == "solve_implicitly"
+    assert device_time.stage_of("jit(update)/jvp(policy)/dot_general") == "other"
+
+
+def test_the_profilers_ops_are_the_compiled_programs_instructions():
+    def spin(x):
+        return jax.lax.scan(lambda carry, _: (jnp.sin(carry) @ carry, None), x, None, length=20)[0]
+    x = jnp.eye(64) * 0.5
+    compiled = jax.jit(spin).lower(x).compile()
+    times = device_time.op_times(compiled, (x,))
+    names = device_time.op_names(compiled)
+    assert times and all(spent >= 0 for spent in times.values())
+    assert sum(spent for op, spent in times.items() if op in names) > 0.5 * sum(times.values())
