@@ -61,16 +61,18 @@ def op_times(compiled, inputs, calls: int = 1) -> dict[str, float]:
         lines = list(plane.lines)
         derived = [line for line in lines if line.name == "XLA Ops"]  # where the profiler derived it, its ops once
         for line in derived or lines:
-            ops = sorted((event.start_ns, event.duration_ns, str(dict(event.stats)["hlo_op"]))
-                         for event in line.events if "hlo_op" in dict(event.stats))
+            ops = [(event.start_ns, event.duration_ns, str(dict(event.stats)["hlo_op"]))
+                   for event in line.events if "hlo_op" in dict(event.stats)]
             for op, spent in _self_times(ops):
                 seconds[op] += spent * 1e-9 / calls
     return dict(seconds)
 
 
 def _self_times(ops):
-    """(op, time less the ops nested in it) for ``ops`` as (start, duration, op) in order of start: a
+    """(op, time less the ops nested in it) for ``ops`` as (start, duration, op) on one line of the trace: a
     loop's event spans its body's ops, which count on their own."""
+    # By start, the longer first where two start together: an enclosing event before what it holds.
+    ops = sorted(ops, key=lambda op: (op[0], -op[1]))
     open_ops: list[list] = []  # [end, op, self time] of the ops enclosing the current one
     for start, duration, op in ops:
         while open_ops and open_ops[-1][0] <= start:
@@ -97,6 +99,10 @@ def split(compiled, inputs, label: str, top: int = 12) -> None:
         by_part[(direction, stage_of(name))] += spent
         by_name[re.sub(r"\d+", "#", name.split("/", 1)[-1])[-160:] or op] += spent
     print(f"{label}: {total * 1e3:.1f} ms of device time a call, over {len(times)} ops", flush=True)
+    buffered = sum(spent for op, spent in times.items() if op.startswith("command_buffer"))
+    if buffered > 0.1 * total:  # a CUDA graph's time has no op of its own: it counts as "other" below
+        print(f"  {buffered * 1e3:.1f} ms ({buffered / total:.0%}) ran in CUDA command buffers, not split by op "
+              f"(XLA_FLAGS=--xla_gpu_enable_command_buffer= runs the ops one by one)", flush=True)
     for (direction, stage), spent in by_part.most_common():
         print(f"  {direction:8s} {stage:18s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}", flush=True)
     for name, spent in by_name.most_common(top):

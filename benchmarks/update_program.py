@@ -27,8 +27,9 @@ derivative, none of the flows' machinery, no critic).
         # with --substeps-rematerialized each physics step recomputed in the backward pass
     python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time
         # by MJX stage and by name stack, from one call under JAX's profiler (benchmarks/device_time.py)
-    python benchmarks/update_program.py --programs grad --gradient-file G.npy ...   # the plain window's
-        # gradient per seed written to G.npy, or compared with the one there (cosine, relative difference)
+    python benchmarks/update_program.py --programs grad --gradient-file G.npz ...   # the plain window's
+        # gradient per seed written to G.npz with the command, or compared with the one there (cosine,
+        # relative difference)
 
 --programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
@@ -92,7 +93,7 @@ for substeps_option in ("--substeps-unrolled", "--substeps-rematerialized"):
         def physics_steps(model, data, action, n_substeps=1, unrolled=substeps_option == "--substeps-unrolled"):
             def physics_step(data, _):
                 return mjx.step(model, data.replace(ctrl=action)), None
-            if unrolled:  # no loop: no stacked residuals for the backward pass
+            if unrolled:  # no loop over the physics steps: nothing stacked per physics step (the window's loop still stacks)
                 return jax.lax.scan(physics_step, data, (), n_substeps, unroll=n_substeps)[0]
             # each physics step recomputed in the backward pass: the loop stacks its data alone
             return jax.lax.scan(jax.checkpoint(physics_step), data, (), n_substeps)[0]
@@ -120,6 +121,8 @@ if "--gradient-file" in arguments:
     at = arguments.index("--gradient-file")
     gradient_file = arguments[at + 1]
     del arguments[at:at + 2]
+if gradient_file is not None and ("grad" not in chosen or "--sizes" in arguments):
+    sys.exit("--gradient-file compares the grad program's output: give --programs with grad, without --sizes")
 profiled = "--profile" in arguments
 if profiled:
     arguments.remove("--profile")
@@ -188,10 +191,15 @@ def compare_gradients(gradient, path: str, label: str) -> None:
     already, compares with it: the cosine and the relative difference per seed."""
     flat = np.concatenate([np.asarray(leaf).reshape(leaf.shape[0], -1) for leaf in jax.tree.leaves(gradient)], 1)
     if not os.path.exists(path):
-        np.save(path, flat)
+        with open(path, "wb") as handle:  # the command beside the gradient: a comparison names what it compares with
+            np.savez(handle, gradient=flat, command=label)
         print(f"{label}: gradient written to {path}", flush=True)
         return
-    reference = np.load(path)
+    with np.load(path) as kept:
+        reference, reference_command = kept["gradient"], str(kept["command"])
+    if reference.shape != flat.shape:
+        sys.exit(f"{path} holds a gradient of shape {reference.shape} ({reference_command}), this one's is {flat.shape}")
+    print(f"{label}: compared with {reference_command}", flush=True)
     norms = np.linalg.norm(flat, axis=1) * np.linalg.norm(reference, axis=1)
     cosine = np.sum(flat * reference, 1) / norms
     relative = np.linalg.norm(flat - reference, axis=1) / np.linalg.norm(reference, axis=1)

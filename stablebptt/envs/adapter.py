@@ -178,10 +178,11 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         unchanged (``networks.floored_tanh``): a saturated action still passes that share of its gradient on.
       contact_gradient_cut: the windows' derivative stops at a state under constraint forces above this many
         body weights (``derivative_model.contact_cut``; MJX's data in the state); 0: never.
-      contact_geometry_held: the step's values stay the env's; its derivative holds each contact's point and
-        frame and differentiates its distance by the closed form n . (v2 - v1), first-order exact
-        (``backward_contacts.geometry_held``): MJX's collision functions are not differentiated. False: MJX's own
-        derivative of its collision.
+      contact_geometry_held: the step's values stay the env's; its derivative holds the point and frame of each
+        contact of ``backward_contacts.CLOSED_FORM_PAIRS`` and differentiates its distance by the closed form
+        n . (v2 - v1), exact to first order there (``backward_contacts.geometry_held``): MJX's collision functions
+        of those pairs are not differentiated; other pairs keep MJX's derivative. False: MJX's own derivative of
+        its collision.
 
     Example::
 

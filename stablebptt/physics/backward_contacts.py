@@ -22,6 +22,7 @@ import numpy as np
 
 from stablebptt.errors import InputError
 from stablebptt.physics.mjx_internals import mjx
+from stablebptt.physics.mjx_internals import types as mjx_types
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,26 +96,45 @@ def differentiated_through(exact: Callable, smoothed: Callable) -> Callable:
     return stepped
 
 
-def geometry_held(data: mjx.Data) -> mjx.Data:
-    """``data`` after MJX's collision, its contacts' points and frames held in the derivative and each
-    contact's distance differentiated by its closed form: d dist = n . (v2 - v1), the velocities of the
-    two geoms' bodies at the contact point along the normal (n points from geom 1 to geom 2).
 
-    That form is exact to first order for the convex pairs MJX collides: the witness points slide on
-    their surfaces perpendicular to the normal, and the normal's own change is perpendicular to the gap
-    it measures, so neither moves the distance. What is held is the contact point's and the frame's
-    motion, which turn the constraint rows' directions (a second-order effect of the contact force's
-    lever). Values are MJX's, bit for bit: the closed form enters as ``x - stop_gradient(x)``."""
-    contact = jax.lax.stop_gradient(data._impl.contact)
-    if contact.dist.shape[0] == 0:
-        return data
-    normal = contact.frame[:, 0]
+# The geom pairs whose MJX collision measures each contact between closest points of smooth convex
+# surfaces, or from a vertex fixed in its body to a plane: there the distance's closed form below is exact
+# to first order. Pairs clipped face against face (box-box, meshes) are not: their points slide along edges.
+_TYPE = mjx_types.GeomType
+CLOSED_FORM_PAIRS = frozenset({(_TYPE.PLANE, _TYPE.SPHERE), (_TYPE.PLANE, _TYPE.CAPSULE), (_TYPE.PLANE, _TYPE.BOX),
+                               (_TYPE.SPHERE, _TYPE.SPHERE), (_TYPE.SPHERE, _TYPE.CAPSULE),
+                               (_TYPE.CAPSULE, _TYPE.CAPSULE)})
 
-    def point_moving_with(geom):  # the contact point fixed in the geom's frame: its position moves as the body does
+
+def distance_by_closed_form(data: mjx.Data, geoms: jax.Array, dist: jax.Array, pos: jax.Array,
+                            frame: jax.Array) -> jax.Array:
+    """``dist`` (contacts found from held data, one per row of ``geoms``, the pair's two geom ids) with the
+    derivative d dist = n . (v2 - v1): the two geoms' bodies' velocities at the contact point ``pos``, along
+    the normal ``frame[:, 0]`` (from geom 1 to geom 2), from ``data``'s geom poses.
+
+    Exact to first order for ``CLOSED_FORM_PAIRS``: a witness point slides on its surface perpendicular
+    to the normal, and the normal's own turn is perpendicular to the gap it measures, so neither moves
+    the distance. Values are ``dist``'s, bit for bit: the form enters as ``x - stop_gradient(x)``."""
+    normal, point = jax.lax.stop_gradient(frame[:, 0]), jax.lax.stop_gradient(pos)
+
+    def moving_with(geom):  # the contact point fixed in the geom's frame: it moves as the body does
         position, rotation = data.geom_xpos[geom], data.geom_xmat[geom]
         in_geom = jax.numpy.einsum("cji,cj->ci", jax.lax.stop_gradient(rotation),
-                                   contact.pos - jax.lax.stop_gradient(position))
+                                   point - jax.lax.stop_gradient(position))
         return position + jax.numpy.einsum("cij,cj->ci", rotation, in_geom)
 
-    gap = jax.numpy.sum(normal * (point_moving_with(contact.geom[:, 1]) - point_moving_with(contact.geom[:, 0])), -1)
-    return data.tree_replace({"_impl.contact": contact.replace(dist=contact.dist + (gap - jax.lax.stop_gradient(gap)))})
+    gap = jax.numpy.sum(normal * (moving_with(geoms[:, 1]) - moving_with(geoms[:, 0])), -1)
+    return jax.lax.stop_gradient(dist) + (gap - jax.lax.stop_gradient(gap))
+
+
+def geometry_held(collide: Callable) -> Callable:
+    """``collide`` (an MJX collision function of one geom-type pair in ``CLOSED_FORM_PAIRS``: ``(model, data,
+    key, geoms) -> (dist, pos, frame)``, ``ncon`` contacts a pair) run on held data, so that it has no
+    derivative in the program: its points and frames held, its distances differentiated by
+    ``distance_by_closed_form``."""
+    def collide_held(model, data, key, geoms):
+        dist, pos, frame = collide(model, jax.lax.stop_gradient(data), key, geoms)
+        pairs = jax.numpy.repeat(jax.numpy.asarray(geoms), collide.ncon, axis=0)
+        return distance_by_closed_form(data, pairs, dist, pos, frame), pos, frame
+    collide_held.ncon = collide.ncon
+    return collide_held

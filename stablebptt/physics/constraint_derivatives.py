@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.physics import mjx_internals
-from stablebptt.physics.backward_contacts import geometry_held
+from stablebptt.physics.backward_contacts import CLOSED_FORM_PAIRS, geometry_held
 from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, solver, support
 from stablebptt.physics.mjx_internals import types as mjx_types
 
@@ -271,20 +271,28 @@ def _applied(kind: str, patches):
                     setattr(owner, name, original)
 
 
-_MJX_COLLISION = collision_driver.collision
 _tracing = threading.local()  # what this thread's trace asks of the contacts' derivative
 
 
-def _collision_as_asked(model: mjx.Model, data: mjx.Data) -> mjx.Data:
-    """MJX's collision, its contacts' geometry held where this thread's trace asks (``geometry_held``).
-    A flag of the thread, not a patch of its own: programs are traced in several threads at once."""
-    found = _MJX_COLLISION(model, data)
-    return geometry_held(found) if getattr(_tracing, "geometry_held", False) else found
+def _as_asked(collide):
+    """``collide`` (an MJX collision function of one geom-type pair), its geometry held where this thread's
+    trace asks (``backward_contacts.geometry_held``). A flag of the thread, not a patch of its own:
+    programs are traced in several threads at once."""
+    held = geometry_held(collide)
+
+    def collide_as_asked(model, data, key, geoms):
+        return (held if getattr(_tracing, "geometry_held", False) else collide)(model, data, key, geoms)
+    collide_as_asked.ncon = collide.ncon
+    return collide_as_asked
 
 
 @contextlib.contextmanager
 def _contact_geometry_held():
-    with _applied("geometry", ((collision_driver, "collision", _collision_as_asked),)):
+    # MJX looks its pairs' functions up in this table at every collision: those with a closed form are
+    # wrapped while any held trace runs, the table as it stands then (another patch of it kept).
+    table = {types: _as_asked(collide) if types in CLOSED_FORM_PAIRS else collide
+             for types, collide in collision_driver._COLLISION_FUNC.items()}
+    with _applied("geometry", ((collision_driver, "_COLLISION_FUNC", table),)):
         before = getattr(_tracing, "geometry_held", False)
         _tracing.geometry_held = True
         try:
@@ -296,8 +304,8 @@ def _contact_geometry_held():
 @contextlib.contextmanager
 def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: bool = False):
     """Trace MJX code with its derivative traps remedied (and, optionally, its solver differentiated implicitly,
-    its contacts' points and frames held in the derivative and their distances differentiated by the closed
-    form: ``backward_contacts.geometry_held``).
+    and the contacts of ``backward_contacts.CLOSED_FORM_PAIRS`` with their points and frames held in the
+    derivative and their distances differentiated by the closed form: ``backward_contacts.geometry_held``).
 
     Values are MJX's own either way. Reentrant; undone on exit, so MJX outside
     this library is unchanged. Use it around the tracing of a step::

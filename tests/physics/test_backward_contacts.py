@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from stablebptt.errors import InputError
-from stablebptt.physics.backward_contacts import ContactSmoothing, differentiated_through, smoothed_model, softer
+from stablebptt.physics.backward_contacts import (CLOSED_FORM_PAIRS, ContactSmoothing, differentiated_through,
+                                                  smoothed_model, softer)
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import mjx
 
@@ -96,50 +97,58 @@ def test_the_direct_forms_stiffness_goes_over_k_squared_its_damping_over_k_and_r
     np.testing.assert_allclose(softer(solrefs, 2.0, shortest=0.01), [[0.04, 1.0], [-250.0, -5.0], [0.02, 1.0]])
 
 
-# A tilted capsule in the plane with another across it, a box and a ball in the plane: capsule-plane,
-# capsule-capsule, box-plane (a contact per corner) and sphere-plane pairs, each within 2 cm of its contact.
+# A tilted capsule in the plane with another across it, a box and a ball in the plane, and a box tilted on
+# the first box: capsule-plane, capsule-capsule, box-plane (a contact per corner) and sphere-plane pairs,
+# each within 2 cm of its contact, which the closed form differentiates, and a box-box pair (clipped face
+# against face), which keeps MJX's own derivative.
 PAIRS = """<mujoco><option timestep="0.01"/><worldbody><geom type="plane" size="2 2 .1"/>
 <body pos="0 0 0.06" euler="0 10 0"><freejoint/><geom type="capsule" size="0.05 0.3" euler="0 90 0"/></body>
 <body pos="0.05 0 0.153" euler="0 0 70"><freejoint/><geom type="capsule" size="0.04 0.25" euler="0 90 0"/></body>
 <body pos="0.8 0 0.098" euler="0 0 20"><freejoint/><geom type="box" size="0.1 0.1 0.1"/></body>
+<body pos="0.88 0.05 0.295" euler="3 2 25"><freejoint/><geom type="box" size="0.1 0.1 0.1"/></body>
 <body pos="-0.8 0 0.09"><freejoint/><geom type="sphere" size="0.1"/></body></worldbody></mujoco>"""
 
 
 @pytest.fixture(scope="module")
 def pairs():
-    from stablebptt.physics.backward_contacts import geometry_held
     from stablebptt.physics.mjx_internals import collision_driver, smooth
     model = mjx.put_model(mujoco.MjModel.from_xml_string(PAIRS))
 
     def contacts(qpos, held):
-        data = smooth.kinematics(model, mjx.make_data(model).replace(qpos=qpos))
-        found = collision_driver.collision(model, data)
-        found = geometry_held(found) if held else found
-        contact = found._impl.contact
-        return contact.dist, contact.pos, contact.frame
+        with differentiable_mjx(contact_geometry_held=held):
+            data = smooth.kinematics(model, mjx.make_data(model).replace(qpos=qpos))
+            contact = collision_driver.collision(model, data)._impl.contact
+        return contact.dist, contact.pos, contact.frame, contact.geom
 
     qpos = jnp.asarray(mujoco.MjData(mujoco.MjModel.from_xml_string(PAIRS)).qpos)
     directions = jax.random.normal(jax.random.PRNGKey(0), (4, qpos.shape[0]))
-    exact = jax.jit(jax.vmap(lambda d: jax.jvp(lambda q: contacts(q, False), (qpos,), (d,))))(directions)
-    held = jax.jit(jax.vmap(lambda d: jax.jvp(lambda q: contacts(q, True), (qpos,), (d,))))(directions)
-    return exact, held
+    exact = jax.jit(jax.vmap(lambda d: jax.jvp(lambda q: contacts(q, False)[:3], (qpos,), (d,))))(directions)
+    held = jax.jit(jax.vmap(lambda d: jax.jvp(lambda q: contacts(q, True)[:3], (qpos,), (d,))))(directions)
+    types = np.asarray(model.geom_type)[np.asarray(jax.jit(lambda q: contacts(q, False)[3])(qpos))]
+    return exact, held, types
 
 
 def test_geometry_held_keeps_the_contacts_values_bit_for_bit(pairs):
-    (exact_values, _), (held_values, _) = pairs
+    (exact_values, _), (held_values, _), _ = pairs
     assert np.any(np.asarray(exact_values[0]) < 0.01)  # contacts within a cm: the pairs collide
     for exact, held in zip(exact_values, held_values):
         np.testing.assert_array_equal(np.asarray(held), np.asarray(exact))
 
 
 def test_geometry_held_differentiates_each_distance_by_its_closed_form_and_holds_points_and_frames(pairs):
-    (exact_values, exact_tangents), (_, held_tangents) = pairs
+    (exact_values, exact_tangents), (_, held_tangents), types = pairs
+    closed = np.array([tuple(pair) in CLOSED_FORM_PAIRS for pair in types])
     near = np.asarray(exact_values[0][0]) < 0.02  # the pairs MJX found close; the others' witness points jump
-    assert near.sum() >= 6
-    exact_distance, held_distance = np.asarray(exact_tangents[0])[:, near], np.asarray(held_tangents[0])[:, near]
-    assert np.abs(exact_distance).max() > 0.1  # the directions move every distance
+    assert (near & closed).sum() >= 7 and (near & ~closed).sum() >= 1
+    exact_distance, held_distance = np.asarray(exact_tangents[0]), np.asarray(held_tangents[0])
+    assert np.abs(exact_distance[:, near]).max() > 0.1  # the directions move every distance
     # n . (v2 - v1) at the contact point: first-order exact, as MJX's own collision functions differentiate it
-    np.testing.assert_allclose(held_distance, exact_distance, atol=2e-5 * np.abs(exact_distance).max())
-    assert np.abs(np.asarray(exact_tangents[1])).max() > 0  # MJX's points move with the bodies; held, they do not
-    np.testing.assert_array_equal(np.asarray(held_tangents[1]), 0.0)
-    np.testing.assert_array_equal(np.asarray(held_tangents[2]), 0.0)
+    largest = np.abs(exact_distance[:, near & closed]).max()
+    np.testing.assert_allclose(held_distance[:, near & closed], exact_distance[:, near & closed], atol=2e-5 * largest)
+    for exact, held in zip(exact_tangents[1:], held_tangents[1:]):  # points and frames
+        assert np.abs(np.asarray(exact)[:, closed]).max() > 0  # MJX's move with the bodies; held, they do not
+        np.testing.assert_array_equal(np.asarray(held)[:, closed], 0.0)
+    # Box against box: its points slide along the clipped edges, which the closed form misses; MJX's own
+    # derivative, the same program, stays.
+    for exact, held in zip(exact_tangents, held_tangents):
+        np.testing.assert_allclose(np.asarray(held)[:, ~closed], np.asarray(exact)[:, ~closed], rtol=1e-6, atol=1e-7)

@@ -19,9 +19,16 @@ def test_an_op_nested_in_a_loops_event_counts_once():
     # A loop's event spans two ops of its body, then a separate op; a second loop holds a nested loop.
     events = [(0, 100, "while"), (10, 20, "add"), (40, 20, "mul"), (100, 10, "copy"),
               (200, 50, "outer"), (205, 40, "inner"), (210, 5, "sin")]
-    times = dict(device_time._self_times(sorted(events)))
+    times = dict(device_time._self_times(events))
     assert times == {"while": 60, "add": 20, "mul": 20, "copy": 10, "outer": 10, "inner": 35, "sin": 5}
     assert sum(times.values()) == 100 + 10 + 50  # the lines' busy time, each nanosecond once
+
+
+def test_an_op_starting_with_its_loop_counts_inside_it():
+    # The profiler's own order: by start, an enclosing event before an op that starts with it.
+    events = [(0, 20, "add"), (0, 100, "while"), (40, 20, "mul")]
+    times = dict(device_time._self_times(events))
+    assert times == {"while": 60, "add": 20, "mul": 20}
 
 
 def test_an_op_counts_in_the_innermost_mjx_stage_it_was_traced_in():
