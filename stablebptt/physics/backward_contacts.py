@@ -96,7 +96,6 @@ def differentiated_through(exact: Callable, smoothed: Callable) -> Callable:
     return stepped
 
 
-
 # The geom pairs whose MJX collision measures each contact between closest points of smooth convex
 # surfaces, or from a vertex fixed in its body to a plane: there the distance's closed form below is exact
 # to first order. Pairs clipped face against face (box-box, meshes) are not: their points slide along edges.
