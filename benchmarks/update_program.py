@@ -23,8 +23,8 @@ derivative, none of the flows' machinery, no critic).
     python benchmarks/update_program.py --contact-gradient-geometry held --env HumanoidStand ...   # train.py's
         # option: the contacts' points and frames held, their distances by the closed form n . (v2 - v1)
     python benchmarks/update_program.py --substeps-unrolled --env HumanoidStand ...   # MuJoCo Playground's
-        # loop over a control step's physics steps unrolled (no residuals stacked per physics step), or
-        # with --substeps-rematerialized each physics step recomputed in the backward pass
+        # loop over a control step's physics steps unrolled (a what-if; with --physics-step-residuals
+        # stored, nothing stacked per physics step)
     python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time
         # by MJX stage and by name stack, from one call under JAX's profiler (benchmarks/device_time.py)
     python benchmarks/update_program.py --programs grad --gradient-file G.npz ...   # the plain window's
@@ -84,22 +84,17 @@ if "--collision-held" in arguments:
         return found.tree_replace({"_impl.contact": jax.lax.stop_gradient(found._impl.contact)})
     collision_driver.collision = collision_held
     print("the contacts' geometry held in the derivative (--collision-held)", flush=True)
-for substeps_option in ("--substeps-unrolled", "--substeps-rematerialized"):
-    if substeps_option in arguments:  # MuJoCo Playground's loop over a control step's physics steps, otherwise
-        arguments.remove(substeps_option)
-        from mujoco_playground._src import mjx_env  # noqa: E402  (its envs call it through the module)
-        from stablebptt.physics.mjx_internals import mjx  # noqa: E402
+if "--substeps-unrolled" in arguments:  # MuJoCo Playground's loop over a control step's physics steps, unrolled
+    arguments.remove("--substeps-unrolled")
+    from mujoco_playground._src import mjx_env  # noqa: E402  (its envs call it through the module)
+    from stablebptt.physics.mjx_internals import mjx  # noqa: E402
 
-        def physics_steps(model, data, action, n_substeps=1, unrolled=substeps_option == "--substeps-unrolled"):
-            def physics_step(data, _):
-                return mjx.step(model, data.replace(ctrl=action)), None
-            if unrolled:  # no loop over the physics steps: nothing stacked per physics step (the window's loop still stacks)
-                return jax.lax.scan(physics_step, data, (), n_substeps, unroll=n_substeps)[0]
-            # each physics step recomputed in the backward pass: the loop stacks its data alone
-            return jax.lax.scan(jax.checkpoint(physics_step), data, (), n_substeps)[0]
-        mjx_env.step = physics_steps
-        print(f"MuJoCo Playground's physics steps per control step {substeps_option[11:]} ({substeps_option})",
-              flush=True)
+    def physics_steps(model, data, action, n_substeps=1):
+        def physics_step(data, _):  # mjx.step looked up at each call: --physics-step-residuals still applies
+            return mjx.step(model, data.replace(ctrl=action)), None
+        return jax.lax.scan(physics_step, data, (), n_substeps, unroll=n_substeps)[0]
+    mjx_env.step = physics_steps
+    print("MuJoCo Playground's physics steps per control step unrolled (--substeps-unrolled)", flush=True)
 if "--self-collision-held" in arguments:
     arguments.remove("--self-collision-held")
     from stablebptt.physics.mjx_internals import collision_driver  # noqa: E402

@@ -132,7 +132,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              surrogate_reward: Callable[[Any], jax.Array] | None = None, normalize_observations: bool = False,
              reward_env: Any = None, contact_smoothing: ContactSmoothing | None = None,
              gradient_substeps: int | None = None, squash_gradient_floor: float = 0.0,
-             contact_gradient_cut: float = 0.0, contact_geometry_held: bool = False) -> Task:
+             contact_gradient_cut: float = 0.0, contact_geometry_held: bool = False,
+             physics_steps_recomputed: bool | None = None) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -183,6 +184,11 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         n . (v2 - v1), exact to first order there (``backward_contacts.geometry_held``): MJX's collision functions
         of those pairs are not differentiated; other pairs keep MJX's derivative. False: MJX's own derivative of
         its collision.
+      physics_steps_recomputed: reverse mode stores the state each ``mjx.step`` starts from and runs the
+        step again in the backward pass (``jax.checkpoint``), rather than storing every intermediate of every
+        physics step: the same derivative, a shorter update where a control step spans several physics steps
+        (docs/performance.md). None: so where the derivative's control step spans more than one physics step
+        (MuJoCo Playground's ``n_substeps``, or ``gradient_substeps``), stored otherwise.
 
     Example::
 
@@ -197,7 +203,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                      surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
                      reward_env=reward_env, contact_smoothing=contact_smoothing, gradient_substeps=gradient_substeps,
                      squash_gradient_floor=squash_gradient_floor, contact_gradient_cut=contact_gradient_cut,
-                     contact_geometry_held=contact_geometry_held)
+                     contact_geometry_held=contact_geometry_held, physics_steps_recomputed=physics_steps_recomputed)
     env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -218,10 +224,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         gradient_substeps = None
     if contact_geometry_held:
         check_contacts(env, "contacts' points and frames held in the derivative", label)
+    if physics_steps_recomputed is None:  # where a control step's derivative runs through a loop of physics steps
+        physics_steps_recomputed = (gradient_substeps or own_substeps(env) or 1) > 1
 
     def traced(stepping_env):  # the env's step as every program traces it
         def env_step(state, action):
-            with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held), reward_context():
+            with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held,
+                                    physics_steps_recomputed=physics_steps_recomputed), reward_context():
                 return stepping_env.step(state, action)
         return env_step
 
@@ -340,6 +349,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                   f"time constants x{contact_smoothing.softness:g})")
                + ("" if gradient_substeps is None else f"; derivative through {gradient_substeps} physics steps per control step")
                + ("; the contacts' points and frames held in the derivative" if contact_geometry_held else "")
+               + ("; each physics step recomputed in the backward pass" if physics_steps_recomputed else "")
                + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else "")
                + (f"; the derivative cut at contact loads above {contact_gradient_cut:g} body weights" if contact_gradient_cut else ""))
     if reward_repairs:

@@ -53,6 +53,8 @@ def check_env_task_arguments(**given: Any) -> None:
         refuse("surrogate_reward", "a function of the state a step reaches, or None")
     if given["contact_smoothing"] is not None and not isinstance(given["contact_smoothing"], ContactSmoothing):
         refuse("contact_smoothing", "a stablebptt.ContactSmoothing, or None")
+    if not (given["physics_steps_recomputed"] is None or isinstance(given["physics_steps_recomputed"], bool)):
+        refuse("physics_steps_recomputed", "True, False or None (recomputed where a control step spans several physics steps)")
     substeps = given["gradient_substeps"]
     if substeps is not None and not (whole_number(substeps) and substeps >= 1):
         refuse("gradient_substeps", "a whole number of physics steps >= 1, or None")

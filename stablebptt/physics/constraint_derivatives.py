@@ -12,7 +12,9 @@ the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the 
   remedies below, applied while a step is traced and undone afterwards. Every
   step this library builds traces inside it; ``implicit_solver=True`` also
   routes ``mjx.forward``'s solver call (and so ``mjx.step`` inside any
-  environment) through ``solve_implicitly``.
+  environment) through ``solve_implicitly``. ``physics_steps_recomputed=True``
+  has reverse mode store each ``mjx.step``'s start alone and run the step again
+  in the backward pass (``jax.checkpoint``) rather than store its intermediates.
 
 The remedies are written against ``mjx_internals.WRITTEN_FOR``; entering the
 context with another MJX installed warns once (``mjx_internals.check_version``).
@@ -248,15 +250,18 @@ _REMEDIES = (
     (collision_convex, "_closest_segment_point_plane", _closest_segment_point_plane_stable),
 )
 _lock = threading.RLock()
-_depth = {"remedies": 0, "implicit": 0, "geometry": 0}
+_depth = {"remedies": 0, "implicit": 0, "geometry": 0, "recomputed": 0}
 _originals: dict[str, list] = {}
 
 
 @contextlib.contextmanager
 def _applied(kind: str, patches):
+    """``patches``, (owner, attribute, replacement) triples or a function that makes them (called only
+    where the first of its kind is entered), applied while any context of ``kind`` is open."""
     with _lock:
         if _depth[kind] == 0:
             mjx_internals.check_version()
+            patches = patches() if callable(patches) else patches
             _originals[kind] = [(owner, name, owner.__dict__[name]) for owner, name, _ in patches]
             for owner, name, replacement in patches:
                 setattr(owner, name, replacement)
@@ -271,7 +276,18 @@ def _applied(kind: str, patches):
                     setattr(owner, name, original)
 
 
-_tracing = threading.local()  # what this thread's trace asks of the contacts' derivative
+_tracing = threading.local()  # what this thread's trace asks of MJX's derivative
+
+
+@contextlib.contextmanager
+def _asked(flag: str):
+    """This thread's trace asks for ``flag`` until the context ends."""
+    before = getattr(_tracing, flag, False)
+    setattr(_tracing, flag, True)
+    try:
+        yield
+    finally:
+        setattr(_tracing, flag, before)
 
 
 def _as_asked(collide):
@@ -290,22 +306,43 @@ def _as_asked(collide):
 def _contact_geometry_held():
     # MJX looks its pairs' functions up in this table at every collision: those with a closed form are
     # wrapped while any held trace runs, the table as it stands then (another patch of it kept).
-    table = {types: _as_asked(collide) if types in CLOSED_FORM_PAIRS else collide
-             for types, collide in collision_driver._COLLISION_FUNC.items()}
-    with _applied("geometry", ((collision_driver, "_COLLISION_FUNC", table),)):
-        before = getattr(_tracing, "geometry_held", False)
-        _tracing.geometry_held = True
-        try:
-            yield
-        finally:
-            _tracing.geometry_held = before
+    def table():
+        return ((collision_driver, "_COLLISION_FUNC", {
+            types: _as_asked(collide) if types in CLOSED_FORM_PAIRS else collide
+            for types, collide in collision_driver._COLLISION_FUNC.items()}),)
+    with _applied("geometry", table), _asked("geometry_held"):
+        yield
+
+
+def _step_as_asked(step):
+    """``mjx.step`` rematerialized where this thread's trace asks: reverse mode keeps the step's inputs
+    and runs it again in the backward pass, so a loop of physics steps (MuJoCo Playground's control
+    step) stores one state per physics step instead of every intermediate of each step."""
+    # Called inside a loop of physics steps, where JAX's guard against XLA merging the recomputation
+    # back into the forward pass is not needed (and costs an optimisation barrier).
+    recomputed = jax.checkpoint(step, prevent_cse=False)
+
+    def step_as_asked(model, data):
+        return (recomputed if getattr(_tracing, "physics_steps_recomputed", False) else step)(model, data)
+    return step_as_asked
 
 
 @contextlib.contextmanager
-def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: bool = False):
+def _physics_steps_recomputed():
+    # Environments call mjx.step through MJX's package (MuJoCo Playground's mjx_env.step does): patched
+    # there while any such trace runs, each call asking its thread's flag.
+    with _applied("recomputed", lambda: ((mjx, "step", _step_as_asked(mjx.step)),)), _asked("physics_steps_recomputed"):
+        yield
+
+
+@contextlib.contextmanager
+def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: bool = False,
+                       physics_steps_recomputed: bool = False):
     """Trace MJX code with its derivative traps remedied (and, optionally, its solver differentiated implicitly,
     and the contacts of ``backward_contacts.CLOSED_FORM_PAIRS`` with their points and frames held in the
-    derivative and their distances differentiated by the closed form: ``backward_contacts.geometry_held``).
+    derivative and their distances differentiated by the closed form: ``backward_contacts.geometry_held``;
+    and each ``mjx.step`` recomputed in reverse mode's backward pass rather than its intermediates stored:
+    ``physics_steps_recomputed``).
 
     Values are MJX's own either way. Reentrant; undone on exit, so MJX outside
     this library is unchanged. Use it around the tracing of a step::
@@ -320,6 +357,8 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
                                                       (solver, "jax", _SOLVER_JAX))))
         if contact_geometry_held:
             stack.enter_context(_contact_geometry_held())
+        if physics_steps_recomputed:
+            stack.enter_context(_physics_steps_recomputed())
         yield
 
 

@@ -102,6 +102,7 @@ class Config:
     contact_gradient_margin: float = field(default=0.0, metadata={"help": "metres: the derivative is taken through the env's model with every contact acting from this far (the simulation stays the file's; 0: contacts as the file says)"})
     contact_gradient_softness: float = field(default=1.0, metadata={"help": "the derivative is taken through the env's model with every contact's time constant this many times the file's, >= 1 (the simulation stays the file's)"})
     contact_gradient_geometry: str = field(default="exact", metadata={"help": "held: the derivative holds the point and frame of each contact between planes, spheres, capsules and boxes on a plane, and differentiates its distance by the closed form n . (v2 - v1), exact to first order for those pairs, so MJX's collision functions of those pairs are not differentiated (a shorter update: docs/performance.md); other pairs keep MJX's derivative. exact: MJX's own derivative of its collision. The simulation stays the file's", "choices": ("exact", "held")})
+    physics_step_residuals: str = field(default="auto", metadata={"help": "what reverse mode keeps of each physics step for the backward pass: recomputed, the state it starts from alone, the step run again in the backward pass (jax.checkpoint: the same derivative, a shorter update where a control step spans several physics steps, as the walkers' and the humanoids' do: docs/performance.md); stored, every intermediate; auto: recomputed where a control step's derivative spans more than one physics step", "choices": ("auto", "recomputed", "stored")})
     gradient_substeps: int = field(default=0, metadata={"help": "the derivative is taken through each control step in this many physics steps of equal length, a divisor of the env's own count (MuJoCo Playground's WalkerWalk simulates 10; 0: the env's own): a shorter backward pass; the simulation stays the file's"})
     squash_gradient_floor: float = field(default=0.0, metadata={"help": "the derivative of the policy's tanh squash is kept at least this, in [0, 1): an action at its bound, where tanh's slope is nearly 0, still passes this share of its gradient back to the policy; its values, and every action taken, stay tanh's (0: tanh's own derivative)"})
     contact_gradient_cut: float = field(default=0.0, metadata={"help": "the windows' derivative stops at a state whose constraint forces pass this many body weights (the norm of MJX's qfrc_constraint over the model's weight): a window's later rewards reach no earlier state or action through a hard contact, the reward of that state still does; its values, and every return, stay the env's (0: no cut; MuJoCo Playground's envs)"})
@@ -124,6 +125,9 @@ class Config:
         if self.contact_gradient_geometry not in ("exact", "held"):
             raise InputError(f"{config_field(self, 'contact_gradient_geometry')} must be exact or held, "
                              f"got {self.contact_gradient_geometry!r}")
+        if self.physics_step_residuals not in ("auto", "recomputed", "stored"):
+            raise InputError(f"{config_field(self, 'physics_step_residuals')} must be auto, recomputed or stored, "
+                             f"got {self.physics_step_residuals!r}")
         if self.gradient_substeps < 0:
             raise InputError(f"{config_field(self, 'gradient_substeps')} must be a whole number of physics steps >= 1 "
                              f"(or 0 for the env's own), got {self.gradient_substeps}")
@@ -203,6 +207,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
                     squash_gradient_floor=config.squash_gradient_floor,
                     contact_gradient_cut=config.contact_gradient_cut,
                     contact_geometry_held=config.contact_gradient_geometry == "held",
+                    physics_steps_recomputed={"auto": None, "recomputed": True, "stored": False}[config.physics_step_residuals],
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})
     if trained_reward:

@@ -1,0 +1,64 @@
+"""Each physics step recomputed in reverse mode's backward pass rather than its intermediates stored
+(``env_task(physics_steps_recomputed=...)``, ``--physics-step-residuals``): the same values and the same
+derivative (the closed form of semi-implicit Euler), a program that rematerializes each ``mjx.step`` and
+stores fewer of its intermediates; chosen by default where a control step's derivative spans several
+physics steps; bad values refused in one line."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from stablebptt.envs.adapter import env_task
+from stablebptt.envs.protocol import EnvError
+
+from conftest import refused_in_one_line
+from envs_for_tests import Ball, SubsteppedBall
+
+GEAR, MASS, CONTROL_STEP, SUBSTEPS = 5.0, 1.0, 0.02, 10  # envs_for_tests.BALL's motor and ball, SubsteppedBall
+RECOMPUTED = "each physics step recomputed in the backward pass"
+
+
+def test_by_default_recomputed_where_a_control_step_spans_several_physics_steps():
+    assert RECOMPUTED in env_task(SubsteppedBall(), horizon=2, diagnose=False).summary
+    assert RECOMPUTED not in env_task(SubsteppedBall(), horizon=2, diagnose=False, gradient_substeps=1).summary
+    assert RECOMPUTED not in env_task(Ball(), horizon=2, diagnose=False).summary  # one physics step a control step
+    assert RECOMPUTED in env_task(Ball(), horizon=2, diagnose=False, physics_steps_recomputed=True).summary
+    assert RECOMPUTED not in env_task(SubsteppedBall(), horizon=2, diagnose=False,
+                                      physics_steps_recomputed=False).summary
+
+
+def test_recomputed_steps_keep_values_and_derivative_and_store_fewer_intermediates():
+    env = SubsteppedBall()  # 10 physics steps of 2 ms per control step
+    tasks = {recomputed: env_task(env, horizon=2, diagnose=False, physics_steps_recomputed=recomputed)
+             for recomputed in (False, True)}
+    state = env.reset(jax.random.PRNGKey(0))
+    state = state._replace(data={**state.data, "qpos": jnp.array([0.05])})  # 15 cm clear: no contact
+
+    def window(task):  # two control steps, the same action: the position reached
+        def position_after(action):
+            return task.dynamics.step(task.dynamics.step(state, action), action).data["qpos"][0]
+        return position_after
+
+    action = jnp.array([0.3])
+    programs = {recomputed: jax.jit(jax.value_and_grad(window(task))) for recomputed, task in tasks.items()}
+    (stored_value, stored_slope), (recomputed_value, recomputed_slope) = (programs[False](action),
+                                                                          programs[True](action))
+    assert float(stored_value) == float(recomputed_value)
+    # Semi-implicit Euler, 2n steps of h under a constant force: d position / d action = (gear / mass) h^2 2n (2n + 1) / 2.
+    n, h = 2 * SUBSTEPS, CONTROL_STEP / SUBSTEPS
+    np.testing.assert_allclose(float(recomputed_slope[0]), GEAR / MASS * h ** 2 * n * (n + 1) / 2, rtol=1e-5)
+    np.testing.assert_allclose(float(recomputed_slope[0]), float(stored_slope[0]), rtol=1e-6)
+    # Rematerialized: the backward pass runs each mjx.step again (JAX's remat), and the loops stack fewer of
+    # its intermediates.
+    jaxprs = {recomputed: str(jax.make_jaxpr(jax.grad(window(task)))(action)) for recomputed, task in tasks.items()}
+    assert "remat" in jaxprs[True] and "remat" not in jaxprs[False]
+    stores = {recomputed: program.lower(action).as_text().count("stablehlo.dynamic_update_slice")
+              for recomputed, program in programs.items()}
+    assert stores[True] < stores[False], stores
+
+
+def test_bad_values_are_refused_in_one_line(tmp_path, capsys):
+    with pytest.raises(EnvError, match="env_task's physics_steps_recomputed must be True, False or None"):
+        env_task(SubsteppedBall(), horizon=2, diagnose=False, physics_steps_recomputed="yes")
+    refused_in_one_line(capsys, tmp_path / "refused", "--physics-step-residuals", "--env",
+                        "envs_for_tests:make_substepped_ball", "--physics-step-residuals", "kept", "--epochs", "1")
