@@ -32,10 +32,8 @@ def derivative_steps(traced: Callable[[Any], Callable], env: Any, smoothing: Con
     control step; None where both are as ``env``'s own."""
     if smoothing is None and substeps is None:
         return traced(env), None
-    if "_mjx_model" not in vars(env):  # a wrapper's would be its inner env's, which its step keeps using
-        needs = "contacts smoothed" if smoothing is not None else "fewer physics steps"
-        raise EnvError(f"{label}: {needs} in the derivative need an env that keeps its MJX model in _mjx_model, "
-                       f"as MuJoCo Playground's do; {type(env).__name__} does not")
+    needs = "contacts smoothed" if smoothing is not None else "fewer physics steps"
+    mjx_model_of(env, f"{needs} in the derivative", label)
     other = copy.copy(env)  # the same env, stepping the derivative's model
     if smoothing is not None:
         check_contacts(env, "contacts smoothed in the derivative", label)
@@ -45,14 +43,22 @@ def derivative_steps(traced: Callable[[Any], Callable], env: Any, smoothing: Con
     return traced(env), traced(other)
 
 
+def mjx_model_of(env: Any, what: str, label: str) -> Any:
+    """``env``'s MJX model, where it keeps one in ``_mjx_model`` as MuJoCo Playground's envs do; else
+    ``EnvError`` naming ``what`` (the options that need it). Its own attribute: a wrapper's would be its
+    inner env's, which the wrapper's step keeps using."""
+    model = vars(env).get("_mjx_model")
+    if model is None:
+        raise EnvError(f"{label}: {what} need an env that keeps its MJX model in _mjx_model, as MuJoCo "
+                       f"Playground's do; {type(env).__name__} does not")
+    return model
+
+
 def check_contacts(env: Any, what: str, label: str) -> None:
     """``EnvError`` where ``env``'s model cannot be seen to have contacts, so that ``what`` (an option on
     its contacts' derivative) would change nothing: no MJX model in ``_mjx_model``, or no pair of geoms
     that can touch."""
-    if "_mjx_model" not in vars(env):
-        raise EnvError(f"{label}: {what} need an env that keeps its MJX model in _mjx_model, as MuJoCo "
-                       f"Playground's do; {type(env).__name__} does not")
-    if next(iter(collision_driver.geom_pairs(env._mjx_model)), None) is None:
+    if next(iter(collision_driver.geom_pairs(mjx_model_of(env, what, label))), None) is None:
         raise EnvError(f"{label}: its model has no pair of geoms that can touch, so {what} change nothing: drop "
                        f"the contact gradient's options")
 
@@ -90,10 +96,7 @@ def contact_load(env: Any, label: str) -> Callable[[Any], jax.Array]:
     """``load(state)``: the norm of the constraint forces MJX's solver applied (``qfrc_constraint``, from
     the state's MJX data) over the weight of ``env``'s model, in body weights. For envs that keep their
     model in ``_mjx_model`` and whose states carry MJX's data, as MuJoCo Playground's do."""
-    model = vars(env).get("_mjx_model")
-    if model is None:
-        raise EnvError(f"{label}: a derivative cut at contact loads needs an env that keeps its MJX model in "
-                       f"_mjx_model, as MuJoCo Playground's do; {type(env).__name__} does not")
+    model = mjx_model_of(env, "derivative cuts at contact loads", label)
     weight = float(np.sum(model.body_mass) * np.linalg.norm(model.opt.gravity))
     if weight <= 0:
         raise EnvError(f"{label}: its model weighs nothing (no mass under gravity), so a contact load in body "

@@ -75,7 +75,7 @@ def test_bad_values_and_envs_without_what_the_cut_reads_are_refused_in_one_line(
     with pytest.raises(InputError, match="TrainConfig.value_at_gradient_cut: .* cuts no window's derivative to value"):
         make_trainer(env_task(MjxDataBall(), horizon=4, diagnose=False),
                      TrainConfig(critic=True, value_at_gradient_cut=True, epochs=1, batch=2, train_size=2, test_size=2))
-    with pytest.raises(EnvError, match="Cart: a derivative cut at contact loads needs an env that keeps its MJX model in _mjx_model"):
+    with pytest.raises(EnvError, match="Cart: derivative cuts at contact loads need an env that keeps its MJX model in _mjx_model"):
         env_task(Cart(), horizon=4, diagnose=False, contact_gradient_cut=1.0)
     ball = env_task(Ball(), horizon=4, diagnose=False, contact_gradient_cut=1.0)  # its state's data is a dict
     with pytest.raises(EnvError, match=r"Ball: a derivative cut at contact loads reads the constraint forces of MJX's data in the state \(state.data.qfrc_constraint\)"):
