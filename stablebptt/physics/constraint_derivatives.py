@@ -257,7 +257,8 @@ _originals: dict[str, list] = {}
 @contextlib.contextmanager
 def _applied(kind: str, patches):
     """``patches``, (owner, attribute, replacement) triples or a function that makes them (called only
-    where the first of its kind is entered), applied while any context of ``kind`` is open."""
+    where the first of its kind is entered), applied while any context of ``kind`` is open. The last to
+    close restores what the first found: a patch another library makes meanwhile is undone with it."""
     with _lock:
         if _depth[kind] == 0:
             mjx_internals.check_version()
@@ -276,30 +277,38 @@ def _applied(kind: str, patches):
                     setattr(owner, name, original)
 
 
-_tracing = threading.local()  # what this thread's trace asks of MJX's derivative
+class _TraceChoices(threading.local):
+    """What this thread's trace asks of MJX's derivative, read by the shared patches as they are traced."""
+    geometry_held = False
+    physics_steps_recomputed = False
+
+
+_tracing = _TraceChoices()
 
 
 @contextlib.contextmanager
-def _asked(flag: str):
-    """This thread's trace asks for ``flag`` until the context ends."""
-    before = getattr(_tracing, flag, False)
-    setattr(_tracing, flag, True)
+def _choosing(choice: str):
+    """This thread's trace takes ``choice`` (an attribute of ``_TraceChoices``) until the context ends."""
+    if not hasattr(_TraceChoices, choice):
+        raise AttributeError(f"no trace choice {choice!r}")
+    before = getattr(_tracing, choice)
+    setattr(_tracing, choice, True)
     try:
         yield
     finally:
-        setattr(_tracing, flag, before)
+        setattr(_tracing, choice, before)
 
 
-def _as_asked(collide):
+def _collision_as_chosen(collide):
     """``collide`` (an MJX collision function of one geom-type pair), its geometry held where this thread's
     trace asks (``backward_contacts.geometry_held``). A flag of the thread, not a patch of its own:
     programs are traced in several threads at once."""
     held = geometry_held(collide)
 
-    def collide_as_asked(model, data, key, geoms):
-        return (held if getattr(_tracing, "geometry_held", False) else collide)(model, data, key, geoms)
-    collide_as_asked.ncon = collide.ncon
-    return collide_as_asked
+    def collide_as_chosen(model, data, key, geoms):
+        return (held if _tracing.geometry_held else collide)(model, data, key, geoms)
+    collide_as_chosen.ncon = collide.ncon
+    return collide_as_chosen
 
 
 @contextlib.contextmanager
@@ -308,30 +317,33 @@ def _contact_geometry_held():
     # wrapped while any held trace runs, the table as it stands then (another patch of it kept).
     def table():
         return ((collision_driver, "_COLLISION_FUNC", {
-            types: _as_asked(collide) if types in CLOSED_FORM_PAIRS else collide
+            types: _collision_as_chosen(collide) if types in CLOSED_FORM_PAIRS else collide
             for types, collide in collision_driver._COLLISION_FUNC.items()}),)
-    with _applied("geometry", table), _asked("geometry_held"):
+    with _applied("geometry", table), _choosing("geometry_held"):
         yield
 
 
-def _step_as_asked(step):
+def _step_as_chosen(step):
     """``mjx.step`` rematerialized where this thread's trace asks: reverse mode keeps the step's inputs
     and runs it again in the backward pass, so a loop of physics steps (MuJoCo Playground's control
     step) stores one state per physics step instead of every intermediate of each step."""
-    # Called inside a loop of physics steps, where JAX's guard against XLA merging the recomputation
-    # back into the forward pass is not needed (and costs an optimisation barrier).
-    recomputed = jax.checkpoint(step, prevent_cse=False)
-
-    def step_as_asked(model, data):
-        return (recomputed if getattr(_tracing, "physics_steps_recomputed", False) else step)(model, data)
-    return step_as_asked
+    def step_as_chosen(model, data):
+        if not _tracing.physics_steps_recomputed:
+            return step(model, data)
+        # A new function at every call: jax.checkpoint keeps the program it traced per function and
+        # shapes, and the step's program depends on the trace's other choices (the held geometry, the
+        # implicit solver). prevent_cse off: within a loop of physics steps JAX's guard against XLA
+        # merging the recomputation back into the forward pass is not needed, and is a barrier.
+        return jax.checkpoint(lambda model, data: step(model, data), prevent_cse=False)(model, data)
+    return step_as_chosen
 
 
 @contextlib.contextmanager
 def _physics_steps_recomputed():
     # Environments call mjx.step through MJX's package (MuJoCo Playground's mjx_env.step does): patched
     # there while any such trace runs, each call asking its thread's flag.
-    with _applied("recomputed", lambda: ((mjx, "step", _step_as_asked(mjx.step)),)), _asked("physics_steps_recomputed"):
+    with _applied("recomputed", lambda: ((mjx, "step", _step_as_chosen(mjx.step)),)), \
+            _choosing("physics_steps_recomputed"):
         yield
 
 

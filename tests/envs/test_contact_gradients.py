@@ -60,10 +60,12 @@ def test_an_env_without_its_mjx_model_and_bad_values_are_refused_in_one_line(tmp
         assert not (tmp_path / "refused").exists()
 
 
-def test_the_contacts_geometry_held_keeps_values_and_distances_derivative_and_holds_the_points():
+@pytest.mark.parametrize("recomputed", [False, True])
+def test_the_contacts_geometry_held_keeps_values_and_distances_derivative_and_holds_the_points(recomputed):
     env = MjxDataBall()  # its state carries MJX's data, the step's contacts among it
-    exact = env_task(env, horizon=4, diagnose=False)
-    held = env_task(env, horizon=4, diagnose=False, contact_geometry_held=True)
+    # Recomputed, the physics step is rematerialized: the held geometry must reach inside it.
+    exact = env_task(env, horizon=4, diagnose=False, physics_steps_recomputed=recomputed)
+    held = env_task(env, horizon=4, diagnose=False, contact_geometry_held=True, physics_steps_recomputed=recomputed)
     assert "the contacts' points and frames held in the derivative" in held.summary
     assert "points and frames held" not in exact.summary
     state = env.reset(jax.random.PRNGKey(0))

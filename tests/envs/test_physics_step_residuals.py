@@ -14,7 +14,6 @@ from stablebptt.envs.protocol import EnvError
 from conftest import refused_in_one_line
 from envs_for_tests import Ball, SubsteppedBall
 
-GEAR, MASS, CONTROL_STEP, SUBSTEPS = 5.0, 1.0, 0.02, 10  # envs_for_tests.BALL's motor and ball, SubsteppedBall
 RECOMPUTED = "each physics step recomputed in the backward pass"
 
 
@@ -44,9 +43,11 @@ def test_recomputed_steps_keep_values_and_derivative_and_store_fewer_intermediat
     (stored_value, stored_slope), (recomputed_value, recomputed_slope) = (programs[False](action),
                                                                           programs[True](action))
     assert float(stored_value) == float(recomputed_value)
-    # Semi-implicit Euler, 2n steps of h under a constant force: d position / d action = (gear / mass) h^2 2n (2n + 1) / 2.
-    n, h = 2 * SUBSTEPS, CONTROL_STEP / SUBSTEPS
-    np.testing.assert_allclose(float(recomputed_slope[0]), GEAR / MASS * h ** 2 * n * (n + 1) / 2, rtol=1e-5)
+    # Semi-implicit Euler, n steps of h under a constant force: d position / d action = (gear / mass) h^2 n (n + 1) / 2,
+    # here n the two control steps' physics steps.
+    gear, mass = float(env._mjx_model.actuator_gear[0, 0]), float(env._mjx_model.body_mass[1])
+    n, h = 2 * env.n_substeps, env._sim_dt
+    np.testing.assert_allclose(float(recomputed_slope[0]), gear / mass * h ** 2 * n * (n + 1) / 2, rtol=1e-5)
     np.testing.assert_allclose(float(recomputed_slope[0]), float(stored_slope[0]), rtol=1e-6)
     # Rematerialized: the backward pass runs each mjx.step again (JAX's remat), and the loops stack fewer of
     # its intermediates.

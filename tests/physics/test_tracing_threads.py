@@ -1,6 +1,7 @@
 """``differentiable_mjx``'s per-trace choices (the contacts' geometry held, each physics step recomputed)
-are flags of the tracing thread over one shared patch of MJX: two threads tracing at once, each with
-its own choices, trace the programs each would trace alone."""
+are flags of the tracing thread over one shared patch of MJX: threads tracing at once, each with its
+own choices, trace the programs each would trace alone, and a recomputed step's program follows the
+trace's other choices, not the first trace of it."""
 import threading
 
 import jax
@@ -12,7 +13,9 @@ from stablebptt.physics.constraint_derivatives import differentiable_mjx
 
 from envs_for_tests import BALL
 
-CHOICES = ((True, True), (False, False))  # (contact_geometry_held, physics_steps_recomputed) of each thread
+# (contact_geometry_held, physics_steps_recomputed) of each thread: two recompute, so the held geometry must
+# reach inside the recomputed step in the thread that holds it and not in the other.
+CHOICES = ((True, True), (False, True), (False, False))
 
 
 def _traced(held: bool, recomputed: bool, model, data) -> str:
@@ -26,29 +29,30 @@ def _traced(held: bool, recomputed: bool, model, data) -> str:
         return str(jax.make_jaxpr(jax.grad(velocity_after))(data.qpos))
 
 
-def test_two_threads_tracing_at_once_each_trace_their_own_choices():
+def test_threads_tracing_at_once_each_trace_their_own_choices():
     model = mjx.put_model(mujoco.MjModel.from_xml_string(BALL))
     data = mjx.make_data(model).replace(qpos=jnp.array([-0.103]))  # the ball 3 mm in the plane: a contact
     alone = {choice: _traced(*choice, model, data) for choice in CHOICES}
-    assert alone[CHOICES[0]] != alone[CHOICES[1]]
-    assert "remat" in alone[CHOICES[0]] and "remat" not in alone[CHOICES[1]]
-    both_inside = threading.Barrier(len(CHOICES))
+    assert len(set(alone.values())) == len(CHOICES)
+    assert ["remat" in alone[choice] for choice in CHOICES] == [recomputed for _, recomputed in CHOICES]
+    # A deadlock guard, not a wait: each thread passes as soon as the others reach it.
+    all_inside = threading.Barrier(len(CHOICES), timeout=600)
     together = {}
 
     def trace(choice):
         held, recomputed = choice
         try:
             with differentiable_mjx(implicit_solver=True, contact_geometry_held=held, physics_steps_recomputed=recomputed):
-                both_inside.wait()  # each thread's context open while the other traces
+                all_inside.wait()  # every thread's context open while the others trace
                 together[choice] = _traced(held, recomputed, model, data)
-                both_inside.wait()
+                all_inside.wait()
         except BaseException:
-            both_inside.abort()  # the other thread stops waiting: the missing program fails the test
+            all_inside.abort()  # the others stop waiting: the missing program fails the test
             raise
 
     threads = [threading.Thread(target=trace, args=(choice,)) for choice in CHOICES]
     for thread in threads:
         thread.start()
     for thread in threads:
-        thread.join()
+        thread.join(timeout=1200)
     assert together == alone
