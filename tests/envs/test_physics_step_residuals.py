@@ -19,6 +19,8 @@ RECOMPUTED = "each physics step recomputed in the backward pass"
 
 def test_by_default_recomputed_where_a_control_step_spans_several_physics_steps():
     assert RECOMPUTED in env_task(SubsteppedBall(), horizon=2, diagnose=False).summary
+    for substeps in (2, 10):  # the derivative through 2 of the env's 10, or through its own 10
+        assert RECOMPUTED in env_task(SubsteppedBall(), horizon=2, diagnose=False, gradient_substeps=substeps).summary
     assert RECOMPUTED not in env_task(SubsteppedBall(), horizon=2, diagnose=False, gradient_substeps=1).summary
     assert RECOMPUTED not in env_task(Ball(), horizon=2, diagnose=False).summary  # one physics step a control step
     assert RECOMPUTED in env_task(Ball(), horizon=2, diagnose=False, physics_steps_recomputed=True).summary
