@@ -50,7 +50,8 @@ def test_threads_tracing_at_once_each_trace_their_own_choices():
             all_inside.abort()  # the others stop waiting: the missing program fails the test
             raise
 
-    threads = [threading.Thread(target=trace, args=(choice,)) for choice in CHOICES]
+    # Daemons: a thread stuck tracing fails the test at its join and does not keep the test process alive.
+    threads = [threading.Thread(target=trace, args=(choice,), daemon=True) for choice in CHOICES]
     for thread in threads:
         thread.start()
     for thread in threads:
