@@ -33,11 +33,11 @@ def derivative_steps(traced: Callable[[Any], Callable], env: Any, smoothing: Con
     if smoothing is None and substeps is None:
         return traced(env), None
     needs = "contacts smoothed" if smoothing is not None else "fewer physics steps"
-    mjx_model_of(env, f"{needs} in the derivative", label)
+    model = mjx_model_of(env, f"{needs} in the derivative", label)
     other = copy.copy(env)  # the same env, stepping the derivative's model
     if smoothing is not None:
         check_contacts(env, "contacts smoothed in the derivative", label)
-        other._mjx_model = smoothed_model(env._mjx_model, smoothing)
+        other._mjx_model = smoothed_model(model, smoothing)
     if substeps is not None:
         _take_substeps(other, substeps, label)
     return traced(env), traced(other)

@@ -21,6 +21,7 @@ context with another MJX installed warns once (``mjx_internals.check_version``).
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import threading
 import types
@@ -250,7 +251,7 @@ _REMEDIES = (
     (collision_convex, "_closest_segment_point_plane", _closest_segment_point_plane_stable),
 )
 _lock = threading.RLock()
-_depth = {"remedies": 0, "implicit": 0, "geometry": 0, "recomputed": 0}
+_depth: collections.Counter = collections.Counter()  # open contexts of each kind
 _originals: dict[str, list] = {}
 
 

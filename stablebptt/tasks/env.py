@@ -55,6 +55,8 @@ RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 4}, "WalkerStand": {"st
 # recipe, the user's choice keeps its own default of this one (the cheetah's R runs without the cosine for
 # its speed; a mode given beside it computes its own flows and reports their cosine).
 RECIPE_VALUES_CHOSEN_FOR = {"cosine": "mode"}
+# --physics-step-residuals: each choice as env_task's physics_steps_recomputed (None: by the env's physics steps).
+PHYSICS_STEP_RESIDUALS = {"auto": None, "recomputed": True, "stored": False}
 
 
 def recipe_options(name: str, env: str = "", given: Mapping[str, object] | None = None) -> dict:
@@ -102,7 +104,7 @@ class Config:
     contact_gradient_margin: float = field(default=0.0, metadata={"help": "metres: the derivative is taken through the env's model with every contact acting from this far (the simulation stays the file's; 0: contacts as the file says)"})
     contact_gradient_softness: float = field(default=1.0, metadata={"help": "the derivative is taken through the env's model with every contact's time constant this many times the file's, >= 1 (the simulation stays the file's)"})
     contact_gradient_geometry: str = field(default="exact", metadata={"help": "held: the derivative holds the point and frame of each contact between planes, spheres, capsules and boxes on a plane, and differentiates its distance by the closed form n . (v2 - v1), exact to first order for those pairs, so MJX's collision functions of those pairs are not differentiated (a shorter update: docs/performance.md); other pairs keep MJX's derivative. exact: MJX's own derivative of its collision. The simulation stays the file's", "choices": ("exact", "held")})
-    physics_step_residuals: str = field(default="auto", metadata={"help": "what reverse mode keeps of each physics step for the backward pass: recomputed, the state it starts from alone, the step run again in the backward pass (jax.checkpoint: the same derivative, a shorter update where a control step spans several physics steps, as the walkers' and the humanoids' do: docs/performance.md); stored, every intermediate; auto: recomputed where a control step's derivative spans more than one physics step", "choices": ("auto", "recomputed", "stored")})
+    physics_step_residuals: str = field(default="auto", metadata={"help": "what reverse mode keeps of each physics step for the backward pass: recomputed, the state it starts from alone, the step run again in the backward pass (jax.checkpoint: the same derivative, a shorter update where a control step spans several physics steps, as the walkers' and the humanoids' do: docs/performance.md); stored, every intermediate; auto: recomputed where a control step's derivative spans more than one physics step", "choices": tuple(PHYSICS_STEP_RESIDUALS)})
     gradient_substeps: int = field(default=0, metadata={"help": "the derivative is taken through each control step in this many physics steps of equal length, a divisor of the env's own count (MuJoCo Playground's WalkerWalk simulates 10; 0: the env's own): a shorter backward pass; the simulation stays the file's"})
     squash_gradient_floor: float = field(default=0.0, metadata={"help": "the derivative of the policy's tanh squash is kept at least this, in [0, 1): an action at its bound, where tanh's slope is nearly 0, still passes this share of its gradient back to the policy; its values, and every action taken, stay tanh's (0: tanh's own derivative)"})
     contact_gradient_cut: float = field(default=0.0, metadata={"help": "the windows' derivative stops at a state whose constraint forces pass this many body weights (the norm of MJX's qfrc_constraint over the model's weight): a window's later rewards reach no earlier state or action through a hard contact, the reward of that state still does; its values, and every return, stay the env's (0: no cut; MuJoCo Playground's envs)"})
@@ -125,7 +127,7 @@ class Config:
         if self.contact_gradient_geometry not in ("exact", "held"):
             raise InputError(f"{config_field(self, 'contact_gradient_geometry')} must be exact or held, "
                              f"got {self.contact_gradient_geometry!r}")
-        if self.physics_step_residuals not in ("auto", "recomputed", "stored"):
+        if self.physics_step_residuals not in PHYSICS_STEP_RESIDUALS:
             raise InputError(f"{config_field(self, 'physics_step_residuals')} must be auto, recomputed or stored, "
                              f"got {self.physics_step_residuals!r}")
         if self.gradient_substeps < 0:
@@ -207,7 +209,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
                     squash_gradient_floor=config.squash_gradient_floor,
                     contact_gradient_cut=config.contact_gradient_cut,
                     contact_geometry_held=config.contact_gradient_geometry == "held",
-                    physics_steps_recomputed={"auto": None, "recomputed": True, "stored": False}[config.physics_step_residuals],
+                    physics_steps_recomputed=PHYSICS_STEP_RESIDUALS[config.physics_step_residuals],
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})
     if trained_reward:
