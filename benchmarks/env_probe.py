@@ -111,21 +111,35 @@ def arm_frame(model) -> Callable[[jax.Array], jax.Array]:
     return seen
 
 
-def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: float, seed: int) -> None:
+def angles_periodic(observation: jax.Array) -> jax.Array:
+    """The reacher's observation with its two joint angles given as their sines and cosines."""
+    angles = observation[:2]
+    return jnp.concatenate([jnp.sin(angles), jnp.cos(angles), observation[2:]])
+
+
+def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: float, seed: int,
+             squash_floor: float, saturation_cost: float) -> None:
     import optax
 
     from stablebptt.envs import playground
-    from stablebptt.networks import mlp_apply, mlp_init
+    from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
     from stablebptt.physics.constraint_derivatives import differentiable_mjx
     env = playground.load(name)
-    seen = arm_frame(env.mj_model) if inputs == "arm-frame" else (lambda observation: observation)
+    seen = {"arm-frame": arm_frame(env.mj_model), "angles-periodic": angles_periodic,
+            "observation": lambda observation: observation}[inputs]
 
     def step(state, action):
         with differentiable_mjx(implicit_solver=True), playground.repaired_rewards():
             return env.step(state, action)
 
+    squash = floored_tanh(squash_floor)
+
     def act(params, state):
-        return jnp.tanh(mlp_apply(params, seen(state.obs)))
+        return squash(mlp_apply(params, seen(state.obs)))
+
+    def saturation(params, states):  # the squash's input past its knee, squared: what --saturation-cost weighs
+        raw = jax.vmap(lambda state: mlp_apply(params, seen(state.obs)))(states)
+        return jnp.mean(jnp.maximum(jnp.abs(raw) - 1, 0) ** 2)
 
     def fresh(key, count):  # a reset, then one still step: the reset's observation places the target stale
         states = jax.vmap(env.reset)(jax.random.split(key, count))
@@ -135,7 +149,8 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
         def body(current, _):
             reached = jax.vmap(step)(current, jax.vmap(act, (None, 0))(params, current))
             return reached, jnp.sqrt(jnp.sum(reached.obs[:, 2:4] ** 2, axis=-1) + 1e-12)
-        return jnp.mean(jax.lax.scan(body, states, None, length=window)[1])
+        reached, distances = jax.lax.scan(body, states, None, length=window)
+        return jnp.mean(distances) + saturation_cost * saturation(params, states)
 
     def episode_return(params, state):
         def body(current, _):
@@ -236,12 +251,14 @@ def main() -> None:
     other.add_argument("--seed-index", type=int, default=0)
     third = looks.add_parser("features")
     third.add_argument("env", choices=("ReacherEasy", "ReacherHard"))
-    third.add_argument("--inputs", choices=("observation", "arm-frame"), default="observation")
+    third.add_argument("--inputs", choices=("observation", "angles-periodic", "arm-frame"), default="observation")
     third.add_argument("--window", type=int, default=20)
     third.add_argument("--updates", type=int, default=400)
     third.add_argument("--batch", type=int, default=64)
     third.add_argument("--lr", type=float, default=1e-3)
     third.add_argument("--seed", type=int, default=1)
+    third.add_argument("--squash-floor", type=float, default=0.0)
+    third.add_argument("--saturation-cost", type=float, default=0.0)
     fourth = looks.add_parser("loads")
     fourth.add_argument("env")
     fourth.add_argument("--envs", type=int, default=32)
@@ -256,7 +273,7 @@ def main() -> None:
             loads(arguments.env, arguments.envs, arguments.steps, arguments.scale, arguments.seed)
         elif arguments.look == "features":
             features(arguments.env, arguments.inputs, arguments.window, arguments.updates, arguments.batch,
-                     arguments.lr, arguments.seed)
+                     arguments.lr, arguments.seed, arguments.squash_floor, arguments.saturation_cost)
         else:
             rollout(arguments.run_dir, arguments.steps, arguments.seed_index)
     except KeyboardInterrupt:

@@ -200,6 +200,25 @@ def make_substepped_ball() -> SubsteppedBall:
     return SubsteppedBall()
 
 
+def _bound_mjx_step():
+    from mujoco import mjx
+    return mjx.step
+
+
+class BoundStepBall(SubsteppedBall):
+    """The substepped ball whose step calls ``mjx.step`` as bound when the class was made (``from
+    mujoco.mjx import step``), not through MJX's package."""
+
+    _physics_step = staticmethod(_bound_mjx_step())
+
+    def _advance(self, data):
+        return jax.lax.fori_loop(0, self.n_substeps, lambda _, data: self._physics_step(self._mjx_model, data), data)
+
+
+def make_bound_step_ball() -> BoundStepBall:
+    return BoundStepBall()
+
+
 class MjxDataBall(Ball):
     """The ball whose state carries MJX's whole data, as MuJoCo Playground's states do: its constraint
     forces (``data.qfrc_constraint``) among them."""

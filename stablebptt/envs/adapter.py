@@ -225,14 +225,20 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         gradient_substeps = None
     if contact_geometry_held:
         check_contacts(env, "contacts' points and frames held in the derivative", label)
+    recomputed_as_asked = physics_steps_recomputed is True
     if physics_steps_recomputed is None:  # where a control step's derivative runs through a loop of physics steps
         physics_steps_recomputed = (gradient_substeps or own_substeps(env) or 1) > 1
 
     def traced(stepping_env):  # the env's step as every program traces it
         def env_step(state, action):
             with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held,
-                                    physics_steps_recomputed=physics_steps_recomputed), reward_context():
-                return stepping_env.step(state, action)
+                                    physics_steps_recomputed=physics_steps_recomputed) as mjx_trace, reward_context():
+                reached = stepping_env.step(state, action)
+            if recomputed_as_asked and not mjx_trace.steps_recomputed:  # asked for, it would change nothing
+                raise EnvError(f"{label}: its step calls no mujoco.mjx.step through MJX's package (as mjx.step, the "
+                               "way MuJoCo Playground's envs call it), so no physics step can be recomputed in the "
+                               "backward pass: drop physics_steps_recomputed=True (--physics-step-residuals recomputed)")
+            return reached
         return env_step
 
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import threading
 import types
 
@@ -282,6 +283,7 @@ class _TraceChoices(threading.local):
     """What this thread's trace asks of MJX's derivative, read by the shared patches as they are traced."""
     geometry_held = False
     physics_steps_recomputed = False
+    steps_recomputed = 0  # the mjx.step calls this thread's traces have recomputed, counted as they are traced
 
 
 _tracing = _TraceChoices()
@@ -331,6 +333,7 @@ def _step_as_chosen(step):
     def step_as_chosen(model, data):
         if not _tracing.physics_steps_recomputed:
             return step(model, data)
+        _tracing.steps_recomputed += 1
         # A new function at every call: jax.checkpoint keeps the program it traced per function and
         # shapes, and the step's program depends on the trace's other choices (the held geometry, the
         # implicit solver). prevent_cse off: within a loop of physics steps JAX's guard against XLA
@@ -348,6 +351,12 @@ def _physics_steps_recomputed():
         yield
 
 
+@dataclasses.dataclass
+class MjxTrace:
+    """What the code traced within one ``differentiable_mjx`` context did, complete once the context has ended."""
+    steps_recomputed: int = 0  # calls of mujoco.mjx.step recomputed in the backward pass
+
+
 @contextlib.contextmanager
 def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: bool = False,
                        physics_steps_recomputed: bool = False):
@@ -362,7 +371,11 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
 
         with differentiable_mjx(implicit_solver=True):
             next_state = env.step(state, action)   # mjx.step inside: reverse mode passes its solver
+
+    It yields an ``MjxTrace``: with ``physics_steps_recomputed``, an env that calls no ``mujoco.mjx.step``
+    through MJX's package (one that bound the function before the context opened) counts none.
     """
+    trace, before = MjxTrace(), _tracing.steps_recomputed
     with contextlib.ExitStack() as stack:
         stack.enter_context(_applied("remedies", _REMEDIES))
         if implicit_solver:
@@ -372,7 +385,10 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
             stack.enter_context(_contact_geometry_held())
         if physics_steps_recomputed:
             stack.enter_context(_physics_steps_recomputed())
-        yield
+        try:
+            yield trace
+        finally:
+            trace.steps_recomputed = _tracing.steps_recomputed - before
 
 
 def traced_differentiably(function, implicit_solver: bool = False):

@@ -2,7 +2,8 @@
 (``env_task(physics_steps_recomputed=...)``, ``--physics-step-residuals``): the same values and the same
 derivative (the closed form of semi-implicit Euler), a program that rematerializes each ``mjx.step`` and
 stores fewer of its intermediates; chosen by default where a control step's derivative spans several
-physics steps; bad values refused in one line."""
+physics steps; bad values refused in one line, and so is the choice on an env whose step does not call
+``mjx.step`` through MJX's package, where it would change nothing."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,7 +13,7 @@ from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import EnvError
 
 from conftest import refused_in_one_line
-from envs_for_tests import Ball, SubsteppedBall
+from envs_for_tests import Ball, BoundStepBall, SubsteppedBall
 
 RECOMPUTED = "each physics step recomputed in the backward pass"
 
@@ -65,3 +66,15 @@ def test_bad_values_are_refused_in_one_line(tmp_path, capsys):
         env_task(SubsteppedBall(), horizon=2, diagnose=False, physics_steps_recomputed="yes")
     refused_in_one_line(capsys, tmp_path / "refused", "--physics-step-residuals", "--env",
                         "envs_for_tests:make_substepped_ball", "--physics-step-residuals", "kept", "--epochs", "1")
+
+
+def test_asked_of_a_step_that_binds_its_own_mjx_step_it_is_refused_in_one_line(tmp_path, capsys):
+    env = BoundStepBall()
+    state, action = env.reset(jax.random.PRNGKey(0)), jnp.array([0.3])
+    with pytest.raises(EnvError, match="calls no mujoco.mjx.step through MJX's package"):
+        env_task(env, horizon=2, diagnose=False, physics_steps_recomputed=True).dynamics.step(state, action)
+    # The default leaves that env's intermediates stored without a word against it: its step traces.
+    assert jnp.isfinite(env_task(env, horizon=2, diagnose=False).dynamics.step(state, action).reward)
+    refused_in_one_line(capsys, tmp_path / "refused", "calls no mujoco.mjx.step", "--env",
+                        "envs_for_tests:make_bound_step_ball", "--physics-step-residuals", "recomputed",
+                        "--epochs", "1")
