@@ -118,11 +118,11 @@ def angles_periodic(observation: jax.Array) -> jax.Array:
 
 
 def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: float, seed: int,
-             squash_floor: float, saturation_cost: float) -> None:
+             squash_floor: float, saturation_cost: float, activation: str) -> None:
     import optax
 
     from stablebptt.envs import playground
-    from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
+    from stablebptt.networks import floored_tanh, mlp_init
     from stablebptt.physics.constraint_derivatives import differentiable_mjx
     env = playground.load(name)
     seen = {"arm-frame": arm_frame(env.mj_model), "angles-periodic": angles_periodic,
@@ -133,6 +133,13 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
             return env.step(state, action)
 
     squash = floored_tanh(squash_floor)
+    hidden_activation = {"tanh": jnp.tanh, "silu": jax.nn.silu, "elu": jax.nn.elu}[activation]
+
+    def mlp_apply(layers, inputs):  # the library's MLP, its hidden layers' activation chosen
+        for weights, bias in layers[:-1]:
+            inputs = hidden_activation(inputs @ weights + bias)
+        weights, bias = layers[-1]
+        return inputs @ weights + bias
 
     def act(params, state):
         return squash(mlp_apply(params, seen(state.obs)))
@@ -259,6 +266,7 @@ def main() -> None:
     third.add_argument("--seed", type=int, default=1)
     third.add_argument("--squash-floor", type=float, default=0.0)
     third.add_argument("--saturation-cost", type=float, default=0.0)
+    third.add_argument("--activation", choices=("tanh", "silu", "elu"), default="tanh")
     fourth = looks.add_parser("loads")
     fourth.add_argument("env")
     fourth.add_argument("--envs", type=int, default=32)
@@ -273,7 +281,8 @@ def main() -> None:
             loads(arguments.env, arguments.envs, arguments.steps, arguments.scale, arguments.seed)
         elif arguments.look == "features":
             features(arguments.env, arguments.inputs, arguments.window, arguments.updates, arguments.batch,
-                     arguments.lr, arguments.seed, arguments.squash_floor, arguments.saturation_cost)
+                     arguments.lr, arguments.seed, arguments.squash_floor, arguments.saturation_cost,
+                     arguments.activation)
         else:
             rollout(arguments.run_dir, arguments.steps, arguments.seed_index)
     except KeyboardInterrupt:
