@@ -15,6 +15,8 @@ the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the 
   environment) through ``solve_implicitly``. ``physics_steps_recomputed=True``
   has reverse mode store each ``mjx.step``'s start alone and run the step again
   in the backward pass (``jax.checkpoint``) rather than store its intermediates.
+  These choices are flags of the tracing thread over patches shared by all
+  threads: programs traced at once in several threads each take their own.
 
 The remedies are written against ``mjx_internals.WRITTEN_FOR``; entering the
 context with another MJX installed warns once (``mjx_internals.check_version``).
@@ -281,6 +283,7 @@ def _applied(kind: str, patches):
 
 class _TraceChoices(threading.local):
     """What this thread's trace asks of MJX's derivative, read by the shared patches as they are traced."""
+    implicit_solver = False
     geometry_held = False
     physics_steps_recomputed = False
     steps_recomputed = 0  # the mjx.step calls this thread's traces have recomputed, counted as they are traced
@@ -300,6 +303,14 @@ def _choosing(choice: str):
         yield
     finally:
         setattr(_tracing, choice, before)
+
+
+def _solve_as_chosen(solve):
+    """MJX's constraint solver ``solve``, differentiated at its solution where this thread's trace asks
+    (``solve_implicitly``); its loop is bounded only within that (``_solver_loop_bound``, a thread's own)."""
+    def solve_as_chosen(model, data):
+        return (solve_implicitly if _tracing.implicit_solver else solve)(model, data)
+    return solve_as_chosen
 
 
 def _collision_as_chosen(collide):
@@ -379,8 +390,9 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
     with contextlib.ExitStack() as stack:
         stack.enter_context(_applied("remedies", _REMEDIES))
         if implicit_solver:
-            stack.enter_context(_applied("implicit", ((solver, "solve", solve_implicitly),
-                                                      (solver, "jax", _SOLVER_JAX))))
+            stack.enter_context(_applied("implicit", lambda: ((solver, "solve", _solve_as_chosen(solver.solve)),
+                                                              (solver, "jax", _SOLVER_JAX))))
+            stack.enter_context(_choosing("implicit_solver"))
         if contact_geometry_held:
             stack.enter_context(_contact_geometry_held())
         if physics_steps_recomputed:
