@@ -39,7 +39,7 @@ from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.arguments import check_env_task_arguments
 from stablebptt.envs.derivative_model import (check_contacts, contact_cut, derivative_steps, joined, loaded_states,
-                                              own_substeps)
+                                              own_substeps, steps_traced)
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
                                        start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
@@ -49,7 +49,6 @@ from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
 from stablebptt.physics import scene
 from stablebptt.physics.backward_contacts import ContactSmoothing
-from stablebptt.physics.constraint_derivatives import differentiable_mjx
 
 PyTree = Any
 # Output weights of a policy that must not start at exactly zero action: small enough that the
@@ -228,18 +227,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     recomputed_as_asked = physics_steps_recomputed is True
     if physics_steps_recomputed is None:  # where a control step's derivative runs through a loop of physics steps
         physics_steps_recomputed = (gradient_substeps or own_substeps(env) or 1) > 1
-
-    def traced(stepping_env):  # the env's step as every program traces it
-        def env_step(state, action):
-            with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held,
-                                    physics_steps_recomputed=physics_steps_recomputed) as mjx_trace, reward_context():
-                reached = stepping_env.step(state, action)
-            if recomputed_as_asked and not mjx_trace.steps_recomputed:  # asked for, it would change nothing
-                raise EnvError(f"{label}: its step calls no mujoco.mjx.step through MJX's package (as mjx.step, the "
-                               "way MuJoCo Playground's envs call it), so no physics step can be recomputed in the "
-                               "backward pass: drop physics_steps_recomputed=True (--physics-step-residuals recomputed)")
-            return reached
-        return env_step
+    traced = steps_traced(contact_geometry_held, physics_steps_recomputed, recomputed_as_asked, reward_context, label)
 
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.
     own_steps = derivative_steps(traced, env, contact_smoothing, gradient_substeps, label)  # values, derivative

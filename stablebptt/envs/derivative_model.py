@@ -10,7 +10,10 @@ them.
 Or cut where contacts push hard (``contact_cut``): the derivative stops at a state whose
 constraint forces pass a number of the model's body weights, so a window's later rewards reach no
 earlier state or action through it (a foot's strike, whose derivative is the stiffest of a gait).
-The loaded states are the task's ``Episodes.gradient_cut``, where a critic may value them."""
+The loaded states are the task's ``Episodes.gradient_cut``, where a critic may value them.
+
+Every one of these steps is traced as ``steps_traced`` says: inside ``differentiable_mjx``, with the
+task's choices of the derivative through MJX."""
 from __future__ import annotations
 
 import copy
@@ -22,7 +25,28 @@ import numpy as np
 
 from stablebptt.envs.protocol import EnvError
 from stablebptt.physics.backward_contacts import ContactSmoothing, differentiated_through, smoothed_model
+from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import collision_driver
+
+
+def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, recomputed_as_asked: bool,
+                 reward_context: Callable, label: str) -> Callable[[Any], Callable]:
+    """How a task's programs trace an env's step (``traced(env)``): inside ``differentiable_mjx``, its solver
+    differentiated at its solution and the choices given, and ``reward_context``. Where recomputed physics
+    steps were asked for, a step that recomputed none (it calls no ``mujoco.mjx.step`` through MJX's
+    package) is refused as it is traced: the choice would change nothing."""
+    def traced(env):
+        def env_step(state, action):
+            with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held,
+                                    physics_steps_recomputed=physics_steps_recomputed) as mjx_trace, reward_context():
+                reached = env.step(state, action)
+            if recomputed_as_asked and not mjx_trace.steps_recomputed:
+                raise EnvError(f"{label}: its step calls no mujoco.mjx.step through MJX's package (as mjx.step, the "
+                               "way MuJoCo Playground's envs call it), so no physics step can be recomputed in the "
+                               "backward pass: drop physics_steps_recomputed=True (--physics-step-residuals recomputed)")
+            return reached
+        return env_step
+    return traced
 
 
 def derivative_steps(traced: Callable[[Any], Callable], env: Any, smoothing: ContactSmoothing | None,

@@ -162,3 +162,20 @@ def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_p
     from stablebptt.apps.trained import open_trained
     assert open_trained(run).task.resolved["reward_gradient"] == "not checked"
     refused_in_one_line(capsys, tmp_path / "no", "did you mean CartpoleSwingup?", "--env", "cartpoleswingup")
+
+
+@needs_playground
+def test_a_playground_env_of_several_physics_steps_a_control_step_recomputes_each_in_the_backward_pass():
+    from stablebptt.envs import playground
+    from stablebptt.envs.adapter import env_task
+    from stablebptt.envs.derivative_model import own_substeps
+    env = playground.load("ReacherEasy")  # a small model stepped in several physics steps a control step
+    assert own_substeps(env) > 1
+    state = env.reset(jax.random.PRNGKey(0))
+
+    def gradient_program(recomputed):  # Playground's mjx_env.step calls mjx.step through MJX's package
+        task = env_task(env, horizon=2, diagnose=False, physics_steps_recomputed=recomputed)
+        return str(jax.make_jaxpr(jax.grad(lambda action: task.dynamics.step(state, action).obs.sum()))(
+            jnp.full(env.action_size, 0.3)))
+    assert "remat" in gradient_program(None)  # the default, where a control step spans several physics steps
+    assert "remat" not in gradient_program(False)
