@@ -133,9 +133,14 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
             return env.step(state, action)
 
     squash = floored_tanh(squash_floor)
-    hidden_activation = {"tanh": jnp.tanh, "silu": jax.nn.silu, "elu": jax.nn.elu}[activation]
+    hidden_activation = {"tanh": jnp.tanh, "silu": jax.nn.silu, "elu": jax.nn.elu, "gated": jnp.tanh}[activation]
+    gated = activation == "gated"
 
     def mlp_apply(layers, inputs):  # the library's MLP, its hidden layers' activation chosen
+        if gated:  # the first layer's units multiplied by a second linear map of the inputs
+            (weights, bias), (gate_weights, gate_bias) = layers[0], layers[-1]
+            inputs = jnp.tanh(inputs @ weights + bias) * (inputs @ gate_weights + gate_bias)
+            layers = layers[1:-1]
         for weights, bias in layers[:-1]:
             inputs = hidden_activation(inputs @ weights + bias)
         weights, bias = layers[-1]
@@ -179,7 +184,11 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
         jnp.mean, jax.vmap(episode_return, (None, 0))(params, fresh(jax.random.PRNGKey(7), 16))))
     key = jax.random.PRNGKey(seed)
     key, init_key = jax.random.split(key)
-    params = mlp_init(init_key, (int(seen(jnp.zeros(env.observation_size)).shape[0]), 64, 64, env.action_size))
+    inputs_size = int(seen(jnp.zeros(env.observation_size)).shape[0])
+    params = mlp_init(init_key, (inputs_size, 64, 64, env.action_size))
+    if gated:  # the gate's map, kept last; its bias 1 so that each unit starts as tanh's
+        key, gate_key = jax.random.split(key)
+        params = params + [(mlp_init(gate_key, (inputs_size, 64), zero_output=False)[0][0], jnp.ones(64))]
     opt_state = optimizer.init(params)
     for number in range(1, updates + 1):
         key, update_key = jax.random.split(key)
@@ -266,7 +275,7 @@ def main() -> None:
     third.add_argument("--seed", type=int, default=1)
     third.add_argument("--squash-floor", type=float, default=0.0)
     third.add_argument("--saturation-cost", type=float, default=0.0)
-    third.add_argument("--activation", choices=("tanh", "silu", "elu"), default="tanh")
+    third.add_argument("--activation", choices=("tanh", "silu", "elu", "gated"), default="tanh")
     fourth = looks.add_parser("loads")
     fourth.add_argument("env")
     fourth.add_argument("--envs", type=int, default=32)
