@@ -34,16 +34,22 @@ def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, re
     """How a task's programs trace an env's step (``traced(env)``): inside ``differentiable_mjx``, its solver
     differentiated at its solution and the choices given, and ``reward_context``. Where recomputed physics
     steps were asked for, a step that recomputed none (it calls no ``mujoco.mjx.step`` through MJX's
-    package) is refused as it is traced: the choice would change nothing."""
+    package) is refused as its first trace ends: the choice would change nothing. Only the first: a step
+    the env jits itself is traced again from JAX's cache, which calls nothing."""
     def traced(env):
+        unchecked = [recomputed_as_asked]  # whether the first trace is still to be checked
+
         def env_step(state, action):
             with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held,
                                     physics_steps_recomputed=physics_steps_recomputed) as mjx_trace, reward_context():
                 reached = env.step(state, action)
-            if recomputed_as_asked and not mjx_trace.steps_recomputed:
-                raise EnvError(f"{label}: its step calls no mujoco.mjx.step through MJX's package (as mjx.step, the "
-                               "way MuJoCo Playground's envs call it), so no physics step can be recomputed in the "
-                               "backward pass: drop physics_steps_recomputed=True (--physics-step-residuals recomputed)")
+            if unchecked[0]:
+                unchecked[0] = False
+                if not mjx_trace.steps_recomputed:
+                    raise EnvError(f"{label}: its step calls no mujoco.mjx.step through MJX's package (as "
+                                   "mjx.step, the way MuJoCo Playground's envs call it), so no physics step can be "
+                                   "recomputed in the backward pass: drop physics_steps_recomputed=True "
+                                   "(--physics-step-residuals recomputed)")
             return reached
         return env_step
     return traced

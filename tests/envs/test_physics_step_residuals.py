@@ -4,12 +4,15 @@ derivative (the closed form of semi-implicit Euler), a program that rematerializ
 stores fewer of its intermediates; chosen by default where a control step's derivative spans several
 physics steps; bad values refused in one line, and so is the choice on an env whose step does not call
 ``mjx.step`` through MJX's package, where it would change nothing."""
+import contextlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from stablebptt.envs.adapter import env_task
+from stablebptt.envs.derivative_model import steps_traced
 from stablebptt.envs.protocol import EnvError
 
 from conftest import refused_in_one_line
@@ -78,3 +81,23 @@ def test_asked_of_a_step_that_binds_its_own_mjx_step_it_is_refused_in_one_line(t
     refused_in_one_line(capsys, tmp_path / "refused", "calls no mujoco.mjx.step", "--env",
                         "envs_for_tests:make_bound_step_ball", "--physics-step-residuals", "recomputed",
                         "--epochs", "1")
+
+
+class JittedStepBall(SubsteppedBall):
+    """The substepped ball whose step the env jits itself: traced again, JAX answers from its cache."""
+
+    def __init__(self):
+        super().__init__()
+        self.step = jax.jit(super().step)
+
+
+def test_asked_of_a_step_the_env_jits_itself_later_traces_from_jaxs_cache_are_not_refused():
+    env = JittedStepBall()
+    env_step = steps_traced(False, True, True, contextlib.nullcontext, "ball")(env)  # as env_task traces it
+    state, action = env.reset(jax.random.PRNGKey(0)), jnp.array([0.3])
+    # Each trace through a function of its own, so that JAX traces env_step anew (it keeps a function's traces).
+    first = str(jax.make_jaxpr(lambda *given: env_step(*given))(state, action))  # the env's jit traces mjx.step
+    again = str(jax.make_jaxpr(lambda *given: env_step(*given))(state, action))  # its jit answers from the cache
+    assert "remat" in first and again == first
+    with pytest.raises(EnvError, match="calls no mujoco.mjx.step"):  # a step that never recomputes: refused
+        jax.make_jaxpr(steps_traced(False, True, True, contextlib.nullcontext, "ball")(BoundStepBall()))(state, action)
