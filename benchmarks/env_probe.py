@@ -125,8 +125,8 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
     from stablebptt.networks import floored_tanh, mlp_init
     from stablebptt.physics.constraint_derivatives import differentiable_mjx
     env = playground.load(name)
-    seen = {"arm-frame": arm_frame(env.mj_model), "angles-periodic": angles_periodic,
-            "observation": lambda observation: observation}[inputs]
+    seen = {"arm-frame": arm_frame(env.mj_model), "angles-periodic": angles_periodic}.get(
+        inputs, lambda observation: observation)
 
     def step(state, action):
         with differentiable_mjx(implicit_solver=True), playground.repaired_rewards():
@@ -146,11 +146,22 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
         weights, bias = layers[-1]
         return inputs @ weights + bias
 
+    def distance_after(state, action):  # the finger's distance to the target one control step on
+        return jnp.sqrt(jnp.sum(step(state, action).obs[2:4] ** 2) + 1e-12)
+
+    def features(state):  # what the policy sees
+        if inputs != "distance-gradient":
+            return seen(state.obs)
+        # The direction in the actions that brings the finger nearest one step on, from still actions;
+        # held as an observation is (no derivative through it).
+        slope = jax.lax.stop_gradient(jax.grad(distance_after, argnums=1)(state, jnp.zeros(env.action_size)))
+        return jnp.concatenate([state.obs, -slope / (jnp.linalg.norm(slope) + 1e-9)])
+
     def act(params, state):
-        return squash(mlp_apply(params, seen(state.obs)))
+        return squash(mlp_apply(params, features(state)))
 
     def saturation(params, states):  # the squash's input past its knee, squared: what --saturation-cost weighs
-        raw = jax.vmap(lambda state: mlp_apply(params, seen(state.obs)))(states)
+        raw = jax.vmap(lambda state: mlp_apply(params, features(state)))(states)
         return jnp.mean(jnp.maximum(jnp.abs(raw) - 1, 0) ** 2)
 
     def fresh(key, count):  # a reset, then one still step: the reset's observation places the target stale
@@ -166,7 +177,7 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
 
     def episode_return(params, state):
         def body(current, _):
-            raw = mlp_apply(params, seen(current.obs))
+            raw = mlp_apply(params, features(current))
             reached = step(current, jnp.tanh(raw))
             return reached, (reached.reward, jnp.mean(jnp.abs(raw) > SATURATED))
         rewards, saturated = jax.lax.scan(body, state, None, length=1000)[1]
@@ -184,7 +195,7 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
         jnp.mean, jax.vmap(episode_return, (None, 0))(params, fresh(jax.random.PRNGKey(7), 16))))
     key = jax.random.PRNGKey(seed)
     key, init_key = jax.random.split(key)
-    inputs_size = int(seen(jnp.zeros(env.observation_size)).shape[0])
+    inputs_size = int(jax.eval_shape(features, env.reset(jax.random.PRNGKey(0))).shape[0])
     params = mlp_init(init_key, (inputs_size, 64, 64, env.action_size))
     if gated:  # the gate's map, kept last; its bias 1 so that each unit starts as tanh's
         key, gate_key = jax.random.split(key)
@@ -267,7 +278,7 @@ def main() -> None:
     other.add_argument("--seed-index", type=int, default=0)
     third = looks.add_parser("features")
     third.add_argument("env", choices=("ReacherEasy", "ReacherHard"))
-    third.add_argument("--inputs", choices=("observation", "angles-periodic", "arm-frame"), default="observation")
+    third.add_argument("--inputs", choices=("observation", "angles-periodic", "arm-frame", "distance-gradient"), default="observation")
     third.add_argument("--window", type=int, default=20)
     third.add_argument("--updates", type=int, default=400)
     third.add_argument("--batch", type=int, default=64)
