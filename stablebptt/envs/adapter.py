@@ -44,6 +44,7 @@ from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_
                                        start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
                                       function_name, observation, with_reset_traced_once)
+from stablebptt.envs.reward_direction import seen_by_policy
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
@@ -132,7 +133,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              reward_env: Any = None, contact_smoothing: ContactSmoothing | None = None,
              gradient_substeps: int | None = None, squash_gradient_floor: float = 0.0,
              contact_gradient_cut: float = 0.0, contact_geometry_held: bool = False,
-             physics_steps_recomputed: bool | None = None) -> Task:
+             physics_steps_recomputed: bool | None = None, reward_direction_observed: bool = False) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -189,6 +190,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         (docs/performance.md). It reaches an env that calls ``mjx.step`` through MJX's package, as MuJoCo
         Playground's do. None: recomputed where the derivative's control step spans more than one physics
         step (MuJoCo Playground's ``n_substeps``, or ``gradient_substeps``), stored otherwise.
+      reward_direction_observed: the policy also sees the unit direction in its actions that raises the reward
+        it trains on one control step on (``reward_direction``): one more step derivative per step it takes.
 
     Example::
 
@@ -203,7 +206,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                      surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
                      reward_env=reward_env, contact_smoothing=contact_smoothing, gradient_substeps=gradient_substeps,
                      squash_gradient_floor=squash_gradient_floor, contact_gradient_cut=contact_gradient_cut,
-                     contact_geometry_held=contact_geometry_held, physics_steps_recomputed=physics_steps_recomputed)
+                     contact_geometry_held=contact_geometry_held, physics_steps_recomputed=physics_steps_recomputed,
+                     reward_direction_observed=reward_direction_observed)
     env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -240,8 +244,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     # start traces its epoch once (a new function there reads as a smoothed reward: engine/starting.py).
     cut = functools.cache(contact_cut(loaded)) if loaded else (lambda trained: trained)
 
-    def policy(params, state):
-        return observation_policy(params, observation(state), squash)
+    @functools.cache  # one per reward trained on: a task the check settles into keeps its pending task's policy
+    def seen_and_policy(trained):
+        seen = seen_by_policy(observation, trained, int(env.action_size), reward_direction_observed)
+        return seen, lambda params, state: observation_policy(params, seen(state), squash)
 
     # What the windows train on: the env's reward, the user's own surrogate of it, or the reward of another env's
     # step on the same states (diagnosed as the reward is).
@@ -258,7 +264,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     # model's, the values' step.
     values_step = training_step if training_steps[1] is None else jax.jit(training_steps[0])
 
-    sizes = (observations, *hidden, int(env.action_size))
+    seen_size = observations + (int(env.action_size) if reward_direction_observed else 0)
+    sizes = (seen_size, *hidden, int(env.action_size))
     reset = jax.jit(jax.vmap(env.reset))
     resets = {}  # count -> the reset of that many states, kept under diagnosis_key
 
@@ -327,13 +334,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if start_off_zero:  # small, not zero: the reward's derivative is NaN at zero action
             weights, bias = params[-1]
             params[-1] = (SMALL_OUTPUT_SCALE * weights, bias)
-        return StandardizedNetwork(params, no_observations(observations)) if normalize_observations else params
+        return StandardizedNetwork(params, no_observations(seen_size)) if normalize_observations else params
 
-    evaluation = episode_dynamics(step, policy, episode_length)
-    # Training on carried episodes (the default): reset by the env's own reset, ended when done or at its length;
-    # their reported returns are the env's own step's, whatever reward the windows train on.
-    episodes = Episodes(reset=env.reset, reward=lambda state: state.reward, done=lambda state: state.done > 0,
-                        length=episode_length, discount=discount, observe=observation, step=step, gradient_cut=loaded)
     summary = (f"{label}: {sizes[0]} observations{' (standardised by running statistics)' if normalize_observations else ''}, "
                f"{sizes[-1]} actions in [-1, 1]; windows of {horizon} steps, "
                f"loss: negative {'discounted (' + format(discount, 'g') + ') ' if discount < 1 else ''}return; "
@@ -345,6 +347,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                + ("" if gradient_substeps is None else f"; derivative through {gradient_substeps} physics steps per control step")
                + ("; the contacts' points and frames held in the derivative" if contact_geometry_held else "")
                + ("; each physics step recomputed in the backward pass" if physics_steps_recomputed else "")
+               + ("; the policy sees the direction of its trained reward in its actions" if reward_direction_observed else "")
                + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else "")
                + (f"; the derivative cut at contact loads above {contact_gradient_cut:g} body weights" if contact_gradient_cut else ""))
     if reward_repairs:
@@ -353,6 +356,11 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None) -> Task:
         start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
         trained_step, smoothed_terms = smoothed or (training_step, "")
+        seen, policy = seen_and_policy(trained_step)
+        evaluation = episode_dynamics(step, policy, episode_length)
+        # Carried episodes: reset by the env's reset; their returns the env's own, whatever reward the windows train on.
+        episodes = Episodes(reset=env.reset, reward=lambda state: state.reward, done=lambda state: state.done > 0,
+                            length=episode_length, discount=discount, observe=seen, step=step, gradient_cut=loaded)
         if smoothed and dense_variant:  # measured: a sparse env's surrogate trains less far than its dense reward
             smoothed_terms += f" ({dense_variant}'s reward, its dense variant, may train further: --dense-reward)"
         return Task(
@@ -366,12 +374,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                       "reward_repairs": reward_repairs, "policy_output_start": start,
                       **({"normalize_observations": True} if normalize_observations else {}),
                       **({"squash_gradient_floor": squash_gradient_floor} if squash_gradient_floor else {}),
+                      **({"reward_direction_observed": True} if reward_direction_observed else {}),
                       **({"contact_gradient_cut": contact_gradient_cut} if contact_gradient_cut else {}),
                       **({"reward_smoothing": smoothed_terms} if smoothed_terms else {})},
             evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
                 states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
             episodes=episodes,
-            refresh_statistics=refresh_from(observation) if normalize_observations else None,
+            refresh_statistics=refresh_from(seen) if normalize_observations else None,
         )
 
     def settle(wait: bool = True) -> Task | None:

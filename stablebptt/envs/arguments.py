@@ -35,7 +35,8 @@ def check_env_task_arguments(**given: Any) -> None:
     for name in ("name", "reward_repairs", "dense_variant"):
         if not isinstance(given[name], str):
             refuse(name, "a string")
-    for name in ("diagnose", "defer_diagnosis", "normalize_observations", "contact_geometry_held"):
+    for name in ("diagnose", "defer_diagnosis", "normalize_observations", "contact_geometry_held",
+                 "reward_direction_observed"):
         if not isinstance(given[name], bool):
             refuse(name, "True or False")
     if not whole_number(given["diagnosis_seed"]):

@@ -19,3 +19,15 @@ def reward_direction(step: Callable[[Any, jax.Array], Any], state: Any, action_s
     usable = jnp.isfinite(length) & (length > 0)
     direction = jnp.where(usable, slope / jnp.where(usable, length, 1.0), 0.0)
     return jax.lax.stop_gradient(direction)
+
+
+def seen_by_policy(observation: Callable[[Any], jax.Array], step: Callable[[Any, jax.Array], Any], action_size: int,
+                   direction_observed: bool) -> Callable[[Any], jax.Array]:
+    """What a policy sees of a state: ``observation(state)`` and, where ``direction_observed``, after it
+    ``reward_direction`` of ``step`` (whose reward the policy trains on) at that state."""
+    if not direction_observed:
+        return observation
+    def seen(state: Any) -> jax.Array:
+        own = observation(state)
+        return jnp.concatenate([own, reward_direction(step, state, action_size).astype(own.dtype)])
+    return seen

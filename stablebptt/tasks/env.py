@@ -108,6 +108,7 @@ class Config:
     gradient_substeps: int = field(default=0, metadata={"help": "the derivative is taken through each control step in this many physics steps of equal length, a divisor of the env's own count (MuJoCo Playground's WalkerWalk simulates 10; 0: the env's own): a shorter backward pass; the simulation stays the file's"})
     squash_gradient_floor: float = field(default=0.0, metadata={"help": "the derivative of the policy's tanh squash is kept at least this, in [0, 1): an action at its bound, where tanh's slope is nearly 0, still passes this share of its gradient back to the policy; its values, and every action taken, stay tanh's (0: tanh's own derivative)"})
     contact_gradient_cut: float = field(default=0.0, metadata={"help": "the windows' derivative stops at a state whose constraint forces pass this many body weights (the norm of MJX's qfrc_constraint over the model's weight): a window's later rewards reach no earlier state or action through a hard contact, the reward of that state still does; its values, and every return, stay the env's (0: no cut; MuJoCo Playground's envs)"})
+    observe_reward_direction: bool = field(default=False, metadata={"help": "the policy also sees, after its observation, the unit direction in its actions that raises the reward it trains on one control step on, computed by the differentiable step at still actions (held as an observation; one more step derivative for every step the policy takes): the reacher's policy, parked by its raw observation, reaches PPO's return with it in the probe of docs/performance.md"})
     sloped_reward_tails: bool = field(default=False, metadata={"help": "a MuJoCo Playground env's tolerance rewards whose linear, quadratic or cosine sigmoid ends at 0 (the walker's move reward at speed <= 0, the cheetah's run reward) keep, in the derivative only, the sigmoid's mean slope past that end: where the reward was flat the windows' gradient points towards its bounds; its values, and every return, stay as written"})
 
     def __post_init__(self):
@@ -210,6 +211,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
                     contact_gradient_cut=config.contact_gradient_cut,
                     contact_geometry_held=config.contact_gradient_geometry == "held",
                     physics_steps_recomputed=PHYSICS_STEP_RESIDUALS[config.physics_step_residuals],
+                    reward_direction_observed=config.observe_reward_direction,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})
     if trained_reward:

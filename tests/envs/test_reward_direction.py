@@ -38,3 +38,31 @@ def test_a_flat_or_non_finite_slope_gives_zero_not_nan():
     root = lambda state, action: stepped(state, action)._replace(reward=jnp.sqrt(jnp.sum(action ** 2)))  # noqa: E731
     for step in (flat, root):  # the square root's slope at zero is NaN
         np.testing.assert_array_equal(np.asarray(reward_direction(step, state, env.action_size)), [0.0])
+
+
+def test_an_env_tasks_policy_observing_the_direction_sees_it_after_the_observation_and_trains_on_finite_gradients():
+    env = Ball()
+    task = env_task(env, horizon=2, diagnose=False, reward_direction_observed=True)
+    assert "the policy sees the direction of its trained reward in its actions" in task.summary
+    assert task.resolved["reward_direction_observed"] is True
+    params = task.init_params(jax.random.PRNGKey(0), False)
+    assert params[0][0].shape[0] == env.observation_size + env.action_size
+    state = _ball_at(env, -0.02)  # above the hover height: the direction is -1
+    from stablebptt.envs.adapter import observation_policy
+    seen = jnp.concatenate([state.obs, reward_direction(task.dynamics.step, state, env.action_size)])
+    np.testing.assert_allclose(np.asarray(task.dynamics.policy(params, state)),
+                               np.asarray(observation_policy(params, seen)), rtol=1e-6)
+
+    def window_loss(params):  # two steps of the task's own dynamics, the policy seeing the direction
+        reached = task.dynamics.step(state, task.dynamics.policy(params, state))
+        return -task.dynamics.step(reached, task.dynamics.policy(params, reached)).reward
+    gradient = jax.grad(window_loss)(params)
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(gradient))
+    assert any(float(jnp.max(jnp.abs(leaf))) > 0 for leaf in jax.tree.leaves(gradient))
+
+
+def test_bad_values_are_refused_in_one_line(tmp_path, capsys):
+    import pytest
+    from stablebptt.envs.protocol import EnvError
+    with pytest.raises(EnvError, match="reward_direction_observed must be True or False"):
+        env_task(Ball(), horizon=2, diagnose=False, reward_direction_observed="yes")
