@@ -277,11 +277,14 @@ WARM_S = 10.0  # ... whose first start loaded at most this much compile from the
 
 def by_mark(record: dict, mark: int = AT_S) -> list[float] | None:
     """A run's returns by ``mark`` seconds of its wall clock: read at the mark where the run passed it,
-    its final returns where it ended within MARK_WITHIN_S of it in one start; None where it did neither."""
+    its final returns where it ended within MARK_WITHIN_S of it in one start; None where it did neither.
+    A budget's first epoch runs whatever the start took, so a run's end is its last evaluation's clock
+    (``wall_s``), and its budget only in records older than that field."""
     along = record.get("returns_by_wall_clock", {})
     if str(mark) in along:
         return along[str(mark)]
-    ended_at_mark = record.get("starts", 1) == 1 and abs(record.get("budget", 0.0) - mark) <= MARK_WITHIN_S
+    ended = record.get("wall_s", record.get("budget", 0.0))
+    ended_at_mark = record.get("starts", 1) == 1 and abs(ended - mark) <= MARK_WITHIN_S
     return record["final_return"] if ended_at_mark else None
 
 

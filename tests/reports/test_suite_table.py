@@ -80,6 +80,9 @@ def test_an_env_counts_against_ppos_reference_by_its_best_return_at_300_s_in_a_r
         record("WalkerWalk", "walker", [400.0] * 5, 550.0, along={"300": [100.0] * 5}),  # read at 300 s
         record("PointMass", "point mass", [890.0] * 5, 900.0),  # never read at 300 s: no return by then
         record("HopperStand", "hopper", [900.0] * 5, 300.0),  # no reference
+        # Budgeted 300 s, but its start took 315 s and its one epoch, which a budget always trains, ended
+        # at 354 s: it has no return by 300 s.
+        record("FingerTurnEasy", "finger", [500.0] * 5, 300.0) | {"wall_s": 354.0},
         # Its programs loaded from the cache, compiled by a run before on the machine: not a fresh start.
         record("WalkerWalk", "walker warm", [600.0] * 5, 300.0) | {"compile_seconds_from_cache": 60.0},
         # A screen of fixed epochs, given no budget (its GPU perhaps shared): its wall clock is not counted.
