@@ -122,7 +122,8 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
     import optax
 
     from stablebptt.envs import playground
-    from stablebptt.networks import floored_tanh, mlp_init
+    from stablebptt.envs.reward_direction import reward_direction
+    from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
     from stablebptt.physics.constraint_derivatives import differentiable_mjx
     env = playground.load(name)
     seen = {"arm-frame": arm_frame(env.mj_model), "angles-periodic": angles_periodic}.get(
@@ -136,32 +137,28 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
     hidden_activation = {"tanh": jnp.tanh, "silu": jax.nn.silu, "elu": jax.nn.elu, "gated": jnp.tanh}[activation]
     gated = activation == "gated"
 
-    def mlp_apply(layers, inputs):  # the library's MLP, its hidden layers' activation chosen
+    def output(layers, inputs):  # the library's MLP, its hidden layers' activation chosen
         if gated:  # the first layer's units multiplied by a second linear map of the inputs
             (weights, bias), (gate_weights, gate_bias) = layers[0], layers[-1]
             inputs = jnp.tanh(inputs @ weights + bias) * (inputs @ gate_weights + gate_bias)
             layers = layers[1:-1]
-        for weights, bias in layers[:-1]:
-            inputs = hidden_activation(inputs @ weights + bias)
-        weights, bias = layers[-1]
-        return inputs @ weights + bias
+        return mlp_apply(layers, inputs, hidden_activation)
 
-    def distance_after(state, action):  # the finger's distance to the target one control step on
-        return jnp.sqrt(jnp.sum(step(state, action).obs[2:4] ** 2) + 1e-12)
+    def nearer(state, action):  # the step, rewarded by the finger's nearness to the target one control step on
+        reached = step(state, action)
+        return reached.replace(reward=-jnp.sqrt(jnp.sum(reached.obs[2:4] ** 2) + 1e-12))
 
     def features(state):  # what the policy sees
         if inputs != "distance-gradient":
             return seen(state.obs)
-        # The direction in the actions that brings the finger nearest one step on, from still actions;
-        # held as an observation is (no derivative through it).
-        slope = jax.lax.stop_gradient(jax.grad(distance_after, argnums=1)(state, jnp.zeros(env.action_size)))
-        return jnp.concatenate([state.obs, -slope / (jnp.linalg.norm(slope) + 1e-9)])
+        # The direction in the actions that brings the finger nearest one step on, from still actions.
+        return jnp.concatenate([state.obs, reward_direction(nearer, state, env.action_size)])
 
     def act(params, state):
-        return squash(mlp_apply(params, features(state)))
+        return squash(output(params, features(state)))
 
     def saturation(params, states):  # the squash's input past its knee, squared: what --saturation-cost weighs
-        raw = jax.vmap(lambda state: mlp_apply(params, features(state)))(states)
+        raw = jax.vmap(lambda state: output(params, features(state)))(states)
         return jnp.mean(jnp.maximum(jnp.abs(raw) - 1, 0) ** 2)
 
     def fresh(key, count):  # a reset, then one still step: the reset's observation places the target stale
@@ -177,7 +174,7 @@ def features(name: str, inputs: str, window: int, updates: int, batch: int, lr: 
 
     def episode_return(params, state):
         def body(current, _):
-            raw = mlp_apply(params, features(current))
+            raw = output(params, features(current))
             reached = step(current, jnp.tanh(raw))
             return reached, (reached.reward, jnp.mean(jnp.abs(raw) > SATURATED))
         rewards, saturated = jax.lax.scan(body, state, None, length=1000)[1]

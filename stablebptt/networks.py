@@ -1,7 +1,7 @@
 """Small controller networks as plain pytrees: a list of (weights, bias) pairs."""
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -31,11 +31,12 @@ def mlp_init(key: jax.Array, sizes: Sequence[int], zero_output: bool = True) -> 
     return layers
 
 
-def mlp_apply(layers: list[tuple[jax.Array, jax.Array]], inputs: jax.Array) -> jax.Array:
-    """tanh hidden layers, linear output."""
+def mlp_apply(layers: list[tuple[jax.Array, jax.Array]], inputs: jax.Array,
+              activation: Callable[[jax.Array], jax.Array] = jnp.tanh) -> jax.Array:
+    """Hidden layers of ``activation`` (tanh), linear output."""
     hidden = inputs
     for weights, bias in layers[:-1]:
-        hidden = jnp.tanh(hidden @ weights + bias)
+        hidden = activation(hidden @ weights + bias)
     weights, bias = layers[-1]
     return hidden @ weights + bias
 
