@@ -5,7 +5,8 @@
 - the loss of a rollout of ``horizon`` steps is its negative (optionally
   discounted) return, rewards counted until the first ``done``;
 - initial states come from ``env.reset`` (jitted, batched);
-- the policy sees ``State.obs`` and its actions are squashed into [-1, 1];
+- the policy sees ``State.obs`` (and, asked for, the direction of its reward in its actions, which the
+  task's states carry: ``reward_direction``) and its actions are squashed into [-1, 1];
 - the train and test losses of every epoch are the negative EPISODE return
   (``episode_length`` steps, the deterministic policy, from fresh resets), the
   number Brax and MuJoCo Playground report;
@@ -28,7 +29,6 @@ from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
-import mujoco
 
 from stablebptt.engine import program_store
 from stablebptt.engine.checks import whole_number
@@ -38,17 +38,16 @@ from stablebptt.engine.shapes import shapes_only
 from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.arguments import check_env_task_arguments
-from stablebptt.envs.derivative_model import (check_contacts, contact_cut, derivative_steps, joined, loaded_states,
-                                              own_substeps, steps_traced)
+from stablebptt.envs.derivative_model import (check_contacts, contact_cut, derivative_steps, has_constraint_solver,
+                                              joined, loaded_states, own_substeps, steps_traced)
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
                                        start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
                                       function_name, observation, with_reset_traced_once)
-from stablebptt.envs.reward_direction import seen_by_policy
+from stablebptt.envs.reward_direction import Direction
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
-from stablebptt.physics import scene
 from stablebptt.physics.backward_contacts import ContactSmoothing
 
 PyTree = Any
@@ -99,16 +98,6 @@ def rollout_loss(discount: float) -> Callable:
 
 def _is_playground(env: Any) -> bool:
     return type(env).__module__.startswith("mujoco_playground")
-
-
-def has_constraint_solver(env: Any) -> bool:
-    """Whether ``env`` steps a MuJoCo model through MJX whose constraint solver can have rows (contacts,
-    limits, equalities, friction loss): its ``mj_model`` (Playground's), or a Brax env's on the mjx backend.
-    An env of plain JAX has none."""
-    model = getattr(env, "mj_model", None)
-    if model is None and getattr(env, "backend", None) == "mjx":
-        model = getattr(getattr(env, "sys", None), "mj_model", None)
-    return isinstance(model, mujoco.MjModel) and scene.analyze(model).constraints
 
 
 def observation_policy(params: Any, seen: jax.Array, squash: Callable = jnp.tanh) -> jax.Array:
@@ -191,7 +180,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         Playground's do. None: recomputed where the derivative's control step spans more than one physics
         step (MuJoCo Playground's ``n_substeps``, or ``gradient_substeps``), stored otherwise.
       reward_direction_observed: the policy also sees the unit direction in its actions that raises the reward
-        it trains on one control step on (``reward_direction``): one more step derivative per step it takes.
+        it trains on one control step on (``reward_direction``), carried by each state: one more step and its
+        derivative per state a step or a reset reaches.
 
     Example::
 
@@ -244,10 +234,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     # start traces its epoch once (a new function there reads as a smoothed reward: engine/starting.py).
     cut = functools.cache(contact_cut(loaded)) if loaded else (lambda trained: trained)
 
-    @functools.cache  # one per reward trained on: a task the check settles into keeps its pending task's policy
+    @functools.cache  # one per reward trained on: a task the check settles into keeps its pending task's programs
     def seen_and_policy(trained):
-        seen = seen_by_policy(observation, trained, int(env.action_size), reward_direction_observed)
-        return seen, lambda params, state: observation_policy(params, seen(state), squash)
+        direction = Direction(trained, int(env.action_size), reward_direction_observed)
+        seen = direction.seen(observation)
+        policy = lambda params, state: observation_policy(params, seen(state), squash)  # noqa: E731
+        return direction, seen, policy, direction.sampling(sample_initial_states)
 
     # What the windows train on: the env's reward, the user's own surrogate of it, or the reward of another env's
     # step on the same states (diagnosed as the reward is).
@@ -356,18 +348,19 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None) -> Task:
         start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
         trained_step, smoothed_terms = smoothed or (training_step, "")
-        seen, policy = seen_and_policy(trained_step)
-        evaluation = episode_dynamics(step, policy, episode_length)
+        direction, seen, policy, sample = seen_and_policy(trained_step)
+        evaluation = episode_dynamics(direction.stepping(step), policy, episode_length)
         # Carried episodes: reset by the env's reset; their returns the env's own, whatever reward the windows train on.
-        episodes = Episodes(reset=env.reset, reward=lambda state: state.reward, done=lambda state: state.done > 0,
-                            length=episode_length, discount=discount, observe=seen, step=step, gradient_cut=loaded)
+        episodes = Episodes(reset=direction.resetting(env.reset), reward=lambda state: state.reward,
+                            done=lambda state: state.done > 0, length=episode_length, discount=discount, observe=seen,
+                            step=direction.stepping(step), gradient_cut=loaded)
         if smoothed and dense_variant:  # measured: a sparse env's surrogate trains less far than its dense reward
             smoothed_terms += f" ({dense_variant}'s reward, its dense variant, may train further: --dense-reward)"
         return Task(
             name=label,
-            dynamics=Dynamics(step=cut(trained_step), policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
+            dynamics=Dynamics(step=direction.stepping(cut(trained_step)), policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
             init_params=init_params,
-            sample_initial_states=sample_initial_states,
+            sample_initial_states=sample,
             summary=summary + "".join(f"; {part}" for part in (smoothed_terms, diagnosis and diagnosis.describe()) if part),
             resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
                       "hidden": list(hidden), "reward_gradient": gradient,

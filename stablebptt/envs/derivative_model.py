@@ -21,12 +21,24 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from stablebptt.envs.protocol import EnvError
+from stablebptt.physics import scene
 from stablebptt.physics.backward_contacts import ContactSmoothing, differentiated_through, smoothed_model
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import collision_driver
+
+
+def has_constraint_solver(env: Any) -> bool:
+    """Whether ``env`` steps a MuJoCo model through MJX whose constraint solver can have rows (contacts,
+    limits, equalities, friction loss): its ``mj_model`` (Playground's), or a Brax env's on the mjx backend.
+    An env of plain JAX has none."""
+    model = getattr(env, "mj_model", None)
+    if model is None and getattr(env, "backend", None) == "mjx":
+        model = getattr(getattr(env, "sys", None), "mj_model", None)
+    return isinstance(model, mujoco.MjModel) and scene.analyze(model).constraints
 
 
 def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, recomputed_as_asked: bool,
@@ -37,14 +49,15 @@ def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, re
     package) is refused as its first trace ends: the choice would change nothing. Only the first: a step
     the env jits itself is traced again from JAX's cache, which calls nothing."""
     def traced(env):
-        unchecked = [recomputed_as_asked]  # whether the first trace is still to be checked
+        unchecked = recomputed_as_asked  # whether the first trace is still to be checked
 
         def env_step(state, action):
+            nonlocal unchecked
             with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held,
                                     physics_steps_recomputed=physics_steps_recomputed) as mjx_trace, reward_context():
                 reached = env.step(state, action)
-            if unchecked[0]:
-                unchecked[0] = False
+            if unchecked:
+                unchecked = False
                 if not mjx_trace.steps_recomputed:
                     raise EnvError(f"{label}: its step calls no mujoco.mjx.step through MJX's package (as "
                                    "mjx.step, the way MuJoCo Playground's envs call it), so no physics step can be "

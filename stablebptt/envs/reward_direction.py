@@ -1,9 +1,14 @@
 """The direction in an environment's actions that raises its reward one control step on, as the
 differentiable step computes it: an observation a policy can be given. The reacher's policy, which
 its raw observation leaves parked, reaches PPO's return once it sees this direction
-(docs/performance.md, "The direction to push, observed")."""
+(docs/performance.md, "The direction to push, observed").
+
+The direction is computed once per state, where a step or a reset reaches it, and carried with the
+state (``Directed``): every program that reads the policy at a state (the window, each flow's passes
+over it, the critic, the evaluation) reads it there rather than computing it again."""
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Callable
 
 import jax
@@ -14,6 +19,9 @@ def reward_direction(step: Callable[[Any, jax.Array], Any], state: Any, action_s
     """The unit vector along d reward(step(state, a)) / d a at still actions (a = 0), held as an
     observation: no derivative runs through it. Zero where that slope is zero (a flat reward, or one
     whose slope underflows there) or not finite, never NaN."""
+    # Held at the state, not only at the result: a derivative of a rollout then finds no tangent here
+    # and traces nothing of this step's derivative.
+    state = jax.lax.stop_gradient(state)
     slope = jax.grad(lambda action: step(state, action).reward)(jnp.zeros(action_size))
     length = jnp.linalg.norm(slope)
     usable = jnp.isfinite(length) & (length > 0)
@@ -21,13 +29,55 @@ def reward_direction(step: Callable[[Any, jax.Array], Any], state: Any, action_s
     return jax.lax.stop_gradient(direction)
 
 
-def seen_by_policy(observation: Callable[[Any], jax.Array], step: Callable[[Any, jax.Array], Any], action_size: int,
-                   direction_observed: bool) -> Callable[[Any], jax.Array]:
-    """What a policy sees of a state: ``observation(state)`` and, where ``direction_observed``, after it
-    ``reward_direction`` of ``step`` (whose reward the policy trains on) at that state."""
-    if not direction_observed:
-        return observation
-    def seen(state: Any) -> jax.Array:
-        own = observation(state)
-        return jnp.concatenate([own, reward_direction(step, state, action_size).astype(own.dtype)])
-    return seen
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Directed:
+    """An environment's state and ``reward_direction`` there. Its fields read through: ``directed.reward``
+    is the state's reward, so whatever reads an environment's state reads this one alike."""
+    state: Any
+    direction: jax.Array
+
+    def __getattr__(self, name: str) -> Any:
+        if name in ("state", "direction") or name.startswith("__"):  # not yet set (a copy being made)
+            raise AttributeError(name)
+        return getattr(self.state, name)
+
+
+@dataclasses.dataclass(frozen=True)
+class Direction:
+    """How a task's states carry the direction of the reward ``trained`` trains on (``reward_direction``),
+    where the policy observes it; where it does not, every function here is the one it is given."""
+    trained: Callable[[Any, jax.Array], Any]
+    action_size: int
+    observed: bool
+
+    def of(self, state: Any) -> Any:
+        """``state`` carrying its direction."""
+        return Directed(state, reward_direction(self.trained, state, self.action_size)) if self.observed else state
+
+    def stepping(self, step: Callable[[Any, jax.Array], Any]) -> Callable[[Any, jax.Array], Any]:
+        """``step`` on states that carry their direction, reaching one that carries its own."""
+        if not self.observed:
+            return step
+        return lambda state, action: self.of(step(state.state, action))
+
+    def resetting(self, reset: Callable[[jax.Array], Any]) -> Callable[[jax.Array], Any]:
+        """``reset(key)`` reaching a state that carries its direction."""
+        return (lambda key: self.of(reset(key))) if self.observed else reset
+
+    def sampling(self, sample: Callable[[jax.Array, int], Any]) -> Callable[[jax.Array, int], Any]:
+        """``sample(key, count)``, a batch of states, each carrying its direction (one program per count)."""
+        if not self.observed:
+            return sample
+        directed = jax.jit(jax.vmap(self.of))
+        return lambda key, count: directed(sample(key, count))
+
+    def seen(self, observation: Callable[[Any], jax.Array]) -> Callable[[Any], jax.Array]:
+        """What a policy sees of a state: ``observation`` of it and, where observed, after it its direction."""
+        if not self.observed:
+            return observation
+
+        def seen(state: Directed) -> jax.Array:
+            own = observation(state.state)
+            return jnp.concatenate([own, state.direction.astype(own.dtype)])
+        return seen

@@ -51,7 +51,8 @@ RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normal
 # epoch, and R alone (no g_M for the cosine) updates in 0.84x C's time ("R alone on the cheetah"); on
 # the reacher and the finger's turn the policy sees the reward's direction in its actions, which
 # lifts the reachers from 9% of PPO's published return to 103% by 300 s and FingerTurnEasy from 15%
-# to 34% by its first evaluation, though it doubles their compile ("The direction to push, observed").
+# to 34% by its first evaluation ("The direction to push, observed"; measured computed by the policy,
+# which doubled their compile, before the state carried it: "The direction carried by the state").
 RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 4}, "WalkerStand": {"steps": 4}, "WalkerRun": {"steps": 8},
                                  "CheetahRun": {"mode": "R", "cosine": False},
                                  "ReacherEasy": {"observe_reward_direction": True},
@@ -114,7 +115,7 @@ class Config:
     gradient_substeps: int = field(default=0, metadata={"help": "the derivative is taken through each control step in this many physics steps of equal length, a divisor of the env's own count (MuJoCo Playground's WalkerWalk simulates 10; 0: the env's own): a shorter backward pass; the simulation stays the file's"})
     squash_gradient_floor: float = field(default=0.0, metadata={"help": "the derivative of the policy's tanh squash is kept at least this, in [0, 1): an action at its bound, where tanh's slope is nearly 0, still passes this share of its gradient back to the policy; its values, and every action taken, stay tanh's (0: tanh's own derivative)"})
     contact_gradient_cut: float = field(default=0.0, metadata={"help": "the windows' derivative stops at a state whose constraint forces pass this many body weights (the norm of MJX's qfrc_constraint over the model's weight): a window's later rewards reach no earlier state or action through a hard contact, the reward of that state still does; its values, and every return, stay the env's (0: no cut; MuJoCo Playground's envs)"})
-    observe_reward_direction: bool = field(default=False, metadata={"help": "the policy also sees, after its observation, the unit direction in its actions that raises the reward it trains on one control step on, computed by the differentiable step at still actions (held as an observation; one more step derivative for every step the policy takes): the reacher's policy, parked by its raw observation, reaches PPO's return with it in the probe of docs/performance.md"})
+    observe_reward_direction: bool = field(default=False, metadata={"help": "the policy also sees, after its observation, the unit direction in its actions that raises the reward it trains on one control step on, computed by the differentiable step at still actions (held as an observation; one more step and its derivative for every state a step or a reset reaches, which the state carries): the reacher's policy, parked by its raw observation, reaches PPO's return with it in the probe of docs/performance.md"})
     sloped_reward_tails: bool = field(default=False, metadata={"help": "a MuJoCo Playground env's tolerance rewards whose linear, quadratic or cosine sigmoid ends at 0 (the walker's move reward at speed <= 0, the cheetah's run reward) keep, in the derivative only, the sigmoid's mean slope past that end: where the reward was flat the windows' gradient points towards its bounds; its values, and every return, stay as written"})
 
     def __post_init__(self):

@@ -1,12 +1,13 @@
 """The observed reward direction (``envs.reward_direction``): the unit direction in the actions that raises
 the reward one control step on, as finite differences of the env's own step find it; zero, never NaN,
-where the reward has no usable slope; held as an observation (no derivative through it)."""
+where the reward has no usable slope; held as an observation (no derivative through it); carried by the
+states a task's steps reach, which the window's gradient does not tell from computing it anew."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.envs.adapter import env_task
-from stablebptt.envs.reward_direction import reward_direction
+from stablebptt.envs.reward_direction import Directed, reward_direction
 
 from envs_for_tests import Ball
 
@@ -40,25 +41,59 @@ def test_a_flat_or_non_finite_slope_gives_zero_not_nan():
         np.testing.assert_array_equal(np.asarray(reward_direction(step, state, env.action_size)), [0.0])
 
 
-def test_an_env_tasks_policy_observing_the_direction_sees_it_after_the_observation_and_trains_on_finite_gradients():
+def test_an_env_tasks_states_carry_their_direction_and_its_policy_sees_it_after_the_observation():
     env = Ball()
     task = env_task(env, horizon=2, diagnose=False, reward_direction_observed=True)
+    plain = env_task(env, horizon=2, diagnose=False).dynamics.step  # the reward trained on, no direction carried
     assert "the policy sees the direction of its trained reward in its actions" in task.summary
     assert task.resolved["reward_direction_observed"] is True
     params = task.init_params(jax.random.PRNGKey(0), False)
     assert params[0][0].shape[0] == env.observation_size + env.action_size
-    state = _ball_at(env, -0.02)  # above the hover height: the direction is -1
     from stablebptt.envs.adapter import observation_policy
-    seen = jnp.concatenate([state.obs, reward_direction(task.dynamics.step, state, env.action_size)])
+    starts = task.sample_initial_states(jax.random.PRNGKey(1), 3)
+    for k in range(3):  # each start carries the direction at its own state
+        start = jax.tree.map(lambda a, k=k: a[k], starts)
+        np.testing.assert_array_equal(np.asarray(start.direction),
+                                      np.asarray(reward_direction(plain, start.state, env.action_size)))
+    state = Directed(_ball_at(env, -0.02), jnp.array([-1.0]))  # above the hover height: the direction is -1
+    seen = jnp.concatenate([state.obs, state.direction])
     np.testing.assert_allclose(np.asarray(task.dynamics.policy(params, state)),
                                np.asarray(observation_policy(params, seen)), rtol=1e-6)
+    # A step reaches the state the env's own step reaches, carrying the direction there; its fields read through.
+    action = jnp.array([0.3])
+    reached = task.dynamics.step(state, action)
+    own = plain(state.state, action)
+    assert float(reached.reward) == float(own.reward) and float(reached.data["qpos"][0]) == float(own.data["qpos"][0])
+    np.testing.assert_array_equal(np.asarray(reached.direction), np.asarray(reward_direction(plain, own, env.action_size)))
 
-    def window_loss(params):  # two steps of the task's own dynamics, the policy seeing the direction
-        reached = task.dynamics.step(state, task.dynamics.policy(params, state))
-        return -task.dynamics.step(reached, task.dynamics.policy(params, reached)).reward
-    gradient = jax.grad(window_loss)(params)
-    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(gradient))
-    assert any(float(jnp.max(jnp.abs(leaf))) > 0 for leaf in jax.tree.leaves(gradient))
+
+def test_a_window_through_carried_directions_has_the_gradient_of_one_whose_policy_computes_them_anew():
+    env = Ball()
+    task = env_task(env, horizon=3, diagnose=False, reward_direction_observed=True)
+    plain = env_task(env, horizon=3, diagnose=False).dynamics.step
+    from stablebptt.envs.adapter import observation_policy
+    params = task.init_params(jax.random.PRNGKey(0), False)
+    height = -0.02
+
+    def carried(params):  # the task's own dynamics: each state carries the direction its step computed
+        state, total = Directed(_ball_at(env, height), reward_direction(plain, _ball_at(env, height), 1)), 0.0
+        for _ in range(3):
+            state = task.dynamics.step(state, task.dynamics.policy(params, state))
+            total = total + state.reward
+        return total
+
+    def anew(params):  # the plain rollout: the policy computes the direction at every state it sees
+        state, total = _ball_at(env, height), 0.0
+        for _ in range(3):
+            seen = jnp.concatenate([state.obs, reward_direction(plain, state, 1)])
+            state = plain(state, observation_policy(params, seen))
+            total = total + state.reward
+        return total
+
+    expected, gradient = jax.grad(anew)(params), jax.grad(carried)(params)
+    assert any(float(jnp.max(jnp.abs(leaf))) > 0 for leaf in jax.tree.leaves(expected))
+    for ours, theirs in zip(jax.tree.leaves(gradient), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(np.asarray(ours), np.asarray(theirs), rtol=1e-5, atol=1e-9)
 
 
 def test_bad_values_are_refused_in_one_line(tmp_path, capsys):
