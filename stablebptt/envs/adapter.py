@@ -235,7 +235,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     cut = functools.cache(contact_cut(loaded)) if loaded else (lambda trained: trained)
 
     @functools.cache  # one per reward trained on: a task the check settles into keeps its pending task's programs
-    def seen_and_policy(trained):
+    def policy_for(trained):  # the direction its states carry, what the policy sees, the policy, the starts
         direction = Direction(trained, int(env.action_size), reward_direction_observed)
         seen = direction.seen(observation)
         policy = lambda params, state: observation_policy(params, seen(state), squash)  # noqa: E731
@@ -348,7 +348,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None) -> Task:
         start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
         trained_step, smoothed_terms = smoothed or (training_step, "")
-        direction, seen, policy, sample = seen_and_policy(trained_step)
+        direction, seen, policy, sample = policy_for(trained_step)
         evaluation = episode_dynamics(direction.stepping(step), policy, episode_length)
         # Carried episodes: reset by the env's reset; their returns the env's own, whatever reward the windows train on.
         episodes = Episodes(reset=direction.resetting(env.reset), reward=lambda state: state.reward,
