@@ -94,9 +94,14 @@ def read_run(folder: str) -> dict:
         starts = json.load(handle)
     seeds = sorted({int(row["seed"]) for row in rows})
     evaluated = sorted({int(row["epoch"]) for row in rows if np.isfinite(row["test_loss"])})
-    # A seed stopped apart (a non-finite epoch of its own) has no numbers from then on: scored without it.
-    returns = {epoch: [-row["test_loss"] for row in rows if row["epoch"] == epoch and np.isfinite(row["test_loss"])]
-               for epoch in evaluated}
+    # A seed stopped apart (a non-finite epoch of its own) has no numbers from then on: it is scored by
+    # its last evaluation, not left out (leaving it out would score the seeds that survived).
+    returns, last = {}, {}
+    for epoch in evaluated:
+        for row in rows:
+            if row["epoch"] == epoch and np.isfinite(row["test_loss"]):
+                last[int(row["seed"])] = -row["test_loss"]
+        returns[epoch] = [last[seed] for seed in seeds if seed in last]
     stopped = int(retired_in(np.array([[row[name] for name in COLUMNS] for row in rows]), np.array(seeds)).sum())
     per_seed = [row for row in rows if int(row["seed"]) == seeds[0]]
     train = config["train"]
@@ -127,7 +132,7 @@ def read_run(folder: str) -> dict:
             "device": starts[0]["device"],
             "ended": _ended(starts[-1], train.get("budget", 0.0), starts[-1]["seconds_to_training"] + sum(
                 row["seconds"] + row["eval_seconds"] for row in per_seed))
-            + (f", {stopped} of {len(seeds)} seeds stopped apart (non-finite)" if stopped else ""),
+            + (f", {stopped} of {len(seeds)} seeds stopped apart (non-finite), each scored by its last evaluation" if stopped else ""),
             "seconds_to_training": starts[0]["seconds_to_training"], "phases": starts[0]["phases"],
             **_from_cache(starts[0]),
             "resumes": [{"seconds_to_training": start["seconds_to_training"], "phases": start["phases"],

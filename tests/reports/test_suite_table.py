@@ -56,6 +56,23 @@ def test_returns_stand_at_the_marks_a_run_was_budgeted_to_reach_and_no_further(t
     assert resumed["compile_seconds_from_cache"] == 0.0 and resumed["resumes"][0]["compile_seconds_from_cache"] == 25.0
 
 
+def test_a_seed_stopped_apart_is_scored_by_its_last_evaluation_not_left_out(tmp_path):
+    folder = env_run(tmp_path / "stopped", (300.0,), "2026-01-01T10:00")
+    with open(folder / "metrics.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    for row in rows:  # seed 43 stops apart at epoch 6: from then on every number of its rows is NaN
+        if row["seed"] == "43" and int(row["epoch"]) >= 6:
+            row.update({name: "nan" for name in COLUMNS if name not in ("epoch", "seed", "seconds", "eval_seconds")})
+    with open(folder / "metrics.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    record = suite_table.read_run(str(folder))
+    # Seed 43's last evaluation was epoch 5's (10 * 5 + 1); left out, the run would score seed 42 alone.
+    assert record["returns_by_wall_clock"] == {"300": [100.0, 51.0]} and record["final_return"] == [100.0, 51.0]
+    assert "1 of 2 seeds stopped apart" in record["ended"]
+
+
 def test_a_command_run_again_adds_a_row_and_a_folder_read_again_replaces_its_own(tmp_path):
     first = env_run(tmp_path / "first", (300.0,), "2026-01-01T10:00")
     again = env_run(tmp_path / "again", (300.0,), "2026-01-02T10:00")
