@@ -56,10 +56,8 @@ RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normal
 # faster epoch for epoch and its update took 1.75x the time.
 RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 4}, "WalkerStand": {"steps": 4}, "WalkerRun": {"steps": 8},
                                  "CheetahRun": {"mode": "R", "cosine": False},
-                                 "ReacherEasy": {"observe_reward_direction": True},
-                                 "ReacherHard": {"observe_reward_direction": True},
-                                 "FingerTurnEasy": {"observe_reward_direction": True},
-                                 "FingerTurnHard": {"observe_reward_direction": True}}}
+                                 **{env: {"observe_reward_direction": True} for env in
+                                    ("ReacherEasy", "ReacherHard", "FingerTurnEasy", "FingerTurnHard")}}}
 # A recipe's value chosen for its value of another option: given another value of that option beside the
 # recipe, the user's choice keeps its own default of this one (the cheetah's R runs without the cosine for
 # its speed; a mode given beside it computes its own flows and reports their cosine).
