@@ -9,6 +9,7 @@ over it, the critic, the evaluation) reads it there rather than computing it aga
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Callable
 
 import jax
@@ -55,12 +56,16 @@ class Direction:
         """``state`` carrying its direction."""
         return Directed(state, reward_direction(self.trained, state, self.action_size)) if self.observed else state
 
+    # One function per function given: a task its check settles into keeps its pending task's step, so a
+    # run's start keeps the epoch it traced and compiled beside the check (engine/starting.py).
+    @functools.cache
     def stepping(self, step: Callable[[Any, jax.Array], Any]) -> Callable[[Any, jax.Array], Any]:
         """``step`` on states that carry their direction, reaching one that carries its own."""
         if not self.observed:
             return step
         return lambda state, action: self.of(step(state.state, action))
 
+    @functools.cache
     def resetting(self, reset: Callable[[jax.Array], Any]) -> Callable[[jax.Array], Any]:
         """``reset(key)`` reaching a state that carries its direction."""
         return (lambda key: self.of(reset(key))) if self.observed else reset

@@ -53,15 +53,20 @@ RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normal
 # lifts the reachers from 9% of PPO's published return to 103% by 300 s ("The direction to push,
 # observed") and FingerTurnEasy from 15% to 60% ("The direction carried by the state"; FingerTurnHard,
 # the same finger with a smaller target, was measured with it alone); on the walkers it learned no
-# faster epoch for epoch and its update took 1.75x the time.
+# faster epoch for epoch and its update took 1.75x the time. On the finger's turn one seed in five met a
+# non-finite gradient of flows R and M (C's update finite) that stopped it; left at zero, every seed trains
+# on ("A seed that goes on through non-finite flows").
+DIRECTION_OBSERVED = ("ReacherEasy", "ReacherHard", "FingerTurnEasy", "FingerTurnHard")
 RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 4}, "WalkerStand": {"steps": 4}, "WalkerRun": {"steps": 8},
                                  "CheetahRun": {"mode": "R", "cosine": False},
-                                 **{env: {"observe_reward_direction": True} for env in
-                                    ("ReacherEasy", "ReacherHard", "FingerTurnEasy", "FingerTurnHard")}}}
-# A recipe's value chosen for its value of another option: given another value of that option beside the
+                                 **{env: {"observe_reward_direction": True,
+                                          **({"nonfinite_flows": "zero"} if env.startswith("FingerTurn") else {})}
+                                    for env in DIRECTION_OBSERVED}}}
+# A recipe's value chosen for one value of another option: given another value of that option beside the
 # recipe, the user's choice keeps its own default of this one (the cheetah's R runs without the cosine for
-# its speed; a mode given beside it computes its own flows and reports their cosine).
-RECIPE_VALUES_CHOSEN_FOR = {"cosine": "mode"}
+# its speed, and another mode computes its own flows and reports their cosine; C alone leaves a flow's
+# non-finite gradient at zero).
+RECIPE_VALUES_CHOSEN_FOR = {"cosine": ("mode", "R"), "nonfinite_flows": ("mode", "C")}
 # --physics-step-residuals: each choice as env_task's physics_steps_recomputed (None: by the env's physics steps).
 PHYSICS_STEP_RESIDUALS = {"auto": None, "recomputed": True, "stored": False}
 
@@ -69,15 +74,16 @@ PHYSICS_STEP_RESIDUALS = {"auto": None, "recomputed": True, "stored": False}
 def recipe_options(name: str, env: str = "", given: Mapping[str, object] | None = None) -> dict:
     """The options recipe ``name`` sets, for the env named ``env`` (its name in MuJoCo Playground's
     registry) where ``RECIPES_BY_ENV`` has values of its own for it. ``given``: the options a user sets
-    beside it, which win, and which leave out the recipe's values chosen for the values they replace
+    beside it, which win, and which leave out the recipe's values chosen for another value of theirs
     (``RECIPE_VALUES_CHOSEN_FOR``)."""
     if name not in RECIPES:
         raise InputError(f"no recipe {name!r}: choose one of {', '.join(sorted(RECIPES))}")
     if not isinstance(env, str):
         raise InputError(f"a recipe's env is the env's name (a string, as --env takes it), got {type(env).__name__}")
-    options = {**RECIPES[name], **RECIPES_BY_ENV.get(name, {}).get(env, {})}
-    replaced = {option for option, value in (given or {}).items() if option in options and value != options[option]}
-    return {option: value for option, value in options.items() if RECIPE_VALUES_CHOSEN_FOR.get(option) not in replaced}
+    options, given = {**RECIPES[name], **RECIPES_BY_ENV.get(name, {}).get(env, {})}, given or {}
+    chosen_apart = {option for option, (other, value) in RECIPE_VALUES_CHOSEN_FOR.items()
+                    if given.get(other, value) != value}
+    return {option: value for option, value in options.items() if option not in chosen_apart}
 
 
 def recipe(name: str, env: str = "") -> tuple[dict, dict]:

@@ -9,7 +9,7 @@ import numpy as np
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.reward_direction import Directed, reward_direction
 
-from envs_for_tests import Ball
+from envs_for_tests import Ball, MjxDataBall
 
 
 def _ball_at(env, height):
@@ -94,6 +94,16 @@ def test_a_window_through_carried_directions_has_the_gradient_of_one_whose_polic
     assert any(float(jnp.max(jnp.abs(leaf))) > 0 for leaf in jax.tree.leaves(expected))
     for ours, theirs in zip(jax.tree.leaves(gradient), jax.tree.leaves(expected)):
         np.testing.assert_allclose(np.asarray(ours), np.asarray(theirs), rtol=1e-5, atol=1e-9)
+
+
+def test_the_settled_task_keeps_the_directed_step_so_a_start_keeps_the_epoch_it_compiled_beside_the_check():
+    # engine/starting.py traces and compiles the epoch again where the settled task's step is another function
+    # (a smoothed reward's); carrying the direction alone must not make it one.
+    pending = env_task(MjxDataBall(), horizon=4, defer_diagnosis=True, reward_direction_observed=True)
+    settled = pending.settled_fully()
+    assert "reward_smoothing" not in settled.resolved and settled.resolved["reward_direction_observed"] is True
+    assert settled.dynamics.step is pending.dynamics.step
+    assert settled.episodes.step is pending.episodes.step and settled.episodes.reset is pending.episodes.reset
 
 
 def test_bad_values_are_refused_in_one_line(tmp_path, capsys):

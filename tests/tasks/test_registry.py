@@ -204,6 +204,11 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
     assert (chosen().mode, chosen().cosine) == ("R", False)
     assert (chosen("--mode", "C").mode, chosen("--mode", "C").cosine) == ("C", True)
     assert (chosen("--mode", "R").cosine, chosen("--cosine").cosine, chosen("--cosine").mode) == (False, True, "R")
+    # The finger's turn goes on through a flow's non-finite gradient, which C alone can: R given beside stops.
+    finger = lambda *beside: train_command.configure(*train_command.parse(  # noqa: E731
+        ["--env", "FingerTurnHard", "--recipe", "locomotion", *beside]))[2]
+    assert (finger().mode, finger().nonfinite_flows, finger("--mode", "C").nonfinite_flows) == ("C", "zero", "zero")
+    assert (finger("--mode", "R").nonfinite_flows, finger("--mode", "R", "--nonfinite-flows", "stop").mode) == ("stop", "R")
     assert sb.recipe("locomotion", "WalkerWalk")[0]["horizon"] == 4 != env.RECIPES["locomotion"]["steps"]
     with pytest.raises(InputError, match="a recipe's env is the env's name .* got Cart"):
         sb.recipe("locomotion", Cart())  # the env itself, not its name
