@@ -404,6 +404,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                            f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
         if derivative_step is not None:  # the derivative's model smoothed alike, then joined as the step was
             smooth_step = joined(smooth_step, surrogate.smoothed_alike(jax.jit(derivative_step), choices, example, label))
+        # One jit, as the env's step has: each program that traces the surrogate (the window, the direction's
+        # derivative, the evaluation, the checks) reuses one interpretation of the step's program per shape.
+        smooth_step = jax.jit(smooth_step)
         # The surrogate's step reaches the same states as the env's: its gradient is checked at those
         # samples, compiled beside whatever the caller does next (tracing the surrogate's trainer); kept.
         checking: list[PendingDiagnosis] = []

@@ -119,6 +119,25 @@ def test_a_deferred_flat_reward_settles_into_its_surrogate_whose_own_check_answe
     assert final.summary == env_task(Cart("step"), horizon=5).summary
 
 
+def test_the_surrogate_is_interpreted_once_however_many_programs_trace_its_step(monkeypatch):
+    # Each program of a run (the window, the reward direction's derivative, the evaluation, the critic)
+    # traces the step; the surrogate's is an interpreter of the step's program, run once per shape.
+    from stablebptt.envs import surrogate
+    interpreted = []
+    evaluate = surrogate._evaluate
+    monkeypatch.setattr(surrogate, "_evaluate", lambda *args: interpreted.append(1) or evaluate(*args))
+    task = env_task(Cart("step"), horizon=5, reward_direction_observed=True)
+    assert "reward_smoothing" in task.resolved
+    state = jax.tree.map(lambda a: a[0], task.sample_initial_states(jax.random.PRNGKey(0), 2))
+    before = len(interpreted)
+    for program in (lambda s, a: task.dynamics.step(s, a).reward,
+                    lambda s, a: jax.grad(lambda a: task.dynamics.step(s, a).reward)(a),
+                    lambda s, a: jax.vmap(task.dynamics.step, (None, 0))(s, jnp.stack([a, a])).reward):
+        jax.make_jaxpr(program)(state, jnp.array([0.3]))
+    # The step and the direction at the state it reaches: at most one interpretation for each shape.
+    assert len(interpreted) - before <= 1, len(interpreted) - before
+
+
 def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_the_reward(monkeypatch):
     """The epoch is traced while the reward check compiles beside. A reward that turns no comparison into a
     number (smooth, or an underflowing Gaussian) begins its epoch's compile before the check answers; a usable
