@@ -52,9 +52,16 @@ class Direction:
     action_size: int
     observed: bool
 
+    @functools.cached_property
+    def _at(self) -> Callable[[Any], jax.Array]:
+        # One jit per task: each program that reaches a state (the window, the resets, the evaluation, the
+        # checks) traces the step's derivative once per shape, not once per call.
+        return jax.jit(lambda state: reward_direction(self.trained, state, self.action_size))
+
     def of(self, state: Any) -> Any:
         """``state`` carrying its direction."""
-        return Directed(state, reward_direction(self.trained, state, self.action_size)) if self.observed else state
+        # Held before the call, so a derivative of a rollout carries no tangent into the jitted direction.
+        return Directed(state, self._at(jax.lax.stop_gradient(state))) if self.observed else state
 
     # One function per function given: a task its check settles into keeps its pending task's step, so a
     # run's start keeps the epoch it traced and compiled beside the check (engine/starting.py).

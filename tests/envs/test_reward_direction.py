@@ -96,6 +96,33 @@ def test_a_window_through_carried_directions_has_the_gradient_of_one_whose_polic
         np.testing.assert_allclose(np.asarray(ours), np.asarray(theirs), rtol=1e-5, atol=1e-9)
 
 
+def test_the_direction_is_traced_once_per_shape_however_many_programs_reach_a_state(monkeypatch):
+    # Every program of a run reaches states (the window and its derivative, the resets, the evaluation): the
+    # direction's derivative of the step is traced once for a state's shape, then reused.
+    from stablebptt.envs import reward_direction as module
+    traced = []
+    own = module.reward_direction
+    monkeypatch.setattr(module, "reward_direction", lambda *args: traced.append(1) or own(*args))
+    env = Ball()
+    task = env_task(env, horizon=2, diagnose=False, reward_direction_observed=True)
+    state = jax.tree.map(lambda a: a[0], task.sample_initial_states(jax.random.PRNGKey(0), 2))
+    before = len(traced)
+
+    def rollout(params):
+        reached, total = state, 0.0
+        for _ in range(2):
+            reached = task.dynamics.step(reached, task.dynamics.policy(params, reached))
+            total = total + reached.reward
+        return total
+
+    params = task.init_params(jax.random.PRNGKey(1), False)
+    for program, arguments in ((lambda s: task.dynamics.step(s, jnp.array([0.2])).direction, (state,)),
+                               (lambda s: jax.vmap(task.dynamics.step, (None, 0))(s, jnp.ones((3, 1))).direction, (state,)),
+                               (jax.grad(rollout), (params,))):
+        jax.make_jaxpr(program)(*arguments)
+    assert len(traced) - before <= 1, len(traced) - before
+
+
 def test_the_settled_task_keeps_the_directed_step_so_a_start_keeps_the_epoch_it_compiled_beside_the_check():
     # engine/starting.py traces and compiles the epoch again where the settled task's step is another function
     # (a smoothed reward's); carrying the direction alone must not make it one.
