@@ -63,19 +63,24 @@ class Direction:
         # Held before the call, so a derivative of a rollout carries no tangent into the jitted direction.
         return Directed(state, self._at(jax.lax.stop_gradient(state))) if self.observed else state
 
-    # One function per function given: a task its check settles into keeps its pending task's step, so a
-    # run's start keeps the epoch it traced and compiled beside the check (engine/starting.py).
-    @functools.cache
+    @functools.cached_property
+    def _made(self) -> dict:
+        # One function per function given, kept by this direction (a task's, with it): a task its check
+        # settles into keeps its pending task's step, so a run's start keeps the epoch it traced and compiled
+        # beside the check (engine/starting.py).
+        return {}
+
     def stepping(self, step: Callable[[Any, jax.Array], Any]) -> Callable[[Any, jax.Array], Any]:
         """``step`` on states that carry their direction, reaching one that carries its own."""
         if not self.observed:
             return step
-        return lambda state, action: self.of(step(state.state, action))
+        return self._made.setdefault(("step", step), lambda state, action: self.of(step(state.state, action)))
 
-    @functools.cache
     def resetting(self, reset: Callable[[jax.Array], Any]) -> Callable[[jax.Array], Any]:
         """``reset(key)`` reaching a state that carries its direction."""
-        return (lambda key: self.of(reset(key))) if self.observed else reset
+        if not self.observed:
+            return reset
+        return self._made.setdefault(("reset", reset), lambda key: self.of(reset(key)))
 
     def sampling(self, sample: Callable[[jax.Array, int], Any]) -> Callable[[jax.Array, int], Any]:
         """``sample(key, count)``, a batch of states, each carrying its direction (one program per count)."""
