@@ -56,12 +56,11 @@ RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normal
 # faster epoch for epoch and its update took 1.75x the time. On the finger's turn one seed in five met a
 # non-finite gradient of flows R and M (C's update finite) that stopped it; left at zero, every seed trains
 # on ("A seed that goes on through non-finite flows").
-DIRECTION_OBSERVED = ("ReacherEasy", "ReacherHard", "FingerTurnEasy", "FingerTurnHard")
 RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 4}, "WalkerStand": {"steps": 4}, "WalkerRun": {"steps": 8},
                                  "CheetahRun": {"mode": "R", "cosine": False},
-                                 **{env: {"observe_reward_direction": True,
-                                          **({"nonfinite_flows": "zero"} if env.startswith("FingerTurn") else {})}
-                                    for env in DIRECTION_OBSERVED}}}
+                                 **{env: {"observe_reward_direction": True} for env in ("ReacherEasy", "ReacherHard")},
+                                 **{env: {"observe_reward_direction": True, "nonfinite_flows": "zero"}
+                                    for env in ("FingerTurnEasy", "FingerTurnHard")}}}
 # A recipe's value chosen for one value of another option: given another value of that option beside the
 # recipe, the user's choice keeps its own default of this one (the cheetah's R runs without the cosine for
 # its speed, and another mode computes its own flows and reports their cosine; C alone leaves a flow's
@@ -80,9 +79,10 @@ def recipe_options(name: str, env: str = "", given: Mapping[str, object] | None 
         raise InputError(f"no recipe {name!r}: choose one of {', '.join(sorted(RECIPES))}")
     if not isinstance(env, str):
         raise InputError(f"a recipe's env is the env's name (a string, as --env takes it), got {type(env).__name__}")
-    options, given = {**RECIPES[name], **RECIPES_BY_ENV.get(name, {}).get(env, {})}, given or {}
+    options = {**RECIPES[name], **RECIPES_BY_ENV.get(name, {}).get(env, {})}
+    chosen = {**options, **(given or {})}  # the other option's value as the run will take it
     chosen_apart = {option for option, (other, value) in RECIPE_VALUES_CHOSEN_FOR.items()
-                    if given.get(other, value) != value}
+                    if chosen.get(other, value) != value}
     return {option: value for option, value in options.items() if option not in chosen_apart}
 
 
