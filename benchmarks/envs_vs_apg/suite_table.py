@@ -105,7 +105,12 @@ def read_run(folder: str) -> dict:
     stopped = int(retired_in(np.array([[row[name] for name in COLUMNS] for row in rows]), np.array(seeds)).sum())
     per_seed = [row for row in rows if int(row["seed"]) == seeds[0]]
     train = config["train"]
-    updates_per_epoch = config["steps_per_epoch"] // (train["batch"] * config["resolved_task"]["horizon_steps"])
+    steps_per_update = train["batch"] * config["resolved_task"]["horizon_steps"]
+    updates_per_epoch = config["steps_per_epoch"] // steps_per_update
+    # Each epoch's updates from the rows' env steps where they count them (a budget's last epoch may be cut short).
+    counted = [0.0] + [row.get("env_steps", np.nan) for row in per_seed]
+    updates = [round((after - before) / steps_per_update) if after - before > 0 else updates_per_epoch
+               for before, after in zip(counted, counted[1:])]  # NaN or none counted: a whole epoch
     run = load_run(folder)
     clock = dict(zip(run.epochs.tolist(), wall_clock(run).tolist()))
     command = command_of(config)
@@ -123,8 +128,9 @@ def read_run(folder: str) -> dict:
     return {"env": config["task_config"]["env"], "command": command, "started": starts[0].get("started", ""),
             "budget": train.get("budget", 0.0),
             "wall_s": clock[last_epoch], "starts": len(starts), "returns_by_wall_clock": along,
-            "seeds": seeds, "epochs": len(per_seed), "updates": len(per_seed) * updates_per_epoch,
-            "update_s": float(np.median([row["seconds"] for row in per_seed[1:] or per_seed])) / updates_per_epoch,
+            "seeds": seeds, "epochs": len(per_seed), "updates": int(sum(updates)),
+            "update_s": float(np.median([row["seconds"] / count for row, count in zip(per_seed, updates)][1:]
+                                        or [per_seed[0]["seconds"] / updates[0]])),
             "train_s": float(sum(row["seconds"] for row in per_seed)),
             "eval_s": float(sum(row["eval_seconds"] for row in per_seed)),
             "first_return": returns[evaluated[0]], "final_return": returns[evaluated[-1]],

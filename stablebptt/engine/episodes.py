@@ -28,6 +28,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from stablebptt.engine.shapes import shapes_only
 from stablebptt.errors import InputError
@@ -277,3 +278,23 @@ def updates_per_epoch(episodes: Episodes, window: int) -> int:
 def _along(flags: jax.Array, leaf: jax.Array) -> jax.Array:
     """Per-example ``flags`` [envs] broadcast against a leaf [envs, ...]."""
     return flags.reshape(flags.shape + (1,) * (jnp.ndim(leaf) - 1))
+
+
+def cut_short(batches: jax.Array, updates: int) -> jax.Array:
+    """An epoch's batches (training on episodes: its updates' numbers) with all but the first ``updates``
+    made negative, which ``skipping`` leaves out: the epoch's own program then runs an epoch cut short,
+    with nothing compiled again (a budget's last epoch: ``fitting.fit``)."""
+    if not 1 <= updates <= len(batches):
+        raise InputError(f"an epoch of {len(batches)} updates is cut to 1 of them or more, got {updates}")
+    every = np.arange(len(batches))
+    return jax.device_put(np.where(every < updates, every, -1).astype(batches.dtype), batches.sharding)
+
+
+def skipping(update: Callable, skipped: Any) -> Callable:
+    """``update(state, number) -> (state, output)`` as an epoch's step that leaves the state as it was
+    where ``number`` < 0, its output then ``skipped``, whose dtypes the update's output is cast to."""
+    def taken(state, number):
+        state, output = update(state, number)
+        return state, jax.tree.map(lambda value, like: value.astype(like.dtype), output, skipped)
+
+    return lambda state, number: jax.lax.cond(number >= 0, taken, lambda state, _: (state, skipped), state, number)

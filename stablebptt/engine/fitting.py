@@ -43,6 +43,7 @@ def fit(
     out_of_time: Callable[[float], bool] = lambda ahead: False,
     steps_per_epoch: int = 0,
     seeds_apart: bool = False,
+    updates_per_epoch: int = 0,
 ) -> tuple[str, int, Any, np.ndarray, str]:
     """The epoch loop: epochs ``start_epoch+1 .. epochs``, checkpointing, stopping and divergence.
 
@@ -72,10 +73,14 @@ def fit(
       out_of_time: ``out_of_time(ahead)`` after every epoch and its evaluation, ``ahead`` one more epoch as long
         as the last and the longest evaluation's seconds; true evaluates, saves and stops (a wall-clock budget).
       steps_per_epoch: env steps a seed trains per epoch, counted in the rows (0: none to count).
+      updates_per_epoch: where given, ``run_epoch(state, updates)`` runs an epoch of its first ``updates``
+        (``Trainer.epoch_batches``), and the budget's last epoch is cut to the updates that fit in it with
+        the last evaluation (as long as the last epoch's took, each), where a whole one does not: the
+        budget trains to its end rather than stopping up to an epoch before it.
 
     Returns:
       (status, last saved epoch, state, rows, message); status "complete",
-      "interrupted", "budget" or "diverged".
+      "interrupted", "budget" or "diverged"; the message of a budget's last epoch cut short says so.
     """
     saved_epoch = start_epoch if start_epoch > 0 else -1  # a start past epoch 0 comes from a checkpoint
     last_save = time.monotonic()
@@ -95,18 +100,37 @@ def fit(
     retired = retired_in(all_rows(), row_ids) if seeds_apart else np.zeros(len(row_ids), dtype=bool)
     # The longest evaluation so far (a resumed run's too): the room a stop must leave for its last one.
     epoch, evaluation = start_epoch, float(np.max(np.nan_to_num(rows[:, COLUMNS.index("eval_seconds")]), initial=0.0))
+    steps = steps_so_far(rows, start_epoch, steps_per_epoch)
+    cut = None  # the updates of the epoch next, where the budget cuts it short
+
+    def room(whole_epoch: float) -> int | None:
+        """The next epoch's updates within the budget: None (all of them), as many as fit, or 0 (none)."""
+        if not out_of_time(whole_epoch + evaluation):
+            return None
+        if not updates_per_epoch or ran < updates_per_epoch:  # an epoch cut short is the budget's last
+            return 0
+        fits = lambda updates: not out_of_time(updates * whole_epoch / updates_per_epoch + evaluation)  # noqa: E731
+        low, high = 0, updates_per_epoch - 1  # the most updates that fit, by bisection
+        while low < high:
+            middle = (low + high + 1) // 2
+            low, high = (middle, high) if fits(middle) else (low, middle - 1)
+        return low
+
     for epoch in range(start_epoch + 1, epochs + 1):
         if should_stop():
             if epoch - 1 > start_epoch:
                 checkpoint(epoch - 1, state)
             return "interrupted", epoch - 1, state, all_rows(), ""
         started = time.perf_counter()
-        new_state, metrics = run_epoch(state)
-        seconds = time.perf_counter() - started
-        stopping, spent = should_stop(), out_of_time(seconds + evaluation)
-        metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or spent)
+        new_state, metrics = run_epoch(state) if cut is None else run_epoch(state, cut)
+        seconds, ran = time.perf_counter() - started, cut or updates_per_epoch
+        whole_epoch = seconds * updates_per_epoch / ran if updates_per_epoch else seconds
+        stopping, cut = should_stop(), room(whole_epoch)
+        metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or cut == 0)
         evaluation = max(evaluation, eval_seconds)  # one due on the cadence may have used the next epoch's room
-        spent = spent or (eval_seconds > 0 and out_of_time(seconds + evaluation))
+        cut = room(whole_epoch) if eval_seconds > 0 and cut != 0 else cut
+        spent = cut == 0
+        steps += steps_per_epoch * ran / updates_per_epoch if updates_per_epoch else steps_per_epoch
         if retired.any():  # seeds stopped before fail again as they replay their epoch: only the others count
             metrics = without_retired(metrics, retired)
         problem, retiring = diverged(metrics), ""
@@ -121,16 +145,24 @@ def fit(
         if retired.any():  # the retired seeds keep their state; the others' epoch is kept
             new_state = keep_retired(new_state, state, retired)
         state = new_state
-        blocks.append(epoch_rows(epoch, row_ids, metrics, seconds, eval_seconds,
-                                 epoch * steps_per_epoch if steps_per_epoch else np.nan))
+        blocks.append(epoch_rows(epoch, row_ids, metrics, seconds, eval_seconds, steps if steps_per_epoch else np.nan))
         due = epoch % checkpoint_every == 0 and time.monotonic() - last_save >= checkpoint_seconds
         if due or epoch == epochs or stopping or spent:
             checkpoint(epoch, state)
         notice = "; ".join(line for line in (retiring, noticed(metrics)) if line)
-        on_epoch(epoch, {**metrics, "seconds": seconds, "eval_seconds": eval_seconds, "notice": notice})
+        on_epoch(epoch, {**metrics, "seconds": seconds, "eval_seconds": eval_seconds, "notice": notice, "env_steps": steps})
         if stopping or spent:
-            return "interrupted" if stopping else "budget", epoch, state, all_rows(), ""
+            short = f"cut to its first {ran} of {updates_per_epoch} updates" if ran < updates_per_epoch else ""
+            return "interrupted" if stopping else "budget", epoch, state, all_rows(), "" if stopping else short
     return "complete", epoch, state, all_rows(), ""
+
+
+def steps_so_far(rows: np.ndarray, epoch: int, steps_per_epoch: int) -> float:
+    """The env steps a seed trained by the end of ``epoch``: its last row's count (an epoch cut short
+    counts its own), or ``epoch`` whole epochs where the rows hold none."""
+    counted = rows[:, COLUMNS.index("env_steps")] if len(rows) else np.zeros(0)
+    counted = counted[np.isfinite(counted)]
+    return float(counted[-1]) if len(counted) else float(epoch * steps_per_epoch)
 
 
 class Evaluations:
@@ -268,13 +300,12 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
     refill, _ = compiled_refill(trainer, state, prepared.lowered and prepared.lowered.refill)
     evaluations = Evaluations(trainer, config)
     evaluations.compile(state, prepared.lowered and prepared.lowered.evaluation)
-    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
     first_update = 0.0  # seconds from the call to the end of the first epoch
-    steps = env_steps_per_epoch(trainer, config)
 
-    def run_epoch(state):
+    def run_epoch(state, updates=None):
         nonlocal first_update
-        new_state, metrics = epoch_fn(refill(state), *arguments)
+        new_state, metrics = epoch_fn(refill(state), trainer.epoch_batches(updates), trainer.train_states,
+                                      trainer.test_states)
         metrics = jax.device_get(metrics)
         first_update = first_update or time.perf_counter() - started
         return new_state, metrics
@@ -284,14 +315,15 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
             warnings.warn(f"{task.name}: {metrics['notice']}", NonFiniteFlowWarning, stacklevel=2)
         on_epoch(epoch, metrics)
         if progress_fn is not None:
-            progress_fn(epoch * steps, metrics)
+            progress_fn(int(metrics["env_steps"]), metrics)
 
     status, epoch, state, rows, problem = fit(run_epoch, state, 0, config.epochs, empty_rows(), seeds,
                                               lambda *saved: None, config.epochs, should_stop, reported,
                                               diverged=lambda metrics: nonfinite_message(trainer.flows, metrics),
                                               noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds),
                                               evaluate=evaluations, out_of_time=out_of_time(config, started),
-                                              steps_per_epoch=steps, seeds_apart=True)
+                                              steps_per_epoch=env_steps_per_epoch(trainer, config), seeds_apart=True,
+                                              updates_per_epoch=cuttable_updates(trainer))
     if status == "diverged":
         raise TrainingDiverged(f"{task.name}: {problem} (TrainConfig.mode {config.mode!r})")
     per_epoch = {name: rows[:, COLUMNS.index(name)].reshape(epoch, len(seeds)) for name in METRICS}
@@ -301,6 +333,12 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
 def env_steps_per_epoch(trainer: Trainer, config: TrainConfig) -> int:
     """The env steps each seed simulates in an epoch's training (its evaluations not counted)."""
     return trainer.updates_per_epoch * config.batch * trainer.horizon
+
+
+def cuttable_updates(trainer: Trainer) -> int:
+    """The updates of an epoch that ``fit`` may cut short (``Trainer.epoch_batches``): training on episodes
+    alone (0: none)."""
+    return trainer.updates_per_epoch if trainer.episodes is not None else 0
 
 
 def out_of_time(config: TrainConfig, started: float) -> Callable[[float], bool]:

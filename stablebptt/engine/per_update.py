@@ -7,6 +7,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.extend
 import jax.numpy as jnp
+import numpy as np
 
 from stablebptt.flows.dynamics import PyTree
 from stablebptt.timing import usable_cores
@@ -23,15 +24,19 @@ class PerUpdateEpoch:
     compile side by side.
     """
 
-    def __init__(self, update: Callable, evaluate: Callable | None, epoch_metrics: Callable):
+    def __init__(self, update: Callable, evaluate: Callable | None, epoch_metrics: Callable, numbered: bool = False):
         # evaluate None: the epoch runs its updates alone (the trainer evaluates apart, ``Trainer.evaluation``).
+        # numbered: the batches are the updates' numbers (training on episodes), a negative one skipped.
         self.update, self.evaluate, self.epoch_metrics = update, evaluate, epoch_metrics
+        self.numbered = numbered
 
     def __call__(self, state, batches, train_states, test_states):
-        outputs = []
-        for index in range(_updates(batches)):
+        outputs, updates = [], _updates(batches)
+        for index in range(int((np.asarray(batches) >= 0).sum()) if self.numbered else updates):
             state, output = self.update(state, jax.tree.map(lambda a, i=index: a[i], batches))
             outputs.append(output)
+        # An epoch cut short (``episodes.cut_short``): the updates it skipped, as nothing ran (``UpdateOutput.taken``).
+        outputs += [jax.tree.map(jnp.zeros_like, outputs[0])] * (updates - len(outputs))
         per_update = jax.tree.map(lambda *each: jnp.stack(each, axis=1), *outputs)  # [seeds, updates]
         if self.evaluate is None:
             return state, self.epoch_metrics(state, per_update)
@@ -51,7 +56,7 @@ class PerUpdateEpoch:
         if self.evaluate is None:
             update = update.compile()
             metrics = lower_one(self.epoch_metrics, (state, _stacked(update.out_info[1], batches)), "epoch_metrics")
-            return PerUpdateEpoch(update, None, metrics.compile())
+            return PerUpdateEpoch(update, None, metrics.compile(), self.numbered)
         evaluate = lower_one(self.evaluate, (state.params, train_states, test_states), "evaluate")
         if compile_side_by_side():
             with concurrent.futures.ThreadPoolExecutor(1) as beside:
@@ -63,7 +68,7 @@ class PerUpdateEpoch:
         per_update = _stacked(update.out_info[1], batches)
         losses = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), evaluate.out_info)
         metrics = lower_one(self.epoch_metrics, (state, per_update, losses), "epoch_metrics").compile()
-        return PerUpdateEpoch(update, evaluate, metrics)
+        return PerUpdateEpoch(update, evaluate, metrics, self.numbered)
 
 
 class _LoweredPerUpdateEpoch(NamedTuple):

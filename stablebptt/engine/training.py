@@ -24,10 +24,12 @@ from stablebptt.engine.episodes import (
     Exploring,
     bounded_log_std,
     continue_from,
+    cut_short,
     entropy_gradient,
     first_population,
     initial_log_std,
     refill_pool,
+    skipping,
     start_window,
     updates_per_epoch,
     window_dynamics,
@@ -63,6 +65,7 @@ class UpdateOutput(NamedTuple):
     update_norm: jax.Array  # the global norm of the update applied
     cosine: jax.Array  # cosine of g_M and g_R (NaN where they are not both computed)
     flows_finite: jax.Array  # bool [flows]: each computed flow's gradient finite
+    taken: jax.Array  # bool: the update ran (an epoch cut short skips the rest: ``Trainer.epoch_batches``)
 
 
 class Initializer(NamedTuple):
@@ -124,6 +127,14 @@ class Trainer(NamedTuple):
     @property
     def updates_per_epoch(self) -> int:
         return len(jax.tree.leaves(self.batches)[0])
+
+    def epoch_batches(self, updates: int | None = None) -> PyTree:
+        """The batches of an epoch of its first ``updates`` (None: all): ``episodes.cut_short``."""
+        if updates is None or updates >= self.updates_per_epoch:
+            return self.batches
+        if self.episodes is None:
+            raise InputError("an epoch is cut short only where it trains on episodes")
+        return cut_short(self.batches, updates)
 
     def fresh(self, state: TrainState) -> TrainState:
         """``state`` as an epoch starts from it: training on episodes, its pool refilled (``refill``)."""
@@ -260,7 +271,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         # turns a NaN of g_R into a finite zero update.
         flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])
         return TrainState(params, opt_state, carried, critic, log_std), UpdateOutput(loss, optax.tree.norm(updates), cosine,
-                                                                            flows_finite)
+                                                                            flows_finite, jnp.array(True))
 
     def evaluate_both(params, train_states, test_states, dynamics=task.dynamics):
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
@@ -279,7 +290,10 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     apart = not grid and eval_cadence(config, episodes is not None)[0] != "epoch"
 
     def epoch(state, batches, train_states, test_states, dynamics=task.dynamics):
-        state, per_update = jax.lax.scan(lambda s, b: update(dynamics, s, b), state, batches)
+        one, real = functools.partial(update, dynamics), jnp.result_type(float)  # float64 under x64
+        skipped = UpdateOutput(*(jnp.zeros((), real) for _ in range(2)), jnp.full((), jnp.nan, real),
+                               jnp.ones(len(flows), bool), jnp.array(False))
+        state, per_update = jax.lax.scan(one if episodes is None else skipping(one, skipped), state, batches)
         losses = None if apart else evaluate_both(state.params, train_states, test_states, dynamics)
         return state, metrics.of_epoch(state, per_update, losses)
 
@@ -300,7 +314,8 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     else:
         epoch_program = PerUpdateEpoch(jit(over_seeds(functools.partial(update, task.dynamics))),
                                        None if apart else jit(over_seeds(evaluate_both)),
-                                       jit(over_seeds(metrics.of_epoch, mapped=3 if not apart else 2)))
+                                       jit(over_seeds(metrics.of_epoch, mapped=3 if not apart else 2)),
+                                       numbered=episodes is not None)
     return Trainer(
         flows=flows,
         init=Initializer(jit(over_seeds(init_policy)), jit(over_seeds(init_rest))),
@@ -366,19 +381,24 @@ class EpochMetrics:
             train_loss, test_loss, loss_ok = self._losses(losses_of_both)
         # The optimizer state too: an overflowed Adam moment (v = inf) silently zeroes every later update.
         # The carried states are not checked: a task's state may hold infinities by design; their losses tell.
-        checks = ([jnp.isfinite(per_update.loss).all(),
-                   jnp.isfinite(per_update.update_norm).all() & _all_finite((state.params, state.opt_state, state.critic))]
-                  + loss_ok + list(per_update.flows_finite.all(axis=0)))
+        # An epoch cut short counts the updates it ran alone (``UpdateOutput.taken``).
+        taken = per_update.taken
+        ran = lambda values: jnp.where(taken, values, 0)  # noqa: E731
+        mean = lambda values: ran(values).sum() / jnp.maximum(taken.sum(), 1)  # noqa: E731
+        flows_finite = per_update.flows_finite | ~taken[:, None]
+        checks = ([jnp.isfinite(ran(per_update.loss)).all(),
+                   jnp.isfinite(ran(per_update.update_norm)).all() & _all_finite((state.params, state.opt_state, state.critic))]
+                  + loss_ok + list(flows_finite.all(axis=0)))
         failed, stopping = self._checked(checks)
         return {
-            "batch_loss": per_update.loss.mean(),
+            "batch_loss": mean(per_update.loss),
             "train_loss": train_loss,
             "test_loss": test_loss,
-            "update_norm": per_update.update_norm.mean(),
-            "cosine": per_update.cosine.mean(),
+            "update_norm": mean(per_update.update_norm),
+            "cosine": mean(per_update.cosine),
             "finite": stopping == 0,
             "nonfinite": failed,  # bit set per failed check, in the order of nonfinite_names(flows)
-            "nonfinite_flow_updates": jnp.sum(~per_update.flows_finite.all(axis=1)),  # updates with a non-finite flow gradient
+            "nonfinite_flow_updates": jnp.sum(~flows_finite.all(axis=1)),  # updates with a non-finite flow gradient
         }
 
     def of_evaluation(self, losses_of_both) -> dict:

@@ -236,7 +236,9 @@ def x_values(run: Run, axis: str) -> tuple[np.ndarray, str]:
         if not isinstance(steps, int) or isinstance(steps, bool) or steps <= 0:
             raise InputError(f"{run.path / CONFIG_FILE} does not record its env steps per epoch (runs record them "
                              "since they train on carried episodes): draw it against epochs or seconds")
-        return run.epochs.astype(float) * steps, "env steps per seed"
+        # The rows' own count where they keep one: a budget's last epoch may have been cut short.
+        counted = np.nanmax(run.metrics.get("env_steps", np.full((len(run.epochs), 1), np.nan)), axis=1, initial=-np.inf)
+        return np.where(np.isfinite(counted), counted, run.epochs.astype(float) * steps), "env steps per seed"
     raise InputError(f"unknown x axis {axis!r}: choose one of {', '.join(X_AXES)}")
 
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.divergence import nonfinite_message, zeroed_notice
-from stablebptt.engine.fitting import Evaluations, env_steps_per_epoch, fit, out_of_time
+from stablebptt.engine.fitting import Evaluations, cuttable_updates, env_steps_per_epoch, fit, out_of_time
 from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.program_store import compile_seconds_saved
 from stablebptt.engine.starting import compiled_epoch, compiled_refill
@@ -82,10 +82,9 @@ def train_epochs(
     record_start(run_dir, {name: seconds for name, seconds in phases.items() if seconds},
                  time.perf_counter() - started, config.budget, start_epoch + 1,
                  None if compile_saved_mark is None else compile_seconds_saved() - compile_saved_mark)
-    arguments = (trainer.batches, trainer.train_states, trainer.test_states)
-
-    def run_epoch(state):
-        new_state, metrics = epoch_fn(refill(state), *arguments)
+    def run_epoch(state, updates=None):
+        new_state, metrics = epoch_fn(refill(state), trainer.epoch_batches(updates), trainer.train_states,
+                                      trainer.test_states)
         return new_state, jax.device_get(metrics)
 
     def save(epoch, state, rows):
@@ -98,14 +97,16 @@ def train_epochs(
                                               lambda metrics: nonfinite_message(trainer.flows, metrics),
                                               noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds),
                                               evaluate=evaluations, out_of_time=out_of_time(config, started),
-                                              steps_per_epoch=env_steps_per_epoch(trainer, config), seeds_apart=True)
+                                              steps_per_epoch=env_steps_per_epoch(trainer, config), seeds_apart=True,
+                                              updates_per_epoch=cuttable_updates(trainer))
     if status == "diverged":
         message = f"{problem}; stopped, the last good checkpoint (epoch {epoch}) is kept in {run_dir}"
     elif status == "interrupted":
         message = f"interrupted after epoch {epoch}; continue with --resume {run_dir}"
     elif status == "budget":
-        message = (f"the budget of {config.budget:g} s has no room for another epoch after epoch {epoch}; "
-                   f"train further with --resume {run_dir} --budget SECONDS")
+        ended = (f"ended with epoch {epoch} {problem}" if problem
+                 else f"has no room for another epoch after epoch {epoch}")
+        message = f"the budget of {config.budget:g} s {ended}; train further with --resume {run_dir} --budget SECONDS"
     else:
         message = ""
     record_end(run_dir, status, epoch, message)

@@ -127,6 +127,31 @@ def test_evaluations_run_apart_on_their_cadence_and_a_hook_sees_every_epoch_and_
     np.testing.assert_allclose(inside.metrics["batch_loss"], result.metrics["batch_loss"], rtol=1e-6)
 
 
+@pytest.mark.parametrize("program", ["whole", "per-update"])
+def test_an_epoch_cut_short_runs_its_first_updates_and_leaves_the_rest_out(program):
+    """An epoch of 3 windows of 10 steps cut to its first 2 (a budget's last epoch): the same parameters
+    and carried states as its 2 updates run one by one, and its metrics those of the 2 updates alone;
+    the whole epoch's third update moves them on; an epoch is cut to 1 update or more."""
+    from stablebptt.engine.training import make_trainer
+    config = replace(TINY, epochs=1, epoch_program=program)
+    trainer = make_trainer(env_task(Cart(), horizon=10), config)
+    start = trainer.fresh(trainer.init(seed_array(config)))
+    cut, metrics = trainer.epoch(start, trainer.epoch_batches(2), trainer.train_states, trainer.test_states)
+    update = (trainer.epoch.update if program == "per-update" else
+              make_trainer(env_task(Cart(), horizon=10), replace(config, epoch_program="per-update")).epoch.update)
+    by_hand, losses = start, []
+    for number in range(2):
+        by_hand, output = update(by_hand, jnp.full((), number))
+        losses.append(output.loss)
+    for got, expected in zip(jax.tree.leaves((cut.params, cut.carried)), jax.tree.leaves((by_hand.params, by_hand.carried))):
+        np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(metrics["batch_loss"], np.mean(losses, axis=0), rtol=1e-5)
+    whole, whole_metrics = trainer.epoch(start, trainer.epoch_batches(), trainer.train_states, trainer.test_states)
+    assert not all(np.allclose(a, b) for a, b in zip(jax.tree.leaves(whole.params), jax.tree.leaves(cut.params)))
+    assert not np.allclose(whole_metrics["batch_loss"], metrics["batch_loss"])
+    with pytest.raises(InputError, match="cut to 1 of them or more"):
+        trainer.epoch_batches(0)
+
 def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_on(monkeypatch):
     # 0 for 60 steps of 100, then a target: the diagnosis looks along whole episodes, where training will look.
     from stablebptt.envs import diagnosis

@@ -443,6 +443,46 @@ def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_wo
     assert (status, epoch, clock.now, evaluated) == ("budget", 7, 38.0, [2])
 
 
+
+def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_steps(monkeypatch):
+    """Epochs of 10 updates of 1 s after 5 s of set-up, an evaluation of 3 s at the first epoch and the
+    last, a budget of 50 s: after epoch 3 (38 s) a whole epoch and an evaluation would end at 51 s, so
+    epoch 4 runs its first 9 updates and ends, evaluated, at 50 s; its rows count 9 updates' env steps."""
+    class Clock:
+        now = 5.0
+
+        def perf_counter(self):
+            return self.now
+
+        monotonic = perf_counter
+
+    clock, asked, evaluated = Clock(), [], []
+    monkeypatch.setattr(fitting, "time", clock)
+
+    def run_epoch(state, updates=None):
+        asked.append(updates)
+        clock.now += 1.0 * (updates or 10)
+        return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
+
+    def evaluate(state, metrics, epoch, seconds, final):
+        if epoch > 1 and not final:
+            return metrics, 0.0
+        clock.now += 3.0
+        evaluated.append(epoch)
+        return metrics, 3.0
+
+    fit = lambda budget, start=0, rows=np.zeros((0, len(COLUMNS))): fitting.fit(  # noqa: E731
+        run_epoch, start, start, 20, rows, np.arange(1), lambda *saved: None, 1, evaluate=evaluate,
+        out_of_time=lambda ahead: clock.now + ahead > budget, steps_per_epoch=400, updates_per_epoch=10)
+    status, epoch, _, rows, message = fit(50.0)
+    assert (status, epoch, clock.now, asked, evaluated) == ("budget", 4, 50.0, [None, None, None, 9], [1, 4])
+    assert message == "cut to its first 9 of 10 updates"
+    assert rows[:, COLUMNS.index("env_steps")].tolist() == [400.0, 800.0, 1200.0, 1560.0]
+    # A resume after it counts on from its rows; a budget with no room for one more update stops as before.
+    clock.now, asked[:], evaluated[:] = 5.0, [], []
+    status, epoch, _, rows, message = fit(16.5, 4, rows)
+    assert (status, epoch, asked, message) == ("budget", 5, [None], "") and rows[-1, COLUMNS.index("env_steps")] == 1960.0
+
 ARM = """<mujoco model="arm">
   <option timestep="0.02"/>
   <include file="arm_body.xml"/>
