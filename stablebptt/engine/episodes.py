@@ -295,6 +295,6 @@ def skipping(update: Callable, skipped: Any) -> Callable:
     where ``number`` < 0, its output then ``skipped``, whose dtypes the update's output is cast to."""
     def taken(state, number):
         state, output = update(state, number)
-        return state, jax.tree.map(lambda value, like: value.astype(like.dtype), output, skipped)
+        return state, jax.tree.map(lambda value, like: jnp.asarray(value).astype(like.dtype), output, skipped)
 
     return lambda state, number: jax.lax.cond(number >= 0, taken, lambda state, _: (state, skipped), state, number)

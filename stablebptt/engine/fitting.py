@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import time
 import warnings
 from typing import Any, Callable, NamedTuple
@@ -71,12 +72,16 @@ def fit(
       evaluate: ``evaluate(state, metrics, epoch, seconds, final) -> (metrics, seconds evaluating)``
         after every epoch, ``final`` on the last one a run trains (``Evaluations``).
       out_of_time: ``out_of_time(ahead)`` after every epoch and its evaluation, ``ahead`` one more epoch as long
-        as the last and the longest evaluation's seconds; true evaluates, saves and stops (a wall-clock budget).
+        as the last (or cut short: ``updates_per_epoch``) and the longest evaluation's seconds; true
+        evaluates, saves and stops (a wall-clock budget).
       steps_per_epoch: env steps a seed trains per epoch, counted in the rows (0: none to count).
       updates_per_epoch: where given, ``run_epoch(state, updates)`` runs an epoch of its first ``updates``
         (``Trainer.epoch_batches``), and the budget's last epoch is cut to the updates that fit in it with
         the last evaluation (as long as the last epoch's took, each), where a whole one does not: the
-        budget trains to its end rather than stopping up to an epoch before it.
+        budget trains to its end rather than stopping up to an epoch before it. ``run_epoch``'s metrics
+        may hold ``fixed_seconds``, what the epoch spent whatever its updates (taken out of them here).
+        Only the evaluations apart from the epoch (``evaluate``) are left room for: a caller whose epochs
+        evaluate inside passes 0.
 
     Returns:
       (status, last saved epoch, state, rows, message); status "complete",
@@ -103,13 +108,15 @@ def fit(
     steps = steps_so_far(rows, start_epoch, steps_per_epoch)
     cut = None  # the updates of the epoch next, where the budget cuts it short
 
-    def room(whole_epoch: float) -> int | None:
+    def room(fixed: float, per_update: float, whole_epoch: float) -> int | None:
         """The next epoch's updates within the budget: None (all of them), as many as fit, or 0 (none)."""
+        if updates_per_epoch and ran < updates_per_epoch:  # an epoch cut short is the budget's last
+            return 0
         if not out_of_time(whole_epoch + evaluation):
             return None
-        if not updates_per_epoch or ran < updates_per_epoch:  # an epoch cut short is the budget's last
+        if not updates_per_epoch:
             return 0
-        fits = lambda updates: not out_of_time(updates * whole_epoch / updates_per_epoch + evaluation)  # noqa: E731
+        fits = lambda updates: not out_of_time(fixed + updates * per_update + evaluation)  # noqa: E731
         low, high = 0, updates_per_epoch - 1  # the most updates that fit, by bisection
         while low < high:
             middle = (low + high + 1) // 2
@@ -124,11 +131,15 @@ def fit(
         started = time.perf_counter()
         new_state, metrics = run_epoch(state) if cut is None else run_epoch(state, cut)
         seconds, ran = time.perf_counter() - started, cut or updates_per_epoch
-        whole_epoch = seconds * updates_per_epoch / ran if updates_per_epoch else seconds
-        stopping, cut = should_stop(), room(whole_epoch)
+        # What an epoch spends whatever its updates (``run_epoch``'s ``fixed_seconds``: the pool's refill), and each update.
+        fixed = min(float(metrics.pop("fixed_seconds", 0.0)), seconds)
+        per_update = (seconds - fixed) / ran if updates_per_epoch else 0.0
+        planned = functools.partial(room, fixed, per_update, fixed + per_update * updates_per_epoch if updates_per_epoch
+                                    else seconds)
+        stopping, cut = should_stop(), planned()
         metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or cut == 0)
         evaluation = max(evaluation, eval_seconds)  # one due on the cadence may have used the next epoch's room
-        cut = room(whole_epoch) if eval_seconds > 0 and cut != 0 else cut
+        cut = planned() if eval_seconds > 0 and cut != 0 else cut
         spent = cut == 0
         steps += steps_per_epoch * ran / updates_per_epoch if updates_per_epoch else steps_per_epoch
         if retired.any():  # seeds stopped before fail again as they replay their epoch: only the others count
@@ -302,13 +313,9 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
     evaluations.compile(state, prepared.lowered and prepared.lowered.evaluation)
     first_update = 0.0  # seconds from the call to the end of the first epoch
 
-    def run_epoch(state, updates=None):
+    def ended():
         nonlocal first_update
-        new_state, metrics = epoch_fn(refill(state), trainer.epoch_batches(updates), trainer.train_states,
-                                      trainer.test_states)
-        metrics = jax.device_get(metrics)
         first_update = first_update or time.perf_counter() - started
-        return new_state, metrics
 
     def reported(epoch, metrics):
         if metrics["notice"]:  # a flow's non-finite gradient left at zero, or seeds that stopped apart
@@ -317,7 +324,8 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
         if progress_fn is not None:
             progress_fn(int(metrics["env_steps"]), metrics)
 
-    status, epoch, state, rows, problem = fit(run_epoch, state, 0, config.epochs, empty_rows(), seeds,
+    status, epoch, state, rows, problem = fit(epoch_runner(trainer, epoch_fn, refill, ended), state, 0, config.epochs,
+                                              empty_rows(), seeds,
                                               lambda *saved: None, config.epochs, should_stop, reported,
                                               diverged=lambda metrics: nonfinite_message(trainer.flows, metrics),
                                               noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds),
@@ -336,9 +344,24 @@ def env_steps_per_epoch(trainer: Trainer, config: TrainConfig) -> int:
 
 
 def cuttable_updates(trainer: Trainer) -> int:
-    """The updates of an epoch that ``fit`` may cut short (``Trainer.epoch_batches``): training on episodes
-    alone (0: none)."""
-    return trainer.updates_per_epoch if trainer.episodes is not None else 0
+    """The updates of an epoch that ``fit`` may cut short (``Trainer.epoch_batches``): training on episodes,
+    its evaluations apart from the epoch (0: none; one inside would be cut with it, unaccounted)."""
+    return trainer.updates_per_epoch if trainer.episodes is not None and trainer.evaluation is not None else 0
+
+
+def epoch_runner(trainer: Trainer, epoch_fn: Callable, refill: Callable, first: Callable[[], None] = lambda: None):
+    """``fit``'s ``run_epoch``: ``epoch_fn`` from the state ``refill`` refills, of its first ``updates`` (None: all),
+    with the metrics on the host and the refill's seconds as ``fixed_seconds`` (a cut epoch runs it whole);
+    ``first()`` is called as each epoch ends."""
+    def run_epoch(state, updates=None):
+        started = time.perf_counter()
+        state = jax.block_until_ready(refill(state))
+        refilled = time.perf_counter() - started
+        new_state, metrics = epoch_fn(state, trainer.epoch_batches(updates), trainer.train_states, trainer.test_states)
+        metrics = jax.device_get(metrics)
+        first()
+        return new_state, {**metrics, "fixed_seconds": refilled}
+    return run_epoch
 
 
 def out_of_time(config: TrainConfig, started: float) -> Callable[[float], bool]:

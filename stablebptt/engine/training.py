@@ -266,7 +266,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
             row = lambda f: jax.tree.map(lambda a: a[flows.index(f)], grads)
             cosine = tree_cosine(row("M"), row("R"))
         else:
-            cosine = jnp.nan
+            cosine = jnp.full((), jnp.nan, loss.dtype)
         # Every flow's gradient, not only the update: mode C's sign agreement
         # turns a NaN of g_R into a finite zero update.
         flows_finite = jnp.stack([_all_finite(jax.tree.map(lambda a, i=i: a[i], grads)) for i in range(len(flows))])

@@ -11,7 +11,14 @@ import numpy as np
 
 from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.divergence import nonfinite_message, zeroed_notice
-from stablebptt.engine.fitting import Evaluations, cuttable_updates, env_steps_per_epoch, fit, out_of_time
+from stablebptt.engine.fitting import (
+    Evaluations,
+    cuttable_updates,
+    env_steps_per_epoch,
+    epoch_runner,
+    fit,
+    out_of_time,
+)
 from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.program_store import compile_seconds_saved
 from stablebptt.engine.starting import compiled_epoch, compiled_refill
@@ -82,17 +89,13 @@ def train_epochs(
     record_start(run_dir, {name: seconds for name, seconds in phases.items() if seconds},
                  time.perf_counter() - started, config.budget, start_epoch + 1,
                  None if compile_saved_mark is None else compile_seconds_saved() - compile_saved_mark)
-    def run_epoch(state, updates=None):
-        new_state, metrics = epoch_fn(refill(state), trainer.epoch_batches(updates), trainer.train_states,
-                                      trainer.test_states)
-        return new_state, jax.device_get(metrics)
-
     def save(epoch, state, rows):
         save_checkpoint(run_dir, epoch, state, rows, owner)
         save_params(run_dir / PARAMS_FILE, state.params)
         write_metrics(run_dir / METRICS_FILE, rows)
 
-    status, epoch, state, rows, problem = fit(run_epoch, state, start_epoch, config.epochs, rows, seeds, save,
+    status, epoch, state, rows, problem = fit(epoch_runner(trainer, epoch_fn, refill), state, start_epoch, config.epochs,
+                                              rows, seeds, save,
                                               config.checkpoint_every, should_stop, on_epoch,
                                               lambda metrics: nonfinite_message(trainer.flows, metrics),
                                               noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds),

@@ -146,11 +146,19 @@ def test_an_epoch_cut_short_runs_its_first_updates_and_leaves_the_rest_out(progr
     for got, expected in zip(jax.tree.leaves((cut.params, cut.carried)), jax.tree.leaves((by_hand.params, by_hand.carried))):
         np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(metrics["batch_loss"], np.mean(losses, axis=0), rtol=1e-5)
+    # The updates it skipped are no failures: the epoch stays finite, its flows' counts and norms its updates'.
+    assert np.all(metrics["finite"]) and np.all(metrics["nonfinite_flow_updates"] == 0)
+    assert np.all(np.isfinite(metrics["update_norm"])) and np.all(metrics["update_norm"] > 0)
     whole, whole_metrics = trainer.epoch(start, trainer.epoch_batches(), trainer.train_states, trainer.test_states)
     assert not all(np.allclose(a, b) for a, b in zip(jax.tree.leaves(whole.params), jax.tree.leaves(cut.params)))
     assert not np.allclose(whole_metrics["batch_loss"], metrics["batch_loss"])
     with pytest.raises(InputError, match="cut to 1 of them or more"):
         trainer.epoch_batches(0)
+    if program == "whole":  # one flow and no cosine: the update's outputs still match the skipped ones'
+        alone = make_trainer(env_task(Cart(), horizon=10), replace(config, mode="R", cosine=False))
+        state = alone.fresh(alone.init(seed_array(config)))
+        _, metrics = alone.epoch(state, alone.epoch_batches(2), alone.train_states, alone.test_states)
+        assert np.all(metrics["finite"]) and np.all(np.isnan(metrics["cosine"]))
 
 def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_on(monkeypatch):
     # 0 for 60 steps of 100, then a target: the diagnosis looks along whole episodes, where training will look.

@@ -483,6 +483,42 @@ def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_
     status, epoch, _, rows, message = fit(16.5, 4, rows)
     assert (status, epoch, asked, message) == ("budget", 5, [None], "") and rows[-1, COLUMNS.index("env_steps")] == 1960.0
 
+
+def test_a_cut_leaves_room_for_what_an_epoch_spends_whatever_its_updates_and_for_a_cadences_evaluation(monkeypatch):
+    """Epochs of 10 updates of 1 s and a refill of 5 s (``fixed_seconds``): a cut keeps the refill whole.
+    And an evaluation due on the cadence after the epoch whose room was planned shrinks that room."""
+    class Clock:
+        now = 0.0
+
+        def perf_counter(self):
+            return self.now
+
+        monotonic = perf_counter
+
+    clock, asked = Clock(), []
+    monkeypatch.setattr(fitting, "time", clock)
+
+    def run_epoch(state, updates=None):
+        asked.append(updates)
+        clock.now += 5.0 + 1.0 * (updates or 10)
+        return state + 1, {**{name: np.full(1, state + 1.0) for name in METRICS}, "fixed_seconds": 5.0}
+
+    def fit(budget, evaluated_at):
+        def evaluate(state, metrics, epoch, seconds, final):
+            if not (final or epoch in evaluated_at):
+                return metrics, 0.0
+            clock.now += 3.0
+            return metrics, 3.0
+        clock.now, asked[:] = 0.0, []
+        status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1),
+                                        lambda *saved: None, 1, evaluate=evaluate, steps_per_epoch=10,
+                                        out_of_time=lambda ahead: clock.now + ahead > budget, updates_per_epoch=10)
+        return status, epoch, clock.now
+    # After epoch 2 (33 s; 15 a whole epoch, 3 its evaluation): 5 of the refill and 6 updates fit in 47 s.
+    assert fit(47.0, (1,)) == ("budget", 3, 47.0) and asked == [None, None, 6]
+    # Evaluated after epoch 2 as well (36 s): 3 updates fit, not the 6 planned before that evaluation.
+    assert fit(47.0, (1, 2)) == ("budget", 3, 47.0) and asked == [None, None, 3]
+
 ARM = """<mujoco model="arm">
   <option timestep="0.02"/>
   <include file="arm_body.xml"/>
