@@ -16,6 +16,14 @@ import jax
 import jax.numpy as jnp
 
 
+# The slope in forward mode, one tangent per action, for envs of this many actions or fewer; reverse mode
+# (one pass back through the step) above, where forward mode is not measured. On the 2-core CPU forward
+# mode's programs compiled and ran faster on the finger's 2 actions (the update 0.78x and 0.83x reverse
+# mode's time, the evaluation 0.61x and 0.64x) and on the cheetah's 6 (0.88x and 0.90x, 0.74x and 0.85x):
+# docs/performance.md, "The direction in forward mode".
+FORWARD_MODE_ACTIONS = 6
+
+
 def reward_direction(step: Callable[[Any, jax.Array], Any], state: Any, action_size: int) -> jax.Array:
     """The unit vector along d reward(step(state, a)) / d a at still actions (a = 0), held as an
     observation: no derivative runs through it. Zero where that slope is zero (a flat reward, or one
@@ -23,7 +31,8 @@ def reward_direction(step: Callable[[Any, jax.Array], Any], state: Any, action_s
     # Held at the state, not only at the result: a derivative of a rollout then finds no tangent here
     # and traces nothing of this step's derivative.
     state = jax.lax.stop_gradient(state)
-    slope = jax.grad(lambda action: step(state, action).reward)(jnp.zeros(action_size))
+    slope_of = jax.jacfwd if action_size <= FORWARD_MODE_ACTIONS else jax.grad
+    slope = slope_of(lambda action: step(state, action).reward)(jnp.zeros(action_size))
     length = jnp.linalg.norm(slope)
     usable = jnp.isfinite(length) & (length > 0)
     direction = jnp.where(usable, slope / jnp.where(usable, length, 1.0), 0.0)

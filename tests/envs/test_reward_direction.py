@@ -2,9 +2,12 @@
 the reward one control step on, as finite differences of the env's own step find it; zero, never NaN,
 where the reward has no usable slope; held as an observation (no derivative through it); carried by the
 states a task's steps reach, which the window's gradient does not tell from computing it anew."""
+import types
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.reward_direction import Directed, reward_direction
@@ -30,6 +33,19 @@ def test_the_direction_is_the_finite_differences_sign_and_holds_no_derivative():
     moved = jax.grad(lambda h: reward_direction(step, _ball_at(env, h), env.action_size)[0])(-0.02)
     assert float(moved) == 0.0
 
+
+
+@pytest.mark.parametrize("forward_up_to", [0, 3])  # reverse, forward
+def test_the_direction_is_the_closed_forms_in_forward_and_reverse_mode(monkeypatch, forward_up_to):
+    """A reward -sum(w (x + a - t)^2) one step on: its slope in the actions at a = 0 is -2 w (x - t), the
+    direction that over its length, whether the slope is taken in forward or in reverse mode."""
+    from stablebptt.envs import reward_direction as module
+    monkeypatch.setattr(module, "FORWARD_MODE_ACTIONS", forward_up_to)
+    weights, target, position = jnp.array([1.0, 3.0, 0.5]), jnp.array([0.2, -0.4, 1.0]), jnp.array([0.5, 0.1, -1.0])
+    step = lambda x, a: types.SimpleNamespace(reward=-jnp.sum(weights * (x + a - target) ** 2))  # noqa: E731
+    slope = -2.0 * weights * (position - target)
+    np.testing.assert_allclose(np.asarray(module.reward_direction(step, position, 3)),
+                               np.asarray(slope / jnp.linalg.norm(slope)), rtol=1e-6)
 
 def test_a_flat_or_non_finite_slope_gives_zero_not_nan():
     env = Ball()
