@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import jax
 import numpy as np
@@ -401,32 +402,43 @@ def test_the_epoch_loop_saves_on_its_cadence_at_the_end_and_at_a_stop(checkpoint
     every_epoch = [float(e) for e in range(1, epoch + 1) for _ in range(2)]
     assert rows[:, 0].tolist() == every_epoch and saves[-1][1] == every_epoch
 
-@pytest.mark.parametrize("budget, last_epoch, ends_at", [(50.0, 3, 41.0), (60.0, 4, 51.0), (1.0, 1, 18.0)])
-def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_would_overrun_it(
-        monkeypatch, budget, last_epoch, ends_at):
-    """Epochs of 10 s after 5 s of set-up, an evaluation of 3 s at the first epoch and the last: the loop
-    goes on only while one more epoch and a last evaluation end within the budget; the first always trains."""
-    class Clock:
-        now = 5.0
+class FakeClock:
+    """``fitting``'s ``time``, its clock moved by hand: each test advances ``now`` as its epochs would."""
 
-        def perf_counter(self):
-            return self.now
+    def __init__(self, now: float):
+        self.now = now
 
-        monotonic = perf_counter
+    def perf_counter(self):
+        return self.now
 
-    clock, evaluated = Clock(), []
-    monkeypatch.setattr(fitting, "time", clock)
+    monotonic = perf_counter
 
-    def run_epoch(state):
-        clock.now += 10.0
-        return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
 
+def first_and_last_evaluated(clock: FakeClock, evaluated: list) -> Callable:
+    """``fit``'s ``evaluate``: the first epoch and the last (``final``) evaluated, 3 s each on ``clock``,
+    their epochs appended to ``evaluated``."""
     def evaluate(state, metrics, epoch, seconds, final):
         if epoch > 1 and not final:
             return metrics, 0.0
         clock.now += 3.0
         evaluated.append(epoch)
         return metrics, 3.0
+    return evaluate
+
+
+@pytest.mark.parametrize("budget, last_epoch, ends_at", [(50.0, 3, 41.0), (60.0, 4, 51.0), (1.0, 1, 18.0)])
+def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_would_overrun_it(
+        monkeypatch, budget, last_epoch, ends_at):
+    """Epochs of 10 s after 5 s of set-up, an evaluation of 3 s at the first epoch and the last: the loop
+    goes on only while one more epoch and a last evaluation end within the budget; the first always trains."""
+    clock, evaluated = FakeClock(5.0), []
+    monkeypatch.setattr(fitting, "time", clock)
+
+    def run_epoch(state):
+        clock.now += 10.0
+        return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
+
+    evaluate = first_and_last_evaluated(clock, evaluated)
 
     status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1),
                                     lambda *saved: None, 1, evaluate=evaluate,
@@ -443,20 +455,11 @@ def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_wo
     assert (status, epoch, clock.now, evaluated) == ("budget", 7, 38.0, [2])
 
 
-
 def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_steps(monkeypatch):
     """Epochs of 10 updates of 1 s after 5 s of set-up, an evaluation of 3 s at the first epoch and the
     last, a budget of 50 s: after epoch 3 (38 s) a whole epoch and an evaluation would end at 51 s, so
     epoch 4 runs its first 9 updates and ends, evaluated, at 50 s; its rows count 9 updates' env steps."""
-    class Clock:
-        now = 5.0
-
-        def perf_counter(self):
-            return self.now
-
-        monotonic = perf_counter
-
-    clock, asked, evaluated = Clock(), [], []
+    clock, asked, evaluated = FakeClock(5.0), [], []
     monkeypatch.setattr(fitting, "time", clock)
 
     def run_epoch(state, updates=None):
@@ -464,12 +467,7 @@ def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_
         clock.now += 1.0 * (updates or 10)
         return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
 
-    def evaluate(state, metrics, epoch, seconds, final):
-        if epoch > 1 and not final:
-            return metrics, 0.0
-        clock.now += 3.0
-        evaluated.append(epoch)
-        return metrics, 3.0
+    evaluate = first_and_last_evaluated(clock, evaluated)
 
     fit = lambda budget, start=0, rows=np.zeros((0, len(COLUMNS))): fitting.fit(  # noqa: E731
         run_epoch, start, start, 20, rows, np.arange(1), lambda *saved: None, 1, evaluate=evaluate,
@@ -487,15 +485,7 @@ def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_
 def test_a_cut_leaves_room_for_what_an_epoch_spends_whatever_its_updates_and_for_a_cadences_evaluation(monkeypatch):
     """Epochs of 10 updates of 1 s and a refill of 5 s (``fixed_seconds``): a cut keeps the refill whole.
     And an evaluation due on the cadence after the epoch whose room was planned shrinks that room."""
-    class Clock:
-        now = 0.0
-
-        def perf_counter(self):
-            return self.now
-
-        monotonic = perf_counter
-
-    clock, asked = Clock(), []
+    clock, asked = FakeClock(0.0), []
     monkeypatch.setattr(fitting, "time", clock)
 
     def run_epoch(state, updates=None):
