@@ -106,18 +106,17 @@ def fit(
     # The longest evaluation so far (a resumed run's too): the room a stop must leave for its last one.
     epoch, evaluation = start_epoch, float(np.max(np.nan_to_num(rows[:, COLUMNS.index("eval_seconds")]), initial=0.0))
     steps = steps_so_far(rows, start_epoch, steps_per_epoch)
+    units = updates_per_epoch or 1  # the parts an epoch may be cut to (1: it runs whole or not at all)
     cut = None  # the updates of the epoch next, where the budget cuts it short
 
-    def room(fixed: float, per_update: float, whole_epoch: float) -> int | None:
+    def room(ran: int, fixed: float, per_update: float) -> int | None:
         """The next epoch's updates within the budget: None (all of them), as many as fit, or 0 (none)."""
-        if updates_per_epoch and ran < updates_per_epoch:  # an epoch cut short is the budget's last
+        if ran < units:  # an epoch cut short is the budget's last
             return 0
-        if not out_of_time(whole_epoch + evaluation):
+        if not out_of_time(fixed + per_update * units + evaluation):
             return None
-        if not updates_per_epoch:
-            return 0
         fits = lambda updates: not out_of_time(fixed + updates * per_update + evaluation)  # noqa: E731
-        low, high = 0, updates_per_epoch - 1  # the most updates that fit, by bisection
+        low, high = 0, units - 1  # the most updates that fit, by bisection
         while low < high:
             middle = (low + high + 1) // 2
             low, high = (middle, high) if fits(middle) else (low, middle - 1)
@@ -130,18 +129,17 @@ def fit(
             return "interrupted", epoch - 1, state, all_rows(), ""
         started = time.perf_counter()
         new_state, metrics = run_epoch(state) if cut is None else run_epoch(state, cut)
-        seconds, ran = time.perf_counter() - started, cut or updates_per_epoch
-        # What an epoch spends whatever its updates (``run_epoch``'s ``fixed_seconds``: the pool's refill), and each update.
+        seconds, ran = time.perf_counter() - started, cut or units
+        # What an epoch spends whatever its updates (``run_epoch``'s ``fixed_seconds``: the pool's refill),
+        # and each update.
         fixed = min(float(metrics.pop("fixed_seconds", 0.0)), seconds)
-        per_update = (seconds - fixed) / ran if updates_per_epoch else 0.0
-        planned = functools.partial(room, fixed, per_update, fixed + per_update * updates_per_epoch if updates_per_epoch
-                                    else seconds)
+        planned = functools.partial(room, ran, fixed, (seconds - fixed) / ran)
         stopping, cut = should_stop(), planned()
         metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or cut == 0)
         evaluation = max(evaluation, eval_seconds)  # one due on the cadence may have used the next epoch's room
         cut = planned() if eval_seconds > 0 and cut != 0 else cut
         spent = cut == 0
-        steps += steps_per_epoch * ran / updates_per_epoch if updates_per_epoch else steps_per_epoch
+        steps += steps_per_epoch * ran / units
         if retired.any():  # seeds stopped before fail again as they replay their epoch: only the others count
             metrics = without_retired(metrics, retired)
         problem, retiring = diverged(metrics), ""
@@ -161,9 +159,10 @@ def fit(
         if due or epoch == epochs or stopping or spent:
             checkpoint(epoch, state)
         notice = "; ".join(line for line in (retiring, noticed(metrics)) if line)
-        on_epoch(epoch, {**metrics, "seconds": seconds, "eval_seconds": eval_seconds, "notice": notice, "env_steps": steps})
+        on_epoch(epoch, {**metrics, "seconds": seconds, "eval_seconds": eval_seconds, "notice": notice,
+                         "env_steps": steps})
         if stopping or spent:
-            short = f"cut to its first {ran} of {updates_per_epoch} updates" if ran < updates_per_epoch else ""
+            short = f"cut to its first {ran} of {units} updates" if ran < units else ""
             return "interrupted" if stopping else "budget", epoch, state, all_rows(), "" if stopping else short
     return "complete", epoch, state, all_rows(), ""
 

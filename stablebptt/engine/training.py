@@ -291,8 +291,9 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
 
     def epoch(state, batches, train_states, test_states, dynamics=task.dynamics):
         one, real = functools.partial(update, dynamics), jnp.result_type(float)  # float64 under x64
-        skipped = UpdateOutput(*(jnp.zeros((), real) for _ in range(2)), jnp.full((), jnp.nan, real),
-                               jnp.ones(len(flows), bool), jnp.array(False))
+        skipped = UpdateOutput(loss=jnp.zeros((), real), update_norm=jnp.zeros((), real),
+                               cosine=jnp.full((), jnp.nan, real), flows_finite=jnp.ones(len(flows), bool),
+                               taken=jnp.array(False))
         state, per_update = jax.lax.scan(one if episodes is None else skipping(one, skipped), state, batches)
         losses = None if apart else evaluate_both(state.params, train_states, test_states, dynamics)
         return state, metrics.of_epoch(state, per_update, losses)
