@@ -87,9 +87,9 @@ def test_a_command_run_again_adds_a_row_and_a_folder_read_again_replaces_its_own
         assert f"(started {started}) | cpu |" in table
 
 
-def test_an_env_counts_against_ppos_reference_by_its_best_return_at_300_s_in_a_run_of_five_seeds():
-    def record(env, command, returns, budget, along=None, seeds=5):
-        return {"env": env, "command": command, "started": "2026-01-01T10:00:00", "budget": budget, "starts": 1,
+def test_an_env_counts_against_ppos_reference_by_its_best_command_at_300_s_its_runs_pooled():
+    def record(env, command, returns, budget, along=None, seeds=5, started="2026-01-01T10:00:00"):
+        return {"env": env, "command": command, "started": started, "budget": budget, "starts": 1,
                 "seeds": list(range(seeds)), "final_return": returns, "returns_by_wall_clock": along or {}}
     records = [
         record("CheetahRun", "cheetah", [430.0] * 5, 300.0),  # 51% of 850
@@ -104,13 +104,24 @@ def test_an_env_counts_against_ppos_reference_by_its_best_return_at_300_s_in_a_r
         record("WalkerWalk", "walker warm", [600.0] * 5, 300.0) | {"compile_seconds_from_cache": 60.0},
         # A screen of fixed epochs, given no budget (its GPU perhaps shared): its wall clock is not counted.
         record("WalkerWalk", "walker screen", [700.0] * 5, 0.0, along={"300": [700.0] * 5}),
+        # One command run three times: a lucky run (560, 56% of 1000) does not count alone; the three pool
+        # to 440 (44%), below the other command's 450, which then stands for the env.
+        record("WalkerStand", "stand", [360.0] * 5, 300.0),
+        record("WalkerStand", "stand", [400.0] * 5, 300.0, started="2026-01-02T10:00:00"),
+        record("WalkerStand", "stand", [560.0] * 5, 300.0, started="2026-01-03T10:00:00"),
+        record("WalkerStand", "stand wider", [450.0] * 5, 300.0),
     ]
-    lines = suite_table.against_reference(records, suite_table._labels(records))
+    lines = suite_table.against_reference(records)
     assert f"1 of the {len(suite_table.PPO_REFERENCE)} envs" in lines[0] and "(CheetahRun)" in lines[0]
     rows = {line.split(" | ")[0].strip("| "): line for line in lines[4:]}
-    assert set(rows) == {"CheetahRun", "WalkerWalk"}
-    assert "| 430.0 [430.0, 430.0] | 51% | `cheetah` |" in rows["CheetahRun"]
-    assert "| 100.0 [100.0, 100.0] | 10% | `walker` |" in rows["WalkerWalk"]
+    assert set(rows) == {"CheetahRun", "WalkerWalk", "WalkerStand"}
+    assert "| 430.0 [430.0, 430.0] | 51% | 1: 430.0 | `cheetah` |" in rows["CheetahRun"]
+    assert "| 100.0 [100.0, 100.0] | 10% | 1: 100.0 | `walker` |" in rows["WalkerWalk"]
+    assert "| 450.0 [450.0, 450.0] | 45% | 1: 450.0 | `stand wider` |" in rows["WalkerStand"]
+    # Without the other command, the pooled runs stand for the env: each run's mean named, their seeds' interval.
+    pooled = {line.split(" | ")[0].strip("| "): line for line in
+              suite_table.against_reference([r for r in records if r["command"] != "stand wider"])[4:]}
+    assert "| 440.0 [" in pooled["WalkerStand"] and "| 44% | 3: 360.0 / 400.0 / 560.0 | `stand` |" in pooled["WalkerStand"]
 
 
 def test_brax_ppos_runs_are_read_campaign_by_campaign_each_at_the_budget_it_was_started_with(monkeypatch):
