@@ -328,8 +328,7 @@ def against_reference(records: list[dict]) -> list[str]:
     lines = [f"Against MuJoCo Playground's published PPO return, by {AT_S} s of wall clock (set-up and compile "
              f"counted; each env's best command above in runs of {MIN_SEEDS} seeds or more, the reported ones, given a "
              f"wall-clock budget, whose first start compiled its programs, loading at most {WARM_S:g} s of compile from the "
-             f"cache; a "
-             f"command run more than once with its runs' seeds pooled): {len(at_half)} of the {len(PPO_REFERENCE)} "
+             f"cache; a command run more than once with its runs' seeds pooled): {len(at_half)} of the {len(PPO_REFERENCE)} "
              f"envs with a reference stand at {HALF:.0%} of it or more" + (f" ({', '.join(at_half)})" if at_half else "") +
              f"; {len(PPO_REFERENCE) - len(best)} have no such run on record.", "",
              f"| env | PPO reference | best by {AT_S} s | share | runs (each one's mean) | command |",

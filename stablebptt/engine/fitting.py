@@ -348,17 +348,17 @@ def cuttable_updates(trainer: Trainer) -> int:
     return trainer.updates_per_epoch if trainer.episodes is not None and trainer.evaluation is not None else 0
 
 
-def epoch_runner(trainer: Trainer, epoch_fn: Callable, refill: Callable, first: Callable[[], None] = lambda: None):
+def epoch_runner(trainer: Trainer, epoch_fn: Callable, refill: Callable, ended: Callable[[], None] = lambda: None):
     """``fit``'s ``run_epoch``: ``epoch_fn`` from the state ``refill`` refills, of its first ``updates`` (None: all),
     with the metrics on the host and the refill's seconds as ``fixed_seconds`` (a cut epoch runs it whole);
-    ``first()`` is called as each epoch ends."""
+    ``ended()`` is called as each epoch ends."""
     def run_epoch(state, updates=None):
         started = time.perf_counter()
         state = jax.block_until_ready(refill(state))
         refilled = time.perf_counter() - started
         new_state, metrics = epoch_fn(state, trainer.epoch_batches(updates), trainer.train_states, trainer.test_states)
         metrics = jax.device_get(metrics)
-        first()
+        ended()
         return new_state, {**metrics, "fixed_seconds": refilled}
     return run_epoch
 
