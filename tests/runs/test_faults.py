@@ -482,6 +482,27 @@ def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_
     assert (status, epoch, asked, message) == ("budget", 5, [None], "") and rows[-1, COLUMNS.index("env_steps")] == 1960.0
 
 
+def test_a_cut_plans_each_update_as_long_as_the_slowest_epoch_after_the_first_so_the_budget_holds(monkeypatch):
+    """Epochs of 10 updates of 2 s (the first: the programs' first calls), then 1.2 s, then 1 s, an evaluation of
+    3 s at the first epoch and the last, a budget of 58 s: after epoch 3 (45 s) a whole epoch at the last
+    epoch's pace would end, evaluated, at 58 s, but at epoch 2's at 60 s. The cut plans with epoch 2's
+    1.2 s (not the first's 2 s): 8 updates, which end within the budget at that pace too."""
+    clock, asked, evaluated = FakeClock(0.0), [], []
+    monkeypatch.setattr(fitting, "time", clock)
+    pace = iter([2.0, 1.2, 1.0, 1.2])
+
+    def run_epoch(state, updates=None):
+        asked.append(updates)
+        clock.now += next(pace) * (updates or 10)
+        return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
+
+    status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1),
+                                    lambda *saved: None, 1, evaluate=first_and_last_evaluated(clock, evaluated),
+                                    out_of_time=lambda ahead: clock.now + ahead > 58.0, updates_per_epoch=10)
+    assert (status, epoch, asked, evaluated) == ("budget", 4, [None, None, None, 8], [1, 4])
+    assert clock.now == pytest.approx(57.6) and clock.now <= 58.0
+
+
 def test_a_cut_leaves_room_for_what_an_epoch_spends_whatever_its_updates_and_for_a_cadences_evaluation(monkeypatch):
     """Epochs of 10 updates of 1 s and a refill of 5 s (``fixed_seconds``): a cut keeps the refill whole.
     And an evaluation due on the cadence after the epoch whose room was planned shrinks that room."""
