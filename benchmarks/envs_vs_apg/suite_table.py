@@ -85,7 +85,7 @@ def read_run(folder: str) -> dict:
     """What the table keeps of one run folder."""
     from stablebptt.engine.divergence import retired_in
     from stablebptt.engine.metrics import COLUMNS
-    from stablebptt.reports.curves import load_run, wall_clock
+    from stablebptt.reports.curves import load_run, wall_clock, x_values
 
     with open(os.path.join(folder, "config.json")) as handle:
         config = json.load(handle)
@@ -107,12 +107,9 @@ def read_run(folder: str) -> dict:
     per_seed = [row for row in rows if int(row["seed"]) == seeds[0]]
     train = config["train"]
     steps_per_update = train["batch"] * config["resolved_task"]["horizon_steps"]
-    updates_per_epoch = config["steps_per_epoch"] // steps_per_update
-    # Each epoch's updates from the rows' env steps where they count them (a budget's last epoch may be cut short).
-    counted = [0.0] + [row.get("env_steps", np.nan) for row in per_seed]
-    updates = [round((after - before) / steps_per_update) if after - before > 0 else updates_per_epoch
-               for before, after in zip(counted, counted[1:])]  # NaN or none counted: a whole epoch
     run = load_run(folder)
+    # Each epoch's updates from the env steps it trained (a budget's last epoch may be cut short).
+    updates = [round(steps / steps_per_update) for steps in np.diff(x_values(run, "env-steps")[0], prepend=0.0)]
     clock = dict(zip(run.epochs.tolist(), wall_clock(run).tolist()))
     command = command_of(config)
     last_epoch = int(per_seed[-1]["epoch"])

@@ -20,7 +20,7 @@ from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, eval_cadence, seed_array
 from stablebptt.engine.divergence import (
     failing, failure, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
-from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, epoch_rows
+from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, env_steps_trained, epoch_rows
 from stablebptt.engine.starting import compiled_epoch, compiled_refill, lowered_for, prepare
 from stablebptt.engine.training import Trainer
 
@@ -177,7 +177,7 @@ def steps_so_far(rows: np.ndarray, epoch: int, steps_per_epoch: int) -> float:
     counts its own), or ``epoch`` whole epochs where the rows hold none."""
     counted = rows[:, COLUMNS.index("env_steps")] if len(rows) else np.zeros(0)
     counted = counted[np.isfinite(counted)]
-    return float(counted[-1]) if len(counted) else float(epoch * steps_per_epoch)
+    return float(env_steps_trained(counted[-1:] if len(counted) else np.full(1, np.nan), epoch, steps_per_epoch)[0])
 
 
 class Evaluations:

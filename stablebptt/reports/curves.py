@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from stablebptt.engine.metrics import env_steps_trained
 from stablebptt.errors import InputError
 from stablebptt.reports.choices import BANDS, X_AXES
 from stablebptt.runs.run_folder import CONFIG_FILE, METRICS_FILE, STARTUP_FILE, run_metrics
@@ -238,7 +239,7 @@ def x_values(run: Run, axis: str) -> tuple[np.ndarray, str]:
                              "since they train on carried episodes): draw it against epochs or seconds")
         # The rows' own count where they keep one: a budget's last epoch may have been cut short.
         counted = np.nanmax(run.metrics.get("env_steps", np.full((len(run.epochs), 1), np.nan)), axis=1, initial=-np.inf)
-        return np.where(np.isfinite(counted), counted, run.epochs.astype(float) * steps), "env steps per seed"
+        return env_steps_trained(counted, run.epochs, steps), "env steps per seed"
     raise InputError(f"unknown x axis {axis!r}: choose one of {', '.join(X_AXES)}")
 
 

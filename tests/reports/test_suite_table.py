@@ -34,7 +34,7 @@ def env_run(path: Path, budgets: tuple[float, ...], started: str, epochs_per_sta
             for k, seed in enumerate((42, 43)):
                 writer.writerow({name: 0.0 for name in COLUMNS} | {
                     "epoch": epoch, "seed": seed, "test_loss": -(10.0 * epoch + k), "seconds": EPOCH_S,
-                    "eval_seconds": 0.0})
+                    "eval_seconds": 0.0, "env_steps": 64.0 * epoch})
     starts = [{"budget": budget, "device": "cpu", "seconds_to_training": START_S, "phases": {"compile": 30.0},
                "first_epoch": 1 + number * epochs_per_start,
                "ended": {"epoch": (number + 1) * epochs_per_start, "status": "budget"},
@@ -71,6 +71,27 @@ def test_a_seed_stopped_apart_is_scored_by_its_last_evaluation_not_left_out(tmp_
     # Seed 43's last evaluation was epoch 5's (10 * 5 + 1); left out, the run would score seed 42 alone.
     assert record["returns_by_wall_clock"] == {"300": [100.0, 51.0]} and record["final_return"] == [100.0, 51.0]
     assert "1 of 2 seeds stopped apart" in record["ended"]
+
+
+def test_updates_are_counted_from_the_env_steps_each_epoch_trained_a_cut_last_epoch_its_own(tmp_path):
+    """Epochs of 4 updates of 64 env steps, the last cut to 2 of them (its rows count 128 steps): 38 updates;
+    rows from before the count (NaN) are whole epochs."""
+    folder = env_run(tmp_path / "cut", (300.0,), "2026-01-01T10:00")
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**config, "steps_per_epoch": 256}))
+    with open(folder / "metrics.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+
+    def rewrite(steps_of):
+        for row in rows:
+            row["env_steps"] = steps_of(int(row["epoch"]))
+        with open(folder / "metrics.csv", "w", newline="") as handle:
+            writer = csv.DictWriter(handle, COLUMNS)
+            writer.writeheader()
+            writer.writerows(rows)
+        return suite_table.read_run(str(folder))["updates"]
+    assert rewrite(lambda epoch: 256.0 * epoch if epoch < 10 else 256.0 * 9 + 128) == 38
+    assert rewrite(lambda epoch: "nan") == 40
 
 
 def test_a_command_run_again_adds_a_row_and_a_folder_read_again_replaces_its_own(tmp_path):
