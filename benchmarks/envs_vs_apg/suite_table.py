@@ -108,8 +108,11 @@ def read_run(folder: str) -> dict:
     train = config["train"]
     steps_per_update = train["batch"] * config["resolved_task"]["horizon_steps"]
     run = load_run(folder)
-    # Each epoch's updates from the env steps it trained (a budget's last epoch may be cut short).
-    updates = [round(steps / steps_per_update) for steps in np.diff(x_values(run, "env-steps")[0], prepend=0.0)]
+    # Each epoch's updates from the env steps it trained (a budget's last epoch may be cut short); an epoch
+    # whose count did not grow is read as whole.
+    whole = config["steps_per_epoch"] // steps_per_update
+    updates = [round(steps / steps_per_update) if steps > 0 else whole
+               for steps in np.diff(x_values(run, "env-steps")[0], prepend=0.0)]
     clock = dict(zip(run.epochs.tolist(), wall_clock(run).tolist()))
     command = command_of(config)
     last_epoch = int(per_seed[-1]["epoch"])

@@ -72,7 +72,7 @@ def fit(
       evaluate: ``evaluate(state, metrics, epoch, seconds, final) -> (metrics, seconds evaluating)``
         after every epoch, ``final`` on the last one a run trains (``Evaluations``).
       out_of_time: ``out_of_time(ahead)`` after every epoch and its evaluation, ``ahead`` one more epoch as long
-        as the slowest (or cut short: ``updates_per_epoch``) and the longest evaluation's seconds; true
+        as the slowest of this start's after its first (or cut short: ``updates_per_epoch``) and the longest evaluation's seconds; true
         evaluates, saves and stops (a wall-clock budget).
       steps_per_epoch: env steps a seed trains per epoch, counted in the rows (0: none to count).
       updates_per_epoch: where given, ``run_epoch(state, updates)`` runs an epoch of its first ``updates``

@@ -74,8 +74,9 @@ def test_a_seed_stopped_apart_is_scored_by_its_last_evaluation_not_left_out(tmp_
 
 
 def test_updates_are_counted_from_the_env_steps_each_epoch_trained_a_cut_last_epoch_its_own(tmp_path):
-    """Epochs of 4 updates of 64 env steps, the last cut to 2 of them (its rows count 128 steps): 38 updates;
-    rows from before the count (NaN) are whole epochs."""
+    """Epochs of 4 updates of 64 env steps, the last cut to 2 of them (it trained 128 steps, its rows count
+    2432): 38 updates, also where the first seed's row holds NaN there (stopped apart); rows from before the
+    count (NaN) are whole epochs."""
     folder = env_run(tmp_path / "cut", (300.0,), "2026-01-01T10:00")
     config = json.loads((folder / "config.json").read_text())
     (folder / "config.json").write_text(json.dumps({**config, "steps_per_epoch": 256}))
@@ -84,14 +85,16 @@ def test_updates_are_counted_from_the_env_steps_each_epoch_trained_a_cut_last_ep
 
     def rewrite(steps_of):
         for row in rows:
-            row["env_steps"] = steps_of(int(row["epoch"]))
+            row["env_steps"] = steps_of(int(row["epoch"]), row["seed"])
         with open(folder / "metrics.csv", "w", newline="") as handle:
             writer = csv.DictWriter(handle, COLUMNS)
             writer.writeheader()
             writer.writerows(rows)
         return suite_table.read_run(str(folder))["updates"]
-    assert rewrite(lambda epoch: 256.0 * epoch if epoch < 10 else 256.0 * 9 + 128) == 38
-    assert rewrite(lambda epoch: "nan") == 40
+    assert rewrite(lambda epoch, seed: 256.0 * epoch if epoch < 10 else 256.0 * 9 + 128) == 38
+    assert rewrite(lambda epoch, seed: "nan" if epoch == 10 and seed == "42" else
+                   256.0 * epoch if epoch < 10 else 256.0 * 9 + 128) == 38
+    assert rewrite(lambda epoch, seed: "nan") == 40
 
 
 def test_a_command_run_again_adds_a_row_and_a_folder_read_again_replaces_its_own(tmp_path):
