@@ -54,6 +54,24 @@ def reacher_distance_reward(state) -> jax.Array:
     return -jnp.linalg.norm(state.obs[2:4])
 
 
+FISH_RADII = 0.045  # FishSwim's mouth and target radii summed (its env's ``_radii``): in_target's bounds
+
+
+def fish_target_pull_reward(state) -> jax.Array:
+    """FishSwim's reward, (7 in_target + upright) / 8, with in_target's Gaussian tail given, in the derivative
+    only, the slope its sigmoid falls by on average over its margin: far from the target the Gaussian's
+    slope vanishes (below 1e-9 a margin further out), so nothing pulls the mouth there. The observation
+    holds upright first and the mouth-to-target vector at 8:11. Train on it with
+    ``PYTHONPATH=benchmarks stablebptt train --env FishSwim --surrogate-reward env_probe:fish_target_pull_reward``."""
+    from stablebptt.envs.playground import safe_tolerance
+    distance = jnp.linalg.norm(state.obs[8:11])
+    margin = 2 * FISH_RADII
+    in_target = safe_tolerance(distance, bounds=(0.0, FISH_RADII), margin=margin)
+    past = jnp.maximum(distance - FISH_RADII, 0.0) * (1 - 0.1) / margin  # 0.9 over the margin, as the sigmoid falls
+    pulled = in_target + jax.lax.stop_gradient(past) - past
+    return (7 * pulled + 0.5 * (state.obs[0] + 1)) / 8
+
+
 def gradient(name: str, window: int, surrogate: str, set_qpos: list[str]) -> None:
     jax.config.update("jax_enable_x64", True)
     from stablebptt.envs import playground
