@@ -72,8 +72,8 @@ def fit(
       evaluate: ``evaluate(state, metrics, epoch, seconds, final) -> (metrics, seconds evaluating)``
         after every epoch, ``final`` on the last one a run trains (``Evaluations``).
       out_of_time: ``out_of_time(ahead)`` after every epoch and its evaluation, ``ahead`` one more epoch as long
-        as the slowest of this start's after its first (or cut short: ``updates_per_epoch``) and the longest evaluation's seconds; true
-        evaluates, saves and stops (a wall-clock budget).
+        as the slowest of this start's after its first (or cut short: ``updates_per_epoch``) and the longest
+        evaluation's seconds; true evaluates, saves and stops (a wall-clock budget).
       steps_per_epoch: env steps a seed trains per epoch, counted in the rows (0: none to count).
       updates_per_epoch: where given, ``run_epoch(state, updates)`` runs an epoch of its first ``updates``
         (``Trainer.epoch_batches``), and the budget's last epoch is cut to the updates that fit in it with
@@ -177,7 +177,7 @@ def steps_so_far(rows: np.ndarray, epoch: int, steps_per_epoch: int) -> float:
     counts its own), or ``epoch`` whole epochs where the rows hold none."""
     counted = rows[:, COLUMNS.index("env_steps")] if len(rows) else np.zeros(0)
     counted = counted[np.isfinite(counted)]
-    return float(env_steps_trained(counted[-1:] if len(counted) else np.full(1, np.nan), epoch, steps_per_epoch)[0])
+    return float(env_steps_trained(counted[-1] if len(counted) else np.nan, epoch, steps_per_epoch))
 
 
 class Evaluations:

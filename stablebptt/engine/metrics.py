@@ -23,7 +23,7 @@ def widened(rows: np.ndarray) -> np.ndarray:
     return np.concatenate([rows, np.zeros((len(rows), 1)), np.full((len(rows), 1), np.nan)], axis=1)
 
 
-def env_steps_trained(counted: np.ndarray, epochs: int | np.ndarray, steps_per_epoch: int) -> np.ndarray:
+def env_steps_trained(counted: float | np.ndarray, epochs: int | np.ndarray, steps_per_epoch: int) -> np.ndarray:
     """The env steps a seed trained by each of ``epochs``' ends: the rows' own count where they keep one (a
     budget's last epoch may be cut short), else that many whole epochs (rows from before the count)."""
     return np.where(np.isfinite(counted), counted, np.asarray(epochs, dtype=float) * steps_per_epoch)
