@@ -276,44 +276,20 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         **({} if gradient_substeps is None else {"gradient_substeps": gradient_substeps}),
         **({"contact_geometry": "held"} if contact_geometry_held else {})}
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
-    wanted: list[bool] = []  # no diagnosis kept: one is begun, here or once its answer is first waited for;
-    # whether a program may compile meanwhile (Task.compile_while_settling)
 
     def start() -> PendingDiagnosis:
-        if not started:
-            try:
-                started.append(start_diagnosis(env, training_step, jax.random.PRNGKey(diagnosis_seed), episode_length))
-            except (TypeError, ValueError):  # a step that breaks the protocol fails the diagnosis's trace: say how
-                check_step(env, step, observations, label)
-                raise
+        try:
+            started.append(start_diagnosis(env, training_step, jax.random.PRNGKey(diagnosis_seed), episode_length))
+        except (TypeError, ValueError):  # a step that breaks the protocol fails the diagnosis's trace: say how
+            check_step(env, step, observations, label)
+            raise
         return started[0]
-
-    def start_now_or_later() -> Callable[[], list]:
-        # Where the check most likely keeps the step and runs apart from the accelerator, a caller may compile
-        # its program while the check is pending. The check's trace then waits until its answer is asked for,
-        # so that it runs while that program compiles rather than before the program's own trace
-        # (docs/performance.md, "The reward check traced beside the epoch's compile"). A reward the check may
-        # smooth begins its check here, to answer sooner.
-        later = defer_diagnosis and (check_device() is not None or jax.default_backend() == "cpu") and (
-            smoothing == "off" or surrogate_reward is not None or not reward_compares())
-        wanted.append(later)
-        return (lambda: start()()) if later else start()
 
     if not diagnose:  # nothing traces the step before the trainer: see that it keeps the protocol
         program_store.kept_answer(diagnosis_key, "protocol", lambda: check_step(env, step, observations, label))
 
-    def reward_compares() -> bool:
-        """Whether the trained reward turns a comparison into a number, which the check may smooth (read
-        from the step a surrogate would be made of, at shapes); where its reward cannot be told, True."""
-        example = surrogate.step_example(env)
-        try:
-            traced = surrogate.trace_step(values_step, *example)
-        except ValueError:  # no single leaf of the state is named reward: no surrogate could be made of it either
-            return True
-        return surrogate.turns_comparisons_into_numbers(traced, example)
-
     if diagnose:
-        pending = program_store.kept_answer_later(answer_key, "reward diagnosis", start_now_or_later)
+        pending = program_store.kept_answer_later(answer_key, "reward diagnosis", start)
     advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
         "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
 
@@ -401,7 +377,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         )
 
     def settle(wait: bool = True) -> Task | None:
-        if not wait and wanted and not (started and started[0].done()):
+        if not wait and started and not started[0].done():
             return None
         diagnosis = diagnosed()
         if diagnosis.kind != "zero":
@@ -450,9 +426,21 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
         return dataclasses.replace(task(None, "pending", smoothed), settle=settle_surrogate)
 
+    def reward_compares() -> bool:
+        """Whether the trained reward turns a comparison into a number, which the check may smooth (read
+        from the step a surrogate would be made of, at shapes); where its reward cannot be told, True."""
+        example = surrogate.step_example(env)
+        try:
+            traced = surrogate.trace_step(values_step, *example)
+        except ValueError:  # no single leaf of the state is named reward: no surrogate could be made of it either
+            return True
+        return surrogate.turns_comparisons_into_numbers(traced, example)
+
     if not diagnose:
         return task(None, "not checked")
-    if defer_diagnosis and wanted:  # a kept diagnosis is read, and may refuse, at once
-        return dataclasses.replace(task(None, "pending"), settle=settle, compile_while_settling=wanted[0])
+    if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
+        return dataclasses.replace(task(None, "pending"), settle=settle, compile_while_settling=(
+            (check_device() is not None or jax.default_backend() == "cpu")
+            and (smoothing == "off" or surrogate_reward is not None or not reward_compares())))
     answered = settle()  # a flat reward's surrogate may still be checked beside: deferred, the caller waits
     return answered if defer_diagnosis else answered.settled_fully()

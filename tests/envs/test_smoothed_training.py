@@ -141,17 +141,13 @@ def test_the_surrogate_is_interpreted_once_however_many_programs_trace_its_step(
 def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_the_reward(monkeypatch):
     """The epoch is traced while the reward check compiles beside. A reward that turns no comparison into a
     number (smooth, or an underflowing Gaussian) begins its epoch's compile before the check answers; a usable
-    one trains that compile, traced and compiled once, and its check is traced only once that compile has begun
-    (its trace beside the compile, not before the epoch's). Where the check smooths the reward, the surrogate's epoch
+    one trains that compile, traced and compiled once. Where the check smooths the reward, the surrogate's epoch
     is compiled and trained: after the answer where the reward compares (the reward as written never compiled),
     after the unused early compile has ended where a Gaussian underflowed. A refusal leaves the early compile
     unused."""
     from stablebptt.engine import starting
     from stablebptt.engine.task import Task
-    from stablebptt.envs import adapter
     traced, compiled, events = [], [], []
-    check = adapter.start_diagnosis
-    monkeypatch.setattr(adapter, "start_diagnosis", lambda *a, **k: events.append("check traced") or check(*a, **k))
     trace, settled, begin = starting.lowered_epoch, Task.settled, starting.beside
     monkeypatch.setattr(Task, "settled", lambda self, *a, **k: events.append("answer") or settled(self, *a, **k))
     monkeypatch.setattr(starting, "beside", lambda function, name: events.append("compile begun") or begin(function, name))
@@ -182,12 +178,12 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
 
     task, prepared = started("step")
     assert not task.compile_while_settling and "reward_smoothing" in prepared.task.resolved
-    assert events == ["check traced", "trace", "answer", "trace", "beside", "answer"]  # the last: the surrogate's
+    assert events == ["trace", "answer", "trace", "beside", "answer"]  # the last: the surrogate's own check
     assert [index for index, _ in compiled] == [1] and prepared.trainer.epoch is traced[1].epoch  # the surrogate's
     assert prepared.lowered.compiled is compiled[0][1] and prepared.task.settle is None
     task, usable = started("smooth")
     assert task.compile_while_settling and usable.task.resolved["reward_gradient"] == "usable"
-    assert events == ["trace", "compile begun", "answer", "check traced", "beside"] and len(traced) == 1
+    assert events == ["trace", "compile begun", "answer", "beside"] and len(traced) == 1  # the programs beside
     # the epoch (evaluation, init, refill) traced once the check has answered: on two cores, traced while it ran,
     # they shared the cores with both compiles and the start took longer (docs/performance.md)
     assert [index for index, _ in compiled] == [0] and usable.lowered.compiled is compiled[0][1]
@@ -195,14 +191,14 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
     assert "compile beside the check" not in prepared.phases
     task, widened = started("narrow")
     assert task.compile_while_settling and "underflowing exponential" in widened.task.resolved["reward_smoothing"]
-    assert events == ["trace", "compile begun", "answer", "check traced", "trace", "beside", "answer"]
+    assert events == ["trace", "compile begun", "answer", "trace", "beside", "answer"]
     assert [index for index, _ in compiled] == [0, 1] and widened.trainer.epoch is traced[1].epoch
     assert widened.lowered.compiled is compiled[1][1] and "unused compile's wait" in widened.phases
     traced.clear(), compiled.clear(), events.clear()
     refused = env_task(Cart("root"), horizon=5, defer_diagnosis=True)  # its gradient NaN: compiled early, refused
     with pytest.raises(EnvError, match="NaN"):
         starting.prepare(refused, config)
-    assert refused.compile_while_settling and events == ["trace", "compile begun", "answer", "check traced"]
+    assert refused.compile_while_settling and events == ["trace", "compile begun", "answer"]
 
 
 def test_a_kept_smoothing_rebuilds_the_surrogate_without_sampling_or_checking_again(tmp_path, monkeypatch):
