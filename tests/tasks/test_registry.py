@@ -209,6 +209,7 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
         ["--env", "FingerTurnHard", "--recipe", "locomotion", *beside]))[2]
     assert (finger().mode, finger().nonfinite_flows, finger("--mode", "C").nonfinite_flows) == ("C", "zero", "zero")
     assert (finger("--mode", "R").nonfinite_flows, finger("--mode", "R", "--nonfinite-flows", "stop").mode) == ("stop", "R")
-    assert sb.recipe("locomotion", "WalkerWalk")[0]["horizon"] == 2 != env.RECIPES["locomotion"]["steps"]
+    assert {sb.recipe("locomotion", walker)[0]["horizon"] for walker in ("WalkerWalk", "WalkerStand", "WalkerRun")} \
+        == {2} != {env.RECIPES["locomotion"]["steps"]}
     with pytest.raises(InputError, match="a recipe's env is the env's name .* got Cart"):
         sb.recipe("locomotion", Cart())  # the env itself, not its name
