@@ -24,6 +24,10 @@ from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, env_steps_tr
 from stablebptt.engine.starting import compiled_epoch, compiled_refill, lowered_for, prepare
 from stablebptt.engine.training import Trainer
 
+# The budget plans each epoch to come as long as the slowest of this start's last few after its first: a GPU's
+# epochs of equal updates differ by a few percent, and a stalled one (a busy host) is forgotten after these.
+PACE_EPOCHS = 3
+
 
 def fit(
     run_epoch: Callable[[Any], tuple[Any, dict]],
@@ -72,12 +76,13 @@ def fit(
       evaluate: ``evaluate(state, metrics, epoch, seconds, final) -> (metrics, seconds evaluating)``
         after every epoch, ``final`` on the last one a run trains (``Evaluations``).
       out_of_time: ``out_of_time(ahead)`` after every epoch and its evaluation, ``ahead`` one more epoch as long
-        as the slowest of this start's after its first (or cut short: ``updates_per_epoch``) and the longest
-        evaluation's seconds; true evaluates, saves and stops (a wall-clock budget).
+        as the slowest of this start's last ``PACE_EPOCHS`` after its first (or cut short:
+        ``updates_per_epoch``) and the longest evaluation's seconds; true evaluates, saves and stops (a
+        wall-clock budget).
       steps_per_epoch: env steps a seed trains per epoch, counted in the rows (0: none to count).
       updates_per_epoch: where given, ``run_epoch(state, updates)`` runs an epoch of its first ``updates``
         (``Trainer.epoch_batches``), and the budget's last epoch is cut to the updates that fit in it with
-        the last evaluation (each as long as in the slowest of this start's epochs after its first), where a
+        the last evaluation (each as long as in that slowest epoch), where a
         whole one does not: the budget trains to its end rather than stopping up to an epoch before it.
         ``run_epoch``'s metrics may hold ``fixed_seconds``, what the epoch spent whatever its updates (taken
         out of them here).
@@ -109,8 +114,8 @@ def fit(
     steps = steps_so_far(rows, start_epoch, steps_per_epoch)
     units = updates_per_epoch or 1  # the parts an epoch may be cut to (1: it runs whole or not at all)
     cut = None  # the updates of the epoch next, where the budget cuts it short
-    # Each epoch's seconds an update, this start's: the cut plans with the slowest after the first (which
-    # pays the programs' first calls), since a GPU's epochs of equal updates differ by a few percent.
+    # Each epoch's seconds an update, this start's: the cut plans with the slowest of the last few after the
+    # first, which pays the programs' first calls (PACE_EPOCHS).
     rates = []
 
     def room(ran: int, fixed: float, per_update: float) -> int | None:
@@ -138,7 +143,7 @@ def fit(
         # and each update.
         fixed = min(float(metrics.pop("fixed_seconds", 0.0)), seconds)
         rates.append((seconds - fixed) / ran)
-        planned = functools.partial(room, ran, fixed, max(rates[1:], default=rates[0]))
+        planned = functools.partial(room, ran, fixed, max(rates[1:][-PACE_EPOCHS:], default=rates[0]))
         stopping, cut = should_stop(), planned()
         metrics, eval_seconds = evaluate(new_state, metrics, epoch, seconds, epoch == epochs or stopping or cut == 0)
         evaluation = max(evaluation, eval_seconds)  # one due on the cadence may have used the next epoch's room
