@@ -17,16 +17,12 @@ import numpy as np
 
 from stablebptt.engine.checks import check_options
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
-from stablebptt.engine.config import TrainConfig, eval_cadence, seed_array
+from stablebptt.engine.config import PACE_EPOCHS, TrainConfig, eval_cadence, seed_array
 from stablebptt.engine.divergence import (
     failing, failure, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, env_steps_trained, epoch_rows
 from stablebptt.engine.starting import compiled_epoch, compiled_refill, lowered_for, prepare
 from stablebptt.engine.training import Trainer
-
-# The budget plans each epoch to come as long as the slowest of this start's last few after its first: a GPU's
-# epochs of equal updates differ by a few percent, and a stalled one (a busy host) is forgotten after these.
-PACE_EPOCHS = 3
 
 
 def fit(

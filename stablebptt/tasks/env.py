@@ -47,8 +47,8 @@ RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normal
 # control step spans 10 physics steps, and on each of its three tasks windows of 8 steps (80 physics
 # steps) learned faster than 16 at every epoch ("Windows of 8 on the walker"); on WalkerWalk and
 # WalkerStand windows of 4 faster again by 300 s, twice the updates for the same env steps ("Windows
-# of 4 on the walker"; WalkerRun learned no faster with them), and windows of 2 faster than 4 on all
-# three ("Windows of 2 on the walker"); on the cheetah, C and R learn alike epoch for
+# of 4 on the walker"; WalkerRun learned no faster with them), and windows of 2 faster than 4 on those
+# two and than 8 on WalkerRun ("Windows of 2 on the walker"); on the cheetah, C and R learn alike epoch for
 # epoch, and R alone (no g_M for the cosine) updates in 0.84x C's time ("R alone on the cheetah"); on
 # the reacher and the finger's turn the policy sees the reward's direction in its actions, which
 # lifts the reachers from 9% of PPO's published return to 103% by 300 s ("The direction to push,

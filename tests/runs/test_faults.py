@@ -505,23 +505,30 @@ def test_a_cut_plans_each_update_as_long_as_the_slowest_epoch_after_the_first_so
 
 def test_the_budget_forgets_a_stalled_epoch_three_epochs_on(monkeypatch):
     """Epochs of 10 updates of 1 s after a first of 2 s, but the second stalled at 5 s (a busy host), an
-    evaluation of 3 s at the first epoch and the last, a budget of 150 s. Planned with every epoch's pace
-    the run would cut its sixth epoch to 8 updates and stop at 114 s; planned with the last three it goes
-    on whole from epoch 6, once the stall has left them, and cuts the tenth to the 4 updates that end at 150 s."""
+    evaluation of 3 s at the first epoch and the last. With a budget of 150 s the run trains every epoch
+    whole to the ninth, the stall gone from the last three, and cuts the tenth to the 4 updates that end
+    at 150 s; planned with every epoch's pace it cut the sixth to 8 and stopped at 114 s. With 140 s the
+    stall is still among the last three after the fourth epoch: the fifth is cut to 8 (with the last two
+    alone it would train whole)."""
     clock, asked, evaluated = FakeClock(0.0), [], []
     monkeypatch.setattr(fitting, "time", clock)
-    pace = iter([2.0, 5.0] + [1.0] * 20)
 
-    def run_epoch(state, updates=None):
-        asked.append(updates)
-        clock.now += next(pace) * (updates or 10)
-        return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
+    def fit(budget):
+        clock.now, pace = 0.0, iter([2.0, 5.0] + [1.0] * 20)
+        asked.clear(), evaluated.clear()
 
-    status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1),
-                                    lambda *saved: None, 1, evaluate=first_and_last_evaluated(clock, evaluated),
-                                    out_of_time=lambda ahead: clock.now + ahead > 150.0, updates_per_epoch=10)
-    assert (status, epoch, asked, evaluated) == ("budget", 10, [None] * 9 + [4], [1, 10])
-    assert clock.now == pytest.approx(150.0) and fitting.PACE_EPOCHS == 3
+        def run_epoch(state, updates=None):
+            asked.append(updates)
+            clock.now += next(pace) * (updates or 10)
+            return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
+
+        status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1),
+                                        lambda *saved: None, 1, evaluate=first_and_last_evaluated(clock, evaluated),
+                                        out_of_time=lambda ahead: clock.now + ahead > budget, updates_per_epoch=10)
+        return status, epoch, list(asked), list(evaluated), clock.now
+
+    assert fit(150.0) == ("budget", 10, [None] * 9 + [4], [1, 10], pytest.approx(150.0))
+    assert fit(140.0) == ("budget", 5, [None] * 4 + [8], [1, 5], pytest.approx(104.0))
 
 
 def test_a_cut_leaves_room_for_what_an_epoch_spends_whatever_its_updates_and_for_a_cadences_evaluation(monkeypatch):
