@@ -94,20 +94,19 @@ def train_epochs(
         save_params(run_dir / PARAMS_FILE, state.params)
         write_metrics(run_dir / METRICS_FILE, rows)
 
-    status, epoch, state, rows, problem = fit(epoch_runner(trainer, epoch_fn, refill), state, start_epoch, config.epochs,
-                                              rows, seeds, save,
-                                              config.checkpoint_every, should_stop, on_epoch,
-                                              lambda metrics: nonfinite_message(trainer.flows, metrics),
-                                              noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds),
-                                              evaluate=evaluations, out_of_time=out_of_time(config, started),
-                                              steps_per_epoch=env_steps_per_epoch(trainer, config), seeds_apart=True,
-                                              updates_per_epoch=cuttable_updates(trainer))
+    # fit's message: what failed (diverged), or how the budget's last epoch was cut short
+    status, epoch, state, rows, fit_message = fit(
+        epoch_runner(trainer, epoch_fn, refill), state, start_epoch, config.epochs, rows, seeds, save,
+        config.checkpoint_every, should_stop, on_epoch, lambda metrics: nonfinite_message(trainer.flows, metrics),
+        noticed=lambda metrics: zeroed_notice(trainer.flows, metrics, seeds), evaluate=evaluations,
+        out_of_time=out_of_time(config, started), steps_per_epoch=env_steps_per_epoch(trainer, config),
+        seeds_apart=True, updates_per_epoch=cuttable_updates(trainer))
     if status == "diverged":
-        message = f"{problem}; stopped, the last good checkpoint (epoch {epoch}) is kept in {run_dir}"
+        message = f"{fit_message}; stopped, the last good checkpoint (epoch {epoch}) is kept in {run_dir}"
     elif status == "interrupted":
         message = f"interrupted after epoch {epoch}; continue with --resume {run_dir}"
     elif status == "budget":
-        ended = (f"ended with epoch {epoch} {problem}" if problem
+        ended = (f"ended with epoch {epoch} {fit_message}" if fit_message
                  else f"has no room for another epoch after epoch {epoch}")
         message = f"the budget of {config.budget:g} s {ended}; train further with --resume {run_dir} --budget SECONDS"
     else:
