@@ -426,6 +426,23 @@ def first_and_last_evaluated(clock: FakeClock, evaluated: list) -> Callable:
     return evaluate
 
 
+def paced_fit(clock: FakeClock, paces: list[float], budget: float) -> tuple:
+    """``fit`` on ``clock`` from 0 s: epochs of 10 updates, each update of epoch k taking ``paces[k]`` s, the
+    first epoch and the last evaluated (3 s each), a wall-clock budget of ``budget`` s. Returns the status, the
+    last epoch, the updates each epoch was asked for (None: whole), the epochs evaluated and the clock at the end."""
+    clock.now, pace, asked, evaluated = 0.0, iter(paces), [], []
+
+    def run_epoch(state, updates=None):
+        asked.append(updates)
+        clock.now += next(pace) * (updates or 10)
+        return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
+
+    status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1),
+                                    lambda *saved: None, 1, evaluate=first_and_last_evaluated(clock, evaluated),
+                                    out_of_time=lambda ahead: clock.now + ahead > budget, updates_per_epoch=10)
+    return status, epoch, asked, evaluated, clock.now
+
+
 @pytest.mark.parametrize("budget, last_epoch, ends_at", [(50.0, 3, 41.0), (60.0, 4, 51.0), (1.0, 1, 18.0)])
 def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_would_overrun_it(
         monkeypatch, budget, last_epoch, ends_at):
@@ -487,20 +504,11 @@ def test_a_cut_plans_each_update_as_long_as_the_slowest_epoch_after_the_first_so
     3 s at the first epoch and the last, a budget of 58 s: after epoch 3 (45 s) a whole epoch at the last
     epoch's pace would end, evaluated, at 58 s, but at epoch 2's at 60 s. The cut plans with epoch 2's
     1.2 s (not the first's 2 s): 8 updates, which end within the budget at that pace too."""
-    clock, asked, evaluated = FakeClock(0.0), [], []
+    clock = FakeClock(0.0)
     monkeypatch.setattr(fitting, "time", clock)
-    pace = iter([2.0, 1.2, 1.0, 1.2])
-
-    def run_epoch(state, updates=None):
-        asked.append(updates)
-        clock.now += next(pace) * (updates or 10)
-        return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
-
-    status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1),
-                                    lambda *saved: None, 1, evaluate=first_and_last_evaluated(clock, evaluated),
-                                    out_of_time=lambda ahead: clock.now + ahead > 58.0, updates_per_epoch=10)
-    assert (status, epoch, asked, evaluated) == ("budget", 4, [None, None, None, 8], [1, 4])
-    assert clock.now == pytest.approx(57.6) and clock.now <= 58.0
+    *ended, now = paced_fit(clock, [2.0, 1.2, 1.0, 1.2], 58.0)
+    assert ended == ["budget", 4, [None, None, None, 8], [1, 4]]
+    assert now == pytest.approx(57.6) and now <= 58.0
 
 
 def test_the_budget_forgets_a_stalled_epoch_three_epochs_on(monkeypatch):
@@ -510,23 +518,9 @@ def test_the_budget_forgets_a_stalled_epoch_three_epochs_on(monkeypatch):
     at 150 s; planned with every epoch's pace it cut the sixth to 8 and stopped at 114 s. With 140 s the
     stall is still among the last three after the fourth epoch: the fifth is cut to 8 (with the last two
     alone it would train whole)."""
-    clock, asked, evaluated = FakeClock(0.0), [], []
+    clock = FakeClock(0.0)
     monkeypatch.setattr(fitting, "time", clock)
-
-    def fit(budget):
-        clock.now, pace = 0.0, iter([2.0, 5.0] + [1.0] * 20)
-        asked.clear(), evaluated.clear()
-
-        def run_epoch(state, updates=None):
-            asked.append(updates)
-            clock.now += next(pace) * (updates or 10)
-            return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
-
-        status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1),
-                                        lambda *saved: None, 1, evaluate=first_and_last_evaluated(clock, evaluated),
-                                        out_of_time=lambda ahead: clock.now + ahead > budget, updates_per_epoch=10)
-        return status, epoch, list(asked), list(evaluated), clock.now
-
+    fit = lambda budget: paced_fit(clock, [2.0, 5.0] + [1.0] * 20, budget)  # noqa: E731
     assert fit(150.0) == ("budget", 10, [None] * 9 + [4], [1, 10], pytest.approx(150.0))
     assert fit(140.0) == ("budget", 5, [None] * 4 + [8], [1, 5], pytest.approx(104.0))
 
