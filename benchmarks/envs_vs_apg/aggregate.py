@@ -56,7 +56,9 @@ def spelled_without_budgets(command: str) -> str:
 
 def recipe_runs(records: list[dict], mark: int, envs: tuple[str, ...] = STUDY_ENVS) -> dict[str, dict]:
     """Per env, the latest run of the recipe as it stands that trained until ``mark`` s: runs of other
-    options, of fewer seeds, without a budget or from a warm compile cache are left out."""
+    options, of fewer seeds, without a budget or from a warm compile cache are left out. A run whose budget
+    ended at the mark comes before one that passed it: the longer run's last evaluation before the mark
+    may lie an epoch or more back, where the shorter one's budget placed its last at the mark."""
     chosen = {}
     for env in envs:
         wanted = recipe_command(env)
@@ -65,8 +67,13 @@ def recipe_runs(records: list[dict], mark: int, envs: tuple[str, ...] = STUDY_EN
                 and record.get("budget", 0.0) > 0 and suite_table.fresh_start(record)
                 and suite_table.by_mark(record, mark) is not None]
         if runs:
-            chosen[env] = max(runs, key=lambda record: record.get("started", ""))
+            chosen[env] = max(runs, key=lambda record: (ended_at(record, mark), record.get("started", "")))
     return chosen
+
+
+def ended_at(record: dict, mark: int) -> bool:
+    """Whether a run ended within suite_table.MARK_WITHIN_S of ``mark`` s (its last evaluation's clock)."""
+    return abs(record.get("wall_s", record.get("budget", 0.0)) - mark) <= suite_table.MARK_WITHIN_S
 
 
 def scores(records: list[dict], mark: int, ppo_near=None) -> tuple[dict, dict[str, str]]:

@@ -72,6 +72,17 @@ def test_only_the_latest_run_of_the_recipe_as_it_stands_that_trained_until_the_m
     assert missing_at_600["WalkerWalk"] == "no Brax PPO campaign whose 5 seeds each evaluated near this mark"
 
 
+def test_a_run_whose_budget_ended_at_the_mark_comes_before_a_later_one_that_passed_it():
+    ended_at_300 = record("WalkerWalk", RETURNS["WalkerWalk"])
+    passed_300 = record("WalkerWalk", [344.0] * 5, budget=510, started="2026-12-03T00:00:00",
+                        resumed_marks={"300": [344.0] * 5})
+    passed_300["starts"] = 1  # one start of 510 s, read at 300 s on its way
+    assert aggregate.recipe_runs([ended_at_300, passed_300], 300)["WalkerWalk"] is ended_at_300
+    assert aggregate.recipe_runs([passed_300], 300)["WalkerWalk"] is passed_300  # none ended there: the one that passed
+    later_at_300 = dict(ended_at_300, started="2026-12-04T00:00:00", final_return=[600.0] * 5)
+    assert aggregate.recipe_runs([ended_at_300, passed_300, later_at_300], 300)["WalkerWalk"] is later_at_300
+
+
 def test_the_aggregates_are_their_closed_forms_with_intervals_about_them():
     scored, _ = aggregate.scores([record(env, returns) for env, returns in RETURNS.items()], 300, ppo_near=ppo_near)
     state = np.random.get_state()
