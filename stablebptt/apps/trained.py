@@ -103,7 +103,11 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     jax.config.update("jax_enable_x64", train.x64)  # before any array, as the run was trained
     jax.config.update("jax_default_matmul_precision", train.matmul_precision)
     module = task_entry.load()
-    task = module.make(getattr(module, "for_reopening", lambda config: config)(task_config))
+    resolved = record.get("resolved_task", {})
+    task = module.make(getattr(module, "for_reopening", lambda config, resolved: config)(task_config, resolved))
+    if resolved.get("reward_smoothing", "") != task.resolved.get("reward_smoothing", ""):
+        note(f"{run_dir}: the reward's surrogate was rebuilt otherwise than the run trained it "
+             f"({task.resolved.get('reward_smoothing') or 'none'}; the run: {resolved.get('reward_smoothing') or 'none'})")
     keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)
     template = jax.vmap(lambda key: task.init_params(key, train.zero_output))(keys)
     params = run_folder.load_params(run_dir / run_folder.PARAMS_FILE, template)

@@ -303,10 +303,13 @@ def recorded_config(config: Config, record: dict) -> Config:
     return config
 
 
-def for_reopening(config: Config) -> Config:
+def for_reopening(config: Config, resolved: dict) -> Config:
     """A trained run's task needs no reward check: it was made before training, and a rendering or
-    a study of the run would otherwise compile the check's program again."""
-    return replace(config, reward_check=False)
+    a study of the run would otherwise compile the check's program again. Where the check smoothed the
+    reward (``resolved``, the run's record, says so) it runs again: the surrogate's temperatures come from
+    its samples, and without them the windows' reward, and the direction a policy observes of it, would
+    be the reward as written."""
+    return config if resolved.get("reward_smoothing") else replace(config, reward_check=False)
 
 
 def program_inputs(config: Config) -> dict | None:

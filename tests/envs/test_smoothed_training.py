@@ -73,6 +73,33 @@ def test_the_command_line_names_the_smoothed_comparisons_in_its_first_line(tmp_p
     assert not (tmp_path / "refused").exists()
 
 
+def test_a_reopened_run_whose_reward_was_smoothed_acts_as_its_policy_did_in_training(tmp_path, capsys):
+    """Reopening (rendering, a study) rebuilds the surrogate the run trained on: a policy that observes its
+    trained reward's direction acts on the surrogate's, which the reward as written (flat) would zero."""
+    from dataclasses import replace
+
+    from stablebptt.apps.trained import episodes_from_test_states, open_trained
+    from stablebptt.storage import read_json
+    from stablebptt.tasks import env as env_tasks
+    code = train_command.main(["--env", "envs_for_tests:step_reward_cart", "--observe-reward-direction", "--steps", "5",
+                               "--epochs", "1", "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
+                               "--out", str(tmp_path / "run")])
+    assert code == 0
+    capsys.readouterr()
+    notes = []
+    reopened = open_trained(tmp_path / "run", note=notes.append)
+    recorded = read_json(tmp_path / "run" / "config.json")["resolved_task"]
+    assert reopened.task.resolved["reward_smoothing"] == recorded["reward_smoothing"] and notes == []
+    params = reopened.seed_params(0)
+    controls = lambda task: np.asarray(episodes_from_test_states(task, task.episodes, params, reopened.train, 4,  # noqa: E731
+                                                                 steps=20).controls)
+    as_trained = controls(env_tasks.make(reopened.task_config))  # the task as training built it
+    np.testing.assert_array_equal(controls(reopened.task), as_trained)
+    # The reward as written, unchecked, gives the policy another direction to see: it acts otherwise.
+    as_written = controls(env_tasks.make(replace(reopened.task_config, reward_check=False)))
+    assert np.abs(as_written - as_trained).max() > 0.1 * np.abs(as_trained).max() > 0
+
+
 def test_the_command_line_trains_on_a_surrogate_of_the_users_own_and_refuses_what_cannot_be_in_one_line(
         tmp_path, capsys):
     code = train_command.main(["--env", "envs_for_tests:step_reward_cart", "--surrogate-reward",
