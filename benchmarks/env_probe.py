@@ -14,6 +14,11 @@ how hard do its contacts push (where ``--contact-gradient-cut`` would cut).
       actions whose pre-squash output lies past +-2 (tanh > 0.96: saturated), each joint position's
       first, last, smallest and largest value, and each reward term the env records (Playground's
       ``metrics["reward/..."]``): its mean over the steps and the share of steps where it is exactly 0.
+  python benchmarks/env_probe.py episodes RUN_DIR [--count 16] [--seed-index 0]
+      A trained environment run's policy from the run's own test states (drawn as its evaluations draw
+      them), whole episodes of the deterministic policy: each one's return (the env's reward), its first
+      and last joint positions and where its mocap bodies stand (a target the env placed, if any). Which
+      starts a policy fails from, where its evaluation's mean alone says how often.
   python benchmarks/env_probe.py features ReacherEasy [--inputs observation|arm-frame] [--window 20]
           [--updates 400] [--batch 64] [--lr 1e-3] [--seed 1]
       Plain BPTT, none of the library's flows, critic or carried episodes: windows of the env's step from
@@ -254,6 +259,21 @@ def rollout(run_dir: Path, steps: int, seed_index: int) -> None:
         print(f"  {name}: mean {np.mean(values):.3f}, exactly 0 at {np.mean(np.array(values) == 0):.0%} of steps")
 
 
+def test_episodes(run_dir: Path, count: int, seed_index: int) -> None:
+    from stablebptt.apps.trained import episodes_from_test_states, open_trained
+    trained = open_trained(run_dir)
+    episode = episodes_from_test_states(trained.task, trained.task.episodes, trained.seed_params(seed_index),
+                                        trained.train, count)
+    data = episode.states.state.data  # [episodes, steps + 1, ...]
+    positions, targets = np.asarray(data.qpos), np.asarray(data.mocap_pos)
+    print(f"{trained.task.name} ({run_dir}, seed index {seed_index}): {count} test episodes, mean return "
+          f"{np.mean(episode.returns):.1f}")
+    rounded = lambda values: " ".join(f"{value:.2f}" for value in np.ravel(values))  # noqa: E731
+    for index, value in enumerate(episode.returns):
+        print(f"  {index}: return {value:.0f}; qpos first {rounded(positions[index, 0])}, last "
+              f"{rounded(positions[index, -1])}" + (f"; mocap {rounded(targets[index, 0])}" if targets.size else ""))
+
+
 def loads(name: str, envs: int, steps: int, scale: float, seed: int) -> None:
     from stablebptt.envs import playground
     from stablebptt.envs.derivative_model import contact_load
@@ -302,6 +322,10 @@ def main() -> None:
     third.add_argument("--squash-floor", type=float, default=0.0)
     third.add_argument("--saturation-cost", type=float, default=0.0)
     third.add_argument("--activation", choices=("tanh", "silu", "elu", "gated"), default="tanh")
+    fifth = looks.add_parser("episodes")
+    fifth.add_argument("run_dir", type=Path)
+    fifth.add_argument("--count", type=int, default=16)
+    fifth.add_argument("--seed-index", type=int, default=0)
     fourth = looks.add_parser("loads")
     fourth.add_argument("env")
     fourth.add_argument("--envs", type=int, default=32)
@@ -312,6 +336,8 @@ def main() -> None:
     try:
         if arguments.look == "gradient":
             gradient(arguments.env, arguments.window, arguments.surrogate_reward, arguments.set_qpos)
+        elif arguments.look == "episodes":
+            test_episodes(arguments.run_dir, arguments.count, arguments.seed_index)
         elif arguments.look == "loads":
             loads(arguments.env, arguments.envs, arguments.steps, arguments.scale, arguments.seed)
         elif arguments.look == "features":
