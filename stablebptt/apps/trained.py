@@ -105,9 +105,10 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     module = task_entry.load()
     resolved = record.get("resolved_task", {})
     task = module.make(getattr(module, "for_reopening", lambda config, resolved: config)(task_config, resolved))
-    if resolved.get("reward_smoothing", "") != task.resolved.get("reward_smoothing", ""):
-        note(f"{run_dir}: the reward's surrogate was rebuilt otherwise than the run trained it "
-             f"({task.resolved.get('reward_smoothing') or 'none'}; the run: {resolved.get('reward_smoothing') or 'none'})")
+    rebuilt, recorded = (part.get("reward_smoothing") or "none" for part in (task.resolved, resolved))
+    if rebuilt != recorded:
+        note(f"{run_dir}: the reward's surrogate was rebuilt otherwise than the run trained it ({rebuilt}; "
+             f"the run: {recorded})")
     keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)
     template = jax.vmap(lambda key: task.init_params(key, train.zero_output))(keys)
     params = run_folder.load_params(run_dir / run_folder.PARAMS_FILE, template)

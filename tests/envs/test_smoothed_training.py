@@ -82,8 +82,8 @@ def test_a_reopened_run_whose_reward_was_smoothed_acts_as_its_policy_did_in_trai
     from stablebptt.storage import read_json
     from stablebptt.tasks import env as env_tasks
     code = train_command.main(["--env", "envs_for_tests:step_reward_cart", "--observe-reward-direction", "--steps", "5",
-                               "--epochs", "1", "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
-                               "--out", str(tmp_path / "run")])
+                               "--epochs", "1", "--train-size", "4", "--test-size", "4", "--batch", "4",
+                               "--no-progress", "--out", str(tmp_path / "run")])
     assert code == 0
     capsys.readouterr()
     notes = []
@@ -91,8 +91,8 @@ def test_a_reopened_run_whose_reward_was_smoothed_acts_as_its_policy_did_in_trai
     recorded = read_json(tmp_path / "run" / "config.json")["resolved_task"]
     assert reopened.task.resolved["reward_smoothing"] == recorded["reward_smoothing"] and notes == []
     params = reopened.seed_params(0)
-    controls = lambda task: np.asarray(episodes_from_test_states(task, task.episodes, params, reopened.train, 4,  # noqa: E731
-                                                                 steps=20).controls)
+    def controls(task):
+        return np.asarray(episodes_from_test_states(task, task.episodes, params, reopened.train, 4, steps=20).controls)
     as_trained = controls(env_tasks.make(reopened.task_config))  # the task as training built it
     np.testing.assert_array_equal(controls(reopened.task), as_trained)
     # The reward as written, unchecked, gives the policy another direction to see: it acts otherwise.
