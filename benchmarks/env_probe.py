@@ -259,7 +259,7 @@ def rollout(run_dir: Path, steps: int, seed_index: int) -> None:
         print(f"  {name}: mean {np.mean(values):.3f}, exactly 0 at {np.mean(np.array(values) == 0):.0%} of steps")
 
 
-def test_episodes(run_dir: Path, count: int, seed_index: int) -> None:
+def episodes_of_run(run_dir: Path, count: int, seed_index: int) -> None:
     from stablebptt.apps.trained import episodes_from_test_states, open_trained
     trained = open_trained(run_dir)
     episode = episodes_from_test_states(trained.task, trained.task.episodes, trained.seed_params(seed_index),
@@ -337,7 +337,7 @@ def main() -> None:
         if arguments.look == "gradient":
             gradient(arguments.env, arguments.window, arguments.surrogate_reward, arguments.set_qpos)
         elif arguments.look == "episodes":
-            test_episodes(arguments.run_dir, arguments.count, arguments.seed_index)
+            episodes_of_run(arguments.run_dir, arguments.count, arguments.seed_index)
         elif arguments.look == "loads":
             loads(arguments.env, arguments.envs, arguments.steps, arguments.scale, arguments.seed)
         elif arguments.look == "features":

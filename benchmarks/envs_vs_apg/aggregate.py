@@ -67,13 +67,8 @@ def recipe_runs(records: list[dict], mark: int, envs: tuple[str, ...] = STUDY_EN
                 and record.get("budget", 0.0) > 0 and suite_table.fresh_start(record)
                 and suite_table.by_mark(record, mark) is not None]
         if runs:
-            chosen[env] = max(runs, key=lambda record: (ended_at(record, mark), record.get("started", "")))
+            chosen[env] = max(runs, key=lambda run: (suite_table.ended_near(run, mark), run.get("started", "")))
     return chosen
-
-
-def ended_at(record: dict, mark: int) -> bool:
-    """Whether a run ended within suite_table.MARK_WITHIN_S of ``mark`` s (its last evaluation's clock)."""
-    return abs(record.get("wall_s", record.get("budget", 0.0)) - mark) <= suite_table.MARK_WITHIN_S
 
 
 def scores(records: list[dict], mark: int, ppo_near=None) -> tuple[dict, dict[str, str]]:

@@ -302,9 +302,14 @@ def by_mark(record: dict, mark: int = AT_S) -> list[float] | None:
     along = record.get("returns_by_wall_clock", {})
     if str(mark) in along:
         return along[str(mark)]
-    ended = record.get("wall_s", record.get("budget", 0.0))
-    ended_at_mark = record.get("starts", 1) == 1 and abs(ended - mark) <= MARK_WITHIN_S
+    ended_at_mark = record.get("starts", 1) == 1 and ended_near(record, mark)
     return record["final_return"] if ended_at_mark else None
+
+
+def ended_near(record: dict, mark: float) -> bool:
+    """Whether a run's end (its last evaluation's clock; its budget in records older than that field) lies
+    within MARK_WITHIN_S of ``mark`` seconds."""
+    return abs(record.get("wall_s", record.get("budget", 0.0)) - mark) <= MARK_WITHIN_S
 
 
 def against_reference(records: list[dict]) -> list[str]:
