@@ -39,6 +39,10 @@ STOPPING_OPTIONS = ("epochs", "budget", "checkpoint_every")
 # A budget plans each epoch to come as long as the slowest of this start's last few after its first: a GPU's
 # epochs of equal updates differ by a few percent, and a stalled one (a busy host) is forgotten after these.
 PACE_EPOCHS = 3
+# ... and leaves this share of the planned seconds spare: a cut epoch's updates ran up to 7% slower than the
+# whole epochs' before it and an evaluation up to 5% longer than the longest before it (FingerTurnHard ended
+# a budget of 300 s at 301.3 s without it; docs/performance.md, "The finger's hard turn with noise from 0.6").
+BUDGET_MARGIN = 0.1
 
 
 @dataclass(frozen=True)
@@ -81,7 +85,7 @@ class TrainConfig:
     critic_depth: int = field(default=2, metadata={"help": "the critic's hidden layers"})
     critics: int = field(default=1, metadata={"help": "training with the critic: its networks, each fitted to the same targets; of 2 or more the least value is the critic's, in its targets and the window's loss (TD3's clipped double learning: the actor finds no state one network alone overvalues)"})
     nonfinite_flows: str = field(default="stop", metadata={"help": "stop: a non-finite gradient of any computed flow stops training, also where the update stays finite; zero (mode C): its components, which C's sign agreement turns into zero updates, are left at zero and training goes on, each epoch where it happened named in a line", "choices": NONFINITE_FLOW_CHOICES})
-    budget: float = field(default=0.0, metadata={"help": "wall-clock seconds from the command's start (set-up and compile included) that the run keeps within: it evaluates, saves and stops after the epoch past which one more epoch as long as the slowest of this start's last " f"{PACE_EPOCHS} after its first and an evaluation as long as the longest so far would overrun them, training on episodes after one more epoch cut to the updates that fit (the first epoch always trains); --resume DIR --budget S trains S seconds more (0: no budget)"})
+    budget: float = field(default=0.0, metadata={"help": "wall-clock seconds from the command's start (set-up and compile included) that the run keeps within: it evaluates, saves and stops after the epoch past which one more epoch as long as the slowest of this start's last " f"{PACE_EPOCHS} after its first and an evaluation as long as the longest so far would overrun them (planned " f"{1 + BUDGET_MARGIN:g} times as long, and the longest save so far twice), training on episodes after one more epoch cut to the updates that fit (the first epoch always trains); --resume DIR --budget S trains S seconds more (0: no budget)"})
     eval_every: str = field(default="auto", metadata={"help": "when the train and test returns are evaluated: epoch (at every epoch's end, inside its program: the paper's test loss per epoch), N (updates: at the first epoch's end past every N), Ns (seconds of training), auto (epoch from fixed starts; on episodes, as often as keeps the evaluations within a tenth of the run); the last epoch is always evaluated"})
     epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations, and on a CPU of several cores for steps with a constraint solver (update and evaluation compile side by side)", "choices": EPOCH_PROGRAMS})
 

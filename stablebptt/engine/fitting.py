@@ -17,7 +17,7 @@ import numpy as np
 
 from stablebptt.engine.checks import check_options
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
-from stablebptt.engine.config import PACE_EPOCHS, TrainConfig, eval_cadence, seed_array
+from stablebptt.engine.config import BUDGET_MARGIN, PACE_EPOCHS, TrainConfig, eval_cadence, seed_array
 from stablebptt.engine.divergence import (
     failing, failure, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, env_steps_trained, epoch_rows
@@ -73,7 +73,8 @@ def fit(
         after every epoch, ``final`` on the last one a run trains (``Evaluations``).
       out_of_time: ``out_of_time(ahead)`` after every epoch and its evaluation, ``ahead`` one more epoch as long
         as the slowest of this start's last ``PACE_EPOCHS`` after its first (or cut short:
-        ``updates_per_epoch``) and the longest evaluation's seconds; true evaluates, saves and stops (a
+        ``updates_per_epoch``) and the longest evaluation's seconds, with ``BUDGET_MARGIN`` of them to spare,
+        and twice the longest an epoch's save and ``on_epoch`` took; true evaluates, saves and stops (a
         wall-clock budget).
       steps_per_epoch: env steps a seed trains per epoch, counted in the rows (0: none to count).
       updates_per_epoch: where given, ``run_epoch(state, updates)`` runs an epoch of its first ``updates``
@@ -113,14 +114,16 @@ def fit(
     # Each epoch's seconds an update, this start's: the cut plans with the slowest of the last few after the
     # first, which pays the programs' first calls (PACE_EPOCHS).
     rates = []
+    aside = 0.0  # the longest an epoch's save and report took: planned twice, the epoch's just run and the next's
 
     def room(ran: int, fixed: float, per_update: float) -> int | None:
         """The next epoch's updates within the budget: None (all of them), as many as fit, or 0 (none)."""
         if ran < units:  # an epoch cut short is the budget's last
             return 0
-        if not out_of_time(fixed + per_update * units + evaluation):
+        fits = lambda updates: not out_of_time(  # noqa: E731
+            (fixed + updates * per_update + evaluation) * (1 + BUDGET_MARGIN) + 2 * aside)
+        if fits(units):
             return None
-        fits = lambda updates: not out_of_time(fixed + updates * per_update + evaluation)  # noqa: E731
         low, high = 0, units - 1  # the most updates that fit, by bisection
         while low < high:
             middle = (low + high + 1) // 2
@@ -148,6 +151,7 @@ def fit(
         steps += steps_per_epoch * ran / units
         if retired.any():  # seeds stopped before fail again as they replay their epoch: only the others count
             metrics = without_retired(metrics, retired)
+        evaluated = time.perf_counter()
         problem, retiring = diverged(metrics), ""
         if problem:
             newly = failing(metrics) if seeds_apart else np.ones(len(row_ids), dtype=bool)
@@ -167,6 +171,7 @@ def fit(
         notice = "; ".join(line for line in (retiring, noticed(metrics)) if line)
         on_epoch(epoch, {**metrics, "seconds": seconds, "eval_seconds": eval_seconds, "notice": notice,
                          "env_steps": steps})
+        aside = max(aside, time.perf_counter() - evaluated)
         if stopping or spent:
             short = f"cut to its first {ran} of {units} updates" if ran < units else ""
             return "interrupted" if stopping else "budget", epoch, state, all_rows(), "" if stopping else short

@@ -414,6 +414,13 @@ class FakeClock:
     monotonic = perf_counter
 
 
+@pytest.fixture
+def exact_plans(monkeypatch):
+    """The budget's plans without the seconds they leave spare (``BUDGET_MARGIN``, tested on its own): the
+    arithmetic of the plans below is then exact."""
+    monkeypatch.setattr(fitting, "BUDGET_MARGIN", 0.0)
+
+
 def first_and_last_evaluated(clock: FakeClock, evaluated: list) -> Callable:
     """``fit``'s ``evaluate``: the first epoch and the last (``final``) evaluated, 3 s each on ``clock``,
     their epochs appended to ``evaluated``."""
@@ -472,7 +479,7 @@ def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_wo
     assert (status, epoch, clock.now, evaluated) == ("budget", 7, 38.0, [2])
 
 
-def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_steps(monkeypatch):
+def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_steps(monkeypatch, exact_plans):
     """Epochs of 10 updates of 1 s after 5 s of set-up, an evaluation of 3 s at the first epoch and the
     last, a budget of 50 s: after epoch 3 (38 s) a whole epoch and an evaluation would end at 51 s, so
     epoch 4 runs its first 9 updates and ends, evaluated, at 50 s; its rows count 9 updates' env steps."""
@@ -499,7 +506,7 @@ def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_
     assert (status, epoch, asked, message) == ("budget", 5, [None], "") and rows[-1, COLUMNS.index("env_steps")] == 1960.0
 
 
-def test_a_cut_plans_each_update_as_long_as_the_slowest_epoch_after_the_first_so_the_budget_holds(monkeypatch):
+def test_a_cut_plans_each_update_as_long_as_the_slowest_epoch_after_the_first_so_the_budget_holds(monkeypatch, exact_plans):
     """Epochs of 10 updates of 2 s (the first: the programs' first calls), then 1.2 s, then 1 s, an evaluation of
     3 s at the first epoch and the last, a budget of 58 s: after epoch 3 (45 s) a whole epoch at the last
     epoch's pace would end, evaluated, at 58 s, but at epoch 2's at 60 s. The cut plans with epoch 2's
@@ -511,7 +518,7 @@ def test_a_cut_plans_each_update_as_long_as_the_slowest_epoch_after_the_first_so
     assert now == pytest.approx(57.6) and now <= 58.0
 
 
-def test_the_budget_forgets_a_stalled_epoch_three_epochs_on(monkeypatch):
+def test_the_budget_forgets_a_stalled_epoch_three_epochs_on(monkeypatch, exact_plans):
     """Epochs of 10 updates of 1 s after a first of 2 s, but the second stalled at 5 s (a busy host), an
     evaluation of 3 s at the first epoch and the last. With a budget of 150 s the run trains every epoch
     whole to the ninth, the stall gone from the last three, and cuts the tenth to the 4 updates that end
@@ -525,7 +532,7 @@ def test_the_budget_forgets_a_stalled_epoch_three_epochs_on(monkeypatch):
     assert fit(140.0) == ("budget", 5, [None] * 4 + [8], [1, 5], pytest.approx(104.0))
 
 
-def test_a_cut_leaves_room_for_what_an_epoch_spends_whatever_its_updates_and_for_a_cadences_evaluation(monkeypatch):
+def test_a_cut_leaves_room_for_what_an_epoch_spends_whatever_its_updates_and_for_a_cadences_evaluation(monkeypatch, exact_plans):
     """Epochs of 10 updates of 1 s and a refill of 5 s (``fixed_seconds``): a cut keeps the refill whole.
     And an evaluation due on the cadence after the epoch whose room was planned shrinks that room."""
     clock, asked = FakeClock(0.0), []
@@ -551,6 +558,41 @@ def test_a_cut_leaves_room_for_what_an_epoch_spends_whatever_its_updates_and_for
     assert fit(47.0, (1,)) == ("budget", 3, 47.0) and asked == [None, None, 6]
     # Evaluated after epoch 2 as well (36 s): 3 updates fit, not the 6 planned before that evaluation.
     assert fit(47.0, (1, 2)) == ("budget", 3, 47.0) and asked == [None, None, 3]
+
+
+@pytest.mark.parametrize("margin", [0.0, fitting.BUDGET_MARGIN])
+def test_the_budget_holds_where_its_last_epoch_runs_slower_saves_and_evaluates_longer(monkeypatch, margin):
+    """Epochs of 10 updates of 1 s after 5 s of set-up, each saved in 1.5 s, an evaluation of 3 s at the first;
+    the budget's last epoch, cut short, runs its updates 7% slower and its evaluation takes 5% longer (as a cut
+    epoch of FingerTurnHard's did on one H200). Planned without the margin (room for the save alone), it ends
+    past a budget of 50 s; with it, within the budget, and no more than an update and the margin before it."""
+    clock = FakeClock(5.0)
+    monkeypatch.setattr(fitting, "time", clock)
+    monkeypatch.setattr(fitting, "BUDGET_MARGIN", margin)
+    asked = []
+
+    def run_epoch(state, updates=None):
+        asked.append(updates)
+        clock.now += (1.0 if updates is None else 1.07) * (updates or 10)
+        return state + 1, {name: np.full(1, state + 1.0) for name in METRICS}
+
+    def evaluate(state, metrics, epoch, seconds, final):
+        took = 3.0 if epoch == 1 else 3.15 if final else 0.0
+        clock.now += took
+        return metrics, took
+
+    def save(*saved):
+        clock.now += 1.5
+
+    status, epoch, *_ = fitting.fit(run_epoch, 0, 0, 20, np.zeros((0, len(COLUMNS))), np.arange(1), save, 1,
+                                    evaluate=evaluate, out_of_time=lambda ahead: clock.now + ahead > 50.0,
+                                    updates_per_epoch=10)
+    assert status == "budget" and asked[:3] == [None] * 3 and 0 < asked[-1] < 10
+    if margin:
+        assert 50.0 - 1.07 - margin * 13.0 <= clock.now <= 50.0
+    else:
+        assert clock.now > 50.0
+
 
 ARM = """<mujoco model="arm">
   <option timestep="0.02"/>
