@@ -8,6 +8,7 @@ loaded and rolled out from the run's own test states.
 from __future__ import annotations
 
 import functools
+import inspect
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,23 @@ from stablebptt.engine.initial_states import sample_states
 from stablebptt.errors import InputError
 from stablebptt.runs import model_store, run_folder
 from stablebptt.tasks import canonical, entries, entry
+
+
+def config_for_reopening(module: Any, config: Any, resolved: dict) -> Any:
+    """The configuration that rebuilds a trained run's task: its module's ``for_reopening(config, resolved)``,
+    or ``for_reopening(config)`` where a module of the user's keeps the hook's first form (the run's record
+    not yet passed), or ``config`` itself where the module has none."""
+    hook = getattr(module, "for_reopening", None)
+    if hook is None:
+        return config
+    try:
+        signature = inspect.signature(hook)
+        signature.bind(config, resolved)
+    except TypeError:  # takes the configuration alone
+        return hook(config)
+    except ValueError:  # no signature to read (a builtin): the current form
+        pass
+    return hook(config, resolved)
 
 
 @dataclass(frozen=True)
@@ -104,7 +122,7 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     jax.config.update("jax_default_matmul_precision", train.matmul_precision)
     module = task_entry.load()
     resolved = record.get("resolved_task", {})
-    task = module.make(getattr(module, "for_reopening", lambda config, resolved: config)(task_config, resolved))
+    task = module.make(config_for_reopening(module, task_config, resolved))
     rebuilt, recorded = (part.get("reward_smoothing") or "none" for part in (task.resolved, resolved))
     if rebuilt != recorded:
         note(f"{run_dir}: the reward's surrogate was rebuilt otherwise than the run trained it ({rebuilt}; "

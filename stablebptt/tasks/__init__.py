@@ -4,7 +4,7 @@ A task is a module with ``Config`` (a typed dataclass: its command-line
 options), ``make(config) -> stablebptt.engine.training.Task`` and ``DEFAULT_EPOCHS``
 (optionally ``TRAIN_DEFAULTS``: training options the command line defaults to for the task;
 ``recorded_config(config, record) -> config``: a run's config as it trained, where a default changed since;
-``for_reopening(config, resolved) -> config``: the configuration that rebuilds
+``for_reopening(config, resolved) -> config`` (or ``for_reopening(config)``): the configuration that rebuilds
 a trained run's task (``resolved``: what its record says the task resolved to), checks that only matter
 before training left out; and
 ``program_inputs(config) -> dict | None``: what its compiled programs read besides

@@ -115,6 +115,23 @@ def test_a_drawer_of_the_earlier_eight_arguments_gets_them_from_the_request(tmp_
         DrawSettings(width=8)
 
 
+def test_a_task_modules_reopening_hook_of_either_form_rebuilds_the_run_it_names():
+    """A module's ``for_reopening(config, resolved)`` gets the run's record; one of the user's written in the
+    hook's first form, ``for_reopening(config)``, is still called (no TypeError from ``stablebptt render``);
+    a module without the hook reopens with the run's configuration as it is."""
+    from types import SimpleNamespace
+
+    from stablebptt.apps.trained import config_for_reopening
+    resolved = {"reward_smoothing": "1 comparison"}
+    both = SimpleNamespace(for_reopening=lambda config, resolved: (config, resolved["reward_smoothing"]))
+    first_form = SimpleNamespace(for_reopening=lambda config: (config, "alone"))
+    defaulted = SimpleNamespace(for_reopening=lambda config, resolved=None: (config, resolved))
+    assert config_for_reopening(both, "config", resolved) == ("config", "1 comparison")
+    assert config_for_reopening(first_form, "config", resolved) == ("config", "alone")
+    assert config_for_reopening(defaulted, "config", resolved) == ("config", resolved)
+    assert config_for_reopening(SimpleNamespace(), "config", resolved) == "config"
+
+
 def test_runs_recorded_under_the_mjcf_tasks_former_name_reopen(tmp_path):
     """Run folders written when the MJCF task was named "cartpole" still name a task that resumes and renders."""
     import dataclasses
