@@ -479,7 +479,8 @@ def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_wo
     assert (status, epoch, clock.now, evaluated) == ("budget", 7, 38.0, [2])
 
 
-def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_steps(monkeypatch, exact_plans):
+@pytest.mark.usefixtures("exact_plans")
+def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_steps(monkeypatch):
     """Epochs of 10 updates of 1 s after 5 s of set-up, an evaluation of 3 s at the first epoch and the
     last, a budget of 50 s: after epoch 3 (38 s) a whole epoch and an evaluation would end at 51 s, so
     epoch 4 runs its first 9 updates and ends, evaluated, at 50 s; its rows count 9 updates' env steps."""
@@ -506,7 +507,8 @@ def test_a_budgets_last_epoch_is_cut_to_the_updates_that_fit_and_counts_its_env_
     assert (status, epoch, asked, message) == ("budget", 5, [None], "") and rows[-1, COLUMNS.index("env_steps")] == 1960.0
 
 
-def test_a_cut_plans_each_update_as_long_as_the_slowest_epoch_after_the_first_so_the_budget_holds(monkeypatch, exact_plans):
+@pytest.mark.usefixtures("exact_plans")
+def test_a_cut_plans_each_update_as_long_as_the_slowest_epoch_after_the_first_so_the_budget_holds(monkeypatch):
     """Epochs of 10 updates of 2 s (the first: the programs' first calls), then 1.2 s, then 1 s, an evaluation of
     3 s at the first epoch and the last, a budget of 58 s: after epoch 3 (45 s) a whole epoch at the last
     epoch's pace would end, evaluated, at 58 s, but at epoch 2's at 60 s. The cut plans with epoch 2's
@@ -518,7 +520,8 @@ def test_a_cut_plans_each_update_as_long_as_the_slowest_epoch_after_the_first_so
     assert now == pytest.approx(57.6) and now <= 58.0
 
 
-def test_the_budget_forgets_a_stalled_epoch_three_epochs_on(monkeypatch, exact_plans):
+@pytest.mark.usefixtures("exact_plans")
+def test_the_budget_forgets_a_stalled_epoch_three_epochs_on(monkeypatch):
     """Epochs of 10 updates of 1 s after a first of 2 s, but the second stalled at 5 s (a busy host), an
     evaluation of 3 s at the first epoch and the last. With a budget of 150 s the run trains every epoch
     whole to the ninth, the stall gone from the last three, and cuts the tenth to the 4 updates that end
@@ -532,7 +535,8 @@ def test_the_budget_forgets_a_stalled_epoch_three_epochs_on(monkeypatch, exact_p
     assert fit(140.0) == ("budget", 5, [None] * 4 + [8], [1, 5], pytest.approx(104.0))
 
 
-def test_a_cut_leaves_room_for_what_an_epoch_spends_whatever_its_updates_and_for_a_cadences_evaluation(monkeypatch, exact_plans):
+@pytest.mark.usefixtures("exact_plans")
+def test_a_cut_leaves_room_for_what_an_epoch_spends_whatever_its_updates_and_for_a_cadences_evaluation(monkeypatch):
     """Epochs of 10 updates of 1 s and a refill of 5 s (``fixed_seconds``): a cut keeps the refill whole.
     And an evaluation due on the cadence after the epoch whose room was planned shrinks that room."""
     clock, asked = FakeClock(0.0), []
