@@ -214,7 +214,7 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
                 assert {**task_options, **train_options}["horizon" if option == "steps" else option] == value
             assert train_command.configure(*train_command.parse(command + ["--steps", "12"]))[1].steps == 12
     # An env the recipe has nothing of its own for takes the recipe as it is.
-    assert sb.recipe("locomotion", "HopperStand") == sb.recipe("locomotion")
+    assert sb.recipe("locomotion", "HopperHop") == sb.recipe("locomotion")
     # The cheetah's R trains without g_M; another mode given beside takes its own flows, not a refusal.
     cheetah = ["--env", "CheetahRun", "--recipe", "locomotion"]
     chosen = lambda *beside: train_command.configure(*train_command.parse(cheetah + list(beside)))[2]
