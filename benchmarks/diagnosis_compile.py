@@ -1,4 +1,4 @@
-"""An environment's reward diagnosis (``diagnosis.lowered_diagnosis``, the program a run starts with)
+"""An environment's reward diagnosis (``diagnosis.lowered_diagnosis``, the programs a run starts with)
 traced and lowered once, then compiled under each set of XLA options and run over the episodes' first
 steps and along whole episodes: seconds to compile and to run, and whether every set classifies the
 reward the same. The compile cache is off.
@@ -7,6 +7,7 @@ reward the same. The compile cache is off.
     python benchmarks/diagnosis_compile.py --set "training's" CheetahRun   (one set of options only)
 """
 import argparse
+import functools
 import os
 import time
 
@@ -55,9 +56,13 @@ for name in args.envs:
                                                        task.resolved["episode_length"])
     print(f"{name}: trace and lower {time.perf_counter() - started:.1f} s", flush=True)
     for label, options in OPTION_SETS.items():
+        # Its three programs (resets, walk, checks) compile at once, each in a thread of its own, as a run's start does.
         started = time.perf_counter()
-        compiled = lowered.compile(compiler_options=options)
-        timings = [f"compile {time.perf_counter() - started:.1f} s ({compiled.as_text().count(chr(10))} lines of optimised HLO)"]
+        programs = diagnosis._compiled_beside(
+            [functools.partial(program.compile, compiler_options=options) for program in lowered], list).result()
+        lines = " + ".join(str(program.as_text().count(chr(10))) for program in programs)
+        timings = [f"compile {time.perf_counter() - started:.1f} s ({lines} lines of optimised HLO)"]
+        compiled = diagnosis._Sampled(*programs)
         # Its two runs: clocks over the episodes' first steps, then (where episodes are longer) along whole ones.
         for where, arguments in (("first steps", near), ("whole episodes", whole)):
             if arguments is not None:

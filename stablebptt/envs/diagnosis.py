@@ -7,7 +7,8 @@ set-up (``PendingDiagnosis``), on the host's CPU where an accelerator trains (``
 from __future__ import annotations
 
 import concurrent.futures
-from typing import Any, Callable, NamedTuple
+import functools
+from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -105,9 +106,30 @@ def diagnose_env(env: Any, step: Callable, key: jax.Array, episode_length: int) 
     return RewardDiagnosis(*start_diagnosis(env, step, key, episode_length)())
 
 
-def _compiled_beside(lowered) -> concurrent.futures.Future:
-    """``lowered``'s compile in a thread of its own, its program (or its error) in the future returned."""
-    return beside(lowered.compile, "stablebptt-reward-diagnosis")
+def _compiled_beside(compiles: Sequence[Callable[[], Any]], compose: Callable[[list], Callable]) -> concurrent.futures.Future:
+    """Each of ``compiles`` (a lowered program's ``compile``) called in a thread of its own, and ``compose``
+    of their compiled programs (or the first error) in the future returned. XLA compiles one program on
+    under two cores: HopperStand's diagnosis as one program compiled in 30.7 s of wall clock and 48.4 s
+    of CPU time on the 2-core CPU, its resets, walk and checks one after another in 8.9, 15.2 and 8.4 s.
+    On one H200's host of 16 cores, HopperStand's start then waited 21.3 s for its check after the
+    epoch's trace, against 27.8-31.7 s as one program, and reached training in 139 s against 143-144 s
+    (docs/performance.md, "Noise from 0.6 on the hopper, the finger again")."""
+    begun = [beside(compile, f"stablebptt-reward-diagnosis-{index}") for index, compile in enumerate(compiles)]
+    return beside(lambda: compose([compiled.result() for compiled in begun]), "stablebptt-reward-diagnosis")
+
+
+class _Sampled(NamedTuple):
+    """The diagnosis's three programs compiled (``lowered_diagnosis``), run one after another: the
+    episodes' resets, their walk to the clocks, the checks at the states it kept."""
+
+    resets: Callable
+    walk: Callable
+    checks: Callable
+
+    def __call__(self, argument: tuple) -> tuple:
+        key, lead, stride = argument
+        samples = self.walk(*self.resets(key), lead, stride)
+        return self.checks(*samples), samples
 
 
 def start_checks(step: Callable, states: PyTree, actions: jax.Array) -> "PendingDiagnosis":
@@ -117,7 +139,7 @@ def start_checks(step: Callable, states: PyTree, actions: jax.Array) -> "Pending
     samples = on_check_device((states, actions))
     lowered = jax.jit(lambda samples: (_gradient_checks(step)(*samples), None),  # the samples are the caller's
                       compiler_options=_diagnosis_options()).lower(samples)
-    return PendingDiagnosis(_compiled_beside(lowered), samples, [samples])
+    return PendingDiagnosis(_compiled_beside([lowered.compile], lambda compiled: compiled[0]), samples, [samples])
 
 
 def start_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int) -> "PendingDiagnosis":
@@ -134,26 +156,37 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: in
     could run while a program the caller compiles meanwhile times its kernels there (autotuning).
     """
     lowered, near, whole = lowered_diagnosis(env, step, key, episode_length)
-    compiled = _compiled_beside(lowered)
+    compiled = _compiled_beside([program.compile for program in lowered], lambda compiled: _Sampled(*compiled))
     along_whole_episodes = None if whole is None else lambda: PendingDiagnosis(compiled, whole, [])  # noqa: E731
     return PendingDiagnosis(compiled, near, [], along_whole_episodes)  # its samples come back when it runs
 
 
-def lowered_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int) -> tuple[Any, tuple, tuple | None]:
-    """``start_diagnosis``'s program, lowered with the diagnosis's options, and its arguments: its clocks
-    over the episodes' first ``NEAR_STEPS`` steps, and along whole episodes (None where an episode is no
-    longer). The program gives the checks and the samples checked."""
-    checks = _gradient_checks(step)
+def lowered_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int) -> tuple[tuple, tuple, tuple | None]:
+    """``start_diagnosis``'s three programs, lowered with the diagnosis's options: the episodes' resets
+    (from a key), their walk to the clocks (``_walk``) and the checks at the states it kept; and the
+    arguments of the whole (``_Sampled``): its clocks over the episodes' first ``NEAR_STEPS`` steps, and
+    along whole episodes (None where an episode is no longer). Three programs, so that they compile at
+    once (``_compiled_beside``); the samples come back too: a flat reward's surrogate is fitted and
+    checked on them."""
     clocks = _clocks_after_reset(episode_length)
-
-    def checked_samples(spacing):  # the samples come back too: a flat reward's surrogate is fitted and checked on them
-        samples = _sample_spaced(env, step, *spacing, clocks)
-        return checks(*samples), samples
-
-    key = on_check_device(key)  # the program runs where its arguments lie
+    options = _diagnosis_options()
+    key = on_check_device(key)  # the programs run where their arguments lie
     near = (key, *_spacing(min(episode_length, NEAR_STEPS), clocks))
     whole = (key, *_spacing(episode_length, clocks)) if episode_length > NEAR_STEPS else None
-    return jax.jit(checked_samples, compiler_options=_diagnosis_options()).lower(near), near, whole
+    resets = jax.jit(functools.partial(_resets, env), compiler_options=options)
+    walk = jax.jit(functools.partial(_walk, env, step, clocks=clocks), compiler_options=options)
+    checks = jax.jit(_gradient_checks(step), compiler_options=options)
+    resets = resets.lower(key)
+    walk = walk.lower(*_check_device_shapes((*resets.out_info, *near[1:])))
+    return (resets, walk, checks.lower(*_check_device_shapes(walk.out_info))), near, whole
+
+
+def _check_device_shapes(tree: PyTree) -> PyTree:
+    """``tree``'s shapes and dtypes, on the device the diagnosis runs on (``check_device``): a program
+    lowered for them runs there."""
+    device = check_device()
+    sharding = None if device is None else jax.sharding.SingleDeviceSharding(device)
+    return jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=sharding), tree)
 
 
 class PendingDiagnosis(NamedTuple):
@@ -253,11 +286,22 @@ def _spacing(span: int, clocks: int) -> tuple[np.int32, np.int32]:
 def _sample_spaced(env: Any, step: Callable, key: jax.Array, lead: jax.Array, stride: jax.Array,
                    clocks: int) -> tuple[PyTree, jax.Array]:
     """``sample_for_diagnosis`` with the clocks at ``lead + stride``, ``lead + 2 stride``, ... (``clocks``
-    of them): ``lead`` and ``stride`` may be traced. The episodes walk in ONE loop of ``lead + clocks
-    stride`` steps that keeps each clock's state as it passes, so the program holds one copy of the
-    step (a loop to the first clock and another between clocks would hold, and compile, one each)."""
+    of them): ``lead`` and ``stride`` may be traced."""
+    return _walk(env, step, *_resets(env, key), lead, stride, clocks=clocks)
+
+
+def _resets(env: Any, key: jax.Array) -> tuple[PyTree, jax.Array, jax.Array]:
+    """The episodes' resets, and the keys of their walk's actions and of the actions checked."""
     reset_key, walk_key, action_key = jax.random.split(key, 3)
-    starts = jax.lax.map(env.reset, jax.random.split(reset_key, DIAGNOSIS_EPISODES))
+    return jax.lax.map(env.reset, jax.random.split(reset_key, DIAGNOSIS_EPISODES)), walk_key, action_key
+
+
+def _walk(env: Any, step: Callable, starts: PyTree, walk_key: jax.Array, action_key: jax.Array, lead: jax.Array,
+          stride: jax.Array, *, clocks: int) -> tuple[PyTree, jax.Array]:
+    """The episodes from ``starts`` on, in ONE loop of ``lead + clocks stride`` steps that keeps each
+    clock's state as it passes, so the program holds one copy of the step (a loop to the first clock
+    and another between clocks would hold, and compile, one each); the resets and the kept states,
+    with a random action for each."""
     kept = jax.tree.map(lambda leaf: jnp.zeros((clocks,) + leaf.shape[1:], leaf.dtype), starts)
 
     def advance(index, carried):  # every episode one step on; the clock it reaches kept, from one episode in turn

@@ -171,12 +171,12 @@ def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_o
                                   lead + stride * np.arange(1, diagnosis._clocks_after_reset(100) + 1))
     near, _ = jax.jit(lambda key: diagnosis.sample_for_diagnosis(env, env.step, key, 100, diagnosis.NEAR_STEPS))(key)
     assert int(near.data["count"].max()) == diagnosis.NEAR_STEPS - 1  # one clock a step over the first steps
-    # Flat over the first steps, it looks along whole episodes by running its one program again: one compile.
-    compiles = []
-    monkeypatch.setattr(diagnosis, "_compiled_beside", lambda lowered: compiles.append(lowered) or
-                        diagnosis.beside(lowered.compile, "counted"))
+    # Flat over the first steps, it looks along whole episodes by running its programs again: compiled once.
+    compiles, compiled_beside = [], diagnosis._compiled_beside
+    monkeypatch.setattr(diagnosis, "_compiled_beside", lambda begun, compose: compiles.append(begun) or
+                        compiled_beside(begun, compose))
     pending = diagnosis.start_diagnosis(env, env.step, key, 100)
-    assert diagnosis.RewardDiagnosis(*pending()).kind == "usable" and len(compiles) == 1
+    assert diagnosis.RewardDiagnosis(*pending()).kind == "usable" and len(compiles) == 1 and len(compiles[0]) == 3
     for checked, drawn in zip(jax.tree.leaves(pending.samples()), jax.tree.leaves((states, actions))):
         np.testing.assert_allclose(np.asarray(checked), np.asarray(drawn), rtol=1e-6, atol=1e-7)
     monkeypatch.undo()
