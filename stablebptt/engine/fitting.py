@@ -21,7 +21,7 @@ from stablebptt.engine.config import BUDGET_MARGIN, PACE_EPOCHS, TrainConfig, ev
 from stablebptt.engine.divergence import (
     failing, failure, keep_retired, nonfinite_message, retired_in, retirement_notice, without_retired, zeroed_notice)
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, env_steps_trained, epoch_rows
-from stablebptt.engine.starting import compiled_epoch, compiled_refill, lowered_for, prepare
+from stablebptt.engine.starting import compiled_refill, compiled_then_made, lowered_for, prepare
 from stablebptt.engine.training import Trainer
 
 
@@ -316,8 +316,7 @@ def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None]
     prepared = prepare(task, config)  # a check left running may refuse the task here, or smooth its reward
     task, trainer = prepared.task, prepared.trainer
     seeds = np.asarray(seed_array(config))
-    state = trainer.init(seed_array(config))
-    epoch_fn, _ = compiled_epoch(trainer, state, prepared.lowered)
+    epoch_fn, _, state, _ = compiled_then_made(trainer, lambda: trainer.init(seed_array(config)), prepared.lowered)
     refill, _ = compiled_refill(trainer, state, prepared.lowered and prepared.lowered.refill)
     evaluations = Evaluations(trainer, config)
     evaluations.compile(state, prepared.lowered and prepared.lowered.evaluation)

@@ -125,6 +125,31 @@ def compiled_epoch(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = 
                          trainer.compiler_options)
 
 
+def compiled_then_made(trainer: Trainer, state: Any, lowered: LoweredEpoch | None = None,
+                       program_key: dict | None = None) -> tuple[Callable, float, Any, float | None]:
+    """The trainer's epoch compiled (``compiled_epoch``), the seconds it took, the state to train from and
+    the seconds its making took: ``state`` itself (None), or where ``state`` is a function that makes a
+    fresh one, its result made once the epoch has compiled for ``lowered``'s shapes. Init's programs,
+    compiling beside since the start (``programs_beside``), then compile beside the epoch's rather than
+    before it, and run once it has ended: on a GPU none of their kernels runs while the epoch's are timed."""
+    made = None
+    if callable(state) and lowered is None:  # no shapes to compile the epoch for: the state first
+        state, made = _made(state)
+    epoch_fn, seconds = compiled_epoch(trainer, lowered.shapes if callable(state) else state, lowered, program_key)
+    if callable(state):
+        state, made = _made(state)
+        if not lowered_for(lowered, state):  # made otherwise than the epoch was lowered for: compiled for it
+            epoch_fn, more = compiled_epoch(trainer, state, None, program_key)
+            seconds += more
+    return epoch_fn, seconds, state, made
+
+
+def _made(fresh: Callable[[], Any]) -> tuple[Any, float]:
+    started = time.perf_counter()
+    state = jax.block_until_ready(fresh())
+    return state, time.perf_counter() - started
+
+
 def compiled_refill(trainer: Trainer, state: Any, beside: CompiledBeside | None = None,
                     program_key: dict | None = None) -> tuple[Callable, float]:
     """The program every epoch starts with (``Trainer.fresh``) compiled for ``state`` before any epoch is

@@ -21,7 +21,7 @@ from stablebptt.engine.fitting import (
 )
 from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.program_store import compile_seconds_saved
-from stablebptt.engine.starting import compiled_epoch, compiled_refill
+from stablebptt.engine.starting import compiled_refill, compiled_then_made
 from stablebptt.engine.training import Trainer, TrainState
 from stablebptt.errors import InputError
 from stablebptt.runs.run_folder import (
@@ -48,7 +48,7 @@ def train_epochs(
     trainer: Trainer,
     config: TrainConfig,
     run_dir: Path,
-    state: TrainState,
+    state: TrainState | Callable[[], TrainState],
     start_epoch: int,
     rows: np.ndarray,
     seeds: np.ndarray,
@@ -72,15 +72,19 @@ def train_epochs(
     time under ``"seconds"`` and ``"eval_seconds"``. Runs in any thread. With ``program_key``
     (everything that decides the epoch's program: ``program_store``) and JAX's compile cache on, the
     traced epoch is kept there, and a run with the same key skips tracing it. ``lowered``: the epoch
-    lowered already (``starting.prepare``), used where ``state`` has its shapes. ``phases``: the
+    lowered already (``starting.prepare``), used where ``state`` has its shapes; ``state`` may be a
+    function that makes a fresh one, made once the epoch has compiled (``Session.state``). ``phases``: the
     start-up's phases so far (``Prepared.phases``), recorded with the compile's in the run's
     ``startup.json``; ``compile_saved_mark``: ``program_store.compile_seconds_saved()`` as the start
     began (``Session.compile_saved_mark``), to record the compile the persistent cache saved it.
     """
     started = time.perf_counter() if started is None else started
     phases = dict(phases or {})
-    epoch_fn, seconds = compiled_epoch(trainer, state, lowered, program_key)  # before timing epochs
+    # Before timing epochs; a fresh state that is still to be made is made once the epoch has compiled.
+    epoch_fn, seconds, state, made = compiled_then_made(trainer, state, lowered, program_key)
     phases["compile"] = phases.get("compile", 0.0) + seconds  # prepare may have compiled it beside a check
+    if made is not None:
+        phases["init"] = made
     refill, seconds = compiled_refill(trainer, state, lowered and lowered.refill, program_key)  # beside the epoch
     phases["compile"] += seconds
     evaluations = Evaluations(trainer, config)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 from types import ModuleType
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import numpy as np
@@ -43,7 +43,9 @@ class Session(NamedTuple):
     task: Task
     trainer: Trainer
     config: TrainConfig  # as the run records it (a resumed run's, with the epochs asked for)
-    state: TrainState  # the checkpoint's, else the trainer's fresh one
+    # The checkpoint's, else the trainer's fresh one; or, where the epoch has still to compile (no check compiled
+    # it), the function that makes that one: ``train_epochs`` runs it once the epoch has compiled.
+    state: TrainState | Callable[[], TrainState]
     start_epoch: int
     rows: np.ndarray  # the metric rows recorded so far
     seeds: np.ndarray
@@ -94,9 +96,18 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
                                                  steps_per_epoch=env_steps_per_epoch(trainer, train_config)))
         initializing = time.perf_counter()
         seeds = seed_array(train_config)
-        start_epoch, state, rows = run.start(lambda: trainer.init(seeds), lambda: prepared.lowered.shapes, train_config)
-        jax.block_until_ready(state)
-        phases = {"task's build and checks": checking, **prepared.phases, "init": time.perf_counter() - initializing}
+        fresh = lambda: trainer.init(seeds)  # noqa: E731
+        # Where no check compiled the epoch, a fresh state is made once it has compiled (train_epochs, inside the
+        # command's block of signals): init's programs, compiling beside since the start, compiled and ran first
+        # and the epoch's compile waited for them (17.5 s of HumanoidStand's start without its check).
+        later = prepared.lowered is not None and prepared.lowered.compiled is None
+        start_epoch, state, rows = run.start((lambda: fresh) if later else fresh, lambda: prepared.lowered.shapes,
+                                             train_config)
+        initialized = {}
+        if not callable(state):
+            jax.block_until_ready(state)
+            initialized["init"] = time.perf_counter() - initializing
+        phases = {"task's build and checks": checking, **prepared.phases, **initialized}
     except BaseException:
         if run is not None:
             run.close()

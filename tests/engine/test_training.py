@@ -504,3 +504,24 @@ def test_compiled_programs_are_kept_between_runs_unless_turned_off(tmp_path):
     start, = storage.read_json(tmp_path / "again" / run_folder.STARTUP_FILE)
     assert start["compile_seconds_from_cache"] > 0, (start, warm.stderr)
     assert start["host"] == timing.machine()  # the host named, so that starts on different hosts are told apart
+
+
+def test_a_fresh_state_still_to_be_made_is_made_once_the_epoch_has_compiled(task):
+    """A start that no check compiled the epoch for compiles it before init runs, init's programs beside it:
+    the state is the one init makes at once, and a state given is trained from as it is."""
+    from stablebptt.engine import starting
+    prepared, order = starting.prepare(task, SMALL), []
+
+    class Counted:  # the lowered epoch, its compile noted
+        def compile(self):
+            order.append("compile")
+            return prepared.lowered.lowered.compile()
+
+    lowered = prepared.lowered._replace(lowered=Counted())
+    fresh = lambda: order.append("init") or prepared.trainer.init(seed_array(SMALL))  # noqa: E731
+    epoch_fn, _, state, made = starting.compiled_then_made(prepared.trainer, fresh, lowered)
+    assert order == ["compile", "init"] and made is not None and starting.lowered_for(lowered, state)
+    for made_later, at_once in zip(jax.tree.leaves(state), jax.tree.leaves(prepared.trainer.init(seed_array(SMALL)))):
+        np.testing.assert_array_equal(made_later, at_once)
+    _, _, given, none = starting.compiled_then_made(prepared.trainer, state, lowered._replace(compiled=epoch_fn))
+    assert given is state and none is None and order == ["compile", "init"]  # compiled already: not again
