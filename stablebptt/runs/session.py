@@ -12,7 +12,8 @@
         begun.run.close()
 
 ``begin`` builds the task and its trainer, claims a new run's folder once the task is settled (a
-refusal leaves no folder), or opens a run to resume, and returns the state to train from. A task
+refusal leaves no folder), or opens a run to resume, and returns the state to train from (a new run's,
+where the epoch has still to compile, as the function that makes it: ``Session.state``). A task
 may leave a check running while its trainer is built (an environment's reward diagnosis,
 ``Task.settle``): the epoch is traced meanwhile and compiled once training starts.
 """
