@@ -12,8 +12,8 @@
         begun.run.close()
 
 ``begin`` builds the task and its trainer, claims a new run's folder once the task is settled (a
-refusal leaves no folder), or opens a run to resume, and returns the state to train from (a new run's,
-where the epoch has still to compile, as the function that makes it: ``Session.state``). A task
+refusal leaves no folder), or opens a run to resume, and returns the state to train from (a new run's
+as the function that makes it once the epoch has compiled: ``Session.state``). A task
 may leave a check running while its trainer is built (an environment's reward diagnosis,
 ``Task.settle``): the epoch is traced meanwhile and compiled once training starts.
 """
@@ -44,8 +44,8 @@ class Session(NamedTuple):
     task: Task
     trainer: Trainer
     config: TrainConfig  # as the run records it (a resumed run's, with the epochs asked for)
-    # The checkpoint's, else the trainer's fresh one; or, where the epoch has still to compile (no check compiled
-    # it), the function that makes that one: ``train_epochs`` runs it once the epoch has compiled.
+    # The checkpoint's, else the function that makes the trainer's fresh one: ``train_epochs`` runs it once
+    # the epoch has compiled.
     state: TrainState | Callable[[], TrainState]
     start_epoch: int
     rows: np.ndarray  # the metric rows recorded so far
@@ -97,12 +97,11 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
                                                  steps_per_epoch=env_steps_per_epoch(trainer, train_config)))
         initializing = time.perf_counter()
         seeds = seed_array(train_config)
-        fresh = lambda: trainer.init(seeds)  # noqa: E731
-        # Where no check compiled the epoch, a fresh state is made once it has compiled (train_epochs, inside the
-        # command's block of signals): init's programs, compiling beside since the start, compiled and ran first
-        # and the epoch's compile waited for them (17.5 s of HumanoidStand's start without its check).
-        later = prepared.lowered is not None and prepared.lowered.compiled is None
-        start_epoch, state, rows = run.start((lambda: fresh) if later else fresh, lambda: prepared.lowered.shapes,
+        # A new run's state is made once its epoch has compiled (train_epochs, inside the command's block of
+        # signals): where no check compiled the epoch, init's programs, compiling beside since the start,
+        # compiled and ran first and the epoch's compile waited for them (17.5 s of HumanoidStand's start
+        # without its check). A checkpoint's state is read here.
+        start_epoch, state, rows = run.start(lambda: (lambda: trainer.init(seeds)), lambda: prepared.lowered.shapes,
                                              train_config)
         initialized = {}
         if not callable(state):
