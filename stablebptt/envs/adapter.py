@@ -122,7 +122,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              reward_env: Any = None, contact_smoothing: ContactSmoothing | None = None,
              gradient_substeps: int | None = None, squash_gradient_floor: float = 0.0,
              contact_gradient_cut: float = 0.0, contact_geometry_held: bool = False,
-             physics_steps_recomputed: bool | None = None, reward_direction_observed: bool = False) -> Task:
+             physics_steps_recomputed: bool | None = None, reward_direction_observed: bool = False,
+             smoothing_choices: dict | None = None) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -182,6 +183,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       reward_direction_observed: the policy also sees the unit direction in its actions that raises the reward
         it trains on one control step on (``reward_direction``), carried by each state: one more step and its
         derivative per state a step or a reset reaches.
+      smoothing_choices: a flat reward's surrogate as a run recorded it (``reward_smoothing_choices``), made of
+        these rather than fitted on this machine's samples: a resumed or reopened run keeps its temperatures.
 
     Example::
 
@@ -197,7 +200,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                      reward_env=reward_env, contact_smoothing=contact_smoothing, gradient_substeps=gradient_substeps,
                      squash_gradient_floor=squash_gradient_floor, contact_gradient_cut=contact_gradient_cut,
                      contact_geometry_held=contact_geometry_held, physics_steps_recomputed=physics_steps_recomputed,
-                     reward_direction_observed=reward_direction_observed)
+                     reward_direction_observed=reward_direction_observed, smoothing_choices=smoothing_choices)
     env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -347,7 +350,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None) -> Task:
         start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
-        trained_step, smoothed_terms = smoothed or (training_step, "")
+        trained_step, smoothed_terms, choices = smoothed or (training_step, "", None)
         direction, seen, policy, sample = policy_for(trained_step)
         evaluation = episode_dynamics(direction.stepping(step), policy, episode_length)
         # Carried episodes: reset by the env's reset; their returns the env's own, whatever reward the windows train on.
@@ -369,7 +372,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                       **({"squash_gradient_floor": squash_gradient_floor} if squash_gradient_floor else {}),
                       **({"reward_direction_observed": True} if reward_direction_observed else {}),
                       **({"contact_gradient_cut": contact_gradient_cut} if contact_gradient_cut else {}),
-                      **({"reward_smoothing": smoothed_terms} if smoothed_terms else {})},
+                      **({"reward_smoothing": smoothed_terms, "reward_smoothing_choices": choices} if smoothed else {})},
             evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
                 states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
             episodes=episodes,
@@ -397,7 +400,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                 jax.random.PRNGKey(diagnosis_seed))
             return surrogate.smoothing_choices(training_step, *drawn, smoothing_scale, traced)
 
-        choices = program_store.kept_answer(smoothing_key, "reward smoothing", choose)
+        choices = (surrogate.as_recorded(program_store.kept_answer(smoothing_key, "reward smoothing", choose))
+                   if smoothing_choices is None else surrogate.checked_places(traced, smoothing_choices, example, label))
         smooth_step, smoothing_done = surrogate.smoothed_step(traced, choices)
         if not smoothing_done.anything:
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
@@ -413,7 +417,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         checked = program_store.kept_answer_later(smoothing_key, "surrogate's diagnosis", lambda: checking.append(
             start_checks(smooth_step, *samples) if samples else
             start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed), episode_length)) or checking[0])
-        smoothed = (smooth_step, smoothing_done.describe())
+        smoothed = (smooth_step, smoothing_done.describe(), choices)
 
         def settle_surrogate(wait: bool = True) -> Task | None:
             if not wait and checking and not checking[0].done():

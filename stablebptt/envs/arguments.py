@@ -45,6 +45,10 @@ def check_env_task_arguments(**given: Any) -> None:
         refuse("reward_context", "a context manager's factory, or None")
     if given["diagnosis_key"] is not None and not isinstance(given["diagnosis_key"], dict):
         refuse("diagnosis_key", "a dict, or None")
+    choices = given["smoothing_choices"]
+    if choices is not None and not (isinstance(choices, dict) and set(choices) == {"temperatures", "exponents"}):
+        refuse("smoothing_choices", 'a run\'s recorded "reward_smoothing_choices" (a dict of "temperatures" and '
+               '"exponents"), or None')
     if given["smoothing"] not in ("auto", "off"):
         refuse("smoothing", '"auto" or "off"')
     scale = given["smoothing_scale"]

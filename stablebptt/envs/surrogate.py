@@ -27,6 +27,7 @@ widened to where the typical sampled state sits.
 """
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
@@ -344,21 +345,44 @@ def smoothed_step(traced: tuple, choices: dict) -> tuple[Callable, Smoothing]:
     return smoothed, Smoothing(*named)
 
 
+def as_recorded(choices: dict) -> dict:
+    """``choices`` (``smoothing_choices``) as a run's record holds them, plain JSON: the same whether
+    fitted now or read where they were kept."""
+    return json.loads(json.dumps(choices, default=float))
+
+
+def _misplaced(traced: tuple, choices: dict, example: tuple) -> str | None:
+    """Where ``choices`` name a comparison or exponential that the program ``traced`` does not make at the
+    same place, written in the same line (that line), else None."""
+    closed, structure, out_labels = traced
+    recorder = _Interpreter(None)  # records where its program compares, at shapes alone
+    jax.eval_shape(lambda state, action: _evaluate(closed, out_labels, structure, recorder, state, action), *example)
+    return next((where for kind in ("temperatures", "exponents") for place, _, where in choices[kind]
+                 if recorder.places.get(tuple(place)) != where), None)
+
+
+def checked_places(traced: tuple, choices: dict, example: tuple, label: str) -> dict:
+    """A run's recorded ``choices``, where the step ``traced`` still compares at each of their places;
+    ``EnvError`` naming the env ``label`` where it does not (its code changed since the run began)."""
+    choices = as_recorded(choices)
+    if (where := _misplaced(traced, choices, example)) is not None:
+        raise EnvError(f"{label}: the run trained on a surrogate of the reward that smoothed {where}, and the "
+                       "env's step no longer compares there (its code changed since the run began): its "
+                       "surrogate cannot be made again; train anew")
+    return choices
+
+
 def smoothed_alike(step: Callable, choices: dict, example: tuple, label: str) -> Callable:
     """``step`` (the derivative's model of the step ``choices`` were made for: ``derivative_model``) with the
     same comparisons and exponentials smoothed by the same numbers, traced at ``example``'s shapes.
     ``EnvError`` naming the env ``label`` where its program does not make them at the same places, written
     in the same lines."""
-    traced = closed, structure, out_labels = trace_step(step, *example)
-    recorder = _Interpreter(None)  # records where its program compares, at shapes alone
-    jax.eval_shape(lambda state, action: _evaluate(closed, out_labels, structure, recorder, state, action), *example)
-    for kind in ("temperatures", "exponents"):
-        for place, _, where in choices[kind]:
-            if recorder.places.get(tuple(place)) != where:
-                raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and the "
-                               f"derivative's model (contacts smoothed, or fewer physics steps) computes the reward "
-                               f"otherwise than the env's step (nothing at {where}, where the env's step compares), so "
-                               "its smooth surrogate cannot be made alike: drop those options")
+    traced = trace_step(step, *example)
+    if (where := _misplaced(traced, choices, example)) is not None:
+        raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and the "
+                       f"derivative's model (contacts smoothed, or fewer physics steps) computes the reward "
+                       f"otherwise than the env's step (nothing at {where}, where the env's step compares), so "
+                       "its smooth surrogate cannot be made alike: drop those options")
     return smoothed_step(traced, choices)[0]
 
 

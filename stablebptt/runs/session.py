@@ -60,13 +60,24 @@ class Session(NamedTuple):
         return self.trainer, self.config, self.run.directory, self.state, self.start_epoch, self.rows, self.seeds
 
 
+def _task_of(task_module: ModuleType, task_config: Any, record: dict | None) -> Any:
+    """The run's task, left checking beside the caller where its module can (``make_deferred``); a resumed
+    run's as its record says it resolved, where its module reads that (``make_as_recorded``: a reward's
+    surrogate made with the temperatures the run began with)."""
+    deferred = hasattr(task_module, "make_deferred")
+    if record is not None and (as_recorded := getattr(task_module, "make_as_recorded", None)) is not None:
+        return as_recorded(task_config, record.get("resolved_task", {}), deferred=deferred)
+    return task_module.make_deferred(task_config) if deferred else task_module.make(task_config)
+
+
 def begin(task_module: ModuleType, task_name: str, task_config: Any, train_config: TrainConfig,
           run_dir: Path | None = None, record: dict | None = None, runs_root: Path = Path("runs")) -> Session:
     """Begin a new run (``record`` None) or resume the one in ``run_dir`` (its ``config.json`` as ``record``).
 
     Args:
       task_module: the task's module (``stablebptt.tasks.load(task_name)``): its ``make`` (or
-        ``make_deferred``) builds the task from ``task_config``.
+        ``make_deferred``; a resumed run's ``make_as_recorded`` where it has one) builds the task from
+        ``task_config``.
       run_dir: a new run's folder (default: ``runs_root``/TASK-TIME); refused at once where it is in use,
         claimed once the task is settled.
 
@@ -83,7 +94,7 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
             refuse_used(run_dir)
         checking = time.perf_counter()
         # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
-        task = getattr(task_module, "make_deferred", task_module.make)(task_config)
+        task = _task_of(task_module, task_config, record)
         checking = time.perf_counter() - checking
         # The epoch is traced while XLA may still compile the task's check beside, a resumed run's too (its
         # checkpoint is read into the shapes it was lowered for). A refusal leaves no folder behind.

@@ -4,6 +4,8 @@ A task is a module with ``Config`` (a typed dataclass: its command-line
 options), ``make(config) -> stablebptt.engine.training.Task`` and ``DEFAULT_EPOCHS``
 (optionally ``TRAIN_DEFAULTS``: training options the command line defaults to for the task;
 ``recorded_config(config, record) -> config``: a run's config as it trained, where a default changed since;
+``make_as_recorded(config, resolved, deferred=False) -> Task``: ``make`` for a run that resumes or is reopened,
+from what its record says the task resolved to (where absent, ``make``);
 ``for_reopening(config, resolved) -> config`` (or ``for_reopening(config)``): the configuration that rebuilds
 a trained run's task (``resolved``: what its record says the task resolved to), checks that only matter
 before training left out; and

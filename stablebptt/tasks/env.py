@@ -200,7 +200,15 @@ def make_deferred(config: Config) -> Task:
     return _make(config, defer_diagnosis=True)
 
 
-def _make(config: Config, defer_diagnosis: bool) -> Task:
+def make_as_recorded(config: Config, resolved: dict, deferred: bool = False) -> Task:
+    """``make`` (``make_deferred`` where ``deferred``) for a run that resumes or is reopened, its record saying
+    what the task resolved to (``resolved``): a reward the run trained on a surrogate of keeps that surrogate's
+    temperatures, rather than fitting them again on this machine's samples (another backend's draw moves them
+    in their third digit)."""
+    return _make(config, defer_diagnosis=deferred, smoothing_choices=resolved.get("reward_smoothing_choices"))
+
+
+def _make(config: Config, defer_diagnosis: bool, smoothing_choices: dict | None = None) -> Task:
     if not config.env:
         raise InputError(f"give {config_field(config, 'env')}: a MuJoCo Playground name or package.module:attribute")
     env = load_env(config.env)
@@ -232,7 +240,7 @@ def _make(config: Config, defer_diagnosis: bool) -> Task:
                     contact_gradient_cut=config.contact_gradient_cut,
                     contact_geometry_held=config.contact_gradient_geometry == "held",
                     physics_steps_recomputed=PHYSICS_STEP_RESIDUALS[config.physics_step_residuals],
-                    reward_direction_observed=config.observe_reward_direction,
+                    reward_direction_observed=config.observe_reward_direction, smoothing_choices=smoothing_choices,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})
     if trained_reward:

@@ -244,3 +244,43 @@ def test_a_kept_smoothing_rebuilds_the_surrogate_without_sampling_or_checking_ag
         state, action = jax.tree.map(lambda a: a[0], states), jnp.array([position])
         np.testing.assert_array_equal(again.dynamics.step(state, action).reward, first.dynamics.step(state, action).reward)
     assert 0 < float(first.dynamics.step(state, action).reward) < 1  # the surrogate's, not the step of the written reward
+
+
+def test_a_resumed_or_reopened_run_keeps_the_surrogate_temperatures_its_record_holds(tmp_path, capsys, monkeypatch):
+    """A run's record holds its surrogate's temperatures; resuming it or reopening it makes the surrogate of
+    those, not of a fit on this machine's samples (another backend's draw moves them): here the record's
+    temperature, three times the fitted one, is the one the rebuilt step uses."""
+    from stablebptt.apps.trained import open_trained
+    from stablebptt.envs import surrogate
+    from stablebptt.storage import atomic_write, read_json
+    run = tmp_path / "run"
+    common = ["--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress"]
+    assert train_command.main(["--env", "envs_for_tests:step_reward_cart", "--steps", "5", "--epochs", "1",
+                               *common, "--out", str(run)]) == 0
+    record = read_json(run / "config.json")
+    resolved = record["resolved_task"]
+    (place, fitted, where), = resolved["reward_smoothing_choices"]["temperatures"]
+    assert fitted > 0 and f"(temperature {fitted:.3g})" in resolved["reward_smoothing"]
+    # As if the run had begun on another machine whose samples gave three times the temperature.
+    resolved["reward_smoothing_choices"]["temperatures"] = [[place, 3 * fitted, where]]
+    resolved["reward_smoothing"] = resolved["reward_smoothing"].replace(f"{fitted:.3g}", f"{3 * fitted:.3g}")
+    atomic_write(run / "config.json", __import__("json").dumps(record).encode())
+    made = []
+    original = surrogate.smoothed_step
+    monkeypatch.setattr(surrogate, "smoothed_step", lambda traced, choices: made.append(choices) or original(traced, choices))
+    notes = []
+    reopened = open_trained(run, note=notes.append)
+    assert notes == [] and reopened.task.resolved["reward_smoothing_choices"] == resolved["reward_smoothing_choices"]
+    assert made[-1]["temperatures"] == [[place, 3 * fitted, where]]
+    made.clear()
+    assert train_command.main(["--resume", str(run), "--epochs", "2", "--no-progress"]) == 0
+    assert made and all(choices["temperatures"] == [[place, 3 * fitted, where]] for choices in made)
+    capsys.readouterr()
+    # The step as written compares at the recorded place, and a step that no longer does is refused, named.
+    fitted_anew = env_task(Cart("step"), horizon=5)
+    assert fitted_anew.resolved["reward_smoothing_choices"]["temperatures"][0][1] == pytest.approx(fitted)
+    with pytest.raises(EnvError, match=r"Cart: the run trained on a surrogate of the reward that smoothed nowhere\.py:1, "
+                                       r"and the env's step no longer compares there"):
+        env_task(Cart("step"), horizon=5, smoothing_choices={"temperatures": [[[999], 1.0, "nowhere.py:1"]], "exponents": []})
+    with pytest.raises(EnvError, match="env_task's smoothing_choices must be"):
+        env_task(Cart("step"), horizon=5, smoothing_choices="0.6")
