@@ -22,6 +22,7 @@ from stablebptt.engine.task import Task
 from stablebptt.engine.initial_states import sample_states
 from stablebptt.errors import InputError
 from stablebptt.runs import model_store, run_folder
+from stablebptt.runs.session import task_of
 from stablebptt.tasks import canonical, entries, entry
 
 
@@ -122,9 +123,7 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     jax.config.update("jax_default_matmul_precision", train.matmul_precision)
     module = task_entry.load()
     resolved = record.get("resolved_task", {})
-    reopening = config_for_reopening(module, task_config, resolved)
-    as_recorded = getattr(module, "make_as_recorded", None)  # a reward's surrogate with the run's own temperatures
-    task = module.make(reopening) if as_recorded is None else as_recorded(reopening, resolved)
+    task = task_of(module, config_for_reopening(module, task_config, resolved), resolved)
     rebuilt, recorded = (part.get("reward_smoothing") or "none" for part in (task.resolved, resolved))
     if rebuilt != recorded:
         note(f"{run_dir}: the reward's surrogate was rebuilt otherwise than the run trained it ({rebuilt}; "

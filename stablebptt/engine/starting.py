@@ -132,15 +132,16 @@ def compiled_then_made(trainer: Trainer, state: Any, lowered: LoweredEpoch | Non
     fresh one, its result made once the epoch has compiled for ``lowered``'s shapes. Init's programs,
     compiling beside since the start (``programs_beside``), then compile beside the epoch's rather than
     before it, and run once it has ended: on a GPU none of their kernels runs while the epoch's are timed."""
-    made = None
-    if callable(state) and lowered is None:  # no shapes to compile the epoch for: the state first
+    if not callable(state):
+        return (*compiled_epoch(trainer, state, lowered, program_key), state, None)
+    if lowered is None:  # no shapes to compile the epoch for: the state first
         state, made = _made(state)
-    epoch_fn, seconds = compiled_epoch(trainer, lowered.shapes if callable(state) else state, lowered, program_key)
-    if callable(state):
-        state, made = _made(state)
-        if not lowered_for(lowered, state):  # made otherwise than the epoch was lowered for: compiled for it
-            epoch_fn, more = compiled_epoch(trainer, state, None, program_key)
-            seconds += more
+        return (*compiled_epoch(trainer, state, None, program_key), state, made)
+    epoch_fn, seconds = compiled_epoch(trainer, lowered.shapes, lowered, program_key)
+    state, made = _made(state)
+    if not lowered_for(lowered, state):  # made otherwise than the epoch was lowered for: compiled for it
+        epoch_fn, more = compiled_epoch(trainer, state, None, program_key)
+        seconds += more
     return epoch_fn, seconds, state, made
 
 

@@ -19,6 +19,7 @@ may leave a check running while its trainer is built (an environment's reward di
 """
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 from types import ModuleType
@@ -60,13 +61,15 @@ class Session(NamedTuple):
         return self.trainer, self.config, self.run.directory, self.state, self.start_epoch, self.rows, self.seeds
 
 
-def _task_of(task_module: ModuleType, task_config: Any, record: dict | None) -> Any:
-    """The run's task, left checking beside the caller where its module can (``make_deferred``); a resumed
-    run's as its record says it resolved, where its module reads that (``make_as_recorded``: a reward's
-    surrogate made with the temperatures the run began with)."""
-    deferred = hasattr(task_module, "make_deferred")
-    if record is not None and (as_recorded := getattr(task_module, "make_as_recorded", None)) is not None:
-        return as_recorded(task_config, record.get("resolved_task", {}), deferred=deferred)
+def task_of(task_module: ModuleType, task_config: Any, resolved: dict | None = None, deferred: bool = False) -> Any:
+    """``task_module``'s task of ``task_config``, left checking beside the caller where ``deferred`` and its module
+    can (``make_deferred``); a run's that resumes or is reopened (``resolved``: what its record says the task
+    resolved to) made as recorded where its module reads that (``make_as_recorded``: a reward's surrogate made
+    with the temperatures the run began with)."""
+    deferred = deferred and hasattr(task_module, "make_deferred")
+    as_recorded = getattr(task_module, "make_as_recorded", None)
+    if resolved is not None and as_recorded is not None:
+        return as_recorded(task_config, resolved, deferred=deferred)
     return task_module.make_deferred(task_config) if deferred else task_module.make(task_config)
 
 
@@ -94,7 +97,8 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
             refuse_used(run_dir)
         checking = time.perf_counter()
         # A task may leave a check running while the trainer is built (an environment's reward diagnosis).
-        task = _task_of(task_module, task_config, record)
+        task = task_of(task_module, task_config, None if record is None else record.get("resolved_task", {}),
+                       deferred=True)
         checking = time.perf_counter() - checking
         # The epoch is traced while XLA may still compile the task's check beside, a resumed run's too (its
         # checkpoint is read into the shapes it was lowered for). A refusal leaves no folder behind.
@@ -109,11 +113,10 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
         initializing = time.perf_counter()
         seeds = seed_array(train_config)
         # A new run's state is made once its epoch has compiled (train_epochs, inside the command's block of
-        # signals): where no check compiled the epoch, init's programs, compiling beside since the start,
-        # compiled and ran first and the epoch's compile waited for them (17.5 s of HumanoidStand's start
-        # without its check). A checkpoint's state is read here.
-        start_epoch, state, rows = run.start(lambda: (lambda: trainer.init(seeds)), lambda: prepared.lowered.shapes,
-                                             train_config)
+        # signals), so that init's programs compile beside the epoch's rather than hold it back; a checkpoint's
+        # state is read here.
+        start_epoch, state, rows = run.start(lambda: functools.partial(trainer.init, seeds),
+                                             lambda: prepared.lowered.shapes, train_config)
         initialized = {}
         if not callable(state):
             jax.block_until_ready(state)

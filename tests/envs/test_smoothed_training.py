@@ -2,6 +2,8 @@
 from Python and from the command line, and reports its true return; a surrogate of the user's own (a
 function, from Python or the command line) or the reward of another env on the same states (a sparse
 env's dense variant) is trained as given; smoothing off refuses the reward as before."""
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -264,7 +266,7 @@ def test_a_resumed_or_reopened_run_keeps_the_surrogate_temperatures_its_record_h
     # As if the run had begun on another machine whose samples gave three times the temperature.
     resolved["reward_smoothing_choices"]["temperatures"] = [[place, 3 * fitted, where]]
     resolved["reward_smoothing"] = resolved["reward_smoothing"].replace(f"{fitted:.3g}", f"{3 * fitted:.3g}")
-    atomic_write(run / "config.json", __import__("json").dumps(record).encode())
+    atomic_write(run / "config.json", json.dumps(record).encode())
     made = []
     original = surrogate.smoothed_step
     monkeypatch.setattr(surrogate, "smoothed_step", lambda traced, choices: made.append(choices) or original(traced, choices))
