@@ -183,8 +183,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       reward_direction_observed: the policy also sees the unit direction in its actions that raises the reward
         it trains on one control step on (``reward_direction``), carried by each state: one more step and its
         derivative per state a step or a reset reaches.
-      smoothing_choices: a flat reward's surrogate as a run recorded it (``reward_smoothing_choices``), made of
-        these rather than fitted on this machine's samples: a resumed or reopened run keeps its temperatures.
+      smoothing_choices: a flat reward's surrogate as a run recorded it (``reward_smoothing_choices``): the
+        windows train on it, made of these rather than fitted on this machine's samples, and no check runs (the
+        run's own chose and passed it): a resumed or reopened run keeps its temperatures.
 
     Example::
 
@@ -192,15 +193,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         task = sb.env_task(env, horizon=100)
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
-    check_env_task_arguments(horizon=horizon, discount=discount, episode_length=episode_length, hidden=hidden, name=name,
-                     reward_context=reward_context, reward_repairs=reward_repairs, diagnose=diagnose,
-                     diagnosis_seed=diagnosis_seed, dense_variant=dense_variant, diagnosis_key=diagnosis_key,
-                     defer_diagnosis=defer_diagnosis, smoothing=smoothing, smoothing_scale=smoothing_scale,
-                     surrogate_reward=surrogate_reward, normalize_observations=normalize_observations,
-                     reward_env=reward_env, contact_smoothing=contact_smoothing, gradient_substeps=gradient_substeps,
-                     squash_gradient_floor=squash_gradient_floor, contact_gradient_cut=contact_gradient_cut,
-                     contact_geometry_held=contact_geometry_held, physics_steps_recomputed=physics_steps_recomputed,
-                     reward_direction_observed=reward_direction_observed, smoothing_choices=smoothing_choices)
+    check_env_task_arguments(**{argument: value for argument, value in locals().items() if argument != "env"})
     env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -288,6 +281,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             raise
         return started[0]
 
+    diagnose = diagnose and smoothing_choices is None  # a run's recorded surrogate: its checks chose and passed it
     if not diagnose:  # nothing traces the step before the trainer: see that it keeps the protocol
         program_store.kept_answer(diagnosis_key, "protocol", lambda: check_step(env, step, observations, label))
 
@@ -389,35 +383,21 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         # temperatures come from the diagnosis's own samples where it ran here, and are kept with its answer.
         samples = started[0].samples() if started else None
         smoothing_key = None if answer_key is None else {**answer_key, "smoothing_scale": smoothing_scale}
-        # One trace of the step, at shapes, serves the temperatures' choice and the surrogate: a kept choice
-        # names places in it. Where the derivative is another model's, the values' step is traced.
-        example = surrogate.one_sample(*samples) if samples else surrogate.step_example(env)
-        derivative_step = training_steps[1]
-        traced = surrogate.trace_step(values_step, *example)
 
-        def choose() -> dict:  # on the diagnosis's samples, drawn again where its answer was kept
+        def choose(traced) -> dict:  # on the diagnosis's samples, drawn again where its answer was kept
             drawn = samples or jax.jit(lambda key: sample_for_diagnosis(env, training_step, key, episode_length))(
                 jax.random.PRNGKey(diagnosis_seed))
             return surrogate.smoothing_choices(training_step, *drawn, smoothing_scale, traced)
 
-        choices = (surrogate.as_recorded(program_store.kept_answer(smoothing_key, "reward smoothing", choose))
-                   if smoothing_choices is None else surrogate.checked_places(traced, smoothing_choices, example, label))
-        smooth_step, smoothing_done = surrogate.smoothed_step(traced, choices)
-        if not smoothing_done.anything:
-            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
-                           f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
-        if derivative_step is not None:  # the derivative's model smoothed alike, then joined as the step was
-            smooth_step = joined(smooth_step, surrogate.smoothed_alike(jax.jit(derivative_step), choices, example, label))
-        # One jit, as the env's step has: each program that traces the surrogate (the window, the direction's
-        # derivative, the evaluation, the checks) reuses one interpretation of the step's program per shape.
-        smooth_step = jax.jit(smooth_step)
+        smoothed = surrogate_of(surrogate.one_sample(*samples) if samples else surrogate.step_example(env),
+                                lambda traced, example: surrogate.as_recorded(program_store.kept_answer(
+                                    smoothing_key, "reward smoothing", functools.partial(choose, traced))))
         # The surrogate's step reaches the same states as the env's: its gradient is checked at those
         # samples, compiled beside whatever the caller does next (tracing the surrogate's trainer); kept.
         checking: list[PendingDiagnosis] = []
         checked = program_store.kept_answer_later(smoothing_key, "surrogate's diagnosis", lambda: checking.append(
-            start_checks(smooth_step, *samples) if samples else
-            start_diagnosis(env, smooth_step, jax.random.PRNGKey(diagnosis_seed), episode_length)) or checking[0])
-        smoothed = (smooth_step, smoothing_done.describe(), choices)
+            start_checks(smoothed[0], *samples) if samples else
+            start_diagnosis(env, smoothed[0], jax.random.PRNGKey(diagnosis_seed), episode_length)) or checking[0])
 
         def settle_surrogate(wait: bool = True) -> Task | None:
             if not wait and checking and not checking[0].done():
@@ -425,10 +405,26 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             again = RewardDiagnosis(*checked())
             if again.kind in ("zero", "nan"):
                 raise EnvError(f"{label}: the reward's gradient is {again.kind} at every sampled state even after "
-                               f"{smoothing_done.describe()}: some term of it is flat beyond these comparisons; {advice}")
+                               f"{smoothed[1]}: some term of it is flat beyond these comparisons; {advice}")
             return task(again, again.kind, smoothed)
 
         return dataclasses.replace(task(None, "pending", smoothed), settle=settle_surrogate)
+
+    def surrogate_of(example: tuple, choose: Callable[[tuple, tuple], dict]) -> tuple:
+        """A flat reward's surrogate step, what it smoothed in words, and its choices (``choose(traced, example)``):
+        one trace of the step, at shapes, serves the choice and the surrogate (a choice names places in it);
+        where the derivative is another model's, the values' step is traced and the derivative's smoothed alike."""
+        traced = surrogate.trace_step(values_step, *example)
+        choices = choose(traced, example)
+        smooth_step, smoothing_done = surrogate.smoothed_step(traced, choices)
+        if not smoothing_done.anything:
+            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
+                           f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
+        if training_steps[1] is not None:
+            smooth_step = joined(smooth_step, surrogate.smoothed_alike(jax.jit(training_steps[1]), choices, example, label))
+        # One jit, as the env's step has: each program that traces the surrogate (the window, the direction's
+        # derivative, the evaluation, the checks) reuses one interpretation of the step's program per shape.
+        return jax.jit(smooth_step), smoothing_done.describe(), choices
 
     def reward_compares() -> bool:
         """Whether the trained reward turns a comparison into a number, which the check may smooth (read
@@ -440,6 +436,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             return True
         return surrogate.turns_comparisons_into_numbers(traced, example)
 
+    if smoothing_choices is not None:  # a run's surrogate, as recorded: the checks that chose it are not run again
+        return task(None, "as recorded", surrogate_of(surrogate.step_example(env), lambda traced, example:
+                                                      surrogate.checked_places(traced, smoothing_choices, example, label)))
     if not diagnose:
         return task(None, "not checked")
     if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once

@@ -207,7 +207,7 @@ def make_as_recorded(config: Config, resolved: dict, deferred: bool = False) -> 
     """``make`` (``make_deferred`` where ``deferred``) for a run that resumes or is reopened, its record saying
     what the task resolved to (``resolved``): a reward the run trained on a surrogate of keeps that surrogate's
     temperatures, rather than fitting them again on this machine's samples (another backend's draw moves them
-    in their third digit)."""
+    in their third digit), and its checks, which chose and passed it, are not run again."""
     return _make(config, defer_diagnosis=deferred, smoothing_choices=resolved.get("reward_smoothing_choices"))
 
 
@@ -324,9 +324,10 @@ def recorded_config(config: Config, record: dict) -> Config:
 def for_reopening(config: Config, resolved: dict) -> Config:
     """A trained run's task needs no reward check: it was made before training, and a rendering or
     a study of the run would otherwise compile the check's program again. Where the check smoothed the
-    reward (``resolved``, the run's record, says so) it runs again: the surrogate's temperatures come from
-    its samples, and without them the windows' reward, and the direction a policy observes of it, would
-    be the reward as written."""
+    reward (``resolved``, the run's record, says so) the check stays on: the task is made as recorded
+    (``make_as_recorded``), its surrogate of the record's temperatures with no check; a record older than
+    them has them fitted again on the check's samples. Without the surrogate the windows' reward, and the
+    direction a policy observes of it, would be the reward as written."""
     return config if resolved.get("reward_smoothing") else replace(config, reward_check=False)
 
 

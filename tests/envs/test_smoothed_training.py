@@ -251,9 +251,10 @@ def test_a_kept_smoothing_rebuilds_the_surrogate_without_sampling_or_checking_ag
 def test_a_resumed_or_reopened_run_keeps_the_surrogate_temperatures_its_record_holds(tmp_path, capsys, monkeypatch):
     """A run's record holds its surrogate's temperatures; resuming it or reopening it makes the surrogate of
     those, not of a fit on this machine's samples (another backend's draw moves them): here the record's
-    temperature, three times the fitted one, is the one the rebuilt step uses."""
+    temperature, three times the fitted one, is the one the rebuilt step uses; the checks that chose and
+    passed it are not run again."""
     from stablebptt.apps.trained import open_trained
-    from stablebptt.envs import surrogate
+    from stablebptt.envs import adapter, surrogate
     from stablebptt.storage import atomic_write, read_json
     run = tmp_path / "run"
     common = ["--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress"]
@@ -267,9 +268,12 @@ def test_a_resumed_or_reopened_run_keeps_the_surrogate_temperatures_its_record_h
     resolved["reward_smoothing_choices"]["temperatures"] = [[place, 3 * fitted, where]]
     resolved["reward_smoothing"] = resolved["reward_smoothing"].replace(f"{fitted:.3g}", f"{3 * fitted:.3g}")
     atomic_write(run / "config.json", json.dumps(record).encode())
-    made = []
+    made, checked = [], []
     original = surrogate.smoothed_step
     monkeypatch.setattr(surrogate, "smoothed_step", lambda traced, choices: made.append(choices) or original(traced, choices))
+    for check in ("start_diagnosis", "start_checks"):  # the checks that chose the surrogate are not run again
+        monkeypatch.setattr(adapter, check, lambda *arguments, _check=getattr(adapter, check):
+                            checked.append(_check) or _check(*arguments))
     notes = []
     reopened = open_trained(run, note=notes.append)
     assert notes == [] and reopened.task.resolved["reward_smoothing_choices"] == resolved["reward_smoothing_choices"]
@@ -277,6 +281,7 @@ def test_a_resumed_or_reopened_run_keeps_the_surrogate_temperatures_its_record_h
     made.clear()
     assert train_command.main(["--resume", str(run), "--epochs", "2", "--no-progress"]) == 0
     assert made and all(choices["temperatures"] == [[place, 3 * fitted, where]] for choices in made)
+    assert checked == []
     capsys.readouterr()
     # The step as written compares at the recorded place, and a step that no longer does is refused, named.
     fitted_anew = env_task(Cart("step"), horizon=5)
