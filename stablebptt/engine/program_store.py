@@ -159,12 +159,6 @@ def kept_answer_later(key_parts: dict | None, name: str, start: Callable[[], Cal
     return answer
 
 
-def answer_kept(key_parts: dict | None, name: str) -> bool:
-    """Whether an answer is kept under ``key_parts`` and ``name`` (``kept_answer_later`` would give it at once)."""
-    path = _answer_path(key_parts, name)
-    return path is not None and path.is_file()
-
-
 def _answer_path(key_parts: dict | None, name: str) -> Path | None:
     cache = cache_dir()
     if key_parts is None or cache is None:

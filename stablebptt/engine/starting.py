@@ -1,5 +1,5 @@
 """A run's start, in the order it happens (``prepare``): the epoch traced while the task's check
-compiles beside, or compiled beside the check's trace, compile and run where it most likely keeps the step; the
+compiles beside, then compiled beside the check's run where it most likely keeps the step; the
 trainer rebuilt where the check's answer smoothed the reward, and the surrogate's epoch compiled; and
 the epoch's and each epoch's first program compiled for a state (``compiled_epoch``,
 ``compiled_refill``)."""
@@ -33,7 +33,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     """A run's start, in the order it happens: the trainer built and its epoch traced while a check the
     task left running compiles beside (``Task.settle``: an environment's reward diagnosis); where the
     check most likely keeps the step (``Task.compile_while_settling``), the epoch's compile begun
-    beside the check (which may begin only then) and its answer, which may refuse the task; where it smoothed the reward, the trainer
+    beside the check's answer, which may refuse the task; where it smoothed the reward, the trainer
     built again for the task as settled, its epoch traced and compiled (once an early compile has
     ended) while the surrogate's own check compiles beside; that check's answer. ``program_key`` as
     ``train_epochs`` takes it. ``resuming``: the state will be read from a checkpoint (into
@@ -59,7 +59,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     lap("trainer set-up")
     built, checking = task, task.settle is not None
     # The epoch is traced while the check compiles beside. Where the check most likely keeps the step, the epoch
-    # compiles while it is traced, compiled and run (the walkers waited 19-23 s for it after the trace, the humanoid 45 s);
+    # compiles while it runs (the walkers waited 19-23 s for the check after the trace, the humanoid 45 s);
     # elsewhere (HopperStand's reward, which it smooths) once it has answered, the surrogate's alone. A reward
     # smoothed all the same leaves the early compile unused, and the surrogate's epoch compiles once it has
     # ended, so that on a GPU no other program's kernels run while its own are timed.

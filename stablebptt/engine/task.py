@@ -55,8 +55,7 @@ class Task:
         compiling meanwhile: the answer most likely keeps ``dynamics.step`` (an environment whose
         reward turns no comparison into a number: its check could only smooth an exponential that
         underflows), and the check runs apart from the accelerator the program's compile times its
-        kernels on. False where none is pending, or where either may well not hold. Where True, the
-        check may begin only once ``settle`` is called: its own trace then runs beside that compile.
+        kernels on. False where none is pending, or where either may well not hold.
       episodes: what the task knows of its episodes (reset, reward, done, length): a trainer
         may then train on carried episodes (``TrainConfig.episodes``; ``stablebptt.engine.episodes``),
         an environment's by default. None: the paper's protocol only.

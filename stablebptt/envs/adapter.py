@@ -2,20 +2,23 @@
 
 ``env_task`` turns an environment in Brax's protocol (``stablebptt.envs.protocol``) into a ``Task``:
 
-- the loss of a rollout of ``horizon`` steps is its negative (optionally discounted) return, rewards counted
-  until the first ``done``;
+- the loss of a rollout of ``horizon`` steps is its negative (optionally
+  discounted) return, rewards counted until the first ``done``;
 - initial states come from ``env.reset`` (jitted, batched);
 - the policy sees ``State.obs`` (and, asked for, the direction of its reward in its actions, which the
   task's states carry: ``reward_direction``) and its actions are squashed into [-1, 1];
-- the train and test losses of every epoch are the negative EPISODE return (``episode_length`` steps, the
-  deterministic policy, from fresh resets), the number Brax and MuJoCo Playground report;
-- an ``mjx.step`` inside ``env.step`` is traced with its constraint solver differentiated implicitly
-  (``constraint_derivatives``), so solvers of any iteration count pass reverse mode.
+- the train and test losses of every epoch are the negative EPISODE return
+  (``episode_length`` steps, the deterministic policy, from fresh resets), the
+  number Brax and MuJoCo Playground report;
+- an ``mjx.step`` inside ``env.step`` is traced with its constraint solver
+  differentiated implicitly (``constraint_derivatives``), so solvers of any
+  iteration count pass reverse mode.
 
-Before training, ``diagnose_env`` looks at the reward's gradient at states sampled along whole episodes
-(where training will look): a reward whose gradient is zero everywhere (a step function) is refused, a NaN
-derivative of a known form is repaired, and a NaN at exactly zero action is avoided by starting the
-policy's output layer small instead of at zero (``RewardDiagnosis``).
+Before training, ``diagnose_env`` looks at the reward's gradient at states
+sampled along whole episodes (where training will look): a reward whose gradient is zero everywhere (a step function) is
+refused, a NaN derivative of a known form is repaired, and a NaN at exactly
+zero action is avoided by starting the policy's output layer small instead of
+at zero (``RewardDiagnosis``).
 """
 from __future__ import annotations
 
@@ -39,8 +42,8 @@ from stablebptt.envs.derivative_model import (check_contacts, contact_cut, deriv
                                               joined, loaded_states, own_substeps, steps_traced)
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
                                        start_checks, start_diagnosis)
-from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_gradient,
-                                      check_surrogate_reward, observation, with_reset_traced_once)
+from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
+                                      function_name, observation, with_reset_traced_once)
 from stablebptt.envs.reward_direction import Direction
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
@@ -143,8 +146,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         reset to find it). None: diagnosed and traced every time.
       defer_diagnosis: return while the diagnosis compiles and runs beside the caller (``start_diagnosis``): the
         task's ``settled()`` waits for it and refuses a reward with no usable gradient; the parameters' values wait
-        for it too, their shapes do not, so a trainer can be built meanwhile (``scripts/train.py`` does). Where it
-        most likely keeps the step (``Task.compile_while_settling``) it begins at ``settled()``, beside that compile.
+        for it too, their shapes do not, so a trainer can be built meanwhile (``scripts/train.py`` does).
       smoothing: "auto": where the diagnosis finds the reward's gradient zero at every sampled state, train on a
         smooth surrogate of it instead (``envs.surrogate``: the comparisons the reward makes numbers of become
         sigmoids), diagnosed in turn; every reported return stays the true reward's. "off": refuse such a reward.
@@ -280,17 +282,27 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         return started[0]
 
     diagnose = diagnose and smoothing_choices is None  # a run's recorded surrogate: its checks chose and passed it
-    # The diagnosis begun (or its kept answer read) once, where the end of this function or its first use begins it.
-    begin = functools.cache(lambda: program_store.kept_answer_later(answer_key, "reward diagnosis", start))
+    if not diagnose:  # nothing traces the step before the trainer: see that it keeps the protocol
+        program_store.kept_answer(diagnosis_key, "protocol", lambda: check_step(env, step, observations, label))
+
+    if diagnose:
+        pending = program_store.kept_answer_later(answer_key, "reward diagnosis", start)
     advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
         "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
 
     def diagnosed() -> RewardDiagnosis:
         """The diagnosis, waited for; ``EnvError`` for a reward with no usable gradient (one that is flat
         everywhere only where smoothing is off, or where it is the user's own surrogate, never smoothed)."""
-        diagnosis = RewardDiagnosis(*begin()())
-        if surrogate_reward is not None:
-            check_surrogate_gradient(surrogate_reward, diagnosis.kind, diagnosis.nan_at_random, label)
+        diagnosis = RewardDiagnosis(*pending())
+        if surrogate_reward is not None and diagnosis.kind in ("zero", "nan"):
+            own = function_name(surrogate_reward)
+            if diagnosis.kind == "zero":
+                raise EnvError(f"{label}: the surrogate reward {own}'s gradient is zero at every sampled state and "
+                               f"action (a constant, or a step of the state such as a threshold): BPTT has nothing to "
+                               f"follow; give {own} a slope toward what it rewards (a distance's negative square, say)")
+            raise EnvError(f"{label}: the surrogate reward {own}'s gradient is NaN at {diagnosis.nan_at_random:.0%} of "
+                           f"sampled states with random actions: fix {own} (a square root or a norm taken at zero or "
+                           "below, a log of zero, a NaN it returns?)")
         if diagnosis.kind == "zero" and smoothing == "off":
             raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action "
                            f"(a step function such as a tolerance with margin 0, or a margin so small next to the sampled distances that its slope underflows): BPTT has nothing to follow; {advice}")
@@ -305,9 +317,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         return diagnosis
 
     def init_params(key, zero_output):
-        # The start is the diagnosis's choice: the values wait for it (begun concretely within init's trace).
-        with jax.ensure_compile_time_eval():
-            start_off_zero = zero_output and diagnose and not shapes_only() and diagnosed().kind == "nan at zero action"
+        # The start is the diagnosis's choice: the values wait for it, shapes alone need none.
+        start_off_zero = zero_output and diagnose and not shapes_only() and diagnosed().kind == "nan at zero action"
         params = mlp_init(key, sizes, zero_output and not start_off_zero)
         if start_off_zero:  # small, not zero: the reward's derivative is NaN at zero action
             weights, bias = params[-1]
@@ -363,7 +374,6 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         )
 
     def settle(wait: bool = True) -> Task | None:
-        begin()  # where a caller's program compiles meanwhile, the check may begin here (``later`` below)
         if not wait and started and not started[0].done():
             return None
         diagnosis = diagnosed()
@@ -427,24 +437,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         return surrogate.turns_comparisons_into_numbers(traced, example)
 
     if smoothing_choices is not None:  # a run's surrogate, as recorded: the checks that chose it are not run again
-        return task(None, "as recorded", surrogate_of(surrogate.step_example(env), lambda traced, shapes:
-                    surrogate.checked_places(traced, smoothing_choices, shapes, label)))
-    kept = not diagnose or program_store.answer_kept(answer_key, "reward diagnosis")
-    # Beside an accelerator (the check on the host's CPU), a check that most likely keeps the step begins once the
-    # caller's program compiles (``settle``): its trace runs beside that compile, not before the program's trace. On
-    # a CPU, whose cores both share, it begins at once (docs/performance.md, "The check begun beside the compile").
-    later = defer_diagnosis and not kept and check_device() is not None
-    if not diagnose or later:  # nothing traces the step before the trainer: see that it keeps the protocol
-        program_store.kept_answer(diagnosis_key, "protocol", lambda: check_step(env, step, observations, label))
+        return task(None, "as recorded", surrogate_of(surrogate.step_example(env), lambda traced, example:
+                                                      surrogate.checked_places(traced, smoothing_choices, example, label)))
     if not diagnose:
         return task(None, "not checked")
-    if not later:
-        begin()
-    beside_compile = defer_diagnosis and not kept and (later or jax.default_backend() == "cpu") and (
-        smoothing == "off" or surrogate_reward is not None or not reward_compares())
-    if later and not beside_compile:
-        begin()
-    if defer_diagnosis and not kept:  # a kept diagnosis is read, and may refuse, at once
-        return dataclasses.replace(task(None, "pending"), settle=settle, compile_while_settling=beside_compile)
+    if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
+        return dataclasses.replace(task(None, "pending"), settle=settle, compile_while_settling=(
+            (check_device() is not None or jax.default_backend() == "cpu")
+            and (smoothing == "off" or surrogate_reward is not None or not reward_compares())))
     answered = settle()  # a flat reward's surrogate may still be checked beside: deferred, the caller waits
     return answered if defer_diagnosis else answered.settled_fully()

@@ -128,20 +128,6 @@ def function_name(function: Callable) -> str:
     return f"{module}:{name}" if module and name else repr(function)
 
 
-def check_surrogate_gradient(reward: Callable, kind: str, nan_share: float, label: str) -> None:
-    """``EnvError`` in one line naming ``reward`` (a surrogate of the user's) where the reward diagnosis found
-    its gradient ``kind`` "zero" at every sampled state and action, or "nan" at ``nan_share`` of the states."""
-    own = function_name(reward)
-    if kind == "zero":
-        raise EnvError(f"{label}: the surrogate reward {own}'s gradient is zero at every sampled state and "
-                       f"action (a constant, or a step of the state such as a threshold): BPTT has nothing to "
-                       f"follow; give {own} a slope toward what it rewards (a distance's negative square, say)")
-    if kind == "nan":
-        raise EnvError(f"{label}: the surrogate reward {own}'s gradient is NaN at {nan_share:.0%} of sampled states "
-                       f"with random actions: fix {own} (a square root or a norm taken at zero or below, a log of "
-                       "zero, a NaN it returns?)")
-
-
 def check_surrogate_reward(env: Any, step: Callable, reward: Callable, label: str) -> bool:
     """``EnvError`` in one line naming ``reward`` (a surrogate of the user's, ``reward(state reached)``)
     where its signature or tracing it on the state ``step`` reaches shows it cannot be trained on: it

@@ -267,24 +267,6 @@ def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_paramet
         np.testing.assert_array_equal(early, again)  # the epoch lowered from shapes computes the same bits
 
 
-def test_beside_an_accelerator_a_check_that_keeps_the_step_begins_once_the_task_is_settled(monkeypatch):
-    """Beside an accelerator the check runs on the host's CPU: where it most likely keeps the step (a reward
-    that turns no comparison into a number), it begins only when the task is settled, so that its trace runs
-    beside the caller's compile. On a CPU it begins at once, as does a comparing reward's anywhere (its
-    answer decides the program)."""
-    begun = []
-    original = adapter.start_diagnosis
-    monkeypatch.setattr(adapter, "start_diagnosis", lambda *arguments: begun.append(arguments) or original(*arguments))
-    on_cpu = env_task(Cart(), horizon=5, defer_diagnosis=True)
-    assert len(begun) == 1 and on_cpu.compile_while_settling
-    monkeypatch.setattr(adapter, "check_device", lambda: jax.devices("cpu")[0])
-    pending = env_task(Cart(), horizon=5, defer_diagnosis=True)
-    assert len(begun) == 1 and pending.compile_while_settling and pending.resolved["reward_gradient"] == "pending"
-    assert pending.settled().resolved["reward_gradient"] == "usable" and len(begun) == 2
-    comparing = env_task(Cart("step"), horizon=5, defer_diagnosis=True)
-    assert len(begun) == 3 and not comparing.compile_while_settling
-
-
 def test_a_wrapper_of_an_environment_that_lacks_a_size_is_refused_in_one_line():
     class Wrapper:  # its class has every name of the protocol; reading one reaches the wrapped env
         def __init__(self, env):
