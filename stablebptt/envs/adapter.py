@@ -14,11 +14,10 @@
   differentiated implicitly (``constraint_derivatives``), so solvers of any
   iteration count pass reverse mode.
 
-Before training, ``diagnose_env`` looks at the reward's gradient at states
-sampled along whole episodes (where training will look): a reward whose gradient is zero everywhere (a step function) is
-refused, a NaN derivative of a known form is repaired, and a NaN at exactly
-zero action is avoided by starting the policy's output layer small instead of
-at zero (``RewardDiagnosis``).
+Before training, ``diagnose_env`` looks at the reward's gradient at states sampled along whole episodes
+(where training will look): a reward whose gradient is zero everywhere (a step function) is smoothed, a NaN
+derivative of a known form is repaired, and a NaN at exactly zero action is avoided by starting the
+policy's output layer small instead of at zero (``RewardDiagnosis``). A resumed run skips it (``smoothing_choices``).
 """
 from __future__ import annotations
 
@@ -276,7 +275,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     def start() -> PendingDiagnosis:
         try:
             started.append(start_diagnosis(env, training_step, jax.random.PRNGKey(diagnosis_seed), episode_length))
-        except (TypeError, ValueError):  # a step that breaks the protocol fails the diagnosis's trace: say how
+        except (TypeError, ValueError, AttributeError):  # a step that breaks the protocol fails the diagnosis's trace: say how
             check_step(env, step, observations, label)
             raise
         return started[0]

@@ -11,11 +11,11 @@ also gives the derivative a slope past where a tolerance's sigmoid ends at zero.
 from __future__ import annotations
 
 import contextlib
-import functools
 import importlib
 import io
 import subprocess
 import sys
+import threading
 from typing import Any, Iterable, Iterator
 
 import jax
@@ -198,11 +198,37 @@ def repaired_rewards(sloped_tails: bool = False) -> Iterator[None]:
     """Within the block, Playground's rewards use ``safe_tolerance`` (enter it while a step traces). With
     ``sloped_tails`` a tolerance flat past its sigmoid's end (the walker's move reward at speed <= 0,
     the cheetah's run reward) has a slope there in the derivative only: the rewards' values, and so
-    every return, stay as written."""
-    from mujoco_playground._src import reward
-    original = reward.tolerance
-    reward.tolerance = functools.partial(safe_tolerance, sloped_tails=sloped_tails)
+    every return, stay as written.
+
+    The block holds for its own thread: a step traced on another meanwhile (an epoch compiling beside
+    a check) sees its own blocks, and leaving one block leaves the others as they are."""
+    _dispatch_tolerance()
+    entered = _REPAIRS.__dict__.setdefault("entered", [])
+    entered.append(sloped_tails)
     try:
         yield
     finally:
-        reward.tolerance = original
+        entered.pop()
+
+
+_REPAIRS = threading.local()  # this thread's blocks of ``repaired_rewards``: their ``sloped_tails``, innermost last
+_DISPATCH = threading.Lock()
+
+
+def _dispatch_tolerance() -> None:
+    """Playground's ``reward.tolerance``, once for all threads, made a function that computes the tolerance as
+    the calling thread's innermost ``repaired_rewards`` block asks: Playground's own outside any."""
+    from mujoco_playground._src import reward
+    with _DISPATCH:
+        if getattr(reward.tolerance, "dispatches_repairs", False):
+            return
+        playgrounds_own = reward.tolerance
+
+        def tolerance(*args, **kwargs):
+            entered = getattr(_REPAIRS, "entered", None)
+            if not entered:
+                return playgrounds_own(*args, **kwargs)
+            return safe_tolerance(*args, **kwargs, sloped_tails=entered[-1])
+
+        tolerance.dispatches_repairs = True
+        reward.tolerance = tolerance

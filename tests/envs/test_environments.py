@@ -267,6 +267,16 @@ def test_a_deferred_diagnosis_lets_a_trainer_be_built_and_holds_back_the_paramet
         np.testing.assert_array_equal(early, again)  # the epoch lowered from shapes computes the same bits
 
 
+def test_a_step_that_breaks_the_protocol_is_refused_in_its_words_where_the_check_traces_it():
+    # The diagnosis's trace is the first to meet the step: its failure (here reading a field of an array) is
+    # told as the protocol says, whether the check is waited for or runs beside the caller.
+    breaking = types.SimpleNamespace(reset=Cart().reset, step=lambda state, action: state.obs,
+                                     observation_size=Cart().observation_size, action_size=1)
+    for deferred in (False, True):
+        with pytest.raises(EnvError, match="step.state, action. must return a state of the tree it is given"):
+            env_task(breaking, horizon=5, defer_diagnosis=deferred)
+
+
 def test_a_wrapper_of_an_environment_that_lacks_a_size_is_refused_in_one_line():
     class Wrapper:  # its class has every name of the protocol; reading one reaches the wrapped env
         def __init__(self, env):

@@ -137,10 +137,27 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
     assert SLOPED_TAILS in task.summary and SLOPED_TAILS not in env_tasks.make(
         env_tasks.Config(env="CartpoleSwingup", reward_check=False)).summary
     moving = lambda v: reward.tolerance(v, (1.0, np.inf), 0.5, "linear", 0.5)  # noqa: E731 - the walker's move reward
-    playgrounds_own = reward.tolerance
     with repaired_rewards(sloped_tails=True):
         assert float(jax.grad(moving)(-1.0)) == 1.0 and float(moving(-1.0)) == 0.0
-    assert float(jax.grad(moving)(-1.0)) == 0.0 and reward.tolerance is playgrounds_own
+    assert float(jax.grad(moving)(-1.0)) == 0.0
+    # A block holds for its thread: one left on another thread leaves it in force here, and the other's own
+    # (without sloped tails) does not reach this one.
+    import threading
+    entered, leave, slopes = threading.Event(), threading.Event(), []
+
+    def other_thread():
+        with repaired_rewards():
+            slopes.append(float(jax.grad(moving)(-1.0)))
+            entered.set()
+            leave.wait()
+    with repaired_rewards(sloped_tails=True):
+        other = threading.Thread(target=other_thread)
+        other.start()
+        entered.wait()
+        leave.set()
+        other.join()
+        assert float(jax.grad(moving)(-1.0)) == 1.0
+    assert slopes == [0.0] and float(jax.grad(moving)(-1.0)) == 0.0
     # A refusal suggests the dense variant only where the registry has one.
     from stablebptt.envs.playground import dense_variant
     assert dense_variant("CartpoleSwingupSparse") == "CartpoleSwingup" and dense_variant("PendulumSwingup") == ""
