@@ -2,7 +2,7 @@
 
 A cart on a line that should sit at the origin: its state carries what every
 real environment's state has beside floats - a step counter, a PRNG key, a flag
-- and the reward is chosen per test: smooth, a step function, a norm whose
+- and the reward is chosen per test: smooth, a step function (of the position, or of the action's norm), a norm whose
 derivative is NaN at zero action, or a Gaussian that underflows.
 """
 from __future__ import annotations
@@ -28,6 +28,9 @@ REWARDS = {
     # |action|: its derivative is NaN at exactly zero action (the norm's slope 0 / 0), finite elsewhere.
     "norm": lambda position, action: -position ** 2 - 0.01 * jnp.sqrt(jnp.sum(action ** 2)),
     "root": lambda position, action: -jnp.sqrt(position),  # NaN for every position below 0
+    # A step in the action's norm: flat wherever it is defined; its smoothed comparison's derivative is NaN at
+    # exactly zero action (through the norm), as "norm"'s is.
+    "push": lambda position, action: jnp.where(jnp.sqrt(jnp.sum(action ** 2)) > 0.5, 1.0, 0.0),
     # A Gaussian of a margin far below the positions met: it underflows to 0 (value and slope) nearly everywhere.
     "narrow": lambda position, action: jnp.exp(-0.5 * (position / 1e-4) ** 2),
 }

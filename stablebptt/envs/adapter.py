@@ -315,9 +315,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                            f"{coarser}: {advice} (a norm taken at zero, a tolerance with an infinite bound and no margin?)")
         return diagnosis
 
-    def init_params(key, zero_output):
-        # The start is the diagnosis's choice: the values wait for it, shapes alone need none.
-        start_off_zero = zero_output and diagnose and not shapes_only() and diagnosed().kind == "nan at zero action"
+    def init_params(key, zero_output, answer: Callable[[], str]):
+        # The start is the trained reward's check's choice (``answer``): the values wait for it, shapes need none.
+        start_off_zero = zero_output and not shapes_only() and answer() == "nan at zero action"
         params = mlp_init(key, sizes, zero_output and not start_off_zero)
         if start_off_zero:  # small, not zero: the reward's derivative is NaN at zero action
             weights, bias = params[-1]
@@ -341,7 +341,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if reward_repairs:
         summary += f"; repaired: {reward_repairs}"
 
-    def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None) -> Task:
+    def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None,
+             answer: Callable[[], str] | None = None) -> Task:  # answer: the pending check's kind, waited for
         start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
         trained_step, smoothed_terms, choices = smoothed or (training_step, "", None)
         direction, seen, policy, sample = policy_for(trained_step)
@@ -355,7 +356,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         return Task(
             name=label,
             dynamics=Dynamics(step=direction.stepping(cut(trained_step)), policy=policy, loss=rollout_loss(discount), horizon=int(horizon)),
-            init_params=init_params,
+            init_params=functools.partial(init_params, answer=answer or (lambda: gradient)),
             sample_initial_states=sample,
             summary=summary + "".join(f"; {part}" for part in (smoothed_terms, diagnosis and diagnosis.describe()) if part),
             resolved={"env": label, "horizon_steps": int(horizon), "discount": discount, "episode_length": episode_length,
@@ -407,7 +408,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                                f"{smoothed[1]}: some term of it is flat beyond these comparisons; {advice}")
             return task(again, again.kind, smoothed)
 
-        return dataclasses.replace(task(None, "pending", smoothed), settle=settle_surrogate)
+        return dataclasses.replace(task(None, "pending", smoothed, lambda: RewardDiagnosis(*checked()).kind),
+                                   settle=settle_surrogate)
 
     def surrogate_of(example: tuple, choose: Callable[[tuple, tuple], dict]) -> tuple:
         """A flat reward's surrogate step, what it smoothed in words, and its choices (``choose(traced, example)``):
@@ -441,7 +443,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if not diagnose:
         return task(None, "not checked")
     if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
-        return dataclasses.replace(task(None, "pending"), settle=settle, compile_while_settling=(
+        return dataclasses.replace(task(None, "pending", answer=lambda: diagnosed().kind), settle=settle, compile_while_settling=(
             (check_device() is not None or jax.default_backend() == "cpu")
             and (smoothing == "off" or surrogate_reward is not None or not reward_compares())))
     answered = settle()  # a flat reward's surrogate may still be checked beside: deferred, the caller waits

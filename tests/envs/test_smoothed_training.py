@@ -148,6 +148,20 @@ def test_a_deferred_flat_reward_settles_into_its_surrogate_whose_own_check_answe
     assert final.summary == env_task(Cart("step"), horizon=5).summary
 
 
+def test_a_surrogate_whose_derivative_is_nan_at_zero_action_starts_the_policy_off_zero_as_it_says():
+    # The reward's own check finds it flat; the surrogate's finds its derivative NaN at exactly zero action (its
+    # smoothed comparison reads the action's norm): the policy starts small, as the record says, whether the
+    # trainer took its parameters from the task still pending (their values wait for the surrogate's check).
+    for deferred in (False, True):
+        pending = env_task(Cart("push"), horizon=5, defer_diagnosis=deferred).settled()
+        params = pending.init_params(jax.random.PRNGKey(0), True)
+        task = pending.settled_fully()
+        assert task.resolved["reward_gradient"] == "nan at zero action" and task.resolved["policy_output_start"] == "small"
+        weights = params[-1][0]
+        assert 0 < np.abs(weights).max() < 0.1
+        np.testing.assert_array_equal(weights, task.init_params(jax.random.PRNGKey(0), True)[-1][0])
+
+
 def test_the_surrogate_is_interpreted_once_however_many_programs_trace_its_step(monkeypatch):
     # Each program of a run (the window, the reward direction's derivative, the evaluation, the critic)
     # traces the step; the surrogate's is an interpreter of the step's program, run once per shape.
