@@ -11,6 +11,7 @@ also gives the derivative a slope past where a tolerance's sigmoid ends at zero.
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib
 import io
 import subprocess
@@ -224,6 +225,7 @@ def _dispatch_tolerance() -> None:
             return
         playgrounds_own = reward.tolerance
 
+        @functools.wraps(playgrounds_own)  # its name and signature stay Playground's for whoever inspects them
         def tolerance(*args, **kwargs):
             entered = getattr(_REPAIRS, "entered", None)
             if not entered:

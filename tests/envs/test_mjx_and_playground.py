@@ -140,24 +140,27 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
     with repaired_rewards(sloped_tails=True):
         assert float(jax.grad(moving)(-1.0)) == 1.0 and float(moving(-1.0)) == 0.0
     assert float(jax.grad(moving)(-1.0)) == 0.0
-    # A block holds for its thread: one left on another thread leaves it in force here, and the other's own
-    # (without sloped tails) does not reach this one.
+    # A block holds for its thread alone: another thread's block (no sloped tails) entered meanwhile does not reach
+    # this one, and this one left first does not end the other's, whose gaussian keeps its finite derivative
+    # inside an infinite bound (Playground's own is NaN there).
     import threading
-    entered, leave, slopes = threading.Event(), threading.Event(), []
+    gaussian = lambda v: reward.tolerance(v, (1.0, np.inf), 0.5, "gaussian", 0.1)  # noqa: E731
+    entered, left, seen = threading.Event(), threading.Event(), []
 
     def other_thread():
         with repaired_rewards():
-            slopes.append(float(jax.grad(moving)(-1.0)))
+            seen.append(float(jax.grad(moving)(-1.0)))
             entered.set()
-            leave.wait()
+            left.wait()
+            seen.append(float(jax.grad(gaussian)(2.0)))
+    other = threading.Thread(target=other_thread)
     with repaired_rewards(sloped_tails=True):
-        other = threading.Thread(target=other_thread)
         other.start()
-        entered.wait()
-        leave.set()
-        other.join()
-        assert float(jax.grad(moving)(-1.0)) == 1.0
-    assert slopes == [0.0] and float(jax.grad(moving)(-1.0)) == 0.0
+        assert entered.wait(timeout=300)  # a bound, should the other thread fail before it enters
+        assert float(jax.grad(moving)(-1.0)) == 1.0  # still this block's sloped tails
+    left.set()
+    other.join()
+    assert seen == [0.0, 0.0] and float(jax.grad(moving)(-1.0)) == 0.0 and np.isnan(float(jax.grad(gaussian)(2.0)))
     # A refusal suggests the dense variant only where the registry has one.
     from stablebptt.envs.playground import dense_variant
     assert dense_variant("CartpoleSwingupSparse") == "CartpoleSwingup" and dense_variant("PendulumSwingup") == ""
