@@ -153,7 +153,7 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
             entered.set()
             left.wait()
             seen.append(float(jax.grad(gaussian)(2.0)))
-    other = threading.Thread(target=other_thread)
+    other = threading.Thread(target=other_thread, daemon=True)  # a failed assertion here leaves it waiting
     with repaired_rewards(sloped_tails=True):
         other.start()
         assert entered.wait(timeout=300)  # a bound, should the other thread fail before it enters
