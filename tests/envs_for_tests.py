@@ -3,7 +3,7 @@
 A cart on a line that should sit at the origin: its state carries what every
 real environment's state has beside floats - a step counter, a PRNG key, a flag
 - and the reward is chosen per test: smooth, a step function (of the position, or of the action's norm), a norm whose
-derivative is NaN at zero action, or a Gaussian that underflows.
+derivative is NaN at zero action, a Gaussian that underflows, or one lost beside a term with a slope.
 """
 from __future__ import annotations
 
@@ -33,6 +33,8 @@ REWARDS = {
     "push": lambda position, action: jnp.where(jnp.sqrt(jnp.sum(action ** 2)) > 0.5, 1.0, 0.0),
     # A Gaussian of a margin far below the positions met: it underflows to 0 (value and slope) nearly everywhere.
     "narrow": lambda position, action: jnp.exp(-0.5 * (position / 1e-4) ** 2),
+    # A slope of its own (the action's cost) beside a Gaussian whose value and slope, not 0, are lost beside it.
+    "faint": lambda position, action: jnp.exp(-0.5 * (position / 0.05) ** 2) - 0.01 * jnp.sum(action ** 2),
 }
 
 

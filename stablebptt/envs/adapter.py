@@ -147,8 +147,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         task's ``settled()`` waits for it and refuses a reward with no usable gradient; the parameters' values wait
         for it too, their shapes do not, so a trainer can be built meanwhile (``scripts/train.py`` does).
       smoothing: "auto": where the diagnosis finds the reward's gradient zero at every sampled state, train on a
-        smooth surrogate of it instead (``envs.surrogate``: the comparisons the reward makes numbers of become
-        sigmoids), diagnosed in turn; every reported return stays the true reward's. "off": refuse such a reward.
+        smooth surrogate (``envs.surrogate``), diagnosed in turn; the reported returns stay the true reward's. "always":
+        the surrogate, the gradient zero or not (a term vanishing beside others: FishSwim's). "off": refuse a flat reward.
       smoothing_scale: the surrogate's temperatures are this times the sampled differences' median.
       surrogate_reward: ``reward(state) -> scalar`` of the state a step reaches, trained on in place of the env's
         reward (diagnosed, not smoothed); the reported returns stay the env's.
@@ -377,10 +377,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if not wait and started and not started[0].done():
             return None
         diagnosis = diagnosed()
-        if diagnosis.kind != "zero":
+        if diagnosis.kind != "zero" and smoothing != "always":
             return task(diagnosis, diagnosis.kind)
-        # Flat at every sampled state: train a smooth surrogate where one can be made, and diagnose it. Its
-        # temperatures come from the diagnosis's own samples where it ran here, and are kept with its answer.
+        # Flat at every sampled state, or smoothed always: train a smooth surrogate where one can be made, and diagnose
+        # it. Its temperatures come from the diagnosis's own samples where it ran here, kept with its answer.
         samples = started[0].samples() if started else None
         smoothing_key = None if answer_key is None else {**answer_key, "smoothing_scale": smoothing_scale}
 
@@ -419,8 +419,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         choices = choose(traced, example)
         smooth_step, smoothing_done = surrogate.smoothed_step(traced, choices)
         if not smoothing_done.anything:
-            raise EnvError(f"{label}: the reward's gradient is zero at every sampled state and action, and no "
-                           f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none underflows): {advice}")
+            raise EnvError(f"{label}: " + ("smoothing always, but" if smoothing == "always" else "the reward's gradient is zero at every sampled state and action, and") + " no "
+                           f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none vanishes): {advice}")
         if training_steps[1] is not None:
             smooth_step = joined(smooth_step, surrogate.smoothed_alike(jax.jit(training_steps[1]), choices, example, label))
         # One jit, as the env's step has: each program that traces the surrogate (the window, the direction's
@@ -445,6 +445,6 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
         return dataclasses.replace(task(None, "pending", answer=lambda: diagnosed().kind), settle=settle, compile_while_settling=(
             (check_device() is not None or jax.default_backend() == "cpu")
-            and (smoothing == "off" or surrogate_reward is not None or not reward_compares())))
+            and smoothing != "always" and (smoothing == "off" or surrogate_reward is not None or not reward_compares())))
     answered = settle()  # a flat reward's surrogate may still be checked beside: deferred, the caller waits
     return answered if defer_diagnosis else answered.settled_fully()

@@ -49,8 +49,8 @@ def check_env_task_arguments(**given: Any) -> None:
     if choices is not None and not (isinstance(choices, dict) and set(choices) == {"temperatures", "exponents"}):
         refuse("smoothing_choices", 'a run\'s recorded "reward_smoothing_choices" (a dict of "temperatures" and '
                '"exponents"), or None')
-    if given["smoothing"] not in ("auto", "off"):
-        refuse("smoothing", '"auto" or "off"')
+    if given["smoothing"] not in ("auto", "always", "off"):
+        refuse("smoothing", '"auto", "always" or "off"')
     scale = given["smoothing_scale"]
     if not (_real(scale) and scale > 0):
         refuse("smoothing_scale", "a positive number")

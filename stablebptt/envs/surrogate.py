@@ -18,12 +18,16 @@ of an interval (two comparisons joined by ``and``) share the larger of their tem
 where every sampled state keeps one of them and some cross the other: that one stays as written, so
 the surrogate rises from below the box into it and is 1 across it.
 
-A reward can also be flat because an exponential that reaches it underflows: a Gaussian tolerance
-whose margin is small next to the sampled distances (``exp(-d**2 / margin**2)`` is 0 in float32 once
-d exceeds about 9 margins), where value and slope are both exactly 0. Where the median exponent an
-``exp`` of the reward meets at the sampled states is below the logarithm of the smallest float, the
-exponent is scaled so that the median becomes -1 (over the same scale): for a Gaussian, a margin
-widened to where the typical sampled state sits.
+A reward, or a term of it, can also be flat because an exponential that reaches it vanishes: a Gaussian
+tolerance whose margin is small next to the sampled distances. Below the float's resolution next to 1
+(its epsilon: an exponent below -15.9 in float32) the term and its slope are lost beside any term of
+order 1 that the reward adds to it (FishSwim's ``in_target`` is exp(-38) at its median reset, beside its
+``upright``); below the smallest float (exponent -87) they are exactly 0. Where the median exponent an
+``exp`` of the reward meets at the sampled states is below the logarithm of the float's epsilon, the
+exponent is scaled so that the median becomes -1 (over the same scale): for a Gaussian, a margin widened
+to where the typical sampled state sits. The library smooths a reward whose gradient it finds zero at
+every sampled state; a reward with a gradient whose term vanishes is smoothed where the user asks
+(``env_task``'s ``smoothing="always"``).
 """
 from __future__ import annotations
 
@@ -60,7 +64,7 @@ class Smoothing:
 
     terms: tuple[str, ...]
     temperatures: tuple[float, ...]
-    exponents: tuple[str, ...] = ()  # the underflowing exponentials' places, and the factor of each exponent
+    exponents: tuple[str, ...] = ()  # the vanishing exponentials' places, and the factor of each exponent
     exponent_scales: tuple[float, ...] = ()
 
     @property
@@ -69,7 +73,7 @@ class Smoothing:
 
     def describe(self) -> str:
         if not self.anything:
-            return "smoothed: nothing (no comparison made a number of the reward, no exponential of it underflowing)"
+            return "smoothed: nothing (no comparison made a number of the reward, no exponential of it vanishing)"
         parts = []
         if self.terms:
             places = ", ".join(f"{term} (temperature {temperature:.3g})" for term, temperature in
@@ -79,7 +83,7 @@ class Smoothing:
         if self.exponents:
             places = ", ".join(f"{term} (exponent times {factor:.3g})" for term, factor in
                                zip(self.exponents, self.exponent_scales))
-            parts.append(f"{len(self.exponents)} underflowing exponential{'s' if len(self.exponents) > 1 else ''} "
+            parts.append(f"{len(self.exponents)} vanishing exponential{'s' if len(self.exponents) > 1 else ''} "
                          f"of the reward widened: {places}")
         return "smoothed " + "; ".join(parts)
 
@@ -119,7 +123,7 @@ class _Interpreter:
 
     def __init__(self, temperatures: dict | None, exponent_scales: dict | None = None):
         self.temperatures = temperatures  # place -> temperature; None: record the differences instead
-        self.exponent_scales = exponent_scales or {}  # place -> factor of an underflowing exponential's exponent
+        self.exponent_scales = exponent_scales or {}  # place -> factor of a vanishing exponential's exponent
         self.differences: dict = {}
         self.exponents: dict = {}
         self.used: set = set()
@@ -256,7 +260,7 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
                  traced: tuple | None = None) -> tuple[dict, dict]:
     """Each smoothable comparison's temperature: ``scale`` times the median absolute difference it
     compares over the sampled ``states`` and ``actions`` (leading axis: samples), where that is above 0;
-    and each underflowing exponential's factor, 1 / (``scale`` times its median exponent's magnitude).
+    and each vanishing exponential's factor, 1 / (``scale`` times its median exponent's magnitude).
     Both as place -> (number, where written). ``traced``: the step's ``trace_step`` program, where the
     caller has it already."""
     closed, structure, out_labels = traced or trace_step(step, *one_sample(states, actions))
@@ -290,9 +294,9 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
             for place in pair:
                 chosen[place] = (shared, chosen[place][1])
     widened = {}
-    for place, values in exponents.items():  # where the median sample's exponential underflows to 0
+    for place, values in exponents.items():  # where the median sample's exponential is lost beside 1
         median = float(np.median(np.asarray(values, float)))
-        if median < np.log(np.finfo(np.asarray(values).dtype).tiny):
+        if median < np.log(np.finfo(np.asarray(values).dtype).eps):
             widened[place] = (1.0 / (scale * abs(median)), recorder.places[place])
     return chosen, widened
 
@@ -307,7 +311,7 @@ def smooth_reward(step: Callable, states: PyTree, actions: jax.Array, scale: flo
 def turns_comparisons_into_numbers(traced: tuple, example: tuple) -> bool:
     """Whether the reward of the step ``traced`` (``trace_step``, at ``example``'s shapes) turns a
     comparison into a number, which a flat reward's surrogate makes a sigmoid: read at shapes, nothing
-    run. Where none does, a surrogate could only widen an exponential that underflows at the sampled
+    run. Where none does, a surrogate could only widen an exponential that vanishes at the sampled
     states (none of the study's rewards that are not smoothed turns one: walkers, cheetah, humanoid, fish)."""
     closed, structure, out_labels = traced
     recorder = _Interpreter(None)

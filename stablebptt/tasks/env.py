@@ -118,7 +118,7 @@ class Config:
     discount: float = field(default=1.0, metadata={"help": "per-step discount of the training rollout's return, in (0, 1]"})
     episode_length: int = field(default=0, metadata={"help": "steps of the evaluation episodes whose return every epoch logs (0: the environment's own)"})
     reward_check: bool = field(default=True, metadata={"help": "before training, look at the reward's gradient at sampled states and refuse a reward that has none (--no-reward-check skips it: a quicker start, no refusal)"})
-    smoothing: str = field(default="auto", metadata={"help": "auto: where the reward check finds the reward's gradient zero at every sampled state, train on a smooth surrogate (the comparisons the reward makes numbers of become sigmoids; the reported returns stay the true reward's); off: refuse such a reward", "choices": ("auto", "off")})
+    smoothing: str = field(default="auto", metadata={"help": "auto: where the reward check finds the reward's gradient zero at every sampled state, train on a smooth surrogate (the comparisons the reward makes numbers of become sigmoids, its exponentials that vanish at the sampled states widen; the reported returns stay the true reward's); always: the surrogate whatever the check finds (a term that vanishes beside the others, as FishSwim's target does); off: refuse a reward whose gradient is zero", "choices": ("auto", "always", "off")})
     surrogate_reward: str = field(default="", metadata={"help": "package.module:function, a reward of the state a step reaches that the windows train on in place of the env's (its gradient diagnosed, not smoothed); every reported return stays the env's"})
     dense_reward: bool = field(default=False, metadata={"help": "a ...Sparse env of MuJoCo Playground's trains on its dense variant's reward (the same model and states); every reported return stays the sparse one's"})
     policy_width: int = field(default=64, metadata={"help": "units in each of the policy's hidden layers (tanh)"})
@@ -140,8 +140,8 @@ class Config:
             raise InputError(f"{config_field(self, 'steps')} must be between 1 and {MAX_STEPS} (or 0 for {DEFAULT_STEPS}), got {self.steps}")
         if not (math.isfinite(self.discount) and 0 < self.discount <= 1):
             raise InputError(f"{config_field(self, 'discount')} must be in (0, 1], got {self.discount}")
-        if self.smoothing not in ("auto", "off"):
-            raise InputError(f"{config_field(self, 'smoothing')} must be auto or off, got {self.smoothing!r}")
+        if self.smoothing not in ("auto", "always", "off"):
+            raise InputError(f"{config_field(self, 'smoothing')} must be auto, always or off, got {self.smoothing!r}")
         if not (math.isfinite(self.smoothing_scale) and self.smoothing_scale > 0):
             raise InputError(f"{config_field(self, 'smoothing_scale')} must be a positive number, got {self.smoothing_scale}")
         if self.surrogate_reward and self.dense_reward:
@@ -172,12 +172,14 @@ class Config:
 
     def conflicts(self) -> list[str]:
         """Options set together where one makes the other meaningless (``checks.check_options``): what the
-        smoothing options change happens only where the reward check finds the reward flat."""
+        smoothing options change happens only where the reward check runs (auto: where it finds the reward flat)."""
         field = lambda name: config_field(self, name)  # noqa: E731
         defaults = Config()
         problems = []
         if not self.reward_check and self.smoothing != defaults.smoothing:
-            problems.append(f"{field('smoothing')} {self.smoothing} refuses a reward the check finds flat, and "
+            does = ("refuses a reward the check finds flat" if self.smoothing == "off"
+                    else "makes its surrogate of the check's sampled states")
+            problems.append(f"{field('smoothing')} {self.smoothing} {does}, and "
                             f"{field('reward_check')} is off: drop it, or leave the check on")
         if self.smoothing_scale != defaults.smoothing_scale and (self.smoothing == "off" or not self.reward_check):
             off, keep = ((field("smoothing"), f"{field('smoothing')} auto") if self.smoothing == "off"

@@ -131,6 +131,8 @@ CONFLICTS = [
     (["--task", "repulsion", "--normalize-critic-observations"], ("--normalize-critic-observations", "--critic is off")),
     (["--task", "repulsion", "--value-at-time-limit"], ("--value-at-time-limit", "--critic is off")),
     (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing", "off"], ("--smoothing off", "--reward-check")),
+    (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing", "always"],
+     ("--smoothing always makes its surrogate of the check's sampled states", "--reward-check")),
     (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--no-critic"],
      ("--normalize-critic-observations", "--critic is off", "--recipe locomotion sets")),
     (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--action-noise", "0"],

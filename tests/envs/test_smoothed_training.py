@@ -233,7 +233,7 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
     assert "compile beside the check" in usable.phases  # the start's wait while both ran: the compile's part
     assert "compile beside the check" not in prepared.phases
     task, widened = started("narrow")
-    assert task.compile_while_settling and "underflowing exponential" in widened.task.resolved["reward_smoothing"]
+    assert task.compile_while_settling and "vanishing exponential" in widened.task.resolved["reward_smoothing"]
     assert events == ["trace", "compile begun", "answer", "trace", "beside", "answer"]
     assert [index for index, _ in compiled] == [0, 1] and widened.trainer.epoch is traced[1].epoch
     assert widened.lowered.compiled is compiled[1][1] and "unused compile's wait" in widened.phases
@@ -305,3 +305,26 @@ def test_a_resumed_or_reopened_run_keeps_the_surrogate_temperatures_its_record_h
         env_task(Cart("step"), horizon=5, smoothing_choices={"temperatures": [[[999], 1.0, "nowhere.py:1"]], "exponents": []})
     with pytest.raises(EnvError, match="env_task's smoothing_choices must be"):
         env_task(Cart("step"), horizon=5, smoothing_choices="0.6")
+
+
+def test_smoothing_always_widens_a_term_lost_beside_a_reward_that_has_a_slope_where_auto_leaves_it():
+    """FishSwim's case: the action's cost gives the reward a slope at every sampled state, so the check finds
+    it usable and auto trains it as written; its Gaussian of the position, far narrower than the positions met,
+    adds a slope some 1e-9 of its own scale. Always, the surrogate widens that Gaussian to the sampled positions."""
+    as_written = env_task(Cart("faint"), horizon=5)
+    assert as_written.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in as_written.resolved
+    always = env_task(Cart("faint"), horizon=5, smoothing="always")
+    assert "smoothed 1 vanishing exponential of the reward widened" in always.summary
+    assert always.resolved["reward_gradient"] == "usable" and set(always.resolved["reward_smoothing_choices"]) == {
+        "temperatures", "exponents"}
+    state = jax.tree.map(lambda a: a[0], always.sample_initial_states(jax.random.PRNGKey(0), 1))
+    at = lambda position: state._replace(data={**state.data, "position": position})  # noqa: E731
+    action = jnp.array([0.0])  # the action's cost has no slope in the position: the Gaussian's alone is left
+    slope = {name: float(jax.grad(lambda position: task.dynamics.step(at(position), action).reward)(jnp.float32(0.5)))
+             for name, task in (("as written", as_written), ("always", always))}
+    state = at(jnp.float32(0.5))
+    assert abs(slope["as written"]) < 1e-9 and slope["always"] < -1e-2, slope  # towards the origin
+    reached, smoothed = (task.dynamics.step(state, action) for task in (as_written, always))
+    np.testing.assert_array_equal(np.asarray(reached.obs), np.asarray(smoothed.obs))  # the step's own state
+    with pytest.raises(EnvError, match="smoothing always, but no comparison of it could be smoothed"):
+        env_task(Cart(), horizon=5, smoothing="always")  # a smooth reward: nothing to make a surrogate of

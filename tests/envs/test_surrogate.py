@@ -131,7 +131,7 @@ def test_an_underflowing_gaussian_is_widened_to_the_sampled_distances_and_a_fitt
     states, actions = samples()
     smooth_step, smoothing = smooth_reward(gaussian_step, states, actions)
     assert (smoothing.terms, len(smoothing.exponents)) == ((), 1), smoothing.describe()
-    assert "test_surrogate.py" in smoothing.exponents[0] and "1 underflowing exponential" in smoothing.describe()
+    assert "test_surrogate.py" in smoothing.exponents[0] and "1 vanishing exponential" in smoothing.describe()
     # The exponent is scaled so that the median sampled one becomes -1: the margin widened to the median distance.
     x = states.x + DT * actions[:, 0]
     exponents = -0.5 * ((np.asarray(x, float) - TARGET) / NARROW) ** 2
@@ -146,3 +146,37 @@ def test_an_underflowing_gaussian_is_widened_to_the_sampled_distances_and_a_fitt
     assert float(smooth.x) == float(reached.x)
     slope = jax.grad(lambda s: smooth_step(s, action).reward)(state)
     assert float(slope.x) * -distance > 0  # towards the target
+
+
+LOST = 0.1  # a Gaussian margin whose term is lost beside an order-1 term at the sampled states, though not 0
+
+
+@jax.jit
+def faint_target_step(state: Slider, action: jax.Array) -> Slider:
+    """FishSwim's reward in small: a Gaussian reach of TARGET beside an upright-like term of order 1."""
+    x = state.x + DT * action[0]
+    near = jnp.exp(-0.5 * ((x - TARGET) / LOST) ** 2)
+    upright = 0.5 * (jnp.cos(state.v) + 1)
+    return Slider(x, state.v, (7 * near + upright) / 8, {"in_target": near})
+
+
+def test_an_exponential_lost_beside_the_rewards_other_term_is_widened_though_it_does_not_underflow():
+    states, actions = samples()
+    x = np.asarray(states.x + DT * actions[:, 0], np.float32)
+    median = float(np.median(-0.5 * ((x - TARGET) / LOST) ** 2))
+    float32 = np.finfo(np.float32)
+    assert np.log(float32.tiny) < median < np.log(float32.eps)  # not 0 in float32, but below its resolution next to 1
+    smooth_step, smoothing = smooth_reward(faint_target_step, states, actions)
+    assert (smoothing.terms, len(smoothing.exponents)) == ((), 1) and "1 vanishing exponential" in smoothing.describe()
+    np.testing.assert_allclose(smoothing.exponent_scales[0], 1 / abs(median), rtol=1e-3)
+    # At a state 0.6 from the target the true reward's slope in x is its Gaussian's, some 1e-7 of the upright
+    # term's scale (lost in the sum); the surrogate's points to the target and is of the reward's own order.
+    state, action = Slider(jnp.float32(TARGET + 0.6), jnp.float32(0.3), jnp.float32(0), {"in_target": jnp.float32(0)}), jnp.array([0.0])
+    true_slope = float(jax.grad(lambda s: faint_target_step(s, action).reward)(state).x)
+    smooth_slope = float(jax.grad(lambda s: smooth_step(s, action).reward)(state).x)
+    assert abs(true_slope) < 1e-6 and smooth_slope < -1e-2
+    # The upright term and the state the step reaches are the step's own.
+    reached, smoothed_state = faint_target_step(state, action), jax.jit(smooth_step)(state, action)
+    assert float(smoothed_state.x) == float(reached.x) and float(smoothed_state.v) == float(reached.v)
+    widened = 7 * np.exp(-0.5 * smoothing.exponent_scales[0] * (0.6 / LOST) ** 2) + 0.5 * (np.cos(0.3) + 1)
+    np.testing.assert_allclose(float(smoothed_state.reward), widened / 8, rtol=1e-5)
