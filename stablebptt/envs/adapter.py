@@ -380,7 +380,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if diagnosis.kind != "zero" and smoothing != "always":
             return task(diagnosis, diagnosis.kind)
         # Flat at every sampled state, or smoothed always: train a smooth surrogate where one can be made, and diagnose
-        # it. Its temperatures come from the diagnosis's own samples where it ran here, kept with its answer.
+        # it. Its temperatures come from the diagnosis's own samples, kept with its answer.
         samples = started[0].samples() if started else None
         smoothing_key = None if answer_key is None else {**answer_key, "smoothing_scale": smoothing_scale}
 
@@ -420,11 +420,11 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         smooth_step, smoothing_done = surrogate.smoothed_step(traced, choices)
         if not smoothing_done.anything:
             raise EnvError(f"{label}: " + ("smoothing always, but" if smoothing == "always" else "the reward's gradient is zero at every sampled state and action, and") + " no "
-                           f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none vanishes): {advice}")
+                           f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none vanishes): "
+                           + ("train it as written (smoothing auto)" if smoothing == "always" else advice))
         if training_steps[1] is not None:
             smooth_step = joined(smooth_step, surrogate.smoothed_alike(jax.jit(training_steps[1]), choices, example, label))
-        # One jit, as the env's step has: each program that traces the surrogate (the window, the direction's
-        # derivative, the evaluation, the checks) reuses one interpretation of the step's program per shape.
+        # One jit, as the env's step has: each program tracing the surrogate reuses one interpretation per shape.
         return jax.jit(smooth_step), smoothing_done.describe(), choices
 
     def reward_compares() -> bool:
