@@ -226,6 +226,11 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
         ["--env", "FingerTurnHard", "--recipe", "locomotion", *beside]))[2]
     assert (finger().mode, finger().nonfinite_flows, finger("--mode", "C").nonfinite_flows) == ("C", "zero", "zero")
     assert (finger("--mode", "R").nonfinite_flows, finger("--mode", "R", "--nonfinite-flows", "stop").mode) == ("stop", "R")
+    # The fish's surrogate is made of the reward check's samples: without the check it trains its reward as written.
+    fish = lambda *beside: train_command.configure(*train_command.parse(  # noqa: E731
+        ["--env", "FishSwim", "--recipe", "locomotion", *beside]))[1]
+    assert (fish().smoothing, fish("--no-reward-check").smoothing, fish("--no-reward-check").reward_check) == (
+        "always", "auto", False)
     assert {sb.recipe("locomotion", walker)[0]["horizon"] for walker in ("WalkerWalk", "WalkerStand", "WalkerRun")} \
         == {2} != {env.RECIPES["locomotion"]["steps"]}
     with pytest.raises(InputError, match="a recipe's env is the env's name .* got Cart"):
