@@ -34,7 +34,7 @@ REWARDS = {
     # A Gaussian of a margin far below the positions met: it underflows to 0 (value and slope) nearly everywhere.
     "narrow": lambda position, action: jnp.exp(-0.5 * (position / 1e-4) ** 2),
     # A slope of its own (the action's cost) beside a Gaussian whose value and slope, not 0, are lost beside it.
-    "faint": lambda position, action: jnp.exp(-0.5 * (position / 0.05) ** 2) - 0.01 * jnp.sum(action ** 2),
+    "faint": lambda position, action: jnp.exp(-0.5 * (position / 0.1) ** 2) - 0.01 * jnp.sum(action ** 2),
 }
 
 

@@ -125,7 +125,10 @@ def open_trained(run_dir: Path, note: Callable[[str], None] = lambda line: print
     resolved = record.get("resolved_task", {})
     task = task_of(module, config_for_reopening(module, task_config, resolved), resolved)
     rebuilt, recorded = (part.get("reward_smoothing") or "none" for part in (task.resolved, resolved))
-    if rebuilt != recorded:
+    # Where the record keeps the surrogate's choices the rebuild takes them: its words may be of another release.
+    chosen_alike = "reward_smoothing_choices" in resolved and task.resolved.get(
+        "reward_smoothing_choices") == resolved["reward_smoothing_choices"]
+    if rebuilt != recorded and not chosen_alike:
         note(f"{run_dir}: the reward's surrogate was rebuilt otherwise than the run trained it ({rebuilt}; "
              f"the run: {recorded})")
     keys = jax.random.split(jax.random.PRNGKey(0), train.seeds)

@@ -420,8 +420,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         smooth_step, smoothing_done = surrogate.smoothed_step(traced, choices)
         if not smoothing_done.anything:
             raise EnvError(f"{label}: " + ("smoothing always, but" if smoothing == "always" else "the reward's gradient is zero at every sampled state and action, and") + " no "
-                           f"comparison of it could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none vanishes): "
-                           + ("train it as written (smoothing auto)" if smoothing == "always" else advice))
+                           f"comparison of the reward could be smoothed (its steps are not comparisons made numbers) nor exponential of it widened (none vanishes): "
+                           + ('train it as written (--smoothing auto; smoothing="auto" from Python)' if smoothing == "always" else advice))
         if training_steps[1] is not None:
             smooth_step = joined(smooth_step, surrogate.smoothed_alike(jax.jit(training_steps[1]), choices, example, label))
         # One jit, as the env's step has: each program tracing the surrogate reuses one interpretation per shape.

@@ -56,6 +56,9 @@ def check_env_task_arguments(**given: Any) -> None:
         refuse("smoothing_scale", "a positive number")
     if given["surrogate_reward"] is not None and not callable(given["surrogate_reward"]):
         refuse("surrogate_reward", "a function of the state a step reaches, or None")
+    if given["smoothing"] == "always" and (given["surrogate_reward"] is not None or not given["diagnose"]):
+        raise EnvError("env_task: smoothing always makes a surrogate of the env's reward from the reward check's "
+                       "samples: not with a surrogate_reward of your own (trained as given) nor with diagnose off")
     if given["contact_smoothing"] is not None and not isinstance(given["contact_smoothing"], ContactSmoothing):
         refuse("contact_smoothing", "a stablebptt.ContactSmoothing, or None")
     if not (given["physics_steps_recomputed"] is None or isinstance(given["physics_steps_recomputed"], bool)):

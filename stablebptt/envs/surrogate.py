@@ -21,7 +21,7 @@ the surrogate rises from below the box into it and is 1 across it.
 A reward, or a term of it, can also be flat because an exponential that reaches it vanishes: a Gaussian
 tolerance whose margin is small next to the sampled distances. Below the float's resolution next to 1
 (its epsilon: an exponent below -15.9 in float32) the term and its slope are lost beside any term of
-order 1 that the reward adds to it (FishSwim's ``in_target`` is exp(-38) at its median reset, beside its
+order 1 that the reward adds to it (FishSwim's ``in_target`` is exp(-35) at its median sampled state, beside its
 ``upright``); below the smallest float (exponent -87) they are exactly 0. Where the median exponent an
 ``exp`` of the reward meets at the sampled states is below the logarithm of the float's epsilon, the
 exponent is scaled so that the median becomes -1 (over the same scale): for a Gaussian, a margin widened

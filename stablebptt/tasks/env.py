@@ -78,8 +78,10 @@ RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 2}, "WalkerStand": {"st
 # A recipe's value chosen for one value of another option: given another value of that option beside the
 # recipe, the user's choice keeps its own default of this one (the cheetah's R runs without the cosine for
 # its speed, and another mode computes its own flows and reports their cosine; C alone leaves a flow's
-# non-finite gradient at zero; the fish's surrogate is made of the reward check's samples).
-RECIPE_VALUES_CHOSEN_FOR = {"cosine": ("mode", "R"), "nonfinite_flows": ("mode", "C"), "smoothing": ("reward_check", True)}
+# non-finite gradient at zero; the fish's surrogate is made of the reward check's samples, and a reward of
+# the user's own is trained as given).
+RECIPE_VALUES_CHOSEN_FOR = {"cosine": (("mode", "R"),), "nonfinite_flows": (("mode", "C"),),
+                            "smoothing": (("reward_check", True), ("surrogate_reward", ""))}
 # --physics-step-residuals: each choice as env_task's physics_steps_recomputed (None: by the env's physics steps).
 PHYSICS_STEP_RESIDUALS = {"auto": None, "recomputed": True, "stored": False}
 
@@ -95,8 +97,8 @@ def recipe_options(name: str, env: str = "", given: Mapping[str, object] | None 
         raise InputError(f"a recipe's env is the env's name (a string, as --env takes it), got {type(env).__name__}")
     options = {**RECIPES[name], **RECIPES_BY_ENV.get(name, {}).get(env, {})}
     chosen = {**options, **(given or {})}  # the other option's value as the run will take it
-    chosen_apart = {option for option, (other, value) in RECIPE_VALUES_CHOSEN_FOR.items()
-                    if chosen.get(other, value) != value}
+    chosen_apart = {option for option, conditions in RECIPE_VALUES_CHOSEN_FOR.items()
+                    if any(chosen.get(other, value) != value for other, value in conditions)}
     return {option: value for option, value in options.items() if option not in chosen_apart}
 
 
@@ -179,6 +181,9 @@ class Config:
         field = lambda name: config_field(self, name)  # noqa: E731
         defaults = Config()
         problems = []
+        if self.smoothing == "always" and self.surrogate_reward:
+            problems.append(f"{field('smoothing')} always smooths the env's reward, and {field('surrogate_reward')} "
+                            f"{self.surrogate_reward} is trained as given: drop one")
         if not self.reward_check and self.smoothing != defaults.smoothing:
             does = ("refuses a reward the check finds flat" if self.smoothing == "off"
                     else "makes its surrogate of the check's sampled states")

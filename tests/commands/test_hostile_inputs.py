@@ -133,6 +133,8 @@ CONFLICTS = [
     (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing", "off"], ("--smoothing off", "--reward-check")),
     (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing", "always"],
      ("--smoothing always makes its surrogate of the check's sampled states", "--reward-check")),
+    (["--env", "envs_for_tests:make_cart", "--smoothing", "always", "--surrogate-reward", "envs_for_tests:position_reward"],
+     ("--smoothing always smooths the env's reward", "--surrogate-reward envs_for_tests:position_reward")),
     (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--no-critic"],
      ("--normalize-critic-observations", "--critic is off", "--recipe locomotion sets")),
     (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--action-noise", "0"],

@@ -78,7 +78,7 @@ def test_a_nan_derivative_of_the_longer_steps_is_refused_naming_them_and_a_flat_
         env_task(fragile, horizon=4, gradient_substeps=1).settled()
     # Flat through the longer steps alone, by a factor of zero, not a comparison: nothing to smooth; refused.
     with pytest.raises(EnvError, match="FragileBall: the reward's gradient is zero at every sampled state and action, "
-                                       "and no comparison of it could be smoothed"):
+                                       "and no comparison of the reward could be smoothed"):
         env_task(FragileBall(breaks_at=0.01), horizon=4, gradient_substeps=2).settled()
 
 

@@ -214,9 +214,9 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
     monkeypatch.setattr(starting, "programs_beside", lambda *a, **k: events.append("beside") or others(*a, **k))
     config = sb.TrainConfig(mode="C", epochs=1, train_size=8, test_size=8, batch=4, clip="norm")
 
-    def started(reward):
+    def started(reward, **options):
         traced.clear(), compiled.clear(), events.clear()
-        task = env_task(Cart(reward), horizon=5, defer_diagnosis=True)
+        task = env_task(Cart(reward), horizon=5, defer_diagnosis=True, **options)
         return task, starting.prepare(task, config)
 
     task, prepared = started("step")
@@ -237,6 +237,10 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
     assert events == ["trace", "compile begun", "answer", "trace", "beside", "answer"]
     assert [index for index, _ in compiled] == [0, 1] and widened.trainer.epoch is traced[1].epoch
     assert widened.lowered.compiled is compiled[1][1] and "unused compile's wait" in widened.phases
+    # Smoothed always, the reward's surrogate follows whatever the check answers: nothing compiles before it.
+    task, always = started("faint", smoothing="always")
+    assert not task.compile_while_settling and "vanishing exponential" in always.task.resolved["reward_smoothing"]
+    assert events == ["trace", "answer", "trace", "beside", "answer"] and [index for index, _ in compiled] == [1]
     traced.clear(), compiled.clear(), events.clear()
     refused = env_task(Cart("root"), horizon=5, defer_diagnosis=True)  # its gradient NaN: compiled early, refused
     with pytest.raises(EnvError, match="NaN"):
@@ -292,6 +296,12 @@ def test_a_resumed_or_reopened_run_keeps_the_surrogate_temperatures_its_record_h
     reopened = open_trained(run, note=notes.append)
     assert notes == [] and reopened.task.resolved["reward_smoothing_choices"] == resolved["reward_smoothing_choices"]
     assert made[-1]["temperatures"] == [[place, 3 * fitted, where]]
+    # A record in another release's words, its choices the same: rebuilt from them, nothing to note.
+    worded = json.loads(json.dumps(record))
+    worded["resolved_task"]["reward_smoothing"] = "smoothed 1 comparison, in older words"
+    atomic_write(run / "config.json", json.dumps(worded).encode())
+    assert open_trained(run, note=notes.append) and notes == []
+    atomic_write(run / "config.json", json.dumps(record).encode())
     made.clear()
     assert train_command.main(["--resume", str(run), "--epochs", "2", "--no-progress"]) == 0
     assert made and all(choices["temperatures"] == [[place, 3 * fitted, where]] for choices in made)
@@ -310,21 +320,27 @@ def test_a_resumed_or_reopened_run_keeps_the_surrogate_temperatures_its_record_h
 def test_smoothing_always_widens_a_term_lost_beside_a_reward_that_has_a_slope_where_auto_leaves_it():
     """FishSwim's case: the action's cost gives the reward a slope at every sampled state, so the check finds
     it usable and auto trains it as written; its Gaussian of the position, far narrower than the positions met,
-    adds a slope some 1e-9 of its own scale. Always, the surrogate widens that Gaussian to the sampled positions."""
+    adds a slope some 1e-12 of its own scale a little past the median sampled position. Always, the surrogate
+    widens that Gaussian to the sampled positions."""
     as_written = env_task(Cart("faint"), horizon=5)
     assert as_written.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in as_written.resolved
     always = env_task(Cart("faint"), horizon=5, smoothing="always")
     assert "smoothed 1 vanishing exponential of the reward widened" in always.summary
+    # Not an underflow: the median sampled exponent lies between the smallest float's logarithm and epsilon's.
+    (_, factor, _), = always.resolved["reward_smoothing_choices"]["exponents"]
+    assert 1 / abs(np.log(np.finfo(np.float32).tiny)) < factor < 1 / abs(np.log(np.finfo(np.float32).eps))
     assert always.resolved["reward_gradient"] == "usable" and set(always.resolved["reward_smoothing_choices"]) == {
         "temperatures", "exponents"}
     state = jax.tree.map(lambda a: a[0], always.sample_initial_states(jax.random.PRNGKey(0), 1))
     at = lambda position: state._replace(data={**state.data, "position": position})  # noqa: E731
     action = jnp.array([0.0])  # the action's cost has no slope in the position: the Gaussian's alone is left
-    slope = {name: float(jax.grad(lambda position: task.dynamics.step(at(position), action).reward)(jnp.float32(0.5)))
+    slope = {name: float(jax.grad(lambda position: task.dynamics.step(at(position), action).reward)(jnp.float32(0.8)))
              for name, task in (("as written", as_written), ("always", always))}
-    state = at(jnp.float32(0.5))
+    state = at(jnp.float32(0.8))
     assert abs(slope["as written"]) < 1e-9 and slope["always"] < -1e-2, slope  # towards the origin
     reached, smoothed = (task.dynamics.step(state, action) for task in (as_written, always))
     np.testing.assert_array_equal(np.asarray(reached.obs), np.asarray(smoothed.obs))  # the step's own state
-    with pytest.raises(EnvError, match="smoothing always, but no comparison of it could be smoothed.*train it as written"):
+    with pytest.raises(EnvError, match="smoothing always, but no comparison of the reward could be smoothed.*train it as written"):
         env_task(Cart(), horizon=5, smoothing="always")  # a smooth reward: nothing to make a surrogate of
+    with pytest.raises(EnvError, match="smoothing always .* not with a surrogate_reward of your own"):
+        env_task(Cart("faint"), horizon=5, smoothing="always", surrogate_reward=lambda state: state.reward)

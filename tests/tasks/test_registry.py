@@ -231,6 +231,7 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
         ["--env", "FishSwim", "--recipe", "locomotion", *beside]))[1]
     assert (fish().smoothing, fish("--no-reward-check").smoothing, fish("--no-reward-check").reward_check) == (
         "always", "auto", False)
+    assert fish("--surrogate-reward", "envs_for_tests:position_reward").smoothing == "auto"  # trained as given
     assert {sb.recipe("locomotion", walker)[0]["horizon"] for walker in ("WalkerWalk", "WalkerStand", "WalkerRun")} \
         == {2} != {env.RECIPES["locomotion"]["steps"]}
     with pytest.raises(InputError, match="a recipe's env is the env's name .* got Cart"):
