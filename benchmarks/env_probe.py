@@ -1,6 +1,7 @@
-"""Four looks at a MuJoCo Playground environment where a run does not train: is the step's derivative
-right, what does the trained policy do, can a policy of the observation learn the task at all, and
-how hard do its contacts push (where ``--contact-gradient-cut`` would cut).
+"""Looks at a MuJoCo Playground environment where a run does not train: is the step's derivative
+right, what does the trained policy do, can a policy of the observation learn the task at all, how
+hard do its contacts push (where ``--contact-gradient-cut`` would cut), and what does a policy that
+ignores the state score.
 
   python benchmarks/env_probe.py gradient ReacherEasy [--surrogate-reward env_probe:reacher_distance_reward]
           [--window 16] [--set-qpos 1=2.79]
@@ -19,6 +20,10 @@ how hard do its contacts push (where ``--contact-gradient-cut`` would cut).
       them), whole episodes of the deterministic policy: each one's return (the env's reward), its first
       and last joint positions and where its mocap bodies stand (a target the env placed, if any). Which
       starts a policy fails from, where its evaluation's mean alone says how often.
+  python benchmarks/env_probe.py blind HopperStand [--count 16] [--scale 0] [--seed 7]
+      What a policy that ignores the state scores: whole episodes from resets under actions uniform in
+      +-scale (0: every action zero), each one's return, its count of rewarded steps and its first joint
+      positions. The floor a trained policy's return stands on.
   python benchmarks/env_probe.py features ReacherEasy [--inputs observation|arm-frame] [--window 20]
           [--updates 400] [--batch 64] [--lr 1e-3] [--seed 1]
       Plain BPTT, none of the library's flows, critic or carried episodes: windows of the env's step from
@@ -274,6 +279,31 @@ def episodes_of_run(run_dir: Path, count: int, seed_index: int) -> None:
               f"{rounded(positions[index, -1])}" + (f"; mocap {rounded(targets[index, 0])}" if targets.size else ""))
 
 
+def blind(name: str, count: int, scale: float, seed: int) -> None:
+    from stablebptt.envs import playground
+    env = playground.load(name)
+    length = env._config.episode_length
+
+    @jax.jit
+    def episodes(key):
+        reset_key, action_key = jax.random.split(key)
+        states = jax.vmap(env.reset)(jax.random.split(reset_key, count))
+
+        def body(current, key):
+            actions = scale * jax.random.uniform(key, (count, env.action_size), minval=-1, maxval=1)
+            reached = jax.vmap(env.step)(current, actions)
+            return reached, reached.reward
+        rewards = jax.lax.scan(body, states, jax.random.split(action_key, int(length)))[1]
+        return states.data.qpos, rewards.sum(0), (rewards > 0).sum(0)
+
+    first, returns, rewarded = (np.asarray(value) for value in episodes(jax.random.PRNGKey(seed)))
+    print(f"{name}: {count} episodes of {length} steps, actions uniform in +-{scale:g}: mean return "
+          f"{returns.mean():.2f}")
+    for index in range(count):
+        print(f"  {index}: return {returns[index]:.1f}, {rewarded[index]} steps rewarded; qpos first "
+              + " ".join(f"{value:.2f}" for value in first[index]))
+
+
 def loads(name: str, envs: int, steps: int, scale: float, seed: int) -> None:
     from stablebptt.envs import playground
     from stablebptt.envs.derivative_model import contact_load
@@ -326,6 +356,11 @@ def main() -> None:
     fifth.add_argument("run_dir", type=Path)
     fifth.add_argument("--count", type=int, default=16)
     fifth.add_argument("--seed-index", type=int, default=0)
+    sixth = looks.add_parser("blind")
+    sixth.add_argument("env")
+    sixth.add_argument("--count", type=int, default=16)
+    sixth.add_argument("--scale", type=float, default=0.0)
+    sixth.add_argument("--seed", type=int, default=7)
     fourth = looks.add_parser("loads")
     fourth.add_argument("env")
     fourth.add_argument("--envs", type=int, default=32)
@@ -338,6 +373,8 @@ def main() -> None:
             gradient(arguments.env, arguments.window, arguments.surrogate_reward, arguments.set_qpos)
         elif arguments.look == "episodes":
             episodes_of_run(arguments.run_dir, arguments.count, arguments.seed_index)
+        elif arguments.look == "blind":
+            blind(arguments.env, arguments.count, arguments.scale, arguments.seed)
         elif arguments.look == "loads":
             loads(arguments.env, arguments.envs, arguments.steps, arguments.scale, arguments.seed)
         elif arguments.look == "features":

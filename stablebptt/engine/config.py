@@ -79,6 +79,7 @@ class TrainConfig:
     critic_lr: float = field(default=1e-3, metadata={"help": "the critic's Adam learning rate"})
     normalize_critic_observations: bool = field(default=False, metadata={"help": "training with the critic: it sees its observations standardised by the running mean and deviation of all those the training windows met (statistics of its own, kept with it), as the policy does under an environment's --normalize-observations"})
     td_lambda: float = field(default=0.95, metadata={"help": "lambda of the critic's TD(lambda) targets, in [0, 1]"})
+    training_episode_length: int = field(default=0, metadata={"help": "training on episodes: the windows' episodes are cut at this many steps and started again from a fresh state, so an epoch starts more of them (an epoch still advances every state one task episode's length; with --value-at-time-limit the critic values each cut state); the evaluations keep the task's length (0: the task's length)"})
     value_at_time_limit: bool = field(default=False, metadata={"help": "training with the critic: an episode cut at its length (a time limit, not its task's end) is valued there, the critic's value of the state it reached standing for what follows, in the critic's targets and the window's loss (off: nothing after the length counts)"})
     value_at_gradient_cut: bool = field(default=False, metadata={"help": "training with the critic, where the task's step cuts the windows' derivative (an env's --contact-gradient-cut): the actions before a state it cuts at are pulled by that state's discounted value's derivative too, as if the window ended there (AHAC); the loss's value unchanged"})
     critic_width: int = field(default=64, metadata={"help": "units in each of the critic's hidden layers (tanh)"})
@@ -120,6 +121,9 @@ class TrainConfig:
                              f"choose one of {', '.join(MATMUL_PRECISIONS)}")
         if not (math.isfinite(self.action_noise) and self.action_noise >= 0):
             raise InputError(f"{config_field(self, 'action_noise')} must be a number >= 0, got {self.action_noise}")
+        if not (isinstance(self.training_episode_length, int) and self.training_episode_length >= 0):
+            raise InputError(f"{config_field(self, 'training_episode_length')} must be a whole number of steps >= 0 "
+                             f"(0: the task's length), got {self.training_episode_length!r}")
         if self.learn_action_noise and self.action_noise == 0:
             raise InputError(f"{config_field(self, 'learn_action_noise')} learns the noise's deviation from "
                              f"{config_field(self, 'action_noise')}, which is 0: give it a starting deviation > 0")

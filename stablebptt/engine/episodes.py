@@ -224,7 +224,8 @@ def continue_from(final: Window, carried: Carried) -> Carried:
     carried ``pool`` (in the envs' order; past its end, from its start again), the others go on where the
     window left them. No reset runs here: a reset may cost far more than a window (Playground's cheetah
     settles its model for 200 physics steps, which a GPU runs one after another), so ``refill_pool``
-    draws the fresh states once an epoch, about one per env."""
+    draws the fresh states once an epoch, about one per env (episodes cut sooner in training,
+    ``TrainConfig.training_episode_length``, take each about the task's length over the cut's times)."""
     ended = jnp.logical_not(final.running)
     taken = (carried.pool_used + jnp.cumsum(ended) - 1) % ended.shape[0]  # the ended envs' pool states, in turn
     fresh = jax.tree.map(lambda pool: pool[taken], carried.pool)

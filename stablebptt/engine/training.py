@@ -201,7 +201,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
                 initial.drawn.result()[0])
     else:  # the updates of an epoch take the carried states: the scan runs over their numbers alone
         window = task.dynamics.horizon
-        batches = jnp.arange(updates_per_epoch(episodes, window))
+        batches = jnp.arange(updates_per_epoch(task.episodes, window))  # the task's episode, however soon cut
         reward_dtype = jax.eval_shape(episodes.reward, example_state).dtype
         # Known columns index the task's state; a window's state holds more. The window's own plan drops them.
         window_plan = dataclasses.replace(plan, known_columns=None)
@@ -415,21 +415,21 @@ def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
         raise InputError(f"{config_field(config, 'episodes')} on: {task.name} has no episodes to carry (Task.episodes "
                          "gives a reset, a reward, a done and a length); train it with episodes off")
     if config.episodes == "off" or task.episodes is None:
-        needs = {"critic": "a learned value at a window's end", "action_noise": "exploration noise on a window's actions"}
+        needs = {"critic": "a learned value at a window's end", "action_noise": "exploration noise on a window's actions",
+                 "training_episode_length": "episodes cut sooner in training"}
         for name, what in needs.items():
             if getattr(config, name):
                 raise InputError(f"{config_field(config, name)}: {what} needs carried episodes, and {task.name} "
-                                 f"trains from fixed starts here (episodes "
-                                 f"{'off' if task.episodes is not None else 'it has none'})")
+                                 f"trains from fixed starts here (episodes {'off' if task.episodes is not None else 'it has none'})")
         check_batches(config)
         return None
     if config.critic and task.episodes.observe is None:
-        raise InputError(f"{config_field(config, 'critic')}: {task.name}'s Episodes has no observe(state), what the "
-                         "critic sees")
+        raise InputError(f"{config_field(config, 'critic')}: {task.name}'s Episodes has no observe(state), what the critic sees")
     if config.value_at_gradient_cut and task.episodes.gradient_cut is None:
         raise InputError(f"{config_field(config, 'value_at_gradient_cut')}: {task.name}'s step cuts no window's "
                          "derivative to value (an environment cuts where --contact-gradient-cut says)")
-    return task.episodes
+    sooner = config.training_episode_length and config.training_episode_length < task.episodes.length
+    return dataclasses.replace(task.episodes, length=config.training_episode_length) if sooner else task.episodes
 
 
 def _all_finite(tree: PyTree) -> jax.Array:

@@ -468,8 +468,21 @@ def test_a_trainer_carries_episodes_where_the_task_has_them_and_refuses_to_where
     assert state.carried.clocks.shape == (1, 3)
     state, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
     assert bool(metrics["finite"][0])
+    # Episodes cut sooner in training: an epoch still advances every state the task's 10 steps, each episode
+    # starting again past 6 (3 windows of 4 steps: every env takes a fresh state once or twice, not once).
+    sooner = make_trainer(task, dataclasses.replace(config, training_episode_length=6))
+    assert (sooner.episodes.length, sooner.updates_per_epoch, task.episodes.length) == (6, 3, LENGTH)
+    cut, _ = sooner.epoch(sooner.fresh(sooner.init(seed_array(config))), sooner.batches, sooner.train_states,
+                          sooner.test_states)
+    assert int(cut.carried.clocks.max()) < 6 and int(cut.carried.pool_used[0]) > 3
+    params = jax.tree.map(lambda a: a + 0.1, state.params)  # the evaluations keep the task's fixed starts
+    np.testing.assert_array_equal(sooner.evaluate(params, sooner.test_states), trainer.evaluate(params, trainer.test_states))
+    with pytest.raises(InputError, match="training_episode_length must be a whole number of steps >= 0"):
+        TrainConfig(training_episode_length=-1)
     fixed = make_trainer(task, TrainConfig(epochs=1, batch=1, train_size=2, test_size=2, episodes="off"))
     assert fixed.episodes is None and fixed.init(seed_array(config)).carried is None
+    with pytest.raises(InputError, match="training_episode_length: episodes cut sooner in training needs carried episodes"):
+        make_trainer(task, TrainConfig(batch=1, train_size=2, episodes="off", training_episode_length=6))
     with pytest.raises(InputError, match="batch 3 does not divide the 2 training states"):
         make_trainer(task, TrainConfig(batch=3, train_size=2, episodes="off"))
     no_episodes = Task(name="plain", dynamics=drift(), init_params=task.init_params,
