@@ -104,7 +104,8 @@ def roll_out(args, config: RenderConfig, task, train, params):
     from stablebptt.apps.trained import episodes_from_test_states, rollouts_from_test_states
     from stablebptt.engine.training import episodes_of
 
-    episodes = None if args.run_dir is None else episodes_of(task, train)
+    # Whether the run trained on carried episodes; rolled out at the task's length, however soon training cut them.
+    episodes = None if args.run_dir is None or episodes_of(task, train) is None else task.episodes
     if episodes is None:
         if args.run_dir is not None and config.steps:
             raise InputError(f"--steps applies to --model and to runs on carried episodes: this run trained from fixed "

@@ -141,10 +141,10 @@ def train(argv: list[str], held: list) -> int:
         extras = (f", its return bootstrapped by a learned value of its last state (TD({train_config.td_lambda:g}) "
                   "targets" + (f"; the least of {train_config.critics} networks'" if train_config.critics > 1 else "")
                   + ")") if train_config.critic else ""
-        if train_config.training_episode_length and begun.trainer.episodes.length < task.episodes.length:
-            extras = f", each episode cut at {begun.trainer.episodes.length} steps and started again" + extras
         if train_config.value_at_time_limit:
             extras += ", and of the state where its episode's length cuts it"
+        if train_config.training_episode_length:
+            extras += f", each episode cut at {train_config.training_episode_length} steps and started again"
         if train_config.value_at_gradient_cut:
             extras += ", the states where its step cuts the derivative valued for the actions before them"
         if train_config.learn_action_noise:

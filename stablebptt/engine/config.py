@@ -121,7 +121,7 @@ class TrainConfig:
                              f"choose one of {', '.join(MATMUL_PRECISIONS)}")
         if not (math.isfinite(self.action_noise) and self.action_noise >= 0):
             raise InputError(f"{config_field(self, 'action_noise')} must be a number >= 0, got {self.action_noise}")
-        if not (isinstance(self.training_episode_length, int) and self.training_episode_length >= 0):
+        if self.training_episode_length < 0:
             raise InputError(f"{config_field(self, 'training_episode_length')} must be a whole number of steps >= 0 "
                              f"(0: the task's length), got {self.training_episode_length!r}")
         if self.learn_action_noise and self.action_noise == 0:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -57,6 +57,8 @@ class Episodes:
       gradient_cut: ``gradient_cut(state) -> bool``, whether the task's step stops a window's derivative at
         ``state`` (its ``Dynamics.step`` holds such a state constant as it starts from it), which a critic
         may value there (``window_dynamics(value_at_gradient_cut=True)``); None: the step cuts nowhere.
+      pool_per_env: fresh states the carried pool holds per env, about the episodes each env starts in an
+        epoch (more than 1 where training cuts episodes sooner than an epoch's steps: each start its own).
     """
 
     reset: Callable[[jax.Array], PyTree]
@@ -67,6 +69,7 @@ class Episodes:
     observe: Callable[[PyTree], jax.Array] | None = None
     step: Callable[[PyTree, PyTree], PyTree] | None = None
     gradient_cut: Callable[[PyTree], jax.Array] | None = None
+    pool_per_env: int = 1
 
     def __post_init__(self):
         for name in ("reset", "reward", "done"):
@@ -75,8 +78,10 @@ class Episodes:
         for name in ("step", "gradient_cut"):
             if getattr(self, name) is not None and not callable(getattr(self, name)):
                 raise InputError(f"Episodes.{name} must be a function or None, got {type(getattr(self, name)).__name__}")
-        if not isinstance(self.length, numbers.Integral) or isinstance(self.length, bool) or self.length < 1:
-            raise InputError(f"Episodes.length must be a positive whole number of steps, got {self.length!r}")
+        for name in ("length", "pool_per_env"):
+            value = getattr(self, name)
+            if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < 1:
+                raise InputError(f"Episodes.{name} must be a positive whole number, got {value!r}")
         discount = self.discount
         if not (isinstance(discount, numbers.Real) and not isinstance(discount, bool) and math.isfinite(discount)
                 and 0 < discount <= 1):
@@ -224,10 +229,11 @@ def continue_from(final: Window, carried: Carried) -> Carried:
     carried ``pool`` (in the envs' order; past its end, from its start again), the others go on where the
     window left them. No reset runs here: a reset may cost far more than a window (Playground's cheetah
     settles its model for 200 physics steps, which a GPU runs one after another), so ``refill_pool``
-    draws the fresh states once an epoch, about one per env (episodes cut sooner in training,
-    ``TrainConfig.training_episode_length``, take each about the task's length over the cut's times)."""
+    draws the fresh states once an epoch, about one per env (``Episodes.pool_per_env`` per env where
+    training cuts episodes sooner, ``TrainConfig.training_episode_length``)."""
     ended = jnp.logical_not(final.running)
-    taken = (carried.pool_used + jnp.cumsum(ended) - 1) % ended.shape[0]  # the ended envs' pool states, in turn
+    pool_size = jax.tree.leaves(carried.pool)[0].shape[0]
+    taken = (carried.pool_used + jnp.cumsum(ended) - 1) % pool_size  # the ended envs' pool states, in turn
     fresh = jax.tree.map(lambda pool: pool[taken], carried.pool)
     states = jax.tree.map(lambda new, old: jnp.where(_along(ended, old), new, old), fresh, final.state)
     return carried._replace(states=states, clocks=jnp.where(ended, 0, final.clock).astype(jnp.int32),
@@ -236,24 +242,28 @@ def continue_from(final: Window, carried: Carried) -> Carried:
 
 
 def refill_pool(carried: Carried, episodes: Episodes) -> Carried:
-    """``carried`` with a fresh pool: one reset per env, each from a key of its own split from the carried key."""
+    """``carried`` with a fresh pool: ``episodes.pool_per_env`` resets per env, each from a key of its own split
+    from the carried key."""
     key, resets = jax.random.split(carried.key)
     envs = carried.clocks.shape[0]
-    return carried._replace(key=key, pool=_reset(episodes, resets, envs), pool_used=jnp.zeros((), jnp.int32))
+    return carried._replace(key=key, pool=_reset(episodes, resets, envs * episodes.pool_per_env),
+                            pool_used=jnp.zeros((), jnp.int32))
 
 
 def first_population(seed_key: jax.Array, episodes: Episodes, envs: int, window: int) -> Carried:
     """A seed's first population: ``envs`` fresh episodes whose clocks are spread uniformly over an
     episode where a window is shorter than one (so that the windows cover every phase of it), else at 0.
-    Its pool holds those states until an epoch's first update draws fresh ones (``refill_pool``)."""
+    Its pool holds those states (and ``pool_per_env - 1`` more per env) until an epoch's first update draws
+    fresh ones (``refill_pool``)."""
     key = jax.random.fold_in(seed_key, RESET_STREAM)
     key, resets, clocks = jax.random.split(key, 3)
-    states = _reset(episodes, resets, envs)
+    pool = _reset(episodes, resets, envs * episodes.pool_per_env)
+    states = pool if episodes.pool_per_env == 1 else jax.tree.map(lambda leaf: leaf[:envs], pool)
     if window < episodes.length:
         start = jax.random.randint(clocks, (envs,), 0, episodes.length, dtype=jnp.int32)
     else:
         start = jnp.zeros(envs, jnp.int32)
-    return Carried(states, start, key, states, jnp.zeros((), jnp.int32))
+    return Carried(states, start, key, pool, jnp.zeros((), jnp.int32))
 
 
 def _reset(episodes: Episodes, key: jax.Array, envs: int) -> Any:
@@ -269,6 +279,15 @@ def _reset(episodes: Episodes, key: jax.Array, envs: int) -> Any:
         return jax.tree.map(lambda leaf: jnp.zeros((envs, *leaf.shape), leaf.dtype), one)
     states = jax.vmap(episodes.reset)(keys)
     return jax.tree.map(lambda leaf: jax.lax.convert_element_type(leaf, leaf.dtype), states)
+
+
+def cut_sooner(episodes: Episodes, length: int, option: str, name: str) -> Episodes:
+    """The episodes training carries where ``option`` cuts the task ``name``'s ``episodes`` at ``length``
+    steps (``TrainConfig.training_episode_length``): each starts again from a pool state of its own."""
+    if length >= episodes.length:
+        raise InputError(f"{option} {length}: {name}'s episodes are {episodes.length} steps; cut them sooner, or "
+                         "drop it")
+    return replace(episodes, length=length, pool_per_env=-(-episodes.length // length))
 
 
 def updates_per_epoch(episodes: Episodes, window: int) -> int:

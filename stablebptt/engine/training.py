@@ -25,6 +25,7 @@ from stablebptt.engine.episodes import (
     bounded_log_std,
     continue_from,
     cut_short,
+    cut_sooner,
     entropy_gradient,
     first_population,
     initial_log_std,
@@ -415,8 +416,7 @@ def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
         raise InputError(f"{config_field(config, 'episodes')} on: {task.name} has no episodes to carry (Task.episodes "
                          "gives a reset, a reward, a done and a length); train it with episodes off")
     if config.episodes == "off" or task.episodes is None:
-        needs = {"critic": "a learned value at a window's end", "action_noise": "exploration noise on a window's actions",
-                 "training_episode_length": "episodes cut sooner in training"}
+        needs = {"critic": "a learned value at a window's end", "action_noise": "exploration noise on a window's actions", "training_episode_length": "episodes cut sooner in training"}
         for name, what in needs.items():
             if getattr(config, name):
                 raise InputError(f"{config_field(config, name)}: {what} needs carried episodes, and {task.name} "
@@ -428,8 +428,8 @@ def episodes_of(task: Task, config: TrainConfig) -> Episodes | None:
     if config.value_at_gradient_cut and task.episodes.gradient_cut is None:
         raise InputError(f"{config_field(config, 'value_at_gradient_cut')}: {task.name}'s step cuts no window's "
                          "derivative to value (an environment cuts where --contact-gradient-cut says)")
-    sooner = config.training_episode_length and config.training_episode_length < task.episodes.length
-    return dataclasses.replace(task.episodes, length=config.training_episode_length) if sooner else task.episodes
+    return cut_sooner(task.episodes, config.training_episode_length, config_field(config, "training_episode_length"),
+                      task.name) if config.training_episode_length else task.episodes
 
 
 def _all_finite(tree: PyTree) -> jax.Array:

@@ -112,6 +112,11 @@ def test_ended_episodes_alone_start_again_from_the_pool_in_turn_and_the_key_move
     again = continue_from(final, after)
     np.testing.assert_array_equal(again.states[1:], fresh[np.array([2, 0])])
     assert int(again.pool_used) == 4
+    # A pool of two states per env (episodes cut sooner in training): the ended envs go on through it.
+    deeper = refill_pool(carried([0.1, 0.2, 0.3], [0, 6, 8]), dataclasses.replace(task_episodes, pool_per_env=2))
+    assert deeper.pool.shape == (6,)
+    past_four = continue_from(final, deeper._replace(pool_used=jnp.int32(4)))  # 4 taken: the 5th and 6th, not the 2nd and 3rd
+    np.testing.assert_array_equal(past_four.states[1:], deeper.pool[np.array([4, 5])])
 
 
 def test_an_epoch_starts_with_its_pool_drawn_once_from_the_key_it_starts_with(tmp_path, monkeypatch):
@@ -469,16 +474,18 @@ def test_a_trainer_carries_episodes_where_the_task_has_them_and_refuses_to_where
     state, metrics = trainer.epoch(state, trainer.batches, trainer.train_states, trainer.test_states)
     assert bool(metrics["finite"][0])
     # Episodes cut sooner in training: an epoch still advances every state the task's 10 steps, each episode
-    # starting again past 6 (3 windows of 4 steps: every env takes a fresh state once or twice, not once).
+    # starting again past 6 (3 windows of 4 steps: every env takes a fresh state once or twice, not once),
+    # each start from a pool state of its own (2 a env: ceil(10 / 6)), none taken twice in the epoch.
     sooner = make_trainer(task, dataclasses.replace(config, training_episode_length=6))
-    assert (sooner.episodes.length, sooner.updates_per_epoch, task.episodes.length) == (6, 3, LENGTH)
-    cut, _ = sooner.epoch(sooner.fresh(sooner.init(seed_array(config))), sooner.batches, sooner.train_states,
-                          sooner.test_states)
-    assert int(cut.carried.clocks.max()) < 6 and int(cut.carried.pool_used[0]) > 3
-    params = jax.tree.map(lambda a: a + 0.1, state.params)  # the evaluations keep the task's fixed starts
-    np.testing.assert_array_equal(sooner.evaluate(params, sooner.test_states), trainer.evaluate(params, trainer.test_states))
+    assert (sooner.episodes.length, sooner.episodes.pool_per_env, sooner.updates_per_epoch) == (6, 2, 3)
+    begun = sooner.fresh(sooner.init(seed_array(config)))
+    assert begun.carried.pool.shape == (1, 6) and begun.carried.states.shape == (1, 3)
+    cut, _ = sooner.epoch(begun, sooner.batches, sooner.train_states, sooner.test_states)
+    assert int(cut.carried.clocks.max()) < 6 and 3 < int(cut.carried.pool_used[0]) <= 6
     with pytest.raises(InputError, match="training_episode_length must be a whole number of steps >= 0"):
         TrainConfig(training_episode_length=-1)
+    with pytest.raises(InputError, match="training_episode_length 10: drift's episodes are 10 steps; cut them sooner"):
+        make_trainer(task, dataclasses.replace(config, training_episode_length=LENGTH))
     fixed = make_trainer(task, TrainConfig(epochs=1, batch=1, train_size=2, test_size=2, episodes="off"))
     assert fixed.episodes is None and fixed.init(seed_array(config)).carried is None
     with pytest.raises(InputError, match="training_episode_length: episodes cut sooner in training needs carried episodes"):
