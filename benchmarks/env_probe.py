@@ -269,7 +269,7 @@ def episodes_of_run(run_dir: Path, count: int, seed_index: int) -> None:
     trained = open_trained(run_dir)
     episode = episodes_from_test_states(trained.task, trained.task.episodes, trained.seed_params(seed_index),
                                         trained.train, count)
-    data = episode.states.state.data  # [episodes, steps + 1, ...]
+    data = episode.states.data  # [episodes, steps + 1, ...]; a Directed state reads through to its own
     positions, targets = np.asarray(data.qpos), np.asarray(data.mocap_pos)
     print(f"{trained.task.name} ({run_dir}, seed index {seed_index}): {count} test episodes, mean return "
           f"{np.mean(episode.returns):.1f}")
