@@ -279,24 +279,28 @@ def episodes_of_run(run_dir: Path, count: int, seed_index: int) -> None:
               f"{rounded(positions[index, -1])}" + (f"; mocap {rounded(targets[index, 0])}" if targets.size else ""))
 
 
+def _uniform_actions_from_resets(env, envs: int, steps: int, scale: float, seed: int, read: Callable) -> tuple:
+    """``envs`` resets of ``env`` stepped ``steps`` times under actions uniform in +-``scale``: the resets,
+    and ``read`` of every state reached ([steps, envs, ...])."""
+    @jax.jit
+    def rolled(key):
+        reset_key, action_key = jax.random.split(key)
+        states = jax.vmap(env.reset)(jax.random.split(reset_key, envs))
+
+        def body(current, key):
+            actions = scale * jax.random.uniform(key, (envs, env.action_size), minval=-1, maxval=1)
+            reached = jax.vmap(env.step)(current, actions)
+            return reached, read(reached)
+        return states, jax.lax.scan(body, states, jax.random.split(action_key, steps))[1]
+    return rolled(jax.random.PRNGKey(seed))
+
+
 def blind(name: str, count: int, scale: float, seed: int) -> None:
     from stablebptt.envs import playground
     env = playground.load(name)
-    length = env._config.episode_length
-
-    @jax.jit
-    def episodes(key):
-        reset_key, action_key = jax.random.split(key)
-        states = jax.vmap(env.reset)(jax.random.split(reset_key, count))
-
-        def body(current, key):
-            actions = scale * jax.random.uniform(key, (count, env.action_size), minval=-1, maxval=1)
-            reached = jax.vmap(env.step)(current, actions)
-            return reached, reached.reward
-        rewards = jax.lax.scan(body, states, jax.random.split(action_key, int(length)))[1]
-        return states.data.qpos, rewards.sum(0), (rewards > 0).sum(0)
-
-    first, returns, rewarded = (np.asarray(value) for value in episodes(jax.random.PRNGKey(seed)))
+    length = int(env._config.episode_length)
+    states, rewards = _uniform_actions_from_resets(env, count, length, scale, seed, lambda reached: reached.reward)
+    first, returns, rewarded = np.asarray(states.data.qpos), np.asarray(rewards.sum(0)), np.asarray((rewards > 0).sum(0))
     print(f"{name}: {count} episodes of {length} steps, actions uniform in +-{scale:g}: mean return "
           f"{returns.mean():.2f}")
     for index in range(count):
@@ -309,19 +313,9 @@ def loads(name: str, envs: int, steps: int, scale: float, seed: int) -> None:
     from stablebptt.envs.derivative_model import contact_load
     env = playground.load(name)
     load_of = contact_load(env, name)  # as --contact-gradient-cut reads it
+    _, reached_loads = _uniform_actions_from_resets(env, envs, steps, scale, seed, jax.vmap(load_of))
 
-    @jax.jit
-    def reached_loads(key):
-        reset_key, action_key = jax.random.split(key)
-        states = jax.vmap(env.reset)(jax.random.split(reset_key, envs))
-
-        def body(current, key):
-            actions = scale * jax.random.uniform(key, (envs, env.action_size), minval=-1, maxval=1)
-            reached = jax.vmap(env.step)(current, actions)
-            return reached, jax.vmap(load_of)(reached)
-        return jax.lax.scan(body, states, jax.random.split(action_key, steps))[1]
-
-    load = np.asarray(reached_loads(jax.random.PRNGKey(seed)))
+    load = np.asarray(reached_loads)
     percentiles = ", ".join(f"{p}%: {value:.2f}" for p, value in zip((50, 75, 90, 95, 99),
                                                                       np.percentile(load, (50, 75, 90, 95, 99))))
     above = ", ".join(f"{k}: {np.mean(load > k):.1%}" for k in (1, 2, 5, 10))

@@ -258,7 +258,7 @@ def first_population(seed_key: jax.Array, episodes: Episodes, envs: int, window:
     key = jax.random.fold_in(seed_key, RESET_STREAM)
     key, resets, clocks = jax.random.split(key, 3)
     pool = _reset(episodes, resets, envs * episodes.pool_per_env)
-    states = pool if episodes.pool_per_env == 1 else jax.tree.map(lambda leaf: leaf[:envs], pool)
+    states = jax.tree.map(lambda leaf: leaf[:envs], pool)
     if window < episodes.length:
         start = jax.random.randint(clocks, (envs,), 0, episodes.length, dtype=jnp.int32)
     else:
