@@ -420,12 +420,14 @@ EPISODE_LENGTH = 20
 
 @pytest.fixture(scope="module")
 def episode_renders(tmp_path_factory):
-    """A CartpoleSwingup run on carried episodes, windows of 8 steps along episodes of EPISODE_LENGTH, rendered
-    as it comes and with --steps and --frame-every."""
+    """A CartpoleSwingup run on carried episodes, windows of 8 steps along episodes of EPISODE_LENGTH that training
+    cuts at 12 steps, rendered as it comes (whole episodes: the cut is training's alone) and with --steps and
+    --frame-every."""
     root = tmp_path_factory.mktemp("episodes")
     run = root / "cartpole-run"
     finish(run_script(TRAIN, "--env", "CartpoleSwingup", "--epochs", 1, "--batch", 2, "--train-size", 2,
-                      "--test-size", 2, "--steps", 8, "--episode-length", EPISODE_LENGTH, "--no-reward-check",
+                      "--test-size", 2, "--steps", 8, "--episode-length", EPISODE_LENGTH,
+                      "--training-episode-length", 12, "--no-reward-check",
                       "--no-progress", "--out", run), timeout=600)
     small = ("--width", WIDTH, "--height", HEIGHT, "--rollouts", 2)
     whole = run_script(RENDER, run, *small)
