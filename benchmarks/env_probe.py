@@ -17,9 +17,10 @@ ignores the state score.
       ``metrics["reward/..."]``): its mean over the steps and the share of steps where it is exactly 0.
   python benchmarks/env_probe.py episodes RUN_DIR [--count 16] [--seed-index 0]
       A trained environment run's policy from the run's own test states (drawn as its evaluations draw
-      them), whole episodes of the deterministic policy: each one's return (the env's reward), its first
-      and last joint positions and where its mocap bodies stand (a target the env placed, if any). Which
-      starts a policy fails from, where its evaluation's mean alone says how often.
+      them), whole episodes of the deterministic policy: each one's return (the env's reward), its count
+      of rewarded steps and the first and last of them, its first and last joint positions and where its
+      mocap bodies stand (a target the env placed, if any). Which starts a policy fails from, and when
+      in an episode it earns, where its evaluation's mean alone says how often.
   python benchmarks/env_probe.py blind HopperStand [--count 16] [--scale 0] [--seed 7]
       What a policy that ignores the state scores: whole episodes from resets under actions uniform in
       +-scale (0: every action zero), each one's return, its count of rewarded steps and its first joint
@@ -273,9 +274,14 @@ def episodes_of_run(run_dir: Path, count: int, seed_index: int) -> None:
     positions, targets = np.asarray(data.qpos), np.asarray(data.mocap_pos)
     print(f"{trained.task.name} ({run_dir}, seed index {seed_index}): {count} test episodes, mean return "
           f"{np.mean(episode.returns):.1f}")
+    rewards = np.asarray(episode.states.reward)[:, 1:]  # each step's reward (the first state's is the reset's)
     rounded = lambda values: " ".join(f"{value:.2f}" for value in np.ravel(values))  # noqa: E731
     for index, value in enumerate(episode.returns):
-        print(f"  {index}: return {value:.0f}; qpos first {rounded(positions[index, 0])}, last "
+        # When the reward is earned (as blind counts it): at the start alone (a fall), later (a rise), throughout.
+        earned = np.flatnonzero(rewards[index] > 0)
+        when = (f"{earned.size} of {rewards.shape[1]} steps rewarded, from step {earned[0] + 1} to {earned[-1] + 1}"
+                if earned.size else "no step rewarded")
+        print(f"  {index}: return {value:.0f}; {when}; qpos first {rounded(positions[index, 0])}, last "
               f"{rounded(positions[index, -1])}" + (f"; mocap {rounded(targets[index, 0])}" if targets.size else ""))
 
 

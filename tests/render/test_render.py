@@ -478,6 +478,22 @@ def test_steps_beyond_the_episode_length_is_one_line_and_exit_2(episode_renders)
     assert not list(run.glob("rollout-2*")), "a refused render wrote a file"
 
 
+@needs_playground
+def test_the_probes_look_at_a_runs_episodes_reads_the_whole_episodes_of_its_test_states(episode_renders, capsys):
+    """benchmarks/env_probe.py's ``episodes`` on a run whose training cut its episodes: the task's whole episodes
+    from the run's test states, as the render rolled them, and when in each the reward was earned."""
+    _, run, outputs = episode_renders
+    spec = importlib.util.spec_from_file_location("env_probe", ROOT / "benchmarks" / "env_probe.py")
+    env_probe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(env_probe)
+    env_probe.episodes_of_run(run, 2, 0)
+    lines = capsys.readouterr().out.splitlines()
+    rendered = [float(value) for value in printed(outputs, "whole")[0].rpartition("returns ")[2].split(", ")]
+    assert lines[0].endswith(f"2 test episodes, mean return {np.mean(rendered):.1f}"), lines
+    assert len(lines) == 3 and all(f" of {EPISODE_LENGTH} steps rewarded, from step " in line
+                                   or "no step rewarded" in line for line in lines[1:]), lines
+
+
 def test_an_episode_return_is_the_envs_own_reward_the_runs_evaluation_sums():
     """An env trained on a surrogate reward: its rendered episodes return what its evaluation reports, the env's
     own reward, not the surrogate the windows trained on."""
