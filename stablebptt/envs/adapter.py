@@ -50,8 +50,7 @@ from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
 from stablebptt.physics.backward_contacts import ContactSmoothing
 
 PyTree = Any
-# Output weights of a policy that must not start at exactly zero action: small enough that the
-# first actions stay near zero, large enough that the reward's derivative is taken off zero.
+# Output weights of a policy that must not start at exactly zero action: its first actions near zero, not at it.
 SMALL_OUTPUT_SCALE = 1e-2
 
 
@@ -225,8 +224,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     squash = floored_tanh(squash_gradient_floor)
     # The windows' step alone is cut; an env that cannot take the cut is refused here, in one line.
     loaded = loaded_states(env, contact_gradient_cut, label) if contact_gradient_cut else None
-    # One cut step per step cut: the task its check settles into keeps the pending task's step, so a run's
-    # start traces its epoch once (a new function there reads as a smoothed reward: engine/starting.py).
+    # One cut step per step cut: a settled task keeps its pending task's step (a new one reads as smoothed: starting.py).
     cut = functools.cache(contact_cut(loaded)) if loaded else (lambda trained: trained)
 
     @functools.cache  # one per reward trained on: a task the check settles into keeps its pending task's programs
@@ -236,8 +234,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         policy = lambda params, state: observation_policy(params, seen(state), squash)  # noqa: E731
         return direction, seen, policy, direction.sampling(sample_initial_states)
 
-    # What the windows train on: the env's reward, the user's own surrogate of it, or the reward of another env's
-    # step on the same states (diagnosed as the reward is).
+    # What the windows train on: the env's reward, the user's surrogate, or another env's step's reward (diagnosed alike).
     training_step, training_steps = step, own_steps
     if surrogate_reward is not None:  # checked where it is given, from shapes: a refusal names it in one line
         check_step(env, step, observations, label)
@@ -247,8 +244,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         training_steps = derivative_steps(traced, reward_env, contact_smoothing, gradient_substeps, label)
         training_step = jax.jit(joined(*training_steps))
         check_same_states(env, training_step, label)
-    # The step a flat reward's surrogate reads, one jit for every trace of it: where the derivative is another
-    # model's, the values' step.
+    # The step a flat reward's surrogate reads (one jit for every trace of it): the values' step.
     values_step = training_step if training_steps[1] is None else jax.jit(training_steps[0])
 
     seen_size = observations + (int(env.action_size) if reward_direction_observed else 0)
@@ -271,6 +267,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         **({} if gradient_substeps is None else {"gradient_substeps": gradient_substeps}),
         **({"contact_geometry": "held"} if contact_geometry_held else {})}
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
+    at_shapes: list[tuple] = []  # the step a surrogate would be made of, traced at shapes (once)
+    choosing: list[Callable[[], dict]] = []  # a surrogate's choices, begun beside the check
+    smoothing_key = None if answer_key is None else {**answer_key, "smoothing_scale": smoothing_scale}
 
     def start() -> PendingDiagnosis:
         try:
@@ -379,21 +378,19 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         diagnosis = diagnosed()
         if diagnosis.kind != "zero" and smoothing != "always":
             return task(diagnosis, diagnosis.kind)
-        # Flat at every sampled state, or smoothed always: train a smooth surrogate where one can be made, and diagnose
-        # it. Its temperatures come from the diagnosis's own samples, kept with its answer.
+        # Flat at every sampled state, or smoothed always: a surrogate, fitted on the diagnosis's samples, and checked.
         samples = started[0].samples() if started else None
-        smoothing_key = None if answer_key is None else {**answer_key, "smoothing_scale": smoothing_scale}
 
         def choose(traced) -> dict:  # on the diagnosis's samples, drawn again where its answer was kept
             drawn = samples or jax.jit(lambda key: sample_for_diagnosis(env, training_step, key, episode_length))(
                 jax.random.PRNGKey(diagnosis_seed))
             return surrogate.smoothing_choices(training_step, *drawn, smoothing_scale, traced)
 
+        # Its choices: begun beside the check where a surrogate most likely followed it, else fitted (or read) now.
         smoothed = surrogate_of(surrogate.one_sample(*samples) if samples else surrogate.step_example(env),
-                                lambda traced, example: surrogate.as_recorded(program_store.kept_answer(
+                                lambda traced, example: surrogate.as_recorded(choosing[0]() if choosing else program_store.kept_answer(
                                     smoothing_key, "reward smoothing", functools.partial(choose, traced))))
-        # The surrogate's step reaches the same states as the env's: its gradient is checked at those
-        # samples, compiled beside whatever the caller does next (tracing the surrogate's trainer); kept.
+        # Its gradient is checked at those samples (the states it reaches are the env's), compiled beside what follows.
         checking: list[PendingDiagnosis] = []
         checked = program_store.kept_answer_later(smoothing_key, "surrogate's diagnosis", lambda: checking.append(
             start_checks(smoothed[0], *samples) if samples else
@@ -412,10 +409,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                                    settle=settle_surrogate)
 
     def surrogate_of(example: tuple, choose: Callable[[tuple, tuple], dict]) -> tuple:
-        """A flat reward's surrogate step, what it smoothed in words, and its choices (``choose(traced, example)``):
-        one trace of the step, at shapes, serves the choice and the surrogate (a choice names places in it);
-        where the derivative is another model's, the values' step is traced and the derivative's smoothed alike."""
-        traced = surrogate.trace_step(values_step, *example)
+        """A flat reward's surrogate step, what it smoothed in words, and its choices (``choose(traced, example)``): one
+        trace of the values' step, at shapes, serves the choice and the surrogate (a choice names places in it)."""
+        traced = at_shapes[0] if at_shapes else surrogate.trace_step(values_step, *example)
         choices = choose(traced, example)
         smooth_step, smoothing_done = surrogate.smoothed_step(traced, choices)
         if not smoothing_done.anything:
@@ -432,10 +428,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         from the step a surrogate would be made of, at shapes); where its reward cannot be told, True."""
         example = surrogate.step_example(env)
         try:
-            traced = surrogate.trace_step(values_step, *example)
+            at_shapes.append(surrogate.trace_step(values_step, *example))
         except ValueError:  # no single leaf of the state is named reward: no surrogate could be made of it either
             return True
-        return surrogate.turns_comparisons_into_numbers(traced, example)
+        return surrogate.turns_comparisons_into_numbers(at_shapes[0], example)
 
     if smoothing_choices is not None:  # a run's surrogate, as recorded: the checks that chose it are not run again
         return task(None, "as recorded", surrogate_of(surrogate.step_example(env), lambda traced, example:
@@ -443,8 +439,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if not diagnose:
         return task(None, "not checked")
     if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
+        compares = smoothing != "off" and surrogate_reward is None and reward_compares()
+        # A surrogate most likely follows the check: beside an accelerator its host's cores fit its choices meanwhile.
+        if at_shapes and (compares or smoothing == "always") and check_device() is not None:
+            choosing.append(program_store.kept_answer_later(smoothing_key, "reward smoothing", lambda: surrogate.choices_beside(
+                at_shapes[0], started[0].sample_shapes, lambda: started[0].samples(), smoothing_scale)))
         return dataclasses.replace(task(None, "pending", answer=lambda: diagnosed().kind), settle=settle, compile_while_settling=(
-            (check_device() is not None or jax.default_backend() == "cpu")
-            and smoothing != "always" and (smoothing == "off" or surrogate_reward is not None or not reward_compares())))
+            (check_device() is not None or jax.default_backend() == "cpu") and smoothing != "always" and not compares))
     answered = settle()  # a flat reward's surrogate may still be checked beside: deferred, the caller waits
     return answered if defer_diagnosis else answered.settled_fully()

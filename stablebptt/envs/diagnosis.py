@@ -158,7 +158,8 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: in
     lowered, near, whole = lowered_diagnosis(env, step, key, episode_length)
     compiled = _compiled_beside([program.compile for program in lowered], lambda compiled: _Sampled(*compiled))
     along_whole_episodes = None if whole is None else lambda: PendingDiagnosis(compiled, whole, [])  # noqa: E731
-    return PendingDiagnosis(compiled, near, [], along_whole_episodes)  # its samples come back when it runs
+    # Its samples come back when it runs; their shapes are known now.
+    return PendingDiagnosis(compiled, near, [], along_whole_episodes, _check_device_shapes(lowered[1].out_info))
 
 
 def lowered_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int) -> tuple[tuple, tuple, tuple | None]:
@@ -196,6 +197,7 @@ class PendingDiagnosis(NamedTuple):
     argument: Any  # a PRNG key and the clocks' spacing (start_diagnosis), or the samples themselves (start_checks)
     ran: list  # the states and actions checked, (states, actions): given, or once called, those it sampled
     further: Callable[[], "PendingDiagnosis"] | None = None  # where the gradient is flat at every state: look further
+    sample_shapes: tuple | None = None  # the shapes of the states and actions it samples (start_diagnosis)
 
     def __call__(self) -> list:
         """Waits for the compile, runs the program: the fields of a ``RewardDiagnosis``."""

@@ -42,6 +42,7 @@ import numpy as np
 from jax._src import source_info_util
 from jax.extend import core
 
+from stablebptt.engine.compiling import beside
 from stablebptt.envs.protocol import EnvError
 
 PyTree = Any
@@ -263,7 +264,26 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
     and each vanishing exponential's factor, 1 / (``scale`` times its median exponent's magnitude).
     Both as place -> (number, where written). ``traced``: the step's ``trace_step`` program, where the
     caller has it already."""
-    closed, structure, out_labels = traced or trace_step(step, *one_sample(states, actions))
+    recorder, program = _recording(traced or trace_step(step, *one_sample(states, actions)))
+    return _chosen(recorder, *jax.device_get(program(states, actions)), scale)
+
+
+def choices_beside(traced: tuple, sample_shapes: tuple, samples: Callable[[], tuple],
+                   scale: float = 1.0) -> Callable[[], dict]:
+    """``smoothing_choices`` of the step ``traced`` (``trace_step``) at the ``samples()`` (states and actions,
+    shaped as ``sample_shapes`` on the device they will lie on), its program lowered here and compiled
+    beside the caller: begun while the reward check that samples them, and decides whether they are
+    needed, runs. Called, it waits for the compile, reads the samples and gives the choices."""
+    recorder, program = _recording(traced)
+    compiling = beside(program.lower(*sample_shapes).compile, "stablebptt-smoothing-choices")
+    return lambda: _as_choices(*_chosen(recorder, *jax.device_get(compiling.result()(*samples())), scale))
+
+
+def _recording(traced: tuple) -> tuple[_Interpreter, Callable]:
+    """An interpreter that records, and the program (jitted, mapped over samples) that evaluates the step
+    ``traced`` with it: each comparison's difference and each exponential's exponent, by place. Tracing the
+    program fills the interpreter's places, used comparisons and bounds."""
+    closed, structure, out_labels = traced
     recorder = _Interpreter(None)
 
     def differences(state, action):
@@ -272,7 +292,11 @@ def temperatures(step: Callable, states: PyTree, actions: jax.Array, scale: floa
         _evaluate(closed, out_labels, structure, recorder, state, action)
         return dict(recorder.differences), dict(recorder.exponents)
 
-    sampled, exponents = jax.device_get(jax.jit(jax.vmap(differences))(states, actions))
+    return recorder, jax.jit(jax.vmap(differences))
+
+
+def _chosen(recorder: _Interpreter, sampled: dict, exponents: dict, scale: float) -> tuple[dict, dict]:
+    """``temperatures``' answer from what the recording program gave at the samples."""
     chosen = {}
     for place, values in sampled.items():
         magnitudes = np.abs(np.asarray(values, float)).ravel()
@@ -330,7 +354,10 @@ def smoothing_choices(step: Callable, states: PyTree, actions: jax.Array, scale:
     """``temperatures``' choices at the sampled ``states`` and ``actions``, as a kept answer holds them:
     per kind ("temperatures", "exponents") each smoothed place in the step's program, its number and
     where it is written."""
-    chosen, widened = temperatures(step, states, actions, scale, traced)
+    return _as_choices(*temperatures(step, states, actions, scale, traced))
+
+
+def _as_choices(chosen: dict, widened: dict) -> dict:
     return {kind: [[list(place), number, where] for place, (number, where) in sorted(choices.items())]
             for kind, choices in (("temperatures", chosen), ("exponents", widened))}
 

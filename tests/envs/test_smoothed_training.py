@@ -248,6 +248,38 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
     assert refused.compile_while_settling and events == ["trace", "compile begun", "answer"]
 
 
+def test_the_surrogates_choices_compile_beside_the_check_where_a_surrogate_most_likely_follows(monkeypatch):
+    """Beside an accelerator (the check on its host's CPU), where the reward turns a comparison into a number or
+    smoothing is always, the program that fits the surrogate's temperatures on the check's samples is lowered
+    as the task is built and compiles beside the check (else it stands after the check's answer, in the start's
+    wait); it fits the surrogate the check fits once answered. Elsewhere (a smooth reward, smoothing off, the
+    user's own surrogate, a CPU alone) nothing begins."""
+    from stablebptt.envs import adapter, surrogate
+    begun = []
+    begin = surrogate.beside
+    monkeypatch.setattr(surrogate, "beside", lambda function, name: begun.append(name) or begin(function, name))
+    env_task(Cart("step"), horizon=5, defer_diagnosis=True).settled().settled_fully()
+    assert begun == []  # on a CPU alone its cores run the check's compiles and the set-up already
+    monkeypatch.setattr(adapter, "check_device", lambda: jax.devices("cpu")[0])  # as beside a GPU
+    pending = env_task(Cart("step"), horizon=5, defer_diagnosis=True)
+    assert begun == ["stablebptt-smoothing-choices"] and pending.resolved["reward_gradient"] == "pending"
+    settled = pending.settled().settled_fully()
+    assert begun == ["stablebptt-smoothing-choices"]  # used, not fitted again
+    fitted_after = env_task(Cart("step"), horizon=5)  # undeferred: fitted once the check has answered
+    assert settled.resolved == fitted_after.resolved and "reward_smoothing_choices" in settled.resolved
+    state = jax.tree.map(lambda a: a[0], settled.sample_initial_states(jax.random.PRNGKey(0), 2))
+    for position in (-0.3, 0.05, 0.2):
+        action = jnp.array([position])
+        np.testing.assert_array_equal(settled.dynamics.step(state, action).reward,
+                                      fitted_after.dynamics.step(state, action).reward)
+    env_task(Cart("faint"), horizon=5, defer_diagnosis=True, smoothing="always").settled().settled_fully()
+    assert len(begun) == 2
+    env_task(Cart("smooth"), horizon=5, defer_diagnosis=True).settled()
+    env_task(Cart("step"), horizon=5, defer_diagnosis=True, smoothing="off")
+    env_task(Cart("step"), horizon=5, defer_diagnosis=True, surrogate_reward=lambda state: state.obs[0])
+    assert len(begun) == 2
+
+
 def test_a_kept_smoothing_rebuilds_the_surrogate_without_sampling_or_checking_again(tmp_path, monkeypatch):
     """The same command again, or a resume, reads the surrogate's temperatures and its check kept with the
     reward's diagnosis: no episodes are rolled and no check runs (HopperStand's took 103 s on a GPU), and
