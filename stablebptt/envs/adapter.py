@@ -285,12 +285,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     if diagnose:
         pending = program_store.kept_answer_later(answer_key, "reward diagnosis", start)
-    advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + \
-        "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
+    advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
 
     def diagnosed() -> RewardDiagnosis:
-        """The diagnosis, waited for; ``EnvError`` for a reward with no usable gradient (one that is flat
-        everywhere only where smoothing is off, or where it is the user's own surrogate, never smoothed)."""
+        """The diagnosis, waited for; ``EnvError`` for a reward with no usable gradient (flat: where it is not smoothed)."""
         diagnosis = RewardDiagnosis(*pending())
         if surrogate_reward is not None and diagnosis.kind in ("zero", "nan"):
             own = function_name(surrogate_reward)
@@ -423,15 +421,17 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         # One jit, as the env's step has: each program tracing the surrogate reuses one interpretation per shape.
         return jax.jit(smooth_step), smoothing_done.describe(), choices
 
-    def reward_compares() -> bool:
-        """Whether the trained reward turns a comparison into a number, which the check may smooth (read
-        from the step a surrogate would be made of, at shapes); where its reward cannot be told, True."""
-        example = surrogate.step_example(env)
+    def traced_at_shapes() -> tuple | None:
+        """The step a surrogate would be made of, traced at shapes (once); None where its reward cannot be told."""
         try:
-            at_shapes.append(surrogate.trace_step(values_step, *example))
+            at_shapes[:] = at_shapes or [surrogate.trace_step(values_step, *surrogate.step_example(env))]
         except ValueError:  # no single leaf of the state is named reward: no surrogate could be made of it either
-            return True
-        return surrogate.turns_comparisons_into_numbers(at_shapes[0], example)
+            return None
+        return at_shapes[0]
+
+    def reward_compares() -> bool:
+        """Whether the trained reward turns a comparison into a number, which the check may smooth; unknown: True."""
+        return traced_at_shapes() is None or surrogate.turns_comparisons_into_numbers(at_shapes[0], surrogate.step_example(env))
 
     if smoothing_choices is not None:  # a run's surrogate, as recorded: the checks that chose it are not run again
         return task(None, "as recorded", surrogate_of(surrogate.step_example(env), lambda traced, example:
@@ -439,9 +439,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if not diagnose:
         return task(None, "not checked")
     if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
-        compares = smoothing != "off" and surrogate_reward is None and reward_compares()
+        compares = smoothing == "auto" and surrogate_reward is None and reward_compares()
         # A surrogate most likely follows the check: beside an accelerator its host's cores fit its choices meanwhile.
-        if at_shapes and (compares or smoothing == "always") and check_device() is not None:
+        if (compares or smoothing == "always") and check_device() is not None and traced_at_shapes() is not None:
             choosing.append(program_store.kept_answer_later(smoothing_key, "reward smoothing", lambda: surrogate.choices_beside(
                 at_shapes[0], started[0].sample_shapes, lambda: started[0].samples(), smoothing_scale)))
         return dataclasses.replace(task(None, "pending", answer=lambda: diagnosed().kind), settle=settle, compile_while_settling=(

@@ -274,8 +274,11 @@ def choices_beside(traced: tuple, sample_shapes: tuple, samples: Callable[[], tu
     shaped as ``sample_shapes`` on the device they will lie on), its program lowered here and compiled
     beside the caller: begun while the reward check that samples them, and decides whether they are
     needed, runs. Called, it waits for the compile, reads the samples and gives the choices."""
-    recorder, program = _recording(traced)
-    compiling = beside(program.lower(*sample_shapes).compile, "stablebptt-smoothing-choices")
+    try:
+        recorder, program = _recording(traced)
+        compiling = beside(program.lower(*sample_shapes).compile, "stablebptt-smoothing-choices")
+    except Exception:  # noqa: BLE001 - a look ahead refuses nothing: fitted once asked for, as without it
+        return lambda: _as_choices(*temperatures(None, *samples(), scale, traced))
     return lambda: _as_choices(*_chosen(recorder, *jax.device_get(compiling.result()(*samples())), scale))
 
 

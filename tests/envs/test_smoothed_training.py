@@ -252,20 +252,23 @@ def test_the_surrogates_choices_compile_beside_the_check_where_a_surrogate_most_
     """Beside an accelerator (the check on its host's CPU), where the reward turns a comparison into a number or
     smoothing is always, the program that fits the surrogate's temperatures on the check's samples is lowered
     as the task is built and compiles beside the check (else it stands after the check's answer, in the start's
-    wait); it fits the surrogate the check fits once answered. Elsewhere (a smooth reward, smoothing off, the
-    user's own surrogate, a CPU alone) nothing begins."""
-    from stablebptt.envs import adapter, surrogate
+    wait); it fits, on the samples of the check's further look along whole episodes, the surrogate the check
+    fits once answered. Elsewhere (a smooth reward, smoothing off, the user's own surrogate, a CPU alone) nothing
+    begins."""
+    from stablebptt.envs import adapter, diagnosis, surrogate
     begun = []
     begin = surrogate.beside
     monkeypatch.setattr(surrogate, "beside", lambda function, name: begun.append(name) or begin(function, name))
-    env_task(Cart("step"), horizon=5, defer_diagnosis=True).settled().settled_fully()
+    length = diagnosis.NEAR_STEPS + 19  # flat over the first steps: the check looks along whole episodes too
+    env_task(Cart("step"), horizon=5, episode_length=length, defer_diagnosis=True).settled().settled_fully()
     assert begun == []  # on a CPU alone its cores run the check's compiles and the set-up already
-    monkeypatch.setattr(adapter, "check_device", lambda: jax.devices("cpu")[0])  # as beside a GPU
-    pending = env_task(Cart("step"), horizon=5, defer_diagnosis=True)
+    fitted_after = env_task(Cart("step"), horizon=5, episode_length=length)  # undeferred: fitted once answered
+    for module in (adapter, diagnosis):  # as beside a GPU: the check's samples on the host's CPU
+        monkeypatch.setattr(module, "check_device", lambda: jax.devices("cpu")[0])
+    pending = env_task(Cart("step"), horizon=5, episode_length=length, defer_diagnosis=True)
     assert begun == ["stablebptt-smoothing-choices"] and pending.resolved["reward_gradient"] == "pending"
+    monkeypatch.setattr(surrogate, "temperatures", lambda *a, **k: pytest.fail("fitted again after the check"))
     settled = pending.settled().settled_fully()
-    assert begun == ["stablebptt-smoothing-choices"]  # used, not fitted again
-    fitted_after = env_task(Cart("step"), horizon=5)  # undeferred: fitted once the check has answered
     assert settled.resolved == fitted_after.resolved and "reward_smoothing_choices" in settled.resolved
     state = jax.tree.map(lambda a: a[0], settled.sample_initial_states(jax.random.PRNGKey(0), 2))
     for position in (-0.3, 0.05, 0.2):
