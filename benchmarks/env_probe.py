@@ -278,8 +278,8 @@ def episodes_of_run(run_dir: Path, count: int, seed_index: int) -> None:
     rounded = lambda values: " ".join(f"{value:.2f}" for value in np.ravel(values))  # noqa: E731
     for index, value in enumerate(episode.returns):
         # When the reward is earned (as blind counts it): at the start alone (a fall), later (a rise), throughout.
-        earned = np.flatnonzero(rewards[index] > 0)
-        when = (f"{earned.size} of {rewards.shape[1]} steps rewarded, from step {earned[0] + 1} to {earned[-1] + 1}"
+        earned = np.flatnonzero(rewards[index, :episode.lengths[index]] > 0)  # a state held past done is not stepped
+        when = (f"{earned.size} of {episode.lengths[index]} steps rewarded, from step {earned[0] + 1} to {earned[-1] + 1}"
                 if earned.size else "no step rewarded")
         print(f"  {index}: return {value:.0f}; {when}; qpos first {rounded(positions[index, 0])}, last "
               f"{rounded(positions[index, -1])}" + (f"; mocap {rounded(targets[index, 0])}" if targets.size else ""))
