@@ -278,7 +278,7 @@ def choices_beside(traced: tuple, sample_shapes: tuple, samples: Callable[[], tu
         recorder, program = _recording(traced)
         compiling = beside(program.lower(*sample_shapes).compile, "stablebptt-smoothing-choices")
     except Exception:  # noqa: BLE001 - a look ahead refuses nothing: fitted once asked for, as without it
-        return lambda: _as_choices(*temperatures(None, *samples(), scale, traced))
+        return lambda: smoothing_choices(None, *samples(), scale, traced)
     return lambda: _as_choices(*_chosen(recorder, *jax.device_get(compiling.result()(*samples())), scale))
 
 
