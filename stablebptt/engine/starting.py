@@ -33,9 +33,11 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     """A run's start, in the order it happens: the trainer built and its epoch traced while a check the
     task left running compiles beside (``Task.settle``: an environment's reward diagnosis); where the
     check most likely keeps the step (``Task.compile_while_settling``), the epoch's compile begun
-    beside the check's answer, which may refuse the task; where it smoothed the reward, the trainer
-    built again for the task as settled, its epoch traced and compiled (once an early compile has
-    ended) while the surrogate's own check compiles beside; that check's answer. ``program_key`` as
+    beside the check's answer, which may refuse the task; elsewhere, on an accelerator's host, the
+    programs beside the epoch traced and compiling meanwhile; where it smoothed the reward, the trainer
+    built again for the task as settled (keeping those programs where the task kept their parts), its
+    epoch traced and compiled (once an early compile has ended) while the surrogate's own check
+    compiles beside; that check's answer. ``program_key`` as
     ``train_epochs`` takes it. ``resuming``: the state will be read from a checkpoint (into
     ``lowered.shapes``), so init's programs are not compiled beside.
 
@@ -74,6 +76,12 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
         return program
 
     as_written = beside(compile_as_written, "stablebptt-epoch") if early else None
+    # Where nothing compiles beside the check, on an accelerator's host the programs beside the epoch are traced and
+    # compile while it runs: a smoothed reward leaves them as they are where the settled task keeps their parts.
+    ahead = checking and not early and _host_apart()
+    if ahead:
+        lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
+        lap("trace")
     task = task.settled()  # a reward without a usable gradient is refused here
     if early:  # what the start waited while the epoch compiled beside the check, then for the check alone
         lap("compile beside the check", until=compile_ended[0] if compile_ended else None)
@@ -84,8 +92,13 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
         trainer = build(task)
         lap("trainer set-up")
         checking = task.settle is not None  # the surrogate's own check, compiling beside
-        lowered = lowered_epoch(trainer, config, program_key, beside=False)
-    lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
+        begun, lowered = lowered, lowered_epoch(trainer, config, program_key, beside=False)
+        if ahead and _keeps_programs_beside(task, built):
+            lowered = lowered._replace(evaluation=begun.evaluation, init_rest=begun.init_rest, refill=begun.refill)
+        else:
+            ahead = False
+    if not ahead:
+        lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
     lap("surrogate's trace" if smoothed else "trace")  # the epoch's where smoothed, and the programs beside
     if smoothed and as_written is not None:
         concurrent.futures.wait([as_written])  # its program (or its error) unused
@@ -97,6 +110,22 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     if lowered.init_rest is not None:  # init's part that waits for no check, compiling beside
         trainer = trainer._replace(init=trainer.init._replace(rest=lowered.init_rest))
     return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
+
+
+def _host_apart() -> bool:
+    """Whether the programs compile for an accelerator: its host's cores, where a task's check compiles and runs
+    (an environment's reward check), have room for more (on two cores of a CPU alone, programs traced and compiled
+    while the check ran slowed the start: docs/performance.md)."""
+    return jax.default_backend() != "cpu"
+
+
+def _keeps_programs_beside(settled: Any, pending: Any) -> bool:
+    """Whether a trainer of the task ``settled`` runs the programs beside the epoch (the evaluation, the population's
+    first resets, each epoch's refill) that one of ``pending``, the task before its check answered, does: the
+    settled task kept its evaluation, its episodes and its starts (an environment's, where its states carry no
+    direction of the trained reward, whatever the check smoothed)."""
+    return (settled.evaluation is pending.evaluation and settled.episodes is pending.episodes
+            and settled.sample_initial_states is pending.sample_initial_states)
 
 
 def _compiled_now(lowered: LoweredEpoch, lap: Callable[..., None],

@@ -227,12 +227,21 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     # One cut step per step cut: a settled task keeps its pending task's step (a new one reads as smoothed: starting.py).
     cut = functools.cache(contact_cut(loaded)) if loaded else (lambda trained: trained)
 
-    @functools.cache  # one per reward trained on: a task the check settles into keeps its pending task's programs
-    def policy_for(trained):  # the direction its states carry, what the policy sees, the policy, the starts
+    # One per reward whose direction the states carry (trained; else None, one for all): a task the check settles into
+    # keeps its pending task's policy, starts, evaluation and episodes, and a trainer of it the pending one's programs.
+    @functools.cache
+    def parts_of(trained):  # the direction its states carry, what the policy sees, the policy, the starts, ...
         direction = Direction(trained, int(env.action_size), reward_direction_observed)
         seen = direction.seen(observation)
         policy = lambda params, state: observation_policy(params, seen(state), squash)  # noqa: E731
-        return direction, seen, policy, direction.sampling(sample_initial_states)
+        rollout = episode_dynamics(direction.stepping(step), policy, episode_length)
+        evaluation = lambda params, states: reference_losses(rollout, params, EpisodeState(  # noqa: E731
+            states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool)))
+        # Carried episodes: reset by the env's reset; their returns the env's own, whatever reward the windows train on.
+        episodes = Episodes(reset=direction.resetting(env.reset), reward=lambda state: state.reward,
+                            done=lambda state: state.done > 0, length=episode_length, discount=discount, observe=seen,
+                            step=direction.stepping(step), gradient_cut=loaded)
+        return direction, seen, policy, direction.sampling(sample_initial_states), evaluation, episodes
 
     # What the windows train on: the env's reward, the user's surrogate, or another env's step's reward (diagnosed alike).
     training_step, training_steps = step, own_steps
@@ -335,19 +344,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                + ("; the policy sees the direction of its trained reward in its actions" if reward_direction_observed else "")
                + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else "")
                + (f"; the derivative cut at contact loads above {contact_gradient_cut:g} body weights" if contact_gradient_cut else ""))
-    if reward_repairs:
-        summary += f"; repaired: {reward_repairs}"
+    summary += f"; repaired: {reward_repairs}" if reward_repairs else ""
 
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None,
              answer: Callable[[], str] | None = None) -> Task:  # answer: the pending check's kind, waited for
         start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
         trained_step, smoothed_terms, choices = smoothed or (training_step, "", None)
-        direction, seen, policy, sample = policy_for(trained_step)
-        evaluation = episode_dynamics(direction.stepping(step), policy, episode_length)
-        # Carried episodes: reset by the env's reset; their returns the env's own, whatever reward the windows train on.
-        episodes = Episodes(reset=direction.resetting(env.reset), reward=lambda state: state.reward,
-                            done=lambda state: state.done > 0, length=episode_length, discount=discount, observe=seen,
-                            step=direction.stepping(step), gradient_cut=loaded)
+        direction, seen, policy, sample, evaluation, episodes = parts_of(trained_step if reward_direction_observed else None)
         if smoothed and dense_variant:  # measured: a sparse env's surrogate trains less far than its dense reward
             smoothed_terms += f" ({dense_variant}'s reward, its dense variant, may train further: --dense-reward)"
         return Task(
@@ -364,11 +367,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                       **({"reward_direction_observed": True} if reward_direction_observed else {}),
                       **({"contact_gradient_cut": contact_gradient_cut} if contact_gradient_cut else {}),
                       **({"reward_smoothing": smoothed_terms, "reward_smoothing_choices": choices} if smoothed else {})},
-            evaluation=lambda params, states: reference_losses(evaluation, params, EpisodeState(
-                states, jnp.zeros(_count(states)), jnp.ones(_count(states), bool))),
-            episodes=episodes,
-            refresh_statistics=refresh_from(seen) if normalize_observations else None,
-        )
+            evaluation=evaluation, episodes=episodes, refresh_statistics=refresh_from(seen) if normalize_observations else None)
 
     def settle(wait: bool = True) -> Task | None:
         if not wait and started and not started[0].done():

@@ -248,6 +248,42 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
     assert refused.compile_while_settling and events == ["trace", "compile begun", "answer"]
 
 
+def test_on_an_accelerators_host_the_programs_beside_the_epoch_compile_while_the_check_runs(monkeypatch):
+    """On an accelerator's host, where nothing compiles beside the check (a reward it most likely smooths), the
+    programs beside the epoch (the evaluation, the population's first resets, each epoch's refill) are traced and
+    compile while the check runs. The surrogate's trainer runs them, traced once, where the settled task kept their
+    parts (its states carry no direction of the trained reward), and trains as a start that traced them after the
+    answer does. Where the states carry the trained reward's direction, the surrogate's own are traced."""
+    from stablebptt.engine import starting
+    from stablebptt.engine.task import Task
+    events = []
+    settled, others = Task.settled, starting.programs_beside
+    monkeypatch.setattr(Task, "settled", lambda self, *a, **k: events.append("answer") or settled(self, *a, **k))
+    monkeypatch.setattr(starting, "programs_beside", lambda *a, **k: events.append("beside") or others(*a, **k))
+    config = sb.TrainConfig(mode="C", epochs=2, train_size=8, test_size=8, batch=4, clip="norm", lr=1e-2)
+
+    def trained(apart: bool, **options):
+        monkeypatch.setattr(starting, "_host_apart", lambda: apart)
+        events.clear()
+        task = env_task(Cart("step"), horizon=5, defer_diagnosis=True, **options)
+        return sb.train(task, config), list(events)
+
+    ahead, begun = trained(True)
+    after, answered = trained(False)
+    assert begun == ["beside", "answer", "answer"] and answered == ["answer", "beside", "answer"]
+    assert np.all(np.isfinite(ahead.metrics["test_loss"]))
+    for name in ("train_loss", "test_loss", "batch_loss"):
+        np.testing.assert_array_equal(ahead.metrics[name], after.metrics[name])
+    for leaf, other in zip(jax.tree.leaves(ahead.params), jax.tree.leaves(after.params)):
+        np.testing.assert_array_equal(leaf, other)
+    monkeypatch.setattr(starting, "_host_apart", lambda: True)
+    events.clear()
+    directed = env_task(Cart("step"), horizon=5, defer_diagnosis=True, reward_direction_observed=True)
+    prepared = starting.prepare(directed, config)
+    assert "reward_smoothing" in prepared.task.resolved and events == ["beside", "answer", "beside", "answer"]
+    assert not starting._keeps_programs_beside(prepared.task, directed)
+
+
 def test_the_surrogates_choices_compile_beside_the_check_where_a_surrogate_most_likely_follows(monkeypatch):
     """Beside an accelerator (the check on its host's CPU), where the reward turns a comparison into a number or
     smoothing is always, the program that fits the surrogate's temperatures on the check's samples is lowered
