@@ -150,16 +150,20 @@ def start_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: in
     at all of them, the same program runs again with its clocks spread along whole episodes (a reward
     that exists only late in an episode), and its answer is the diagnosis.
 
-    Only XLA's compile works beside the caller. The step is traced here, where the reward's repairs
-    and MJX's derivative remedies are in place for this trace alone. The program runs in the caller,
-    once waited for, on the host's CPU beside an accelerator (``check_device``): on a GPU nothing of it
-    could run while a program the caller compiles meanwhile times its kernels there (autotuning).
+    The step is traced here, where the reward's repairs and MJX's derivative remedies are in place for
+    this trace alone. XLA compiles it beside the caller; on a CPU alone the program runs in the caller,
+    once waited for. Beside an accelerator it runs on the host's CPU (``check_device``), where nothing of
+    it meets a program the caller compiles meanwhile for the accelerator, which times its kernels there
+    (autotuning); there it runs beside the caller too, as soon as it has compiled.
     """
     lowered, near, whole = lowered_diagnosis(env, step, key, episode_length)
     compiled = _compiled_beside([program.compile for program in lowered], lambda compiled: _Sampled(*compiled))
     along_whole_episodes = None if whole is None else lambda: PendingDiagnosis(compiled, whole, [])  # noqa: E731
     # Its samples come back when it runs; their shapes are known now.
-    return PendingDiagnosis(compiled, near, [], along_whole_episodes, _check_device_shapes(lowered[1].out_info))
+    pending = PendingDiagnosis(compiled, near, [], along_whole_episodes, _check_device_shapes(lowered[1].out_info))
+    # Beside an accelerator it runs on the host's CPU as soon as it has compiled, while the caller traces its programs:
+    # called only once the caller waits, it rolled its episodes inside that wait.
+    return pending if check_device() is None else pending._replace(answer=beside(pending.diagnosed, "stablebptt-reward-check"))
 
 
 def lowered_diagnosis(env: Any, step: Callable, key: jax.Array, episode_length: int) -> tuple[tuple, tuple, tuple | None]:
@@ -198,8 +202,14 @@ class PendingDiagnosis(NamedTuple):
     ran: list  # the states and actions checked, (states, actions): given, or once called, those it sampled
     further: Callable[[], "PendingDiagnosis"] | None = None  # where the gradient is flat at every state: look further
     sample_shapes: tuple | None = None  # the shapes of the states and actions it samples (start_diagnosis)
+    answer: concurrent.futures.Future | None = None  # ``diagnosed()`` run beside the caller, where it is begun there
 
     def __call__(self) -> list:
+        """Waits for the compile, runs the program (or waits for its run begun beside): the fields of a
+        ``RewardDiagnosis``."""
+        return self.diagnosed() if self.answer is None else self.answer.result()
+
+    def diagnosed(self) -> list:
         """Waits for the compile, runs the program: the fields of a ``RewardDiagnosis``."""
         checked, samples = self.compiled.result()(self.argument)
         if samples is not None:

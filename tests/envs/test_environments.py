@@ -188,13 +188,19 @@ def test_a_reward_only_late_in_the_episode_passes_the_check_and_trains_with_it_o
 
 def test_beside_an_accelerator_the_reward_check_compiles_and_runs_on_the_hosts_cpu(monkeypatch):
     # Its kernels never meet the epoch's compile on a GPU, which times its own there; its answer stays the same.
+    # There it runs as soon as it has compiled, its further look along whole episodes too, before the caller asks.
     from stablebptt.envs import diagnosis
     env, key, cpu = LateCart(), jax.random.PRNGKey(0), jax.devices("cpu")[0]
     assert diagnosis.check_device() is None and diagnosis.on_check_device(key) is key  # a CPU run: as it was
+    assert diagnosis.start_diagnosis(env, env.step, key, 100).answer is None  # run once called
     monkeypatch.setattr(diagnosis.jax, "default_backend", lambda: "gpu")
     assert diagnosis.check_device() == cpu and diagnosis._diagnosis_options() is None  # the CPU's own options
     pending = diagnosis.start_diagnosis(env, env.step, key, 100)
     assert pending.argument[0].committed and pending.argument[0].devices() == {cpu}
+    ran = pending.answer.result()  # the run begun beside, the caller never having called
+    # LateCart's reward is flat over the episodes' first steps: the samples are those along whole episodes.
+    assert diagnosis.RewardDiagnosis(*ran).kind == "usable" and pending.samples()[1].shape[0] > 0
+    assert int(np.max(np.asarray(pending.samples()[0].data["count"]))) >= LateCart.LATE
     assert diagnosis.RewardDiagnosis(*pending()).kind == "usable"
     assert all(leaf.devices() == {cpu} for leaf in jax.tree.leaves(pending.samples()))
     checks = diagnosis.start_checks(env.step, *pending.samples())  # a surrogate's check, at the same samples
