@@ -33,7 +33,8 @@ derivative, none of the flows' machinery, no critic).
 
 --programs: a comma-separated choice of update, evaluation, refill, floor, grad (default: every one there is),
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
-(``--programs memory`` alone prints that and times nothing).
+(``--programs memory`` alone prints that and times nothing); state (asked for only): the training state's
+bytes and what a checkpoint keeps of them (the carried population without its pool), from its shapes.
 --sizes: each chosen program's size as lowered (lines of StableHLO, while loops, dynamic_update_slice ops),
 nothing compiled or timed:
 what a program holds, where its compile on a GPU is what costs (the same program on any backend).
@@ -58,6 +59,7 @@ from stablebptt import tasks  # noqa: E402
 from stablebptt.commands import train as train_script  # noqa: E402
 from stablebptt.engine.compiling import memory_plan  # noqa: E402
 from stablebptt.engine.config import batched_seeds, seed_array  # noqa: E402
+from stablebptt.engine.episodes import checkpointed  # noqa: E402
 from stablebptt.engine.lowering import state_shapes  # noqa: E402
 from stablebptt.engine.per_update import PerUpdateEpoch  # noqa: E402
 from stablebptt.engine.training import make_trainer  # noqa: E402
@@ -141,6 +143,13 @@ if "memory" in chosen:
           f"{stored / copies / 2**30:.1f} GiB a seed, {stored / 2**30:.1f} GiB for {copies} seed(s) "
           f"({train_config.batch} envs x {trainer.horizon} steps each)", flush=True)
     if chosen == {"memory"}:
+        sys.exit(0)
+if "state" in chosen:
+    shapes = state_shapes(trainer, seed_array(train_config))
+    mib = lambda tree: sum(np.prod(leaf.shape) * np.dtype(leaf.dtype).itemsize for leaf in jax.tree.leaves(tree)) / 2**20  # noqa: E731
+    print(f"{' '.join(arguments)}: training state {mib(shapes):.1f} MiB, of which a checkpoint keeps "
+          f"{mib(checkpointed(shapes)):.1f} MiB", flush=True)
+    if chosen <= {"memory", "state"}:
         sys.exit(0)
 seeds = seed_array(train_config)
 # Sizes need the state's shapes alone: its values would cost init's compiles and runs first.

@@ -250,6 +250,21 @@ def refill_pool(carried: Carried, episodes: Episodes) -> Carried:
                             pool_used=jnp.zeros((), jnp.int32))
 
 
+def checkpointed(state: Any) -> Any:
+    """What a checkpoint keeps of a trainer's ``state`` (``TrainState``): all but its carried population's pool,
+    which every epoch draws afresh as it begins (``refill_pool``) before an update reads it. Cut at N steps
+    (``cut_sooner``) the pool holds ceil(length / N) states per env: HopperStand's cut at 64 kept 16 of every
+    17 states it carried in a checkpoint of 137 MB."""
+    return state if state.carried is None else state._replace(carried=state.carried._replace(pool=None))
+
+
+def restored(kept: Any, template: Any) -> Any:
+    """A ``checkpointed`` state whole again, shaped as ``template``: its pool zeros until the epoch's refill."""
+    pool = None if template.carried is None else jax.tree.map(lambda leaf: np.zeros(leaf.shape, leaf.dtype),
+                                                              template.carried.pool)
+    return kept if pool is None else kept._replace(carried=kept.carried._replace(pool=pool))
+
+
 def first_population(seed_key: jax.Array, episodes: Episodes, envs: int, window: int) -> Carried:
     """A seed's first population: ``envs`` fresh episodes whose clocks are spread uniformly over an
     episode where a window is shorter than one (so that the windows cover every phase of it), else at 0.

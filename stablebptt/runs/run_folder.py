@@ -1,9 +1,8 @@
 """Run directories: config, metrics, parameters and checkpoints, each written atomically.
 
-A run directory holds ``config.json``, ``metrics.csv`` (one row per epoch and
-seed), ``params.npz`` (final or latest parameters, leading axis = seed) and
-``checkpoint.npz`` (parameters, optimizer state and all metrics so far), and
-for an MJCF task ``model.xml`` and ``model.mjb.gz``, the model file as given and as
+A run directory holds ``config.json``, ``metrics.csv`` (one row per epoch and seed), ``params.npz``
+(final or latest parameters, leading axis = seed) and ``checkpoint.npz`` (the training state, a
+carried population without its pool, and all metrics so far), and for an MJCF task ``model.xml`` and ``model.mjb.gz``, the model file as given and as
 compiled (self-contained: includes and meshes inside; compressed), so the run can go on
 after the file moved; a grid's cells share one compressed copy per model (``keep_model``).
 The checkpoint is the source of truth: resuming reads it and rewrites the rest.
@@ -31,6 +30,7 @@ import numpy as np
 
 from stablebptt.engine.checks import check_options
 from stablebptt.engine.config import STOPPING_OPTIONS, TrainConfig
+from stablebptt.engine.episodes import checkpointed, restored
 from stablebptt.engine.metrics import COLUMNS, empty_rows, widened
 from stablebptt.engine.training import TrainState
 from stablebptt.errors import InputError, StorageError
@@ -170,9 +170,9 @@ def identity(record: dict) -> str:
 
 
 def save_checkpoint(run_dir: Path, epoch: int, state: TrainState, rows: np.ndarray, owner: str = "") -> None:
-    """Parameters, optimizer state and metrics after ``epoch``; ``owner`` is the run's ``identity``."""
+    """What a resume needs after ``epoch`` (``episodes.checkpointed``), the metrics; ``owner``: the run's ``identity``."""
     atomic_write(run_dir / CHECKPOINT_FILE, _npz_bytes({"epoch": np.array(epoch), "metrics": rows,
-                                                        "owner": np.array(owner), **_named_leaves(state)}))
+                                                        "owner": np.array(owner), **_named_leaves(checkpointed(state))}))
 
 
 def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tuple[int, TrainState, np.ndarray]:
@@ -194,7 +194,9 @@ def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tup
                          f"{run_dir / CONFIG_FILE}): put the right checkpoint back, or delete it to start from epoch 0")
     if rows.ndim != 2 or rows.shape[1] != len(COLUMNS) or not 0 <= epoch <= 10**9:
         raise InputError(f"{path} is damaged (its metrics or epoch do not fit this version's run format)")
-    return epoch, _unflatten_like(template, leaves, path), rows
+    if len(leaves) == len(jax.tree.leaves(template)):  # nothing left out (or a checkpoint that kept the pool)
+        return epoch, _unflatten_like(template, leaves, path), rows
+    return epoch, restored(_unflatten_like(checkpointed(template), leaves, path), template), rows
 
 
 def default_run_dir(root: Path, task_name: str) -> Path:

@@ -140,6 +140,26 @@ def test_an_epoch_starts_with_its_pool_drawn_once_from_the_key_it_starts_with(tm
                                   program_key=key)
     np.testing.assert_array_equal(outcome.state.carried.pool, state.carried.pool)
     np.testing.assert_array_equal(outcome.state.carried.states, state.carried.states)
+    # Its checkpoint keeps the population without the pool, which the next epoch draws afresh before reading it:
+    # read back, the pool is zeros and the rest as trained, and the epoch after it trains as after the state.
+    from stablebptt.engine.episodes import checkpointed
+    from stablebptt.runs import run_folder
+    with np.load(tmp_path / run_folder.CHECKPOINT_FILE) as data:
+        kept = [data[name] for name in sorted(data.files) if name.startswith("leaf_")]
+    assert len(kept) == len(jax.tree.leaves(checkpointed(state))) < len(jax.tree.leaves(state))
+    epoch, read, rows = run_folder.load_checkpoint(tmp_path, state)
+    assert epoch == 2 and not np.any(read.carried.pool) and read.carried.pool.shape == state.carried.pool.shape
+    for leaf, trained in zip(jax.tree.leaves(checkpointed(read)), jax.tree.leaves(checkpointed(state))):
+        np.testing.assert_array_equal(leaf, trained)
+    after_read, after_state = (trainer.epoch(trainer.fresh(start_from), trainer.batches, trainer.train_states,
+                                             trainer.test_states)[0] for start_from in (read, state))
+    for leaf, other in zip(jax.tree.leaves(after_read), jax.tree.leaves(after_state)):
+        np.testing.assert_array_equal(leaf, other)
+    # A checkpoint that kept the pool reads as it was written.
+    run_folder.atomic_write(tmp_path / run_folder.CHECKPOINT_FILE, run_folder._npz_bytes(
+        {"epoch": np.array(2), "metrics": rows, **run_folder._named_leaves(state)}))
+    for leaf, trained in zip(jax.tree.leaves(run_folder.load_checkpoint(tmp_path, state)[1]), jax.tree.leaves(state)):
+        np.testing.assert_array_equal(leaf, trained)
     # A resume (a new trainer) from the checkpoint's arrays, NumPy's with no weak types where init's had
     # them, traces neither program again.
     from stablebptt.engine import training
