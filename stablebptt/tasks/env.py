@@ -217,7 +217,11 @@ def make_as_recorded(config: Config, resolved: dict, deferred: bool = False) -> 
     """``make`` (``make_deferred`` where ``deferred``) for a run that resumes or is reopened, its record saying
     what the task resolved to (``resolved``): a reward the run trained on a surrogate of keeps that surrogate's
     temperatures, rather than fitting them again on this machine's samples (another backend's draw moves them
-    in their third digit), and its checks, which chose and passed it, are not run again."""
+    in their third digit), and its checks, which chose and passed it, are not run again. A reward its check
+    passed as written (usable, the policy started at zero) is not checked again either: a resume on a machine
+    whose compile cache does not hold the answer compiled and ran the check anew."""
+    if not resolved.get("reward_smoothing") and resolved.get("reward_gradient") == "usable":
+        config = replace(config, reward_check=False)
     return _make(config, defer_diagnosis=deferred, smoothing_choices=resolved.get("reward_smoothing_choices"))
 
 

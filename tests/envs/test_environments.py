@@ -392,8 +392,10 @@ def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_o
     assert [int(row["epoch"]) for row in run_folder.read_metrics(tmp_path / "run" / run_folder.METRICS_FILE)] == [1, 1]
     # The resume lowers its epoch as a first start does, for the shapes its checkpoint is read into (the
     # reset's weakly typed leaves stored strongly): the lowered program serves it, none is traced after.
+    # Its reward, which the first start's check passed as written, is not checked again.
     with monkeypatch.context() as patched:
         patched.setattr(starting, "compile_epoch", lambda *a, **k: pytest.fail("the resume's epoch traced again"))
+        patched.setattr(adapter, "start_diagnosis", lambda *a: pytest.fail("the resume checked the reward again"))
         code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--budget", "0")
     assert code == 0, err
     from stablebptt.commands import train as train_command
