@@ -8,7 +8,7 @@ import jax
 
 from stablebptt.engine.compiling import CompiledBeside, untimed_options
 from stablebptt.engine.config import TrainConfig, seed_array
-from stablebptt.engine.program_store import cache_dir, lower_epoch, lower_kept
+from stablebptt.engine.program_store import cache_dir, keep_also, lower_epoch, lower_kept
 from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.training import Trainer, TrainState
 
@@ -67,6 +67,12 @@ def programs_beside(lowered: LoweredEpoch, trainer: Trainer, config: TrainConfig
     refill = None if trainer.refill is None else CompiledBeside(
         lowered_refill(trainer, lowered.shapes, program_key), lowered.shapes, "stablebptt-refill", untimed_options())
     return lowered._replace(evaluation=evaluation, init_rest=init_rest, refill=refill)
+
+
+def refill_kept_also(trainer: Trainer, states: Any, program_key: dict | None, other: dict | None) -> None:
+    """The trainer's refill, kept under ``program_key`` (``lowered_refill``), kept under ``other`` too."""
+    if trainer.refill is not None:
+        keep_also(trainer.kept_under(program_key), trainer.kept_under(other), "refill", (states,))
 
 
 def lowered_refill(trainer: Trainer, states: Any, program_key: dict | None = None) -> Any:

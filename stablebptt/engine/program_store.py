@@ -219,6 +219,22 @@ def _lower_kept(program: Callable, arguments: tuple, key_parts: dict, folder: Pa
     return jax.jit(call, compiler_options=compiler_options).lower(*arguments)
 
 
+def keep_also(key_parts: dict | None, other: dict | None, name: str, arguments: tuple) -> None:
+    """The traced program kept under ``key_parts`` and ``name`` for ``arguments`` (``lower_kept``) kept under
+    ``other`` too, where one is kept and none is there: a program that two keys decide alike, traced under
+    the first, is then found under either (a start that settles its task's key once its programs are traced)."""
+    folder = cache_dir()
+    if key_parts is None or other is None or folder is None:
+        return
+    source, target = (folder / FOLDER / f"{program_key({**parts, 'program': name}, arguments)}{SUFFIX}"
+                      for parts in (key_parts, other))
+    try:
+        if source.is_file() and not target.is_file():
+            atomic_write(target, source.read_bytes())
+    except OSError:  # not kept: the next run traces it again
+        pass
+
+
 def kept_function(function: Callable, arguments: tuple, key_parts: dict | None, name: str) -> Callable:
     """``function`` (jitted) for arguments shaped as ``arguments``, read from its traced program kept
     under ``key_parts`` and ``name`` while JAX's compile cache is on (traced and kept first where none

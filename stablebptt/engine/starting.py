@@ -13,7 +13,7 @@ import jax
 
 from stablebptt.engine.compiling import CompiledBeside, beside, untimed_options
 from stablebptt.engine.config import TrainConfig
-from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, lowered_refill, programs_beside
+from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, lowered_refill, programs_beside, refill_kept_also
 from stablebptt.engine.program_store import cache_dir, compile_epoch
 from stablebptt.engine.training import Trainer, make_trainer
 from stablebptt.errors import InputError
@@ -88,13 +88,14 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     lap("check's wait")
     smoothed = task.dynamics.step is not built.dynamics.step
     if smoothed:  # the check smoothed the reward: train the task as settled
-        program_key = _smoothed_key(program_key, task)
+        pending_key, program_key = program_key, _smoothed_key(program_key, task)
         trainer = build(task)
         lap("trainer set-up")
         checking = task.settle is not None  # the surrogate's own check, compiling beside
         begun, lowered = lowered, lowered_epoch(trainer, config, program_key, beside=False)
         if ahead and _keeps_programs_beside(task, built):
             lowered = lowered._replace(evaluation=begun.evaluation, init_rest=begun.init_rest, refill=begun.refill)
+            refill_kept_also(trainer, lowered.shapes, pending_key, program_key)  # where a resume looks for it
         else:
             ahead = False
     if not ahead:
@@ -122,10 +123,12 @@ def _host_apart() -> bool:
 def _keeps_programs_beside(settled: Any, pending: Any) -> bool:
     """Whether a trainer of the task ``settled`` runs the programs beside the epoch (the evaluation, the population's
     first resets, each epoch's refill) that one of ``pending``, the task before its check answered, does: the
-    settled task kept its evaluation, its episodes and its starts (an environment's, where its states carry no
-    direction of the trained reward, whatever the check smoothed)."""
-    return (settled.evaluation is pending.evaluation and settled.episodes is pending.episodes
-            and settled.sample_initial_states is pending.sample_initial_states)
+    settled task kept its evaluation (a rollout of its own, not its dynamics'), its episodes, its starts and its
+    window (an environment's, where its states carry no direction of the trained reward, whatever the check
+    smoothed)."""
+    return (settled.evaluation is not None and settled.evaluation is pending.evaluation
+            and settled.episodes is pending.episodes and settled.sample_initial_states is pending.sample_initial_states
+            and settled.dynamics.horizon == pending.dynamics.horizon)
 
 
 def _compiled_now(lowered: LoweredEpoch, lap: Callable[..., None],

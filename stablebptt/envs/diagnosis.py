@@ -226,8 +226,9 @@ class PendingDiagnosis(NamedTuple):
         return self.ran[0] if self.ran else None
 
     def done(self) -> bool:
-        """Whether the compile has ended (calling then waits no longer than the program's run)."""
-        return self.compiled.done()
+        """Whether calling waits no longer than the program's run: its compile has ended (its run too, where
+        begun beside)."""
+        return self.compiled.done() if self.answer is None else self.answer.done()
 
 
 def check_device() -> jax.Device | None:

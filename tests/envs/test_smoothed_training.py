@@ -248,7 +248,7 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
     assert refused.compile_while_settling and events == ["trace", "compile begun", "answer"]
 
 
-def test_on_an_accelerators_host_the_programs_beside_the_epoch_compile_while_the_check_runs(monkeypatch):
+def test_on_an_accelerators_host_the_programs_beside_the_epoch_compile_while_the_check_runs(tmp_path, monkeypatch):
     """On an accelerator's host, where nothing compiles beside the check (a reward it most likely smooths), the
     programs beside the epoch (the evaluation, the population's first resets, each epoch's refill) are traced and
     compile while the check runs. The surrogate's trainer runs them, traced once, where the settled task kept their
@@ -282,6 +282,14 @@ def test_on_an_accelerators_host_the_programs_beside_the_epoch_compile_while_the
     prepared = starting.prepare(directed, config)
     assert "reward_smoothing" in prepared.task.resolved and events == ["beside", "answer", "beside", "answer"]
     assert not starting._keeps_programs_beside(prepared.task, directed)
+    # Under a key (a registry env's), the refill traced before the answer is kept where a resume, made as
+    # recorded under the smoothed reward's key, looks for it: the resume traces it no more.
+    from stablebptt.engine import lowering, program_store
+    assert program_store.cache_dir() is not None
+    first = starting.prepare(env_task(Cart("step"), horizon=5, defer_diagnosis=True), config, {"test": str(tmp_path)})
+    assert "reward_smoothing" in first.program_key
+    monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("the refill traced again"))
+    lowering.lowered_refill(first.trainer, first.lowered.shapes, first.program_key)
 
 
 def test_the_surrogates_choices_compile_beside_the_check_where_a_surrogate_most_likely_follows(monkeypatch):
