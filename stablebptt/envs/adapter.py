@@ -24,7 +24,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -43,6 +43,7 @@ from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_
                                        start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
                                       function_name, observation, with_reset_traced_once)
+from stablebptt.envs.returns import EpisodeState, episode_dynamics, rollout_loss
 from stablebptt.envs.reward_direction import Direction
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
@@ -56,42 +57,6 @@ SMALL_OUTPUT_SCALE = 1e-2
 
 def _count(states: PyTree) -> int:
     return jax.tree.leaves(states)[0].shape[0]
-
-
-class EpisodeState(NamedTuple):
-    """An environment state with the return so far and whether the episode still runs."""
-
-    env: PyTree
-    total: jax.Array
-    running: jax.Array
-
-
-def episode_dynamics(step: Callable, policy: Callable, episode_length: int) -> Dynamics:
-    """A rollout whose loss is the negative episode return, rewards counted until the first ``done``.
-
-    Its state wraps the environment's (``EpisodeState``) so that the return is
-    summed as the rollout goes and no step's state needs keeping.
-    """
-    def episode_step(state: EpisodeState, action):
-        reached = step(state.env, action)
-        # where, not a product: a reward after the end (a NaN state, say) must not leak in.
-        total = state.total + jnp.where(state.running, reached.reward, 0.0)
-        return EpisodeState(reached, total, state.running & (reached.done == 0))
-
-    return Dynamics(step=episode_step, policy=lambda params, state: policy(params, state.env),
-                    loss=lambda states, actions: -states.total[-1], horizon=episode_length)
-
-
-def rollout_loss(discount: float) -> Callable:
-    """The negative discounted return of one rollout, rewards counted until the first ``done``."""
-    def loss(states, actions):
-        done = jax.lax.stop_gradient(states.done)
-        # Step t's reward counts if no earlier step ended the episode.
-        running = jnp.concatenate([jnp.ones((1,), done.dtype), jnp.cumprod(1 - done)[:-1]]) > 0
-        weights = discount ** jnp.arange(done.shape[0], dtype=states.reward.dtype)
-        return -jnp.sum(jnp.where(running, weights * states.reward, 0.0))
-
-    return loss
 
 
 def _is_playground(env: Any) -> bool:
@@ -280,6 +245,18 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     choosing: list[Callable[[], dict]] = []  # a surrogate's choices, begun beside the check
     smoothing_key = None if answer_key is None else {**answer_key, "smoothing_scale": smoothing_scale}
 
+    def traced_at_shapes() -> tuple | None:
+        """The step a surrogate would be made of, traced at shapes (once); None where its reward cannot be told."""
+        try:
+            at_shapes[:] = at_shapes or [surrogate.trace_step(values_step, *surrogate.step_example(env))]
+        except ValueError:  # no single leaf of the state is named reward: no surrogate could be made of it either
+            return None
+        return at_shapes[0]
+
+    def reward_compares() -> bool:
+        """Whether the trained reward turns a comparison into a number, which the check may smooth; unknown: True."""
+        return traced_at_shapes() is None or surrogate.turns_comparisons_into_numbers(at_shapes[0], surrogate.step_example(env))
+
     def start() -> PendingDiagnosis:
         try:
             started.append(start_diagnosis(env, training_step, jax.random.PRNGKey(diagnosis_seed), episode_length))
@@ -292,8 +269,20 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if not diagnose:  # nothing traces the step before the trainer: see that it keeps the protocol
         program_store.kept_answer(diagnosis_key, "protocol", lambda: check_step(env, step, observations, label))
 
+    # Where none is kept, beside an accelerator a reward the check most likely keeps (one turning no comparison into
+    # a number) is checked once the start asks, as its epoch compiles: the check's trace then holds back no compile.
+    later: list[bool] = []  # whether the diagnosis begins once asked, where none was kept (else it has begun)
+
+    def begin() -> Callable[[], Any]:
+        try:  # a step that breaks the protocol is checked now, where the check's trace says how
+            later.append(defer_diagnosis and smoothing == "auto" and surrogate_reward is None and
+                         check_device() is not None and not reward_compares())
+        except (TypeError, ValueError, AttributeError):
+            later.append(False)
+        return (lambda: start()()) if later[0] else start()
+
     if diagnose:
-        pending = program_store.kept_answer_later(answer_key, "reward diagnosis", start)
+        pending = program_store.kept_answer_later(answer_key, "reward diagnosis", begin)
     advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
 
     def diagnosed() -> RewardDiagnosis:
@@ -370,7 +359,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             evaluation=evaluation, episodes=episodes, refresh_statistics=refresh_from(seen) if normalize_observations else None)
 
     def settle(wait: bool = True) -> Task | None:
-        if not wait and started and not started[0].done():
+        if not wait and later and not (started and started[0].done()):
             return None
         diagnosis = diagnosed()
         if diagnosis.kind != "zero" and smoothing != "always":
@@ -420,24 +409,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         # One jit, as the env's step has: each program tracing the surrogate reuses one interpretation per shape.
         return jax.jit(smooth_step), smoothing_done.describe(), choices
 
-    def traced_at_shapes() -> tuple | None:
-        """The step a surrogate would be made of, traced at shapes (once); None where its reward cannot be told."""
-        try:
-            at_shapes[:] = at_shapes or [surrogate.trace_step(values_step, *surrogate.step_example(env))]
-        except ValueError:  # no single leaf of the state is named reward: no surrogate could be made of it either
-            return None
-        return at_shapes[0]
-
-    def reward_compares() -> bool:
-        """Whether the trained reward turns a comparison into a number, which the check may smooth; unknown: True."""
-        return traced_at_shapes() is None or surrogate.turns_comparisons_into_numbers(at_shapes[0], surrogate.step_example(env))
-
     if smoothing_choices is not None:  # a run's surrogate, as recorded: the checks that chose it are not run again
         return task(None, "as recorded", surrogate_of(surrogate.step_example(env), lambda traced, example:
                                                       surrogate.checked_places(traced, smoothing_choices, example, label)))
     if not diagnose:
         return task(None, "not checked")
-    if defer_diagnosis and started:  # a kept diagnosis is read, and may refuse, at once
+    if defer_diagnosis and later:  # a kept diagnosis is read, and may refuse, at once
         compares = smoothing == "auto" and surrogate_reward is None and reward_compares()
         # A surrogate most likely follows the check: beside an accelerator its host's cores fit its choices meanwhile.
         if (compares or smoothing == "always") and check_device() is not None and traced_at_shapes() is not None:

@@ -248,6 +248,30 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
     assert refused.compile_while_settling and events == ["trace", "compile begun", "answer"]
 
 
+def test_beside_an_accelerator_a_reward_the_check_most_likely_keeps_is_checked_once_its_epoch_compiles(monkeypatch):
+    """Beside an accelerator (the check on its host's CPU), a reward that turns no comparison into a number begins
+    its check once the start asks for it, its epoch's compile begun: the check's trace holds back no compile. A
+    reward that compares, which the check most likely smooths, has its check begun as the task is built."""
+    from stablebptt.engine import starting
+    from stablebptt.envs import adapter, diagnosis
+    cpu = jax.devices("cpu")[0]
+    for module in (adapter, diagnosis):
+        monkeypatch.setattr(module, "check_device", lambda: cpu)
+    events = []
+    begin, start = starting.beside, adapter.start_diagnosis
+    monkeypatch.setattr(starting, "beside", lambda function, name: events.append("compile begun") or begin(function, name))
+    monkeypatch.setattr(adapter, "start_diagnosis", lambda *a: events.append("check begun") or start(*a))
+    config = sb.TrainConfig(mode="C", epochs=1, train_size=8, test_size=8, batch=4, clip="norm")
+    kept = env_task(Cart("smooth"), horizon=5, defer_diagnosis=True)
+    assert kept.compile_while_settling and events == [] and kept.settled(wait=False) is kept
+    prepared = starting.prepare(kept, config)
+    assert events == ["compile begun", "check begun"] and prepared.task.resolved["reward_gradient"] == "usable"
+    events.clear()
+    smoothed = env_task(Cart("step"), horizon=5, defer_diagnosis=True)
+    assert not smoothed.compile_while_settling and events == ["check begun"]
+    assert "reward_smoothing" in smoothed.settled_fully().resolved
+
+
 def test_on_an_accelerators_host_the_programs_beside_the_epoch_compile_while_the_check_runs(tmp_path, monkeypatch):
     """On an accelerator's host, where nothing compiles beside the check (a reward it most likely smooths), the
     programs beside the epoch (the evaluation, the population's first resets, each epoch's refill) are traced and
