@@ -109,7 +109,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         reset to find it). None: diagnosed and traced every time.
       defer_diagnosis: return while the diagnosis compiles and runs beside the caller (``start_diagnosis``): the
         task's ``settled()`` waits for it and refuses a reward with no usable gradient; the parameters' values wait
-        for it too, their shapes do not, so a trainer can be built meanwhile (``scripts/train.py`` does).
+        for it too, their shapes do not, so a trainer can be built meanwhile (``scripts/train.py`` does). Beside an
+        accelerator, a reward that turns no comparison into a number is diagnosed once ``settled()`` first asks.
       smoothing: "auto": where the diagnosis finds the reward's gradient zero at every sampled state, train on a
         smooth surrogate (``envs.surrogate``), diagnosed in turn; the reported returns stay the true reward's. "always":
         the surrogate, the gradient zero or not (a term vanishing beside others: FishSwim's). "off": refuse a flat reward.
@@ -279,7 +280,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                          check_device() is not None and not reward_compares())
         except (TypeError, ValueError, AttributeError):
             later.append(False)
-        return (lambda: start()()) if later[0] else start()
+        return (lambda: (started[0] if started else start())()) if later[0] else start()  # once, whatever it raised
 
     if diagnose:
         pending = program_store.kept_answer_later(answer_key, "reward diagnosis", begin)

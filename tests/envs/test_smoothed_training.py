@@ -310,8 +310,9 @@ def test_on_an_accelerators_host_the_programs_beside_the_epoch_compile_while_the
     # recorded under the smoothed reward's key, looks for it: the resume traces it no more.
     from stablebptt.engine import lowering, program_store
     assert program_store.cache_dir() is not None
+    events.clear()
     first = starting.prepare(env_task(Cart("step"), horizon=5, defer_diagnosis=True), config, {"test": str(tmp_path)})
-    assert "reward_smoothing" in first.program_key
+    assert "reward_smoothing" in first.program_key and events == ["beside", "answer", "answer"]
     monkeypatch.setattr(program_store, "_traced", lambda *a: pytest.fail("the refill traced again"))
     lowering.lowered_refill(first.trainer, first.lowered.shapes, first.program_key)
 
