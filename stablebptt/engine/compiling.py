@@ -75,6 +75,17 @@ def untimed_options() -> dict:
     return unless_in_xla_flags({"xla_gpu_autotune_level": 0}) if jax.default_backend() == "gpu" else {}
 
 
+def host_cpu() -> jax.Device | None:
+    """The CPU of the host whose accelerator the programs compile for; None on a CPU alone, or where
+    JAX_PLATFORMS leaves the CPU out."""
+    if jax.default_backend() == "cpu":
+        return None
+    try:
+        return jax.devices("cpu")[0]
+    except RuntimeError:  # JAX_PLATFORMS without the CPU
+        return None
+
+
 def beside(function: Callable[[], Any], name: str) -> concurrent.futures.Future:
     """``function()`` run in a thread of its own, its result (or its error) in the future returned. XLA
     lets go of Python while it compiles: a compile begun here goes on while the caller traces or

@@ -254,7 +254,7 @@ def checkpointed(state: Any) -> Any:
     """What a checkpoint keeps of a trainer's ``state`` (``TrainState``): all but its carried population's pool,
     which every epoch draws afresh as it begins (``refill_pool``) before an update reads it. Cut at N steps
     (``cut_sooner``) the pool holds ceil(length / N) states per env: HopperStand's cut at 64 kept 16 of every
-    17 states it carried in a checkpoint of 137 MB."""
+    17 states it carried in a checkpoint of 136.2 MiB (benchmarks/update_program.py --programs state)."""
     return state if state.carried is None else state._replace(carried=state.carried._replace(pool=None))
 
 

@@ -11,7 +11,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 
-from stablebptt.engine.compiling import CompiledBeside, beside, untimed_options
+from stablebptt.engine.compiling import CompiledBeside, beside, host_cpu, untimed_options
 from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, lowered_refill, programs_beside, refill_kept_also
 from stablebptt.engine.program_store import cache_dir, compile_epoch
@@ -93,11 +93,10 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
         lap("trainer set-up")
         checking = task.settle is not None  # the surrogate's own check, compiling beside
         begun, lowered = lowered, lowered_epoch(trainer, config, program_key, beside=False)
-        if ahead and _keeps_programs_beside(task, built):
+        ahead = ahead and _keeps_programs_beside(task, built)
+        if ahead:
             lowered = lowered._replace(evaluation=begun.evaluation, init_rest=begun.init_rest, refill=begun.refill)
             refill_kept_also(trainer, lowered.shapes, pending_key, program_key)  # where a resume looks for it
-        else:
-            ahead = False
     if not ahead:
         lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
     lap("surrogate's trace" if smoothed else "trace")  # the epoch's where smoothed, and the programs beside
@@ -114,10 +113,10 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
 
 
 def _host_apart() -> bool:
-    """Whether the programs compile for an accelerator: its host's cores, where a task's check compiles and runs
-    (an environment's reward check), have room for more (on two cores of a CPU alone, programs traced and compiled
-    while the check ran slowed the start: docs/performance.md)."""
-    return jax.default_backend() != "cpu"
+    """Whether a task's check compiles and runs on the CPU of an accelerator's host (``host_cpu``), whose cores
+    have room for more (on two cores of a CPU alone, programs traced and compiled while the check ran slowed the
+    start: docs/performance.md)."""
+    return host_cpu() is not None
 
 
 def _keeps_programs_beside(settled: Any, pending: Any) -> bool:

@@ -254,6 +254,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             return None
         return at_shapes[0]
 
+    @functools.cache  # asked as the check begins and as the pending task is made
     def reward_compares() -> bool:
         """Whether the trained reward turns a comparison into a number, which the check may smooth; unknown: True."""
         return traced_at_shapes() is None or surrogate.turns_comparisons_into_numbers(at_shapes[0], surrogate.step_example(env))

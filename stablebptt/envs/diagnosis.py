@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.engine.compiling import beside, compiler_options, untimed_options
+from stablebptt.engine.compiling import beside, compiler_options, host_cpu, untimed_options
 from stablebptt.flows.dynamics import join, split
 
 PyTree = Any
@@ -238,12 +238,7 @@ def check_device() -> jax.Device | None:
     CheetahRun and the walkers), and its kernels could not run while the epoch's compile timed its
     own there (a GPU's autotuning), so the epoch could not compile before the check had answered. On
     the host's CPU the check compiles and runs whatever the GPU does meanwhile."""
-    if jax.default_backend() == "cpu":
-        return None
-    try:
-        return jax.devices("cpu")[0]
-    except RuntimeError:  # JAX_PLATFORMS without the CPU: the default device
-        return None
+    return host_cpu()
 
 
 def on_check_device(tree: PyTree) -> PyTree:
