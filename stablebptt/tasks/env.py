@@ -221,7 +221,10 @@ def make_as_recorded(config: Config, resolved: dict, deferred: bool = False) -> 
     passed as written (usable, the policy started at zero) is not checked again either: a resume on a machine
     whose compile cache does not hold the answer compiled and ran the check anew."""
     if not resolved.get("reward_smoothing") and resolved.get("reward_gradient") == "usable":
-        config = replace(config, reward_check=False)
+        task = _make(replace(config, reward_check=False), defer_diagnosis=deferred)
+        # Said as the run's own check found it, and recorded so: a later resume of it skips the check too.
+        return replace(task, summary=f"{task.summary}; reward gradient: usable (as the run's first check found)",
+                       resolved={**task.resolved, "reward_gradient": "usable"})
     return _make(config, defer_diagnosis=deferred, smoothing_choices=resolved.get("reward_smoothing_choices"))
 
 

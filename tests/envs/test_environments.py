@@ -398,6 +398,11 @@ def test_an_interrupted_episode_run_resumes_to_the_metrics_of_an_uninterrupted_o
         patched.setattr(adapter, "start_diagnosis", lambda *a: pytest.fail("the resume checked the reward again"))
         code, err = train_in_process(capsys, "--resume", str(tmp_path / "run"), "--budget", "0")
     assert code == 0, err
+    # It says so, and the task reopened from the run (a resume or a render) records the reward as usable still.
+    from stablebptt.apps.trained import open_trained
+    reopened = open_trained(tmp_path / "run").task
+    assert "reward gradient: usable (as the run's first check found)" in reopened.summary
+    assert reopened.resolved["reward_gradient"] == "usable"
     from stablebptt.commands import train as train_command
     assert train_command.main(["--env", "envs_for_tests:make_cart", *sizes, "--epochs", "3",
                                "--out", str(tmp_path / "straight")]) == 0
