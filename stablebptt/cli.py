@@ -54,6 +54,14 @@ class Parser(argparse.ArgumentParser):
         fail(f"{message} (see --help)")
 
 
+def path_named(text: str) -> Path:
+    """A path given on the command line (argparse's ``type``): an empty one, which ``Path`` reads as the
+    folder the command runs in, is refused rather than written into."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path: give a file's or folder's name")
+    return Path(text)
+
+
 def option_name(field_name: str) -> str:
     return "--" + field_name.replace("_", "-")
 

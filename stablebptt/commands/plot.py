@@ -18,17 +18,16 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from stablebptt.cli import Parser, fail
+from stablebptt.cli import Parser, fail, path_named
 from stablebptt.errors import InputError
 from stablebptt.reports.choices import BANDS, X_AXES
 
 
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR", help="run directories written by scripts/train.py")
-    parser.add_argument("--out", type=Path, default=None,
+    parser.add_argument("run_dirs", nargs="+", type=path_named, metavar="RUN_DIR", help="run directories written by scripts/train.py")
+    parser.add_argument("--out", type=path_named, default=None,
                         help="figure file (.png, .pdf or .svg); default with one RUN_DIR: RUN_DIR/learning_curves.png")
     parser.add_argument("--smooth", type=int, default=None, metavar="N",
                         help="centred moving average over N epochs, 0 = raw (default: 30 for runs of >= 90 epochs, else 0)")

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-from stablebptt.cli import Parser, add_options, build, fail, one_line_errors
+from stablebptt.cli import Parser, add_options, build, fail, one_line_errors, path_named
 from stablebptt.errors import InputError
 from stablebptt.render.media import fresh_outputs
 from stablebptt.render.mujoco_frames import MAX_VIDEO_FRAMES, video_indices, video_stride
@@ -62,9 +62,9 @@ class RenderConfig:
 
 def parse(argv: list[str]) -> tuple[argparse.Namespace, RenderConfig]:
     parser = Parser(description=__doc__, formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32))
-    parser.add_argument("run_dir", type=Path, nargs="?", default=None, help="a run directory written by scripts/train.py")
-    parser.add_argument("--model", type=Path, default=None, help="render this MJCF under a zero policy instead of a run")
-    parser.add_argument("--out", type=Path, default=None,
+    parser.add_argument("run_dir", type=path_named, nargs="?", default=None, help="a run directory written by scripts/train.py")
+    parser.add_argument("--model", type=path_named, default=None, help="render this MJCF under a zero policy instead of a run")
+    parser.add_argument("--out", type=path_named, default=None,
                         help="the video to write (.mp4 or .gif); the pictures are named after it "
                              "(default: RUN_DIR/rollout.mp4, or renders/MODEL-TIME.mp4 with --model)")
     add_options(parser, RenderConfig, "rendering")

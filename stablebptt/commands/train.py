@@ -17,7 +17,7 @@ import numpy as np
 
 from stablebptt import tasks
 from stablebptt.cli import (Parser, add_options, build, fail, leave_out_unused_backends, one_line_errors, option_name,
-                            typed_option)
+                            path_named, typed_option)
 from stablebptt.commands import task_options
 from stablebptt.engine import metrics
 from stablebptt.engine.config import TrainConfig
@@ -32,8 +32,8 @@ UNTIL_BUDGET = 1_000_000  # the epochs of a run given --budget and no --epochs
 
 def parse(argv: list[str]):
     parser = Parser(description=__doc__, formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32))
-    parser.add_argument("--out", type=Path, default=None, help="run directory to create (default: runs/TASK-TIME); never overwritten")
-    parser.add_argument("--resume", type=Path, default=None, help="continue the run in this directory from its checkpoint")
+    parser.add_argument("--out", type=path_named, default=None, help="run directory to create (default: runs/TASK-TIME); never overwritten")
+    parser.add_argument("--resume", type=path_named, default=None, help="continue the run in this directory from its checkpoint")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs and CI)")
     parser.add_argument("--compile-cache", action=argparse.BooleanOptionalAction, default=True,
                         help="keep compiled programs between runs (in $STABLEBPTT_COMPILE_CACHE or ~/.cache/stablebptt; default: on)")
@@ -45,7 +45,8 @@ def parse(argv: list[str]):
     parser.add_argument("--recipe", choices=sorted(env_module.RECIPES), default=None,
                         help="options measured together, for an --env: " + "; ".join(
                             recipe_help(name, env_module) for name in sorted(env_module.RECIPES))
-                        + " (an option given beside it wins)")
+                        + " (an option given beside it wins, and leaves out what the recipe set for the value it "
+                          "replaces: --no-critic the critic's settings)")
     return parser.parse_args(argv), owners
 
 
@@ -180,13 +181,13 @@ def train(argv: list[str], held: list) -> int:
                                                                    begun.program_key, begun.lowered, started,
                                                                    begun.phases, begun.compile_saved_mark))
     except StorageError as error:
-        fail(f"{error.strerror}; the run keeps its last checkpoint: free space and continue with --resume {run_dir}", code=1)
+        fail(f"{error.strerror}; {_kept(run_dir)}: free space and continue with --resume {run_dir}", code=1)
     except jax.errors.JaxRuntimeError as error:
         if (line := out_of_memory(error)) is None:
             raise
-        fail(f"{task_label}: {line}; the run keeps its last checkpoint: free memory (another process may hold it) "
-             f"and continue with --resume {run_dir}, or start a new run with a smaller --batch, fewer --seeds or "
-             f"--steps", code=1)
+        fail(f"{task_label}: {line}; {_kept(run_dir)}: free memory (another process may hold it) and continue with "
+             f"--resume {run_dir}, or start a new run with a smaller --batch, fewer --seeds, --steps or smaller "
+             f"networks (--policy-width, --critic-width)", code=1)
     progress.close()
     if outcome.status == "diverged":
         print(f"error: {outcome.message}", file=sys.stderr)
@@ -205,6 +206,14 @@ def train(argv: list[str], held: list) -> int:
     print(f"done: {task_label}, mode {train_config.mode}, {_epochs(outcome.epoch)}, final test loss "
           f"{_final(outcome.rows, seeds)} -> {run_dir}")
     return 0
+
+
+def _kept(run_dir: Path) -> str:
+    """What a run stopped by a fault keeps, in words: its last checkpoint, or none yet (its resume starts again)."""
+    from stablebptt.runs.run_folder import CHECKPOINT_FILE
+    if (run_dir / CHECKPOINT_FILE).is_file():
+        return "the run keeps its last checkpoint"
+    return "the run had not finished an epoch (a resume starts it from epoch 0)"
 
 
 def _final(rows, seeds) -> str:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import os
 import threading
 import time
@@ -14,9 +15,10 @@ import jax.numpy as jnp
 
 from stablebptt.engine.checks import parameter_shapes
 from stablebptt.engine.config import LARGE_STEP, TrainConfig, batched_seeds
-from stablebptt.engine.memory import MemoryPlan, measure_now, plan_memory
+from stablebptt.engine.memory import BUDGET_FRACTION, MemoryPlan, available_bytes, gigabytes, measure_now, plan_memory
 from stablebptt.engine.spread import device_count
 from stablebptt.engine.task import Task
+from stablebptt.errors import InputError, config_field
 from stablebptt.flows.dynamics import Plan, PyTree
 from stablebptt.timing import usable_cores
 
@@ -164,19 +166,39 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
     at ``config.batch`` examples per update and seed, every seed batched in one program (vmap) beside
     the others, into one device's memory: the examples split evenly over ``config.devices``."""
     dynamics, plan = task.dynamics, task.plan if plan is None else plan
+    budget, networks = int(BUDGET_FRACTION * available_bytes()), networks_bytes(task, config)
+    if networks >= budget:  # the gradient path's budget is what the networks leave
+        field = functools.partial(config_field, config)
+        raise InputError(f"the networks' parameters need {gigabytes(networks)} with their gradients and Adam's moments"
+                         f"{f' over {batched_seeds(config)} seeds' if batched_seeds(config) > 1 else ''}, more than the "
+                         f"{gigabytes(budget)} this machine can give them: make the policy smaller (its hidden layers' "
+                         f"widths and count) or the critic ({field('critic_width')}, {field('critic_depth')}, "
+                         f"{field('critics')}), or train fewer {field('seeds')} in one program")
     control = _example_control(task, config, initial_state)
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
     known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
     return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, plan.step_derivative,
-                       tangents=size(initial_state) + size(control) - known, measured=measured,
+                       tangents=size(initial_state) + size(control) - known, budget=budget - networks, measured=measured,
                        copies=batched_seeds(config),  # seeds batched hold their paths at once
                        devices=device_count(config))
+
+
+def networks_bytes(task: Task, config: TrainConfig) -> int:
+    """What the networks hold beside the gradient path, in bytes, over the seeds batched in one program: the
+    policy's parameters (their shapes) and, training with the critic, its hidden layers' weights (a lower bound
+    of its parameters), each with a gradient and Adam's two moments."""
+    policy = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves(parameter_shapes(task, config.zero_output)))
+    critic = config.critics * max(config.critic_depth - 1, 0) * config.critic_width ** 2 * 4 if config.critic else 0
+    return 4 * (policy + critic) * batched_seeds(config)
 
 
 def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable = measure_now) -> Plan:
     """How a run differentiates ``task``: the task's own plan, completed by the memory plan (Jacobian
     chunks or recomputed steps), a large step's single Jacobian pass (the task may ask for it too)
     and ``config.unroll``."""
+    if config.unroll > task.dynamics.horizon:  # past the window the loops of long episodes would unroll whole
+        raise InputError(f"{config_field(config, 'unroll')} {config.unroll}: a window's loop unrolls at most its "
+                         f"{task.dynamics.horizon} steps")
     memory = memory_plan(task, config, initial_state, measured=measured)
     return dataclasses.replace(task.plan, unroll=config.unroll, jacobian_chunk=memory.jacobian_chunk,
                                rematerialize=memory.rematerialize,

@@ -31,6 +31,7 @@ RECORDED_BEFORE = {"episodes": "off", "eval_every": "epoch"}
 # through MJX's stages they are large.
 LARGE_STEP = 8_000
 MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
+MAX_COUNT = 2**31 - 1  # a count of states, units or networks: an array's dimension XLA indexes
 # JAX's names of float32 matrix products' precision (jax.default_matmul_precision).
 MATMUL_PRECISIONS = ("default", "high", "highest")
 # Training options that decide when a run stops or saves, and nothing it computes: a checkpoint and the
@@ -107,6 +108,9 @@ class TrainConfig:
                      "critic_depth", "critics"):
             if getattr(self, name) <= 0:
                 raise InputError(f"{config_field(self, name)} must be a positive integer, got {getattr(self, name)}")
+        for name in ("seeds", "batch", "train_size", "test_size", "unroll", "critic_width", "critic_depth", "critics"):
+            if getattr(self, name) > MAX_COUNT:  # arrays' sizes (epochs and checkpoints are counted in Python)
+                raise InputError(f"{config_field(self, name)} must be at most {MAX_COUNT}, got {getattr(self, name)}")
         if self.devices < 0:
             raise InputError(f"{config_field(self, 'devices')} must be a whole number >= 0 (0: every device), got {self.devices}")
         if not (math.isfinite(self.td_lambda) and 0 <= self.td_lambda <= 1):

@@ -93,7 +93,7 @@ class MemoryPlan(NamedTuple):
     estimate: int
 
 
-def _gigabytes(count: float) -> str:
+def gigabytes(count: float) -> str:
     return f"{count / 2**30:.3g} GB"
 
 
@@ -137,8 +137,8 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
         per_example = per_tangent * max(tangents, 1)
         if per_example * copies > budget:
             one_by_one = " or train the seeds one after another (--seed-batching map)" if batched else ""
-            raise InputError(f"one example's step Jacobian{batched} needs up to {_gigabytes(per_example * copies)}, "
-                             f"more than the {_gigabytes(budget)} this machine can give it: set Plan.step_derivative "
+            raise InputError(f"one example's step Jacobian{batched} needs up to {gigabytes(per_example * copies)}, "
+                             f"more than the {gigabytes(budget)} this machine can give it: set Plan.step_derivative "
                              f"to 'reverse'{one_by_one}")
         fitting = budget // (per_example * copies) * devices  # examples at once over all the devices
         estimate = per_example * share(examples) * copies
@@ -157,7 +157,7 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
     rematerialized = (state_bytes * share(examples) + per_step * share(batch)) * copies
     if rematerialized > budget:
         raise InputError(f"the backward pass of {batch} examples x {horizon} steps{batched} needs up to "
-                         f"{_gigabytes(rematerialized)} even recomputing each step, more than the {_gigabytes(budget)} "
+                         f"{gigabytes(rematerialized)} even recomputing each step, more than the {gigabytes(budget)} "
                          f"this machine can give it: use a smaller TrainConfig.batch or a shorter Dynamics.horizon"
                          + (", or train the seeds one after another (--seed-batching map)" if batched else ""))
     return MemoryPlan(None, True, stored)

@@ -225,6 +225,8 @@ def import_attribute(spec: str, what: str) -> tuple[Any, str]:
     """(the attribute ``package.module:attribute`` names, its name); ``EnvError`` in one line, naming ``what``
     ``spec`` was to be, where the module cannot be imported or lacks it."""
     module_name, _, attribute = spec.partition(":")
+    if not module_name.strip() or not attribute.strip():
+        raise EnvError(f"{what} {spec!r}: give package.module:attribute, a module and one of its names")
     # A user's module is found where Python finds modules, and in the folder the command runs in, as
     # `python -m` would (an installed command's path holds only its own folder); last, so that it
     # shadows no installed package.

@@ -202,7 +202,8 @@ def prepare(program: Program, grid: Grid, devices: list) -> Prepared:
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
     task = grid.make_task(program.values[0])
-    unroll = grid.unroll or (grid.gpu_unroll if devices[0].platform == "gpu" else 1)
+    # The task's GPU choice unrolls at most one window (a short --steps); a grid's own unroll is checked as given.
+    unroll = grid.unroll or (min(grid.gpu_unroll, task.dynamics.horizon) if devices[0].platform == "gpu" else 1)
     count = len(program.cells)
     cells = program.cells + [program.cells[-1]] * (-count % len(devices))  # pad to a multiple of the devices
     train_config = TrainConfig(epochs=grid.epochs, seeds=len(cells), train_size=grid.train_size,

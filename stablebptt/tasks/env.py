@@ -16,6 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Callable
 
+from stablebptt.engine.config import MAX_COUNT, TrainConfig
 from stablebptt.engine.task import Task
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import load_env, load_reward
@@ -75,13 +76,20 @@ RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 2}, "WalkerStand": {"st
                                                     "steps": 4, "action_noise": 0.6, "entropy": 0.003},
                                  "FingerSpin": {"action_noise": 0.6}, "HopperStand": {"action_noise": 0.6},
                                  "FishSwim": {"smoothing": "always"}}}
-# A recipe's value chosen for one value of another option: given another value of that option beside the
-# recipe, the user's choice keeps its own default of this one (the cheetah's R runs without the cosine for
-# its speed, and another mode computes its own flows and reports their cosine; C alone leaves a flow's
-# non-finite gradient at zero; the fish's surrogate is made of the reward check's samples, and a reward of
-# the user's own is trained as given).
-RECIPE_VALUES_CHOSEN_FOR = {"cosine": (("mode", "R"),), "nonfinite_flows": (("mode", "C"),),
-                            "smoothing": (("reward_check", True), ("surrogate_reward", ""))}
+# A recipe's value chosen for a value of another option (the test that option's value passes): where the user
+# gives that option a value beside the recipe that fails it, the recipe's value is left out and the option
+# keeps its own default (the cheetah's R runs without the cosine for its speed, and another mode computes its
+# own flows and reports their cosine; C alone leaves a flow's non-finite gradient at zero; the fish's surrogate
+# is made of the reward check's samples, and a reward of the user's own is trained as given; a critic, its
+# settings and the recipe's width are chosen for carried episodes; a learned noise for a noise, its entropy
+# for a learned one). Left out in turn: --no-critic drops the critic's settings.
+RECIPE_VALUES_CHOSEN_FOR = {
+    "cosine": (("mode", lambda mode: mode == "R"),), "nonfinite_flows": (("mode", lambda mode: mode == "C"),),
+    "smoothing": (("reward_check", lambda check: check), ("surrogate_reward", lambda reward: not reward)),
+    **{option: (("episodes", lambda episodes: episodes != "off"),) for option in ("critic", "batch")},
+    **{option: (("critic", lambda critic: critic),) for option in ("normalize_critic_observations", "value_at_time_limit")},
+    "learn_action_noise": (("action_noise", lambda noise: noise > 0),),
+    "entropy": (("learn_action_noise", lambda learned: learned),)}
 # --physics-step-residuals: each choice as env_task's physics_steps_recomputed (None: by the env's physics steps).
 PHYSICS_STEP_RESIDUALS = {"auto": None, "recomputed": True, "stored": False}
 
@@ -96,10 +104,14 @@ def recipe_options(name: str, env: str = "", given: Mapping[str, object] | None 
     if not isinstance(env, str):
         raise InputError(f"a recipe's env is the env's name (a string, as --env takes it), got {type(env).__name__}")
     options = {**RECIPES[name], **RECIPES_BY_ENV.get(name, {}).get(env, {})}
-    chosen = {**options, **(given or {})}  # the other option's value as the run will take it
-    chosen_apart = {option for option, conditions in RECIPE_VALUES_CHOSEN_FOR.items()
-                    if any(chosen.get(other, value) != value for other, value in conditions)}
-    return {option: value for option, value in options.items() if option not in chosen_apart}
+    defaults = {option.name: option.default for config in (TrainConfig, Config) for option in fields(config)}
+    while True:  # until no value left out leaves another's reason gone
+        chosen = {**defaults, **options, **(given or {})}  # every option's value as the run will take it
+        apart = {option for option in options if option not in (given or {}) and
+                 any(not test(chosen[other]) for other, test in RECIPE_VALUES_CHOSEN_FOR.get(option, ()))}
+        if not apart:
+            return options
+        options = {option: value for option, value in options.items() if option not in apart}
 
 
 def recipe(name: str, env: str = "") -> tuple[dict, dict]:
@@ -168,10 +180,10 @@ class Config:
         if not (math.isfinite(self.contact_gradient_cut) and self.contact_gradient_cut >= 0):
             raise InputError(f"{config_field(self, 'contact_gradient_cut')} must be a number of body weights >= 0 (0: no cut), "
                              f"got {self.contact_gradient_cut}")
-        if self.policy_width < 1:
-            raise InputError(f"{config_field(self, 'policy_width')} must be a whole number of units >= 1, got {self.policy_width}")
-        if self.policy_depth < 0:
-            raise InputError(f"{config_field(self, 'policy_depth')} must be a whole number of layers >= 0, got {self.policy_depth}")
+        if not 1 <= self.policy_width <= MAX_COUNT:
+            raise InputError(f"{config_field(self, 'policy_width')} must be a whole number of units from 1 to {MAX_COUNT}, got {self.policy_width}")
+        if not 0 <= self.policy_depth <= MAX_COUNT:
+            raise InputError(f"{config_field(self, 'policy_depth')} must be a whole number of layers from 0 to {MAX_COUNT}, got {self.policy_depth}")
         if not 0 <= self.episode_length <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
 

@@ -104,6 +104,15 @@ BAD_COMMAND_LINES = [
     (["--epochs", "many"], None),
     (["--resume", "/nonexistent/run"], None),
     (["--poles", "5"], None),
+    # Counts past what an array's dimension holds, named before anything is traced; networks past memory, before
+    # anything compiles; a loop unrolled past its window; an env named by nothing.
+    *[(["--env", "envs_for_tests:make_cart", *extra, option, "99999999999999999999"], None) for extra, option in (
+        ((), "--train-size"), ((), "--test-size"), ((), "--policy-width"), ((), "--policy-depth"),
+        (("--critic",), "--critic-width"), (("--critic",), "--critics"), ((), "--unroll"))],
+    (["--env", "envs_for_tests:make_cart", "--policy-width", "1000000"], None),
+    (["--env", "envs_for_tests:make_cart", "--critic", "--critics", "100000", "--critic-width", "1000"], None),
+    (["--env", "envs_for_tests:make_cart", "--steps", "4", "--unroll", "5"], None),
+    (["--env", ":"], None),
     (["--poles", "0"], None),
     (["--model", "missing.xml"], None),
     (["--model", "{dir}/broken.xml"], "<mujoco><worldbody><body></mujoco>"),
@@ -135,9 +144,9 @@ CONFLICTS = [
      ("--smoothing always makes its surrogate of the check's sampled states", "--reward-check")),
     (["--env", "envs_for_tests:make_cart", "--smoothing", "always", "--surrogate-reward", "envs_for_tests:position_reward"],
      ("--smoothing always smooths the env's reward", "--surrogate-reward envs_for_tests:position_reward")),
-    (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--no-critic"],
-     ("--normalize-critic-observations", "--critic is off", "--recipe locomotion sets")),
-    (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--action-noise", "0"],
+    (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--no-critic", "--value-at-time-limit"],
+     ("--value-at-time-limit", "--critic is off")),
+    (["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--action-noise", "0", "--learn-action-noise"],
      ("--learn-action-noise", "--action-noise, which is 0", "--recipe locomotion sets")),
     (["--recipe", "locomotion", "--poles", "3"], ("--recipe locomotion", "--env NAME", "--task mjcf")),
     (["--resume", "{dir}/run", "--recipe", "locomotion"], ("--resume", "got --recipe")),
@@ -163,6 +172,19 @@ def test_bad_command_line_is_one_line_and_exit_code_2(train_main, tmp_path, caps
     assert exit_.value.code == 2 and len(lines) == 1 and lines[0].startswith("error: "), lines
     assert not out.exists()
     assert all(option in lines[0] for option in named), lines[0]
+
+
+def test_an_empty_path_is_refused_rather_than_read_as_the_current_folder(train_main, tmp_path, capsys, monkeypatch):
+    from stablebptt.commands import plot, render
+    monkeypatch.chdir(tmp_path)  # where an empty --out would have written the run
+    for command, arguments in ((train_main, ["--env", "envs_for_tests:make_cart", "--out", ""]),
+                               (train_main, ["--resume", " "]), (render.parse, ["run", "--out", ""]),
+                               (plot.parse, ["run", "--out", ""]), (plot.parse, [""])):
+        with pytest.raises(SystemExit) as exit_:
+            command(arguments)
+        lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert exit_.value.code == 2 and len(lines) == 1 and "an empty path" in lines[0], (arguments, lines)
+    assert not list(tmp_path.iterdir())
 
 
 @needs_playground

@@ -334,9 +334,9 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
                            (["--env", "envs_for_tests:make_cart", "--squash-gradient-floor", "-0.1"],
                             "--squash-gradient-floor must be in [0, 1)"),
                            (["--env", "envs_for_tests:make_cart", "--policy-width", "0"],
-                            "--policy-width must be a whole number of units >= 1, got 0"),
+                            "--policy-width must be a whole number of units from 1 to 2147483647, got 0"),
                            (["--env", "envs_for_tests:make_cart", "--policy-depth", "-1"],
-                            "--policy-depth must be a whole number of layers >= 0, got -1")):
+                            "--policy-depth must be a whole number of layers from 0 to 2147483647, got -1")):
         refused_in_one_line(capsys, tmp_path / "refused", expected, *args, "--epochs", "1")
 
 

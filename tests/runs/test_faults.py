@@ -351,16 +351,26 @@ def test_a_full_disk_gets_one_line_leaves_no_temporary_and_the_run_resumes(tmp_p
 def test_running_out_of_device_memory_gets_one_line_and_the_run_resumes(tmp_path, capsys, monkeypatch):
     # What a GPU shared with other processes raises mid-training (XLA's allocator, not the memory plan).
     from stablebptt.cli import EpochProgress
-    run_dir, real_on_epoch = tmp_path / "oom", EpochProgress.on_epoch
+    run_dir, real_on_epoch, real_on_compiled = tmp_path / "oom", EpochProgress.on_epoch, EpochProgress.on_compiled
+    exhausted = jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 238662897624 bytes.")
 
     def allocation_fails_in_epoch_2(self, epoch, metrics):
         if epoch == 2:
-            raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 238662897624 bytes.")
+            raise exhausted
         return real_on_epoch(self, epoch, metrics)
 
+    def allocation_fails_as_training_begins(self, seconds):
+        raise exhausted
+
+    # Before its first checkpoint (as its first epoch begins) the line says that none is kept.
+    monkeypatch.setattr(EpochProgress, "on_compiled", allocation_fails_as_training_begins)
+    code, err, _ = train(capsys, *SMALL, "--epochs", "3", "--checkpoint-every", "1", "--out", str(tmp_path / "first"))
+    assert code == 1 and len(err) == 1 and "had not finished an epoch" in err[0] and "checkpoint" not in err[0], err
+    monkeypatch.setattr(EpochProgress, "on_compiled", real_on_compiled)
     monkeypatch.setattr(EpochProgress, "on_epoch", allocation_fails_in_epoch_2)
     code, err, _ = train(capsys, *SMALL, "--epochs", "3", "--checkpoint-every", "1", "--out", str(run_dir))
     assert code == 1 and len(err) == 1 and "out of memory on cpu" in err[0] and "--resume" in err[0], err
+    assert "keeps its last checkpoint" in err[0], err
     monkeypatch.setattr(EpochProgress, "on_epoch", real_on_epoch)
     code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
     assert code == 0, err

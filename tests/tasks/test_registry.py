@@ -177,6 +177,26 @@ def test_a_recipe_sets_its_options_for_an_env_and_an_option_given_beside_it_wins
     assert (train.batch, task_config.steps, train.critic, task_config.discount) == (32, 8, True, 0.99)
 
 
+def test_an_option_given_beside_a_recipe_leaves_out_what_the_recipe_set_for_the_value_it_replaces():
+    # Turned off beside the recipe, an option takes with it the recipe's values chosen for it, in turn: the user
+    # is not told to drop an option the recipe set.
+    command = ["--env", "envs_for_tests:make_cart", "--recipe", "locomotion", "--train-size", "64"]
+    chosen = lambda *beside: train_command.configure(*train_command.parse(command + list(beside)))[2]  # noqa: E731
+    plain = train_command.configure(*train_command.parse(command[:2]))[2]
+    without_critic = chosen("--no-critic")
+    assert (without_critic.critic, without_critic.normalize_critic_observations, without_critic.value_at_time_limit) == (
+        False, False, False)
+    assert (without_critic.learn_action_noise, without_critic.entropy) == (True, 0.01)  # the noise's own are kept
+    assert (chosen("--no-learn-action-noise").entropy, chosen("--no-learn-action-noise").action_noise) == (0.0, 0.3)
+    silent = chosen("--action-noise", "0")
+    assert (silent.action_noise, silent.learn_action_noise, silent.entropy, silent.critic) == (0.0, False, 0.0, True)
+    fixed = chosen("--episodes", "off")
+    assert (fixed.critic, fixed.normalize_critic_observations, fixed.batch) == (False, False, plain.batch)
+    # Given beside, a value the recipe would leave out stays, and is refused as it is alone.
+    with pytest.raises(InputError, match="needs TrainConfig.learn_action_noise"):
+        train_command.configure(*train_command.parse(command + ["--no-learn-action-noise", "--entropy", "0.01"]))
+
+
 def test_a_recipe_from_python_is_env_tasks_arguments_and_the_train_configs_fields():
     import inspect
 
