@@ -207,17 +207,25 @@ def stop_at_once_on_interrupt() -> None:
 
 
 @contextlib.contextmanager
-def stop_on_signals(announce: Callable[[str], None] = lambda message: None) -> Iterator[Callable[[], bool]]:
+def stop_on_signals(announce: Callable[[str], None] = lambda message: None,
+                    at_once: Callable[[], str | None] = lambda: None) -> Iterator[Callable[[], bool]]:
     """Within the block, Ctrl-C, SIGTERM (timeout, Slurm, Kubernetes, docker stop) and SIGHUP ask to stop.
 
     Yields ``should_stop()``, which the training loop polls between epochs: it
     saves and stops. A second signal (another kind, or the same one more than
     ``REPEAT_SECONDS`` later) ends the process at once; the run folder still
-    resumes, from its last checkpoint. Main thread only (as Python's signals).
+    resumes, from its last checkpoint. ``at_once()``: where stopping now loses nothing (no epoch
+    begun: the compile, minutes on a large scene, would be waited for to save nothing), the line
+    that says so, and the first signal ends the process at once with it (exit code 130); else None.
+    Main thread only (as Python's signals).
     """
     requested: list[tuple[int, float]] = []  # (signal, when)
 
     def handler(signum, frame):
+        if not requested and (line := at_once()):
+            announce(f"{signal.Signals(signum).name}: {line}")
+            sys.stderr.flush()
+            os._exit(130)  # as Ctrl-C outside training: no unwinding while XLA compiles beside
         now = time.monotonic()
         if requested and requested[0][0] == signum and now - requested[0][1] < REPEAT_SECONDS:
             return  # the same request again: timeout and Slurm signal the process, then its group

@@ -175,7 +175,10 @@ def train(argv: list[str], held: list) -> int:
     progress = EpochProgress(started, train_config.epochs, start_epoch, begun.trainer.updates_per_epoch,
                              f"{task_label} {train_config.mode}", args.no_progress)
     try:
-        with stop_on_signals(progress.write) as should_stop:
+        # Before its first epoch has begun a run has nothing to save: a signal then stops it at once.
+        before_training = lambda: None if progress.compiled else (  # noqa: E731
+            f"stopped before this start's first epoch, nothing trained lost: --resume {run_dir} continues the run")
+        with stop_on_signals(progress.write, before_training) as should_stop:
             outcome = in_worker_thread(lambda: epochs.train_epochs(*begun.training_arguments(), progress.on_epoch,
                                                                    progress.on_compiled, should_stop, run.owner,
                                                                    begun.program_key, begun.lowered, started,

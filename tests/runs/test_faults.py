@@ -120,7 +120,10 @@ def test_a_signal_at_any_moment_leaves_a_folder_that_resumes(tmp_path, capsys, h
     else:
         wait_for(hold / COMPILING, process)
         process.send_signal(signal.SIGTERM)
-        seen = stderr_through(process, "SIGTERM: stopping")  # taken while compiling: it stops before epoch 1
+        # Taken while compiling, before any epoch: it stops at once, the compile not waited for (held, it never ends).
+        seen = stderr_through(process, "SIGTERM: stopped before this start's first epoch")
+        assert f"--resume {run_dir}" in seen
+        process.wait(timeout=60)
         release(hold)
     _, stderr = process.communicate(timeout=120)
     stderr = seen + stderr
