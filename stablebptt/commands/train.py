@@ -46,7 +46,8 @@ def parse(argv: list[str]):
                         help="options measured together, for an --env: " + "; ".join(
                             recipe_help(name, env_module) for name in sorted(env_module.RECIPES))
                         + " (an option given beside it wins, and leaves out what the recipe set for the value it "
-                          "replaces: --no-critic the critic's settings)")
+                          "replaces: --no-critic the critic's settings, --no-learn-action-noise the entropy, "
+                          "--action-noise 0 both, --episodes off the critic, the noise and --batch 256)")
     return parser.parse_args(argv), owners
 
 
@@ -189,8 +190,7 @@ def train(argv: list[str], held: list) -> int:
         if (line := out_of_memory(error)) is None:
             raise
         fail(f"{task_label}: {line}; {_kept(run_dir)}: free memory (another process may hold it) and continue with "
-             f"--resume {run_dir}, or start a new run with a smaller --batch, fewer --seeds, --steps or smaller "
-             f"networks (--policy-width, --critic-width)", code=1)
+             f"--resume {run_dir}, or start a new run with a smaller --batch, fewer --seeds or --steps", code=1)
     progress.close()
     if outcome.status == "diverged":
         print(f"error: {outcome.message}", file=sys.stderr)
@@ -216,7 +216,7 @@ def _kept(run_dir: Path) -> str:
     from stablebptt.runs.run_folder import CHECKPOINT_FILE
     if (run_dir / CHECKPOINT_FILE).is_file():
         return "the run keeps its last checkpoint"
-    return "the run had not finished an epoch (a resume starts it from epoch 0)"
+    return "the run has no checkpoint yet (a resume starts it from epoch 0)"
 
 
 def _final(rows, seeds) -> str:

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from stablebptt.engine.checks import parameter_shapes
 from stablebptt.engine.config import LARGE_STEP, TrainConfig, batched_seeds
-from stablebptt.engine.memory import BUDGET_FRACTION, MemoryPlan, available_bytes, gigabytes, measure_now, plan_memory
+from stablebptt.engine.memory import MemoryPlan, budget_bytes, gigabytes, measure_now, plan_memory
 from stablebptt.engine.spread import device_count
 from stablebptt.engine.task import Task
 from stablebptt.errors import InputError, config_field
@@ -166,14 +166,15 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
     at ``config.batch`` examples per update and seed, every seed batched in one program (vmap) beside
     the others, into one device's memory: the examples split evenly over ``config.devices``."""
     dynamics, plan = task.dynamics, task.plan if plan is None else plan
-    budget, networks = int(BUDGET_FRACTION * available_bytes()), networks_bytes(task, config)
+    budget, networks = budget_bytes(), networks_bytes(task, config)
     if networks >= budget:  # the gradient path's budget is what the networks leave
         field = functools.partial(config_field, config)
+        critic = (f" or the critic ({field('critic_width')}, {field('critic_depth')}, {field('critics')})"
+                  if config.critic else "")
         raise InputError(f"the networks' parameters need {gigabytes(networks)} with their gradients and Adam's moments"
-                         f"{f' over {batched_seeds(config)} seeds' if batched_seeds(config) > 1 else ''}, more than the "
-                         f"{gigabytes(budget)} this machine can give them: make the policy smaller (its hidden layers' "
-                         f"widths and count) or the critic ({field('critic_width')}, {field('critic_depth')}, "
-                         f"{field('critics')}), or train fewer {field('seeds')} in one program")
+                         f"{f' over {config.seeds} seeds' if config.seeds > 1 else ''}, more than the {gigabytes(budget)} "
+                         f"this machine can give them: make the policy smaller (its hidden layers' widths and count)"
+                         f"{critic}, or train fewer {field('seeds')}")
     control = _example_control(task, config, initial_state)
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
     known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
@@ -184,21 +185,23 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
 
 
 def networks_bytes(task: Task, config: TrainConfig) -> int:
-    """What the networks hold beside the gradient path, in bytes, over the seeds batched in one program: the
-    policy's parameters (their shapes) and, training with the critic, its hidden layers' weights (a lower bound
-    of its parameters), each with a gradient and Adam's two moments."""
+    """What the networks hold beside the gradient path, in bytes, over every seed (the training state holds each
+    seed's, batched or not): the policy's parameters (their shapes) and, training with the critic, its weights
+    past its first layer (a lower bound of its parameters), each with a gradient and Adam's two moments."""
     policy = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves(parameter_shapes(task, config.zero_output)))
-    critic = config.critics * max(config.critic_depth - 1, 0) * config.critic_width ** 2 * 4 if config.critic else 0
-    return 4 * (policy + critic) * batched_seeds(config)
+    width, depth = config.critic_width, config.critic_depth
+    critic = config.critics * ((depth - 1) * width ** 2 + width) * 4 if config.critic else 0
+    return 4 * (policy + critic) * config.seeds
 
 
 def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable = measure_now) -> Plan:
     """How a run differentiates ``task``: the task's own plan, completed by the memory plan (Jacobian
     chunks or recomputed steps), a large step's single Jacobian pass (the task may ask for it too)
     and ``config.unroll``."""
-    if config.unroll > task.dynamics.horizon:  # past the window the loops of long episodes would unroll whole
-        raise InputError(f"{config_field(config, 'unroll')} {config.unroll}: a window's loop unrolls at most its "
-                         f"{task.dynamics.horizon} steps")
+    longest = max(task.dynamics.horizon, task.episodes.length if task.episodes is not None else 0)
+    if config.unroll > longest:  # 10^20 compiled 8.7 GB unrolling the evaluation's episodes whole
+        raise InputError(f"{config_field(config, 'unroll')} {config.unroll}: a run's longest loop (a window, an "
+                         f"episode) has {longest} steps")
     memory = memory_plan(task, config, initial_state, measured=measured)
     return dataclasses.replace(task.plan, unroll=config.unroll, jacobian_chunk=memory.jacobian_chunk,
                                rematerialize=memory.rematerialize,

@@ -32,6 +32,7 @@ RECORDED_BEFORE = {"episodes": "off", "eval_every": "epoch"}
 LARGE_STEP = 8_000
 MAX_SEED = 2**32 - 1  # seeds are unsigned 32-bit PRNG seeds
 MAX_COUNT = 2**31 - 1  # a count of states, units or networks: an array's dimension XLA indexes
+MAX_DEPTH = 1000  # a network's hidden layers, built and traced one by one in Python
 # JAX's names of float32 matrix products' precision (jax.default_matmul_precision).
 MATMUL_PRECISIONS = ("default", "high", "highest")
 # Training options that decide when a run stops or saves, and nothing it computes: a checkpoint and the
@@ -109,8 +110,9 @@ class TrainConfig:
             if getattr(self, name) <= 0:
                 raise InputError(f"{config_field(self, name)} must be a positive integer, got {getattr(self, name)}")
         for name in ("seeds", "batch", "train_size", "test_size", "unroll", "critic_width", "critic_depth", "critics"):
-            if getattr(self, name) > MAX_COUNT:  # arrays' sizes (epochs and checkpoints are counted in Python)
-                raise InputError(f"{config_field(self, name)} must be at most {MAX_COUNT}, got {getattr(self, name)}")
+            most = MAX_DEPTH if name == "critic_depth" else MAX_COUNT  # epochs and checkpoints are counted in Python
+            if getattr(self, name) > most:
+                raise InputError(f"{config_field(self, name)} must be at most {most}, got {getattr(self, name)}")
         if self.devices < 0:
             raise InputError(f"{config_field(self, 'devices')} must be a whole number >= 0 (0: every device), got {self.devices}")
         if not (math.isfinite(self.td_lambda) and 0 <= self.td_lambda <= 1):

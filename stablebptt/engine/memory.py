@@ -97,6 +97,11 @@ def gigabytes(count: float) -> str:
     return f"{count / 2**30:.3g} GB"
 
 
+def budget_bytes() -> int:
+    """What a run's gradient path and networks may take of this machine's memory."""
+    return int(BUDGET_FRACTION * available_bytes())
+
+
 def measure_now(name: str, measure: Callable[[], int]) -> int:
     """``plan_memory``'s default ``measured``: every measurement traced now."""
     return measure()
@@ -126,7 +131,7 @@ def plan_memory(step: Callable, state: PyTree, control: PyTree, horizon: int, ba
     Raises:
       InputError: if not even one example fits.
     """
-    budget = budget if budget is not None else int(BUDGET_FRACTION * available_bytes())
+    budget = budget if budget is not None else budget_bytes()
     examples = horizon * batch
     share = lambda whole: -(-whole // devices)  # one device's part of a path split over the devices
     batched = f" x {copies} seeds in one program" if copies > 1 else ""

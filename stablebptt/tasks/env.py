@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Callable
 
-from stablebptt.engine.config import MAX_COUNT, TrainConfig
+from stablebptt.engine.config import MAX_COUNT, MAX_DEPTH, TrainConfig
 from stablebptt.engine.task import Task
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import load_env, load_reward
@@ -76,17 +76,12 @@ RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 2}, "WalkerStand": {"st
                                                     "steps": 4, "action_noise": 0.6, "entropy": 0.003},
                                  "FingerSpin": {"action_noise": 0.6}, "HopperStand": {"action_noise": 0.6},
                                  "FishSwim": {"smoothing": "always"}}}
-# A recipe's value chosen for a value of another option (the test that option's value passes): where the user
-# gives that option a value beside the recipe that fails it, the recipe's value is left out and the option
-# keeps its own default (the cheetah's R runs without the cosine for its speed, and another mode computes its
-# own flows and reports their cosine; C alone leaves a flow's non-finite gradient at zero; the fish's surrogate
-# is made of the reward check's samples, and a reward of the user's own is trained as given; a critic, its
-# settings and the recipe's width are chosen for carried episodes; a learned noise for a noise, its entropy
-# for a learned one). Left out in turn: --no-critic drops the critic's settings.
+# A recipe's value chosen for a value of another option (a test of that option's value): given a value beside the
+# recipe that fails it, the option keeps its own default, and what was chosen for it goes in turn (docs/running.md).
 RECIPE_VALUES_CHOSEN_FOR = {
     "cosine": (("mode", lambda mode: mode == "R"),), "nonfinite_flows": (("mode", lambda mode: mode == "C"),),
     "smoothing": (("reward_check", lambda check: check), ("surrogate_reward", lambda reward: not reward)),
-    **{option: (("episodes", lambda episodes: episodes != "off"),) for option in ("critic", "batch")},
+    **{option: (("episodes", lambda episodes: episodes != "off"),) for option in ("critic", "batch", "action_noise")},
     **{option: (("critic", lambda critic: critic),) for option in ("normalize_critic_observations", "value_at_time_limit")},
     "learn_action_noise": (("action_noise", lambda noise: noise > 0),),
     "entropy": (("learn_action_noise", lambda learned: learned),)}
@@ -182,8 +177,8 @@ class Config:
                              f"got {self.contact_gradient_cut}")
         if not 1 <= self.policy_width <= MAX_COUNT:
             raise InputError(f"{config_field(self, 'policy_width')} must be a whole number of units from 1 to {MAX_COUNT}, got {self.policy_width}")
-        if not 0 <= self.policy_depth <= MAX_COUNT:
-            raise InputError(f"{config_field(self, 'policy_depth')} must be a whole number of layers from 0 to {MAX_COUNT}, got {self.policy_depth}")
+        if not 0 <= self.policy_depth <= MAX_DEPTH:
+            raise InputError(f"{config_field(self, 'policy_depth')} must be a whole number of layers from 0 to {MAX_DEPTH}, got {self.policy_depth}")
         if not 0 <= self.episode_length <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'episode_length')} must be between 1 and {MAX_STEPS} (or 0 for the environment's own), got {self.episode_length}")
 

@@ -104,15 +104,6 @@ BAD_COMMAND_LINES = [
     (["--epochs", "many"], None),
     (["--resume", "/nonexistent/run"], None),
     (["--poles", "5"], None),
-    # Counts past what an array's dimension holds, named before anything is traced; networks past memory, before
-    # anything compiles; a loop unrolled past its window; an env named by nothing.
-    *[(["--env", "envs_for_tests:make_cart", *extra, option, "99999999999999999999"], None) for extra, option in (
-        ((), "--train-size"), ((), "--test-size"), ((), "--policy-width"), ((), "--policy-depth"),
-        (("--critic",), "--critic-width"), (("--critic",), "--critics"), ((), "--unroll"))],
-    (["--env", "envs_for_tests:make_cart", "--policy-width", "1000000"], None),
-    (["--env", "envs_for_tests:make_cart", "--critic", "--critics", "100000", "--critic-width", "1000"], None),
-    (["--env", "envs_for_tests:make_cart", "--steps", "4", "--unroll", "5"], None),
-    (["--env", ":"], None),
     (["--poles", "0"], None),
     (["--model", "missing.xml"], None),
     (["--model", "{dir}/broken.xml"], "<mujoco><worldbody><body></mujoco>"),
@@ -155,13 +146,28 @@ CONFLICTS = [
     (["--env", "envs_for_tests:make_cart", "--no-reward-check", "--smoothing-scale", "0.5"],
      ("--smoothing-scale 0.5", "--reward-check is off")),
 ]
-BAD_COMMAND_LINES += [(arguments, None) for arguments, _ in CONFLICTS]
+# Bad values and what the line names: counts past what an array's dimension holds, named before anything is traced;
+# networks past memory, before anything compiles; a loop unrolled past the run's longest; an env named by nothing.
+NAMED_REFUSALS = [
+    *[(["--env", "envs_for_tests:make_cart", *extra, option, "99999999999999999999"], (option, "2147483647"))
+      for extra, option in (((), "--train-size"), ((), "--test-size"), ((), "--policy-width"),
+                            (("--critic",), "--critic-width"), (("--critic",), "--critics"), ((), "--unroll"))],
+    (["--env", "envs_for_tests:make_cart", "--policy-depth", "1001"], ("--policy-depth", "from 0 to 1000")),
+    (["--env", "envs_for_tests:make_cart", "--critic", "--critic-depth", "1001"], ("--critic-depth", "at most 1000")),
+    (["--env", "envs_for_tests:make_cart", "--policy-width", "1000000"], ("the networks' parameters need", "policy")),
+    (["--env", "envs_for_tests:make_cart", "--critic", "--critics", "100000", "--critic-width", "1000"],
+     ("the networks' parameters need", "--critic-width")),
+    (["--env", "envs_for_tests:make_cart", "--steps", "4", "--episode-length", "6", "--unroll", "7"],
+     ("--unroll 7", "has 6 steps")),
+    (["--env", ":"], ("package.module:attribute",)),
+]
+BAD_COMMAND_LINES += [(arguments, None) for arguments, _ in CONFLICTS + NAMED_REFUSALS]
 
 
 @pytest.mark.parametrize("arguments, content", BAD_COMMAND_LINES, ids=[" ".join(a) for a, _ in BAD_COMMAND_LINES])
 def test_bad_command_line_is_one_line_and_exit_code_2(train_main, tmp_path, capsys, arguments, content):
     from stablebptt import models
-    named = dict((tuple(conflict), words) for conflict, words in CONFLICTS).get(tuple(arguments), ())
+    named = dict((tuple(given), words) for given, words in CONFLICTS + NAMED_REFUSALS).get(tuple(arguments), ())
     arguments = [a.format(dir=tmp_path, models=models.DIRECTORY) for a in arguments]
     if content is not None:
         (tmp_path / arguments[-1].split("/")[-1]).write_text(content)

@@ -336,7 +336,7 @@ def test_the_command_line_trains_an_importable_environment_and_refuses_bad_ones_
                            (["--env", "envs_for_tests:make_cart", "--policy-width", "0"],
                             "--policy-width must be a whole number of units from 1 to 2147483647, got 0"),
                            (["--env", "envs_for_tests:make_cart", "--policy-depth", "-1"],
-                            "--policy-depth must be a whole number of layers from 0 to 2147483647, got -1")):
+                            "--policy-depth must be a whole number of layers from 0 to 1000, got -1")):
         refused_in_one_line(capsys, tmp_path / "refused", expected, *args, "--epochs", "1")
 
 

@@ -192,6 +192,12 @@ def test_an_option_given_beside_a_recipe_leaves_out_what_the_recipe_set_for_the_
     assert (silent.action_noise, silent.learn_action_noise, silent.entropy, silent.critic) == (0.0, False, 0.0, True)
     fixed = chosen("--episodes", "off")
     assert (fixed.critic, fixed.normalize_critic_observations, fixed.batch) == (False, False, plain.batch)
+    assert (fixed.action_noise, fixed.learn_action_noise, fixed.entropy) == (0.0, False, 0.0)
+    # and the trainer takes it (its set-up refused the noise that needs carried episodes)
+    from envs_for_tests import make_cart
+
+    import stablebptt as sb
+    assert sb.make_trainer(sb.env_task(make_cart(), horizon=16, diagnose=False), fixed).episodes is None
     # Given beside, a value the recipe would leave out stays, and is refused as it is alone.
     with pytest.raises(InputError, match="needs TrainConfig.learn_action_noise"):
         train_command.configure(*train_command.parse(command + ["--no-learn-action-noise", "--entropy", "0.01"]))
