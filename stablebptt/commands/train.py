@@ -79,6 +79,11 @@ def configure(args, owners):
     if given.get("budget", 0) > 0 and "epochs" not in given:  # a budget alone bounds the run: it trains until spent
         defaults["epochs"] = UNTIL_BUDGET
     chosen = {**recipe, **given}
+    # From fixed starts the batch splits the training states: a task's default batch of carried episodes (an env's 64
+    # of its 16 starts) that does not is one batch of them all.
+    train_size = chosen.get("train_size", defaults.get("train_size", TrainConfig.train_size))
+    if chosen.get("episodes") == "off" and "batch" not in chosen and train_size % defaults.get("batch", TrainConfig.batch):
+        defaults["batch"] = train_size
     from stablebptt.engine.checks import check_options
     from stablebptt.errors import InputError
     try:

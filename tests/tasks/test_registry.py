@@ -198,6 +198,11 @@ def test_an_option_given_beside_a_recipe_leaves_out_what_the_recipe_set_for_the_
 
     import stablebptt as sb
     assert sb.make_trainer(sb.env_task(make_cart(), horizon=16, diagnose=False), fixed).episodes is None
+    # From fixed starts an env's default batch of carried states, which does not split its 16 starts, is all of them.
+    alone = lambda *beside: train_command.configure(*train_command.parse(command[:2] + list(beside)))[2]  # noqa: E731
+    assert (alone("--episodes", "off").batch, alone("--episodes", "off", "--train-size", "128").batch) == (16, 64)
+    with pytest.raises(InputError, match="does not divide"):
+        alone("--episodes", "off", "--batch", "7")
     # Given beside, a value the recipe would leave out stays, and is refused as it is alone.
     with pytest.raises(InputError, match="needs TrainConfig.learn_action_noise"):
         train_command.configure(*train_command.parse(command + ["--no-learn-action-noise", "--entropy", "0.01"]))
