@@ -263,6 +263,11 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
     assert (fish().smoothing, fish("--no-reward-check").smoothing, fish("--no-reward-check").reward_check) == (
         "always", "auto", False)
     assert fish("--surrogate-reward", "envs_for_tests:position_reward").smoothing == "auto"  # trained as given
+    # The hopper's episodes are cut in training only where training carries episodes.
+    hopper = lambda *beside: train_command.configure(*train_command.parse(  # noqa: E731
+        ["--env", "HopperStand", "--recipe", "locomotion", *beside]))[2]
+    assert (hopper().training_episode_length, hopper("--episodes", "off").training_episode_length) == (64, 0)
+    assert hopper("--training-episode-length", "128").training_episode_length == 128
     assert {sb.recipe("locomotion", walker)[0]["horizon"] for walker in ("WalkerWalk", "WalkerStand", "WalkerRun")} \
         == {2} != {env.RECIPES["locomotion"]["steps"]}
     with pytest.raises(InputError, match="a recipe's env is the env's name .* got Cart"):
