@@ -46,8 +46,9 @@ def parse(argv: list[str]):
                         help="options measured together, for an --env: " + "; ".join(
                             recipe_help(name, env_module) for name in sorted(env_module.RECIPES))
                         + " (an option given beside it wins, and leaves out what the recipe set for the value it "
-                          "replaces: --no-critic the critic's settings, --no-learn-action-noise the entropy, "
-                          "--action-noise 0 both, --episodes off the critic, the noise and --batch 256)")
+                          "replaces: --no-critic the critic's settings and HopperStand's cut, --no-learn-action-noise "
+                          "the entropy, --action-noise 0 both, --episodes off the critic, the noise, --batch 256 and the "
+                          "cut, --episode-length the cut)")
     return parser.parse_args(argv), owners
 
 

@@ -263,10 +263,13 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
     assert (fish().smoothing, fish("--no-reward-check").smoothing, fish("--no-reward-check").reward_check) == (
         "always", "auto", False)
     assert fish("--surrogate-reward", "envs_for_tests:position_reward").smoothing == "auto"  # trained as given
-    # The hopper's episodes are cut in training only where training carries episodes.
+    # The hopper's cut was measured on carried episodes of the env's own length with the cut state valued:
+    # without any of those it is left out, and a cut given beside stays.
     hopper = lambda *beside: train_command.configure(*train_command.parse(  # noqa: E731
         ["--env", "HopperStand", "--recipe", "locomotion", *beside]))[2]
-    assert (hopper().training_episode_length, hopper("--episodes", "off").training_episode_length) == (64, 0)
+    assert hopper().training_episode_length == 64
+    assert [hopper(*beside).training_episode_length for beside in (
+        ("--episodes", "off"), ("--no-critic",), ("--no-value-at-time-limit",), ("--episode-length", "50"))] == [0] * 4
     assert hopper("--training-episode-length", "128").training_episode_length == 128
     assert {sb.recipe("locomotion", walker)[0]["horizon"] for walker in ("WalkerWalk", "WalkerStand", "WalkerRun")} \
         == {2} != {env.RECIPES["locomotion"]["steps"]}
