@@ -9,7 +9,7 @@ campaign of the longest budget on the env, its clock compile included and its ev
 its seeds evaluate at nearby but not equal times, so each seed is interpolated onto a common grid
 between the first and last times every seed evaluated at. It also prints, env by env, the numbers
 docs/performance.md reads off the figure: each side's last return and env steps, PPO's return at the
-run's last env steps and at each mark of the wall clock, and where PPO's mean passes the run's.
+run's last env steps and at each mark of the wall clock, and where either side's mean passes the other's.
 
   python benchmarks/envs_vs_apg/against_ppo.py --runs RUNS/CheetahRun RUNS/WalkerWalk --out results/envs/suite/against_ppo_900s.png
 """
@@ -61,6 +61,14 @@ def _mean_interval(values) -> str:
     return f"{np.mean(values):.1f} [{low:.1f}, {high:.1f}]"
 
 
+def passings(grid: np.ndarray, gap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``gap`` (PPO's mean less the run's along ``grid``; NaN where the run has not evaluated) turns
+    positive, PPO passing the run, and where it turns negative, the run passing PPO: the first point past each."""
+    rises = (gap[1:] > 0) & (gap[:-1] <= 0)  # NaN compares false: no passing where either side is missing
+    falls = (gap[1:] < 0) & (gap[:-1] >= 0)
+    return grid[1:][rises], grid[1:][falls]
+
+
 def summary(run: curves.Run) -> list[str]:
     """What the figure shows of ``run`` beside Brax PPO, in numbers."""
     env, mine = run.config["task_config"]["env"], ours(run)
@@ -86,8 +94,9 @@ def summary(run: curves.Run) -> list[str]:
     grid, returns = brax_ppo(env, "wall-clock")
     gap = returns.mean(axis=1) - np.interp(grid, mine["wall-clock"], mine["returns"].mean(axis=1), left=np.nan,
                                            right=np.nan)
-    passing = grid[1:][(gap[1:] > 0) & (gap[:-1] <= 0)]
-    lines.append("  Brax PPO's mean passes the run's at " + (", ".join(f"{t:.0f} s" for t in passing) or "no time"))
+    ppo_passes, run_passes = passings(grid, gap)
+    for who, times in (("Brax PPO's mean passes the run's", ppo_passes), ("the run's mean passes Brax PPO's", run_passes)):
+        lines.append(f"  {who} at " + (", ".join(f"{t:.0f} s" for t in times) or "no time"))
     return lines
 
 
