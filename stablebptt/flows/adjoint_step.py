@@ -69,19 +69,20 @@ def multi_adjoint_step(dynamics: Dynamics, flows: tuple[str, ...], plan: Plan = 
 
     params_of = first_copy if per_step else lambda params: params
 
-    @jax.custom_vjp
-    def step(params, state_copies, control_offsets):
-        # The values alone: tracing ``forward`` here would linearize the simulator once more for pullbacks
-        # that are never used (under differentiation only ``step_fwd`` runs).
+    def values(params, state_copies, control_offsets):
+        # The values alone: tracing ``forward`` would linearize the simulator for pullbacks never used.
         states = first_copy(state_copies)
         controls = batch_policy(params_of(params), states)
         return outputs(batch_step(states, controls), controls, control_offsets)
 
+    step = jax.custom_vjp(values)  # under differentiation only ``step_fwd`` runs
+
     def step_fwd(params, state_copies, control_offsets):
         states = first_copy(state_copies)
+        if plan.rematerialize:  # the backward pass linearizes the step again: here its values alone
+            return values(params, state_copies, control_offsets), ((params_of(params), states), params)
         next_states, controls, pullbacks = forward(params_of(params), states)
-        residuals = (params_of(params), states) if plan.rematerialize else pullbacks
-        return outputs(next_states, controls, control_offsets), (residuals, params)
+        return outputs(next_states, controls, control_offsets), (pullbacks, params)
 
     def step_bwd(saved, cotangents):
         residuals, params = saved
