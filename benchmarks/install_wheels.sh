@@ -10,8 +10,9 @@
 #     playground==0.2.0 brax==0.14.2 trimesh==5.2.0 ml_collections==1.1.0 mediapy==1.2.7 jaxopt==0.8.5
 # Training and the benchmarks import neither glfw nor PyOpenGL (MUJOCO_GL=disable below: mujoco lists
 # them, for its windows and renderers), and nothing imports mujoco-mjx's test_data/ (6.5 MB of the
-# wheel's 7.3 MB, meshes): without them the wheels take 33 MB, where a machine that copies the checkout
-# with them at most 64 MiB has room for a run folder to resume (a HopperStand run of 5 seeds: 9 MB).
+# wheel's 7.3 MB, meshes; `zip -q -d .whl/mujoco_mjx-*.whl 'mujoco/mjx/test_data/*'` drops them): without
+# them the wheels take 33 MB, where a machine that copies the checkout with them at most 64 MiB has room
+# for a run folder to resume (a HopperStand run of 5 seeds: 9 MB).
 # The packages are byte-compiled as pip installs them for a user: the machine's Python writes no
 # bytecode of its own (PYTHONDONTWRITEBYTECODE), and compiling every module's source at each start
 # cost about 1.8 s of a warm start there. So is the checkout, at every call (only what changed).

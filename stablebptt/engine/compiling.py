@@ -31,8 +31,7 @@ from stablebptt.timing import usable_cores
 LARGE_STEP_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 
-def _example_control(task: Task, config: TrainConfig, initial_state: PyTree) -> PyTree:
-    params = parameter_shapes(task, config.zero_output)
+def _example_control(task: Task, params: PyTree, initial_state: PyTree) -> PyTree:
     control = jax.eval_shape(task.dynamics.policy, params, initial_state)
     return jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), control)
 
@@ -148,7 +147,7 @@ class StepSize(NamedTuple):
 
 def step_size(task: Task, config: TrainConfig, initial_state: PyTree) -> StepSize:
     """One trace of one simulator step, measured (``StepSize``)."""
-    control = _example_control(task, config, initial_state)
+    control = _example_control(task, parameter_shapes(task, config.zero_output), initial_state)
     jaxpr = jax.make_jaxpr(task.dynamics.step)(initial_state, control).jaxpr
     return StepSize(_operations(jaxpr), holds_while(jaxpr))
 
@@ -166,7 +165,8 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
     at ``config.batch`` examples per update and seed, every seed batched in one program (vmap) beside
     the others, into one device's memory: the examples split evenly over ``config.devices``."""
     dynamics, plan = task.dynamics, task.plan if plan is None else plan
-    budget, networks = budget_bytes(), networks_bytes(task, config)
+    params = parameter_shapes(task, config.zero_output)
+    budget, networks = budget_bytes(), networks_bytes(params, config)
     if networks >= budget:  # the gradient path's budget is what the networks leave
         field = functools.partial(config_field, config)
         critic = (f" or the critic ({field('critic_width')}, {field('critic_depth')}, {field('critics')})"
@@ -175,7 +175,7 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
                          f"{f' over {config.seeds} seeds' if config.seeds > 1 else ''}, more than the {gigabytes(budget)} "
                          f"this machine can give them: make the policy smaller (its hidden layers' widths and count)"
                          f"{critic}, or train fewer {field('seeds')}")
-    control = _example_control(task, config, initial_state)
+    control = _example_control(task, params, initial_state)
     size = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
     known = 0 if plan.known_columns is None else len(plan.known_columns.indices)
     return plan_memory(dynamics.step, initial_state, control, dynamics.horizon, config.batch, plan.step_derivative,
@@ -184,14 +184,14 @@ def memory_plan(task: Task, config: TrainConfig, initial_state: PyTree, plan: Pl
                        devices=device_count(config))
 
 
-def networks_bytes(task: Task, config: TrainConfig) -> int:
+def networks_bytes(params: PyTree, config: TrainConfig) -> int:
     """What the networks hold beside the gradient path, in bytes, over every seed (the training state holds each
-    seed's, batched or not): the policy's parameters (their shapes) and, training with the critic, its weights
-    past its first layer (a lower bound of its parameters), each with a gradient and Adam's two moments."""
-    policy = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves(parameter_shapes(task, config.zero_output)))
+    seed's, batched or not): the policy's parameters ``params`` (their shapes) and, training with the critic, its
+    weights past its first layer (a lower bound of its parameters), each with a gradient and Adam's two moments."""
+    policy = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves(params))
     width, depth = config.critic_width, config.critic_depth
-    critic = config.critics * ((depth - 1) * width ** 2 + width) * 4 if config.critic else 0
-    return 4 * (policy + critic) * config.seeds
+    critic = config.critics * ((depth - 1) * width ** 2 + width) * 4 if config.critic else 0  # float32 weights
+    return 4 * (policy + critic) * config.seeds  # the parameters, their gradient and Adam's two moments
 
 
 def run_plan(task: Task, config: TrainConfig, initial_state: PyTree, large: bool, measured: Callable = measure_now) -> Plan:

@@ -107,12 +107,13 @@ class TrainConfig:
             raise InputError(f"unknown clip mode {self.clip!r}: choose one of {', '.join(CLIP_MODES)}")
         for name in ("epochs", "seeds", "batch", "train_size", "test_size", "checkpoint_every", "unroll", "critic_width",
                      "critic_depth", "critics"):
-            if getattr(self, name) <= 0:
-                raise InputError(f"{config_field(self, name)} must be a positive integer, got {getattr(self, name)}")
-        for name in ("seeds", "batch", "train_size", "test_size", "unroll", "critic_width", "critic_depth", "critics"):
-            most = MAX_DEPTH if name == "critic_depth" else MAX_COUNT  # epochs and checkpoints are counted in Python
-            if getattr(self, name) > most:
-                raise InputError(f"{config_field(self, name)} must be at most {most}, got {getattr(self, name)}")
+            value = getattr(self, name)
+            if value <= 0:
+                raise InputError(f"{config_field(self, name)} must be a positive integer, got {value}")
+            # Epochs and checkpoints are counted in Python; the others size arrays, or a critic's layers built one by one.
+            most = {"epochs": None, "checkpoint_every": None, "critic_depth": MAX_DEPTH}.get(name, MAX_COUNT)
+            if most is not None and value > most:
+                raise InputError(f"{config_field(self, name)} must be at most {most}, got {value}")
         if self.devices < 0:
             raise InputError(f"{config_field(self, 'devices')} must be a whole number >= 0 (0: every device), got {self.devices}")
         if not (math.isfinite(self.td_lambda) and 0 <= self.td_lambda <= 1):
