@@ -131,10 +131,11 @@ def record_start(run_dir: Path, phases: dict[str, float], seconds: float, budget
                  first_epoch: int = 1, compile_seconds_from_cache: float | None = None) -> None:
     """Add a start of the run (its first, or a ``--resume``) to its ``startup.json``: when ("started", the
     moment its programs had compiled and its first epoch was to begin: the command began
-    ``seconds_to_training`` before), on which device and host, the seconds of each start-up phase and from the command's start to its first epoch's
-    start, the budget it was given (none: left out), the epoch it trains first and the seconds of
-    compile that JAX's persistent cache saved it (where measured: a fresh machine's start saves none,
-    a start after the same programs ran on the machine most of its compile)."""
+    ``seconds_to_training`` before), on which device and host, the seconds of each start-up phase and
+    from the command's start to its first epoch's start, the budget it was given (none: left out), the
+    epoch it trains first and the seconds of compile that JAX's persistent cache saved it (where
+    measured: a fresh machine's start saves none, a start after the same programs ran on the machine
+    most of its compile)."""
     path, starts = Path(run_dir) / STARTUP_FILE, _starts(run_dir)
     device = jax.devices()[0]
     # The host too: the same start on two H200 hosts differed by a third (docs/performance.md).
