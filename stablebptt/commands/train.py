@@ -20,7 +20,7 @@ from stablebptt.cli import (Parser, add_options, build, fail, leave_out_unused_b
                             path_named, typed_option)
 from stablebptt.commands import task_options
 from stablebptt.engine import metrics
-from stablebptt.engine.config import TrainConfig
+from stablebptt.engine.config import TrainConfig, batches_divide
 from stablebptt.runs import epochs
 
 RUNS_ROOT = Path("runs")
@@ -83,7 +83,8 @@ def configure(args, owners):
     # From fixed starts the batch splits the training states: a task's default batch of carried episodes (an env's 64
     # of its 16 starts) that does not is one batch of them all.
     train_size = chosen.get("train_size", defaults.get("train_size", TrainConfig.train_size))
-    if chosen.get("episodes") == "off" and "batch" not in chosen and train_size % defaults.get("batch", TrainConfig.batch):
+    default_batch = defaults.get("batch", TrainConfig.batch)
+    if chosen.get("episodes") == "off" and "batch" not in chosen and not batches_divide(train_size, default_batch):
         defaults["batch"] = train_size
     from stablebptt.engine.checks import check_options
     from stablebptt.errors import InputError

@@ -187,9 +187,14 @@ def eval_cadence(config: TrainConfig, episodes: bool = True) -> tuple[str, float
     return kind, float(value)
 
 
+def batches_divide(train_size: int, batch: int) -> bool:
+    """Whether ``batch`` divides ``train_size`` training states into whole minibatches (the paper's protocol)."""
+    return train_size % batch == 0
+
+
 def check_batches(config: TrainConfig) -> None:
-    """``InputError`` where the batch does not divide the training states (the paper's protocol's minibatches)."""
-    if config.train_size % config.batch:
+    """``InputError`` where the batch does not divide the training states (``batches_divide``)."""
+    if not batches_divide(config.train_size, config.batch):
         raise InputError(f"{config_field(config, 'batch')} {config.batch} does not divide the {config.train_size} "
                          "training states: pick a divisor")
 
