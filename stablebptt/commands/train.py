@@ -196,8 +196,8 @@ def train(argv: list[str], held: list) -> int:
     except jax.errors.JaxRuntimeError as error:
         if (line := out_of_memory(error)) is None:
             raise
-        fail(f"{task_label}: {line}; {_kept(run_dir)}: free memory (another process may hold it) and continue with "
-             f"--resume {run_dir}, or start a new run with a smaller --batch, fewer --seeds or --steps", code=1)
+        advice = _less_memory(task_config, train_config, run_dir, task.dynamics.horizon)
+        fail(f"{task_label}: {line}; {_kept(run_dir)}: {advice}", code=1)
     progress.close()
     if outcome.status == "diverged":
         print(f"error: {outcome.message}", file=sys.stderr)
@@ -224,6 +224,29 @@ def _kept(run_dir: Path) -> str:
     if (run_dir / CHECKPOINT_FILE).is_file():
         return "the run keeps its last checkpoint"
     return "the run has no checkpoint yet (a resume starts it from epoch 0)"
+
+
+def _less_memory(task_config, train_config: TrainConfig, run_dir: Path, horizon: int) -> str:
+    """What a run out of device memory may do, in its own numbers: continue once memory is freed, or spread over
+    more of the devices JAX sees (what --resume may change); else a new run that holds fewer states at once."""
+    import jax
+
+    from stablebptt.engine.config import seed_batching
+    from stablebptt.engine.spread import device_count
+    visible, spanned = len(jax.devices()), device_count(train_config)
+    wider = [count for count in range(spanned + 1, visible + 1) if train_config.batch % count == 0]
+    more_devices = f" --devices {wider[-1]} (its states split over {wider[-1]} of the {visible} devices JAX sees)" \
+        if wider else ""
+    smaller = [f"a smaller --batch (it rolls {train_config.batch} states per seed)"]
+    if hasattr(task_config, "steps") and horizon > 1:  # the option that sets a window's steps
+        smaller.append(f"fewer --steps (its windows are {horizon})")
+    if train_config.seeds > 1 and seed_batching(train_config) == "vmap":
+        smaller.append(f"--seed-batching map (its {train_config.seeds} seeds one after another)")
+    if getattr(task_config, "physics_step_residuals", None) == "stored":
+        smaller.append("--physics-step-residuals recomputed")
+    options = ", ".join(smaller[:-1]) + (" or " if len(smaller) > 1 else "") + smaller[-1]
+    return (f"free memory (another process may hold it) and continue with --resume {run_dir}{more_devices}, or "
+            f"start a new run with {options}")
 
 
 def _final(rows, seeds) -> str:

@@ -374,6 +374,8 @@ def test_running_out_of_device_memory_gets_one_line_and_the_run_resumes(tmp_path
     code, err, _ = train(capsys, *SMALL, "--epochs", "3", "--checkpoint-every", "1", "--out", str(run_dir))
     assert code == 1 and len(err) == 1 and "out of memory on cpu" in err[0] and "--resume" in err[0], err
     assert "keeps its last checkpoint" in err[0], err
+    assert "start a new run with a smaller --batch (it rolls 8 states per seed) or fewer --steps (its windows are 60)" \
+        in err[0], err  # one seed, on one device: nothing else would hold fewer states
     monkeypatch.setattr(EpochProgress, "on_epoch", real_on_epoch)
     code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
     assert code == 0, err
@@ -788,3 +790,24 @@ def test_a_damaged_compile_cache_entry_is_compiled_again_and_replaced_with_one_l
         jax.config.update("jax_persistent_cache_min_compile_time_secs", minimum)
         compilation_cache.reset_cache()
         use_compile_cache()
+
+
+def test_the_out_of_memory_line_offers_what_holds_fewer_states_in_the_runs_own_numbers(monkeypatch, tmp_path):
+    from stablebptt.commands.train import _less_memory
+    from stablebptt.engine.config import TrainConfig
+    from stablebptt.tasks.env import Config
+
+    env_config = Config(env="HopperStand", steps=16, physics_step_residuals="stored")
+    line = _less_memory(env_config, TrainConfig(seeds=5, batch=256), tmp_path, horizon=16)
+    assert line == (f"free memory (another process may hold it) and continue with --resume {tmp_path}, or start a new "
+                    "run with a smaller --batch (it rolls 256 states per seed), fewer --steps (its windows are 16), "
+                    "--seed-batching map (its 5 seeds one after another) or --physics-step-residuals recomputed")
+    assert "--seed-batching" not in _less_memory(env_config, TrainConfig(seeds=5, batch=256, seed_batching="map"),
+                                                 tmp_path, horizon=16)
+    # Where JAX sees more devices, the resume may spread the states over the most of them that split the batch evenly.
+    monkeypatch.setattr(jax, "devices", lambda: ["gpu"] * 4)
+    assert f"--resume {tmp_path} --devices 4 (its states split over 4 of the 4 devices JAX sees)" in _less_memory(
+        env_config, TrainConfig(batch=256), tmp_path, horizon=16)
+    assert f"--resume {tmp_path} --devices 2 (its states split over 2 of the 4 devices JAX sees)" in _less_memory(
+        env_config, TrainConfig(batch=10), tmp_path, horizon=16)
+    assert "--devices" not in _less_memory(env_config, TrainConfig(batch=256, devices=0), tmp_path, horizon=16)
