@@ -12,7 +12,7 @@ from stablebptt.physics import constraint_derivatives
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import mjx
 
-from conftest import float64, needs_playground, refused_in_one_line, run_script
+from conftest import float64, needs_playground, refused_in_one_line
 
 
 LIMIT_AND_CONTACT = """
@@ -167,20 +167,8 @@ def test_playgrounds_tolerance_keeps_its_values_and_loses_its_nan_derivative():
 
 
 @needs_playground
-def test_a_playground_environment_trains_from_the_command_line_and_renders(tmp_path, capsys):
-    run = tmp_path / "cartpole"
-    from stablebptt.commands import train as train_command  # in this process: the installed command's main
-    # No reward check: its program (a minute of compiling here) is tested on the tests' own envs.
-    assert train_command.main(["--env", "CartpoleSwingup", "--steps", "8", "--episode-length", "8", "--epochs", "1",
-                               "--train-size", "4", "--test-size", "4", "--batch", "4", "--no-progress",
-                               "--no-reward-check", "--out", str(run)]) == 0
-    printed = capsys.readouterr().out
-    assert "repaired: Playground's reward tolerance" in printed and "reward gradient" not in printed, printed
-    rendered = run_script("scripts/render.py", str(run), "--rollouts", "1", "--no-video")
-    assert rendered.returncode == 0, rendered.stderr
-    assert (run / "rollout-strip.png").stat().st_size > 1000
-    from stablebptt.apps.trained import open_trained
-    assert open_trained(run).task.resolved["reward_gradient"] == "not checked"
+def test_a_misspelt_playground_name_is_refused_naming_the_closest(tmp_path, capsys):
+    # A Playground env trained and rendered from the command line: tests/render/test_render.py's episode runs.
     refused_in_one_line(capsys, tmp_path / "no", "did you mean CartpoleSwingup?", "--env", "cartpoleswingup")
 
 

@@ -425,15 +425,16 @@ def episode_renders(tmp_path_factory):
     --frame-every."""
     root = tmp_path_factory.mktemp("episodes")
     run = root / "cartpole-run"
-    finish(run_script(TRAIN, "--env", "CartpoleSwingup", "--epochs", 1, "--batch", 2, "--train-size", 2,
-                      "--test-size", 2, "--steps", 8, "--episode-length", EPISODE_LENGTH,
-                      "--training-episode-length", 12, "--no-reward-check",
-                      "--no-progress", "--out", run), timeout=600)
+    trained, _ = finish(run_script(TRAIN, "--env", "CartpoleSwingup", "--epochs", 1, "--batch", 2, "--train-size", 2,
+                                   "--test-size", 2, "--steps", 8, "--episode-length", EPISODE_LENGTH,
+                                   "--training-episode-length", 12, "--no-reward-check",
+                                   "--no-progress", "--out", run), timeout=600)
     small = ("--width", WIDTH, "--height", HEIGHT, "--rollouts", 2)
     whole = run_script(RENDER, run, *small)
     short = run_script(RENDER, run, "--steps", 10, "--frame-every", 3, "--out", root / "short.mp4", *small)
     outputs = {name: (process.communicate(timeout=300), process.returncode) for name, process in
                (("whole", whole), ("short", short))}
+    outputs["train"] = ((trained, ""), 0)
     return root, run, outputs
 
 
@@ -456,6 +457,15 @@ def test_an_episode_run_renders_whole_episodes_with_their_returns(episode_render
     frames = iio.imread(run / "rollout.mp4")
     assert frames.shape == (EPISODE_LENGTH + 1, HEIGHT, 2 * WIDTH + 2, 3)  # the episode and its first state
     assert (run / "rollout-strip.png").read_bytes().startswith(PNG_SIGNATURE)
+
+
+@needs_playground
+def test_a_playground_env_trained_unchecked_says_its_repairs_and_records_its_reward_as_not_checked(episode_renders):
+    _, run, outputs = episode_renders
+    summary = "\n".join(printed(outputs, "train"))
+    assert "repaired: Playground's reward tolerance" in summary and "reward gradient" not in summary, summary
+    from stablebptt.apps.trained import open_trained
+    assert open_trained(run).task.resolved["reward_gradient"] == "not checked"
 
 
 @needs_playground
