@@ -237,9 +237,9 @@ def _less_memory(task_config, train_config: TrainConfig, run_dir: Path, horizon:
     wider = [count for count in range(spanned + 1, visible + 1) if train_config.batch % count == 0]
     more_devices = f" --devices {wider[-1]} (its states split over {wider[-1]} of the {visible} devices JAX sees)" \
         if wider else ""
-    smaller = [f"a smaller --batch (it rolls {train_config.batch} states per seed)"]
-    if hasattr(task_config, "steps") and horizon > 1:  # the option that sets a window's steps
-        smaller.append(f"fewer --steps (its windows are {horizon})")
+    smaller = [f"a smaller --batch (each update rolls {train_config.batch} states per seed for {horizon} steps)"]
+    if hasattr(task_config, "steps") and horizon > 1:  # the option that sets those steps
+        smaller.append("fewer --steps")
     if train_config.seeds > 1 and seed_batching(train_config) == "vmap":
         smaller.append(f"--seed-batching map (its {train_config.seeds} seeds one after another)")
     if getattr(task_config, "physics_step_residuals", None) == "stored":

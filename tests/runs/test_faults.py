@@ -374,7 +374,7 @@ def test_running_out_of_device_memory_gets_one_line_and_the_run_resumes(tmp_path
     code, err, _ = train(capsys, *SMALL, "--epochs", "3", "--checkpoint-every", "1", "--out", str(run_dir))
     assert code == 1 and len(err) == 1 and "out of memory on cpu" in err[0] and "--resume" in err[0], err
     assert "keeps its last checkpoint" in err[0], err
-    assert "start a new run with a smaller --batch (it rolls 8 states per seed) or fewer --steps (its windows are 60)" \
+    assert "start a new run with a smaller --batch (each update rolls 8 states per seed for 60 steps) or fewer --steps" \
         in err[0], err  # one seed, on one device: nothing else would hold fewer states
     monkeypatch.setattr(EpochProgress, "on_epoch", real_on_epoch)
     code, err, _ = train(capsys, "--resume", str(run_dir), "--no-progress")
@@ -800,7 +800,7 @@ def test_the_out_of_memory_line_offers_what_holds_fewer_states_in_the_runs_own_n
     env_config = Config(env="HopperStand", steps=16, physics_step_residuals="stored")
     line = _less_memory(env_config, TrainConfig(seeds=5, batch=256), tmp_path, horizon=16)
     assert line == (f"free memory (another process may hold it) and continue with --resume {tmp_path}, or start a new "
-                    "run with a smaller --batch (it rolls 256 states per seed), fewer --steps (its windows are 16), "
+                    "run with a smaller --batch (each update rolls 256 states per seed for 16 steps), fewer --steps, "
                     "--seed-batching map (its 5 seeds one after another) or --physics-step-residuals recomputed")
     assert "--seed-batching" not in _less_memory(env_config, TrainConfig(seeds=5, batch=256, seed_batching="map"),
                                                  tmp_path, horizon=16)
