@@ -232,10 +232,11 @@ def _less_memory(task_config, train_config: TrainConfig, run_dir: Path, horizon:
     import jax
 
     from stablebptt.engine.config import seed_batching
-    from stablebptt.engine.spread import device_count
+    from stablebptt.engine.spread import device_count, splits_evenly
     visible, spanned = len(jax.devices()), device_count(train_config)
-    wider = [count for count in range(spanned + 1, visible + 1) if train_config.batch % count == 0]
-    more_devices = f" --devices {wider[-1]} (its states split over {wider[-1]} of the {visible} devices JAX sees)" \
+    wider = max((count for count in range(spanned + 1, visible + 1) if splits_evenly(train_config.batch, count)),
+                default=None)
+    more_devices = f" --devices {wider} (its states split over {wider} of the {visible} devices JAX sees)" \
         if wider else ""
     smaller = [f"a smaller --batch (each update rolls {train_config.batch} states per seed for {horizon} steps)"]
     if hasattr(task_config, "steps") and horizon > 1:  # the option that sets those steps

@@ -61,10 +61,15 @@ def spread_of(config: Any) -> Spread | None:
                          f"{len(visible)} (a resumed run too)")
     if count == 1:
         return None
-    if config.batch % count:
+    if not splits_evenly(config.batch, count):
         raise InputError(f"{config_field(config, 'devices')}: {config_field(config, 'batch')} ({config.batch}) "
                          f"must split evenly over the {count} devices: make it a multiple of {count}")
     return Spread(Mesh(np.array(visible[:count]), (AXIS,)))
+
+
+def splits_evenly(batch: int, devices: int) -> bool:
+    """Whether ``batch`` states per update split evenly over ``devices`` (what ``spread_of`` asks of a run)."""
+    return batch % devices == 0
 
 
 def device_count(config: Any) -> int:
