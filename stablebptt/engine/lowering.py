@@ -39,16 +39,17 @@ def state_shapes(trainer: Trainer, seeds: Any) -> Any:
 
 
 def lowered_epoch(trainer: Trainer, config: TrainConfig, program_key: dict | None = None,
-                  beside: bool = True) -> LoweredEpoch:
+                  beside: bool = True, update_now: bool = False) -> LoweredEpoch:
     """``trainer``'s epoch traced and lowered for the states ``trainer.init`` gives, from their shapes
     alone: a task's check still running (``Task.settle``, which decides the parameters' start) need
     not have answered, and XLA compiles that check beside this trace. A ``PerUpdateEpoch`` (a large
     step; a constraint solver on a CPU of several cores) is traced as it compiles instead (its metrics'
-    program shaped by the update's). ``program_key`` as ``train_epochs``; ``beside``: ``programs_beside``."""
+    program shaped by the update's), its update here where ``update_now`` (an epoch compiled at once, in
+    another thread). ``program_key`` as ``train_epochs``; ``beside``: ``programs_beside``."""
     shapes = state_shapes(trainer, seed_array(config))
     arguments = (shapes, trainer.batches, *trainer.initial_states.shapes)  # the states may still be drawn
     lowered = LoweredEpoch(lower_epoch(trainer.epoch, arguments, trainer.kept_under(program_key), cache_dir(),
-                                       trainer.compiler_options), shapes)
+                                       trainer.compiler_options, update_now), shapes)
     return programs_beside(lowered, trainer, config, program_key) if beside else lowered
 
 

@@ -42,17 +42,28 @@ class PerUpdateEpoch:
             return state, self.epoch_metrics(state, per_update)
         return state, self.epoch_metrics(state, per_update, self.evaluate(state.params, train_states, test_states))
 
-    def lower(self, state, batches, train_states, test_states, lower_one: Callable | None = None):
+    def lower(self, state, batches, train_states, test_states, lower_one: Callable | None = None,
+              update_now: bool = False):
         """The epoch for these arguments; its ``compile()`` lowers and compiles the pieces, each by
-        ``lower_one(program, arguments, name)`` (default: the program's own ``lower``)."""
-        return _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states),
-                                      lower_one or (lambda program, arguments, name: program.lower(*arguments)))
+        ``lower_one(program, arguments, name)`` (default: the program's own ``lower``). ``update_now``:
+        the update is traced and lowered here, in the caller's thread, and its compile, begun in another,
+        holds Python's lock no longer than XLA's own work; traced in that thread, the update shared the
+        lock with whatever the caller traced meanwhile (a GPU's start: the reward check)."""
+        lowered = _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states),
+                                         lower_one or (lambda program, arguments, name: program.lower(*arguments)))
+        return lowered._replace(update=self.lowered_update(lowered.arguments, lowered.lower_one)) if update_now else lowered
 
-    def compile_pieces(self, arguments: tuple, lower_one: Callable) -> PerUpdateEpoch:
+    def lowered_update(self, arguments: tuple, lower_one: Callable):
+        """The update lowered for the epoch's ``arguments`` by ``lower_one(program, arguments, name)``."""
+        state, batches = arguments[:2]
+        return lower_one(self.update, (state, jax.tree.map(lambda a: a[0], batches)), "update")
+
+    def compile_pieces(self, arguments: tuple, lower_one: Callable, update=None) -> PerUpdateEpoch:
         """The three programs compiled for the epoch's ``arguments``, each lowered by ``lower_one(program,
-        arguments, name)``; each compiled program knows its outputs' shapes: nothing is traced twice."""
+        arguments, name)`` (the update's may be given, lowered already); each compiled program knows its
+        outputs' shapes: nothing is traced twice."""
         state, batches, train_states, test_states = arguments
-        update = lower_one(self.update, (state, jax.tree.map(lambda a: a[0], batches)), "update")
+        update = self.lowered_update(arguments, lower_one) if update is None else update
         if self.evaluate is None:
             update = update.compile()
             metrics = lower_one(self.epoch_metrics, (state, _stacked(update.out_info[1], batches)), "epoch_metrics")
@@ -75,9 +86,10 @@ class _LoweredPerUpdateEpoch(NamedTuple):
     epoch: PerUpdateEpoch
     arguments: tuple
     lower_one: Callable
+    update: object = None  # the update lowered already (``lower``'s ``update_now``), else lowered as it compiles
 
     def compile(self) -> PerUpdateEpoch:
-        return self.epoch.compile_pieces(self.arguments, self.lower_one)
+        return self.epoch.compile_pieces(self.arguments, self.lower_one, self.update)
 
 
 def compile_side_by_side() -> bool:

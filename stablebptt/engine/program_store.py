@@ -176,7 +176,7 @@ def compile_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cac
 
 
 def lower_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache_dir: Path | None,
-                compiler_options: dict | None = None):
+                compiler_options: dict | None = None, update_now: bool = False):
     """A trainer's ``epoch`` traced and lowered for ``arguments`` (arrays, or their shapes); its
     ``compile()`` gives the program.
 
@@ -184,13 +184,14 @@ def lower_epoch(epoch: Callable, arguments: tuple, key_parts: dict | None, cache
     comes from the traced program kept in ``cache_dir`` under the key, or is traced and kept first;
     ``compiler_options`` are the trainer's. Otherwise, or for a program that cannot be exported (a
     host callback), it is lowered as usual. A ``PerUpdateEpoch`` lowers its pieces as it compiles
-    (the metrics' program takes its shapes from the update's compiled program).
+    (the metrics' program takes its shapes from the update's compiled program), its update here
+    where ``update_now`` (``PerUpdateEpoch.lower``).
     """
     def lower_one(program: Callable, program_arguments: tuple, name: str):
         return lower_kept(program, program_arguments, key_parts, name, compiler_options, cache_dir)
 
     if hasattr(epoch, "compile_pieces"):
-        return epoch.lower(*arguments, lower_one=lower_one)
+        return epoch.lower(*arguments, lower_one=lower_one, update_now=update_now)
     return lower_one(epoch, arguments, "epoch")
 
 

@@ -2,6 +2,7 @@
 from Python and from the command line, and reports its true return; a surrogate of the user's own (a
 function, from Python or the command line) or the reward of another env on the same states (a sparse
 env's dense variant) is trained as given; smoothing off refuses the reward as before."""
+import dataclasses
 import json
 
 import jax
@@ -251,21 +252,40 @@ def test_the_epoch_compiles_beside_the_reward_check_where_it_most_likely_keeps_t
 def test_beside_an_accelerator_a_reward_the_check_most_likely_keeps_is_checked_once_its_epoch_compiles(monkeypatch):
     """Beside an accelerator (the check on its host's CPU), a reward that turns no comparison into a number begins
     its check once the start asks for it, its epoch's compile begun: the check's trace holds back no compile. A
-    reward that compares, which the check most likely smooths, has its check begun as the task is built."""
+    per-update epoch's update (a large step's) is traced before its compile begins, in the start's own thread,
+    where it shares Python's lock with no other trace; on the accelerator's host the programs beside the epoch are
+    traced next, so that they too compile while the check is traced and runs. A reward that compares, which the
+    check most likely smooths, has its check begun as the task is built."""
+    import threading
+
     from stablebptt.engine import starting
+    from stablebptt.engine.per_update import PerUpdateEpoch
     from stablebptt.envs import adapter, diagnosis
     cpu = jax.devices("cpu")[0]
     for module in (adapter, diagnosis):
         monkeypatch.setattr(module, "check_device", lambda: cpu)
     events = []
-    begin, start = starting.beside, adapter.start_diagnosis
+    begin, start, others, lowered_update = (starting.beside, adapter.start_diagnosis, starting.programs_beside,
+                                            PerUpdateEpoch.lowered_update)
     monkeypatch.setattr(starting, "beside", lambda function, name: events.append("compile begun") or begin(function, name))
     monkeypatch.setattr(adapter, "start_diagnosis", lambda *a: events.append("check begun") or start(*a))
+    monkeypatch.setattr(starting, "programs_beside", lambda *a, **k: events.append("beside") or others(*a, **k))
+    monkeypatch.setattr(PerUpdateEpoch, "lowered_update", lambda *a: events.append(
+        ("update traced", threading.current_thread().name)) or lowered_update(*a))
     config = sb.TrainConfig(mode="C", epochs=1, train_size=8, test_size=8, batch=4, clip="norm")
     kept = env_task(Cart("smooth"), horizon=5, defer_diagnosis=True)
     assert kept.compile_while_settling and events == [] and kept.settled(wait=False) is kept
     prepared = starting.prepare(kept, config)
-    assert events == ["compile begun", "check begun"] and prepared.task.resolved["reward_gradient"] == "usable"
+    assert events == ["compile begun", "check begun", "beside"] and prepared.task.resolved["reward_gradient"] == "usable"
+    for apart in (False, True):
+        monkeypatch.setattr(starting, "_host_apart", lambda apart=apart: apart)
+        events.clear()
+        here = threading.current_thread().name
+        prepared = starting.prepare(env_task(Cart("smooth"), horizon=5, defer_diagnosis=True),
+                                    dataclasses.replace(config, epoch_program="per-update"))
+        assert events == [("update traced", here), "compile begun", *(["beside", "check begun"] if apart else
+                                                                       ["check begun", "beside"])], events
+        assert isinstance(prepared.trainer.epoch, PerUpdateEpoch) and prepared.lowered.compiled.update is not None
     events.clear()
     smoothed = env_task(Cart("step"), horizon=5, defer_diagnosis=True)
     assert not smoothed.compile_while_settling and events == ["check begun"]
