@@ -33,9 +33,10 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     """A run's start, in the order it happens: the trainer built and its epoch traced while a check the
     task left running compiles beside (``Task.settle``: an environment's reward diagnosis); where the
     check most likely keeps the step (``Task.compile_while_settling``), the epoch's compile begun
-    beside the check's answer, which may refuse the task (its update traced first, here); on an
-    accelerator's host, the programs beside the epoch traced and compiling meanwhile, before the check's
-    own trace where that begins once asked; where it smoothed the reward, the trainer
+    beside the check's answer, which may refuse the task; on an accelerator's host, the programs beside
+    the epoch traced and compiling meanwhile, and where the epoch compiles early, its update traced first
+    and those programs next, both before the check's own trace, which begins once asked; where it
+    smoothed the reward, the trainer
     built again for the task as settled (keeping those programs where the task kept their parts), its
     epoch traced and compiled (once an early compile has ended) while the surrogate's own check
     compiles beside; that check's answer. ``program_key`` as
@@ -66,10 +67,12 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     # elsewhere (HopperStand's reward, which it smooths) once it has answered, the surrogate's alone. A reward
     # smoothed all the same leaves the early compile unused, and the surrogate's epoch compiles once it has
     # ended, so that on a GPU no other program's kernels run while its own are timed.
-    early = checking and task.compile_while_settling
-    # An epoch that compiles at once is traced whole here, before the check's own trace (beside an accelerator,
-    # begun once settled() asks): traced in the compile's thread, a large step's update shared Python's lock with it.
-    lowered = lowered_epoch(trainer, config, program_key, beside=False, update_now=early)
+    early, apart = checking and task.compile_while_settling, _host_apart()
+    # On an accelerator's host an epoch that compiles at once is traced whole here, before the check's own trace (begun
+    # once settled() asks): traced in the compile's thread, a large step's update shared Python's lock with it. On a
+    # CPU alone the check, traced as the task was built, runs in this thread once compiled, beside that trace; traced
+    # here first, the update held the check's run back (docs/performance.md).
+    lowered = lowered_epoch(trainer, config, program_key, beside=False, update_now=early and apart)
     lap("trace")
     compile_ended: list[float] = []  # when the early compile ended, once it has
 
@@ -82,7 +85,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     # On an accelerator's host the programs beside the epoch are traced next, and compile while the check runs
     # (beside an early compile, before the check's own trace): a smoothed reward leaves them as they are where the
     # settled task keeps their parts.
-    ahead = checking and _host_apart()
+    ahead = checking and apart
     if ahead:
         lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
         lap("trace")
