@@ -49,9 +49,10 @@ class PerUpdateEpoch:
         the update is traced and lowered here, in the caller's thread, and its compile, begun in another,
         holds Python's lock no longer than XLA's own work; traced in that thread, the update shared the
         lock with whatever the caller traced meanwhile (a GPU's start: the reward check)."""
-        lowered = _LoweredPerUpdateEpoch(self, (state, batches, train_states, test_states),
-                                         lower_one or (lambda program, arguments, name: program.lower(*arguments)))
-        return lowered._replace(update=self.lowered_update(lowered.arguments, lowered.lower_one)) if update_now else lowered
+        arguments = (state, batches, train_states, test_states)
+        lower_one = lower_one or (lambda program, arguments, name: program.lower(*arguments))
+        return _LoweredPerUpdateEpoch(self, arguments, lower_one,
+                                      self.lowered_update(arguments, lower_one) if update_now else None)
 
     def lowered_update(self, arguments: tuple, lower_one: Callable):
         """The update lowered for the epoch's ``arguments`` by ``lower_one(program, arguments, name)``."""

@@ -36,10 +36,9 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     beside the check's answer, which may refuse the task; on an accelerator's host, the programs beside
     the epoch traced and compiling meanwhile, and where the epoch compiles early, its update traced first
     and those programs next, both before the check's own trace, which begins once asked; where it
-    smoothed the reward, the trainer
-    built again for the task as settled (keeping those programs where the task kept their parts), its
-    epoch traced and compiled (once an early compile has ended) while the surrogate's own check
-    compiles beside; that check's answer. ``program_key`` as
+    smoothed the reward, the trainer built again for the task as settled (keeping those programs where
+    the task kept their parts), its epoch traced and compiled (once an early compile has ended) while
+    the surrogate's own check compiles beside; that check's answer. ``program_key`` as
     ``train_epochs`` takes it. ``resuming``: the state will be read from a checkpoint (into
     ``lowered.shapes``), so init's programs are not compiled beside.
 
