@@ -12,7 +12,10 @@ epoch and evaluation; it decides no program, so the start is the one a run with 
     python benchmarks/startup_pair.py --sources /tmp/parent . --out results/startup/pair -- \\
         --env WalkerStand --recipe locomotion --seeds 5
 
-writes OUT.json (every start) and OUT.md (the starts, and each source's mean).
+writes OUT.json (every start) and OUT.md (the starts, and each source's mean) after each start. Where
+OUT.json already holds starts of the same command and sources, the order goes on after them, so that the
+starts of a round can spread over several commands each held to a time limit; `--seconds S` begins no
+start that the longest start of this command says would end after S seconds (the first always begins).
 """
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -60,9 +64,31 @@ def summary(starts: list[dict], names: list[str]) -> list[str]:
     lines.append("")
     for name in names:
         seconds = [start["seconds_to_training"] for start in starts if start["source"] == name]
+        if not seconds:
+            continue
         lines.append(f"- {name}: {sum(seconds) / len(seconds):.1f} s to training on average over {len(seconds)} "
                      f"starts ({', '.join(f'{value:.1f}' for value in seconds)})")
     return lines
+
+
+def earlier_starts(path: Path, command: str, names: list[str]) -> list[dict]:
+    """The starts a record at ``path`` already holds of this command and these sources; none where there is
+    no record. A record of another command or other sources is refused rather than overwritten."""
+    if not path.is_file():
+        return []
+    record = json.loads(path.read_text())
+    if record["command"] != command or record["sources"] != names:
+        raise ValueError(f"{path} records another command or other sources: give another --out")
+    return record["starts"]
+
+
+def write_record(out: Path, command: str, names: list[str], starts: list[dict]) -> None:
+    """OUT.json (every start so far) and OUT.md (their table and each source's mean), each written whole."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    record = {"command": command, "sources": names, "starts": starts}
+    atomic_write(out.with_suffix(".json"), json.dumps(record, indent=2).encode())
+    lines = [f"# `{command}`, two sources alternately", "", *summary(starts, names)]
+    atomic_write(out.with_suffix(".md"), ("\n".join(lines) + "\n").encode())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -72,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sources", nargs=2, type=Path, required=True, help="two checkouts of the library: A, B")
     parser.add_argument("--rounds", type=int, default=1, help="rounds of four starts (A, B, B, A)")
     parser.add_argument("--out", type=Path, required=True, help="OUT.json and OUT.md are written")
+    parser.add_argument("--seconds", type=float, default=None,
+                        help="begin no start that would end after this many seconds (the longest start so far)")
     options = parser.parse_args(ours)
     if not train_arguments:
         parser.error("give the train command's arguments after --")
@@ -80,21 +108,25 @@ def main(argv: list[str] | None = None) -> int:
         if not (source / "scripts" / "train.py").is_file():
             parser.error(f"{source} is no checkout of the library: it has no scripts/train.py")
     names = [str(source) for source in options.sources]
-    starts = []
+    command = "scripts/train.py " + " ".join(train_arguments) + " --epochs 1"
+    try:
+        starts = earlier_starts(options.out.with_suffix(".json"), command, names)
+    except ValueError as refusal:
+        parser.error(str(refusal))
+    began, longest = time.monotonic(), 0.0
     with tempfile.TemporaryDirectory() as scratch:
-        for number, index in enumerate(start_order(options.rounds)):
+        for number, index in list(enumerate(start_order(options.rounds)))[len(starts):]:
+            if longest and options.seconds is not None and time.monotonic() - began + longest > options.seconds:
+                print(f"{len(starts)} of {4 * options.rounds} starts made; the same command goes on", flush=True)
+                break
+            before = time.monotonic()
             start = start_once(sources[index], train_arguments, Path(scratch) / str(number))
+            longest = max(longest, time.monotonic() - before)
             starts.append({"source": names[index], "seconds_to_training": start["seconds_to_training"],
                            "phases": start["phases"], "host": start.get("host", ""), "device": start.get("device", "")})
             print(f"{names[index]}: {start['seconds_to_training']:.1f} s to training", flush=True)
-    record = {"command": "scripts/train.py " + " ".join(train_arguments) + " --epochs 1", "sources": names,
-              "starts": starts}
-    options.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(options.out.with_suffix(".json"), json.dumps(record, indent=2).encode())
-    table = summary(starts, names)
-    atomic_write(options.out.with_suffix(".md"), ("\n".join([f"# `{record['command']}`, two sources alternately", "",
-                                                            *table]) + "\n").encode())
-    print("\n".join(table))
+            write_record(options.out, command, names, starts)
+    print("\n".join(summary(starts, names)))
     return 0
 
 

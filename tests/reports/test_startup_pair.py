@@ -68,3 +68,25 @@ def test_a_source_that_is_no_checkout_is_refused(tmp_path, capsys):
                            "--env", "X"])
     assert stopped.value.code == 2 and "no checkout of the library" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "pair.json")
+
+
+def test_a_round_goes_on_where_a_command_held_to_a_time_limit_left_it(tmp_path, monkeypatch):
+    parent, change = source(tmp_path / "parent", 90.0), source(tmp_path / "change", 80.0)
+    log = tmp_path / "starts.jsonl"
+    monkeypatch.setenv("STARTS_LOG", str(log))
+    out = tmp_path / "pair"
+    arguments = ["--sources", str(parent), str(change), "--out", str(out), "--", "--env", "WalkerStand"]
+    # No time left after the first start: the second is not begun, and the record holds the first.
+    assert startup_pair.main(["--seconds", "0", *arguments]) == 0
+    assert [start["seconds_to_training"] for start in json.loads(out.with_suffix(".json").read_text())["starts"]] \
+        == [90.0]
+    assert startup_pair.main(arguments) == 0
+    starts = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [Path(start["source"]).name for start in starts] == ["parent", "change", "change", "parent"]
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert [start["seconds_to_training"] for start in record["starts"]] == [90.0, 80.0, 80.0, 90.0]
+    # Another command's record is refused, not overwritten.
+    with pytest.raises(SystemExit) as stopped:
+        startup_pair.main([*arguments, "--seeds", "5"])
+    assert stopped.value.code == 2
+    assert len(json.loads(out.with_suffix(".json").read_text())["starts"]) == 4
