@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as scratch:
         for number, index in list(enumerate(start_order(options.rounds)))[len(starts):]:
             if longest and options.seconds is not None and time.monotonic() - began + longest > options.seconds:
-                print(f"{len(starts)} of {4 * options.rounds} starts made; the same command goes on", flush=True)
+                print(f"{len(starts)} of {4 * options.rounds} starts made; the same command again makes the rest", flush=True)
                 break
             before = time.monotonic()
             start = start_once(sources[index], train_arguments, Path(scratch) / str(number))
