@@ -35,8 +35,8 @@ derivative, none of the flows' machinery, no critic).
 and memory: the memory plan's bytes stored for the update's backward pass, from its trace of one step
 (``--programs memory`` alone prints that and times nothing); state (asked for only): the training state's
 bytes and what a checkpoint keeps of them (the carried population without its pool), from its shapes.
---sizes: each chosen program's size as lowered (lines of StableHLO, while loops, dynamic_update_slice ops),
-nothing compiled or timed:
+--sizes: each chosen program's size as lowered (lines of StableHLO, while loops, dynamic_update_slice ops)
+and the seconds its trace and lowering took, nothing compiled or run:
 what a program holds, where its compile on a GPU is what costs (the same program on any backend).
 
 Every other option is train.py's (--mode R --no-cosine: one flow). The task is built as train.py builds it,
@@ -217,7 +217,8 @@ for name, program, inputs in [program for program in programs if program[0] in c
     lowered_at = time.perf_counter()
     if sizes_only:
         text = lowered.as_text()
-        print(f"{' '.join(arguments)}: {described.get(name, name)}: {text.count(chr(10))} lines of StableHLO, "
+        print(f"{' '.join(arguments)}: {described.get(name, name)}: trace and lower {lowered_at - start:.1f} s, "
+              f"{text.count(chr(10))} lines of StableHLO, "
               f"{text.count('stablehlo.while')} while loops, {text.count('stablehlo.dynamic_update_slice')} "
               f"dynamic_update_slice ops (a loop's stores of what its backward pass reads among them)", flush=True)
         continue

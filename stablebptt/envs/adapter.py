@@ -38,7 +38,7 @@ from stablebptt.engine.task import Task
 from stablebptt.envs import surrogate
 from stablebptt.envs.arguments import check_env_task_arguments
 from stablebptt.envs.derivative_model import (check_contacts, contact_cut, derivative_steps, has_constraint_solver,
-                                              joined, loaded_states, own_substeps, steps_traced)
+                                              jit_traced_once, joined, loaded_states, own_substeps, steps_traced)
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
                                        start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
@@ -185,7 +185,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.
     own_steps = derivative_steps(traced, env, contact_smoothing, gradient_substeps, label)  # values, derivative
-    step = jax.jit(joined(*own_steps))
+    step = jit_traced_once(joined(*own_steps))
 
     squash = floored_tanh(squash_gradient_floor)
     # The windows' step alone is cut; an env that cannot take the cut is refused here, in one line.
@@ -214,13 +214,13 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if surrogate_reward is not None:  # checked where it is given, from shapes: a refusal names it in one line
         check_step(env, step, observations, label)
         check_surrogate_reward(env, step, surrogate_reward, label)
-        training_step = jax.jit(surrogate.user_surrogate(step, surrogate_reward))
+        training_step = jit_traced_once(surrogate.user_surrogate(step, surrogate_reward))
     if reward_env is not None:
         training_steps = derivative_steps(traced, reward_env, contact_smoothing, gradient_substeps, label)
-        training_step = jax.jit(joined(*training_steps))
+        training_step = jit_traced_once(joined(*training_steps))
         check_same_states(env, training_step, label)
     # The step a flat reward's surrogate reads (one jit for every trace of it): the values' step.
-    values_step = training_step if training_steps[1] is None else jax.jit(training_steps[0])
+    values_step = training_step if training_steps[1] is None else jit_traced_once(training_steps[0])
 
     seen_size = observations + (int(env.action_size) if reward_direction_observed else 0)
     sizes = (seen_size, *hidden, int(env.action_size))
@@ -409,7 +409,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         if training_steps[1] is not None:
             smooth_step = joined(smooth_step, surrogate.smoothed_alike(jax.jit(training_steps[1]), choices, example, label))
         # One jit, as the env's step has: each program tracing the surrogate reuses one interpretation per shape.
-        return jax.jit(smooth_step), smoothing_done.describe(), choices
+        return jit_traced_once(smooth_step), smoothing_done.describe(), choices
 
     if smoothing_choices is not None:  # a run's surrogate, as recorded: the checks that chose it are not run again
         return task(None, "as recorded", surrogate_of(surrogate.step_example(env), lambda traced, example:

@@ -17,6 +17,7 @@ task's choices of the derivative through MJX."""
 from __future__ import annotations
 
 import copy
+import functools
 from typing import Any, Callable
 
 import jax
@@ -66,6 +67,26 @@ def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, re
             return reached
         return env_step
     return traced
+
+
+NO_MESH = jax.sharding.AbstractMesh((), ())  # the empty mesh, as JAX sets it inside a program
+
+
+def jit_traced_once(function: Callable) -> Callable:
+    """``jax.jit(function)`` whose one trace every program and check shares. JAX keys a jit's traces on
+    the abstract mesh around the call: None where nothing set one (a check, the memory plan), the empty
+    mesh where a transformed program is evaluated again (a custom derivative's forward pass inside the
+    update), two traces of one step for one program. Called where the mesh is empty, it is called under
+    the empty mesh, so both find the same trace; a caller's own mesh is kept."""
+    jitted = jax.jit(function)
+
+    @functools.wraps(function)
+    def call(*arguments):
+        if not jax.sharding.get_abstract_mesh().empty:
+            return jitted(*arguments)
+        with jax.sharding.use_abstract_mesh(NO_MESH):
+            return jitted(*arguments)
+    return call
 
 
 def derivative_steps(traced: Callable[[Any], Callable], env: Any, smoothing: ContactSmoothing | None,
