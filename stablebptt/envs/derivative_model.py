@@ -69,22 +69,18 @@ def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, re
     return traced
 
 
-NO_MESH = jax.sharding.AbstractMesh((), ())  # the empty mesh, as JAX sets it inside a program
-
-
 def jit_traced_once(function: Callable) -> Callable:
     """``jax.jit(function)`` whose one trace every program and check shares. JAX keys a jit's traces on
     the abstract mesh around the call: None where nothing set one (a check, the memory plan), the empty
     mesh where a transformed program is evaluated again (a custom derivative's forward pass inside the
-    update), two traces of one step for one program. Called where the mesh is empty, it is called under
-    the empty mesh, so both find the same trace; a caller's own mesh is kept."""
+    update), two traces of one step for one program. Called where none is set, it is called under the
+    empty mesh, so both find the same trace; a caller's own mesh is kept."""
     jitted = jax.jit(function)
 
     @functools.wraps(function)
     def call(*arguments):
-        if not jax.sharding.get_abstract_mesh().empty:
-            return jitted(*arguments)
-        with jax.sharding.use_abstract_mesh(NO_MESH):
+        # The caller's mesh again; where none is set, the empty mesh JAX gives for none.
+        with jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
             return jitted(*arguments)
     return call
 
