@@ -103,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     options = parser.parse_args(ours)
     if not train_arguments:
         parser.error("give the train command's arguments after --")
+    if any(argument == "--epochs" or argument.startswith("--epochs=") for argument in train_arguments):
+        parser.error("each start ends after its first epoch (--epochs 1, given here): drop --epochs after --")
     sources = [source.resolve() for source in options.sources]
     for source in sources:
         if not (source / "scripts" / "train.py").is_file():

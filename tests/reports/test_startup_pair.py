@@ -70,6 +70,14 @@ def test_a_source_that_is_no_checkout_is_refused(tmp_path, capsys):
     assert not os.path.exists(tmp_path / "pair.json")
 
 
+def test_epochs_given_to_the_train_command_are_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stopped:
+        startup_pair.main(["--sources", str(tmp_path), str(tmp_path), "--out", str(tmp_path / "pair"), "--",
+                           "--env", "X", "--epochs", "1"])
+    assert stopped.value.code == 2 and "drop --epochs" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "pair.json")
+
+
 def test_a_round_goes_on_where_a_command_held_to_a_time_limit_left_it(tmp_path, monkeypatch):
     parent, change = source(tmp_path / "parent", 90.0), source(tmp_path / "change", 80.0)
     log = tmp_path / "starts.jsonl"
