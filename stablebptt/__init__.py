@@ -31,6 +31,7 @@ _HOMES = {
     "select_flow": "stablebptt.flows.modes", "sign_agreement": "stablebptt.flows.modes",
     "mlp_apply": "stablebptt.networks", "mlp_init": "stablebptt.networks",
     "one_cpu_thread": "stablebptt.runtime",
+    "rarer_garbage_collections": "stablebptt.runtime",
     "env_task": "stablebptt.envs.adapter", "recipe": "stablebptt.tasks.env",
     "ContactSmoothing": "stablebptt.physics.backward_contacts",
 }

@@ -161,3 +161,27 @@ def test_importing_the_package_leaves_the_process_environment_as_it_was():
     result = subprocess.run([sys.executable, "-c", program], env=env, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "[]", result.stdout
+
+
+def test_a_command_collects_garbage_less_often_and_leaves_a_threshold_chosen_otherwise():
+    """The commands' process collects Python's garbage after 20,000 new objects (``rarer_garbage_collections``,
+    called as ``stablebptt.commands`` is imported); ``import stablebptt`` alone leaves Python's threshold,
+    and a threshold set higher, or 0 (collections off), stays as it was."""
+    program = textwrap.dedent("""
+        import gc
+        import stablebptt
+        alone = gc.get_threshold()[0]
+        import stablebptt.commands
+        command = gc.get_threshold()[0]
+        kept = []
+        for chosen in (0, 50_000):
+            gc.set_threshold(chosen, 10, 10)
+            stablebptt.rarer_garbage_collections()
+            kept.append(gc.get_threshold()[0])
+        print(alone, command, *kept)
+    """)
+    result = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert result.returncode == 0, result.stderr
+    alone, command, off, higher = map(int, result.stdout.split()[-4:])
+    from stablebptt.runtime import SPACED_COLLECTIONS
+    assert alone < SPACED_COLLECTIONS == command == 20_000 and (off, higher) == (0, 50_000)
