@@ -31,12 +31,9 @@ def rarer_garbage_collections() -> None:
     threshold is 700) where it would collect more often; a threshold of 0 (collections off) stays.
 
     Tracing a program makes millions of small objects, and each collection of the older generations
-    walks all of them: on the 2-core CPU, `python benchmarks/update_program.py --flows-batched --programs
-    update --sizes --env E --recipe locomotion --seeds 5 --no-reward-check` traced and lowered
-    HumanoidStand's update in 27.5 and 29.5 s against 32.3 and 38.1 s with Python's threshold,
-    WalkerWalk's in 14.4 and 14.6 s against 17.8 and 18.0 s, the process's peak memory within 4%
-    (docs/performance.md, "Python's garbage collected less often"). The garbage is still collected,
-    later. The ``stablebptt`` commands call it as they start.
+    walks all of them: a start's traces run a tenth to a fifth sooner, its peak memory about the same
+    (docs/performance.md, "Python's garbage collected less often", gives the commands and figures). The
+    garbage is still collected, later. The ``stablebptt`` commands call it as they start.
 
     Example::
 
