@@ -115,6 +115,12 @@ def _hard(value):
     return value.hard if isinstance(value, Soft) else value
 
 
+def _bound(eqn, *invals):
+    """``eqn``'s primitive applied to ``invals`` as ``jax.core.eval_jaxpr`` applies it: a primitive that
+    calls functions (a custom derivative's) takes them back from its parameters."""
+    return eqn.primitive.bind(*invals, **eqn.primitive.get_bind_params(eqn.params))
+
+
 def _prob(value, dtype):
     return value.prob.astype(dtype) if isinstance(value, Soft) else jnp.asarray(value).astype(dtype)
 
@@ -166,11 +172,11 @@ class _Interpreter:
                 self.exponents[place] = invals[0]
             elif place in self.exponent_scales:
                 return [jnp.exp(invals[0] * self.exponent_scales[place]).astype(jnp.result_type(invals[0]))]
-            return [eqn.primitive.bind(invals[0], **eqn.params)]  # the exponential as the step computes it
+            return [_bound(eqn, invals[0])]  # the exponential as the step computes it
         if name in COMPARISONS and label == frozenset({REWARD}) and not all(fixed) \
                 and jnp.issubdtype(jnp.result_type(*[_hard(v) for v in invals]), jnp.floating):
             a, b = (_hard(value) for value in invals)
-            hard = eqn.primitive.bind(a, b, **eqn.params)
+            hard = _bound(eqn, a, b)
             difference = COMPARISONS[name] * (a - b)  # positive where the comparison is true
             self.places[place] = _where_written(eqn)
             if self.temperatures is None:
@@ -189,7 +195,7 @@ class _Interpreter:
                 self.bounds.add(frozenset().union(*(value.origins for value in invals)))
             dtype = next(value.prob.dtype for value in invals if isinstance(value, Soft))
             probs = [_prob(value, dtype) for value in invals]
-            hard = eqn.primitive.bind(*(_hard(value) for value in invals), **eqn.params)
+            hard = _bound(eqn, *(_hard(value) for value in invals))
             prob = {"and": lambda p, q: p * q, "or": lambda p, q: p + q - p * q, "not": lambda p: 1 - p,
                     "xor": lambda p, q: p + q - 2 * p * q}[name](*probs)
             return [Soft(hard, prob, frozenset().union(*(v.origins for v in invals if isinstance(v, Soft))))]
@@ -207,7 +213,7 @@ class _Interpreter:
                 self.used.update(predicate.origins)
                 prob = predicate.prob.astype(jnp.result_type(when_false))
                 return [prob * when_true + (1 - prob) * when_false]
-        outputs = eqn.primitive.bind(*(_hard(value) for value in invals), **eqn.params)
+        outputs = _bound(eqn, *(_hard(value) for value in invals))
         return outputs if eqn.primitive.multiple_results else [outputs]
 
 

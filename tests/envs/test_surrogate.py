@@ -180,3 +180,23 @@ def test_an_exponential_lost_beside_the_rewards_other_term_is_widened_though_it_
     assert float(smoothed_state.x) == float(reached.x) and float(smoothed_state.v) == float(reached.v)
     widened = 7 * np.exp(-0.5 * smoothing.exponent_scales[0] * (0.6 / LOST) ** 2) + 0.5 * (np.cos(0.3) + 1)
     np.testing.assert_allclose(float(smoothed_state.reward), widened / 8, rtol=1e-5)
+
+
+@jax.jit
+def rectified_step(state: Slider, action: jax.Array) -> Slider:
+    v = jax.nn.relu(state.v + DT * action[0])  # jax.nn.relu: a custom derivative (jax.custom_jvp) in the step
+    x = state.x + DT * v
+    target = in_target(x)
+    return Slider(x, v, target * jax.nn.relu(1.0 - v), {"in_target": target})
+
+
+def test_a_step_calling_a_custom_derivative_is_smoothed_and_keeps_its_state_and_derivative():
+    states, actions = samples()
+    smooth_step, _ = smooth_reward(rectified_step, states, actions)
+    ours, theirs = jax.jit(jax.vmap(smooth_step))(states, actions), jax.vmap(rectified_step)(states, actions)
+    np.testing.assert_array_equal(ours.x, theirs.x)
+    np.testing.assert_array_equal(ours.v, theirs.v)
+    assert not np.allclose(ours.reward, theirs.reward)  # the target's bounds smoothed
+    moving = Slider(jnp.array(0.0), jnp.array(0.5), jnp.array(0.0), {"in_target": jnp.array(0.0)})
+    slope = jax.grad(lambda action: smooth_step(moving, action).x)(jnp.array([0.2]))
+    np.testing.assert_allclose(slope, [DT * DT], rtol=1e-6)  # x = x0 + DT (v0 + DT a) where v is positive
