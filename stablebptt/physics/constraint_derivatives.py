@@ -9,7 +9,8 @@ the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the 
   (their while loop is never differentiated), and forward and reverse mode
   agree.
 - ``differentiable_mjx()``: a context in which MJX's private modules carry the
-  remedies below, applied while a step is traced and undone afterwards. Every
+  remedies below (with ``applied_forces``'s derivative of forces on bodies), applied
+  while a step is traced and undone afterwards. Every
   step this library builds traces inside it; ``implicit_solver=True`` also
   routes ``mjx.forward``'s solver call (and so ``mjx.step`` inside any
   environment) through ``solve_implicitly``. ``physics_steps_recomputed=True``
@@ -33,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.physics import mjx_internals
+from stablebptt.physics import applied_forces, mjx_internals
 from stablebptt.physics.backward_contacts import CLOSED_FORM_PAIRS, geometry_held
 from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, solver, support
 from stablebptt.physics.mjx_internals import types as mjx_types
@@ -246,12 +247,13 @@ def _newton_hessian(model: mjx.Model, data: mjx.Data, ctx: solver.Context) -> ja
     return (hessian + hessian.T) * 0.5
 
 
-# (module, attribute, replacement) of every remedy.
+# (module, attribute, replacement) of every remedy; applied forces' derivative through subtree sums among them.
 _REMEDIES = (
     (solver, "jp", _SOLVER_NUMPY),
     (solver, "_update_gradient", _update_gradient_by_blocks),
     (solver._LSPoint, "create", classmethod(_ls_point_create_stable)),
     (collision_convex, "_closest_segment_point_plane", _closest_segment_point_plane_stable),
+    *applied_forces.REMEDIES,
 )
 _lock = threading.RLock()
 _depth: collections.Counter = collections.Counter()  # open contexts of each kind
