@@ -24,38 +24,41 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from stablebptt.physics.mjx_internals import mjx, passive, support
+from stablebptt.physics.scene_terms import subtree_mask
 
 
 @functools.lru_cache(maxsize=64)
-def _subtree_maps(parents: tuple[int, ...], roots: tuple[int, ...],
-                  dof_bodies: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _tree_maps(parents: tuple[int, ...], roots: tuple[int, ...],
+               dof_bodies: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Two 0/1 matrices: ``root[a, b] = 1`` where ``b`` is the root of ``a``'s tree, and ``summed[j, b] = 1``
-    where body ``b`` lies in the subtree of dof ``j``'s body (the world, body 0, above all)."""
-    root = np.zeros((len(parents), len(parents)), np.float32)
-    root[np.arange(len(parents)), roots] = 1.0
-    below = np.zeros((len(parents), len(parents)), np.float32)
-    for body in range(len(parents)):
-        above = body
-        while True:
-            below[above, body] = 1.0
-            if above == 0:
-                break
-            above = parents[above]
-    return root, below[list(dof_bodies)]
+    where body ``b`` lies in the subtree of dof ``j``'s body."""
+    root = np.eye(len(parents), dtype=np.float32)[list(roots)]
+    return root, subtree_mask(np.asarray(parents))[list(dof_bodies)].astype(np.float32)
+
+
+def _maps(model: mjx.Model) -> tuple[np.ndarray, np.ndarray]:
+    return _tree_maps(*(tuple(int(i) for i in np.asarray(indices)) for indices in
+                        (model.body_parentid, model.body_rootid, model.dof_bodyid)))
+
+
+def _times(matrix: np.ndarray, array: jax.Array) -> jax.Array:
+    """A constant 0/1 matrix times ``array``: a product, not a gather, whose transpose is a scatter-add, a
+    loop on a CPU. HIGHEST: a GPU's default float32 matmul may round its inputs to TF32's 10 bits."""
+    return jnp.matmul(jnp.asarray(matrix, array.dtype), array, precision=jax.lax.Precision.HIGHEST)
+
+
+def _at_roots(model: mjx.Model, array: jax.Array) -> jax.Array:
+    """Each body's row of ``array`` (nbody, ...) replaced by its tree's root's."""
+    return _times(_maps(model)[0], array)
 
 
 def _subtree_summed(model: mjx.Model, data: mjx.Data, force: jax.Array, torque: jax.Array,
                     point: jax.Array) -> jax.Array:
     """The generalised force of ``force`` and ``torque`` (nbody, 3) applied at ``point`` (nbody, 3) on
     each body: the same map as MJX's ``support.apply_ft`` summed over the bodies."""
-    root, summed = _subtree_maps(*(tuple(int(i) for i in np.asarray(indices)) for indices in
-                                   (model.body_parentid, model.body_rootid, model.dof_bodyid)))
-    # Matmuls with constant 0/1 matrices, not gathers: a gather's transpose is a scatter-add, a loop on a CPU.
-    # HIGHEST: a GPU's default float32 matmul may round its inputs to TF32's 10 bits.
-    product = functools.partial(jnp.matmul, precision=jax.lax.Precision.HIGHEST)
-    offset = point - product(jnp.asarray(root, point.dtype), data.subtree_com)
+    offset = point - _at_roots(model, data.subtree_com)
     wrench = jnp.concatenate([torque + jnp.cross(offset, force), force], axis=-1)  # cdof's order: angular, linear
-    return jnp.sum(data.cdof * product(jnp.asarray(summed, wrench.dtype), wrench), axis=-1)
+    return jnp.sum(data.cdof * _times(_maps(model)[1], wrench), axis=-1)
 
 
 def _read(function: Callable, arrays: list) -> list[int]:
@@ -119,7 +122,7 @@ def _applied(model: mjx.Model, data: mjx.Data) -> tuple:
 
 def _fluid(model: mjx.Model, data: mjx.Data) -> tuple:
     force, torque = jax.vmap(passive._inertia_box_fluid_model, in_axes=(None, 0, 0, 0, 0, 0, 0))(
-        model, model.body_inertia, model.body_mass, data.subtree_com[np.asarray(model.body_rootid)], data.xipos,
+        model, model.body_inertia, model.body_mass, _at_roots(model, data.subtree_com), data.xipos,
         data.ximat, data.cvel)
     return force, torque, data.xipos
 

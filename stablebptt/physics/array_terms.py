@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 
 from stablebptt.physics.folding import as_array, as_constant, axis_rotation, quaternion_rotation, solve_spd
-from stablebptt.physics.scene_terms import BALL, FREE, SLIDE, RigidBody, SceneTerms, rotation_matrix
+from stablebptt.physics.scene_terms import BALL, FREE, SLIDE, RigidBody, SceneTerms, rotation_matrix, subtree_mask
 
 
 def _skew(v):
@@ -43,9 +43,6 @@ class ArrayTerms(SceneTerms):
     def __init__(self, model: mujoco.MjModel):
         super().__init__(model)
         m = model
-        lineage = [{0}]  # a body and its ancestors
-        for b in self.bodies:
-            lineage.append(lineage[m.body_parentid[b]] | {b})
         self.dof_body = np.asarray(m.dof_bodyid)
         # A dof's group turns together: a hinge or slide alone, a ball's three rotations, a free joint's
         # translations and its rotations; MuJoCo turns each group's axes with the velocity before it.
@@ -55,13 +52,12 @@ class ArrayTerms(SceneTerms):
             group[first:first + width] = j * 2
             if m.jnt_type[j] == FREE:
                 group[first + 3:first + 6] = j * 2 + 1
-        dofs, bodies = range(self.nv), range(model.nbody)
-        # moves[b, d]: dof d moves body b; carries[d, e]: dof e moves what dof d's group hangs from;
-        # subtree[b, c]: body c hangs from body b (or is b); chain[d, e]: d is e or on its dof_parentid path.
-        self.moves = np.array([[self.dof_body[d] in lineage[b] for d in dofs] for b in bodies])
-        self.carries = np.array([[self.dof_body[e] in lineage[self.dof_body[d]] and group[e] < group[d]
-                                  for e in dofs] for d in dofs])
-        self.subtree = np.array([[b in lineage[c] for c in bodies] for b in bodies])
+        dofs = range(self.nv)
+        # subtree[b, c]: body c hangs from body b (or is b); moves[b, d]: dof d moves body b; carries[d, e]:
+        # dof e moves what dof d's group hangs from; chain[d, e]: d is e or on its dof_parentid path.
+        self.subtree = subtree_mask(m.body_parentid)
+        self.moves = self.subtree[self.dof_body].T
+        self.carries = self.subtree[self.dof_body][:, self.dof_body].T & (group[None, :] < group[:, None])
         self.chain = np.zeros((self.nv, self.nv), bool)
         for e in dofs:
             d = e

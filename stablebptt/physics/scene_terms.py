@@ -17,6 +17,15 @@ FREE, BALL = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
 SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
 EULER, RK4 = int(mujoco.mjtIntegrator.mjINT_EULER), int(mujoco.mjtIntegrator.mjINT_RK4)
 
+def subtree_mask(parents: np.ndarray) -> np.ndarray:
+    """``mask[b, c]``: body ``c`` hangs from body ``b`` or is ``b`` (the world, body 0, above every body);
+    ``parents`` MuJoCo's ``body_parentid``, parents before their children."""
+    mask = np.eye(len(parents), dtype=bool)
+    for body in range(1, len(parents)):
+        mask[:, body] |= mask[:, parents[body]]
+    return mask
+
+
 def joints_pulled(model: mujoco.MjModel, actuator: int) -> list[tuple[int, float]] | None:
     """(joint, coefficient) of what the actuator pulls where its length is linear in qpos and its moment
     constant: a joint, or a fixed tendon's joints; None for any other transmission."""
