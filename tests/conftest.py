@@ -86,6 +86,13 @@ def float64():
         jax.config.update("jax_enable_x64", previous)
 
 
+def jitted_anew(function):
+    """``jax.jit`` of a new function object calling ``function``: jit reuses the trace of a function object
+    it has traced before, so a function traced outside ``differentiable_mjx`` would keep MJX's own derivative
+    and values inside it."""
+    return jax.jit(lambda *args: function(*args))
+
+
 @pytest.fixture
 def x64():
     with float64():

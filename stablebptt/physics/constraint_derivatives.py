@@ -9,7 +9,8 @@ the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the 
   (their while loop is never differentiated), and forward and reverse mode
   agree.
 - ``differentiable_mjx()``: a context in which MJX's private modules carry the
-  remedies below (with ``applied_forces``'s derivative of forces on bodies), applied
+  remedies below (with ``applied_forces``'s derivative of forces on bodies, and the position
+  stage's derivatives without tree scans of ``kinematics_derivative`` and ``tree_sums``), applied
   while a step is traced and undone afterwards. Every
   step this library builds traces inside it; ``implicit_solver=True`` also
   routes ``mjx.forward``'s solver call (and so ``mjx.step`` inside any
@@ -34,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.physics import applied_forces, mjx_internals
+from stablebptt.physics import applied_forces, kinematics_derivative, mjx_internals, tree_sums
 from stablebptt.physics.backward_contacts import CLOSED_FORM_PAIRS, geometry_held
 from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, solver, support
 from stablebptt.physics.mjx_internals import types as mjx_types
@@ -254,6 +255,8 @@ _REMEDIES = (
     (solver._LSPoint, "create", classmethod(_ls_point_create_stable)),
     (collision_convex, "_closest_segment_point_plane", _closest_segment_point_plane_stable),
     *applied_forces.REMEDIES,
+    *kinematics_derivative.REMEDIES,
+    *tree_sums.REMEDIES,
 )
 _lock = threading.RLock()
 _depth: collections.Counter = collections.Counter()  # open contexts of each kind

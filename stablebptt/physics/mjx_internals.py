@@ -33,6 +33,7 @@ from mujoco.mjx._src import (  # noqa: E402
     support,
     types,  # noqa: E402
 )
+from mujoco.mjx._src import math as mjx_math  # noqa: E402
 
 
 def installed_version() -> str:
@@ -53,4 +54,4 @@ def check_version() -> bool:
 
 
 __all__ = ["mjx", "collision_convex", "collision_driver", "constraint", "passive", "smooth", "solver", "support",
-           "forward", "types", "check_version"]
+           "forward", "types", "mjx_math", "check_version"]

@@ -14,7 +14,7 @@ from stablebptt.physics.folding import ZERO3, as_constant
 
 _DISABLE = mujoco.mjtDisableBit
 FREE, BALL = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
-SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
+SLIDE, HINGE = int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_HINGE)
 EULER, RK4 = int(mujoco.mjtIntegrator.mjINT_EULER), int(mujoco.mjtIntegrator.mjINT_RK4)
 
 def subtree_mask(parents: np.ndarray) -> np.ndarray:

@@ -1,0 +1,129 @@
+"""Subtree centres of mass, motion axes and composite inertias differentiated as constant products.
+
+MJX's ``smooth.com_pos`` and ``smooth.crb`` sum masses and inertias over subtrees by scanning the
+tree from its leaves, level by level, and pick each dof's root, joint and body by gathers. Their
+reverse passes run those scans backwards with the transposes of every gather and scatter. The same
+sums are a constant 0/1 matrix (which bodies hang from which) times the bodies' rows, and each pick
+is a one-hot matrix times the rows it picks from: ``REMEDIES`` give MJX's functions the derivative
+of that form while their values stay MJX's own, bit for bit.
+"""
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from stablebptt.physics.mjx_internals import mjx, mjx_math, smooth, support, types
+from stablebptt.physics.scene_terms import BALL, FREE, SLIDE, subtree_mask
+from stablebptt.physics.values_kept import times, values_kept
+
+class _Rows(NamedTuple):
+    """A tree's constant 0/1 maps for sums over subtrees and picks of rows."""
+    subtree: np.ndarray      # (nbody, nbody): body c hangs from body b or is b
+    root: np.ndarray         # (nbody, nbody): b's tree's root
+    dof_body: np.ndarray     # (nv, nbody)
+    dof_root: np.ndarray     # (nv, nbody)
+    dof_joint: np.ndarray    # (nv, njnt)
+    along_joint: np.ndarray  # (nv, 1): the dof turns about (hinge) or moves along (slide) its joint's axis
+    slide: np.ndarray        # (nv, 1)
+    column: np.ndarray       # (3, nv, 1): the dof turns about its body's frame's axis k (ball, free)
+    translation: np.ndarray  # (nv, 3): a free joint's translation dofs' constant motion axes
+
+
+@functools.lru_cache(maxsize=64)
+def _rows(parents: tuple, roots: tuple, dof_bodies: tuple, dof_joints: tuple, joint_types: tuple) -> _Rows:
+    nbody, nv = len(parents), len(dof_bodies)
+    eye = np.eye(nbody, dtype=np.float32)
+    kinds = np.asarray(joint_types, int)[list(dof_joints)]
+    # A dof's place within its joint: a free joint's dofs are 3 translations, then 3 turns; a ball's 3 turns.
+    place = np.array([dof - dof_joints.index(joint) for dof, joint in enumerate(dof_joints)], int)
+    turn = np.where(kinds == FREE, place - 3, np.where(kinds == BALL, place, -1))
+    column = np.stack([(turn == k).astype(np.float32)[:, None] for k in range(3)])
+    translation = np.zeros((nv, 3), np.float32)
+    moving = (kinds == FREE) & (place < 3)
+    translation[np.nonzero(moving)[0], place[moving]] = 1.0
+    along = ~np.isin(kinds, (FREE, BALL))
+    return _Rows(subtree_mask(np.asarray(parents)).astype(np.float32), eye[list(roots)], eye[list(dof_bodies)],
+                 eye[[roots[body] for body in dof_bodies]],
+                 np.eye(len(joint_types), dtype=np.float32)[list(dof_joints)],
+                 along.astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None], column, translation)
+
+
+def _rows_of(model: mjx.Model) -> _Rows:
+    def key(array):
+        return tuple(int(i) for i in np.asarray(array))
+    return _rows(key(model.body_parentid), key(model.body_rootid), key(model.dof_bodyid), key(model.dof_jntid),
+                 key(model.jnt_type))
+
+
+def _com_pos_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
+    """``smooth.com_pos``'s subtree centres of mass, inertias about them and motion axes, its sums and picks
+    as products."""
+    rows = _rows_of(model)
+    mass = model.body_mass[:, None]
+    weighted, total = times(rows.subtree, data.xipos * mass), times(rows.subtree, mass)
+    subtree_com = jnp.where(total < mujoco.mjMINVAL, data.xipos, weighted / jnp.maximum(total, mujoco.mjMINVAL))
+    offset = data.xipos - times(rows.root, subtree_com)
+    rotated = jnp.einsum("bij,bj,bkj->bik", data.ximat, model.body_inertia, data.ximat)
+    parallel_axis = (jnp.sum(offset * offset, -1)[:, None, None] * jnp.eye(3, dtype=offset.dtype)
+                     - offset[:, :, None] * offset[:, None, :])
+    inertia = rotated + parallel_axis * mass[:, :, None]
+    upper = jnp.stack([inertia[:, i, j] for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))], -1)
+    cinert = jnp.concatenate([upper, offset * mass, mass], -1)
+    axis = rows.along_joint * times(rows.dof_joint, data.xaxis) + sum(
+        rows.column[k] * times(rows.dof_body, data.xmat[:, :, k]) for k in range(3))
+    arm = times(rows.dof_root, subtree_com) - times(rows.dof_joint, data.xanchor)
+    turning = 1.0 - rows.slide
+    cdof = jnp.concatenate([axis * turning, jnp.cross(axis, arm) * turning + axis * rows.slide
+                            + jnp.asarray(rows.translation, axis.dtype)], -1)
+    return subtree_com, cinert, cdof
+
+
+def _crb_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
+    """``smooth.crb``'s composite inertias and mass matrix, its subtree sums and picks as products."""
+    rows = _rows_of(model)
+    composite = times(rows.subtree, data._impl.cinert).at[0].set(0.0)
+    cdof_force = jax.vmap(mjx_math.inert_mul)(times(rows.dof_body, composite), data.cdof)
+    return composite, support.make_m(model, cdof_force, data.cdof, model.dof_armature)
+
+
+def _com_pos_fields(model: mjx.Model, data: mjx.Data) -> tuple:
+    placed = _com_pos(model, data)
+    return placed.subtree_com, placed._impl.cinert, placed.cdof
+
+
+def _crb_fields(model: mjx.Model, data: mjx.Data) -> tuple:
+    summed = _crb(model, data)
+    return summed._impl.crb, summed._impl.M
+
+
+def _kept(fields, as_products):
+    return values_kept(fields, lambda model, data, value, moving, vary: vary(as_products), reads=as_products)
+
+
+_com_pos, _crb = smooth.com_pos, smooth.crb
+_com_pos_kept, _crb_kept = _kept(_com_pos_fields, _com_pos_as_products), _kept(_crb_fields, _crb_as_products)
+
+
+def com_pos(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """MJX's ``smooth.com_pos``, differentiated through constant products."""
+    if model.impl != types.Impl.JAX:
+        return _com_pos(model, data)
+    subtree_com, cinert, cdof = _com_pos_kept(model, data)
+    return data.replace(subtree_com=subtree_com, cdof=cdof).tree_replace({"_impl.cinert": cinert})
+
+
+def crb(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """MJX's ``smooth.crb``, differentiated through constant products."""
+    if model.impl != types.Impl.JAX:
+        return _crb(model, data)
+    composite, mass_matrix = _crb_kept(model, data)
+    return data.tree_replace({"_impl.crb": composite, "_impl.M": mass_matrix})
+
+
+# (owner, attribute, replacement) for constraint_derivatives' remedies.
+REMEDIES = ((smooth, "com_pos", com_pos), (smooth, "crb", crb))
