@@ -17,10 +17,24 @@ from stablebptt.physics.mjx_internals import mjx
 Tangent = Callable[[mjx.Model, mjx.Data, Any, frozenset, Callable[[Callable], Any]], Any]
 
 
+def _matmul(constant: jax.Array, array: jax.Array) -> jax.Array:
+    return jnp.tensordot(constant, array, axes=1, precision=jax.lax.Precision.HIGHEST)
+
+
+def _summed(constant: jax.Array, array: jax.Array) -> jax.Array:
+    return jnp.sum(constant.reshape(constant.shape + (1,) * (array.ndim - 1)) * array[None], axis=1)
+
+
+# The product's form by backend (docs/performance.md, "The position stage differentiated without the tree's
+# scans"): on a CPU a matmul; on a GPU, where a float32 matmul rounds to TF32 or at HIGHEST takes several
+# passes, a broadcast product and a sum (exact float32 products, one fused reduction).
+PRODUCTS = {"cpu": _matmul}
+
+
 def times(matrix: np.ndarray, array: jax.Array) -> jax.Array:
     """A constant 0/1 matrix times ``array``: a product, not a gather, whose transpose is a scatter-add, a
-    loop on a CPU. HIGHEST: a GPU's default float32 matmul may round its inputs to TF32's 10 bits."""
-    return jnp.matmul(jnp.asarray(matrix, array.dtype), array, precision=jax.lax.Precision.HIGHEST)
+    loop on a CPU."""
+    return PRODUCTS.get(jax.default_backend(), _summed)(jnp.asarray(matrix, array.dtype), array)
 
 
 def _traced(function: Callable, arrays: list) -> tuple[list[int], list[set[int]]]:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
+from stablebptt.physics import values_kept
 from stablebptt.physics.mjx_internals import forward, mjx
 
 from conftest import float64, jitted_anew
@@ -136,3 +137,31 @@ def test_the_reverse_pass_is_a_smaller_program_than_mjxs(trees):
         with differentiable_mjx():
             remedied = lines()
     assert remedied < 0.7 * plain, (remedied, plain)  # 6,540 lines against 11,210 as written
+
+
+def test_both_forms_of_the_constant_product_are_the_product():
+    rng = np.random.default_rng(2)
+    matrix = (rng.random((5, 7)) < 0.5).astype(np.float64)
+    with float64():
+        for shape in ((7,), (7, 6), (7, 3, 3)):
+            array = rng.standard_normal(shape)
+            expected = np.tensordot(matrix, array, axes=1)
+            for form in (values_kept._matmul, values_kept._summed):
+                np.testing.assert_allclose(form(jnp.asarray(matrix), jnp.asarray(array)), expected, rtol=1e-12,
+                                           atol=1e-12, err_msg=f"{form.__name__} of {shape}")
+
+
+def test_the_derivative_through_a_gpus_form_of_the_product_is_mjxs_own(trees, monkeypatch):
+    _, _, start, _, placed = trees
+    state = (start.qpos, start.mocap_pos, start.mocap_quat)
+    direction = np.random.default_rng(1).standard_normal(np.shape(start.qpos))
+
+    def tangents(*state):
+        return jax.jvp(lambda qpos: placed(qpos, *state[1:]), (state[0],), (jnp.asarray(direction),))[1]
+
+    monkeypatch.setattr(values_kept, "PRODUCTS", {})  # the broadcast product and sum, as on a GPU
+    with float64():
+        own = jitted_anew(tangents)(*state)
+        with differentiable_mjx():
+            mine = jitted_anew(tangents)(*state)
+    assert _largest_gap(mine, own) < 1e-12 and max(np.abs(own[name]).max() for name in own) > 1
