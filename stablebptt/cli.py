@@ -172,8 +172,16 @@ INTERRUPTED = ("stopped by Ctrl-C: files are written whole, nothing is half-made
                "(config.json alone, or a checkpoint) continues with --resume")
 
 
-def _stop_at_once(signum, frame) -> None:
-    """The Python-level handler of Ctrl-C outside a training loop: a sentinel the watcher looks for."""
+_ENDING = threading.Lock()  # held by the first of the handler and the watcher to end the process: one line
+
+
+def _stop_at_once(signum, frame) -> NoReturn:
+    """Ctrl-C outside a training loop, in the main thread (Python's handler) or the watcher's. The handler
+    ends the process itself: the watcher may look only after the main thread ran it and entered a training
+    loop, whose handler it then leaves the signal to, and the signal would be lost."""
+    _ENDING.acquire()
+    os.write(2, f"{INTERRUPTED}\n".encode())
+    os._exit(130)
 
 
 def stop_at_once_on_interrupt() -> None:
@@ -200,8 +208,7 @@ def stop_at_once_on_interrupt() -> None:
             received = os.read(readable, 64)
             # Within a training loop stop_on_signals holds Ctrl-C (stop after this epoch): left to it.
             if signal.SIGINT in received and signal.getsignal(signal.SIGINT) is _stop_at_once:
-                os.write(2, f"{INTERRUPTED}\n".encode())
-                os._exit(130)
+                _stop_at_once(signal.SIGINT, None)
 
     threading.Thread(target=watch, name="ctrl-c", daemon=True).start()
 

@@ -99,3 +99,24 @@ def test_the_same_stop_request_arriving_after_the_run_stopped_is_ignored_and_a_l
     done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert done.stdout.split() == ["survived"] and done.returncode == -signal.SIGTERM, (done.stdout, done.stderr)
+
+
+# Ctrl-C an instant before a training loop sets its own handler: the process-wide handler has taken it.
+CTRL_C_BEFORE_THE_LOOP = """
+import os, signal
+from stablebptt.cli import stop_at_once_on_interrupt, stop_on_signals
+stop_at_once_on_interrupt()
+os.kill(os.getpid(), signal.SIGINT)
+with stop_on_signals() as should_stop:
+    print("went on; stop asked:", should_stop())
+"""
+
+
+def test_ctrl_c_just_before_a_training_loop_ends_the_command_and_is_not_lost():
+    """The handler runs in the main thread before the loop begins; the watcher thread, woken by the same
+    signal, may look only once the loop's handler is set and leave the signal to it. Ended by whichever
+    comes first, the command stops with one line and exit code 130, never trains on."""
+    for _ in range(3):  # the threads' order varies: each must end it
+        done = subprocess.run([sys.executable, "-c", CTRL_C_BEFORE_THE_LOOP], cwd=ROOT, capture_output=True,
+                              text=True, timeout=120)
+        assert (done.returncode, done.stdout, done.stderr) == (130, "", f"{INTERRUPTED}\n")
