@@ -23,27 +23,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.physics.mjx_internals import mjx, passive, support
-from stablebptt.physics.scene_terms import subtree_mask
+from stablebptt.physics.tree_maps import Structure, root, structure, subtree
 from stablebptt.physics.values_kept import times, values_kept
 
 
 @functools.lru_cache(maxsize=64)
-def _tree_maps(parents: tuple[int, ...], roots: tuple[int, ...],
-               dof_bodies: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Two 0/1 matrices: ``root[a, b] = 1`` where ``b`` is the root of ``a``'s tree, and ``summed[j, b] = 1``
-    where body ``b`` lies in the subtree of dof ``j``'s body."""
-    root = np.eye(len(parents), dtype=np.float32)[list(roots)]
-    return root, subtree_mask(np.asarray(parents))[list(dof_bodies)].astype(np.float32)
-
-
-def _maps(model: mjx.Model) -> tuple[np.ndarray, np.ndarray]:
-    return _tree_maps(*(tuple(int(i) for i in np.asarray(indices)) for indices in
-                        (model.body_parentid, model.body_rootid, model.dof_bodyid)))
+def _dof_subtrees(tree: Structure) -> np.ndarray:
+    """``summed[j, b] = 1`` where body ``b`` lies in the subtree of dof ``j``'s body."""
+    return subtree(tree)[list(tree.dof_bodies)].astype(np.float32)
 
 
 def _at_roots(model: mjx.Model, array: jax.Array) -> jax.Array:
     """Each body's row of ``array`` (nbody, ...) replaced by its tree's root's."""
-    return times(_maps(model)[0], array)
+    return times(root(structure(model)), array)
 
 
 def _subtree_summed(model: mjx.Model, data: mjx.Data, force: jax.Array, torque: jax.Array,
@@ -52,7 +44,7 @@ def _subtree_summed(model: mjx.Model, data: mjx.Data, force: jax.Array, torque: 
     each body: the same map as MJX's ``support.apply_ft`` summed over the bodies."""
     offset = point - _at_roots(model, data.subtree_com)
     wrench = jnp.concatenate([torque + jnp.cross(offset, force), force], axis=-1)  # cdof's order: angular, linear
-    return jnp.sum(data.cdof * times(_maps(model)[1], wrench), axis=-1)
+    return jnp.sum(data.cdof * times(_dof_subtrees(structure(model)), wrench), axis=-1)
 
 
 def _values_kept(original: Callable, forces: Callable) -> Callable:

@@ -25,7 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.physics.mjx_internals import mjx, smooth, types
-from stablebptt.physics.scene_terms import BALL, FREE, HINGE, SLIDE, subtree_mask
+from stablebptt.physics.scene_terms import BALL, FREE, HINGE, SLIDE
+from stablebptt.physics.tree_maps import Structure, picks, structure, subtree
 from stablebptt.physics.values_kept import times, values_kept
 
 _MOVED_BY_TWISTS = frozenset({"[1].qpos", "[1].mocap_pos", "[1].mocap_quat"})
@@ -47,35 +48,30 @@ class _Tree(NamedTuple):
 
 
 @functools.lru_cache(maxsize=64)
-def _tree(parents: tuple, joint_types: tuple, joint_bodies: tuple, addresses: tuple, nq: int,
-          mocap_ids: tuple, geom_bodies: tuple, site_bodies: tuple) -> _Tree:
-    below = subtree_mask(np.asarray(parents))
-    kinds, bodies = np.asarray(joint_types, int), np.asarray(joint_bodies, int)
-    njnt, nbody = len(kinds), len(parents)
+def _tree(tree: Structure) -> _Tree:
+    below = subtree(tree)
+    kinds, bodies, addresses = np.asarray(tree.joint_types, int), np.asarray(tree.joint_bodies, int), tree.joint_addresses
+    njnt, nbody = len(kinds), len(tree.parents)
     earlier = np.tril(np.ones((njnt, njnt), bool), -1).T  # earlier[i, j]: i < j
     same = bodies[:, None] == bodies[None, :]
     moves_joint = below[bodies][:, bodies] & (~same | earlier)
-    scalar = np.zeros((njnt, nq), np.float32)
+    scalar = np.zeros((njnt, tree.nq), np.float32)
     for joint in np.nonzero(np.isin(kinds, (HINGE, SLIDE)))[0]:
         scalar[joint, addresses[joint]] = 1.0
     turning = tuple((int(joint), int(addresses[joint]), bool(kinds[joint] == FREE))
                     for joint in np.nonzero(np.isin(kinds, (FREE, BALL)))[0])
     turning_rows = np.eye(njnt, dtype=np.float32)[:, [j for j, _, _ in turning]]
-    mocap = np.asarray(mocap_ids)
+    mocap = np.asarray(tree.mocap_ids)
     mocap_rows = np.zeros((nbody, int(np.sum(mocap >= 0))), np.float32)
     mocap_rows[np.nonzero(mocap >= 0)[0], mocap[mocap >= 0]] = 1.0
     return _Tree(below[bodies].astype(np.float32), moves_joint.astype(np.float32), scalar,
                  (kinds == HINGE).astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None],
                  turning, turning_rows, turning_rows * np.asarray([free for _, _, free in turning], np.float32),
-                 mocap_rows, np.eye(nbody, dtype=np.float32)[list(geom_bodies)],
-                 np.eye(nbody, dtype=np.float32)[list(site_bodies)])
+                 mocap_rows, picks(tree.geom_bodies, nbody), picks(tree.site_bodies, nbody))
 
 
 def _tree_of(model: mjx.Model) -> _Tree:
-    def key(array):
-        return tuple(int(i) for i in np.asarray(array))
-    return _tree(key(model.body_parentid), key(model.jnt_type), key(model.jnt_bodyid), key(model.jnt_qposadr),
-                 int(model.nq), key(model.body_mocapid), key(model.geom_bodyid), key(model.site_bodyid))
+    return _tree(structure(model))
 
 
 def _written(model: mjx.Model) -> tuple[str, ...]:

@@ -18,7 +18,8 @@ import mujoco
 import numpy as np
 
 from stablebptt.physics.mjx_internals import mjx, mjx_math, smooth, support, types
-from stablebptt.physics.scene_terms import BALL, FREE, SLIDE, subtree_mask
+from stablebptt.physics.scene_terms import BALL, FREE, SLIDE
+from stablebptt.physics.tree_maps import Structure, picks, root, structure, subtree
 from stablebptt.physics.values_kept import times, values_kept
 
 class _Rows(NamedTuple):
@@ -35,10 +36,10 @@ class _Rows(NamedTuple):
 
 
 @functools.lru_cache(maxsize=64)
-def _rows(parents: tuple, roots: tuple, dof_bodies: tuple, dof_joints: tuple, joint_types: tuple) -> _Rows:
-    nbody, nv = len(parents), len(dof_bodies)
-    eye = np.eye(nbody, dtype=np.float32)
-    kinds = np.asarray(joint_types, int)[list(dof_joints)]
+def _rows(tree: Structure) -> _Rows:
+    dof_bodies, dof_joints = tree.dof_bodies, tree.dof_joints
+    nbody, nv = len(tree.parents), len(dof_bodies)
+    kinds = np.asarray(tree.joint_types, int)[list(dof_joints)]
     # A dof's place within its joint: a free joint's dofs are 3 translations, then 3 turns; a ball's 3 turns.
     place = np.array([dof - dof_joints.index(joint) for dof, joint in enumerate(dof_joints)], int)
     turn = np.where(kinds == FREE, place - 3, np.where(kinds == BALL, place, -1))
@@ -47,17 +48,13 @@ def _rows(parents: tuple, roots: tuple, dof_bodies: tuple, dof_joints: tuple, jo
     moving = (kinds == FREE) & (place < 3)
     translation[np.nonzero(moving)[0], place[moving]] = 1.0
     along = ~np.isin(kinds, (FREE, BALL))
-    return _Rows(subtree_mask(np.asarray(parents)).astype(np.float32), eye[list(roots)], eye[list(dof_bodies)],
-                 eye[[roots[body] for body in dof_bodies]],
-                 np.eye(len(joint_types), dtype=np.float32)[list(dof_joints)],
+    return _Rows(subtree(tree).astype(np.float32), root(tree), picks(dof_bodies, nbody),
+                 picks([tree.roots[body] for body in dof_bodies], nbody), picks(dof_joints, len(tree.joint_types)),
                  along.astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None], column, translation)
 
 
 def _rows_of(model: mjx.Model) -> _Rows:
-    def key(array):
-        return tuple(int(i) for i in np.asarray(array))
-    return _rows(key(model.body_parentid), key(model.body_rootid), key(model.dof_bodyid), key(model.dof_jntid),
-                 key(model.jnt_type))
+    return _rows(structure(model))
 
 
 def _com_pos_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
