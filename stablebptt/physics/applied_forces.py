@@ -15,22 +15,14 @@ saves: docs/performance.md, "Applied forces differentiated through subtree sums"
 """
 from __future__ import annotations
 
-import functools
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from stablebptt.physics.mjx_internals import mjx, passive, support
-from stablebptt.physics.tree_maps import Structure, root, structure, subtree
+from stablebptt.physics.tree_maps import dof_subtrees, root, structure
 from stablebptt.physics.values_kept import times, values_kept
-
-
-@functools.lru_cache(maxsize=64)
-def _dof_subtrees(tree: Structure) -> np.ndarray:
-    """``summed[j, b] = 1`` where body ``b`` lies in the subtree of dof ``j``'s body."""
-    return subtree(tree)[list(tree.dof_bodies)].astype(np.float32)
 
 
 def _at_roots(model: mjx.Model, array: jax.Array) -> jax.Array:
@@ -44,7 +36,7 @@ def _subtree_summed(model: mjx.Model, data: mjx.Data, force: jax.Array, torque: 
     each body: the same map as MJX's ``support.apply_ft`` summed over the bodies."""
     offset = point - _at_roots(model, data.subtree_com)
     wrench = jnp.concatenate([torque + jnp.cross(offset, force), force], axis=-1)  # cdof's order: angular, linear
-    return jnp.sum(data.cdof * times(_dof_subtrees(structure(model)), wrench), axis=-1)
+    return jnp.sum(data.cdof * times(dof_subtrees(structure(model)), wrench), axis=-1)
 
 
 def _values_kept(original: Callable, forces: Callable) -> Callable:

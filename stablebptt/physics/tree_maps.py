@@ -1,8 +1,8 @@
 """A tree's constant maps, built once per model structure and shared by the derivatives that sum over it.
 
 ``structure(model)`` reads the model's index arrays into a hashable ``Structure``, the key under which
-each derivative caches what it builds from them; ``subtree`` and ``root`` are the maps they share,
-``picks`` the one-hot matrices that select rows by index.
+each derivative caches what it builds from them; ``subtree``, ``root`` and ``dof_subtrees`` are the
+maps they share, ``picks`` the one-hot matrices that select rows by index.
 """
 from __future__ import annotations
 
@@ -54,3 +54,9 @@ def subtree(tree: Structure) -> np.ndarray:
 def root(tree: Structure) -> np.ndarray:
     """(nbody, nbody) 0/1: each body's tree's root."""
     return picks(tree.roots, len(tree.parents))
+
+
+@functools.lru_cache(maxsize=64)
+def dof_subtrees(tree: Structure) -> np.ndarray:
+    """(nv, nbody) 0/1: body b lies in the subtree of dof j's body (j moves b)."""
+    return subtree(tree)[list(tree.dof_bodies)].astype(np.float32)

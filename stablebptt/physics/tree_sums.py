@@ -19,7 +19,7 @@ import numpy as np
 
 from stablebptt.physics.mjx_internals import mjx, mjx_math, smooth, support, types
 from stablebptt.physics.scene_terms import BALL, FREE, SLIDE
-from stablebptt.physics.tree_maps import Structure, picks, root, structure, subtree
+from stablebptt.physics.tree_maps import Structure, dof_subtrees, picks, root, structure, subtree
 from stablebptt.physics.values_kept import times, values_kept
 
 class _Rows(NamedTuple):
@@ -33,6 +33,9 @@ class _Rows(NamedTuple):
     slide: np.ndarray        # (nv, 1)
     column: np.ndarray       # (3, nv, 1): the dof turns about its body's frame's axis k (ball, free)
     translation: np.ndarray  # (nv, 3): a free joint's translation dofs' constant motion axes
+    dof_subtree: np.ndarray  # (nv, nbody): dof j moves body b
+    moved_before: np.ndarray  # (nv, nv): dof i moves dof j's frame (a body above, an earlier joint on its body,
+                              # or a free joint's translation before its turns)
 
 
 @functools.lru_cache(maxsize=64)
@@ -48,9 +51,15 @@ def _rows(tree: Structure) -> _Rows:
     moving = (kinds == FREE) & (place < 3)
     translation[np.nonzero(moving)[0], place[moving]] = 1.0
     along = ~np.isin(kinds, (FREE, BALL))
+    bodies, joints = np.asarray(dof_bodies, int), np.asarray(dof_joints, int)
+    same_joint = joints[:, None] == joints[None, :]
+    moved_before = subtree(tree)[bodies][:, bodies] & (
+        (bodies[:, None] != bodies[None, :]) | (joints[:, None] < joints[None, :])
+        | (same_joint & (kinds == FREE)[:, None] & (place[:, None] < 3) & (place[None, :] >= 3)))
     return _Rows(subtree(tree).astype(np.float32), root(tree), picks(dof_bodies, nbody),
                  picks([tree.roots[body] for body in dof_bodies], nbody), picks(dof_joints, len(tree.joint_types)),
-                 along.astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None], column, translation)
+                 along.astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None], column, translation,
+                 dof_subtrees(tree), moved_before.astype(np.float32))
 
 
 def _rows_of(model: mjx.Model) -> _Rows:
@@ -88,6 +97,32 @@ def _crb_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
     return composite, support.make_m(model, cdof_force, data.cdof, model.dof_armature)
 
 
+def _com_vel_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
+    """``smooth.com_vel``'s body velocities and motion axes' rates: sums of the dofs' motions above."""
+    rows = _rows_of(model)
+    motions = data.cdof * data.qvel[:, None]
+    frame_velocity = times(rows.moved_before.T, motions)  # each dof's frame's, before the dof moves it
+    return times(rows.dof_subtree.T, motions), jax.vmap(mjx_math.motion_cross)(frame_velocity, data.cdof)
+
+
+def _rne_as_products(model: mjx.Model, data: mjx.Data, with_acceleration: bool) -> jax.Array:
+    """``smooth.rne``'s bias forces: the bodies' accelerations summed down the tree, their forces up it."""
+    rows = _rows_of(model)
+    gravity = jnp.zeros(3) if model.opt.disableflags & types.DisableBit.GRAVITY else -model.opt.gravity
+    accelerations = data.cdof_dot * data.qvel[:, None]
+    if with_acceleration:
+        accelerations = accelerations + data.cdof * data.qacc[:, None]
+    acceleration = jnp.concatenate([jnp.zeros(3), gravity]).astype(accelerations.dtype) + times(
+        rows.dof_subtree.T, accelerations)
+
+    def force(cinert, acceleration, velocity):
+        return mjx_math.inert_mul(cinert, acceleration) + mjx_math.motion_cross_force(
+            velocity, mjx_math.inert_mul(cinert, velocity))
+
+    forces = jax.vmap(force)(data._impl.cinert, acceleration, data.cvel)
+    return jnp.sum(data.cdof * times(rows.dof_subtree, forces), axis=-1)
+
+
 def _com_pos_fields(model: mjx.Model, data: mjx.Data) -> tuple:
     placed = _com_pos(model, data)
     return placed.subtree_com, placed._impl.cinert, placed.cdof
@@ -98,12 +133,32 @@ def _crb_fields(model: mjx.Model, data: mjx.Data) -> tuple:
     return summed._impl.crb, summed._impl.M
 
 
+def _com_vel_fields(model: mjx.Model, data: mjx.Data) -> tuple:
+    moved = _com_vel(model, data)
+    return moved.cvel, moved.cdof_dot
+
+
+def _rne_field(with_acceleration: bool):
+    def field(model: mjx.Model, data: mjx.Data) -> jax.Array:
+        return _rne(model, data, with_acceleration).qfrc_bias
+    return field
+
+
+def _rne_product(with_acceleration: bool):
+    def product(model: mjx.Model, data: mjx.Data) -> jax.Array:
+        return _rne_as_products(model, data, with_acceleration)
+    return product
+
+
 def _kept(fields, as_products):
     return values_kept(fields, lambda model, data, value, moving, vary: vary(as_products), reads=as_products)
 
 
 _com_pos, _crb = smooth.com_pos, smooth.crb
 _com_pos_kept, _crb_kept = _kept(_com_pos_fields, _com_pos_as_products), _kept(_crb_fields, _crb_as_products)
+_com_vel, _rne = smooth.com_vel, smooth.rne
+_com_vel_kept = _kept(_com_vel_fields, _com_vel_as_products)
+_rne_kept = {flag: _kept(_rne_field(flag), _rne_product(flag)) for flag in (False, True)}
 
 
 def com_pos(model: mjx.Model, data: mjx.Data) -> mjx.Data:
@@ -122,5 +177,20 @@ def crb(model: mjx.Model, data: mjx.Data) -> mjx.Data:
     return data.tree_replace({"_impl.crb": composite, "_impl.M": mass_matrix})
 
 
+def com_vel(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """MJX's ``smooth.com_vel``, differentiated through constant products."""
+    if model.impl != types.Impl.JAX:
+        return _com_vel(model, data)
+    cvel, cdof_dot = _com_vel_kept(model, data)
+    return data.replace(cvel=cvel, cdof_dot=cdof_dot)
+
+
+def rne(model: mjx.Model, data: mjx.Data, flg_acc: bool = False) -> mjx.Data:
+    """MJX's ``smooth.rne``, differentiated through constant products."""
+    if model.impl != types.Impl.JAX:
+        return _rne(model, data, flg_acc)
+    return data.replace(qfrc_bias=_rne_kept[bool(flg_acc)](model, data))
+
+
 # (owner, attribute, replacement) for constraint_derivatives' remedies.
-REMEDIES = ((smooth, "com_pos", com_pos), (smooth, "crb", crb))
+REMEDIES = ((smooth, "com_pos", com_pos), (smooth, "crb", crb), (smooth, "com_vel", com_vel), (smooth, "rne", rne))

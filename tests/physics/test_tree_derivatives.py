@@ -1,6 +1,6 @@
-"""MJX's position stage differentiated without its tree scans (stablebptt.physics.kinematics_derivative: body
-frames by the joints' twists; stablebptt.physics.tree_sums: subtree sums as constant products): MJX's values to
-the bit, MJX's own derivative, and MuJoCo's C position stage's central differences."""
+"""MJX's position and velocity stages differentiated without their tree scans (stablebptt.physics.
+kinematics_derivative: body frames by the joints' twists; stablebptt.physics.tree_sums: sums over the tree as
+constant products): MJX's values to the bit, MJX's own derivative, and MuJoCo's C stages' central differences."""
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -9,7 +9,7 @@ import pytest
 
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics import values_kept
-from stablebptt.physics.mjx_internals import forward, mjx
+from stablebptt.physics.mjx_internals import forward, mjx, smooth
 
 from conftest import float64, jitted_anew
 
@@ -121,6 +121,78 @@ def test_the_derivative_in_every_coordinate_is_mujocos_c_position_stages(trees):
             central = (ahead[name] - behind[name]) / (2 * eps)
             np.testing.assert_allclose(reverse[name][..., index], central, rtol=1e-6, atol=1e-7,
                                        err_msg=f"{name} along qpos[{index}]")
+
+
+@pytest.fixture(scope="module")
+def moving(trees):
+    """The velocity stage's outputs (and the bias forces with accelerations, as inverse dynamics takes them)
+    as a function of (qpos, qvel, qacc), at a state with every dof moving."""
+    model, data, start, _, _ = trees
+    rng = np.random.default_rng(7)
+    with float64():
+        start = start.replace(qvel=jnp.asarray(rng.standard_normal(model.nv)),
+                              qacc=jnp.asarray(rng.standard_normal(model.nv)))
+
+    def velocity_stage(qpos, qvel, qacc):
+        data = forward.fwd_velocity(mjx_model, forward.fwd_position(mjx_model, start.replace(qpos=qpos, qvel=qvel,
+                                                                                               qacc=qacc)))
+        return {"cvel": data.cvel, "cdof_dot": data.cdof_dot, "qfrc_bias": data.qfrc_bias,
+                "inverse": smooth.rne(mjx_model, data, flg_acc=True).qfrc_bias}
+
+    with float64():
+        mjx_model = mjx.put_model(model, impl="jax")
+    return (start.qpos, start.qvel, start.qacc), velocity_stage
+
+
+def test_the_velocity_stage_keeps_mjxs_values_and_its_derivative_is_mjxs_own(moving):
+    state, velocity_stage = moving
+    rng = np.random.default_rng(3)
+    with float64():
+        directions = tuple(jnp.asarray(rng.standard_normal(np.shape(array))) for array in state)
+
+        def tangents(*state):
+            return jax.jvp(velocity_stage, state, directions)[1]
+
+        def cotangents(*state):
+            return jax.vjp(velocity_stage, *state)[1](jax.tree.map(jnp.ones_like, velocity_stage(*state)))
+
+        own = [jitted_anew(function)(*state) for function in (velocity_stage, tangents, cotangents)]
+        with differentiable_mjx():
+            mine = [jitted_anew(function)(*state) for function in (velocity_stage, tangents, cotangents)]
+    for name in own[0]:
+        np.testing.assert_array_equal(mine[0][name], own[0][name], err_msg=name)
+    assert _largest_gap(mine[1], own[1]) < 1e-12 and min(np.abs(own[1][name]).max() for name in own[1]) > 1
+    for mine_array, own_array in zip(mine[2], own[2]):
+        np.testing.assert_allclose(mine_array, own_array, rtol=1e-12, atol=1e-11)
+
+
+def _c_velocity_stage(model, qpos, qvel, qacc):
+    data = mujoco.MjData(model)
+    data.qpos[:], data.qvel[:], data.qacc[:] = qpos, qvel, qacc
+    mujoco.mj_fwdPosition(model, data)
+    mujoco.mj_fwdVelocity(model, data)
+    inverse = np.zeros(model.nv)
+    mujoco.mj_rne(model, data, 1, inverse)
+    return {"cvel": data.cvel.copy(), "cdof_dot": data.cdof_dot.copy(), "qfrc_bias": data.qfrc_bias.copy(),
+            "inverse": inverse}
+
+
+def test_the_velocity_stages_derivative_in_every_coordinate_and_velocity_is_mujocos_c(trees, moving):
+    model = trees[0]
+    state, velocity_stage = moving
+    with float64(), differentiable_mjx():
+        reverse = jitted_anew(jax.jacrev(lambda qpos, qvel: velocity_stage(qpos, qvel, state[2]), (0, 1)))(*state[:2])
+    qpos, qvel, qacc = (np.asarray(array) for array in state)
+    eps = 1e-6
+    for argument, size in enumerate((model.nq, model.nv)):
+        for index in range(size):
+            step = eps * np.eye(size)[index]
+            moved = [(qpos + sign * step, qvel) if argument == 0 else (qpos, qvel + sign * step) for sign in (1, -1)]
+            ahead, behind = (_c_velocity_stage(model, *pair, qacc) for pair in moved)
+            for name in ahead:
+                central = (ahead[name] - behind[name]) / (2 * eps)
+                np.testing.assert_allclose(reverse[name][argument][..., index], central, rtol=1e-6, atol=1e-7,
+                                           err_msg=f"{name} along {('qpos', 'qvel')[argument]}[{index}]")
 
 
 def test_the_reverse_pass_is_a_smaller_program_than_mjxs(trees):
