@@ -172,14 +172,15 @@ INTERRUPTED = ("stopped by Ctrl-C: files are written whole, nothing is half-made
                "(config.json alone, or a checkpoint) continues with --resume")
 
 
-_ENDING = threading.Lock()  # held by the first of the handler and the watcher to end the process: one line
+_ENDING = threading.Lock()  # taken by the first of the handler and the watcher to end the process: one line
 
 
-def _stop_at_once(signum, frame) -> NoReturn:
+def _stop_at_once(signum, frame) -> None:
     """Ctrl-C outside a training loop, in the main thread (Python's handler) or the watcher's. The handler
-    ends the process itself: the watcher may look only after the main thread ran it and entered a training
-    loop, whose handler it then leaves the signal to, and the signal would be lost."""
-    _ENDING.acquire()
+    ends the process itself: the watcher may look only once a training loop's handler is set, and leave the
+    signal to it. A second Ctrl-C meanwhile returns (a handler run within itself would wait forever)."""
+    if not _ENDING.acquire(blocking=False):
+        return
     os.write(2, f"{INTERRUPTED}\n".encode())
     os._exit(130)
 
@@ -189,11 +190,12 @@ def stop_at_once_on_interrupt() -> None:
     line on stderr and exit code 130, in any phase: imports, tracing, compiling, the reward diagnosis.
 
     Python runs a signal's handler only between the main thread's calls, and a compile can hold the
-    main thread for minutes: the signal is taken at C level instead (``signal.set_wakeup_fd``) and a
-    watcher thread ends the process from there. It exits without unwinding the interpreter
-    (``os._exit``): unwinding while XLA compiles in another thread can crash the process. Every file
-    is written atomically, and run folders resume from any state, so nothing is lost. Call it first
-    in a command's process, from the main thread; a library user's process is left as it is.
+    main thread for minutes: the signal is taken at C level too (``signal.set_wakeup_fd``), and a
+    watcher thread or Python's handler, whichever comes first, ends the process. It exits without
+    unwinding the interpreter (``os._exit``): unwinding while XLA compiles in another thread can crash
+    the process. Every file is written atomically, and run folders resume from any state, so nothing is
+    lost. Call it first in a command's process, from the main thread; a library user's process is left
+    as it is.
     """
     if threading.current_thread() is not threading.main_thread():
         return

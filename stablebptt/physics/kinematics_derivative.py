@@ -26,7 +26,7 @@ import numpy as np
 
 from stablebptt.physics.mjx_internals import mjx, smooth, types
 from stablebptt.physics.scene_terms import BALL, FREE, HINGE, SLIDE
-from stablebptt.physics.tree_maps import Structure, picks, structure, subtree
+from stablebptt.physics.tree_maps import Structure, joints_moved, picks, structure, subtree
 from stablebptt.physics.values_kept import times, values_kept
 
 _MOVED_BY_TWISTS = frozenset({"[1].qpos", "[1].mocap_pos", "[1].mocap_quat"})
@@ -49,12 +49,9 @@ class _Tree(NamedTuple):
 
 @functools.lru_cache(maxsize=64)
 def _tree(tree: Structure) -> _Tree:
-    below = subtree(tree)
-    kinds, bodies, addresses = np.asarray(tree.joint_types, int), np.asarray(tree.joint_bodies, int), tree.joint_addresses
+    kinds, bodies, addresses = (np.asarray(tree.joint_types, int), np.asarray(tree.joint_bodies, int),
+                                tree.joint_addresses)
     njnt, nbody = len(kinds), len(tree.parents)
-    earlier = np.tril(np.ones((njnt, njnt), bool), -1).T  # earlier[i, j]: i < j
-    same = bodies[:, None] == bodies[None, :]
-    moves_joint = below[bodies][:, bodies] & (~same | earlier)
     scalar = np.zeros((njnt, tree.nq), np.float32)
     for joint in np.nonzero(np.isin(kinds, (HINGE, SLIDE)))[0]:
         scalar[joint, addresses[joint]] = 1.0
@@ -64,7 +61,7 @@ def _tree(tree: Structure) -> _Tree:
     mocap = np.asarray(tree.mocap_ids)
     mocap_rows = np.zeros((nbody, int(np.sum(mocap >= 0))), np.float32)
     mocap_rows[np.nonzero(mocap >= 0)[0], mocap[mocap >= 0]] = 1.0
-    return _Tree(below[bodies].astype(np.float32), moves_joint.astype(np.float32), scalar,
+    return _Tree(subtree(tree)[bodies].astype(np.float32), joints_moved(tree).astype(np.float32), scalar,
                  (kinds == HINGE).astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None],
                  turning, turning_rows, turning_rows * np.asarray([free for _, _, free in turning], np.float32),
                  mocap_rows, picks(tree.geom_bodies, nbody), picks(tree.site_bodies, nbody))

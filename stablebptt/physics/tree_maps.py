@@ -1,8 +1,8 @@
 """A tree's constant maps, built once per model structure and shared by the derivatives that sum over it.
 
 ``structure(model)`` reads the model's index arrays into a hashable ``Structure``, the key under which
-each derivative caches what it builds from them; ``subtree``, ``root`` and ``dof_subtrees`` are the
-maps they share, ``picks`` the one-hot matrices that select rows by index.
+each derivative caches what it builds from them; ``subtree``, ``root``, ``dof_subtrees`` and
+``joints_moved`` are the maps they share, ``picks`` the one-hot matrices that select rows by index.
 """
 from __future__ import annotations
 
@@ -60,3 +60,11 @@ def root(tree: Structure) -> np.ndarray:
 def dof_subtrees(tree: Structure) -> np.ndarray:
     """(nv, nbody) 0/1: body b lies in the subtree of dof j's body (j moves b)."""
     return subtree(tree)[list(tree.dof_bodies)].astype(np.float32)
+
+
+@functools.lru_cache(maxsize=64)
+def joints_moved(tree: Structure) -> np.ndarray:
+    """(njnt, njnt) bool: joint i moves joint j's frame (i's body is above j's, or i comes first on their body)."""
+    bodies = np.asarray(tree.joint_bodies, int)
+    earlier = np.arange(len(bodies))[:, None] < np.arange(len(bodies))[None, :]
+    return subtree(tree)[bodies][:, bodies] & ((bodies[:, None] != bodies[None, :]) | earlier)

@@ -1,11 +1,13 @@
-"""Subtree centres of mass, motion axes and composite inertias differentiated as constant products.
+"""Sums over the tree of MJX's position and velocity stages, differentiated as constant products.
 
 MJX's ``smooth.com_pos`` and ``smooth.crb`` sum masses and inertias over subtrees by scanning the
-tree from its leaves, level by level, and pick each dof's root, joint and body by gathers. Their
-reverse passes run those scans backwards with the transposes of every gather and scatter. The same
-sums are a constant 0/1 matrix (which bodies hang from which) times the bodies' rows, and each pick
-is a one-hot matrix times the rows it picks from: ``REMEDIES`` give MJX's functions the derivative
-of that form while their values stay MJX's own, bit for bit.
+tree from its leaves, level by level, and pick each dof's root, joint and body by gathers;
+``smooth.com_vel`` sums the dofs' motions down the tree into the bodies' velocities and ``smooth.rne``
+their accelerations down it and their forces up it. Their reverse passes run those scans backwards
+with the transposes of every gather and scatter. The same sums are a constant 0/1 matrix (which
+bodies hang from which, which dofs move which) times the rows summed, and each pick is a one-hot
+matrix times the rows it picks from: ``REMEDIES`` give MJX's functions the derivative of that form
+while their values stay MJX's own, bit for bit.
 """
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ import numpy as np
 
 from stablebptt.physics.mjx_internals import mjx, mjx_math, smooth, support, types
 from stablebptt.physics.scene_terms import BALL, FREE, SLIDE
-from stablebptt.physics.tree_maps import Structure, dof_subtrees, picks, root, structure, subtree
+from stablebptt.physics.tree_maps import Structure, dof_subtrees, joints_moved, picks, root, structure, subtree
 from stablebptt.physics.values_kept import times, values_kept
 
 class _Rows(NamedTuple):
@@ -51,11 +53,9 @@ def _rows(tree: Structure) -> _Rows:
     moving = (kinds == FREE) & (place < 3)
     translation[np.nonzero(moving)[0], place[moving]] = 1.0
     along = ~np.isin(kinds, (FREE, BALL))
-    bodies, joints = np.asarray(dof_bodies, int), np.asarray(dof_joints, int)
-    same_joint = joints[:, None] == joints[None, :]
-    moved_before = subtree(tree)[bodies][:, bodies] & (
-        (bodies[:, None] != bodies[None, :]) | (joints[:, None] < joints[None, :])
-        | (same_joint & (kinds == FREE)[:, None] & (place[:, None] < 3) & (place[None, :] >= 3)))
+    joints = np.asarray(dof_joints, int)
+    moved_before = joints_moved(tree)[joints][:, joints] | (
+        (joints[:, None] == joints[None, :]) & (kinds == FREE)[:, None] & (place[:, None] < 3) & (place[None, :] >= 3))
     return _Rows(subtree(tree).astype(np.float32), root(tree), picks(dof_bodies, nbody),
                  picks([tree.roots[body] for body in dof_bodies], nbody), picks(dof_joints, len(tree.joint_types)),
                  along.astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None], column, translation,
@@ -138,16 +138,8 @@ def _com_vel_fields(model: mjx.Model, data: mjx.Data) -> tuple:
     return moved.cvel, moved.cdof_dot
 
 
-def _rne_field(with_acceleration: bool):
-    def field(model: mjx.Model, data: mjx.Data) -> jax.Array:
-        return _rne(model, data, with_acceleration).qfrc_bias
-    return field
-
-
-def _rne_product(with_acceleration: bool):
-    def product(model: mjx.Model, data: mjx.Data) -> jax.Array:
-        return _rne_as_products(model, data, with_acceleration)
-    return product
+def _rne_field(model: mjx.Model, data: mjx.Data, with_acceleration: bool) -> jax.Array:
+    return _rne(model, data, with_acceleration).qfrc_bias
 
 
 def _kept(fields, as_products):
@@ -158,7 +150,8 @@ _com_pos, _crb = smooth.com_pos, smooth.crb
 _com_pos_kept, _crb_kept = _kept(_com_pos_fields, _com_pos_as_products), _kept(_crb_fields, _crb_as_products)
 _com_vel, _rne = smooth.com_vel, smooth.rne
 _com_vel_kept = _kept(_com_vel_fields, _com_vel_as_products)
-_rne_kept = {flag: _kept(_rne_field(flag), _rne_product(flag)) for flag in (False, True)}
+_rne_kept = {flag: _kept(functools.partial(_rne_field, with_acceleration=flag),
+                         functools.partial(_rne_as_products, with_acceleration=flag)) for flag in (False, True)}
 
 
 def com_pos(model: mjx.Model, data: mjx.Data) -> mjx.Data:

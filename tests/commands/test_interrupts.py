@@ -113,10 +113,29 @@ with stop_on_signals() as should_stop:
 
 
 def test_ctrl_c_just_before_a_training_loop_ends_the_command_and_is_not_lost():
-    """The handler runs in the main thread before the loop begins; the watcher thread, woken by the same
-    signal, may look only once the loop's handler is set and leave the signal to it. Ended by whichever
-    comes first, the command stops with one line and exit code 130, never trains on."""
-    for _ in range(3):  # the threads' order varies: each must end it
-        done = subprocess.run([sys.executable, "-c", CTRL_C_BEFORE_THE_LOOP], cwd=ROOT, capture_output=True,
-                              text=True, timeout=120)
-        assert (done.returncode, done.stdout, done.stderr) == (130, "", f"{INTERRUPTED}\n")
+    """Python's handler runs in the main thread just after the signal, before the loop begins; the watcher
+    thread, woken by the same signal, may look only once the loop's handler is set and leave the signal to
+    it. The handler ends the command itself: one line and exit code 130, never training on."""
+    done = subprocess.run([sys.executable, "-c", CTRL_C_BEFORE_THE_LOOP], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert (done.returncode, done.stdout, done.stderr) == (130, "", f"{INTERRUPTED}\n")
+
+
+# A second Ctrl-C while the first one ends the process (its line being written): the lock is taken.
+CTRL_C_WHILE_ENDING = """
+import os, signal
+from stablebptt import cli
+cli.stop_at_once_on_interrupt()
+cli._ENDING.acquire()
+os.kill(os.getpid(), signal.SIGINT)
+print("returned", end="")
+"""
+
+
+def test_a_second_ctrl_c_while_the_first_ends_the_command_does_not_hang_it():
+    """Timeout signals the process, then its group; a signal that interrupts the first one's write runs the
+    handler within itself. Its second run finds the process ending and returns: waiting for the lock,
+    which its own thread holds, it would wait forever."""
+    done = subprocess.run([sys.executable, "-c", CTRL_C_WHILE_ENDING], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120)
+    assert (done.returncode, done.stdout, done.stderr) == (0, "returned", "")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
-from stablebptt.physics import values_kept
+from stablebptt.physics import tree_sums, values_kept
 from stablebptt.physics.mjx_internals import forward, mjx, smooth
 
 from conftest import float64, jitted_anew
@@ -126,42 +126,52 @@ def test_the_derivative_in_every_coordinate_is_mujocos_c_position_stages(trees):
 @pytest.fixture(scope="module")
 def moving(trees):
     """The velocity stage's outputs (and the bias forces with accelerations, as inverse dynamics takes them)
-    as a function of (qpos, qvel, qacc), at a state with every dof moving."""
+    as a function of (qpos, qvel, qacc) and of the model (with gravity, or without), at a state with every dof
+    moving; the two models."""
     model, data, start, _, _ = trees
     rng = np.random.default_rng(7)
+    weightless = mujoco.MjModel.from_xml_string(TREES)
+    weightless.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_GRAVITY
     with float64():
         start = start.replace(qvel=jnp.asarray(rng.standard_normal(model.nv)),
                               qacc=jnp.asarray(rng.standard_normal(model.nv)))
+        models = {"gravity": mjx.put_model(model, impl="jax"), "no gravity": mjx.put_model(weightless, impl="jax")}
 
-    def velocity_stage(qpos, qvel, qacc):
+    def velocity_stage(qpos, qvel, qacc, mjx_model=models["gravity"]):
         data = forward.fwd_velocity(mjx_model, forward.fwd_position(mjx_model, start.replace(qpos=qpos, qvel=qvel,
                                                                                                qacc=qacc)))
         return {"cvel": data.cvel, "cdof_dot": data.cdof_dot, "qfrc_bias": data.qfrc_bias,
                 "inverse": smooth.rne(mjx_model, data, flg_acc=True).qfrc_bias}
 
-    with float64():
-        mjx_model = mjx.put_model(model, impl="jax")
-    return (start.qpos, start.qvel, start.qacc), velocity_stage
+    return (start.qpos, start.qvel, start.qacc), velocity_stage, models
 
 
 def test_the_velocity_stage_keeps_mjxs_values_and_its_derivative_is_mjxs_own(moving):
-    state, velocity_stage = moving
+    state, velocity_stage, models = moving
     rng = np.random.default_rng(3)
     with float64():
         directions = tuple(jnp.asarray(rng.standard_normal(np.shape(array))) for array in state)
 
-        def tangents(*state):
-            return jax.jvp(velocity_stage, state, directions)[1]
+        def moved(mjx_model):
+            return lambda *state: jax.jvp(lambda *state: velocity_stage(*state, mjx_model), state, directions)
 
         def cotangents(*state):
             return jax.vjp(velocity_stage, *state)[1](jax.tree.map(jnp.ones_like, velocity_stage(*state)))
 
-        own = [jitted_anew(function)(*state) for function in (velocity_stage, tangents, cotangents)]
+        def both():  # tangents with and without gravity, cotangents, values
+            return [*(jitted_anew(moved(mjx_model))(*state) for mjx_model in models.values()),
+                    jitted_anew(cotangents)(*state), jitted_anew(velocity_stage)(*state)]
+
+        own = both()
         with differentiable_mjx():
-            mine = [jitted_anew(function)(*state) for function in (velocity_stage, tangents, cotangents)]
-    for name in own[0]:
-        np.testing.assert_array_equal(mine[0][name], own[0][name], err_msg=name)
-    assert _largest_gap(mine[1], own[1]) < 1e-12 and min(np.abs(own[1][name]).max() for name in own[1]) > 1
+            assert (smooth.com_vel, smooth.rne) == (tree_sums.com_vel, tree_sums.rne)
+            mine = both()
+    for name in own[3]:
+        np.testing.assert_array_equal(mine[3][name], own[3][name], err_msg=name)
+    for (own_values, own_tangents), (values, tangents) in zip(own[:2], mine[:2]):
+        assert _largest_gap(values, own_values) < 1e-12 and _largest_gap(tangents, own_tangents) < 1e-12
+        assert min(np.abs(own_tangents[name]).max() for name in own_tangents) > 1
+    assert _largest_gap(own[0][0], own[1][0]) > 1  # gravity is felt
     for mine_array, own_array in zip(mine[2], own[2]):
         np.testing.assert_allclose(mine_array, own_array, rtol=1e-12, atol=1e-11)
 
@@ -179,7 +189,7 @@ def _c_velocity_stage(model, qpos, qvel, qacc):
 
 def test_the_velocity_stages_derivative_in_every_coordinate_and_velocity_is_mujocos_c(trees, moving):
     model = trees[0]
-    state, velocity_stage = moving
+    state, velocity_stage, _ = moving
     with float64(), differentiable_mjx():
         reverse = jitted_anew(jax.jacrev(lambda qpos, qvel: velocity_stage(qpos, qvel, state[2]), (0, 1)))(*state[:2])
     qpos, qvel, qacc = (np.asarray(array) for array in state)
