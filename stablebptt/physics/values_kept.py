@@ -25,16 +25,18 @@ def _summed(constant: jax.Array, array: jax.Array) -> jax.Array:
     return jnp.sum(constant.reshape(constant.shape + (1,) * (array.ndim - 1)) * array[None], axis=1)
 
 
-# The product's form by backend (docs/performance.md, "The position stage differentiated without the tree's
-# scans"): on a CPU a matmul; on a GPU, where a float32 matmul rounds to TF32 or at HIGHEST takes several
-# passes, a broadcast product and a sum (exact float32 products, one fused reduction).
-PRODUCTS = {"cpu": _matmul}
+# The product's form by the platform the program is compiled for (docs/performance.md, "The position stage
+# differentiated without the tree's scans"): on a CPU a matmul; on a GPU, where a float32 matmul rounds to TF32
+# or at HIGHEST takes several passes, a broadcast product and a sum (exact float32 products, one fused
+# reduction). By the program's platform, not JAX's default backend: beside an accelerator the reward check's
+# programs compile for the host's CPU, where the broadcast form took three times the matmul's time.
+PRODUCTS = {"cpu": _matmul, "default": _summed}
 
 
 def times(matrix: np.ndarray, array: jax.Array) -> jax.Array:
     """A constant 0/1 matrix times ``array``: a product, not a gather, whose transpose is a scatter-add, a
-    loop on a CPU."""
-    return PRODUCTS.get(jax.default_backend(), _summed)(jnp.asarray(matrix, array.dtype), array)
+    loop on a CPU. Only the form of the platform the program is lowered for is compiled."""
+    return jax.lax.platform_dependent(jnp.asarray(matrix, array.dtype), array, **PRODUCTS)
 
 
 def _traced(function: Callable, arrays: list) -> tuple[list[int], list[set[int]]]:

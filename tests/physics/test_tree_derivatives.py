@@ -233,6 +233,16 @@ def test_both_forms_of_the_constant_product_are_the_product():
                                            atol=1e-12, err_msg=f"{form.__name__} of {shape}")
 
 
+def test_each_platform_compiles_its_own_form_of_the_product():
+    """By the platform the program is lowered for, not JAX's default backend: an accelerator's host also
+    compiles programs for its CPU (the reward check's), which keep the matmul."""
+    matrix = (np.arange(35).reshape(5, 7) % 2).astype(np.float32)
+    traced = jax.jit(lambda array: values_kept.times(matrix, array)).trace(jnp.ones((7, 6)))
+    texts = {platform: traced.lower(lowering_platforms=(platform,)).as_text() for platform in ("cpu", "cuda")}
+    assert "dot_general" in texts["cpu"] and "stablehlo.reduce" not in texts["cpu"]
+    assert "stablehlo.reduce" in texts["cuda"] and "dot_general" not in texts["cuda"]
+
+
 def test_the_derivative_through_a_gpus_form_of_the_product_is_mjxs_own(trees, monkeypatch):
     _, _, start, _, placed = trees
     state = (start.qpos, start.mocap_pos, start.mocap_quat)
@@ -241,7 +251,7 @@ def test_the_derivative_through_a_gpus_form_of_the_product_is_mjxs_own(trees, mo
     def tangents(*state):
         return jax.jvp(lambda qpos: placed(qpos, *state[1:]), (state[0],), (jnp.asarray(direction),))[1]
 
-    monkeypatch.setattr(values_kept, "PRODUCTS", {})  # the broadcast product and sum, as on a GPU
+    monkeypatch.setattr(values_kept, "PRODUCTS", {"default": values_kept._summed})  # as on a GPU
     with float64():
         own = jitted_anew(tangents)(*state)
         with differentiable_mjx():
