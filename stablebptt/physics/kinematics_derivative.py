@@ -57,10 +57,9 @@ def _tree(tree: Structure) -> _Tree:
         scalar[joint, addresses[joint]] = 1.0
     turning = tuple((int(joint), int(addresses[joint]), bool(kinds[joint] == FREE))
                     for joint in np.nonzero(np.isin(kinds, (FREE, BALL)))[0])
-    turning_rows = np.eye(njnt, dtype=np.float32)[:, [j for j, _, _ in turning]]
-    mocap = np.asarray(tree.mocap_ids)
-    mocap_rows = np.zeros((nbody, int(np.sum(mocap >= 0))), np.float32)
-    mocap_rows[np.nonzero(mocap >= 0)[0], mocap[mocap >= 0]] = 1.0
+    turning_rows = picks([joint for joint, _, _ in turning], njnt).T
+    nmocap = sum(mocap_id >= 0 for mocap_id in tree.mocap_ids)
+    mocap_rows = picks([tree.mocap_ids.index(mocap_id) for mocap_id in range(nmocap)], nbody).T
     return _Tree(subtree(tree)[bodies].astype(np.float32), joints_moved(tree).astype(np.float32), scalar,
                  (kinds == HINGE).astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None],
                  turning, turning_rows, turning_rows * np.asarray([free for _, _, free in turning], np.float32),
