@@ -45,6 +45,7 @@ from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_state
                                       function_name, observation, with_reset_traced_once)
 from stablebptt.envs.returns import EpisodeState, episode_dynamics, rollout_loss
 from stablebptt.envs.reward_direction import Direction
+from stablebptt.envs.sensors_read import unread_sensors_off
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
@@ -158,6 +159,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
     check_env_task_arguments(**{argument: value for argument, value in locals().items() if argument != "env"})
+    env, sensors_off = unread_sensors_off(env, diagnosis_key)  # the returns the same to the bit
     env = with_reset_traced_once(env)
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -336,6 +338,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else "")
                + (f"; the derivative cut at contact loads above {contact_gradient_cut:g} body weights" if contact_gradient_cut else ""))
     summary += f"; repaired: {reward_repairs}" if reward_repairs else ""
+    summary += f"; {sensors_off} sensors nothing returned reads not simulated" if sensors_off else ""
 
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None,
              answer: Callable[[], str] | None = None) -> Task:  # answer: the pending check's kind, waited for

@@ -1,0 +1,198 @@
+"""Sensors an environment never reads, not simulated.
+
+MJX computes every sensor of a model at every physics step, and the gradient path differentiates
+them: MuJoCo Playground's humanoid has an accelerometer, 6 force and 6 torque sensors, whose
+stage (``smooth.rne_postconstraint``) made a third of its update's compile on one H100, and its
+env reads one velocity sensor (docs/performance.md, "Sensors no one reads"). ``sensors_read``
+finds, from the traced reset and step, which sensors' values anything the env returns reads
+besides the state's own copy of MJX's data; ``unread_sensors_off`` gives an env whose model
+leaves the rest out (their stage set to none, as MJX skips them), its returns the same to the bit.
+Where the trace does not tell (a read it cannot follow, a field only those stages write read), every
+sensor stays.
+"""
+from __future__ import annotations
+
+import copy
+import os
+from typing import Any
+
+import jax
+import jax.extend
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from stablebptt.engine import program_store
+
+# Data fields only the sensors' stages write (MJX's sensor_vel and sensor_acc): read, every sensor stays.
+_SENSOR_STAGE_FIELDS = ("cacc", "cfrc_int", "cfrc_ext", "subtree_linvel", "subtree_angmom")
+_SENSOR_MODULE = os.path.join("mjx", "_src", "sensor.py")
+# Operations that write into an array and give it on, read by nothing: followed to what they give.
+_WRITES = ("scatter", "dynamic_update_slice", "copy", "copy_p")
+
+
+def _is_var(atom) -> bool:
+    return isinstance(atom, jax.extend.core.Var)
+
+
+def _in_sensor_stage(equation) -> bool:
+    traceback = equation.source_info.traceback
+    return traceback is not None and any(frame.file_name.endswith(_SENSOR_MODULE) for frame in traceback.frames)
+
+
+def _inner(equation) -> list:
+    return [getattr(inner, "jaxpr", inner) for inner in jax.extend.core.jaxprs_in_params(equation.params)]
+
+
+def _follow(jaxpr, tracked: set) -> tuple[set[int] | None, set[int]]:
+    """The elements of the vector ``tracked`` (ids of variables of ``jaxpr`` that hold it) that ``jaxpr``
+    reads, and the outputs it reaches as it is; None where a use is not one of those followed."""
+    tracked, read = set(tracked), set()
+    for equation in jaxpr.eqns:
+        places = [place for place, atom in enumerate(equation.invars) if _is_var(atom) and id(atom) in tracked]
+        if not places:
+            continue
+        name, params = equation.primitive.name, equation.params
+        if name not in _WRITES and _in_sensor_stage(equation):  # read by the stages that go with the sensors
+            continue
+        if name == "slice" and len(params["start_indices"]) == 1 and params["strides"] in (None, (1,)):
+            read.update(range(params["start_indices"][0], params["limit_indices"][0]))
+            continue
+        if name in _WRITES:
+            if places != [0]:  # written into another array, or its values used as indices
+                return None, set()
+            tracked.add(id(equation.outvars[0]))
+            continue
+        found = _through_call(equation, places)
+        if found is None:
+            return None, set()
+        inner_read, reached = found
+        read |= inner_read
+        tracked |= {id(equation.outvars[place]) for place in reached}
+    return read, {place for place, atom in enumerate(jaxpr.outvars) if _is_var(atom) and id(atom) in tracked}
+
+
+def _through_call(equation, places: list[int]) -> tuple[set[int], set[int]] | None:
+    """A call's reads of its arguments at ``places`` and the results they reach: a call that passes its
+    arguments on one for one (jit, a custom derivative, a checkpoint), a loop's carry, a branch's operands."""
+    name, params, inner = equation.primitive.name, equation.params, _inner(equation)
+    if name == "scan":
+        body = inner[0]
+        consts, carried = _scan_parts(equation, body)
+        if any(place >= consts + carried for place in places):  # a loop's sliced inputs: not followed
+            return None
+        return _loop(body, set(places), consts, carried)
+    if name == "while":
+        if not {"cond_jaxpr", "body_jaxpr", "cond_nconsts", "body_nconsts"} <= set(params):
+            return None
+        cond, body = params["cond_jaxpr"].jaxpr, params["body_jaxpr"].jaxpr
+        cond_consts, body_consts = params["cond_nconsts"], params["body_nconsts"]
+        if any(place < cond_consts for place in places):
+            return None
+        found = _loop(body, {place - cond_consts for place in places}, body_consts, len(body.outvars))
+        if found is None:
+            return None
+        read, reached = found
+        carried = reached | {place - cond_consts - body_consts for place in places if place >= cond_consts + body_consts}
+        cond_read, _ = _follow(cond, {id(cond.invars[cond_consts + carry]) for carry in carried})
+        return None if cond_read is None else (read | cond_read, reached)
+    if name == "cond":
+        read, reached = set(), set()
+        for branch in inner:
+            found = _follow(branch, {id(branch.invars[place - 1]) for place in places if place > 0})
+            if found[0] is None or 0 in places:
+                return None
+            read |= found[0]
+            reached |= found[1]
+        return read, reached
+    if len(inner) == 1 and len(inner[0].invars) == len(equation.invars) and len(inner[0].outvars) == len(equation.outvars):
+        found = _follow(inner[0], {id(inner[0].invars[place]) for place in places})
+        return None if found[0] is None else found
+    return None
+
+
+def _scan_parts(equation, body) -> tuple[int, int]:
+    """A scan's constants and carried values, counted from its shapes (JAX's parameters that count them have
+    changed between versions): a carried value keeps its shape through the loop, a scanned one has the loop's
+    axis outside it; its inputs are constants, carried values and scanned ones, in that order."""
+    def same(outer, inside) -> bool:
+        return tuple(outer.aval.shape) == tuple(inside.aval.shape)
+    carried = next((place for place, (outer, inside) in enumerate(zip(equation.outvars, body.outvars))
+                    if not same(outer, inside)), len(equation.outvars))
+    scanned = sum(not same(outer, inside) for outer, inside in zip(equation.invars, body.invars))
+    return len(equation.invars) - carried - scanned, carried
+
+
+def _loop(body, places: set[int], consts: int, carried: int):
+    """A loop body's reads of its inputs at ``places`` (``consts`` constants, then ``carried`` carried values), the
+    carried ones fed back until no more are reached; the loop's results they reach (its carry, in the same places)."""
+    while True:
+        read, reached = _follow(body, {id(body.invars[place]) for place in places})
+        if read is None or any(place >= carried for place in reached):  # stacked per iteration: not followed
+            return None
+        fed_back = places | {consts + place for place in reached}
+        if fed_back == places:
+            return read, reached
+        places = fed_back
+
+
+def _leaf_index(shapes, path: str) -> int | None:
+    paths = [jax.tree_util.keystr(leaf_path) for leaf_path, _ in jax.tree_util.tree_flatten_with_path(shapes)[0]]
+    return paths.index(path) if path in paths else None
+
+
+def _elements_read(jaxpr, inputs: list, kept_output: int) -> set[int] | None:
+    """The elements of one vector that ``jaxpr`` reads, held at input places ``inputs`` and output place
+    ``kept_output`` (the returned state's own copy, not a read)."""
+    tracked = {id(jaxpr.invars[place]) for place in inputs} | {id(jaxpr.outvars[kept_output])}
+    read, reached = _follow(jaxpr, tracked)
+    if read is None or reached - {kept_output}:
+        return None
+    return read
+
+
+def sensors_read(env: Any, model: Any) -> list[bool] | None:
+    """For each sensor of ``model`` (``env``'s MJX model), whether ``env``'s reset or step gives on anything
+    read from its values, besides the state's own data; None where the traces do not tell."""
+    try:
+        reset, state = jax.make_jaxpr(env.reset, return_shape=True)(jax.random.PRNGKey(0))
+        action = jax.ShapeDtypeStruct((int(env.action_size),), jnp.float32)
+        step, reached = jax.make_jaxpr(env.step, return_shape=True)(state, action)
+    except Exception:  # noqa: BLE001 - an env whose reset or step does not trace: the protocol's check names why
+        return None
+    read: set[int] = set()
+    for name in ("sensordata",) + _SENSOR_STAGE_FIELDS:
+        path = next((jax.tree_util.keystr(leaf_path) for leaf_path, _ in jax.tree_util.tree_flatten_with_path(state)[0]
+                     if jax.tree_util.keystr(leaf_path).endswith(f".{name}")), None)
+        if path is None:  # a field this MJX does not have; a state without MJX's sensor data: not told
+            if name == "sensordata":
+                return None
+            continue
+        at_reset, at_step, given = _leaf_index(state, path), _leaf_index(reached, path), _leaf_index((state, action), f"[0]{path}")
+        if at_reset is None or at_step is None or given is None:
+            return None
+        elements = [_elements_read(reset.jaxpr, [], at_reset), _elements_read(step.jaxpr, [given], at_step)]
+        if any(found is None for found in elements) or (name != "sensordata" and any(elements)):
+            return None
+        if name == "sensordata":
+            read = elements[0] | elements[1]
+    addresses, sizes = np.asarray(model.sensor_adr), np.asarray(model.sensor_dim)
+    return [bool(read & set(range(address, address + size))) for address, size in zip(addresses, sizes)]
+
+
+def unread_sensors_off(env: Any, answer_key: dict | None = None) -> tuple[Any, int]:
+    """A shallow copy of ``env`` whose MJX model (``_mjx_model``, MuJoCo Playground's) leaves out the sensors
+    nothing it returns reads (``sensors_read``, kept under ``answer_key`` as ``program_store.kept_answer``
+    keeps answers), and how many it left out; ``env`` itself where there are none. Looked for only where
+    a sensor needs the acceleration stage (``smooth.rne_postconstraint``, contact forces): position and
+    velocity sensors cost a gather each."""
+    model = vars(env).get("_mjx_model") if hasattr(env, "__dict__") else None
+    stages = np.asarray(getattr(model, "sensor_needstage", ()))
+    if not np.any(stages == mujoco.mjtStage.mjSTAGE_ACC):
+        return env, 0
+    read = program_store.kept_answer(answer_key, "sensors read", lambda: sensors_read(env, model))
+    if read is None or all(read):
+        return env, 0
+    copied = copy.copy(env)
+    copied._mjx_model = model.replace(sensor_needstage=np.where(read, np.asarray(model.sensor_needstage), 0))
+    return copied, len(read) - sum(read)

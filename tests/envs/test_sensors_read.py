@@ -1,0 +1,109 @@
+"""Sensors nothing an env returns reads are left out of its model (stablebptt.envs.sensors_read): found
+from the traced reset and step, every read followed to the sensor it reads; where a read cannot be
+followed, every sensor stays; the env left out of them returns the same to the bit."""
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco import mjx
+
+from stablebptt.envs.sensors_read import _inner, _scan_parts, sensors_read, unread_sensors_off
+
+ARM = """
+<mujoco>
+  <worldbody>
+    <body name="arm" pos="0 0 1">
+      <!-- a limit: MJX computes acceleration sensors only where its solver has rows -->
+      <joint name="hinge" type="hinge" axis="0 1 0" damping="0.1" range="-2 2"/>
+      <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.05"/>
+      <site name="tip" pos="0.5 0 0"/>
+    </body>
+  </worldbody>
+  <actuator><motor joint="hinge" gear="1"/></actuator>
+  <sensor>
+    <accelerometer name="acceleration" site="tip"/>
+    <jointpos name="angle" joint="hinge"/>
+    <force name="force" site="tip"/>
+    <subtreelinvel name="velocity" body="arm"/>
+  </sensor>
+</mujoco>
+"""
+ANGLE, VELOCITY, ACCELERATION = slice(3, 4), slice(7, 10), slice(0, 3)  # sensordata's addresses, in the file's order
+
+
+class State(NamedTuple):
+    data: Any
+    obs: jax.Array
+    reward: jax.Array
+    done: jax.Array
+
+
+class Arm:
+    """MuJoCo Playground's shape of env (its MJX model in ``_mjx_model``, two physics steps a control step),
+    observing ``observe(data)`` after a step and ``observe_at_reset(data)`` after a reset."""
+
+    action_size = 1
+
+    def __init__(self, observe: Callable, observe_at_reset: Callable | None = None):
+        self.mj_model = mujoco.MjModel.from_xml_string(ARM)
+        self._mjx_model = mjx.put_model(self.mj_model, impl="jax")
+        self.observe, self.observe_at_reset = observe, observe_at_reset or observe
+
+    def reset(self, key):
+        data = mjx.make_data(self._mjx_model).replace(qpos=jax.random.uniform(key, (1,)))
+        data = mjx.forward(self._mjx_model, data)
+        return State(data, self.observe_at_reset(data), jnp.zeros(()), jnp.zeros(()))
+
+    def step(self, state, action):
+        def physics_step(data, _):
+            return mjx.step(self._mjx_model, data.replace(ctrl=action)), None
+        data = jax.lax.scan(physics_step, state.data, None, length=2)[0]
+        return State(data, self.observe(data), -jnp.sum(data.sensordata[ANGLE] ** 2), state.done)
+
+
+def test_only_the_sensors_a_step_or_a_reset_reads_are_read():
+    arm = Arm(lambda data: data.sensordata[VELOCITY], lambda data: jnp.concatenate([data.sensordata[VELOCITY], data.qvel]))
+    assert sensors_read(arm, arm._mjx_model) == [False, True, False, True]
+    at_reset_only = Arm(lambda data: data.qvel, lambda data: data.sensordata[ACCELERATION])
+    assert sensors_read(at_reset_only, at_reset_only._mjx_model) == [True, True, False, False]
+
+
+@pytest.mark.parametrize("observe", [lambda data: data.sensordata * 2.0,  # every element, not by a slice
+                                     lambda data: data.sensordata[jnp.array([0, 3])],  # a gather
+                                     lambda data: data._impl.cfrc_ext[1],  # a field only the sensors' stages write
+                                     lambda data: data._impl.cacc.sum(0)])
+def test_a_read_that_cannot_be_followed_keeps_every_sensor(observe):
+    arm = Arm(observe)
+    assert sensors_read(arm, arm._mjx_model) is None
+    assert unread_sensors_off(arm) == (arm, 0)
+
+
+def test_the_env_without_its_unread_sensors_returns_the_same_to_the_bit():
+    arm = Arm(lambda data: jnp.concatenate([data.sensordata[VELOCITY], data.qpos]))
+    lean, left_out = unread_sensors_off(arm)
+    assert left_out == 2 and lean is not arm
+    assert list(np.asarray(arm._mjx_model.sensor_needstage)) != list(np.asarray(lean._mjx_model.sensor_needstage))
+    assert list(np.asarray(lean._mjx_model.sensor_needstage)[[0, 2]]) == [0, 0]  # the acceleration's and the force's
+
+    def episode(env):
+        state = env.reset(jax.random.PRNGKey(3))
+        states = jax.lax.scan(lambda state, action: (env.step(state, action),) * 2, state, jnp.full((6, 1), 0.4))[1]
+        return state.obs, states.obs, states.reward, states.data.qacc, states.data.sensordata
+    full, without = jax.jit(lambda: episode(arm))(), jax.jit(lambda: episode(lean))()
+    for kept, left in zip(full[:4], without[:4]):
+        np.testing.assert_array_equal(np.asarray(kept), np.asarray(left))
+    assert np.all(np.asarray(without[4])[:, ACCELERATION] == 0.0)  # never computed
+    assert np.all(np.linalg.norm(np.asarray(full[4])[:, ACCELERATION], axis=1) > 1.0)  # gravity: the full model's measure it
+
+
+def test_a_scans_constants_and_carried_values_are_counted_from_its_shapes():
+    def looped(constant, carried, scanned):
+        return jax.lax.scan(lambda carry, x: (carry * constant + x, carry.sum()), carried, scanned)
+    jaxpr = jax.make_jaxpr(looped)(jnp.ones(3), jnp.ones(3), jnp.ones((4, 3))).jaxpr
+    scan = next(equation for equation in jaxpr.eqns if equation.primitive.name == "scan")
+    assert _scan_parts(scan, _inner(scan)[0]) == (1, 1)  # the constant, the carried vector; the scanned rows
