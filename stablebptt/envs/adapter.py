@@ -159,17 +159,18 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
     check_env_task_arguments(**{argument: value for argument, value in locals().items() if argument != "env"})
-    env, sensors_off = unread_sensors_off(env, diagnosis_key)  # the returns the same to the bit
-    env = with_reset_traced_once(env)
-    # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
-    observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
-    if episode_length is None:
-        episode_length = int(getattr(getattr(env, "_config", None), "episode_length", 1000))
     if reward_context is None:
         reward_context = contextlib.nullcontext
         if _is_playground(env):
             from stablebptt.envs import playground
             reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
+    # The step searched as the task traces it, inside the reward's repair: the returns the same to the bit.
+    env, sensors_off = unread_sensors_off(env, diagnosis_key, reward_context)
+    env = with_reset_traced_once(env)
+    # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
+    observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
+    if episode_length is None:
+        episode_length = int(getattr(getattr(env, "_config", None), "episode_length", 1000))
     if not whole_number(episode_length) or episode_length < 1:
         raise EnvError(f"{type(env).__name__}'s episode_length must be a positive whole number of steps, got "
                        f"{episode_length!r}: give env_task(episode_length=...)")

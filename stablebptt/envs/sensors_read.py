@@ -1,20 +1,21 @@
 """Sensors an environment never reads, not simulated.
 
 MJX computes every sensor of a model at every physics step, and the gradient path differentiates
-them: MuJoCo Playground's humanoid has an accelerometer, 6 force and 6 torque sensors, whose
-stage (``smooth.rne_postconstraint``) made a third of its update's compile on one H100, and its
-env reads one velocity sensor (docs/performance.md, "Sensors no one reads"). ``sensors_read``
-finds, from the traced reset and step, which sensors' values anything the env returns reads
-besides the state's own copy of MJX's data; ``unread_sensors_off`` gives an env whose model
-leaves the rest out (their stage set to none, as MJX skips them), its returns the same to the bit.
-Where the trace does not tell (a read it cannot follow, a field only those stages write read), every
-sensor stays.
+them: MuJoCo Playground's humanoid has an accelerometer, 6 force and 6 torque sensors, whose stage
+(``smooth.rne_postconstraint``) made nearly a third of its update's compile on one H100, and its env
+reads one velocity sensor (docs/performance.md, "The update against its floor": "Sensors no one
+reads"). ``sensors_read`` finds, from the traced reset and step, which sensors' values anything the
+env returns reads besides the state's own copy of MJX's data; ``unread_sensors_off`` gives an env
+whose model leaves the rest out (their stage set to none, as MJX skips them), its returns the same
+to the bit. Where the trace does not tell (a read it cannot follow, a field only those stages write
+read), every sensor stays.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import os
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.extend
@@ -93,7 +94,8 @@ def _through_call(equation, places: list[int]) -> tuple[set[int], set[int]] | No
         if found is None:
             return None
         read, reached = found
-        carried = reached | {place - cond_consts - body_consts for place in places if place >= cond_consts + body_consts}
+        first_carried = cond_consts + body_consts
+        carried = reached | {place - first_carried for place in places if place >= first_carried}
         cond_read, _ = _follow(cond, {id(cond.invars[cond_consts + carry]) for carry in carried})
         return None if cond_read is None else (read | cond_read, reached)
     if name == "cond":
@@ -105,7 +107,9 @@ def _through_call(equation, places: list[int]) -> tuple[set[int], set[int]] | No
             read |= found[0]
             reached |= found[1]
         return read, reached
-    if len(inner) == 1 and len(inner[0].invars) == len(equation.invars) and len(inner[0].outvars) == len(equation.outvars):
+    one_for_one = len(inner) == 1 and (len(inner[0].invars), len(inner[0].outvars)) == (len(equation.invars),
+                                                                                         len(equation.outvars))
+    if one_for_one:
         found = _follow(inner[0], {id(inner[0].invars[place]) for place in places})
         return None if found[0] is None else found
     return None
@@ -141,23 +145,34 @@ def _leaf_index(shapes, path: str) -> int | None:
     return paths.index(path) if path in paths else None
 
 
+def _first_written(jaxpr, variable):
+    """The array whose writes in ``jaxpr`` (operand first) made ``variable``: every value between is followed."""
+    producers = {id(out): equation for equation in jaxpr.eqns for out in equation.outvars}
+    while id(variable) in producers and producers[id(variable)].primitive.name in _WRITES:
+        variable = producers[id(variable)].invars[0]
+    return variable
+
+
 def _elements_read(jaxpr, inputs: list, kept_output: int) -> set[int] | None:
     """The elements of one vector that ``jaxpr`` reads, held at input places ``inputs`` and output place
-    ``kept_output`` (the returned state's own copy, not a read)."""
-    tracked = {id(jaxpr.invars[place]) for place in inputs} | {id(jaxpr.outvars[kept_output])}
+    ``kept_output`` (the returned state's own copy, not a read), followed from the array the output was
+    written into (a reset that reads the sensors between two of MJX's forward passes reads the first's)."""
+    tracked = {id(jaxpr.invars[place]) for place in inputs} | {id(_first_written(jaxpr, jaxpr.outvars[kept_output]))}
     read, reached = _follow(jaxpr, tracked)
     if read is None or reached - {kept_output}:
         return None
     return read
 
 
-def sensors_read(env: Any, model: Any) -> list[bool] | None:
+def sensors_read(env: Any, model: Any, step_context: Callable = contextlib.nullcontext) -> list[bool] | None:
     """For each sensor of ``model`` (``env``'s MJX model), whether ``env``'s reset or step gives on anything
-    read from its values, besides the state's own data; None where the traces do not tell."""
+    read from its values, besides the state's own data; None where the traces do not tell. The step is
+    traced inside ``step_context()`` (the task's reward repair)."""
     try:
         reset, state = jax.make_jaxpr(env.reset, return_shape=True)(jax.random.PRNGKey(0))
         action = jax.ShapeDtypeStruct((int(env.action_size),), jnp.float32)
-        step, reached = jax.make_jaxpr(env.step, return_shape=True)(state, action)
+        with step_context():
+            step, reached = jax.make_jaxpr(env.step, return_shape=True)(state, action)
     except Exception:  # noqa: BLE001 - an env whose reset or step does not trace: the protocol's check names why
         return None
     read: set[int] = set()
@@ -168,7 +183,8 @@ def sensors_read(env: Any, model: Any) -> list[bool] | None:
             if name == "sensordata":
                 return None
             continue
-        at_reset, at_step, given = _leaf_index(state, path), _leaf_index(reached, path), _leaf_index((state, action), f"[0]{path}")
+        at_reset, at_step = _leaf_index(state, path), _leaf_index(reached, path)
+        given = _leaf_index((state, action), f"[0]{path}")
         if at_reset is None or at_step is None or given is None:
             return None
         elements = [_elements_read(reset.jaxpr, [], at_reset), _elements_read(step.jaxpr, [given], at_step)]
@@ -180,19 +196,25 @@ def sensors_read(env: Any, model: Any) -> list[bool] | None:
     return [bool(read & set(range(address, address + size))) for address, size in zip(addresses, sizes)]
 
 
-def unread_sensors_off(env: Any, answer_key: dict | None = None) -> tuple[Any, int]:
+def unread_sensors_off(env: Any, answer_key: dict | None = None,
+                       step_context: Callable = contextlib.nullcontext) -> tuple[Any, int]:
     """A shallow copy of ``env`` whose MJX model (``_mjx_model``, MuJoCo Playground's) leaves out the sensors
-    nothing it returns reads (``sensors_read``, kept under ``answer_key`` as ``program_store.kept_answer``
-    keeps answers), and how many it left out; ``env`` itself where there are none. Looked for only where
-    a sensor needs the acceleration stage (``smooth.rne_postconstraint``, contact forces): position and
-    velocity sensors cost a gather each."""
+    nothing it returns reads (``sensors_read``, its step traced inside ``step_context()``; kept under
+    ``answer_key`` as ``program_store.kept_answer`` keeps answers), and how many it left out; ``env``
+    itself where there are none, or where its attributes cannot be set. Looked for only where a sensor
+    needs the acceleration stage, the costly one (MJX's ``rne_postconstraint`` at every physics step, the
+    contacts' forces for a touch): the search traces the env's reset and step, 3.0-3.3 s of the
+    humanoid's start on the 2-core CPU."""
     model = vars(env).get("_mjx_model") if hasattr(env, "__dict__") else None
     stages = np.asarray(getattr(model, "sensor_needstage", ()))
     if not np.any(stages == mujoco.mjtStage.mjSTAGE_ACC):
         return env, 0
-    read = program_store.kept_answer(answer_key, "sensors read", lambda: sensors_read(env, model))
+    read = program_store.kept_answer(answer_key, "sensors read", lambda: sensors_read(env, model, step_context))
     if read is None or all(read):
         return env, 0
     copied = copy.copy(env)
-    copied._mjx_model = model.replace(sensor_needstage=np.where(read, np.asarray(model.sensor_needstage), 0))
+    try:
+        copied._mjx_model = model.replace(sensor_needstage=np.where(read, np.asarray(model.sensor_needstage), 0))
+    except (AttributeError, TypeError):  # a frozen dataclass's FrozenInstanceError is an AttributeError
+        return env, 0
     return copied, len(read) - sum(read)

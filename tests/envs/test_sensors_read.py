@@ -3,6 +3,7 @@ from the traced reset and step, every read followed to the sensor it reads; wher
 followed, every sensor stays; the env left out of them returns the same to the bit."""
 from __future__ import annotations
 
+import contextlib
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -57,7 +58,8 @@ class Arm:
     def reset(self, key):
         data = mjx.make_data(self._mjx_model).replace(qpos=jax.random.uniform(key, (1,)))
         data = mjx.forward(self._mjx_model, data)
-        return State(data, self.observe_at_reset(data), jnp.zeros(()), jnp.zeros(()))
+        observed = self.observe_at_reset(data)  # before a second forward pass, as a settling reset would
+        return State(mjx.forward(self._mjx_model, data), observed, jnp.zeros(()), jnp.zeros(()))
 
     def step(self, state, action):
         def physics_step(data, _):
@@ -107,3 +109,18 @@ def test_a_scans_constants_and_carried_values_are_counted_from_its_shapes():
     jaxpr = jax.make_jaxpr(looped)(jnp.ones(3), jnp.ones(3), jnp.ones((4, 3))).jaxpr
     scan = next(equation for equation in jaxpr.eqns if equation.primitive.name == "scan")
     assert _scan_parts(scan, _inner(scan)[0]) == (1, 1)  # the constant, the carried vector; the scanned rows
+
+
+def test_the_step_is_searched_as_the_task_traces_it_inside_its_context():
+    entered = []
+
+    @contextlib.contextmanager
+    def repaired():  # stands for the task's reward repair, which changes what its step computes
+        entered.append(True)
+        try:
+            yield
+        finally:
+            entered.pop()
+    arm = Arm(lambda data: data.sensordata[ACCELERATION] if entered else data.qvel, lambda data: data.qvel)
+    assert sensors_read(arm, arm._mjx_model) == [False, True, False, False]  # the reward's angle alone
+    assert sensors_read(arm, arm._mjx_model, repaired) == [True, True, False, False]
