@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
+from stablebptt.envs.adapter import env_task
 from stablebptt.envs.sensors_read import _inner, _scan_parts, sensors_read, unread_sensors_off
 
 ARM = """
@@ -48,7 +49,7 @@ class Arm:
     """MuJoCo Playground's shape of env (its MJX model in ``_mjx_model``, two physics steps a control step),
     observing ``observe(data)`` after a step and ``observe_at_reset(data)`` after a reset."""
 
-    action_size = 1
+    action_size, observation_size = 1, 4
 
     def __init__(self, observe: Callable, observe_at_reset: Callable | None = None):
         self.mj_model = mujoco.MjModel.from_xml_string(ARM)
@@ -124,3 +125,14 @@ def test_the_step_is_searched_as_the_task_traces_it_inside_its_context():
     arm = Arm(lambda data: data.sensordata[ACCELERATION] if entered else data.qvel, lambda data: data.qvel)
     assert sensors_read(arm, arm._mjx_model) == [False, True, False, False]  # the reward's angle alone
     assert sensors_read(arm, arm._mjx_model, repaired) == [True, True, False, False]
+
+
+def test_a_task_of_the_env_names_the_sensors_left_out_and_leaves_the_callers_env_as_it_was():
+    arm = Arm(lambda data: jnp.concatenate([data.sensordata[VELOCITY], data.qpos]))
+    needed = np.asarray(arm._mjx_model.sensor_needstage).copy()
+    task = env_task(arm, horizon=2, diagnose=False)
+    assert "; 2 sensors nothing returned reads not simulated" in task.summary
+    np.testing.assert_array_equal(np.asarray(arm._mjx_model.sensor_needstage), needed)
+    every_sensor_read = Arm(lambda data: data.sensordata * 1.0)
+    every_sensor_read.observation_size = 10
+    assert "sensors nothing returned reads" not in env_task(every_sensor_read, horizon=2, diagnose=False).summary
