@@ -29,7 +29,7 @@ from stablebptt.engine import program_store
 _SENSOR_STAGE_FIELDS = ("cacc", "cfrc_int", "cfrc_ext", "subtree_linvel", "subtree_angmom")
 _SENSOR_MODULE = os.path.join("mjx", "_src", "sensor.py")
 # Operations that write into an array and give it on, read by nothing: followed to what they give.
-_WRITES = ("scatter", "dynamic_update_slice", "copy", "copy_p")
+_WRITES = ("scatter", "dynamic_update_slice", "copy")
 
 
 def _is_var(atom) -> bool:
@@ -140,9 +140,9 @@ def _loop(body, places: set[int], consts: int, carried: int):
         places = fed_back
 
 
-def _leaf_index(shapes, path: str) -> int | None:
-    paths = [jax.tree_util.keystr(leaf_path) for leaf_path, _ in jax.tree_util.tree_flatten_with_path(shapes)[0]]
-    return paths.index(path) if path in paths else None
+def _paths(tree) -> list[str]:
+    """Each leaf's path, in the order the tree's leaves are a program's inputs and outputs."""
+    return [jax.tree_util.keystr(leaf_path) for leaf_path, _ in jax.tree_util.tree_flatten_with_path(tree)[0]]
 
 
 def _first_written(jaxpr, variable):
@@ -175,18 +175,17 @@ def sensors_read(env: Any, model: Any, step_context: Callable = contextlib.nullc
             step, reached = jax.make_jaxpr(env.step, return_shape=True)(state, action)
     except Exception:  # noqa: BLE001 - an env whose reset or step does not trace: the protocol's check names why
         return None
+    reset_paths, step_paths, input_paths = _paths(state), _paths(reached), _paths((state, action))
     read: set[int] = set()
     for name in ("sensordata",) + _SENSOR_STAGE_FIELDS:
-        path = next((jax.tree_util.keystr(leaf_path) for leaf_path, _ in jax.tree_util.tree_flatten_with_path(state)[0]
-                     if jax.tree_util.keystr(leaf_path).endswith(f".{name}")), None)
+        path = next((path for path in reset_paths if path.endswith(f".{name}")), None)
         if path is None:  # a field this MJX does not have; a state without MJX's sensor data: not told
             if name == "sensordata":
                 return None
             continue
-        at_reset, at_step = _leaf_index(state, path), _leaf_index(reached, path)
-        given = _leaf_index((state, action), f"[0]{path}")
-        if at_reset is None or at_step is None or given is None:
+        if path not in step_paths or f"[0]{path}" not in input_paths:
             return None
+        at_reset, at_step, given = reset_paths.index(path), step_paths.index(path), input_paths.index(f"[0]{path}")
         elements = [_elements_read(reset.jaxpr, [], at_reset), _elements_read(step.jaxpr, [given], at_step)]
         if any(found is None for found in elements) or (name != "sensordata" and any(elements)):
             return None
@@ -203,7 +202,7 @@ def unread_sensors_off(env: Any, answer_key: dict | None = None,
     ``answer_key`` as ``program_store.kept_answer`` keeps answers), and how many it left out; ``env``
     itself where there are none, or where its attributes cannot be set. Looked for only where a sensor
     needs the acceleration stage, the costly one (MJX's ``rne_postconstraint`` at every physics step, the
-    contacts' forces for a touch): the search traces the env's reset and step, 3.0-3.3 s of the
+    contacts' forces for a touch): the search traces the env's reset and step, 3.0-3.6 s of the
     humanoid's start on the 2-core CPU."""
     model = vars(env).get("_mjx_model") if hasattr(env, "__dict__") else None
     stages = np.asarray(getattr(model, "sensor_needstage", ()))

@@ -21,7 +21,8 @@ import jax
 import jax.numpy as jnp
 
 from stablebptt.physics.mjx_internals import mjx, passive, support
-from stablebptt.physics.tree_maps import dof_subtrees, root, structure
+from stablebptt.physics.tree_maps import root, structure
+from stablebptt.physics.tree_sums import dof_forces
 from stablebptt.physics.values_kept import times, values_kept
 
 
@@ -36,7 +37,7 @@ def _subtree_summed(model: mjx.Model, data: mjx.Data, force: jax.Array, torque: 
     each body: the same map as MJX's ``support.apply_ft`` summed over the bodies."""
     offset = point - _at_roots(model, data.subtree_com)
     wrench = jnp.concatenate([torque + jnp.cross(offset, force), force], axis=-1)  # cdof's order: angular, linear
-    return jnp.sum(data.cdof * times(dof_subtrees(structure(model)), wrench), axis=-1)
+    return dof_forces(model, data, wrench)
 
 
 def _values_kept(original: Callable, forces: Callable) -> Callable:

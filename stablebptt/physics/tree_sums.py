@@ -35,7 +35,6 @@ class _Rows(NamedTuple):
     slide: np.ndarray        # (nv, 1)
     column: np.ndarray       # (3, nv, 1): the dof turns about its body's frame's axis k (ball, free)
     translation: np.ndarray  # (nv, 3): a free joint's translation dofs' constant motion axes
-    dof_subtree: np.ndarray  # (nv, nbody): dof j moves body b
     moved_before: np.ndarray  # (nv, nv): dof i moves dof j's frame (a body above, an earlier joint on its body,
                               # or a free joint's translation before its turns)
 
@@ -59,7 +58,7 @@ def _rows(tree: Structure) -> _Rows:
     return _Rows(subtree(tree).astype(np.float32), root(tree), picks(dof_bodies, nbody),
                  picks([tree.roots[body] for body in dof_bodies], nbody), picks(dof_joints, len(tree.joint_types)),
                  along.astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None], column, translation,
-                 dof_subtrees(tree), moved_before.astype(np.float32))
+                 moved_before.astype(np.float32))
 
 
 def _rows_of(model: mjx.Model) -> _Rows:
@@ -97,30 +96,39 @@ def _crb_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
     return composite, support.make_m(model, cdof_force, data.cdof, model.dof_armature)
 
 
+def _summed_down(model: mjx.Model, per_dof: jax.Array) -> jax.Array:
+    """Per body, ``per_dof`` (nv, ...) summed over the dofs that move it (the dofs above it)."""
+    return times(dof_subtrees(structure(model)).T, per_dof)
+
+
+def dof_forces(model: mjx.Model, data: mjx.Data, wrenches: jax.Array) -> jax.Array:
+    """The generalised force of one wrench per body (nbody, 6; ``cdof``'s order, angular then linear):
+    each dof's motion axis against the wrenches of the bodies it moves, summed as a constant product."""
+    return jnp.sum(data.cdof * times(dof_subtrees(structure(model)), wrenches), axis=-1)
+
+
 def _com_vel_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
     """``smooth.com_vel``'s body velocities and motion axes' rates: sums of the dofs' motions above."""
     rows = _rows_of(model)
     motions = data.cdof * data.qvel[:, None]
     frame_velocity = times(rows.moved_before.T, motions)  # each dof's frame's, before the dof moves it
-    return times(rows.dof_subtree.T, motions), jax.vmap(mjx_math.motion_cross)(frame_velocity, data.cdof)
+    return _summed_down(model, motions), jax.vmap(mjx_math.motion_cross)(frame_velocity, data.cdof)
 
 
 def _rne_as_products(model: mjx.Model, data: mjx.Data, with_acceleration: bool) -> jax.Array:
     """``smooth.rne``'s bias forces: the bodies' accelerations summed down the tree, their forces up it."""
-    rows = _rows_of(model)
     gravity = jnp.zeros(3) if model.opt.disableflags & types.DisableBit.GRAVITY else -model.opt.gravity
     accelerations = data.cdof_dot * data.qvel[:, None]
     if with_acceleration:
         accelerations = accelerations + data.cdof * data.qacc[:, None]
-    acceleration = jnp.concatenate([jnp.zeros(3), gravity]).astype(accelerations.dtype) + times(
-        rows.dof_subtree.T, accelerations)
+    acceleration = (jnp.concatenate([jnp.zeros(3), gravity]).astype(accelerations.dtype)
+                    + _summed_down(model, accelerations))
 
     def force(cinert, acceleration, velocity):
         return mjx_math.inert_mul(cinert, acceleration) + mjx_math.motion_cross_force(
             velocity, mjx_math.inert_mul(cinert, velocity))
 
-    forces = jax.vmap(force)(data._impl.cinert, acceleration, data.cvel)
-    return jnp.sum(data.cdof * times(rows.dof_subtree, forces), axis=-1)
+    return dof_forces(model, data, jax.vmap(force)(data._impl.cinert, acceleration, data.cvel))
 
 
 def _com_pos_fields(model: mjx.Model, data: mjx.Data) -> tuple:
