@@ -42,10 +42,10 @@ from stablebptt.envs.derivative_model import (check_contacts, contact_cut, deriv
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
                                        start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
-                                      function_name, observation, with_reset_traced_once)
+                                      function_name, observation)
 from stablebptt.envs.returns import EpisodeState, episode_dynamics, rollout_loss
 from stablebptt.envs.reward_direction import Direction
-from stablebptt.envs.sensors_read import unread_sensors_off
+from stablebptt.envs.unread_outputs import unread_outputs_off
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
@@ -165,8 +165,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             from stablebptt.envs import playground
             reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
     # The step searched as the task traces it, inside the reward's repair: the returns the same to the bit.
-    env, sensors_off = unread_sensors_off(env, diagnosis_key, reward_context)
-    env = with_reset_traced_once(env)
+    left_out = unread_outputs_off(env, diagnosis_key, reward_context)
+    env = left_out.env
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
     if episode_length is None:
@@ -184,7 +184,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     recomputed_as_asked = physics_steps_recomputed is True
     if physics_steps_recomputed is None:  # where a control step's derivative runs through a loop of physics steps
         physics_steps_recomputed = (gradient_substeps or own_substeps(env) or 1) > 1
-    traced = steps_traced(contact_geometry_held, physics_steps_recomputed, recomputed_as_asked, reward_context, label)
+    # Held only where the search saw every reader: a user's surrogate or another env's reward reads states it did not trace.
+    camera_poses_held = left_out.camera_poses_held and surrogate_reward is None and reward_env is None
+    traced = steps_traced(contact_geometry_held, physics_steps_recomputed, recomputed_as_asked, reward_context, label,
+                          camera_poses_held)
 
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.
     own_steps = derivative_steps(traced, env, contact_smoothing, gradient_substeps, label)  # values, derivative
@@ -339,7 +342,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else "")
                + (f"; the derivative cut at contact loads above {contact_gradient_cut:g} body weights" if contact_gradient_cut else ""))
     summary += f"; repaired: {reward_repairs}" if reward_repairs else ""
-    summary += f"; {sensors_off} sensors nothing returned reads not simulated" if sensors_off else ""
+    summary += f"; {left_out.sensors} sensors nothing returned reads not simulated" if left_out.sensors else ""
+    summary += "; camera poses nothing returned reads not computed (held at the reset's)" if camera_poses_held else ""
 
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None,
              answer: Callable[[], str] | None = None) -> Task:  # answer: the pending check's kind, waited for

@@ -43,9 +43,10 @@ def has_constraint_solver(env: Any) -> bool:
 
 
 def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, recomputed_as_asked: bool,
-                 reward_context: Callable, label: str) -> Callable[[Any], Callable]:
+                 reward_context: Callable, label: str, camera_poses_held: bool = False) -> Callable[[Any], Callable]:
     """How a task's programs trace an env's step (``traced(env)``): inside ``differentiable_mjx``, its solver
-    differentiated at its solution and the choices given, and ``reward_context``. Where recomputed physics
+    differentiated at its solution and the choices given (the cameras' poses held where nothing reads them:
+    ``unread_outputs``), and ``reward_context``. Where recomputed physics
     steps were asked for, a step that recomputed none (it calls no ``mujoco.mjx.step`` through MJX's
     package) is refused as its first trace ends: the choice would change nothing. Only the first: a step
     the env jits itself is traced again from JAX's cache, which calls nothing."""
@@ -55,7 +56,8 @@ def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, re
         def env_step(state, action):
             nonlocal unchecked
             with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held,
-                                    physics_steps_recomputed=physics_steps_recomputed) as mjx_trace, reward_context():
+                                    physics_steps_recomputed=physics_steps_recomputed,
+                                    camera_poses_held=camera_poses_held) as mjx_trace, reward_context():
                 reached = env.step(state, action)
             if unchecked:
                 unchecked = False

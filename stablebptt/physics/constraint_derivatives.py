@@ -1,7 +1,8 @@
 """Derivatives through MJX's constraint solver and contacts: the implicit solver derivative and MJX's NaN traps.
 
 Everything here changes derivatives only; values stay MJX's own, except for the order in which
-the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the same Hessian).
+the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the same Hessian), and
+the cameras' poses where a trace holds them (``held_camera_poses``: a step that reads none).
 
 - ``solve_implicitly``: MJX's constraint solver, differentiated at the
   acceleration it finds (implicit function theorem), not through its
@@ -16,7 +17,8 @@ the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the 
   routes ``mjx.forward``'s solver call (and so ``mjx.step`` inside any
   environment) through ``solve_implicitly``. ``physics_steps_recomputed=True``
   has reverse mode store each ``mjx.step``'s start alone and run the step again
-  in the backward pass (``jax.checkpoint``) rather than store its intermediates.
+  in the backward pass (``jax.checkpoint``) rather than store its intermediates;
+  ``camera_poses_held=True`` leaves the cameras' poses in the data as they came.
   These choices are flags of the tracing thread over patches shared by all
   threads: programs traced at once in several threads each take their own.
 
@@ -37,7 +39,7 @@ import numpy as np
 
 from stablebptt.physics import applied_forces, kinematics_derivative, mjx_internals, tree_sums
 from stablebptt.physics.backward_contacts import CLOSED_FORM_PAIRS, geometry_held
-from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, solver, support
+from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, smooth, solver, support
 from stablebptt.physics.mjx_internals import types as mjx_types
 
 
@@ -291,6 +293,7 @@ class _TraceChoices(threading.local):
     implicit_solver = False
     geometry_held = False
     physics_steps_recomputed = False
+    camera_poses_held = False
     steps_recomputed = 0  # the mjx.step calls this thread's traces have recomputed, counted as they are traced
 
 
@@ -367,6 +370,25 @@ def _physics_steps_recomputed():
         yield
 
 
+def _camlight_as_chosen(camlight):
+    """MJX's camera poses (``smooth.camlight``), or where this thread's trace asks, the data's poses left as
+    the step found them: neither computed nor differentiated."""
+    def camlight_as_chosen(model, data):
+        return data if _tracing.camera_poses_held else camlight(model, data)
+    return camlight_as_chosen
+
+
+@contextlib.contextmanager
+def held_camera_poses():
+    """MJX code traced within leaves the cameras' poses in its data as they came in (``cam_xpos``,
+    ``cam_xmat``: MJX computes them in every forward pass, for the sensors and the renderer that read
+    them). For a step nothing it returns reads them by (``envs.unread_outputs``); every other value is
+    MJX's own. Reentrant; undone on exit."""
+    with _applied("cameras", lambda: ((smooth, "camlight", _camlight_as_chosen(smooth.camlight)),)), \
+            _choosing("camera_poses_held"):
+        yield
+
+
 @dataclasses.dataclass
 class MjxTrace:
     """What the code traced within one ``differentiable_mjx`` context did, complete once the context has ended."""
@@ -375,14 +397,14 @@ class MjxTrace:
 
 @contextlib.contextmanager
 def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: bool = False,
-                       physics_steps_recomputed: bool = False):
+                       physics_steps_recomputed: bool = False, camera_poses_held: bool = False):
     """Trace MJX code with its derivative traps remedied (and, optionally, its solver differentiated implicitly,
     and the contacts of ``backward_contacts.CLOSED_FORM_PAIRS`` with their points and frames held in the
     derivative and their distances differentiated by the closed form: ``backward_contacts.geometry_held``;
-    and each ``mjx.step`` recomputed in reverse mode's backward pass rather than its intermediates stored:
-    ``physics_steps_recomputed``).
+    each ``mjx.step`` recomputed in reverse mode's backward pass rather than its intermediates stored:
+    ``physics_steps_recomputed``; the cameras' poses left as the data had them: ``held_camera_poses``).
 
-    Values are MJX's own either way. Reentrant; undone on exit, so MJX outside
+    Values are MJX's own either way (held camera poses aside). Reentrant; undone on exit, so MJX outside
     this library is unchanged. Use it around the tracing of a step::
 
         with differentiable_mjx(implicit_solver=True):
@@ -402,6 +424,8 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
             stack.enter_context(_contact_geometry_held())
         if physics_steps_recomputed:
             stack.enter_context(_physics_steps_recomputed())
+        if camera_poses_held:
+            stack.enter_context(held_camera_poses())
         try:
             yield trace
         finally:
