@@ -181,8 +181,9 @@ def outputs_read(env: Any, model: Any, step_context: Callable = contextlib.nullc
                  sensors: bool = True) -> dict:
     """What of MJX's outputs ``env``'s reset or step gives on anything read from, besides the state's own
     data: ``"sensors"``, for each sensor of ``model`` (``env``'s MJX model) whether its values are read
-    (asked where ``sensors``), and ``"camera poses"``, whether the step reads the cameras' poses (a
-    sensor of the step among the readers); None where the traces do not tell. The step is traced inside
+    (asked where ``sensors``; None where the traces do not tell), and ``"camera poses"``: False where
+    nothing in the step reads the cameras' poses (a sensor of the step among the readers), None where
+    something does or the trace does not tell. The step is traced inside
     ``step_context()`` (the task's reward repair) with the cameras' poses held (``held_camera_poses``),
     so that a read of them anywhere in it is a read of the poses it was given; where ``sensors`` is
     False, the reset only for its shapes (``jax.eval_shape``: a jitted reset's one trace)."""
@@ -230,6 +231,7 @@ def _sensors_read(reset, step, paths, model) -> list[bool] | None:
 
 
 def _camera_poses_read(step, paths) -> bool | None:
+    """False where the step (traced with the poses held) reads neither camera field; else None."""
     for name in _CAMERA_POSES:
         places = _field_places(name, paths)
         # Held, a pose is the one the step was given: any use of it but the state's own copy reads it.
