@@ -248,8 +248,8 @@ def unread_outputs_off(env: Any, answer_key: dict | None = None,
     Playground's) has a sensor of the acceleration stage, the costly one (MJX's ``rne_postconstraint``
     at every physics step, the contacts' forces for a touch), a shallow copy whose model leaves out
     every sensor nothing reads; where it has cameras, whether its step may leave their poses as they
-    came. The search traces the env's step (1.3 s of the humanoid's start on the 2-core CPU) and, for
-    the sensors, its reset (1.5 s); ``env`` is left as it is."""
+    came. The search traces the env's step and, for the sensors, its reset: 0.9-2.5 s of a suite env's
+    start on the 2-core CPU (docs/performance.md, "Cameras no one reads"). ``env`` is left as it is."""
     shared = with_reset_traced_once(env)
     model = vars(env).get("_mjx_model") if hasattr(env, "__dict__") else None
     costly = bool(np.any(np.asarray(getattr(model, "sensor_needstage", ())) == mujoco.mjtStage.mjSTAGE_ACC))

@@ -147,6 +147,9 @@ def test_a_task_of_the_env_names_the_sensors_left_out_and_leaves_the_callers_env
     task = env_task(arm, horizon=2, diagnose=False)
     assert "; 2 sensors nothing returned reads not simulated" in task.summary
     assert "; camera poses nothing returned reads not computed" in task.summary
+    # Windows trained on another env's reward read states the search did not trace: the cameras stay.
+    dense = Arm(lambda data: jnp.concatenate([data.sensordata[VELOCITY], data.qpos]))
+    assert "camera poses" not in env_task(arm, horizon=2, diagnose=False, reward_env=dense).summary
     np.testing.assert_array_equal(np.asarray(arm._mjx_model.sensor_needstage), needed)
     every_sensor_read = Arm(lambda data: data.sensordata * 1.0)
     every_sensor_read.observation_size = 10
