@@ -38,7 +38,8 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     and those programs next, both before the check's own trace, which begins once asked; where it
     smoothed the reward, the trainer built again for the task as settled (keeping those programs where
     the task kept their parts), its epoch traced and compiled (once an early compile has ended) while
-    the surrogate's own check compiles beside; that check's answer. ``program_key`` as
+    the surrogate's own check compiles beside, on an accelerator's host its update traced first and
+    compiling while the programs beside are traced; that check's answer. ``program_key`` as
     ``train_epochs`` takes it. ``resuming``: the state will be read from a checkpoint (into
     ``lowered.shapes``), so init's programs are not compiled beside.
 
@@ -98,19 +99,25 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
         trainer = build(task)
         lap("trainer set-up")
         checking = task.settle is not None  # the surrogate's own check, compiling beside
-        begun, lowered = lowered, lowered_epoch(trainer, config, program_key, beside=False)
+        # On an accelerator's host the surrogate's update is traced first and compiles while the programs beside
+        # are traced, as an epoch compiled early does: each trace alone, the longest compile begun first.
+        begun, lowered = lowered, lowered_epoch(trainer, config, program_key, beside=False,
+                                                update_now=apart and checking)
         ahead = ahead and _keeps_programs_beside(task, built)
         if ahead:
             lowered = lowered._replace(evaluation=begun.evaluation, init_rest=begun.init_rest, refill=begun.refill)
             refill_kept_also(trainer, lowered.shapes, pending_key, program_key)  # where a resume looks for it
+        if as_written is not None:  # its program (or its error) unused: waited for before the next begins
+            lap("surrogate's trace")
+            concurrent.futures.wait([as_written])
+            lap("unused compile's wait")
+        as_written = beside(lambda epoch=lowered.lowered: epoch.compile(), "stablebptt-epoch") \
+            if apart and checking else None
     if not ahead:
         lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
     lap("surrogate's trace" if smoothed else "trace")  # the epoch's where smoothed, and the programs beside
-    if smoothed and as_written is not None:
-        concurrent.futures.wait([as_written])  # its program (or its error) unused
-        lap("unused compile's wait")
     if checking:
-        lowered = _compiled_now(lowered, lap, None if smoothed else as_written)
+        lowered = _compiled_now(lowered, lap, as_written)
     task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
     lap("surrogate check's wait")
     if lowered.init_rest is not None:  # init's part that waits for no check, compiling beside

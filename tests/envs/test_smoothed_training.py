@@ -471,3 +471,32 @@ def test_smoothing_always_widens_a_term_lost_beside_a_reward_that_has_a_slope_wh
         env_task(Cart(), horizon=5, smoothing="always")  # a smooth reward: nothing to make a surrogate of
     with pytest.raises(EnvError, match="smoothing always .* not with a surrogate_reward of your own"):
         env_task(Cart("faint"), horizon=5, smoothing="always", surrogate_reward=lambda state: state.reward)
+
+
+def test_on_an_accelerators_host_the_surrogates_update_compiles_while_the_programs_beside_are_traced(monkeypatch):
+    """Where the check smoothed the reward, on an accelerator's host the surrogate's update is traced first, in the
+    start's thread, and its compile begun before the programs beside the epoch are traced (a direction-observing
+    env's own, traced again after the answer): each trace alone, the longest compile first. Elsewhere the update is
+    traced as it compiles, after them."""
+    import threading
+
+    from stablebptt.engine import starting
+    from stablebptt.engine.per_update import PerUpdateEpoch
+    events = []
+    begin, others, lowered_update = starting.beside, starting.programs_beside, PerUpdateEpoch.lowered_update
+    monkeypatch.setattr(starting, "beside", lambda function, name: events.append("compile begun") or begin(function, name))
+    monkeypatch.setattr(starting, "programs_beside", lambda *a, **k: events.append("beside") or others(*a, **k))
+    monkeypatch.setattr(PerUpdateEpoch, "lowered_update", lambda *a: events.append(
+        ("update traced", threading.current_thread().name)) or lowered_update(*a))
+    config = sb.TrainConfig(mode="C", epochs=1, train_size=8, test_size=8, batch=4, clip="norm",
+                            epoch_program="per-update")
+    here = threading.current_thread().name
+    for apart, order in ((True, ["beside", ("update traced", here), "compile begun", "beside"]),
+                         (False, ["beside", ("update traced", here)])):
+        monkeypatch.setattr(starting, "_host_apart", lambda apart=apart: apart)
+        events.clear()
+        prepared = starting.prepare(env_task(Cart("step"), horizon=5, defer_diagnosis=True,
+                                             reward_direction_observed=True), config)
+        assert "reward_smoothing" in prepared.task.resolved and events == order, (apart, events)
+        assert isinstance(prepared.trainer.epoch, PerUpdateEpoch) and prepared.lowered.compiled.update is not None
+        assert "unused compile's wait" not in prepared.phases and prepared.phases["surrogate's trace"] > 0
