@@ -6,6 +6,7 @@ the epoch's and each epoch's first program compiled for a state (``compiled_epoc
 from __future__ import annotations
 
 import concurrent.futures
+import functools
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -82,6 +83,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
         return program
 
     as_written = beside(compile_as_written, "stablebptt-epoch") if early else None
+    unused = None
     # On an accelerator's host the programs beside the epoch are traced next, and compile while the check runs
     # (beside an early compile, before the check's own trace): a smoothed reward leaves them as they are where the
     # settled task keeps their parts.
@@ -107,15 +109,16 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
         if ahead:
             lowered = lowered._replace(evaluation=begun.evaluation, init_rest=begun.init_rest, refill=begun.refill)
             refill_kept_also(trainer, lowered.shapes, pending_key, program_key)  # where a resume looks for it
-        if as_written is not None:  # its program (or its error) unused: waited for before the next begins
-            lap("surrogate's trace")
-            concurrent.futures.wait([as_written])
-            lap("unused compile's wait")
-        as_written = beside(lambda epoch=lowered.lowered: epoch.compile(), "stablebptt-epoch") \
-            if apart and checking else None
+        unused, as_written = as_written, None  # an early compile's program (or its error), unused
+        if apart and checking:  # begun once the unused compile has ended, the programs beside traced meanwhile
+            as_written, unused = beside(functools.partial(_compiled_after, unused, lowered.lowered),
+                                        "stablebptt-epoch"), None
     if not ahead:
         lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
     lap("surrogate's trace" if smoothed else "trace")  # the epoch's where smoothed, and the programs beside
+    if unused is not None:
+        concurrent.futures.wait([unused])
+        lap("unused compile's wait")
     if checking:
         lowered = _compiled_now(lowered, lap, as_written)
     task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
@@ -123,6 +126,13 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     if lowered.init_rest is not None:  # init's part that waits for no check, compiling beside
         trainer = trainer._replace(init=trainer.init._replace(rest=lowered.init_rest))
     return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
+
+
+def _compiled_after(unused: concurrent.futures.Future | None, epoch: Any) -> Any:
+    """``epoch`` compiled once the compile ``unused`` has ended: on a GPU no two programs' kernels are timed at once."""
+    if unused is not None:
+        concurrent.futures.wait([unused])
+    return epoch.compile()
 
 
 def _host_apart() -> bool:

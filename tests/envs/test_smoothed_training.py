@@ -476,8 +476,9 @@ def test_smoothing_always_widens_a_term_lost_beside_a_reward_that_has_a_slope_wh
 def test_on_an_accelerators_host_the_surrogates_update_compiles_while_the_programs_beside_are_traced(monkeypatch):
     """Where the check smoothed the reward, on an accelerator's host the surrogate's update is traced first, in the
     start's thread, and its compile begun before the programs beside the epoch are traced (a direction-observing
-    env's own, traced again after the answer): each trace alone, the longest compile first. Elsewhere the update is
-    traced as it compiles, after them."""
+    env's own, traced again after the answer): each trace alone, the longest compile first; an early compile left
+    unused is waited for by that compile's thread, not the start's. Elsewhere the update is traced as it compiles,
+    after them."""
     import threading
 
     from stablebptt.engine import starting
@@ -500,3 +501,11 @@ def test_on_an_accelerators_host_the_surrogates_update_compiles_while_the_progra
         assert "reward_smoothing" in prepared.task.resolved and events == order, (apart, events)
         assert isinstance(prepared.trainer.epoch, PerUpdateEpoch) and prepared.lowered.compiled.update is not None
         assert "unused compile's wait" not in prepared.phases and prepared.phases["surrogate's trace"] > 0
+    # An early compile left unused (a reward the check was expected to keep, smoothed): the surrogate's compile thread
+    # waits for it, the start's thread goes on.
+    monkeypatch.setattr(starting, "_host_apart", lambda: True)
+    events.clear()
+    widened = starting.prepare(env_task(Cart("narrow"), horizon=5, defer_diagnosis=True), config)
+    assert "vanishing exponential" in widened.task.resolved["reward_smoothing"]
+    assert events[0] == ("update traced", here) and events[-2:] == [("update traced", here), "compile begun"], events
+    assert "unused compile's wait" not in widened.phases and widened.lowered.compiled.update is not None
