@@ -6,7 +6,6 @@ the epoch's and each epoch's first program compiled for a state (``compiled_epoc
 from __future__ import annotations
 
 import concurrent.futures
-import functools
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -39,8 +38,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     and those programs next, both before the check's own trace, which begins once asked; where it
     smoothed the reward, the trainer built again for the task as settled (keeping those programs where
     the task kept their parts), its epoch traced and compiled (once an early compile has ended) while
-    the surrogate's own check compiles beside, on an accelerator's host its update traced first and
-    compiling while the programs beside are traced; that check's answer. ``program_key`` as
+    the surrogate's own check compiles beside; that check's answer. ``program_key`` as
     ``train_epochs`` takes it. ``resuming``: the state will be read from a checkpoint (into
     ``lowered.shapes``), so init's programs are not compiled beside.
 
@@ -83,7 +81,6 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
         return program
 
     as_written = beside(compile_as_written, "stablebptt-epoch") if early else None
-    unused = None
     # On an accelerator's host the programs beside the epoch are traced next, and compile while the check runs
     # (beside an early compile, before the check's own trace): a smoothed reward leaves them as they are where the
     # settled task keeps their parts.
@@ -101,38 +98,24 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
         trainer = build(task)
         lap("trainer set-up")
         checking = task.settle is not None  # the surrogate's own check, compiling beside
-        # On an accelerator's host the surrogate's update is traced first and compiles while the programs beside
-        # are traced, as an epoch compiled early does: each trace alone, the longest compile begun first.
-        begun, lowered = lowered, lowered_epoch(trainer, config, program_key, beside=False,
-                                                update_now=apart and checking)
+        begun, lowered = lowered, lowered_epoch(trainer, config, program_key, beside=False)
         ahead = ahead and _keeps_programs_beside(task, built)
         if ahead:
             lowered = lowered._replace(evaluation=begun.evaluation, init_rest=begun.init_rest, refill=begun.refill)
             refill_kept_also(trainer, lowered.shapes, pending_key, program_key)  # where a resume looks for it
-        unused, as_written = as_written, None  # an early compile's program (or its error), unused
-        if apart and checking:  # begun once the unused compile has ended, the programs beside traced meanwhile
-            as_written, unused = beside(functools.partial(_compiled_after, unused, lowered.lowered),
-                                        "stablebptt-epoch"), None
     if not ahead:
         lowered = programs_beside(lowered, trainer, config, program_key, init=not resuming)
     lap("surrogate's trace" if smoothed else "trace")  # the epoch's where smoothed, and the programs beside
-    if unused is not None:
-        concurrent.futures.wait([unused])
+    if smoothed and as_written is not None:
+        concurrent.futures.wait([as_written])  # its program (or its error) unused
         lap("unused compile's wait")
     if checking:
-        lowered = _compiled_now(lowered, lap, as_written)
+        lowered = _compiled_now(lowered, lap, None if smoothed else as_written)
     task = task.settled_fully()  # the surrogate's own check, compiled beside that compile, may refuse it here
     lap("surrogate check's wait")
     if lowered.init_rest is not None:  # init's part that waits for no check, compiling beside
         trainer = trainer._replace(init=trainer.init._replace(rest=lowered.init_rest))
     return Prepared(task, trainer, lowered, program_key, {name: seconds for name, seconds in phases.items() if seconds})
-
-
-def _compiled_after(unused: concurrent.futures.Future | None, epoch: Any) -> Any:
-    """``epoch`` compiled once the compile ``unused`` has ended: on a GPU no two programs' kernels are timed at once."""
-    if unused is not None:
-        concurrent.futures.wait([unused])
-    return epoch.compile()
 
 
 def _host_apart() -> bool:
