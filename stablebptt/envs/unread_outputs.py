@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import os
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, Literal, NamedTuple
 
 import jax
 import jax.extend
@@ -230,7 +230,7 @@ def _sensors_read(reset, step, paths, model) -> list[bool] | None:
     return [bool(read & set(range(address, address + size))) for address, size in zip(addresses, sizes)]
 
 
-def _camera_poses_read(step, paths) -> bool | None:
+def _camera_poses_read(step, paths) -> Literal[False] | None:
     """False where the step (traced with the poses held) reads neither camera field; else None."""
     for name in _CAMERA_POSES:
         places = _field_places(name, paths)
@@ -257,8 +257,9 @@ def unread_outputs_off(env: Any, answer_key: dict | None = None,
     if not (costly or cameras):
         return LeftOut(shared, 0, False)
     searched = env if costly else shared  # the reset's reads searched in its own trace; else its shapes alone
-    read = program_store.kept_answer({**answer_key, "sensors searched": costly} if answer_key else None,
-                                     "outputs read", lambda: outputs_read(searched, model, step_context, costly))
+    # The key names the env, and so its model: whether its sensors are searched is not keyed apart.
+    read = program_store.kept_answer(answer_key, "outputs read",
+                                     lambda: outputs_read(searched, model, step_context, costly))
     held, sensors = cameras and read["camera poses"] is False, read["sensors"]
     if not costly or sensors is None or all(sensors):
         return LeftOut(shared, 0, held)
