@@ -22,6 +22,7 @@ import numpy as np
 
 from stablebptt.engine.checks import first_line
 from stablebptt.errors import InputError
+from stablebptt.physics.acceleration_sensors import acceleration_sensors_computed
 
 PyTree = Any
 
@@ -251,10 +252,17 @@ def with_reset_traced_once(env: Any) -> Any:
     diagnosis, the initial states, init's first population and each epoch's refill. CheetahRun's reset
     settles its states for 200 physics steps: traced by each of them, it made the start's trace phase
     27-32 s on the 2-core CPU, traced once 4-5 s (docs/performance.md, "Start-up against Brax PPO's
-    compile"). ``env`` itself is left as it is; one whose attributes cannot be set is used as it is."""
+    compile"). The reset is traced as the steps are, with MJX's acceleration sensors computed where a model
+    has no constraint rows (``acceleration_sensors_computed``: MuJoCo's C values, where MJX leaves zeros).
+    ``env`` itself is left as it is; one whose attributes cannot be set is used as it is."""
     copied = copy.copy(env)
+
+    def reset(key):  # traced as the steps are: MJX's acceleration sensors computed where it leaves zeros
+        with acceleration_sensors_computed():
+            return env.reset(key)
+
     try:
-        copied.reset = jax.jit(env.reset)
+        copied.reset = jax.jit(reset)
     except (AttributeError, TypeError):  # a frozen dataclass's FrozenInstanceError is an AttributeError
         return env
     return copied

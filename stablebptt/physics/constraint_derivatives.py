@@ -1,8 +1,11 @@
 """Derivatives through MJX's constraint solver and contacts: the implicit solver derivative and MJX's NaN traps.
 
 Everything here changes derivatives only; values stay MJX's own, except for the order in which
-the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the same Hessian), and
-the cameras' poses where a trace holds them (``held_camera_poses``: a step that reads none).
+the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the same Hessian),
+the cameras' poses where a trace holds them (``held_camera_poses``: a step that reads none), and
+the acceleration stage's sensors of a model without constraint rows, which MJX leaves at zero and
+MuJoCo's C computes (``acceleration_sensors.acceleration_sensors_computed``: C's values). The
+patches and each tracing thread's choices: ``mjx_patches``.
 
 - ``solve_implicitly``: MJX's constraint solver, differentiated at the
   acceleration it finds (implicit function theorem), not through its
@@ -27,7 +30,6 @@ context with another MJX installed warns once (``mjx_internals.check_version``).
 """
 from __future__ import annotations
 
-import collections
 import contextlib
 import dataclasses
 import threading
@@ -37,10 +39,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.physics import applied_forces, kinematics_derivative, mjx_internals, tree_sums
+from stablebptt.physics import applied_forces, kinematics_derivative, tree_sums
+from stablebptt.physics.acceleration_sensors import acceleration_sensors_computed
 from stablebptt.physics.backward_contacts import CLOSED_FORM_PAIRS, geometry_held
 from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, smooth, solver, support
 from stablebptt.physics.mjx_internals import types as mjx_types
+from stablebptt.physics.mjx_patches import applied, choosing, tracing
 
 
 def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
@@ -260,64 +264,11 @@ _REMEDIES = (
     *kinematics_derivative.REMEDIES,
     *tree_sums.REMEDIES,
 )
-_lock = threading.RLock()
-_depth: collections.Counter = collections.Counter()  # open contexts of each kind
-_originals: dict[str, list] = {}
-
-
-@contextlib.contextmanager
-def _applied(kind: str, patches):
-    """``patches``, (owner, attribute, replacement) triples or a function that makes them (called only
-    where the first of its kind is entered), applied while any context of ``kind`` is open. The last to
-    close restores what the first found: a patch another library makes meanwhile is undone with it."""
-    with _lock:
-        if _depth[kind] == 0:
-            mjx_internals.check_version()
-            patches = patches() if callable(patches) else patches
-            _originals[kind] = [(owner, name, owner.__dict__[name]) for owner, name, _ in patches]
-            for owner, name, replacement in patches:
-                setattr(owner, name, replacement)
-        _depth[kind] += 1
-    try:
-        yield
-    finally:
-        with _lock:
-            _depth[kind] -= 1
-            if _depth[kind] == 0:
-                for owner, name, original in _originals.pop(kind):
-                    setattr(owner, name, original)
-
-
-class _TraceChoices(threading.local):
-    """What this thread's trace asks of MJX's derivative, read by the shared patches as they are traced."""
-    implicit_solver = False
-    geometry_held = False
-    physics_steps_recomputed = False
-    camera_poses_held = False
-    steps_recomputed = 0  # the mjx.step calls this thread's traces have recomputed, counted as they are traced
-
-
-_tracing = _TraceChoices()
-
-
-@contextlib.contextmanager
-def _choosing(choice: str):
-    """This thread's trace takes ``choice`` (an attribute of ``_TraceChoices``) until the context ends."""
-    if not hasattr(_TraceChoices, choice):
-        raise AttributeError(f"no trace choice {choice!r}")
-    before = getattr(_tracing, choice)
-    setattr(_tracing, choice, True)
-    try:
-        yield
-    finally:
-        setattr(_tracing, choice, before)
-
-
 def _solve_as_chosen(solve):
     """MJX's constraint solver ``solve``, differentiated at its solution where this thread's trace asks
     (``solve_implicitly``); its loop is bounded only within that (``_solver_loop_bound``, a thread's own)."""
     def solve_as_chosen(model, data):
-        return (solve_implicitly if _tracing.implicit_solver else solve)(model, data)
+        return (solve_implicitly if tracing.implicit_solver else solve)(model, data)
     return solve_as_chosen
 
 
@@ -328,7 +279,7 @@ def _collision_as_chosen(collide):
     held = geometry_held(collide)
 
     def collide_as_chosen(model, data, key, geoms):
-        return (held if _tracing.geometry_held else collide)(model, data, key, geoms)
+        return (held if tracing.geometry_held else collide)(model, data, key, geoms)
     collide_as_chosen.ncon = collide.ncon
     return collide_as_chosen
 
@@ -341,7 +292,7 @@ def _contact_geometry_held():
         return ((collision_driver, "_COLLISION_FUNC", {
             types: _collision_as_chosen(collide) if types in CLOSED_FORM_PAIRS else collide
             for types, collide in collision_driver._COLLISION_FUNC.items()}),)
-    with _applied("geometry", table), _choosing("geometry_held"):
+    with applied("geometry", table), choosing("geometry_held"):
         yield
 
 
@@ -350,9 +301,9 @@ def _step_as_chosen(step):
     and runs it again in the backward pass, so a loop of physics steps (MuJoCo Playground's control
     step) stores one state per physics step instead of every intermediate of each step."""
     def step_as_chosen(model, data):
-        if not _tracing.physics_steps_recomputed:
+        if not tracing.physics_steps_recomputed:
             return step(model, data)
-        _tracing.steps_recomputed += 1
+        tracing.steps_recomputed += 1
         # A new function at every call: jax.checkpoint keeps the program it traced per function and
         # shapes, and the step's program depends on the trace's other choices (the held geometry, the
         # implicit solver). prevent_cse off: within a loop of physics steps JAX's guard against XLA
@@ -365,8 +316,8 @@ def _step_as_chosen(step):
 def _physics_steps_recomputed():
     # Environments call mjx.step through MJX's package (MuJoCo Playground's mjx_env.step does): patched
     # there while any such trace runs, each call asking its thread's flag.
-    with _applied("recomputed", lambda: ((mjx, "step", _step_as_chosen(mjx.step)),)), \
-            _choosing("physics_steps_recomputed"):
+    with applied("recomputed", lambda: ((mjx, "step", _step_as_chosen(mjx.step)),)), \
+            choosing("physics_steps_recomputed"):
         yield
 
 
@@ -374,7 +325,7 @@ def _camlight_as_chosen(camlight):
     """MJX's camera poses (``smooth.camlight``), or where this thread's trace asks, the data's poses left as
     the step found them: neither computed nor differentiated."""
     def camlight_as_chosen(model, data):
-        return data if _tracing.camera_poses_held else camlight(model, data)
+        return data if tracing.camera_poses_held else camlight(model, data)
     return camlight_as_chosen
 
 
@@ -384,8 +335,8 @@ def held_camera_poses():
     ``cam_xmat``: MJX computes them in every forward pass, for the sensors and the renderer that read
     them). For a step nothing it returns reads them by (``envs.unread_outputs``); every other value is
     MJX's own. Reentrant; undone on exit."""
-    with _applied("cameras", lambda: ((smooth, "camlight", _camlight_as_chosen(smooth.camlight)),)), \
-            _choosing("camera_poses_held"):
+    with applied("cameras", lambda: ((smooth, "camlight", _camlight_as_chosen(smooth.camlight)),)), \
+            choosing("camera_poses_held"):
         yield
 
 
@@ -404,7 +355,8 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
     each ``mjx.step`` recomputed in reverse mode's backward pass rather than its intermediates stored:
     ``physics_steps_recomputed``; the cameras' poses left as the data had them: ``held_camera_poses``).
 
-    Values are MJX's own either way (held camera poses aside). Reentrant; undone on exit, so MJX outside
+    Values are MJX's own either way (held camera poses aside), its acceleration sensors computed also where
+    the model has no constraint rows (``acceleration_sensors_computed``). Reentrant; undone on exit, so MJX outside
     this library is unchanged. Use it around the tracing of a step::
 
         with differentiable_mjx(implicit_solver=True):
@@ -413,13 +365,14 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
     It yields an ``MjxTrace``: with ``physics_steps_recomputed``, an env that calls no ``mujoco.mjx.step``
     through MJX's package (one that bound the function before the context opened) counts none.
     """
-    trace, before = MjxTrace(), _tracing.steps_recomputed
+    trace, before = MjxTrace(), tracing.steps_recomputed
     with contextlib.ExitStack() as stack:
-        stack.enter_context(_applied("remedies", _REMEDIES))
+        stack.enter_context(applied("remedies", _REMEDIES))
+        stack.enter_context(acceleration_sensors_computed())
         if implicit_solver:
-            stack.enter_context(_applied("implicit", lambda: ((solver, "solve", _solve_as_chosen(solver.solve)),
+            stack.enter_context(applied("implicit", lambda: ((solver, "solve", _solve_as_chosen(solver.solve)),
                                                               (solver, "jax", _SOLVER_JAX))))
-            stack.enter_context(_choosing("implicit_solver"))
+            stack.enter_context(choosing("implicit_solver"))
         if contact_geometry_held:
             stack.enter_context(_contact_geometry_held())
         if physics_steps_recomputed:
@@ -429,7 +382,7 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
         try:
             yield trace
         finally:
-            trace.steps_recomputed = _tracing.steps_recomputed - before
+            trace.steps_recomputed = tracing.steps_recomputed - before
 
 
 def traced_differentiably(function, implicit_solver: bool = False):

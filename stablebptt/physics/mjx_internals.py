@@ -28,6 +28,7 @@ from mujoco.mjx._src import (  # noqa: E402
     constraint,
     forward,  # noqa: E402
     passive,
+    sensor,
     smooth,
     solver,
     support,
@@ -53,5 +54,5 @@ def check_version() -> bool:
     return False
 
 
-__all__ = ["mjx", "collision_convex", "collision_driver", "constraint", "passive", "smooth", "solver", "support",
-           "forward", "types", "mjx_math", "check_version"]
+__all__ = ["mjx", "collision_convex", "collision_driver", "constraint", "passive", "sensor", "smooth", "solver",
+           "support", "forward", "types", "mjx_math", "check_version"]

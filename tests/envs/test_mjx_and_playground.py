@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from stablebptt.engine.compiling import holds_while
+from stablebptt.envs.protocol import with_reset_traced_once
 from stablebptt.physics import constraint_derivatives
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
+from stablebptt.physics.mjx_internals import forward as forward_module
 from stablebptt.physics.mjx_internals import mjx
 
 from conftest import float64, needs_playground, refused_in_one_line
@@ -55,6 +57,59 @@ def test_mjx_step_inside_an_environment_is_differentiated_at_the_solver_solution
             reverse = jax.jit(jax.jacrev(step))(jnp.asarray(x0))  # forward mode: tests/physics/test_suite_models.py
     assert np.abs(central).max() > 10  # the constraints matter: these Jacobians are far from identity
     np.testing.assert_allclose(reverse, central, atol=1e-7)
+
+
+UNCONSTRAINED_ARM = """
+<mujoco><option timestep="0.01"><flag contact="disable"/></option>
+<worldbody><body pos="0 0 1"><joint name="hinge" type="hinge" axis="0 1 0" damping="0.1"/>
+<geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.05"/><site name="tip" pos="0.5 0 0"/></body></worldbody>
+<actuator><motor name="motor" joint="hinge"/></actuator>
+<sensor><accelerometer site="tip"/><force site="tip"/><torque site="tip"/><touch site="tip"/>
+<framelinacc objtype="site" objname="tip"/><frameangacc objtype="site" objname="tip"/><actuatorfrc actuator="motor"/>
+</sensor></mujoco>"""
+
+
+def test_a_models_acceleration_sensors_without_constraint_rows_are_mujocos_c_values_and_derivative():
+    model = mujoco.MjModel.from_xml_string(UNCONSTRAINED_ARM)
+    qpos = 0.3
+
+    def c_sensors(ctrl, stepped):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.ctrl[:] = qpos, ctrl
+        (mujoco.mj_step if stepped else mujoco.mj_forward)(model, data)
+        return data.sensordata.copy()
+
+    with float64():
+        mjx_model = mjx.put_model(model, impl="jax")
+
+        class Arm:  # an environment's reset and step, on MJX's data
+            def reset(self, key):
+                return mjx.forward(mjx_model, mjx.make_data(mjx_model, impl="jax").replace(qpos=jnp.array([qpos])))
+
+            def step(self, data, ctrl):
+                return mjx.step(mjx_model, data.replace(ctrl=ctrl))
+
+        mjxs_own, mjxs_forward = Arm().reset(None).sensordata, forward_module.forward  # untouched by this library
+        arm = with_reset_traced_once(Arm())
+        data = arm.reset(jax.random.PRNGKey(0))
+        with differentiable_mjx():
+            def sensors(ctrl):
+                return arm.step(data, ctrl).sensordata
+            stepped = jax.jit(sensors)(jnp.array([0.5]))
+            forward_mode = jax.jit(jax.jacfwd(sensors))(jnp.array([0.5]))
+            reverse_mode = jax.jit(jax.jacrev(sensors))(jnp.array([0.5]))
+    assert mjx.forward is mjxs_forward and forward_module.forward is mjxs_forward  # undone on exit
+    # MJX alone leaves them at zero here (should it compute them one day, the patch has done its work)
+    assert data._impl.efc_J.size == 0 and np.all(np.asarray(mjxs_own) == 0)
+    at_reset = c_sensors(0.0, False)
+    assert np.abs(at_reset).max() > 1
+    np.testing.assert_allclose(data.sensordata, at_reset, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(stepped, c_sensors(0.5, True), rtol=1e-10, atol=1e-12)
+    eps = 1e-6
+    central = (c_sensors(0.5 + eps, True) - c_sensors(0.5 - eps, True)) / (2 * eps)
+    assert np.abs(central).max() > 1  # the motor moves the accelerations the sensors read
+    np.testing.assert_allclose(forward_mode[:, 0], central, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(reverse_mode, forward_mode, rtol=1e-12, atol=1e-12)
 
 
 def test_the_solver_loop_bounded_by_the_models_iterations_keeps_mjxs_values_to_the_bit_and_no_loop_of_unknown_length(

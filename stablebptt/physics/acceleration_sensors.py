@@ -1,0 +1,52 @@
+"""The acceleration stage's sensors of a model without constraint rows, computed as MuJoCo's C computes them.
+
+Where a model can have no constraint rows (constraints disabled, or no contact, joint limit,
+equality or friction loss possible), MJX's forward pass returns before its acceleration-stage
+sensors: an accelerometer, a force or torque sensor, a frame's linear or angular acceleration, an
+actuator's force stay at zero where MuJoCo's C computes them. Code traced inside
+``acceleration_sensors_computed`` runs MJX's own ``sensor_acc`` after that forward pass. Touch and
+contact sensors are left out of it: with no rows there is no contact, their value is C's zero, and
+MJX's function has no contact to read them from.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+
+import mujoco
+import numpy as np
+
+from stablebptt.physics.mjx_internals import forward as mjx_forward
+from stablebptt.physics.mjx_internals import mjx, sensor
+from stablebptt.physics.mjx_patches import applied, choosing, tracing
+
+_CONTACTS_READ = (mujoco.mjtSensor.mjSENS_TOUCH, mujoco.mjtSensor.mjSENS_CONTACT)
+
+
+def _with_acceleration_sensors(forward):
+    """MJX's forward pass, then, where this thread's trace asks, its acceleration-stage sensors where the model
+    has such sensors and no constraint rows."""
+    @functools.wraps(forward)
+    def forward_with_acceleration_sensors(model, data):
+        data = forward(model, data)
+        rows = getattr(data._impl, "efc_J", None)  # None: MJX's Warp backend, which computes its own
+        if not tracing.acceleration_sensors or rows is None or rows.size:
+            return data
+        stages = np.asarray(model.sensor_needstage)
+        computed = np.where(np.isin(np.asarray(model.sensor_type), _CONTACTS_READ), 0, stages)
+        if not np.any(computed == mujoco.mjtStage.mjSTAGE_ACC):
+            return data
+        return sensor.sensor_acc(model.replace(sensor_needstage=computed), data)
+    return forward_with_acceleration_sensors
+
+
+@contextlib.contextmanager
+def acceleration_sensors_computed():
+    """MJX code traced within, in this thread, computes the acceleration stage's sensors also where the model
+    has no constraint rows, as MuJoCo's C does (with Euler's or the implicit-fast integrator; under RK4
+    MJX's sensors are those of its last stage, rows or not). Every other value is MJX's own. Reentrant;
+    undone on exit."""
+    with applied("acceleration sensors", lambda: (
+            (mjx_forward, "forward", _with_acceleration_sensors(mjx_forward.forward)),
+            (mjx, "forward", _with_acceleration_sensors(mjx.forward)))), choosing("acceleration_sensors"):
+        yield
