@@ -19,8 +19,9 @@ patches and each tracing thread's choices: ``mjx_patches``.
   step this library builds traces inside it; ``implicit_solver=True`` also
   routes ``mjx.forward``'s solver call (and so ``mjx.step`` inside any
   environment) through ``solve_implicitly``. ``physics_steps_recomputed=True``
-  has reverse mode store each ``mjx.step``'s start alone and run the step again
-  in the backward pass (``jax.checkpoint``) rather than store its intermediates;
+  has reverse mode store each ``mjx.step``'s start and its solver's solution alone and run
+  the rest of the step again in the backward pass (``jax.checkpoint``) rather than store its
+  intermediates;
   ``camera_poses_held=True`` leaves the cameras' poses in the data as they came.
   These choices are flags of the tracing thread over patches shared by all
   threads: programs traced at once in several threads each take their own.
@@ -38,6 +39,7 @@ import types
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 
 from stablebptt.physics import applied_forces, kinematics_derivative, tree_sums
 from stablebptt.physics.acceleration_sensors import acceleration_sensors_computed
@@ -45,6 +47,9 @@ from stablebptt.physics.backward_contacts import CLOSED_FORM_PAIRS, geometry_hel
 from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, smooth, solver, support
 from stablebptt.physics.mjx_internals import types as mjx_types
 from stablebptt.physics.mjx_patches import applied, choosing, tracing
+
+
+SOLUTION = "stablebptt_solver_solution"  # the solver's answer, by name: what a rematerialised step keeps
 
 
 def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
@@ -65,6 +70,11 @@ def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
     """
     with _solver_loop_bound(model.opt.iterations):
         solved = _SOLVE(model, jax.lax.stop_gradient(data))
+    # Named, a step rematerialised in the backward pass (``_step_as_chosen``) keeps the solution rather than
+    # running the solver's iterations again: they have no derivative, only values.
+    solved = solved.tree_replace({
+        "qacc": checkpoint_name(solved.qacc, SOLUTION), "qfrc_constraint": checkpoint_name(solved.qfrc_constraint, SOLUTION),
+        "_impl.efc_force": checkpoint_name(solved._impl.efc_force, SOLUTION)})
     newton = model.replace(opt=model.opt.replace(solver=mjx_types.SolverType.NEWTON))
     at_solution = solver.Context.create(newton, data.replace(qacc=solved.qacc), grad=False)
     # The theorem holds H where the solution is: only g's tangent is taken, not H's (whose term,
@@ -308,7 +318,9 @@ def _step_as_chosen(step):
         # shapes, and the step's program depends on the trace's other choices (the held geometry, the
         # implicit solver). prevent_cse off: within a loop of physics steps JAX's guard against XLA
         # merging the recomputation back into the forward pass is not needed, and is a barrier.
-        return jax.checkpoint(lambda model, data: step(model, data), prevent_cse=False)(model, data)
+        # The solver's solution is kept (``SOLUTION``): its iterations are not run again.
+        return jax.checkpoint(lambda model, data: step(model, data), prevent_cse=False,
+                              policy=jax.checkpoint_policies.save_only_these_names(SOLUTION))(model, data)
     return step_as_chosen
 
 

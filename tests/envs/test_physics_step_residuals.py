@@ -64,6 +64,32 @@ def test_recomputed_steps_keep_values_and_derivative_and_store_fewer_intermediat
     assert stores[True] < stores[False], stores
 
 
+def test_a_recomputed_step_keeps_the_solvers_solution_and_runs_none_of_its_iterations_again():
+    env = SubsteppedBall()
+    tasks = {recomputed: env_task(env, horizon=2, diagnose=False, physics_steps_recomputed=recomputed)
+             for recomputed in (False, True)}
+    state = env.reset(jax.random.PRNGKey(0))
+    state = state._replace(data={**state.data, "qpos": jnp.array([-0.102])})  # pressed 2 mm into the plane
+
+    def window(task):
+        def position_after(action):
+            return task.dynamics.step(task.dynamics.step(state, action), action).data["qpos"][0]
+        return position_after
+
+    action = jnp.array([-0.5])
+    programs = {recomputed: jax.jit(jax.value_and_grad(window(task))) for recomputed, task in tasks.items()}
+    (stored_value, stored_slope), (recomputed_value, recomputed_slope) = programs[False](action), programs[True](action)
+    assert float(stored_value) == float(recomputed_value)
+    assert 0 < abs(float(stored_slope[0])) < 1e-3  # the contact holds the ball: far below the free 1.1e-2
+    np.testing.assert_allclose(float(recomputed_slope[0]), float(stored_slope[0]), rtol=1e-5)
+    # The solver's loops (its iterations, their line searches) run in the forward pass alone: the backward
+    # pass, which runs each physics step again, holds no more loops than the stored program's (with the
+    # solver run again there: 11 against 8).
+    loops = {recomputed: program.lower(action).as_text().count("stablehlo.while")
+             for recomputed, program in programs.items()}
+    assert loops[True] <= loops[False], loops
+
+
 def test_bad_values_are_refused_in_one_line(tmp_path, capsys):
     with pytest.raises(EnvError, match="env_task's physics_steps_recomputed must be True, False or None"):
         env_task(SubsteppedBall(), horizon=2, diagnose=False, physics_steps_recomputed="yes")
