@@ -16,8 +16,8 @@ import functools
 import mujoco
 import numpy as np
 
-from stablebptt.physics.mjx_internals import forward as mjx_forward
 from stablebptt.physics.mjx_internals import mjx, sensor
+from stablebptt.physics.mjx_internals import forward as mjx_forward
 from stablebptt.physics.mjx_patches import applied, choosing, tracing
 
 _CONTACTS_READ = (mujoco.mjtSensor.mjSENS_TOUCH, mujoco.mjtSensor.mjSENS_CONTACT)

@@ -19,9 +19,9 @@ patches and each tracing thread's choices: ``mjx_patches``.
   step this library builds traces inside it; ``implicit_solver=True`` also
   routes ``mjx.forward``'s solver call (and so ``mjx.step`` inside any
   environment) through ``solve_implicitly``. ``physics_steps_recomputed=True``
-  has reverse mode store each ``mjx.step``'s start and its solver's solution alone and run
-  the rest of the step again in the backward pass (``jax.checkpoint``) rather than store its
-  intermediates;
+  has reverse mode store the state each ``mjx.step`` starts from and the solver's solution,
+  and run the rest of the step again in the backward pass (``jax.checkpoint``), rather than
+  store its intermediates;
   ``camera_poses_held=True`` leaves the cameras' poses in the data as they came.
   These choices are flags of the tracing thread over patches shared by all
   threads: programs traced at once in several threads each take their own.
@@ -49,7 +49,7 @@ from stablebptt.physics.mjx_internals import types as mjx_types
 from stablebptt.physics.mjx_patches import applied, choosing, tracing
 
 
-SOLUTION = "stablebptt_solver_solution"  # the solver's answer, by name: what a rematerialised step keeps
+SOLVER_SOLUTION = "stablebptt_solver_solution"  # the solver's answer, by name: what a rematerialised step keeps
 
 
 def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
@@ -73,8 +73,9 @@ def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
     # Named, a step rematerialised in the backward pass (``_step_as_chosen``) keeps the solution rather than
     # running the solver's iterations again: they have no derivative, only values.
     solved = solved.tree_replace({
-        "qacc": checkpoint_name(solved.qacc, SOLUTION), "qfrc_constraint": checkpoint_name(solved.qfrc_constraint, SOLUTION),
-        "_impl.efc_force": checkpoint_name(solved._impl.efc_force, SOLUTION)})
+        "qacc": checkpoint_name(solved.qacc, SOLVER_SOLUTION),
+        "qfrc_constraint": checkpoint_name(solved.qfrc_constraint, SOLVER_SOLUTION),
+        "_impl.efc_force": checkpoint_name(solved._impl.efc_force, SOLVER_SOLUTION)})
     newton = model.replace(opt=model.opt.replace(solver=mjx_types.SolverType.NEWTON))
     at_solution = solver.Context.create(newton, data.replace(qacc=solved.qacc), grad=False)
     # The theorem holds H where the solution is: only g's tangent is taken, not H's (whose term,
@@ -274,6 +275,8 @@ _REMEDIES = (
     *kinematics_derivative.REMEDIES,
     *tree_sums.REMEDIES,
 )
+
+
 def _solve_as_chosen(solve):
     """MJX's constraint solver ``solve``, differentiated at its solution where this thread's trace asks
     (``solve_implicitly``); its loop is bounded only within that (``_solver_loop_bound``, a thread's own)."""
@@ -307,9 +310,10 @@ def _contact_geometry_held():
 
 
 def _step_as_chosen(step):
-    """``mjx.step`` rematerialized where this thread's trace asks: reverse mode keeps the step's inputs
-    and runs it again in the backward pass, so a loop of physics steps (MuJoCo Playground's control
-    step) stores one state per physics step instead of every intermediate of each step."""
+    """``mjx.step`` rematerialized where this thread's trace asks: reverse mode keeps the step's inputs and
+    the solver's solution the derivative reads, and runs the rest of the step again in the backward pass, so
+    a loop of physics steps (MuJoCo Playground's control step) stores one state per physics step instead of
+    every intermediate of each step."""
     def step_as_chosen(model, data):
         if not tracing.physics_steps_recomputed:
             return step(model, data)
@@ -318,9 +322,9 @@ def _step_as_chosen(step):
         # shapes, and the step's program depends on the trace's other choices (the held geometry, the
         # implicit solver). prevent_cse off: within a loop of physics steps JAX's guard against XLA
         # merging the recomputation back into the forward pass is not needed, and is a barrier.
-        # The solver's solution is kept (``SOLUTION``): its iterations are not run again.
+        # The solver's solution is kept (``SOLVER_SOLUTION``): its iterations are not run again.
         return jax.checkpoint(lambda model, data: step(model, data), prevent_cse=False,
-                              policy=jax.checkpoint_policies.save_only_these_names(SOLUTION))(model, data)
+                              policy=jax.checkpoint_policies.save_only_these_names(SOLVER_SOLUTION))(model, data)
     return step_as_chosen
 
 

@@ -99,7 +99,7 @@ def test_a_models_acceleration_sensors_without_constraint_rows_are_mujocos_c_val
             forward_mode = jax.jit(jax.jacfwd(sensors))(jnp.array([0.5]))
             reverse_mode = jax.jit(jax.jacrev(sensors))(jnp.array([0.5]))
     assert mjx.forward is mjxs_forward and forward_module.forward is mjxs_forward  # undone on exit
-    # MJX alone leaves them at zero here (should it compute them one day, the patch has done its work)
+    # MJX alone leaves them at zero here (should MJX compute them one day, this fails and the patch can go)
     assert data._impl.efc_J.size == 0 and np.all(np.asarray(mjxs_own) == 0)
     at_reset = c_sensors(0.0, False)
     assert np.abs(at_reset).max() > 1
