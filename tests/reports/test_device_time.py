@@ -36,6 +36,8 @@ def test_an_op_counts_in_the_innermost_mjx_stage_it_was_traced_in():
         == "fwd_position"
     assert device_time.stage_of("jit(f)/step/forward/solve_implicitly/while/body/jit(_cholesky)/cholesky") \
         == "solve_implicitly"
+    assert device_time.stage_of("jit(update)/jvp(env_step)/step/forward/solve_as_chosen/while/body/select_n") \
+        == "solve_as_chosen"  # the solver as this library's traces route it
     assert device_time.stage_of("jit(update)/jvp(policy)/dot_general") == "other"
 
 
