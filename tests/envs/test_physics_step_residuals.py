@@ -32,20 +32,25 @@ def test_by_default_recomputed_where_a_control_step_spans_several_physics_steps(
                                       physics_steps_recomputed=False).summary
 
 
-def test_recomputed_steps_keep_values_and_derivative_and_store_fewer_intermediates():
-    env = SubsteppedBall()  # 10 physics steps of 2 ms per control step
-    tasks = {recomputed: env_task(env, horizon=2, diagnose=False, physics_steps_recomputed=recomputed)
-             for recomputed in (False, True)}
+def _windows(env, qpos: float) -> dict:
+    """The position ``env`` reaches from ``qpos`` in two control steps of one action, as a function of the action,
+    traced by ``env``'s task with each physics step stored (False) and recomputed (True)."""
     state = env.reset(jax.random.PRNGKey(0))
-    state = state._replace(data={**state.data, "qpos": jnp.array([0.05])})  # 15 cm clear: no contact
+    state = state._replace(data={**state.data, "qpos": jnp.array([qpos])})
 
-    def window(task):  # two control steps, the same action: the position reached
+    def window(task):
         def position_after(action):
             return task.dynamics.step(task.dynamics.step(state, action), action).data["qpos"][0]
         return position_after
+    return {recomputed: window(env_task(env, horizon=2, diagnose=False, physics_steps_recomputed=recomputed))
+            for recomputed in (False, True)}
 
+
+def test_recomputed_steps_keep_values_and_derivative_and_store_fewer_intermediates():
+    env = SubsteppedBall()  # 10 physics steps of 2 ms per control step
+    windows = _windows(env, 0.05)  # 15 cm clear: no contact
     action = jnp.array([0.3])
-    programs = {recomputed: jax.jit(jax.value_and_grad(window(task))) for recomputed, task in tasks.items()}
+    programs = {recomputed: jax.jit(jax.value_and_grad(window)) for recomputed, window in windows.items()}
     (stored_value, stored_slope), (recomputed_value, recomputed_slope) = (programs[False](action),
                                                                           programs[True](action))
     assert float(stored_value) == float(recomputed_value)
@@ -57,7 +62,7 @@ def test_recomputed_steps_keep_values_and_derivative_and_store_fewer_intermediat
     np.testing.assert_allclose(float(recomputed_slope[0]), float(stored_slope[0]), rtol=1e-6)
     # Rematerialized: the backward pass runs each mjx.step again (JAX's remat), and the loops stack fewer of
     # its intermediates.
-    jaxprs = {recomputed: str(jax.make_jaxpr(jax.grad(window(task)))(action)) for recomputed, task in tasks.items()}
+    jaxprs = {recomputed: str(jax.make_jaxpr(jax.grad(window))(action)) for recomputed, window in windows.items()}
     assert "remat" in jaxprs[True] and "remat" not in jaxprs[False]
     stores = {recomputed: program.lower(action).as_text().count("stablehlo.dynamic_update_slice")
               for recomputed, program in programs.items()}
@@ -65,19 +70,9 @@ def test_recomputed_steps_keep_values_and_derivative_and_store_fewer_intermediat
 
 
 def test_a_recomputed_step_keeps_the_solvers_solution_and_runs_none_of_its_iterations_again():
-    env = SubsteppedBall()
-    tasks = {recomputed: env_task(env, horizon=2, diagnose=False, physics_steps_recomputed=recomputed)
-             for recomputed in (False, True)}
-    state = env.reset(jax.random.PRNGKey(0))
-    state = state._replace(data={**state.data, "qpos": jnp.array([-0.102])})  # pressed 2 mm into the plane
-
-    def window(task):
-        def position_after(action):
-            return task.dynamics.step(task.dynamics.step(state, action), action).data["qpos"][0]
-        return position_after
-
+    windows = _windows(SubsteppedBall(), -0.102)  # pressed 2 mm into the plane
     action = jnp.array([-0.5])
-    programs = {recomputed: jax.jit(jax.value_and_grad(window(task))) for recomputed, task in tasks.items()}
+    programs = {recomputed: jax.jit(jax.value_and_grad(window)) for recomputed, window in windows.items()}
     (stored_value, stored_slope), (recomputed_value, recomputed_slope) = programs[False](action), programs[True](action)
     assert float(stored_value) == float(recomputed_value)
     assert 0 < abs(float(stored_slope[0])) < 1e-3  # the contact holds the ball: below the free 4.2e-3
