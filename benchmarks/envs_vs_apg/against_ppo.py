@@ -5,7 +5,8 @@ highest.
 A run's wall clock is the one `--budget` counts (every start's set-up and compile, and its evaluations);
 its returns are its own evaluations (`stablebptt plot RUN --x wall-clock` draws the same). Brax PPO's
 are its runs in results/envs/baselines/ppo.json (`ppo_baseline.py`, 5 seeds sharing one GPU), the
-campaign of the longest budget on the env, its clock compile included and its evaluations off it;
+campaign of the longest budget on the env and on the GPU model the run's first start ran on (of any
+model where none ran there), its clock compile included and its evaluations off it;
 its seeds evaluate at nearby but not equal times, so each seed is interpolated onto a common grid
 between the first and last times every seed evaluated at. It also prints, env by env, the numbers
 docs/performance.md reads off the figure: each side's last return and env steps, PPO's return at the
@@ -25,6 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import suite_table  # noqa: E402
 
 from stablebptt.reports import curves  # noqa: E402
+from stablebptt.runs.run_folder import STARTUP_FILE  # noqa: E402
+from stablebptt.storage import read_json  # noqa: E402
 
 GRID_POINTS = 200  # where each PPO seed is read between evaluations
 
@@ -38,18 +41,27 @@ def ours(run: curves.Run) -> dict[str, np.ndarray]:
             "env-steps": curves.x_values(run, "env-steps")[0][evaluated]}
 
 
-def campaign(env: str) -> list[dict]:
-    """Brax PPO's runs on ``env`` of the longest budget; empty without runs."""
+def card(run: curves.Run) -> str:
+    """The GPU model a run's first start ran on (its ``startup.json``); "" where it names none."""
+    path = run.path / STARTUP_FILE
+    starts = read_json(path) if path.exists() else []
+    return suite_table.card_of(starts[0].get("device", "")) if starts else ""
+
+
+def campaign(env: str, on: str = "") -> list[dict]:
+    """Brax PPO's runs on ``env`` of the longest budget on the GPU model ``on``, else of the longest budget
+    on any; empty without runs."""
     campaigns = suite_table.ppo_campaigns(env)
-    return campaigns[-1] if campaigns else []
+    same_card = [runs for runs in campaigns if suite_table.card_of(runs[0].get("machine", "")) == on]
+    return (same_card or campaigns or [[]])[-1]
 
 
-def brax_ppo(env: str, axis: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """Brax PPO's returns on ``env`` on a common grid of ``axis``: (grid (G,), returns (G, seeds)); None
-    without runs."""
+def brax_ppo(env: str, axis: str, on: str = "") -> tuple[np.ndarray, np.ndarray] | None:
+    """Brax PPO's returns on ``env`` (``campaign(env, on)``) on a common grid of ``axis``: (grid (G,),
+    returns (G, seeds)); None without runs."""
     key = {"wall-clock": "train_wall_s", "env-steps": "env_steps"}[axis]
     seeds = [(np.array([p[key] for p in run["points"]], float), np.array([p["return"] for p in run["points"]], float))
-             for run in campaign(env)]
+             for run in campaign(env, on)]
     if not seeds:
         return None
     grid = np.linspace(max(x[0] for x, _ in seeds), min(x[-1] for x, _ in seeds), GRID_POINTS)
@@ -71,8 +83,8 @@ def passings(grid: np.ndarray, gap: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 def summary(run: curves.Run) -> list[str]:
     """What the figure shows of ``run`` beside Brax PPO, in numbers."""
-    env, mine = run.config["task_config"]["env"], ours(run)
-    runs = campaign(env)
+    env, mine, on = run.config["task_config"]["env"], ours(run), card(run)
+    runs = campaign(env, on)
     lines = [f"{env}: the run's last evaluation {_mean_interval(mine['returns'][-1])} at {mine['wall-clock'][-1]:.0f} s, "
              f"{mine['env-steps'][-1] / 1e6:.1f}M env steps a seed"]
     if not runs:
@@ -80,7 +92,7 @@ def summary(run: curves.Run) -> list[str]:
     last_steps = [run["points"][-1]["env_steps"] for run in runs]
     at_steps = [np.interp(mine["env-steps"][-1], [p["env_steps"] for p in run["points"]],
                           [p["return"] for p in run["points"]]) for run in runs]
-    lines.append(f"  Brax PPO ({runs[0]['budget_s']:.0f} s campaign): last evaluations at "
+    lines.append(f"  Brax PPO ({runs[0]['budget_s']:.0f} s campaign, {runs[0].get('machine', 'a GPU')}): last evaluations at "
                  f"{min(r['points'][-1]['train_wall_s'] for r in runs):.0f}-{max(r['points'][-1]['train_wall_s'] for r in runs):.0f} s "
                  f"{_mean_interval([r['points'][-1]['return'] for r in runs])}, "
                  f"{min(last_steps) / 1e6:.1f}M-{max(last_steps) / 1e6:.1f}M env steps a seed "
@@ -91,7 +103,7 @@ def summary(run: curves.Run) -> list[str]:
         times = [point["train_wall_s"] for point in nearest]
         lines.append(f"  Brax PPO's evaluations nearest {mark} s, at {min(times):.0f}-{max(times):.0f} s: "
                      + _mean_interval([point["return"] for point in nearest]))
-    grid, returns = brax_ppo(env, "wall-clock")
+    grid, returns = brax_ppo(env, "wall-clock", on)
     gap = returns.mean(axis=1) - np.interp(grid, mine["wall-clock"], mine["returns"].mean(axis=1), left=np.nan,
                                            right=np.nan)
     ppo_passes, run_passes = passings(grid, gap)
@@ -116,7 +128,7 @@ def draw(run_dirs: list[Path], out: Path) -> Path:
             ax.plot(mine[axis], mine_mean, color="C0", marker=".", label=f"stablebptt ({len(run.seeds)} seeds)")
             ax.fill_between(mine[axis], mine_low, mine_high, color="C0", alpha=0.2)
             ax.vlines(mine[axis], mine_low, mine_high, color="C0", alpha=0.4)  # a run of one evaluation has no band
-            ppo = brax_ppo(env, axis)
+            ppo = brax_ppo(env, axis, card(run))
             if ppo is not None:
                 mean, low, high = curves.aggregate(ppo[1])
                 ax.plot(ppo[0], mean, color="C3", label=f"Brax PPO ({ppo[1].shape[1]} seeds)")

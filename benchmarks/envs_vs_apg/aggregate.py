@@ -5,8 +5,8 @@ their library rliable).
 Per env, the run of the recipe as it stands (`stablebptt train --env E --recipe locomotion --seeds 5`:
 the reported seeds, a wall-clock budget, its first start from an empty compile cache; the latest such run
 in OUT/records.json, as suite_table.py keeps them) and Brax PPO's runs that evaluated near the mark
-(results/envs/baselines/ppo.json). Each seed's return by the mark is divided by the env's largest return,
-1000 (each suite env's reward lies in [0, 1] a step, its episodes 1000 steps). Over the envs both have: the interquartile
+(results/envs/baselines/ppo.json; of one budget, the campaign on the GPU model the run trained on first).
+Each seed's return by the mark is divided by the env's largest return, 1000 (each suite env's reward lies in [0, 1] a step, its episodes 1000 steps). Over the envs both have: the interquartile
 mean, the mean and the median of those scores, each with a 95% stratified bootstrap interval (seeds drawn
 again within each env), and the probability that a seed of ours scores above one of PPO's on an env
 drawn at random, with its interval. A run made with other options, or before the recipe last changed,
@@ -74,14 +74,16 @@ def recipe_runs(records: list[dict], mark: int, envs: tuple[str, ...] = STUDY_EN
 def scores(records: list[dict], mark: int, ppo_near=None) -> tuple[dict, dict[str, str]]:
     """``({"envs": [...], OURS: [seeds, envs], PPO: [seeds, envs], "returns": {OURS: ..., PPO: ...},
     "runs": {env: command}}, missing)``: the returns by ``mark`` over MAXIMUM_RETURN (under "returns", as
-    they are), of the envs where both have SEEDS seeds; ``missing``: env -> why it is left out."""
+    they are), of the envs where both have SEEDS seeds, Brax PPO's from its campaign on the GPU model ours
+    ran on where one evaluated near the mark; ``missing``: env -> why it is left out."""
     ours, ppo_near = recipe_runs(records, mark), ppo_near or suite_table.ppo_near
     envs, columns, missing = [], {OURS: [], PPO: []}, {}
     for env in STUDY_ENVS:
-        theirs = ppo_near(env, mark)
         if env not in ours:
             missing[env] = "no run of the recipe as it stands that trained until this mark"
-        elif len(theirs) < SEEDS:
+            continue
+        theirs = ppo_near(env, mark, card=suite_table.card_of(ours[env].get("device", "")))  # beside ours' GPU first
+        if len(theirs) < SEEDS:
             missing[env] = "no Brax PPO campaign whose 5 seeds each evaluated near this mark"
         else:
             envs.append(env)
@@ -119,7 +121,8 @@ def aggregates(scored: dict, draws: int = BOOTSTRAP_DRAWS, seed: int = 0) -> dic
 def report(scored: dict, missing: dict[str, str], summary: dict | None, mark: int, out: str) -> str:
     lines = [f"# The locomotion recipe beside Brax PPO by {mark} s, across envs", "",
              f"Written by `python benchmarks/envs_vs_apg/aggregate.py --mark {mark} --out {out}` (its docstring says how "
-             "runs are chosen and scored). Returns by the mark, mean over seeds [95% bootstrap interval]; "
+             "runs are chosen and scored; Brax PPO's is its campaign on the GPU model the run trained on where one "
+             "evaluated near the mark). Returns by the mark, mean over seeds [95% bootstrap interval]; "
              f"scores: returns over {MAXIMUM_RETURN:g}, with 95% stratified bootstrap intervals (rliable).", "",
              "| env | stablebptt | Brax PPO | published PPO | the run |", "|---|---|---|---:|---|"]
     for i, env in enumerate(scored["envs"]):

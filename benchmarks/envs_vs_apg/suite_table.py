@@ -32,6 +32,7 @@ import dataclasses
 import functools
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -181,33 +182,44 @@ def _ppo_runs() -> tuple[dict, ...]:
         return tuple(json.load(handle))
 
 
-def ppo_campaigns(env: str) -> list[list[dict]]:
-    """Brax PPO's runs on ``env`` grouped by the budget they were started with, the shortest first: each
-    group one campaign of seeds that shared a GPU under the same protocol."""
-    by_budget = collections.defaultdict(list)
+def card_of(text: str) -> str:
+    """The GPU's model a run's device or a Brax PPO record's machine names ("H100", "H200"); "" where none."""
+    match = re.search(r"\b[A-Z]\d{3}\b", text or "")
+    return match.group(0) if match else ""
+
+
+def ppo_campaigns(env: str, card: str = "") -> list[list[dict]]:
+    """Brax PPO's runs on ``env`` grouped by the budget they were started with and the GPU they ran on, the
+    shortest budget first and, of one budget, the campaign on ``card`` first: each group one campaign of
+    seeds that shared a GPU under the same protocol."""
+    campaigns = collections.defaultdict(list)
     for run in _ppo_runs():
         if run["env"] == env:
-            by_budget[run["budget_s"]].append(run)
-    return [by_budget[budget] for budget in sorted(by_budget)]
+            campaigns[run["budget_s"], card_of(run.get("machine", ""))].append(run)
+    return [campaigns[key] for key in sorted(campaigns, key=lambda key: (key[0], key[1] != card, key[1]))]
 
 
-def ppo_at_budget(env: str) -> str:
+def ppo_at_budget(env: str, card: str = "") -> str:
     """Brax PPO's final return on ``env`` with its interval over seeds, at each budget its runs reached
-    ("; " between budgets); "-" without runs. Runs stopped before their budget are left out here."""
+    ("; " between campaigns, each named by its GPU where the env's campaigns ran on more than one model);
+    "-" without runs. Runs stopped before their budget are left out here."""
+    campaigns = ppo_campaigns(env, card)
+    several_cards = len({card_of(runs[0].get("machine", "")) for runs in campaigns}) > 1
     cells = []
-    for runs in ppo_campaigns(env):
+    for runs in campaigns:
         finals = [run["final_return"] for run in runs if run["status"] == "budget"]
         if len(finals) == len(runs):
             low, high = interval(finals)
-            cells.append(f"{np.mean(finals):.1f} [{low:.1f}, {high:.1f}] at {runs[0]['budget_s']:.0f} s")
+            on = f" on an {card_of(runs[0].get('machine', ''))}" if several_cards else ""
+            cells.append(f"{np.mean(finals):.1f} [{low:.1f}, {high:.1f}] at {runs[0]['budget_s']:.0f} s{on}")
     return "; ".join(cells) or "-"
 
 
-def ppo_near(env: str, mark: float, within: float = MARK_WITHIN_S) -> list[float]:
+def ppo_near(env: str, mark: float, within: float = MARK_WITHIN_S, card: str = "") -> list[float]:
     """Brax PPO's return on ``env`` per seed at its evaluation nearest ``mark`` seconds of its wall clock
-    (compile included), from the shortest-budget campaign whose every seed evaluated within ``within``
-    s of it; empty where none did."""
-    for runs in ppo_campaigns(env):
+    (compile included), from the first campaign in ``ppo_campaigns``'s order (``card``'s first) whose
+    every seed evaluated within ``within`` s of it; empty where none did."""
+    for runs in ppo_campaigns(env, card):
         returns = nearest_returns(runs, mark, within)
         if returns:
             return returns
@@ -247,7 +259,7 @@ def table(records: list[dict], out: str) -> str:
         share = f"{final.mean() / reference:.0%}" if reference else "-"
         lines.append(f"| {labels[_run_of(record)]} | {record['device']} | {_with_interval(final)} | "
                      f"{np.mean(record['first_return']):.1f} | {reference or '-'} | {share} | "
-                     f"{ppo_at_budget(record['env'])} | {record['updates']} | {record['update_s']:.3f} | "
+                     f"{ppo_at_budget(record['env'], card_of(record['device']))} | {record['updates']} | {record['update_s']:.3f} | "
                      f"{record['seconds_to_training']:.0f} | "
                      f"{record['eval_s'] / (record['train_s'] + record['eval_s']):.0%} | {record['ended']} |")
     resumed = [record for record in records if record.get("starts", 1) > 1]
@@ -261,7 +273,8 @@ def table(records: list[dict], out: str) -> str:
             lines.append(f"| {labels[_run_of(record)]} | {record['wall_s']:.0f} | {record['epochs']} | " + " | ".join(
                 _with_interval(along[str(mark)]) if str(mark) in along else "-" for mark in WALL_CLOCK_MARKS) + " |")
         for env in sorted({record["env"] for record in resumed}):
-            near = [ppo_near(env, mark) for mark in WALL_CLOCK_MARKS]
+            card = card_of(next(record["device"] for record in _ordered(resumed) if record["env"] == env))
+            near = [ppo_near(env, mark, card=card) for mark in WALL_CLOCK_MARKS]
             if any(near):
                 lines.append(f"| Brax PPO on {env}: each seed's evaluation nearest the mark, within {MARK_WITHIN_S} s | - | - | "
                              + " | ".join(_with_interval(returns) if returns else "-" for returns in near) + " |")

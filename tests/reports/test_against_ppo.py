@@ -22,3 +22,15 @@ def test_each_side_passes_the_other_where_the_gap_changes_sign_and_nowhere_the_r
     # A tie then a lead counts once, at the lead.
     ppo_passes, run_passes = against_ppo.passings(np.arange(3.0), np.array([-1.0, 0.0, 1.0]))
     assert ppo_passes.tolist() == [2.0] and run_passes.tolist() == []
+
+
+def test_the_campaign_drawn_beside_a_run_is_the_longest_on_its_gpu_model_else_the_longest_on_any(monkeypatch):
+    def campaign(budget, machine):
+        return [{"env": "HopperStand", "seed": seed, "budget_s": budget, "machine": machine} for seed in range(2)]
+    h100, h200_short, h200_long = (campaign(300.0, "one H100 of a host of one"), campaign(300.0, "one H200 of a host of two"),
+                                   campaign(900.0, "one H200 of a host of two"))
+    monkeypatch.setattr(against_ppo.suite_table, "_ppo_runs", lambda: tuple(h200_long + h100 + h200_short))
+    assert against_ppo.campaign("HopperStand", "H100") == h100
+    assert against_ppo.campaign("HopperStand", "H200") == h200_long
+    assert against_ppo.campaign("HopperStand", "A100") == h200_long  # none on its model: the longest on any
+    assert against_ppo.campaign("CheetahRun", "H100") == []

@@ -34,7 +34,7 @@ def record(env: str, returns, budget: float = 300.0, started: str = "2026-12-01T
             "returns_by_wall_clock": resumed_marks or {}, "compile_seconds_from_cache": warm}
 
 
-def ppo_near(env, mark):
+def ppo_near(env, mark, card=""):
     return PPO_RETURNS.get(env, []) if mark == 300 else []
 
 

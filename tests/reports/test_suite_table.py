@@ -166,3 +166,21 @@ def test_brax_ppos_runs_are_read_campaign_by_campaign_each_at_the_budget_it_was_
     # At its budget a campaign with a seed stopped before it has no final return.
     assert suite_table.ppo_at_budget("CheetahRun") == "30.5 [30.0, 31.0] at 300 s"
     assert suite_table.ppo_at_budget("WalkerWalk") == "-"
+
+
+def test_of_one_budget_the_campaign_on_the_runs_gpu_model_is_read_first_and_each_cell_names_its_model(monkeypatch):
+    def run(seed, machine, final):
+        return {"env": "HopperStand", "seed": seed, "budget_s": 300.0, "status": "budget", "machine": machine,
+                "final_return": final, "points": [{"train_wall_s": 295.0, "env_steps": 1, "return": final}]}
+    h200 = [run(seed, "one H200 of a host of two", 10.0 + seed) for seed in range(2)]
+    h100 = [run(seed, "one H100 of a host of one", 20.0 + seed) for seed in range(2)]
+    monkeypatch.setattr(suite_table, "_ppo_runs", lambda: tuple(h200 + h100))
+    assert suite_table.card_of("gpu (NVIDIA H100 80GB HBM3)") == "H100" and suite_table.card_of("cpu") == ""
+    # Never the two cards' seeds mixed; the run's own card first, the other where it names none of them.
+    assert suite_table.ppo_near("HopperStand", 300.0, card="H100") == [20.0, 21.0]
+    assert suite_table.ppo_near("HopperStand", 300.0, card="H200") == [10.0, 11.0]
+    assert suite_table.ppo_near("HopperStand", 300.0) == [20.0, 21.0]  # no card asked: by the models' names
+    assert suite_table.ppo_at_budget("HopperStand", "H200") == ("10.5 [10.0, 11.0] at 300 s on an H200; "
+                                                                "20.5 [20.0, 21.0] at 300 s on an H100")
+    monkeypatch.setattr(suite_table, "_ppo_runs", lambda: tuple(h200))  # one model: the cell names none
+    assert suite_table.ppo_at_budget("HopperStand", "H100") == "10.5 [10.0, 11.0] at 300 s"
