@@ -19,10 +19,10 @@ import tempfile
 
 import jax
 
-# The solver's scope is named by the function MJX's forward pass calls: ``solve`` as MJX wrote it, and within
-# stablebptt's traces ``solve_as_chosen``, the patch that routes it (physics/constraint_derivatives.py).
-STAGES = ("fwd_position", "fwd_velocity", "fwd_actuation", "fwd_acceleration", "solve", "solve_as_chosen",
-          "solve_implicitly", "euler", "implicit", "rungekutta4")
+# The solver's scope is named by the function MJX's forward pass calls, ``solve`` (the patch that routes it in
+# stablebptt's traces carries its name, physics/constraint_derivatives.py).
+STAGES = ("fwd_position", "fwd_velocity", "fwd_actuation", "fwd_acceleration", "solve", "solve_implicitly", "euler",
+          "implicit", "rungekutta4")
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*op_name=\"([^\"]*)\"")
 
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import threading
 import types
 
@@ -279,7 +280,9 @@ _REMEDIES = (
 
 def _solve_as_chosen(solve):
     """MJX's constraint solver ``solve``, differentiated at its solution where this thread's trace asks
-    (``solve_implicitly``); its loop is bounded only within that (``_solver_loop_bound``, a thread's own)."""
+    (``solve_implicitly``); its loop is bounded only within that (``_solver_loop_bound``, a thread's own).
+    It carries ``solve``'s name: MJX's forward pass names the solver's scope after the function it calls."""
+    @functools.wraps(solve)
     def solve_as_chosen(model, data):
         return (solve_implicitly if tracing.implicit_solver else solve)(model, data)
     return solve_as_chosen

@@ -5,8 +5,14 @@ from __future__ import annotations
 
 import importlib.util
 
+import re
+
 import jax
 import jax.numpy as jnp
+import mujoco
+
+from stablebptt.physics.constraint_derivatives import differentiable_mjx
+from stablebptt.physics.mjx_internals import mjx
 
 from conftest import ROOT
 
@@ -36,8 +42,7 @@ def test_an_op_counts_in_the_innermost_mjx_stage_it_was_traced_in():
         == "fwd_position"
     assert device_time.stage_of("jit(f)/step/forward/solve_implicitly/while/body/jit(_cholesky)/cholesky") \
         == "solve_implicitly"
-    assert device_time.stage_of("jit(update)/jvp(env_step)/step/forward/solve_as_chosen/while/body/select_n") \
-        == "solve_as_chosen"  # the solver as this library's traces route it
+    assert device_time.stage_of("jit(update)/jvp(env_step)/step/forward/solve/while/body/select_n") == "solve"
     assert device_time.stage_of("jit(update)/jvp(policy)/dot_general") == "other"
 
 
@@ -50,3 +55,14 @@ def test_the_profilers_ops_are_the_compiled_programs_instructions():
     names = device_time.op_names(compiled)
     assert times and all(spent >= 0 for spent in times.values())
     assert sum(spent for op, spent in times.items() if op in names) > 0.5 * sum(times.values())
+
+
+def test_the_solver_routed_by_this_library_keeps_its_stage_name():
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><geom type="plane" size="1 1 0.1"/><body pos="0 0 0.05"><freejoint/>'
+        '<geom type="sphere" size="0.06"/></body></worldbody></mujoco>')  # a ball resting on the floor: solver rows
+    mjx_model, data = mjx.put_model(model, impl="jax"), mjx.put_data(model, mujoco.MjData(model), impl="jax")
+    with differentiable_mjx(implicit_solver=True):
+        text = jax.jit(lambda data: mjx.step(mjx_model, data)).lower(data).as_text(debug_info=True)
+    scopes = set(re.findall(r"forward/(solve\w*)/", text))
+    assert scopes == {"solve"} and all(scope in device_time.STAGES for scope in scopes)
