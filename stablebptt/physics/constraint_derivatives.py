@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
-from stablebptt.physics import applied_forces, kinematics_derivative, tree_sums
+from stablebptt.physics import applied_forces, kinematics_derivative, mass_solve, tree_sums
 from stablebptt.physics.acceleration_sensors import acceleration_sensors_computed
 from stablebptt.physics.backward_contacts import CLOSED_FORM_PAIRS, geometry_held
 from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, smooth, solver, support
@@ -275,6 +275,7 @@ _REMEDIES = (
     *applied_forces.REMEDIES,
     *kinematics_derivative.REMEDIES,
     *tree_sums.REMEDIES,
+    *mass_solve.REMEDIES,
 )
 
 
