@@ -92,7 +92,8 @@ def summary(run: curves.Run) -> list[str]:
     last_steps = [run["points"][-1]["env_steps"] for run in runs]
     at_steps = [np.interp(mine["env-steps"][-1], [p["env_steps"] for p in run["points"]],
                           [p["return"] for p in run["points"]]) for run in runs]
-    lines.append(f"  Brax PPO ({runs[0]['budget_s']:.0f} s campaign, {runs[0].get('machine', 'a GPU')}): last evaluations at "
+    lines.append(f"  Brax PPO ({runs[0]['budget_s']:.0f} s campaign, {runs[0].get('machine', 'a GPU')}): "
+                 "last evaluations at "
                  f"{min(r['points'][-1]['train_wall_s'] for r in runs):.0f}-{max(r['points'][-1]['train_wall_s'] for r in runs):.0f} s "
                  f"{_mean_interval([r['points'][-1]['return'] for r in runs])}, "
                  f"{min(last_steps) / 1e6:.1f}M-{max(last_steps) / 1e6:.1f}M env steps a seed "

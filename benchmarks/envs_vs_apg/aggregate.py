@@ -2,15 +2,16 @@
 field reports RL benchmarks (Agarwal et al., "Deep RL at the Edge of the Statistical Precipice", with
 their library rliable).
 
-Per env, the run of the recipe as it stands (`stablebptt train --env E --recipe locomotion --seeds 5`:
-the reported seeds, a wall-clock budget, its first start from an empty compile cache; the latest such run
-in OUT/records.json, as suite_table.py keeps them) and Brax PPO's runs that evaluated near the mark
-(results/envs/baselines/ppo.json; of one budget, the campaign on the GPU model the run trained on first).
-Each seed's return by the mark is divided by the env's largest return, 1000 (each suite env's reward lies in [0, 1] a step, its episodes 1000 steps). Over the envs both have: the interquartile
-mean, the mean and the median of those scores, each with a 95% stratified bootstrap interval (seeds drawn
-again within each env), and the probability that a seed of ours scores above one of PPO's on an env
-drawn at random, with its interval. A run made with other options, or before the recipe last changed,
-is not the recipe's: envs without its run are named, not filled from another.
+Per env, the run of the recipe as it stands (`stablebptt train --env E --recipe locomotion --seeds 5`: the
+reported seeds, a wall-clock budget, its first start from an empty compile cache; the latest such run in
+OUT/records.json, as suite_table.py keeps them) and Brax PPO's runs that evaluated near the mark
+(results/envs/baselines/ppo.json; of one budget, the campaign on the GPU model the run trained on first). Each
+seed's return by the mark is divided by the env's largest return, 1000 (each suite env's reward lies in [0, 1]
+a step, its episodes 1000 steps). Over the envs both have: the interquartile mean, the mean and the median of
+those scores, each with a 95% stratified bootstrap interval (seeds drawn again within each env), and the
+probability that a seed of ours scores above one of PPO's on an env drawn at random, with its interval. A run
+made with other options, or before the recipe last changed, is not the recipe's: envs without its run are
+named, not filled from another.
 
   python benchmarks/envs_vs_apg/aggregate.py --records results/envs/suite --mark 300 --out results/envs/suite/aggregate_300s
 """

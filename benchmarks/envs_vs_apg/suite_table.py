@@ -259,7 +259,8 @@ def table(records: list[dict], out: str) -> str:
         share = f"{final.mean() / reference:.0%}" if reference else "-"
         lines.append(f"| {labels[_run_of(record)]} | {record['device']} | {_with_interval(final)} | "
                      f"{np.mean(record['first_return']):.1f} | {reference or '-'} | {share} | "
-                     f"{ppo_at_budget(record['env'], card_of(record['device']))} | {record['updates']} | {record['update_s']:.3f} | "
+                     f"{ppo_at_budget(record['env'], card_of(record['device']))} | {record['updates']} | "
+                     f"{record['update_s']:.3f} | "
                      f"{record['seconds_to_training']:.0f} | "
                      f"{record['eval_s'] / (record['train_s'] + record['eval_s']):.0%} | {record['ended']} |")
     resumed = [record for record in records if record.get("starts", 1) > 1]

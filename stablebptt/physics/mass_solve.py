@@ -5,8 +5,9 @@ MJX factors a dense mass matrix M (``smooth.factor_m``: a Cholesky factor) and s
 written, the derivative runs through the factorisation: the tangent of a Cholesky factor takes
 triangular solves with the whole matrix on both sides, and reverse mode transposes them. The solution
 x = M^-1 b has the tangent M^-1 (db - dM x): one more solve with the factor at hand, on a vector.
-``REMEDIES`` give MJX's two functions that derivative (the factor itself then carries none); their
-values stay MJX's own, bit for bit. A sparse mass matrix (MJX's choice from 60 dofs) keeps MJX's own.
+``REMEDIES`` give MJX's two functions that derivative; their values stay MJX's own, bit for bit. The
+factor itself (``qLD``) then carries no derivative: code that differentiates it rather than a solve with
+it gets zero. A sparse mass matrix (MJX's choice from 60 dofs) keeps MJX's own.
 """
 from __future__ import annotations
 
@@ -31,7 +32,9 @@ def _solved_tangent(primals, tangents):
     solution = _solved(mass, factor, rhs)
     # HIGHEST: on a GPU a float32 matmul may round to TF32; this one is a matrix times a vector.
     moved = jnp.matmul(mass_dot, solution, precision=jax.lax.Precision.HIGHEST)
-    return solution, jax.scipy.linalg.cho_solve((factor, False), rhs_dot - moved)
+    # The solve itself again, not a bare cho_solve: the factor carries no derivative, so a second derivative
+    # takes M's through this rule.
+    return solution, _solved(mass, factor, rhs_dot - moved)
 
 
 def _dense(model: mjx.Model) -> bool:

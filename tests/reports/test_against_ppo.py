@@ -27,8 +27,8 @@ def test_each_side_passes_the_other_where_the_gap_changes_sign_and_nowhere_the_r
 def test_the_campaign_drawn_beside_a_run_is_the_longest_on_its_gpu_model_else_the_longest_on_any(monkeypatch):
     def campaign(budget, machine):
         return [{"env": "HopperStand", "seed": seed, "budget_s": budget, "machine": machine} for seed in range(2)]
-    h100, h200_short, h200_long = (campaign(300.0, "one H100 of a host of one"), campaign(300.0, "one H200 of a host of two"),
-                                   campaign(900.0, "one H200 of a host of two"))
+    h100 = campaign(300.0, "one H100 of a host of one")
+    h200_short, h200_long = campaign(300.0, "one H200 of a host of two"), campaign(900.0, "one H200 of a host of two")
     monkeypatch.setattr(against_ppo.suite_table, "_ppo_runs", lambda: tuple(h200_long + h100 + h200_short))
     assert against_ppo.campaign("HopperStand", "H100") == h100
     assert against_ppo.campaign("HopperStand", "H200") == h200_long

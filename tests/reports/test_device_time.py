@@ -4,7 +4,6 @@ compiled program's instructions."""
 from __future__ import annotations
 
 import importlib.util
-
 import re
 
 import jax
