@@ -11,6 +11,8 @@ Used by ``benchmarks/update_program.py --profile``.
 from __future__ import annotations
 
 import collections
+import contextlib
+import functools
 import glob
 import os
 import re
@@ -23,6 +25,9 @@ import jax
 # stablebptt's traces carries its name, physics/constraint_derivatives.py).
 STAGES = ("fwd_position", "fwd_velocity", "fwd_actuation", "fwd_acceleration", "solve", "solve_implicitly", "euler",
           "implicit", "rungekutta4")
+# The modules MJX's forward pass calls into within its stages; ``calls_named`` gives each call a scope.
+NAMED_MODULES = ("smooth", "collision_driver", "constraint", "passive", "sensor", "derivative")
+_CALL = re.compile(r"^(?:%s)\.\w+$" % "|".join(NAMED_MODULES))
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*op_name=\"([^\"]*)\"")
 
 
@@ -43,6 +48,53 @@ def stage_of(op_name: str) -> str:
         if part in STAGES:
             return part
     return "other"
+
+
+def call_of(op_name: str) -> str:
+    """The outermost call ``calls_named`` scoped within the MJX stage of ``op_name`` (``smooth.crb``,
+    ``collision_driver.collision``, ...), else ""."""
+    found = ""
+    for part in reversed(re.split(r"[/()]", op_name)):
+        if part in STAGES:
+            break
+        if _CALL.match(part):
+            found = part
+    return found
+
+
+class _Named:
+    """One of MJX's modules as its forward pass sees it: each function called in a JAX scope of its name,
+    looked up at each call (a patch applied to the module since is the one called)."""
+
+    def __init__(self, module, label: str):
+        self._module, self._label = module, label
+
+    def __getattr__(self, name: str):
+        found = getattr(self._module, name)
+        if not callable(found) or isinstance(found, type):
+            return found
+
+        @functools.wraps(found)
+        def named(*args, **kwargs):
+            with jax.named_scope(f"{self._label}.{name}"):
+                return found(*args, **kwargs)
+        return named
+
+
+@contextlib.contextmanager
+def calls_named():
+    """MJX code traced within has every call of its forward pass into NAMED_MODULES in a scope of its own
+    (``smooth.kinematics``, ``collision_driver.collision``, ...): ``split`` then divides each stage by call.
+    The scopes name ops, nothing else; undone on exit."""
+    from stablebptt.physics.mjx_internals import forward
+    before = {label: getattr(forward, label) for label in NAMED_MODULES}
+    for label, module in before.items():
+        setattr(forward, label, _Named(module, label))
+    try:
+        yield
+    finally:
+        for label, module in before.items():
+            setattr(forward, label, module)
 
 
 def op_times(compiled, inputs, calls: int = 1) -> dict[str, float]:
@@ -88,8 +140,9 @@ def _self_times(ops):
 
 
 def split(compiled, inputs, label: str, top: int = 12) -> None:
-    """Prints ``compiled``'s device time per call by direction (forward, reverse) and MJX stage, then its
-    ``top`` costliest name stacks."""
+    """Prints ``compiled``'s device time per call by direction (forward, reverse) and MJX stage (and the
+    call within it, where the program was traced inside ``calls_named``), then its ``top`` costliest name
+    stacks."""
     names = op_names(compiled)
     times = op_times(compiled, inputs)
     total = sum(times.values())
@@ -98,7 +151,7 @@ def split(compiled, inputs, label: str, top: int = 12) -> None:
     for op, spent in times.items():
         name = names.get(op, "")
         direction = "reverse" if "transpose(" in name else "forward"
-        by_part[(direction, stage_of(name))] += spent
+        by_part[(direction, "/".join(filter(None, (stage_of(name), call_of(name)))))] += spent
         by_name[re.sub(r"\d+", "#", name.split("/", 1)[-1])[-160:] or op] += spent
     print(f"{label}: {total * 1e3:.1f} ms of device time a call, over {len(times)} ops", flush=True)
     buffered = sum(spent for op, spent in times.items() if op.startswith("command_buffer"))
@@ -106,6 +159,6 @@ def split(compiled, inputs, label: str, top: int = 12) -> None:
         print(f"  {buffered * 1e3:.1f} ms ({buffered / total:.0%}) ran in CUDA command buffers, not split by op "
               f"(XLA_FLAGS=--xla_gpu_enable_command_buffer= runs the ops one by one)", flush=True)
     for (direction, stage), spent in by_part.most_common():
-        print(f"  {direction:8s} {stage:18s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}", flush=True)
+        print(f"  {direction:8s} {stage:40s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}", flush=True)
     for name, spent in by_name.most_common(top):
         print(f"  {spent * 1e3:8.1f} ms  {name}", flush=True)

@@ -26,7 +26,8 @@ derivative, none of the flows' machinery, no critic).
         # loop over a control step's physics steps unrolled (a what-if; with --physics-step-residuals
         # stored, nothing stacked per physics step)
     python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time
-        # by MJX stage and by name stack, from one call under JAX's profiler (benchmarks/device_time.py)
+        # by MJX stage and the call within it, and by name stack, from one call under JAX's profiler
+        # (benchmarks/device_time.py)
     python benchmarks/update_program.py --programs grad --gradient-file G.npz ...   # the plain window's
         # gradient per seed written to G.npz with the command, or compared with the one there (cosine,
         # relative difference)
@@ -44,6 +45,7 @@ its reward check run first; where the check keeps the reward as written (Humanoi
 --no-reward-check gives the same programs sooner (on one H200 HumanoidStand's update had not been timed
 295 s after the command began, its check and init run first).
 """
+import contextlib
 import os
 import sys
 import time
@@ -123,6 +125,8 @@ if gradient_file is not None and ("grad" not in chosen or "--sizes" in arguments
 profiled = "--profile" in arguments
 if profiled:
     arguments.remove("--profile")
+    named_calls = contextlib.ExitStack()  # held open for the script's life: every trace below is named
+    named_calls.enter_context(device_time.calls_named())
 sizes_only = "--sizes" in arguments
 if sizes_only:
     arguments.remove("--sizes")

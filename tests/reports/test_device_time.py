@@ -65,3 +65,21 @@ def test_the_solver_routed_by_this_library_keeps_its_stage_name():
         text = jax.jit(lambda data: mjx.step(mjx_model, data)).lower(data).as_text(debug_info=True)
     scopes = set(re.findall(r"forward/(solve\w*)/", text))
     assert scopes == {"solve"} and all(scope in device_time.STAGES for scope in scopes)
+
+
+def test_each_call_of_mjxs_stages_is_named_while_asked_and_only_then():
+    from stablebptt.physics.mjx_internals import forward, smooth
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><geom type="plane" size="1 1 0.1"/><body pos="0 0 0.05"><freejoint/>'
+        '<geom type="sphere" size="0.06"/></body></worldbody></mujoco>')
+    mjx_model, data = mjx.put_model(model, impl="jax"), mjx.put_data(model, mujoco.MjData(model), impl="jax")
+    with device_time.calls_named(), differentiable_mjx(implicit_solver=True):
+        text = jax.jit(lambda data: mjx.step(mjx_model, data)).lower(data).as_text(debug_info=True)
+        assert forward.smooth.factor_m is not smooth.factor_m  # wrapped, around the remedy in place then
+    assert forward.smooth is smooth
+    calls = {device_time.call_of(name) for name in re.findall(r'loc\("([^"]*)"', text)}
+    assert {"smooth.kinematics", "smooth.crb", "smooth.factor_m", "collision_driver.collision",
+            "constraint.make_constraint", "smooth.rne"} <= calls
+    assert device_time.call_of("jit(f)/step/forward/fwd_position/collision_driver.collision/smooth.x/add") \
+        == "collision_driver.collision"  # the outermost call within the stage
+    assert device_time.call_of("jit(f)/step/forward/fwd_position/vmap()/add") == ""
