@@ -1,13 +1,13 @@
 """Sums over the tree of MJX's position and velocity stages, differentiated as constant products.
 
-MJX's ``smooth.com_pos`` and ``smooth.crb`` sum masses and inertias over subtrees by scanning the
-tree from its leaves, level by level, and pick each dof's root, joint and body by gathers;
-``smooth.com_vel`` sums the dofs' motions down the tree into the bodies' velocities and ``smooth.rne``
-their accelerations down it and their forces up it. Their reverse passes run those scans backwards
-with the transposes of every gather and scatter. The same sums are a constant 0/1 matrix (which
-bodies hang from which, which dofs move which) times the rows summed, and each pick is a one-hot
-matrix times the rows it picks from: ``REMEDIES`` give MJX's functions the derivative of that form
-while their values stay MJX's own, bit for bit.
+MJX's ``smooth.com_pos`` and ``smooth.crb`` sum masses and inertias over subtrees by scanning the tree
+from its leaves, level by level, and pick each dof's root, joint and body by gathers; ``smooth.com_vel``
+sums the dofs' motions down the tree into the bodies' velocities and ``smooth.rne`` their accelerations
+down it and their forces up it; ``smooth.subtree_vel`` (the subtree sensors') sums momenta up it. Their
+reverse passes run those scans backwards with the transposes of every gather and scatter. The same sums
+are a constant 0/1 matrix (which bodies hang from which, which dofs move which) times the rows summed,
+and each pick is a one-hot matrix times the rows it picks from: ``REMEDIES`` give MJX's functions the
+derivative of that form while their values stay MJX's own, bit for bit.
 """
 from __future__ import annotations
 
@@ -131,6 +131,31 @@ def _rne_as_products(model: mjx.Model, data: mjx.Data, with_acceleration: bool) 
     return dof_forces(model, data, jax.vmap(force)(data._impl.cinert, acceleration, data.cvel))
 
 
+def _subtree_vel_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
+    """``smooth.subtree_vel``'s subtree linear velocities and angular momenta, its two scans over the tree as
+    products: the momenta are each body's own (its spin, and its motion about its subtree's centre) summed
+    over the subtree, and each edge's (a child subtree's motion about its parent's) over the subtree below."""
+    rows = _rows_of(model)
+    angular, linear = data.cvel[:, :3], data.cvel[:, 3:]
+    linear = linear - jnp.cross(data.xipos - times(rows.root, data.subtree_com), angular)
+    mass, subtree_mass = model.body_mass[:, None], model.body_subtreemass[:, None]
+    linvel = times(rows.subtree, mass * linear) / jnp.maximum(mujoco.mjMINVAL, subtree_mass)
+    parent = picks(structure(model).parents, len(rows.subtree))
+    off_world = np.ones((len(rows.subtree), 1), np.float32)
+    off_world[0] = 0.0  # the world body has neither a motion about its subtree nor a parent
+    own = jnp.einsum("bij,bj,bkj,bk->bi", data.ximat, model.body_inertia, data.ximat, angular) + off_world * jnp.cross(
+        data.xipos - data.subtree_com, mass * (linear - linvel))
+    edge = off_world * jnp.cross(data.subtree_com - times(parent, data.subtree_com),
+                                 subtree_mass * (linvel - times(parent, linvel)))
+    below = rows.subtree - np.eye(len(rows.subtree), dtype=rows.subtree.dtype)
+    return linvel, times(rows.subtree, own) + times(below, edge)
+
+
+def _subtree_vel_fields(model: mjx.Model, data: mjx.Data) -> tuple:
+    moved = _subtree_vel(model, data)
+    return moved._impl.subtree_linvel, moved._impl.subtree_angmom
+
+
 def _com_pos_fields(model: mjx.Model, data: mjx.Data) -> tuple:
     placed = _com_pos(model, data)
     return placed.subtree_com, placed._impl.cinert, placed.cdof
@@ -158,6 +183,8 @@ _com_pos, _crb = smooth.com_pos, smooth.crb
 _com_pos_kept, _crb_kept = _kept(_com_pos_fields, _com_pos_as_products), _kept(_crb_fields, _crb_as_products)
 _com_vel, _rne = smooth.com_vel, smooth.rne
 _com_vel_kept = _kept(_com_vel_fields, _com_vel_as_products)
+_subtree_vel = smooth.subtree_vel
+_subtree_vel_kept = _kept(_subtree_vel_fields, _subtree_vel_as_products)
 _rne_kept = {flag: _kept(functools.partial(_rne_field, with_acceleration=flag),
                          functools.partial(_rne_as_products, with_acceleration=flag)) for flag in (False, True)}
 
@@ -193,5 +220,15 @@ def rne(model: mjx.Model, data: mjx.Data, flg_acc: bool = False) -> mjx.Data:
     return data.replace(qfrc_bias=_rne_kept[bool(flg_acc)](model, data))
 
 
+def subtree_vel(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """MJX's ``smooth.subtree_vel`` (the subtree sensors' velocities and momenta), differentiated through
+    constant products."""
+    if model.impl != types.Impl.JAX:
+        return _subtree_vel(model, data)
+    linvel, angmom = _subtree_vel_kept(model, data)
+    return data.tree_replace({"_impl.subtree_linvel": linvel, "_impl.subtree_angmom": angmom})
+
+
 # (owner, attribute, replacement) for constraint_derivatives' remedies.
-REMEDIES = ((smooth, "com_pos", com_pos), (smooth, "crb", crb), (smooth, "com_vel", com_vel), (smooth, "rne", rne))
+REMEDIES = ((smooth, "com_pos", com_pos), (smooth, "crb", crb), (smooth, "com_vel", com_vel), (smooth, "rne", rne),
+            (smooth, "subtree_vel", subtree_vel))

@@ -257,3 +257,63 @@ def test_the_derivative_through_a_gpus_form_of_the_product_is_mjxs_own(trees, mo
         with differentiable_mjx():
             mine = jitted_anew(tangents)(*state)
     assert _largest_gap(mine, own) < 1e-12 and max(np.abs(own[name]).max() for name in own) > 1
+
+
+def test_the_subtree_velocities_keep_mjxs_values_and_its_derivative_in_every_input(trees):
+    model, _, start, _, _ = trees
+    rng = np.random.default_rng(7)
+    with float64():
+        mjx_model = mjx.put_model(model, impl="jax")
+        placed = forward.fwd_velocity(mjx_model, forward.fwd_position(mjx_model, start.replace(
+            qvel=jnp.asarray(rng.standard_normal(model.nv)))))
+        # Every input moved on its own, the centres of mass apart from the bodies: the derivative as a function
+        # of what MJX's scans read, not only along states where those agree.
+        inputs = (placed.cvel, placed.xipos, placed.ximat, placed.subtree_com)
+        directions = tuple(jnp.asarray(rng.standard_normal(np.shape(array))) for array in inputs)
+
+        def velocities(cvel, xipos, ximat, subtree_com):
+            moved = smooth.subtree_vel(mjx_model, placed.replace(cvel=cvel, xipos=xipos, ximat=ximat,
+                                                                 subtree_com=subtree_com))
+            return moved._impl.subtree_linvel, moved._impl.subtree_angmom
+
+        def tangents(*inputs):
+            return jax.jvp(velocities, inputs, directions)[1]
+
+        def cotangents(*inputs):
+            return jax.vjp(velocities, *inputs)[1](jax.tree.map(jnp.ones_like, velocities(*inputs)))
+
+        own = [jitted_anew(function)(*inputs) for function in (velocities, tangents, cotangents)]
+        with differentiable_mjx():
+            assert smooth.subtree_vel is tree_sums.subtree_vel
+            mine = [jitted_anew(function)(*inputs) for function in (velocities, tangents, cotangents)]
+    for mine_array, own_array in zip(mine[0], own[0]):
+        np.testing.assert_array_equal(mine_array, own_array)
+    assert min(float(np.abs(array).max()) for array in own[1]) > 0.1
+    for mine_array, own_array in zip(mine[1] + mine[2], own[1] + own[2]):
+        np.testing.assert_allclose(mine_array, own_array, rtol=1e-12, atol=1e-11)
+
+
+def test_the_subtree_velocities_derivative_in_the_velocities_is_mujocos_c(trees):
+    model, data, start, _, _ = trees
+    with float64(), differentiable_mjx():
+        mjx_model = mjx.put_model(model, impl="jax")
+
+        def velocities(qvel):
+            moved = smooth.subtree_vel(mjx_model, forward.fwd_velocity(mjx_model, forward.fwd_position(
+                mjx_model, start.replace(qvel=qvel))))
+            return jnp.concatenate([moved._impl.subtree_linvel, moved._impl.subtree_angmom], -1)
+        jacobian = np.asarray(jitted_anew(jax.jacfwd(velocities))(start.qvel))
+    eps = 1e-6
+
+    def c_velocities(qvel):
+        moved = mujoco.MjData(model)
+        moved.qpos[:], moved.qvel[:], moved.mocap_pos[:], moved.mocap_quat[:] = (data.qpos, qvel, data.mocap_pos,
+                                                                                 data.mocap_quat)
+        mujoco.mj_forward(model, moved)
+        mujoco.mj_subtreeVel(model, moved)
+        return np.concatenate([moved.subtree_linvel, moved.subtree_angmom], -1)
+    for index in range(model.nv):
+        step = np.zeros(model.nv)
+        step[index] = eps
+        central = (c_velocities(data.qvel + step) - c_velocities(data.qvel - step)) / (2 * eps)
+        np.testing.assert_allclose(jacobian[..., index], central, rtol=1e-6, atol=1e-7, err_msg=f"qvel[{index}]")
