@@ -52,7 +52,7 @@ def campaign(env: str, on: str = "") -> list[dict]:
     """Brax PPO's runs on ``env`` of the longest budget on the GPU model ``on``, else of the longest budget
     on any; empty without runs."""
     campaigns = suite_table.ppo_campaigns(env)
-    same_card = [runs for runs in campaigns if suite_table.card_of(runs[0].get("machine", "")) == on]
+    same_card = [runs for runs in campaigns if suite_table.campaign_card(runs) == on]
     return (same_card or campaigns or [[]])[-1]
 
 

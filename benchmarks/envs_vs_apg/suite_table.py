@@ -188,6 +188,11 @@ def card_of(text: str) -> str:
     return match.group(0) if match else ""
 
 
+def campaign_card(runs: list[dict]) -> str:
+    """The GPU model a Brax PPO campaign ran on (its seeds shared one)."""
+    return card_of(runs[0].get("machine", ""))
+
+
 def ppo_campaigns(env: str, card: str = "") -> list[list[dict]]:
     """Brax PPO's runs on ``env`` grouped by the budget they were started with and the GPU they ran on, the
     shortest budget first and, of one budget, the campaign on ``card`` first: each group one campaign of
@@ -204,13 +209,13 @@ def ppo_at_budget(env: str, card: str = "") -> str:
     ("; " between campaigns, each named by its GPU where the env's campaigns ran on more than one model);
     "-" without runs. Runs stopped before their budget are left out here."""
     campaigns = ppo_campaigns(env, card)
-    several_cards = len({card_of(runs[0].get("machine", "")) for runs in campaigns}) > 1
+    several_cards = len({campaign_card(runs) for runs in campaigns}) > 1
     cells = []
     for runs in campaigns:
         finals = [run["final_return"] for run in runs if run["status"] == "budget"]
         if len(finals) == len(runs):
             low, high = interval(finals)
-            on = f" on an {card_of(runs[0].get('machine', ''))}" if several_cards else ""
+            on = f" on an {campaign_card(runs)}" if several_cards else ""
             cells.append(f"{np.mean(finals):.1f} [{low:.1f}, {high:.1f}] at {runs[0]['budget_s']:.0f} s{on}")
     return "; ".join(cells) or "-"
 

@@ -37,6 +37,9 @@ class _Rows(NamedTuple):
     translation: np.ndarray  # (nv, 3): a free joint's translation dofs' constant motion axes
     moved_before: np.ndarray  # (nv, nv): dof i moves dof j's frame (a body above, an earlier joint on its body,
                               # or a free joint's translation before its turns)
+    parent: np.ndarray       # (nbody, nbody): b's parent (the world its own)
+    below: np.ndarray        # (nbody, nbody): body c hangs from body b, b itself not counted
+    off_world: np.ndarray    # (nbody, 1): every body but the world
 
 
 @functools.lru_cache(maxsize=64)
@@ -55,10 +58,14 @@ def _rows(tree: Structure) -> _Rows:
     joints = np.asarray(dof_joints, int)
     moved_before = joints_moved(tree)[joints][:, joints] | (
         (joints[:, None] == joints[None, :]) & (kinds == FREE)[:, None] & (place[:, None] < 3) & (place[None, :] >= 3))
-    return _Rows(subtree(tree).astype(np.float32), root(tree), picks(dof_bodies, nbody),
+    within = subtree(tree).astype(np.float32)
+    off_world = np.ones((nbody, 1), np.float32)
+    off_world[0] = 0.0
+    return _Rows(within, root(tree), picks(dof_bodies, nbody),
                  picks([tree.roots[body] for body in dof_bodies], nbody), picks(dof_joints, len(tree.joint_types)),
                  along.astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None], column, translation,
-                 moved_before.astype(np.float32))
+                 moved_before.astype(np.float32), picks(tree.parents, nbody), within - np.eye(nbody, dtype=np.float32),
+                 off_world)
 
 
 def _rows_of(model: mjx.Model) -> _Rows:
@@ -140,15 +147,12 @@ def _subtree_vel_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
     linear = linear - jnp.cross(data.xipos - times(rows.root, data.subtree_com), angular)
     mass, subtree_mass = model.body_mass[:, None], model.body_subtreemass[:, None]
     linvel = times(rows.subtree, mass * linear) / jnp.maximum(mujoco.mjMINVAL, subtree_mass)
-    parent = picks(structure(model).parents, len(rows.subtree))
-    off_world = np.ones((len(rows.subtree), 1), np.float32)
-    off_world[0] = 0.0  # the world body has neither a motion about its subtree nor a parent
-    own = jnp.einsum("bij,bj,bkj,bk->bi", data.ximat, model.body_inertia, data.ximat, angular) + off_world * jnp.cross(
-        data.xipos - data.subtree_com, mass * (linear - linvel))
-    edge = off_world * jnp.cross(data.subtree_com - times(parent, data.subtree_com),
-                                 subtree_mass * (linvel - times(parent, linvel)))
-    below = rows.subtree - np.eye(len(rows.subtree), dtype=rows.subtree.dtype)
-    return linvel, times(rows.subtree, own) + times(below, edge)
+    # The world body has neither a motion about its subtree nor a parent: off_world.
+    own = jnp.einsum("bij,bj,bkj,bk->bi", data.ximat, model.body_inertia, data.ximat, angular) + rows.off_world * (
+        jnp.cross(data.xipos - data.subtree_com, mass * (linear - linvel)))
+    edge = rows.off_world * jnp.cross(data.subtree_com - times(rows.parent, data.subtree_com),
+                                      subtree_mass * (linvel - times(rows.parent, linvel)))
+    return linvel, times(rows.subtree, own) + times(rows.below, edge)
 
 
 def _subtree_vel_fields(model: mjx.Model, data: mjx.Data) -> tuple:

@@ -56,26 +56,29 @@ def test_the_profilers_ops_are_the_compiled_programs_instructions():
     assert sum(spent for op, spent in times.items() if op in names) > 0.5 * sum(times.values())
 
 
-def test_the_solver_routed_by_this_library_keeps_its_stage_name():
+def _ball_on_the_floor_lowered() -> str:
+    """A step of a ball resting on the floor (solver rows), lowered through this library's patches, with the
+    name stacks of its ops."""
     model = mujoco.MjModel.from_xml_string(
         '<mujoco><worldbody><geom type="plane" size="1 1 0.1"/><body pos="0 0 0.05"><freejoint/>'
-        '<geom type="sphere" size="0.06"/></body></worldbody></mujoco>')  # a ball resting on the floor: solver rows
+        '<geom type="sphere" size="0.06"/></body></worldbody></mujoco>')
     mjx_model, data = mjx.put_model(model, impl="jax"), mjx.put_data(model, mujoco.MjData(model), impl="jax")
     with differentiable_mjx(implicit_solver=True):
-        text = jax.jit(lambda data: mjx.step(mjx_model, data)).lower(data).as_text(debug_info=True)
+        return jax.jit(lambda data: mjx.step(mjx_model, data)).lower(data).as_text(debug_info=True)
+
+
+def test_the_solver_routed_by_this_library_keeps_its_stage_name():
+    text = _ball_on_the_floor_lowered()
     scopes = set(re.findall(r"forward/(solve\w*)/", text))
     assert scopes == {"solve"} and all(scope in device_time.STAGES for scope in scopes)
 
 
 def test_each_call_of_mjxs_stages_is_named_while_asked_and_only_then():
     from stablebptt.physics.mjx_internals import forward, smooth
-    model = mujoco.MjModel.from_xml_string(
-        '<mujoco><worldbody><geom type="plane" size="1 1 0.1"/><body pos="0 0 0.05"><freejoint/>'
-        '<geom type="sphere" size="0.06"/></body></worldbody></mujoco>')
-    mjx_model, data = mjx.put_model(model, impl="jax"), mjx.put_data(model, mujoco.MjData(model), impl="jax")
-    with device_time.calls_named(), differentiable_mjx(implicit_solver=True):
-        text = jax.jit(lambda data: mjx.step(mjx_model, data)).lower(data).as_text(debug_info=True)
-        assert forward.smooth.factor_m.__wrapped__ is smooth.factor_m  # wrapped, around the remedy in place then
+    with device_time.calls_named():
+        text = _ball_on_the_floor_lowered()
+        with differentiable_mjx():
+            assert forward.smooth.factor_m.__wrapped__ is smooth.factor_m  # wrapped, around the remedy in place then
     assert forward.smooth is smooth
     calls = {device_time.call_of(name) for name in re.findall(r'loc\("([^"]*)"', text)}
     assert {"smooth.kinematics", "smooth.crb", "smooth.factor_m", "collision_driver.collision",
