@@ -50,6 +50,16 @@ def stage_of(op_name: str) -> str:
     return "other"
 
 
+def part_of(op_name: str) -> tuple[str, str]:
+    """(direction, MJX stage and the call within it) of an op traced as ``op_name``: direction ``reverse``
+    under a transpose, else ``forward``. An op XLA made with no name stack (a loop's copies, a scatter
+    expanded into a loop, a layout change) is ``("unnamed", "")``: nothing says which pass it serves."""
+    if not op_name:
+        return "unnamed", ""
+    direction = "reverse" if "transpose(" in op_name else "forward"
+    return direction, "/".join(filter(None, (stage_of(op_name), call_of(op_name))))
+
+
 def call_of(op_name: str) -> str:
     """The outermost call ``calls_named`` scoped within the MJX stage of ``op_name`` (``smooth.crb``,
     ``collision_driver.collision``, ...), else ""."""
@@ -141,24 +151,33 @@ def _self_times(ops):
 
 def split(compiled, inputs, label: str, top: int = 12) -> None:
     """Prints ``compiled``'s device time per call by direction (forward, reverse) and MJX stage (and the
-    call within it, where the program was traced inside ``calls_named``), then its ``top`` costliest name
-    stacks."""
+    call within it, where the program was traced inside ``calls_named``), the largest name stacks of its
+    parts outside every stage, then its ``top`` costliest name stacks."""
     names = op_names(compiled)
     times = op_times(compiled, inputs)
     total = sum(times.values())
     by_part: collections.Counter = collections.Counter()
     by_name: collections.Counter = collections.Counter()
+    in_other: collections.Counter = collections.Counter()
     for op, spent in times.items():
         name = names.get(op, "")
-        direction = "reverse" if "transpose(" in name else "forward"
-        by_part[(direction, "/".join(filter(None, (stage_of(name), call_of(name)))))] += spent
-        by_name[re.sub(r"\d+", "#", name.split("/", 1)[-1])[-160:] or op] += spent
+        part = part_of(name)
+        by_part[part] += spent
+        named = re.sub(r"\d+", "#", name.split("/", 1)[-1])[-160:] or re.sub(r"\.\d+$", "", op)
+        by_name[named] += spent
+        if part[1] in ("other", ""):
+            in_other[(part[0], named)] += spent
     print(f"{label}: {total * 1e3:.1f} ms of device time a call, over {len(times)} ops", flush=True)
     buffered = sum(spent for op, spent in times.items() if op.startswith("command_buffer"))
-    if buffered > 0.1 * total:  # a CUDA graph's time has no op of its own: it counts as "other" below
+    if buffered > 0.1 * total:  # a CUDA graph's time has no op of its own: it counts as "unnamed" below
         print(f"  {buffered * 1e3:.1f} ms ({buffered / total:.0%}) ran in CUDA command buffers, not split by op "
               f"(XLA_FLAGS=--xla_gpu_enable_command_buffer= runs the ops one by one)", flush=True)
     for (direction, stage), spent in by_part.most_common():
         print(f"  {direction:8s} {stage:40s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}", flush=True)
+    # "other" gathers what no MJX stage holds (policy, critic, observation, reward, the loops' own copies):
+    # its largest parts by name, and XLA's unnamed ops by kind.
+    for (direction, name), spent in in_other.most_common(top // 2):
+        print(f"  {direction:8s} other: {spent * 1e3:8.1f} ms  {name[-120:]}", flush=True)
+    print("  costliest name stacks:", flush=True)
     for name, spent in by_name.most_common(top):
         print(f"  {spent * 1e3:8.1f} ms  {name}", flush=True)

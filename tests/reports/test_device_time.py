@@ -45,6 +45,13 @@ def test_an_op_counts_in_the_innermost_mjx_stage_it_was_traced_in():
     assert device_time.stage_of("jit(update)/jvp(policy)/dot_general") == "other"
 
 
+def test_an_op_counts_in_its_direction_and_an_op_xla_made_unnamed_in_neither():
+    assert device_time.part_of("jit(update)/transpose(jvp(env_step))/step/forward/fwd_position/smooth.crb/add") \
+        == ("reverse", "fwd_position/smooth.crb")
+    assert device_time.part_of("jit(update)/jvp(policy)/dot_general") == ("forward", "other")
+    assert device_time.part_of("") == ("unnamed", "")
+
+
 def test_the_profilers_ops_are_the_compiled_programs_instructions():
     def spin(x):
         return jax.lax.scan(lambda carry, _: (jnp.sin(carry) @ carry, None), x, None, length=20)[0]
