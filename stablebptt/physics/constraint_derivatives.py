@@ -48,9 +48,11 @@ from stablebptt.physics.backward_contacts import CLOSED_FORM_PAIRS, geometry_hel
 from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, smooth, solver, support
 from stablebptt.physics.mjx_internals import types as mjx_types
 from stablebptt.physics.mjx_patches import applied, choosing, tracing
+from stablebptt.physics.values_kept import KEPT_VALUES
 
 
 SOLVER_SOLUTION = "stablebptt_solver_solution"  # the solver's answer, by name: what a rematerialised step keeps
+_KEPT_ACROSS_RECOMPUTE = (SOLVER_SOLUTION, KEPT_VALUES)
 
 
 def solve_implicitly(model: mjx.Model, data: mjx.Data) -> mjx.Data:
@@ -326,9 +328,10 @@ def _step_as_chosen(step):
         # shapes, and the step's program depends on the trace's other choices (the held geometry, the
         # implicit solver). prevent_cse off: within a loop of physics steps JAX's guard against XLA
         # merging the recomputation back into the forward pass is not needed, and is a barrier.
-        # The solver's solution is kept (``SOLVER_SOLUTION``): its iterations are not run again.
+        # The solver's solution is kept (``SOLVER_SOLUTION``): its iterations are not run again; so are the
+        # values of MJX's functions this package differentiates (``KEPT_VALUES``), whose tangents read only them.
         return jax.checkpoint(lambda model, data: step(model, data), prevent_cse=False,
-                              policy=jax.checkpoint_policies.save_only_these_names(SOLVER_SOLUTION))(model, data)
+                              policy=jax.checkpoint_policies.save_only_these_names(*_KEPT_ACROSS_RECOMPUTE))(model, data)
     return step_as_chosen
 
 

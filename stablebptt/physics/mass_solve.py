@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 
 from stablebptt.physics.mjx_internals import mjx, smooth, support, types
+from stablebptt.physics.values_kept import KEPT_VALUES
 
 _factor_m, _solve_m = smooth.factor_m, smooth.solve_m
 
@@ -29,7 +31,7 @@ def _solved(mass: jax.Array, factor: jax.Array, rhs: jax.Array) -> jax.Array:
 def _solved_tangent(primals, tangents):
     mass, factor, rhs = primals
     mass_dot, _, rhs_dot = tangents  # the factor's tangent is M's, already in mass_dot
-    solution = _solved(mass, factor, rhs)
+    solution = checkpoint_name(_solved(mass, factor, rhs), KEPT_VALUES)
     # HIGHEST: on a GPU a float32 matmul may round to TF32; this one is a matrix times a vector.
     moved = jnp.matmul(mass_dot, solution, precision=jax.lax.Precision.HIGHEST)
     # The solve itself again, not a bare cho_solve: the factor carries no derivative, so a second derivative
@@ -47,7 +49,8 @@ def factor_m(model: mjx.Model, data: mjx.Data) -> mjx.Data:
         return _factor_m(model, data)
     mass = data._impl.M
     held = _factor_m(model, data.tree_replace({"_impl.M": jax.lax.stop_gradient(mass)}))
-    return held.tree_replace({"_impl.M": mass})
+    # Named: the solves' tangents read the factor, which a recomputed step then keeps rather than factoring again.
+    return held.tree_replace({"_impl.M": mass, "_impl.qLD": checkpoint_name(held._impl.qLD, KEPT_VALUES)})
 
 
 def solve_m(model: mjx.Model, data: mjx.Data, x: jax.Array) -> jax.Array:

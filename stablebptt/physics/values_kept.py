@@ -7,9 +7,15 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 from jax.custom_derivatives import SymbolicZero
 
 from stablebptt.physics.mjx_internals import mjx
+
+# The values of MJX's functions that carry this package's derivative, by name: their tangents read the values
+# and the functions' inputs, never MJX's intermediates, so a physics step recomputed in the backward pass
+# keeps these (a few rows per body) rather than running the functions again (constraint_derivatives).
+KEPT_VALUES = "stablebptt_values_kept"
 
 # tangent(model, data, value, moving, vary) -> the value's tangent; ``moving`` names the arrays that move by
 # their paths in (model, data), "[0].body_pos" or "[1].qpos"; ``vary(function)`` is the tangent of
@@ -85,7 +91,7 @@ def values_kept(original: Callable, tangent: Tangent, reads: Callable) -> Callab
             # Only the arrays that move: zeros for the model's would be traced, then dropped.
             which = [index for index, tangent in enumerate(moving) if not isinstance(tangent, SymbolicZero)]
             current = dict(zip(read, given))
-            value = original(*rebuilt(current))
+            value = jax.tree.map(lambda leaf: checkpoint_name(leaf, KEPT_VALUES), original(*rebuilt(current)))
             if not which:
                 return value, jax.tree.map(jnp.zeros_like, value)
 

@@ -14,6 +14,7 @@ import pytest
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.derivative_model import steps_traced
 from stablebptt.envs.protocol import EnvError
+from stablebptt.physics import constraint_derivatives
 
 from conftest import refused_in_one_line
 from envs_for_tests import Ball, BoundStepBall, SubsteppedBall
@@ -83,6 +84,23 @@ def test_a_recomputed_step_keeps_the_solvers_solution_and_runs_none_of_its_itera
     loops = {recomputed: program.lower(action).as_text().count("stablehlo.while")
              for recomputed, program in programs.items()}
     assert loops[True] < loops[False], loops
+
+
+def test_a_recomputed_step_keeps_the_values_of_mjxs_functions_this_package_differentiates(monkeypatch):
+    # Their tangents read their values and inputs alone (physics/values_kept.py): the backward pass keeps the
+    # body frames, inertias, the mass matrix's factor and solves rather than running MJX's functions again.
+    action = jnp.array([-0.5])
+
+    def run_again() -> tuple[int, float]:
+        """The ops the backward pass runs again, as lowered, and the slope (a new env: its step traced anew)."""
+        window = _windows(SubsteppedBall(), -0.102)[True]  # in contact: every stage of the step runs
+        program = jax.jit(jax.grad(window))
+        return program.lower(action).as_text(debug_info=True).count("rematted_computation"), float(program(action)[0])
+    kept_ops, kept_slope = run_again()
+    monkeypatch.setattr(constraint_derivatives, "_KEPT_ACROSS_RECOMPUTE", (constraint_derivatives.SOLVER_SOLUTION,))
+    solution_only_ops, solution_only_slope = run_again()
+    assert kept_ops < solution_only_ops, (kept_ops, solution_only_ops)  # 662 against 821 as written
+    np.testing.assert_allclose(kept_slope, solution_only_slope, rtol=1e-6)
 
 
 def test_bad_values_are_refused_in_one_line(tmp_path, capsys):
