@@ -173,9 +173,11 @@ def split(compiled, inputs, label: str, top: int = 12) -> None:
         print(f"  {buffered * 1e3:.1f} ms ({buffered / total:.0%}) ran in CUDA command buffers, not split by op "
               f"(XLA_FLAGS=--xla_gpu_enable_command_buffer= runs the ops one by one)", flush=True)
     for (direction, stage), spent in by_part.most_common():
-        print(f"  {direction:8s} {stage:40s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}", flush=True)
-    # "other" gathers what no MJX stage holds (policy, critic, observation, reward, the loops' own copies):
-    # its largest parts by name, and XLA's unnamed ops by kind.
+        print(f"  {direction:8s} {stage or '(no name stack)':40s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}",
+              flush=True)
+    # "other" gathers what no MJX stage holds (policy, critic, observation, reward): its largest parts by name,
+    # and XLA's unnamed ops by kind. A call of MJX's named outside its stages (other/sensor.sensor_vel) has its
+    # own row above.
     for (direction, name), spent in in_other.most_common(top // 2):
         print(f"  {direction:8s} other: {spent * 1e3:8.1f} ms  {name[-120:]}", flush=True)
     print("  costliest name stacks:", flush=True)

@@ -19,7 +19,8 @@ patches and each tracing thread's choices: ``mjx_patches``.
   step this library builds traces inside it; ``implicit_solver=True`` also
   routes ``mjx.forward``'s solver call (and so ``mjx.step`` inside any
   environment) through ``solve_implicitly``. ``physics_steps_recomputed=True``
-  has reverse mode store the state each ``mjx.step`` starts from and the solver's solution,
+  has reverse mode store the state each ``mjx.step`` starts from, the solver's solution and
+  the values of MJX's functions this package differentiates (``values_kept.KEPT_VALUES``),
   and run the rest of the step again in the backward pass (``jax.checkpoint``), rather than
   store its intermediates;
   ``camera_poses_held=True`` leaves the cameras' poses in the data as they came.
@@ -51,7 +52,7 @@ from stablebptt.physics.mjx_patches import applied, choosing, tracing
 from stablebptt.physics.values_kept import KEPT_VALUES
 
 
-SOLVER_SOLUTION = "stablebptt_solver_solution"  # the solver's answer, by name: what a rematerialised step keeps
+SOLVER_SOLUTION = "stablebptt_solver_solution"  # the solver's answer, by name: a rematerialised step keeps it
 _KEPT_ACROSS_RECOMPUTE = (SOLVER_SOLUTION, KEPT_VALUES)
 
 
@@ -316,8 +317,8 @@ def _contact_geometry_held():
 
 
 def _step_as_chosen(step):
-    """``mjx.step`` rematerialized where this thread's trace asks: reverse mode keeps the step's inputs and
-    the solver's solution the derivative reads, and runs the rest of the step again in the backward pass, so
+    """``mjx.step`` rematerialized where this thread's trace asks: reverse mode keeps the step's inputs, the
+    solver's solution and the values ``KEPT_VALUES`` names, and runs the rest of the step again in the backward pass, so
     a loop of physics steps (MuJoCo Playground's control step) stores one state per physics step instead of
     every intermediate of each step."""
     def step_as_chosen(model, data):
@@ -329,7 +330,8 @@ def _step_as_chosen(step):
         # implicit solver). prevent_cse off: within a loop of physics steps JAX's guard against XLA
         # merging the recomputation back into the forward pass is not needed, and is a barrier.
         # The solver's solution is kept (``SOLVER_SOLUTION``): its iterations are not run again; so are the
-        # values of MJX's functions this package differentiates (``KEPT_VALUES``), whose tangents read only them.
+        # values of MJX's functions this package differentiates (``KEPT_VALUES``), whose tangents read them
+        # and the functions' inputs.
         return jax.checkpoint(lambda model, data: step(model, data), prevent_cse=False,
                               policy=jax.checkpoint_policies.save_only_these_names(*_KEPT_ACROSS_RECOMPUTE))(model, data)
     return step_as_chosen

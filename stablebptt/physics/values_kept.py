@@ -14,7 +14,9 @@ from stablebptt.physics.mjx_internals import mjx
 
 # The values of MJX's functions that carry this package's derivative, by name: their tangents read the values
 # and the functions' inputs, never MJX's intermediates, so a physics step recomputed in the backward pass
-# keeps these (a few rows per body) rather than running the functions again (constraint_derivatives).
+# keeps these (a few rows per body) rather than running the functions again (constraint_derivatives). A
+# tangent that itself runs a function of the inputs (``vary``: the fluid's forces, or the body frames where
+# a model number moves) runs that one again.
 KEPT_VALUES = "stablebptt_values_kept"
 
 # tangent(model, data, value, moving, vary) -> the value's tangent; ``moving`` names the arrays that move by
