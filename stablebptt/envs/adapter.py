@@ -141,9 +141,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         its collision.
       physics_steps_recomputed: reverse mode stores the state each ``mjx.step`` starts from (and the constraint
         solver's solution, and the values of MJX's functions this package differentiates) and runs the rest of
-        the step again in the backward pass (``jax.checkpoint``), rather
-        than storing every intermediate of every physics step: the same derivative, and on the humanoid and the
-        walker a shorter update
+        the step again in the backward pass (``jax.checkpoint``), rather than storing every intermediate of
+        every physics step: the same derivative, and on the humanoid and the walker a shorter update
         (docs/performance.md). It reaches an env that calls ``mjx.step`` through MJX's package, as MuJoCo
         Playground's do. None: recomputed where the derivative's control step spans more than one physics
         step (MuJoCo Playground's ``n_substeps``, or ``gradient_substeps``), stored otherwise.

@@ -332,8 +332,8 @@ def _step_as_chosen(step):
         # The solver's solution is kept (``SOLVER_SOLUTION``): its iterations are not run again; so are the
         # values of MJX's functions this package differentiates (``KEPT_VALUES``), whose tangents read them
         # and the functions' inputs.
-        return jax.checkpoint(lambda model, data: step(model, data), prevent_cse=False,
-                              policy=jax.checkpoint_policies.save_only_these_names(*_KEPT_ACROSS_RECOMPUTE))(model, data)
+        kept = jax.checkpoint_policies.save_only_these_names(*_KEPT_ACROSS_RECOMPUTE)
+        return jax.checkpoint(lambda model, data: step(model, data), prevent_cse=False, policy=kept)(model, data)
     return step_as_chosen
 
 
