@@ -184,7 +184,7 @@ def _ppo_runs() -> tuple[dict, ...]:
 
 def card_of(text: str) -> str:
     """The GPU's model a run's device or a Brax PPO record's machine names ("H100", "H200"); "" where none."""
-    match = re.search(r"\b[A-Z]\d{3}\b", text or "")
+    match = re.search(r"\b[A-Z]{1,2}\d{3}\b", text or "")  # H100, H200, A100; GH200, GB200
     return match.group(0) if match else ""
 
 

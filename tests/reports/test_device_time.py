@@ -52,6 +52,28 @@ def test_an_op_counts_in_its_direction_and_an_op_xla_made_unnamed_in_neither():
     assert device_time.part_of("") == ("unnamed", "")
 
 
+def test_the_split_prints_each_part_once_its_share_of_the_whole_and_what_lies_outside_the_stages(
+        monkeypatch, capsys):
+    # Four ops of a profiled call, 10 ms in all: a reverse op of a stage's call, a forward op of the policy
+    # (outside every stage), and two XLA made with no name stack (a copy twice, under one kind).
+    names = {"fusion.1": "jit(update)/transpose(jvp(env_step))/step/forward/fwd_position/smooth.crb/add",
+             "fusion.2": "jit(update)/jvp(policy)/dot_general"}
+    times = {"fusion.1": 0.005, "fusion.2": 0.002, "copy.3": 0.002, "copy.4": 0.001}
+    monkeypatch.setattr(device_time, "op_names", lambda compiled: names)
+    monkeypatch.setattr(device_time, "op_times", lambda compiled, inputs: times)
+    device_time.split(None, None, "update", top=4)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "update: 10.0 ms of device time a call, over 4 ops"
+    rows = {tuple(line.split()[:2]): line for line in lines[1:4]}
+    assert rows["reverse", "fwd_position/smooth.crb"].split()[-3:] == ["5.0", "ms", "50.0%"]
+    assert rows["unnamed", "(no"].split()[-3:] == ["3.0", "ms", "30.0%"] and "(no name stack)" in rows["unnamed", "(no"]
+    assert rows["forward", "other"].split()[-3:] == ["2.0", "ms", "20.0%"]
+    # Outside the stages: the unnamed copies by their kind, then the policy's op by its name stack.
+    assert lines[4].split() == ["unnamed", "other:", "3.0", "ms", "copy"]
+    assert lines[5].split() == ["forward", "other:", "2.0", "ms", "jvp(policy)/dot_general"]
+    assert lines[6] == "  costliest name stacks:" and len(lines) == 7 + 3  # three names: the copies are one
+
+
 def test_the_profilers_ops_are_the_compiled_programs_instructions():
     def spin(x):
         return jax.lax.scan(lambda carry, _: (jnp.sin(carry) @ carry, None), x, None, length=20)[0]

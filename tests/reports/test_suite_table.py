@@ -176,6 +176,7 @@ def test_of_one_budget_the_campaign_on_the_runs_gpu_model_is_read_first_and_each
     h100 = [run(seed, "one H100 of a host of one", 20.0 + seed) for seed in range(2)]
     monkeypatch.setattr(suite_table, "_ppo_runs", lambda: tuple(h200 + h100))
     assert suite_table.card_of("gpu (NVIDIA H100 80GB HBM3)") == "H100" and suite_table.card_of("cpu") == ""
+    assert suite_table.card_of("gpu (NVIDIA GH200 480GB)") == "GH200"  # not its H200, a card of another memory
     # Never the two cards' seeds mixed; the run's own card first, the other where it names none of them.
     assert suite_table.ppo_near("HopperStand", 300.0, card="H100") == [20.0, 21.0]
     assert suite_table.ppo_near("HopperStand", 300.0, card="H200") == [10.0, 11.0]
