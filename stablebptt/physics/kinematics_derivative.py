@@ -43,8 +43,7 @@ class _Tree(NamedTuple):
     turning_rows: np.ndarray  # (njnt, nturning): their rows
     free_rows: np.ndarray   # (njnt, nturning): the free joints' rows, whose anchors move with their translation
     mocap_rows: np.ndarray  # (nbody, nmocap)
-    geom_rows: np.ndarray   # (ngeom, nbody)
-    site_rows: np.ndarray   # (nsite, nbody)
+    frame_rows: np.ndarray  # (2 nbody + ngeom + nsite, nbody): the body of each frame, as _FRAMES orders them
 
 
 @functools.lru_cache(maxsize=64)
@@ -60,14 +59,22 @@ def _tree(tree: Structure) -> _Tree:
     turning_rows = picks([joint for joint, _, _ in turning], njnt).T
     nmocap = sum(mocap_id >= 0 for mocap_id in tree.mocap_ids)
     mocap_rows = picks([tree.mocap_ids.index(mocap_id) for mocap_id in range(nmocap)], nbody).T
+    frame_rows = np.concatenate([np.eye(nbody, dtype=np.float32)] * 2
+                                + [picks(tree.geom_bodies, nbody), picks(tree.site_bodies, nbody)])
     return _Tree(subtree(tree)[bodies].astype(np.float32), joints_moved(tree).astype(np.float32), scalar,
                  (kinds == HINGE).astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None],
                  turning, turning_rows, turning_rows * np.asarray([free for _, _, free in turning], np.float32),
-                 mocap_rows, picks(tree.geom_bodies, nbody), picks(tree.site_bodies, nbody))
+                 mocap_rows, frame_rows)
 
 
 def _tree_of(model: mjx.Model) -> _Tree:
     return _tree(structure(model))
+
+
+def _frames(model: mjx.Model) -> tuple[tuple[str, str], ...]:
+    """The (position, rotation) fields of the frames a body carries: its own, its inertia's, its geoms', its sites'."""
+    return ((("xpos", "xmat"), ("xipos", "ximat")) + ((("geom_xpos", "geom_xmat"),) if model.ngeom else ())
+            + ((("site_xpos", "site_xmat"),) if model.nsite else ()))
 
 
 def _written(model: mjx.Model) -> tuple[str, ...]:
@@ -137,14 +144,16 @@ def _frames_tangent(model: mjx.Model, data: mjx.Data, value: tuple, moving: froz
     if tree.turning:
         anchor_dot = anchor_dot + times(tree.free_rows, jnp.stack(translations))
     tangents = {"qpos": qpos_tangent, "xanchor": anchor_dot, "xaxis": jnp.cross(joints[:, :3], fields["xaxis"])}
-    tangents["xpos"], tangents["xmat"] = _turned(bodies, fields["xpos"], fields["xmat"])
     tangents["xquat"] = 0.5 * _quat_mul(jnp.concatenate([jnp.zeros_like(bodies[:, :1]), bodies[:, :3]], -1),
                                         fields["xquat"])
-    tangents["xipos"], tangents["ximat"] = _turned(bodies, fields["xipos"], fields["ximat"])
-    for kind, rows in (("geom", tree.geom_rows), ("site", tree.site_rows)):
-        if f"{kind}_xpos" in fields:
-            tangents[f"{kind}_xpos"], tangents[f"{kind}_xmat"] = _turned(
-                times(rows, bodies), fields[f"{kind}_xpos"], fields[f"{kind}_xmat"])
+    # Every frame a body carries turned at once, one product and one pair of cross products: in reverse mode
+    # one transpose each, where a call per kind of frame summed their cotangents op by op.
+    frames = _frames(model)
+    points, rotations = _turned(times(tree.frame_rows, bodies), jnp.concatenate([fields[p] for p, _ in frames]),
+                                jnp.concatenate([fields[r] for _, r in frames]))
+    ends = np.cumsum([len(fields[p]) for p, _ in frames])[:-1]
+    for (position, rotation), moved, turned in zip(frames, jnp.split(points, ends), jnp.split(rotations, ends)):
+        tangents[position], tangents[rotation] = moved, turned
     return tuple(tangents[name] for name in _written(model))
 
 

@@ -86,8 +86,9 @@ def _com_pos_as_products(model: mjx.Model, data: mjx.Data) -> tuple:
     inertia = rotated + parallel_axis * mass[:, :, None]
     upper = jnp.stack([inertia[:, i, j] for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))], -1)
     cinert = jnp.concatenate([upper, offset * mass, mass], -1)
-    axis = rows.along_joint * times(rows.dof_joint, data.xaxis) + sum(
-        rows.column[k] * times(rows.dof_body, data.xmat[:, :, k]) for k in range(3))
+    frames = times(rows.dof_body, data.xmat)  # one product for the three columns: one transpose in reverse mode
+    axis = rows.along_joint * times(rows.dof_joint, data.xaxis) + sum(rows.column[k] * frames[:, :, k]
+                                                                      for k in range(3))
     arm = times(rows.dof_root, subtree_com) - times(rows.dof_joint, data.xanchor)
     turning = 1.0 - rows.slide
     cdof = jnp.concatenate([axis * turning, jnp.cross(axis, arm) * turning + axis * rows.slide
