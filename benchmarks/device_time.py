@@ -151,18 +151,21 @@ def _self_times(ops):
 
 def split(compiled, inputs, label: str, top: int = 12) -> None:
     """Prints ``compiled``'s device time per call by direction (forward, reverse) and MJX stage (and the
-    call within it, where the program was traced inside ``calls_named``), the largest name stacks of its
-    parts outside every stage, then its ``top`` costliest name stacks."""
+    call within it, where the program was traced inside ``calls_named``) with the ops each ran (on a GPU its
+    kernels, where small ones cost their launch more than their work), the largest name stacks of its parts
+    outside every stage, then its ``top`` costliest name stacks."""
     names = op_names(compiled)
     times = op_times(compiled, inputs)
     total = sum(times.values())
     by_part: collections.Counter = collections.Counter()
+    ops_in: collections.Counter = collections.Counter()  # the ops run, each a kernel launch on a GPU
     by_name: collections.Counter = collections.Counter()
     in_other: collections.Counter = collections.Counter()
     for op, spent in times.items():
         name = names.get(op, "")
         part = part_of(name)
         by_part[part] += spent
+        ops_in[part] += 1
         named = re.sub(r"\d+", "#", name.split("/", 1)[-1])[-160:] or re.sub(r"\.\d+$", "", op)
         by_name[named] += spent
         if part[1] in ("other", ""):
@@ -173,8 +176,8 @@ def split(compiled, inputs, label: str, top: int = 12) -> None:
         print(f"  {buffered * 1e3:.1f} ms ({buffered / total:.0%}) ran in CUDA command buffers, not split by op "
               f"(XLA_FLAGS=--xla_gpu_enable_command_buffer= runs the ops one by one)", flush=True)
     for (direction, stage), spent in by_part.most_common():
-        print(f"  {direction:8s} {stage or '(no name stack)':40s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}",
-              flush=True)
+        print(f"  {direction:8s} {stage or '(no name stack)':40s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}"
+              f"  {ops_in[direction, stage]:6d} ops", flush=True)
     # "other" gathers what no MJX stage holds (policy, critic, observation, reward): its largest parts by name,
     # and XLA's unnamed ops by kind. A call of MJX's named outside its stages (other/sensor.sensor_vel) has its
     # own row above.

@@ -52,7 +52,7 @@ def test_an_op_counts_in_its_direction_and_an_op_xla_made_unnamed_in_neither():
     assert device_time.part_of("") == ("unnamed", "")
 
 
-def test_the_split_prints_each_part_once_its_share_of_the_whole_and_what_lies_outside_the_stages(
+def test_the_split_prints_each_part_once_its_share_and_ops_and_what_lies_outside_the_stages(
         monkeypatch, capsys):
     # Four ops of a profiled call, 10 ms in all: a reverse op of a stage's call, a forward op of the policy
     # (outside every stage), and two XLA made with no name stack (a copy twice, under one kind).
@@ -65,9 +65,10 @@ def test_the_split_prints_each_part_once_its_share_of_the_whole_and_what_lies_ou
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "update: 10.0 ms of device time a call, over 4 ops"
     rows = {tuple(line.split()[:2]): line for line in lines[1:4]}
-    assert rows["reverse", "fwd_position/smooth.crb"].split()[-3:] == ["5.0", "ms", "50.0%"]
-    assert rows["unnamed", "(no"].split()[-3:] == ["3.0", "ms", "30.0%"] and "(no name stack)" in rows["unnamed", "(no"]
-    assert rows["forward", "other"].split()[-3:] == ["2.0", "ms", "20.0%"]
+    assert rows["reverse", "fwd_position/smooth.crb"].split()[-5:] == ["5.0", "ms", "50.0%", "1", "ops"]
+    assert rows["unnamed", "(no"].split()[-5:] == ["3.0", "ms", "30.0%", "2", "ops"]
+    assert "(no name stack)" in rows["unnamed", "(no"]
+    assert rows["forward", "other"].split()[-5:] == ["2.0", "ms", "20.0%", "1", "ops"]
     # Outside the stages: the unnamed copies by their kind, then the policy's op by its name stack.
     assert lines[4].split() == ["unnamed", "other:", "3.0", "ms", "copy"]
     assert lines[5].split() == ["forward", "other:", "2.0", "ms", "jvp(policy)/dot_general"]
