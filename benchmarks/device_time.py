@@ -151,14 +151,14 @@ def _self_times(ops):
 
 def split(compiled, inputs, label: str, top: int = 12) -> None:
     """Prints ``compiled``'s device time per call by direction (forward, reverse) and MJX stage (and the
-    call within it, where the program was traced inside ``calls_named``) with the ops each ran (on a GPU its
-    kernels, where small ones cost their launch more than their work), the largest name stacks of its parts
-    outside every stage, then its ``top`` costliest name stacks."""
+    call within it, where the program was traced inside ``calls_named``) with the distinct ops each ran (HLO
+    instructions: a loop body's counted once), the largest name stacks of its parts outside every stage, then
+    its ``top`` costliest name stacks."""
     names = op_names(compiled)
     times = op_times(compiled, inputs)
     total = sum(times.values())
     by_part: collections.Counter = collections.Counter()
-    ops_in: collections.Counter = collections.Counter()  # the ops run, each a kernel launch on a GPU
+    ops_in: collections.Counter = collections.Counter()  # distinct ops (a loop body's once, however often it runs)
     by_name: collections.Counter = collections.Counter()
     in_other: collections.Counter = collections.Counter()
     for op, spent in times.items():

@@ -43,7 +43,7 @@ class _Tree(NamedTuple):
     turning_rows: np.ndarray  # (njnt, nturning): their rows
     free_rows: np.ndarray   # (njnt, nturning): the free joints' rows, whose anchors move with their translation
     mocap_rows: np.ndarray  # (nbody, nmocap)
-    frame_rows: np.ndarray  # (2 nbody + ngeom + nsite, nbody): the body of each frame, as _FRAMES orders them
+    frame_rows: np.ndarray  # (2 nbody + ngeom + nsite, nbody): the body of each frame, as _frames orders them
 
 
 @functools.lru_cache(maxsize=64)
@@ -147,7 +147,7 @@ def _frames_tangent(model: mjx.Model, data: mjx.Data, value: tuple, moving: froz
     tangents["xquat"] = 0.5 * _quat_mul(jnp.concatenate([jnp.zeros_like(bodies[:, :1]), bodies[:, :3]], -1),
                                         fields["xquat"])
     # Every frame a body carries turned at once, one product and one pair of cross products: in reverse mode
-    # one transpose each, where a call per kind of frame summed their cotangents op by op.
+    # one transpose each rather than a sum of the cotangents of several.
     frames = _frames(model)
     points, rotations = _turned(times(tree.frame_rows, bodies), jnp.concatenate([fields[p] for p, _ in frames]),
                                 jnp.concatenate([fields[r] for _, r in frames]))

@@ -55,7 +55,7 @@ def test_an_op_counts_in_its_direction_and_an_op_xla_made_unnamed_in_neither():
 def test_the_split_prints_each_part_once_its_share_and_ops_and_what_lies_outside_the_stages(
         monkeypatch, capsys):
     # Four ops of a profiled call, 10 ms in all: a reverse op of a stage's call, a forward op of the policy
-    # (outside every stage), and two XLA made with no name stack (a copy twice, under one kind).
+    # (outside every stage), and two ops XLA made with no name stack (a copy twice, under one kind).
     names = {"fusion.1": "jit(update)/transpose(jvp(env_step))/step/forward/fwd_position/smooth.crb/add",
              "fusion.2": "jit(update)/jvp(policy)/dot_general"}
     times = {"fusion.1": 0.005, "fusion.2": 0.002, "copy.3": 0.002, "copy.4": 0.001}
