@@ -80,7 +80,7 @@ def _frames(model: mjx.Model) -> tuple[tuple[str, str], ...]:
 def _written(model: mjx.Model) -> tuple[str, ...]:
     """The data's fields ``smooth.kinematics`` writes."""
     return (("qpos", "xanchor", "xaxis", "xpos", "xquat", "xmat", "xipos", "ximat")
-            + (("geom_xpos", "geom_xmat") if model.ngeom else ()) + (("site_xpos", "site_xmat") if model.nsite else ()))
+            + tuple(field for frame in _frames(model)[2:] for field in frame))  # the geoms' and sites' frames
 
 
 def _quat_mul(u: jax.Array, v: jax.Array) -> jax.Array:
