@@ -7,6 +7,10 @@ actuator's force stay at zero where MuJoCo's C computes them. Code traced inside
 ``acceleration_sensors_computed`` runs MJX's own ``sensor_acc`` after that forward pass. Touch and
 contact sensors are left out of it: with no rows there is no contact, their value is C's zero, and
 MJX's function has no contact to read them from.
+
+Inside it too, a step under RK4 keeps the sensors of the state it began from, as C's does: C computes
+no sensors in RK4's stages, where MJX's step returned those of its last stage (a state neither the
+step's start nor its end).
 """
 from __future__ import annotations
 
@@ -40,13 +44,24 @@ def _with_acceleration_sensors(forward):
     return forward_with_acceleration_sensors
 
 
+def _with_start_sensors(rungekutta4):
+    """MJX's RK4 integrator, where this thread's trace asks, with the sensors of the data it was given: the
+    step's forward pass computed them at the state the step began from."""
+    @functools.wraps(rungekutta4)
+    def rungekutta4_with_start_sensors(model, data):
+        stepped = rungekutta4(model, data)
+        return stepped.replace(sensordata=data.sensordata) if tracing.acceleration_sensors else stepped
+    return rungekutta4_with_start_sensors
+
+
 @contextlib.contextmanager
 def acceleration_sensors_computed():
     """MJX code traced within, in this thread, computes the acceleration stage's sensors also where the model
-    has no constraint rows, as MuJoCo's C does (with Euler's or the implicit-fast integrator; under RK4
-    MJX's sensors are those of its last stage, rows or not). Every other value is MJX's own. Reentrant;
-    undone on exit."""
+    has no constraint rows, and under RK4 keeps the sensors of the state a step began from, as MuJoCo's C
+    does. Every other value is MJX's own. Reentrant; undone on exit."""
     with applied("acceleration sensors", lambda: (
             (mjx_forward, "forward", _with_acceleration_sensors(mjx_forward.forward)),
-            (mjx, "forward", _with_acceleration_sensors(mjx.forward)))), choosing("acceleration_sensors"):
+            (mjx, "forward", _with_acceleration_sensors(mjx.forward)),
+            (mjx_forward, "rungekutta4", _with_start_sensors(mjx_forward.rungekutta4)))), \
+            choosing("acceleration_sensors"):
         yield
