@@ -1,4 +1,4 @@
-"""The acceleration stage's sensors of a model without constraint rows, computed as MuJoCo's C computes them.
+"""Sensors as MuJoCo's C computes them: the acceleration stage's of a model without constraint rows, and RK4's.
 
 Where a model can have no constraint rows (constraints disabled, or no contact, joint limit,
 equality or friction loss possible), MJX's forward pass returns before its acceleration-stage
@@ -9,8 +9,10 @@ contact sensors are left out of it: with no rows there is no contact, their valu
 MJX's function has no contact to read them from.
 
 Inside it too, a step under RK4 keeps the sensors of the state it began from, as C's does: C computes
-no sensors in RK4's stages, where MJX's step returned those of its last stage (a state neither the
-step's start nor its end).
+no sensors in RK4's stages, where MJX's step returns those of its last stage (a state neither the
+step's start nor its end). Its other outputs stay MJX's: ``qacc``, ``cacc`` and ``cfrc_ext`` are its
+last stage's, where C's ``qacc`` is the acceleration RK4 applied and its ``cacc`` and ``cfrc_ext`` the
+start's.
 """
 from __future__ import annotations
 
@@ -62,6 +64,7 @@ def acceleration_sensors_computed():
     with applied("acceleration sensors", lambda: (
             (mjx_forward, "forward", _with_acceleration_sensors(mjx_forward.forward)),
             (mjx, "forward", _with_acceleration_sensors(mjx.forward)),
-            (mjx_forward, "rungekutta4", _with_start_sensors(mjx_forward.rungekutta4)))), \
+            (mjx_forward, "rungekutta4", _with_start_sensors(mjx_forward.rungekutta4)),
+            (mjx, "rungekutta4", _with_start_sensors(mjx.rungekutta4)))), \
             choosing("acceleration_sensors"):
         yield

@@ -4,7 +4,8 @@ Everything here changes derivatives only; values stay MJX's own, except for the 
 the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the same Hessian),
 the cameras' poses where a trace holds them (``held_camera_poses``: a step that reads none), and
 the acceleration stage's sensors of a model without constraint rows, which MJX leaves at zero and
-MuJoCo's C computes (``acceleration_sensors.acceleration_sensors_computed``: C's values). The
+MuJoCo's C computes, and the sensors after a step under RK4, the start state's as in C rather than
+MJX's last stage's (``acceleration_sensors.acceleration_sensors_computed``: C's values). The
 patches and each tracing thread's choices: ``mjx_patches``.
 
 - ``solve_implicitly``: MJX's constraint solver, differentiated at the
@@ -381,7 +382,8 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
     ``physics_steps_recomputed``; the cameras' poses left as the data had them: ``held_camera_poses``).
 
     Values are MJX's own either way (held camera poses aside), its acceleration sensors computed also where
-    the model has no constraint rows (``acceleration_sensors_computed``). Reentrant; undone on exit, so MJX outside
+    the model has no constraint rows and RK4's sensors the start state's, as C's
+    (``acceleration_sensors_computed``). Reentrant; undone on exit, so MJX outside
     this library is unchanged. Use it around the tracing of a step::
 
         with differentiable_mjx(implicit_solver=True):

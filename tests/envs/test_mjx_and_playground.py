@@ -137,12 +137,13 @@ def test_a_step_under_rk4_keeps_the_sensors_of_the_state_it_began_from_as_mujoco
 
         def sensors(ctrl):
             return mjx.step(mjx_model, start.replace(ctrl=ctrl)).sensordata
-        # A function of its own: traced inside the context, ``sensors`` must not meet a jit cache of MJX's trace.
-        mjxs_own = jax.jit(lambda ctrl: sensors(ctrl))(jnp.array([0.5]))
+        # MJX's own through a lambda, so that jax.jit(sensors) inside the context is traced afresh.
+        mjxs_own, mjxs_rk4 = jax.jit(lambda ctrl: sensors(ctrl))(jnp.array([0.5])), forward_module.rungekutta4
         with differentiable_mjx():
             stepped = jax.jit(sensors)(jnp.array([0.5]))
             forward_mode = jax.jit(jax.jacfwd(sensors))(jnp.array([0.5]))
             reverse_mode = jax.jit(jax.jacrev(sensors))(jnp.array([0.5]))
+    assert mjx.rungekutta4 is mjxs_rk4 and forward_module.rungekutta4 is mjxs_rk4  # undone on exit
     # MJX alone gives its last stage's sensors (should MJX give C's one day, this fails and the patch can go).
     assert np.abs(np.asarray(mjxs_own) - c_sensors(0.5)).max() > 1e-3
     np.testing.assert_allclose(stepped, c_sensors(0.5), rtol=1e-10, atol=1e-12)
