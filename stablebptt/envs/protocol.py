@@ -22,7 +22,7 @@ import numpy as np
 
 from stablebptt.engine.checks import first_line
 from stablebptt.errors import InputError
-from stablebptt.physics.acceleration_sensors import acceleration_sensors_computed
+from stablebptt.physics.c_sensors import sensors_as_c_computes
 
 PyTree = Any
 
@@ -253,12 +253,12 @@ def with_reset_traced_once(env: Any) -> Any:
     settles its states for 200 physics steps: traced by each of them, it made the start's trace phase
     27-32 s on the 2-core CPU, traced once 4-5 s (docs/performance.md, "Start-up against Brax PPO's
     compile"). The reset is traced as the steps are, with MJX's acceleration sensors computed where a model
-    has no constraint rows (``acceleration_sensors_computed``: MuJoCo's C values, where MJX leaves zeros).
+    has no constraint rows (``sensors_as_c_computes``: MuJoCo's C values, where MJX leaves zeros).
     ``env`` itself is left as it is; one whose attributes cannot be set is used as it is."""
     copied = copy.copy(env)
 
     def reset(key):  # traced as the steps are: MJX's acceleration sensors computed where it leaves zeros
-        with acceleration_sensors_computed():
+        with sensors_as_c_computes():
             return env.reset(key)
 
     try:

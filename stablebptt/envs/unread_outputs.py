@@ -27,7 +27,7 @@ import numpy as np
 
 from stablebptt.engine import program_store
 from stablebptt.envs.protocol import with_reset_traced_once
-from stablebptt.physics.acceleration_sensors import acceleration_sensors_computed
+from stablebptt.physics.c_sensors import sensors_as_c_computes
 from stablebptt.physics.constraint_derivatives import held_camera_poses
 
 # Data fields only the sensors' stages write (MJX's sensor_vel and sensor_acc): read, every sensor stays.
@@ -190,12 +190,12 @@ def outputs_read(env: Any, model: Any, step_context: Callable = contextlib.nullc
     False, the reset only for its shapes (``jax.eval_shape``: a jitted reset's one trace)."""
     key, action = jax.random.PRNGKey(0), jax.ShapeDtypeStruct((int(env.action_size),), jnp.result_type(float))
     try:
-        with acceleration_sensors_computed():  # as the task traces the reset and the step
+        with sensors_as_c_computes():  # as the task traces the reset and the step
             if sensors:
                 reset, state = jax.make_jaxpr(env.reset, return_shape=True)(key)
             else:
                 reset, state = None, jax.eval_shape(env.reset, key)
-        with step_context(), held_camera_poses(), acceleration_sensors_computed():
+        with step_context(), held_camera_poses(), sensors_as_c_computes():
             step, reached = jax.make_jaxpr(env.step, return_shape=True)(state, action)
     except Exception:  # noqa: BLE001 - an env whose reset or step does not trace: the protocol's check names why
         return {"sensors": None, "camera poses": None}

@@ -5,7 +5,7 @@ the elliptic-cone Newton Hessian is summed (``_update_gradient_by_blocks``: the 
 the cameras' poses where a trace holds them (``held_camera_poses``: a step that reads none), and
 the acceleration stage's sensors of a model without constraint rows, which MJX leaves at zero and
 MuJoCo's C computes, and the sensors after a step under RK4, the start state's as in C rather than
-MJX's last stage's (``acceleration_sensors.acceleration_sensors_computed``: C's values). The
+MJX's last stage's (``c_sensors.sensors_as_c_computes``: C's values). The
 patches and each tracing thread's choices: ``mjx_patches``.
 
 - ``solve_implicitly``: MJX's constraint solver, differentiated at the
@@ -45,7 +45,7 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from stablebptt.physics import applied_forces, kinematics_derivative, mass_solve, tree_sums
-from stablebptt.physics.acceleration_sensors import acceleration_sensors_computed
+from stablebptt.physics.c_sensors import sensors_as_c_computes
 from stablebptt.physics.backward_contacts import CLOSED_FORM_PAIRS, geometry_held
 from stablebptt.physics.mjx_internals import collision_convex, collision_driver, mjx, smooth, solver, support
 from stablebptt.physics.mjx_internals import types as mjx_types
@@ -383,7 +383,7 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
 
     Values are MJX's own either way (held camera poses aside), its acceleration sensors computed also where
     the model has no constraint rows and RK4's sensors the start state's, as C's
-    (``acceleration_sensors_computed``). Reentrant; undone on exit, so MJX outside
+    (``sensors_as_c_computes``). Reentrant; undone on exit, so MJX outside
     this library is unchanged. Use it around the tracing of a step::
 
         with differentiable_mjx(implicit_solver=True):
@@ -395,7 +395,7 @@ def differentiable_mjx(implicit_solver: bool = False, contact_geometry_held: boo
     trace, before = MjxTrace(), tracing.steps_recomputed
     with contextlib.ExitStack() as stack:
         stack.enter_context(applied("remedies", _REMEDIES))
-        stack.enter_context(acceleration_sensors_computed())
+        stack.enter_context(sensors_as_c_computes())
         if implicit_solver:
             stack.enter_context(applied("implicit", lambda: ((solver, "solve", _solve_as_chosen(solver.solve)),
                                                               (solver, "jax", _SOLVER_JAX))))

@@ -47,7 +47,7 @@ class TraceChoices(threading.local):
     geometry_held = False
     physics_steps_recomputed = False
     camera_poses_held = False
-    acceleration_sensors = False  # sensors as C computes them: acceleration_sensors.py, RK4's too
+    c_sensors = False  # sensors as C computes them (c_sensors.py)
     steps_recomputed = 0  # the mjx.step calls this thread's traces have recomputed, counted as they are traced
 
 

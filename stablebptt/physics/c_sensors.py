@@ -4,7 +4,7 @@ Where a model can have no constraint rows (constraints disabled, or no contact, 
 equality or friction loss possible), MJX's forward pass returns before its acceleration-stage
 sensors: an accelerometer, a force or torque sensor, a frame's linear or angular acceleration, an
 actuator's force stay at zero where MuJoCo's C computes them. Code traced inside
-``acceleration_sensors_computed`` runs MJX's own ``sensor_acc`` after that forward pass. Touch and
+``sensors_as_c_computes`` runs MJX's own ``sensor_acc`` after that forward pass. Touch and
 contact sensors are left out of it: with no rows there is no contact, their value is C's zero, and
 MJX's function has no contact to read them from.
 
@@ -36,7 +36,7 @@ def _with_acceleration_sensors(forward):
     def forward_with_acceleration_sensors(model, data):
         data = forward(model, data)
         rows = getattr(data._impl, "efc_J", None)  # None: MJX's Warp backend, which computes its own
-        if not tracing.acceleration_sensors or rows is None or rows.size:
+        if not tracing.c_sensors or rows is None or rows.size:
             return data
         stages = np.asarray(model.sensor_needstage)
         computed = np.where(np.isin(np.asarray(model.sensor_type), _CONTACTS_READ), 0, stages)
@@ -52,19 +52,19 @@ def _with_start_sensors(rungekutta4):
     @functools.wraps(rungekutta4)
     def rungekutta4_with_start_sensors(model, data):
         stepped = rungekutta4(model, data)
-        return stepped.replace(sensordata=data.sensordata) if tracing.acceleration_sensors else stepped
+        return stepped.replace(sensordata=data.sensordata) if tracing.c_sensors else stepped
     return rungekutta4_with_start_sensors
 
 
 @contextlib.contextmanager
-def acceleration_sensors_computed():
+def sensors_as_c_computes():
     """MJX code traced within, in this thread, computes the acceleration stage's sensors also where the model
     has no constraint rows, and under RK4 keeps the sensors of the state a step began from, as MuJoCo's C
     does. Every other value is MJX's own. Reentrant; undone on exit."""
-    with applied("acceleration sensors", lambda: (
+    with applied("sensors as C computes them", lambda: (
             (mjx_forward, "forward", _with_acceleration_sensors(mjx_forward.forward)),
             (mjx, "forward", _with_acceleration_sensors(mjx.forward)),
             (mjx_forward, "rungekutta4", _with_start_sensors(mjx_forward.rungekutta4)),
             (mjx, "rungekutta4", _with_start_sensors(mjx.rungekutta4)))), \
-            choosing("acceleration_sensors"):
+            choosing("c_sensors"):
         yield
