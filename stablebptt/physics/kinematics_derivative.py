@@ -59,8 +59,7 @@ def _tree(tree: Structure) -> _Tree:
     turning_rows = picks([joint for joint, _, _ in turning], njnt).T
     nmocap = sum(mocap_id >= 0 for mocap_id in tree.mocap_ids)
     mocap_rows = picks([tree.mocap_ids.index(mocap_id) for mocap_id in range(nmocap)], nbody).T
-    frame_rows = np.concatenate([np.eye(nbody, dtype=np.float32)] * 2
-                                + [picks(tree.geom_bodies, nbody), picks(tree.site_bodies, nbody)])
+    frame_rows = picks([*range(nbody), *range(nbody), *tree.geom_bodies, *tree.site_bodies], nbody)
     return _Tree(subtree(tree)[bodies].astype(np.float32), joints_moved(tree).astype(np.float32), scalar,
                  (kinds == HINGE).astype(np.float32)[:, None], (kinds == SLIDE).astype(np.float32)[:, None],
                  turning, turning_rows, turning_rows * np.asarray([free for _, _, free in turning], np.float32),
