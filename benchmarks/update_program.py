@@ -25,8 +25,9 @@ derivative, none of the flows' machinery, no critic).
     python benchmarks/update_program.py --substeps-unrolled --env HumanoidStand ...   # MuJoCo Playground's
         # loop over a control step's physics steps unrolled (a what-if; with --physics-step-residuals
         # stored, nothing stacked per physics step)
-    python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time
-        # and distinct ops by MJX stage and the call within it, and by name stack, from one call under JAX's profiler
+    python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time,
+        # distinct ops and their runs (a loop's once per iteration) by MJX stage and the call within it, and by
+        # name stack, from one call under JAX's profiler
         # (benchmarks/device_time.py)
     python benchmarks/update_program.py --programs grad --gradient-file G.npz ...   # the plain window's
         # gradient per seed written to G.npz with the command, or compared with the one there (cosine,
