@@ -25,6 +25,10 @@ derivative, none of the flows' machinery, no critic).
     python benchmarks/update_program.py --substeps-unrolled --env HumanoidStand ...   # MuJoCo Playground's
         # loop over a control step's physics steps unrolled (a what-if; with --physics-step-residuals
         # stored, nothing stacked per physics step)
+    python benchmarks/update_program.py --state-carried --env FishSwim ...   # that loop carrying mjx.step's
+        # state alone (the fields it reads), not the whole data, its last physics step taken after the loop
+        # (a what-if: the step is traced twice; values as the loop's to float32 rounding, as XLA fuses the
+        # loop otherwise)
     python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time,
         # distinct ops and their runs (a loop's once per iteration) by MJX stage and the call within it, and by
         # name stack, from one call under JAX's profiler
@@ -100,6 +104,27 @@ if "--substeps-unrolled" in arguments:  # MuJoCo Playground's loop over a contro
         return jax.lax.scan(physics_step, data, (), n_substeps, unroll=n_substeps)[0]
     mjx_env.step = physics_steps
     print("MuJoCo Playground's physics steps per control step unrolled (--substeps-unrolled)", flush=True)
+if "--state-carried" in arguments:  # that loop carrying the state alone, its last physics step taken after it
+    arguments.remove("--state-carried")
+    from mujoco_playground._src import mjx_env  # noqa: E402
+    from stablebptt.physics.mjx_internals import mjx  # noqa: E402
+    # What mjx.step reads of the data it is given (MuJoCo's integration state, the inputs and the warm start):
+    # every other field it computes again, or passes on untouched, so the loop's start holds those.
+    STATE = ("time", "qpos", "qvel", "act", "qacc_warmstart", "ctrl", "qfrc_applied", "xfrc_applied", "eq_active",
+             "mocap_pos", "mocap_quat", "userdata")
+
+    def physics_steps(model, data, action, n_substeps=1):
+        data = data.replace(ctrl=action)
+        if n_substeps > 1:
+            def physics_step(state, _):
+                reached = mjx.step(model, data.replace(**state))
+                return {field: getattr(reached, field) for field in STATE}, None
+            state = jax.lax.scan(physics_step, {field: getattr(data, field) for field in STATE}, (), n_substeps - 1)[0]
+            data = data.replace(**state)
+        return mjx.step(model, data)
+    mjx_env.step = physics_steps
+    print("MuJoCo Playground's physics steps carry the state alone, the last taken after the loop (--state-carried)",
+          flush=True)
 if "--self-collision-held" in arguments:
     arguments.remove("--self-collision-held")
     from stablebptt.physics.mjx_internals import collision_driver  # noqa: E402
