@@ -27,11 +27,10 @@ derivative, none of the flows' machinery, no critic).
         # stored, nothing stacked per physics step)
     python benchmarks/update_program.py --state-carried --env FishSwim ...   # that loop carrying mjx.step's
         # state alone (the fields it reads), not the whole data, its last physics step taken after the loop
-        # (a what-if: the step is traced twice; values as the loop's to float32 rounding, as XLA fuses the
-        # loop otherwise)
+        # (a what-if: stablebptt.physics.state_carried)
     python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time,
-        # distinct ops and their runs (a loop's once per iteration) by MJX stage and the call within it, and by
-        # name stack, from one call under JAX's profiler
+        # distinct ops and the kernels they launched by MJX stage and the call within it, and by name stack,
+        # from one call under JAX's profiler
         # (benchmarks/device_time.py)
     python benchmarks/update_program.py --programs grad --gradient-file G.npz ...   # the plain window's
         # gradient per seed written to G.npz with the command, or compared with the one there (cosine,
@@ -107,21 +106,10 @@ if "--substeps-unrolled" in arguments:  # MuJoCo Playground's loop over a contro
 if "--state-carried" in arguments:  # that loop carrying the state alone, its last physics step taken after it
     arguments.remove("--state-carried")
     from mujoco_playground._src import mjx_env  # noqa: E402
-    from stablebptt.physics.mjx_internals import mjx  # noqa: E402
-    # What mjx.step reads of the data it is given (MuJoCo's integration state, the inputs and the warm start):
-    # every other field it computes again, or passes on untouched, so the loop's start holds those.
-    STATE = ("time", "qpos", "qvel", "act", "qacc_warmstart", "ctrl", "qfrc_applied", "xfrc_applied", "eq_active",
-             "mocap_pos", "mocap_quat", "userdata")
+    from stablebptt.physics import state_carried  # noqa: E402
 
     def physics_steps(model, data, action, n_substeps=1):
-        data = data.replace(ctrl=action)
-        if n_substeps > 1:
-            def physics_step(state, _):
-                reached = mjx.step(model, data.replace(**state))
-                return {field: getattr(reached, field) for field in STATE}, None
-            state = jax.lax.scan(physics_step, {field: getattr(data, field) for field in STATE}, (), n_substeps - 1)[0]
-            data = data.replace(**state)
-        return mjx.step(model, data)
+        return state_carried.steps(model, data.replace(ctrl=action), n_substeps)
     mjx_env.step = physics_steps
     print("MuJoCo Playground's physics steps carry the state alone, the last taken after the loop (--state-carried)",
           flush=True)

@@ -1,0 +1,94 @@
+"""Physics steps whose loop carries MuJoCo's integration state alone (stablebptt.physics.state_carried): mjx.step
+reads no field of the data outside that state, and the steps' values and derivative are the whole data's loop's."""
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from stablebptt.physics import state_carried
+from stablebptt.physics.mjx_internals import mjx
+
+from conftest import float64
+
+pytestmark = pytest.mark.fast
+
+# A free body falling onto the floor beside an actuated hinge arm with a fingertip sensor, a mocap target
+# and an accelerometer: contacts and their solver, actuators and sensors, so every stage of a step runs.
+SCENE = """
+<mujoco><worldbody><geom type="plane" size="2 2 0.1"/>
+  <body name="ball" pos="0 0 0.1"><freejoint/><geom type="sphere" size="0.1"/><site name="imu"/></body>
+  <body name="arm" pos="0.5 0 0.3"><joint name="shoulder" type="hinge" axis="0 1 0" damping="0.1"/>
+    <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/><site name="tip" pos="0.3 0 0"/></body>
+  <body name="target" mocap="true" pos="1 0 0.5"><geom type="sphere" size="0.05" contype="0" conaffinity="0"/></body>
+</worldbody>
+<actuator><motor joint="shoulder" gear="2"/></actuator>
+<sensor><accelerometer site="imu"/><framepos objtype="site" objname="tip"/><jointpos joint="shoulder"/></sensor>
+</mujoco>"""
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """The model on MJX and a state in float64 a step past its start, the ball on the floor and the arm moving."""
+    with float64():
+        model = mujoco.MjModel.from_xml_string(SCENE)
+        data = mujoco.MjData(model)
+        data.qvel[:3] = (0.3, -0.2, -0.5)
+        data.qvel[6] = 1.5
+        data.ctrl[:] = 0.4
+        mujoco.mj_step(model, data)
+        yield mjx.put_model(model, impl="jax"), mjx.put_data(model, data, impl="jax")
+
+
+def test_a_step_reads_no_field_outside_the_state(scene):
+    # Every field outside READ_BY_STEP made NaN (integers and booleans kept): the step's outputs are those of
+    # the data as it was, but for the fields it passes on untouched, which it returns as given.
+    model, data = scene
+    with float64():
+        step = jax.jit(lambda data: mjx.step(model, data))
+        poisoned = data.replace(**{
+            field.name: jax.tree.map(lambda leaf: jnp.full_like(leaf, jnp.nan)
+                                     if jnp.issubdtype(leaf.dtype, jnp.floating) else leaf, getattr(data, field.name))
+            for field in dataclasses.fields(data) if field.name not in state_carried.READ_BY_STEP})
+        clean, from_poisoned = step(data), step(poisoned)
+    passed_on = 0
+    for (path, value), given, reached in zip(jax.tree_util.tree_flatten_with_path(clean)[0],
+                                             jax.tree.leaves(poisoned), jax.tree.leaves(from_poisoned)):
+        if np.array_equal(np.asarray(value), np.asarray(reached)):
+            continue
+        # A field the step does not compute comes back as it was given: here NaN, as poisoned.
+        assert np.array_equal(np.asarray(reached), np.asarray(given), equal_nan=True), jax.tree_util.keystr(path)
+        passed_on += 1
+    assert passed_on < len(jax.tree.leaves(clean)) // 2  # most fields are computed from the state
+
+
+def test_the_state_carried_steps_are_the_whole_datas_loop(scene):
+    model, data = scene
+    with float64():
+        def whole(data, count):  # the whole data from step to step (unrolled: in float64 MJX's contacts'
+            for _ in range(count):  # geom indices come back int64, put_data's int32, which a scan refuses)
+                data = mjx.step(model, data)
+            return data
+
+        carried = jax.jit(lambda data: state_carried.steps(model, data, 6))(data)
+        looped = jax.jit(lambda data: whole(data, 6))(data)
+        for (path, expected), found in zip(jax.tree_util.tree_flatten_with_path(looped)[0], jax.tree.leaves(carried)):
+            np.testing.assert_allclose(found, expected, rtol=1e-10, atol=1e-12, err_msg=jax.tree_util.keystr(path))
+        assert float(carried.time - data.time) == pytest.approx(6 * float(model.opt.timestep))
+        assert np.any(np.asarray(carried._impl.efc_force) > 0)  # the ball pressed on the floor: the solver's forces
+        one = jax.jit(lambda data: state_carried.steps(model, data, 1))(data)
+        assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b, equal_nan=True)),
+                                         one, jax.jit(lambda data: mjx.step(model, data))(data)))
+
+        # The derivative of the sensors and velocities after the steps in the velocities (forward mode: MJX's own
+        # solver loop has no reverse mode outside differentiable_mjx).
+        def reached(qvel, steps):
+            end = steps(data.replace(qvel=qvel))
+            return jnp.concatenate([end.sensordata, end.qvel])
+        expected = jax.jit(jax.jacfwd(lambda qvel: reached(qvel, lambda data: whole(data, 6))))(data.qvel)
+        found = jax.jit(jax.jacfwd(lambda qvel: reached(qvel, lambda data: state_carried.steps(model, data, 6))))(
+            data.qvel)
+    assert np.all(np.isfinite(expected)) and np.abs(expected).max() > 1e-3
+    np.testing.assert_allclose(found, expected, rtol=1e-9, atol=1e-10)
