@@ -108,8 +108,10 @@ def calls_named():
 
 
 def op_profile(compiled, inputs, calls: int = 1) -> tuple[dict[str, float], dict[str, float]]:
-    """Device seconds and runs per HLO instruction, each per call, over ``calls`` calls of ``compiled`` under
-    the profiler: an op in a loop's body runs once per iteration, so its runs are the kernels it launched."""
+    """Device seconds and kernels per HLO instruction, each per call, over ``calls`` calls of ``compiled`` under
+    the profiler: the profiler's events of each op, a fusion's one per execution (so an op in a loop's body
+    counts once per iteration), a library call's (a Cholesky factor, a triangular solve) one per kernel it
+    launches, often several."""
     from jax._src.lib import _profile_data  # the profiler's reader of its own trace, shipped with jaxlib
     with tempfile.TemporaryDirectory() as folder:
         with jax.profiler.trace(folder):
@@ -121,7 +123,7 @@ def op_profile(compiled, inputs, calls: int = 1) -> tuple[dict[str, float], dict
             os.makedirs(os.environ["DEVICE_TIME_TRACES"], exist_ok=True)
             shutil.copy(paths[-1], os.path.join(os.environ["DEVICE_TIME_TRACES"], f"{len(os.listdir(os.environ['DEVICE_TIME_TRACES']))}.xplane.pb"))
     seconds: collections.Counter = collections.Counter()
-    runs: collections.Counter = collections.Counter()
+    kernels: collections.Counter = collections.Counter()
     device_planes = [plane for plane in data.planes if plane.name.startswith("/device:")]
     for plane in device_planes or [plane for plane in data.planes if plane.name == "/host:CPU"]:
         lines = list(plane.lines)
@@ -131,8 +133,8 @@ def op_profile(compiled, inputs, calls: int = 1) -> tuple[dict[str, float], dict
                    for event in line.events if "hlo_op" in dict(event.stats)]
             for op, spent in _self_times(ops):
                 seconds[op] += spent * 1e-9 / calls
-                runs[op] += 1 / calls
-    return dict(seconds), dict(runs)
+                kernels[op] += 1
+    return dict(seconds), {op: count / calls for op, count in kernels.items()}
 
 
 def _self_times(ops):
@@ -155,15 +157,14 @@ def _self_times(ops):
 def split(compiled, inputs, label: str, top: int = 12) -> None:
     """Prints ``compiled``'s device time per call by direction (forward, reverse) and MJX stage (and the
     call within it, where the program was traced inside ``calls_named``) with the distinct ops each ran (HLO
-    instructions: a loop body's counted once) and their runs a call (a loop body's once per iteration: the
-    kernels launched), the largest name stacks of its parts outside every stage, then its ``top`` costliest
-    name stacks."""
+    instructions: a loop body's counted once) and the kernels they launched a call (``op_profile``), the
+    largest name stacks of its parts outside every stage, then its ``top`` costliest name stacks."""
     names = op_names(compiled)
-    times, runs = op_profile(compiled, inputs)
+    times, kernels = op_profile(compiled, inputs)
     total = sum(times.values())
     by_part: collections.Counter = collections.Counter()
     ops_in: collections.Counter = collections.Counter()  # distinct ops (a loop body's once, however often it runs)
-    runs_in: collections.Counter = collections.Counter()
+    kernels_in: collections.Counter = collections.Counter()
     by_name: collections.Counter = collections.Counter()
     in_other: collections.Counter = collections.Counter()
     for op, spent in times.items():
@@ -171,20 +172,20 @@ def split(compiled, inputs, label: str, top: int = 12) -> None:
         part = part_of(name)
         by_part[part] += spent
         ops_in[part] += 1
-        runs_in[part] += runs[op]
+        kernels_in[part] += kernels[op]
         named = re.sub(r"\d+", "#", name.split("/", 1)[-1])[-160:] or re.sub(r"\.\d+$", "", op)
         by_name[named] += spent
         if part[1] in ("other", ""):
             in_other[(part[0], named)] += spent
-    print(f"{label}: {total * 1e3:.1f} ms of device time a call, over {len(times)} ops run "
-          f"{sum(runs.values()):.0f} times", flush=True)
+    print(f"{label}: {total * 1e3:.1f} ms of device time a call, over {len(times)} ops launching "
+          f"{sum(kernels.values()):.0f} kernels", flush=True)
     buffered = sum(spent for op, spent in times.items() if op.startswith("command_buffer"))
     if buffered > 0.1 * total:  # a CUDA graph's time has no op of its own: it counts as "unnamed" below
         print(f"  {buffered * 1e3:.1f} ms ({buffered / total:.0%}) ran in CUDA command buffers, not split by op "
               f"(XLA_FLAGS=--xla_gpu_enable_command_buffer= runs the ops one by one)", flush=True)
     for (direction, stage), spent in by_part.most_common():
         print(f"  {direction:8s} {stage or '(no name stack)':40s} {spent * 1e3:8.1f} ms  {spent / total:6.1%}"
-              f"  {ops_in[direction, stage]:6d} ops  {runs_in[direction, stage]:9.0f} runs", flush=True)
+              f"  {ops_in[direction, stage]:6d} ops  {kernels_in[direction, stage]:9.0f} kernels", flush=True)
     # "other" gathers what no MJX stage holds (policy, critic, observation, reward): its largest parts by name,
     # and XLA's unnamed ops by kind. A call of MJX's named outside its stages (other/sensor.sensor_vel) has its
     # own row above.
