@@ -15,8 +15,9 @@ from conftest import float64
 
 pytestmark = pytest.mark.fast
 
-# A free body falling onto the floor beside an actuated hinge arm with a fingertip sensor, a mocap target
-# and an accelerometer: contacts and their solver, actuators and sensors, so every stage of a step runs.
+# A free body falling onto the floor beside a hinge arm with a motor and a filtered actuator (an activation), a
+# fingertip sensor, a mocap target and an accelerometer: contacts and their solver, actuators, activations and
+# sensors, so every stage of a step runs.
 SCENE = """
 <mujoco><worldbody><geom type="plane" size="2 2 0.1"/>
   <body name="ball" pos="0 0 0.1"><freejoint/><geom type="sphere" size="0.1"/><site name="imu"/></body>
@@ -24,7 +25,7 @@ SCENE = """
     <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/><site name="tip" pos="0.3 0 0"/></body>
   <body name="target" mocap="true" pos="1 0 0.5"><geom type="sphere" size="0.05" contype="0" conaffinity="0"/></body>
 </worldbody>
-<actuator><motor joint="shoulder" gear="2"/></actuator>
+<actuator><motor joint="shoulder" gear="2"/><general joint="shoulder" dyntype="filter" dynprm="0.05"/></actuator>
 <sensor><accelerometer site="imu"/><framepos objtype="site" objname="tip"/><jointpos joint="shoulder"/></sensor>
 </mujoco>"""
 
@@ -42,26 +43,42 @@ def scene():
         yield mjx.put_model(model, impl="jax"), mjx.put_data(model, data, impl="jax")
 
 
+def _poisoned(data, fields):
+    """``data`` with the floating-point arrays of ``fields`` made NaN (integers and booleans kept)."""
+    def nan(leaf):
+        return jnp.full_like(leaf, jnp.nan) if jnp.issubdtype(leaf.dtype, jnp.floating) else leaf
+    return data.replace(**{name: jax.tree.map(nan, getattr(data, name)) for name in fields})
+
+
 def test_a_step_reads_no_field_outside_the_state(scene):
-    # Every field outside READ_BY_STEP made NaN (integers and booleans kept): the step's outputs are those of
-    # the data as it was, but for the fields it passes on untouched, which it returns as given.
+    # Every field outside READ_BY_STEP made NaN: the step's outputs are those of the data as it was, but for the
+    # fields it passes on untouched, which it returns as given.
     model, data = scene
     with float64():
         step = jax.jit(lambda data: mjx.step(model, data))
-        poisoned = data.replace(**{
-            field.name: jax.tree.map(lambda leaf: jnp.full_like(leaf, jnp.nan)
-                                     if jnp.issubdtype(leaf.dtype, jnp.floating) else leaf, getattr(data, field.name))
-            for field in dataclasses.fields(data) if field.name not in state_carried.READ_BY_STEP})
+        poisoned = _poisoned(data, [field.name for field in dataclasses.fields(data)
+                                    if field.name not in state_carried.READ_BY_STEP])
         clean, from_poisoned = step(data), step(poisoned)
-    passed_on = 0
-    for (path, value), given, reached in zip(jax.tree_util.tree_flatten_with_path(clean)[0],
-                                             jax.tree.leaves(poisoned), jax.tree.leaves(from_poisoned)):
-        if np.array_equal(np.asarray(value), np.asarray(reached)):
-            continue
-        # A field the step does not compute comes back as it was given: here NaN, as poisoned.
-        assert np.array_equal(np.asarray(reached), np.asarray(given), equal_nan=True), jax.tree_util.keystr(path)
-        passed_on += 1
-    assert passed_on < len(jax.tree.leaves(clean)) // 2  # most fields are computed from the state
+        passed_on = set()
+        for (path, value), given, reached in zip(jax.tree_util.tree_flatten_with_path(clean)[0],
+                                                 jax.tree.leaves(poisoned), jax.tree.leaves(from_poisoned)):
+            if not np.array_equal(np.asarray(value), np.asarray(reached)):
+                # A field the step does not compute comes back as it was given: here NaN, as poisoned.
+                assert np.array_equal(np.asarray(reached), np.asarray(given), equal_nan=True), \
+                    jax.tree_util.keystr(path)
+                passed_on.add(jax.tree_util.keystr(path))
+        # What every step computes is among the fields it computed, not passed on.
+        assert not passed_on & {".qacc", ".xpos", ".cvel", ".qfrc_bias", ".sensordata", ".act_dot", "._impl.efc_force"}
+        # And the state is read: each of its fields with numbers, made NaN alone, changes the step (not the
+        # solver's warm start, which the solver takes only where it beats the smooth acceleration, as NaN never does).
+        for name in state_carried.READ_BY_STEP:
+            leaves = jax.tree.leaves(getattr(data, name))
+            if name == "qacc_warmstart" or not any(leaf.size and jnp.issubdtype(leaf.dtype, jnp.floating)
+                                                   for leaf in leaves):
+                continue
+            reached = step(_poisoned(data, [name]))
+            assert not all(np.array_equal(np.asarray(a), np.asarray(b))
+                           for a, b in zip(jax.tree.leaves(clean), jax.tree.leaves(reached))), name
 
 
 def test_the_state_carried_steps_are_the_whole_datas_loop(scene):
@@ -78,6 +95,7 @@ def test_the_state_carried_steps_are_the_whole_datas_loop(scene):
             np.testing.assert_allclose(found, expected, rtol=1e-10, atol=1e-12, err_msg=jax.tree_util.keystr(path))
         assert float(carried.time - data.time) == pytest.approx(6 * float(model.opt.timestep))
         assert np.any(np.asarray(carried._impl.efc_force) > 0)  # the ball pressed on the floor: the solver's forces
+        assert state_carried.steps(model, data, 0) is data
         one = jax.jit(lambda data: state_carried.steps(model, data, 1))(data)
         assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b, equal_nan=True)),
                                          one, jax.jit(lambda data: mjx.step(model, data))(data)))

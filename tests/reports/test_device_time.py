@@ -87,8 +87,8 @@ def test_the_profilers_ops_are_the_compiled_programs_instructions():
     names = device_time.op_names(compiled)
     assert times and all(spent >= 0 for spent in times.values())
     assert sum(spent for op, spent in times.items() if op in names) > 0.5 * sum(times.values())
-    # The loop body's ops (its sine and product) launch one kernel a call per iteration, the loop itself one on
-    # a CPU (a GPU may count its condition's every check), each a call's mean over the three.
+    # The loop body's ops (its sine and product) launch one kernel a call per iteration, the loop itself one (on
+    # this CPU: a GPU's profiler may count its condition's every check), each a call's mean over the three.
     in_body = [op for op in kernels if "while/body/closed_call" in names.get(op, "")]
     assert in_body and all(kernels[op] == 20 for op in in_body)
     loops = [op for op in kernels if op.startswith("while")]
