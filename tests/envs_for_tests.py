@@ -205,6 +205,15 @@ def make_substepped_ball() -> SubsteppedBall:
     return SubsteppedBall()
 
 
+class PlaygroundLoopBall(SubsteppedBall):
+    """The substepped ball whose control step is MuJoCo Playground's loop of physics steps (``mjx_env.step``,
+    called through its module, as Playground's envs call it)."""
+
+    def _advance(self, data):
+        from mujoco_playground._src import mjx_env
+        return mjx_env.step(self._mjx_model, data, data.ctrl, self.n_substeps)
+
+
 def _bound_mjx_step():
     from mujoco import mjx
     return mjx.step

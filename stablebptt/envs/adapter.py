@@ -87,7 +87,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
              gradient_substeps: int | None = None, squash_gradient_floor: float = 0.0,
              contact_gradient_cut: float = 0.0, contact_geometry_held: bool = False,
              physics_steps_recomputed: bool | None = None, reward_direction_observed: bool = False,
-             smoothing_choices: dict | None = None) -> Task:
+             smoothing_choices: dict | None = None, physics_steps_carrying_state: bool = False) -> Task:
     """A ``Task`` that trains a policy on ``env`` (Brax's protocol) through the gradient flows.
 
     Args:
@@ -152,6 +152,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
       smoothing_choices: a flat reward's surrogate as a run recorded it (``reward_smoothing_choices``): the
         windows train on it, made of these rather than fitted on this machine's samples, and no check runs (the
         run's own chose and passed it): a resumed or reopened run keeps its temperatures.
+      physics_steps_carrying_state: MuJoCo Playground's loop of a control step's physics steps carries only what
+        a physics step reads (MuJoCo's integration state, the inputs and the solver's warm start) and takes its
+        last step after the loop (``state_carried.steps``): the same physics, values equal to rounding, the step
+        traced twice; on one H100 FishSwim's update took 13.6% less time and its forward window 16.5% less, its
+        update compiling 6.2 s longer (docs/performance.md). It reaches an env that calls Playground's
+        ``mjx_env.step`` through its module, as Playground's envs do. False: the env's own loop, the whole data.
 
     Example::
 
@@ -188,7 +194,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     # Held only where the search saw every reader: a user's surrogate or another env's reward reads states it did not trace.
     camera_poses_held = left_out.camera_poses_held and surrogate_reward is None and reward_env is None
     traced = steps_traced(contact_geometry_held, physics_steps_recomputed, recomputed_as_asked, reward_context, label,
-                          camera_poses_held)
+                          camera_poses_held, physics_steps_carrying_state)
 
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.
     own_steps = derivative_steps(traced, env, contact_smoothing, gradient_substeps, label)  # values, derivative
@@ -339,6 +345,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                + ("" if gradient_substeps is None else f"; derivative through {gradient_substeps} physics steps per control step")
                + ("; the contacts' points and frames held in the derivative" if contact_geometry_held else "")
                + ("; each physics step recomputed in the backward pass" if physics_steps_recomputed else "")
+               + ("; the physics steps' loop carrying the state alone" if physics_steps_carrying_state else "")
                + ("; the policy sees the direction of its trained reward in its actions" if reward_direction_observed else "")
                + (f"; the squash's derivative at least {squash_gradient_floor:g}" if squash_gradient_floor else "")
                + (f"; the derivative cut at contact loads above {contact_gradient_cut:g} body weights" if contact_gradient_cut else ""))

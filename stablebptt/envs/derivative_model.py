@@ -16,8 +16,10 @@ Every one of these steps is traced as ``steps_traced`` says: inside ``differenti
 task's choices of the derivative through MJX."""
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
+import importlib
 from typing import Any, Callable
 
 import jax
@@ -26,10 +28,11 @@ import mujoco
 import numpy as np
 
 from stablebptt.envs.protocol import EnvError
-from stablebptt.physics import scene
+from stablebptt.physics import scene, state_carried
 from stablebptt.physics.backward_contacts import ContactSmoothing, differentiated_through, smoothed_model
 from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import collision_driver
+from stablebptt.physics.mjx_patches import applied, choosing, tracing
 
 
 def has_constraint_solver(env: Any) -> bool:
@@ -43,32 +46,72 @@ def has_constraint_solver(env: Any) -> bool:
 
 
 def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, recomputed_as_asked: bool,
-                 reward_context: Callable, label: str, camera_poses_held: bool = False) -> Callable[[Any], Callable]:
+                 reward_context: Callable, label: str, camera_poses_held: bool = False,
+                 physics_steps_carrying_state: bool = False) -> Callable[[Any], Callable]:
     """How a task's programs trace an env's step (``traced(env)``): inside ``differentiable_mjx``, its solver
     differentiated at its solution and the choices given (the cameras' poses held where nothing reads them:
-    ``unread_outputs``), and ``reward_context``. Where recomputed physics
-    steps were asked for, a step that recomputed none (it calls no ``mujoco.mjx.step`` through MJX's
-    package) is refused as its first trace ends: the choice would change nothing. Only the first: a step
-    the env jits itself is traced again from JAX's cache, which calls nothing."""
+    ``unread_outputs``; MuJoCo Playground's loop of physics steps carrying the state alone:
+    ``carrying_state``), and ``reward_context``. Where recomputed physics steps or the state carried were
+    asked for, a step that took neither (it calls no ``mujoco.mjx.step`` through MJX's package, or no
+    ``mjx_env.step`` through Playground's module) is refused as its first trace ends: the choice would
+    change nothing. Only the first: a step the env jits itself is traced again from JAX's cache, which
+    calls nothing."""
     def traced(env):
-        unchecked = recomputed_as_asked  # whether the first trace is still to be checked
+        unchecked = recomputed_as_asked or physics_steps_carrying_state  # whether the first trace is to be checked
 
         def env_step(state, action):
             nonlocal unchecked
-            with differentiable_mjx(implicit_solver=True, contact_geometry_held=contact_geometry_held,
-                                    physics_steps_recomputed=physics_steps_recomputed,
-                                    camera_poses_held=camera_poses_held) as mjx_trace, reward_context():
+            with contextlib.ExitStack() as stack:
+                mjx_trace = stack.enter_context(differentiable_mjx(
+                    implicit_solver=True, contact_geometry_held=contact_geometry_held,
+                    physics_steps_recomputed=physics_steps_recomputed, camera_poses_held=camera_poses_held))
+                loops = stack.enter_context(carrying_state()) if physics_steps_carrying_state else None
+                stack.enter_context(reward_context())
                 reached = env.step(state, action)
             if unchecked:
                 unchecked = False
-                if not mjx_trace.steps_recomputed:
+                if recomputed_as_asked and not mjx_trace.steps_recomputed:
                     raise EnvError(f"{label}: its step calls no mujoco.mjx.step through MJX's package (as "
                                    "mjx.step, the way MuJoCo Playground's envs call it), so no physics step can be "
                                    "recomputed in the backward pass: drop physics_steps_recomputed=True "
                                    "(--physics-step-residuals recomputed)")
+                if loops is not None and not loops.taken:
+                    raise EnvError(f"{label}: its step calls no MuJoCo Playground loop of physics steps "
+                                   "(mjx_env.step, through its module), so none can carry the state alone: drop "
+                                   "physics_steps_carrying_state=True (--physics-step-carry state)")
             return reached
         return env_step
     return traced
+
+
+class LoopsTaken:
+    """The loops of physics steps a trace took carrying the state alone (``carrying_state``)."""
+    taken = 0
+
+
+@contextlib.contextmanager
+def carrying_state():
+    """Inside, MuJoCo Playground's loop of a control step's physics steps (``mjx_env.step``, which its envs call
+    through the module) carries MuJoCo's integration state alone, its last step taken after the loop
+    (``state_carried.steps``), in this thread's traces; yields a ``LoopsTaken`` filled as the context ends."""
+    found, before = LoopsTaken(), tracing.loops_carrying_state
+    with applied("state_carried", _state_carried_patch), choosing("physics_steps_carrying_state"):
+        try:
+            yield found
+        finally:
+            found.taken = tracing.loops_carrying_state - before
+
+
+def _state_carried_patch() -> tuple:
+    mjx_env = importlib.import_module("mujoco_playground._src.mjx_env")
+    own = mjx_env.step
+
+    def step(model, data, action, n_substeps=1):
+        if not tracing.physics_steps_carrying_state:  # another thread's trace, or none asked
+            return own(model, data, action, n_substeps)
+        tracing.loops_carrying_state += 1
+        return state_carried.steps(model, data.replace(ctrl=action), n_substeps)
+    return ((mjx_env, "step", step),)
 
 
 def jit_traced_once(function: Callable) -> Callable:

@@ -49,6 +49,8 @@ class TraceChoices(threading.local):
     camera_poses_held = False
     c_sensors = False  # sensors as C computes them (c_sensors.py)
     steps_recomputed = 0  # the mjx.step calls this thread's traces have recomputed, counted as they are traced
+    physics_steps_carrying_state = False  # MuJoCo Playground's loop of physics steps as state_carried.steps
+    loops_carrying_state = 0  # that loop's calls this thread's traces took so, counted as they are traced
 
 
 tracing = TraceChoices()

@@ -10,7 +10,7 @@ last step after the loop, so the data it returns holds that step's computed fiel
 loop does: the same physics, its values the same to rounding (tests/physics/test_state_carried.py), in
 a program that holds the step twice. On one H100 FishSwim's update took 13.6% less time and its forward
 window 16.5% less, and its update compiled 6.2 s longer (docs/performance.md, "The fish's update on the
-GPU"); no training option takes it yet.
+GPU"). Training takes it with ``--physics-step-carry state`` (``env_task(physics_steps_carrying_state=True)``).
 """
 from __future__ import annotations
 

@@ -147,6 +147,7 @@ class Config:
     contact_gradient_softness: float = field(default=1.0, metadata={"help": "the derivative is taken through the env's model with every contact's time constant this many times the file's, >= 1 (the simulation stays the file's)"})
     contact_gradient_geometry: str = field(default="exact", metadata={"help": "held: the derivative holds the point and frame of each contact between planes, spheres, capsules and boxes on a plane, and differentiates its distance by the closed form n . (v2 - v1), exact to first order for those pairs, so MJX's collision functions of those pairs are not differentiated (a shorter update: docs/performance.md); other pairs keep MJX's derivative. exact: MJX's own derivative of its collision. The simulation stays the file's", "choices": ("exact", "held")})
     physics_step_residuals: str = field(default="auto", metadata={"help": "what reverse mode keeps of each physics step for the backward pass: recomputed, the state it starts from, the constraint solver's solution and the values of MJX's functions this package differentiates, the rest of the step run again in the backward pass (jax.checkpoint: the same derivative, a shorter update where a control step spans several physics steps, as the walkers' and the humanoids' do: docs/performance.md); stored, every intermediate; auto: recomputed where a control step's derivative spans more than one physics step", "choices": tuple(PHYSICS_STEP_RESIDUALS)})
+    physics_step_carry: str = field(default="data", metadata={"help": "what MuJoCo Playground's loop of a control step's physics steps carries from one to the next: data, the whole of MJX's data (the env's own loop); state, only what a physics step reads (MuJoCo's integration state, the inputs and the solver's warm start), the last step taken after the loop: the same physics, values equal to rounding, the step compiled twice (on one H100 FishSwim's update took 13.6% less time, its update compiling 6.2 s longer: docs/performance.md)", "choices": ("data", "state")})
     gradient_substeps: int = field(default=0, metadata={"help": "the derivative is taken through each control step in this many physics steps of equal length, a divisor of the env's own count (MuJoCo Playground's WalkerWalk simulates 10; 0: the env's own): a shorter backward pass; the simulation stays the file's"})
     squash_gradient_floor: float = field(default=0.0, metadata={"help": "the derivative of the policy's tanh squash is kept at least this, in [0, 1): an action at its bound, where tanh's slope is nearly 0, still passes this share of its gradient back to the policy; its values, and every action taken, stay tanh's (0: tanh's own derivative)"})
     contact_gradient_cut: float = field(default=0.0, metadata={"help": "the windows' derivative stops at a state whose constraint forces pass this many body weights (the norm of MJX's qfrc_constraint over the model's weight): a window's later rewards reach no earlier state or action through a hard contact, the reward of that state still does; its values, and every return, stay the env's (0: no cut; MuJoCo Playground's envs)"})
@@ -173,6 +174,8 @@ class Config:
         if self.physics_step_residuals not in PHYSICS_STEP_RESIDUALS:
             raise InputError(f"{config_field(self, 'physics_step_residuals')} must be auto, recomputed or stored, "
                              f"got {self.physics_step_residuals!r}")
+        if self.physics_step_carry not in ("data", "state"):
+            raise InputError(f"{config_field(self, 'physics_step_carry')} must be data or state, got {self.physics_step_carry!r}")
         if self.gradient_substeps < 0:
             raise InputError(f"{config_field(self, 'gradient_substeps')} must be a whole number of physics steps >= 1 "
                              f"(or 0 for the env's own), got {self.gradient_substeps}")
@@ -273,6 +276,7 @@ def _make(config: Config, defer_diagnosis: bool, smoothing_choices: dict | None 
                     contact_gradient_cut=config.contact_gradient_cut,
                     contact_geometry_held=config.contact_gradient_geometry == "held",
                     physics_steps_recomputed=PHYSICS_STEP_RESIDUALS[config.physics_step_residuals],
+                    physics_steps_carrying_state=config.physics_step_carry == "state",
                     reward_direction_observed=config.observe_reward_direction, smoothing_choices=smoothing_choices,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})
