@@ -27,7 +27,7 @@ derivative, none of the flows' machinery, no critic).
         # stored, nothing stacked per physics step)
     python benchmarks/update_program.py --state-carried --env FishSwim ...   # that loop carrying mjx.step's
         # state alone (the fields it reads), not the whole data, its last physics step taken after the loop
-        # (a what-if: stablebptt.physics.state_carried)
+        # (stablebptt.physics.state_carried; training takes it with --physics-step-carry state)
     python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time,
         # distinct ops and the kernels they launched by MJX stage and the call within it, and by name stack,
         # from one call under JAX's profiler

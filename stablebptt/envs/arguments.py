@@ -36,7 +36,7 @@ def check_env_task_arguments(**given: Any) -> None:
         if not isinstance(given[name], str):
             refuse(name, "a string")
     for name in ("diagnose", "defer_diagnosis", "normalize_observations", "contact_geometry_held",
-                 "reward_direction_observed"):
+                 "reward_direction_observed", "physics_steps_carrying_state"):
         if not isinstance(given[name], bool):
             refuse(name, "True or False")
     if not whole_number(given["diagnosis_seed"]):

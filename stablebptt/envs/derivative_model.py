@@ -69,7 +69,8 @@ def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, re
                 stack.enter_context(reward_context())
                 reached = env.step(state, action)
             if unchecked:
-                unchecked = False
+                # Checked until a trace passes: a first trace may run where a ValueError is caught (a start's
+                # trace beside the compile), and every later one then says it again.
                 if recomputed_as_asked and not mjx_trace.steps_recomputed:
                     raise EnvError(f"{label}: its step calls no mujoco.mjx.step through MJX's package (as "
                                    "mjx.step, the way MuJoCo Playground's envs call it), so no physics step can be "
@@ -79,6 +80,7 @@ def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, re
                     raise EnvError(f"{label}: its step calls no MuJoCo Playground loop of physics steps "
                                    "(mjx_env.step, through its module), so none can carry the state alone: drop "
                                    "physics_steps_carrying_state=True (--physics-step-carry state)")
+                unchecked = False
             return reached
         return env_step
     return traced

@@ -94,6 +94,8 @@ def check_step(env: Any, step: Callable, observations: int, label: str) -> bool:
     action = jax.ShapeDtypeStruct((int(env.action_size),), jnp.float32)
     try:
         reached = jax.eval_shape(step, state, action)
+    except EnvError:  # this library's refusal of the step as it traces it: one line already
+        raise
     except Exception as error:  # noqa: BLE001 - the user's step failed: one line naming it
         raise EnvError(f"{label}: step(state, action) fails on the state reset gives and an action of "
                        f"{int(env.action_size)} numbers: {first_line(error)}") from None

@@ -2,12 +2,15 @@
 ``--physics-step-carry state``): the same values and derivative as the env's own loop (the closed form of
 semi-implicit Euler); bad values refused in one line, and so is the choice on an env whose step calls no such
 loop, where it would change nothing."""
+import contextlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from stablebptt.envs.adapter import env_task
+from stablebptt.envs.derivative_model import steps_traced
 from stablebptt.envs.protocol import EnvError
 
 from conftest import refused_in_one_line
@@ -23,6 +26,10 @@ def test_the_state_carried_loop_keeps_the_values_and_the_derivative():
     tasks = {carried: env_task(env, horizon=2, diagnose=False, physics_steps_carrying_state=carried)
              for carried in (False, True)}
     assert CARRIED in tasks[True].summary and CARRIED not in tasks[False].summary
+    # The env's own loop runs its 10 physics steps; the state's runs 9 and takes the last after it.
+    loops = {carried: str(jax.make_jaxpr(task.dynamics.step)(state, jnp.array([0.3])))
+             for carried, task in tasks.items()}
+    assert "length=10" in loops[False] and "length=10" not in loops[True] and "length=9" in loops[True]
 
     def position_after(task):
         return lambda action: task.dynamics.step(task.dynamics.step(state, action), action).data["qpos"][0]
@@ -41,8 +48,12 @@ def test_the_state_carried_loop_keeps_the_values_and_the_derivative():
 def test_bad_values_and_an_env_without_playgrounds_loop_are_refused_in_one_line(tmp_path, capsys):
     env = SubsteppedBall()  # its own loop of mjx.step, not Playground's
     state, action = env.reset(jax.random.PRNGKey(0)), jnp.array([0.3])
-    with pytest.raises(EnvError, match="calls no MuJoCo Playground loop of physics steps"):
-        env_task(env, horizon=2, diagnose=False, physics_steps_carrying_state=True).dynamics.step(state, action)
+    with pytest.raises(EnvError, match="^SubsteppedBall: its step calls no MuJoCo Playground loop of physics steps"):
+        env_task(env, horizon=2, diagnose=False, physics_steps_carrying_state=True)
+    env_step = steps_traced(False, False, False, contextlib.nullcontext, "ball", physics_steps_carrying_state=True)(env)
+    for _ in range(2):  # a refusal caught where it was first traced (a start's trace beside its compile) is said again
+        with pytest.raises(EnvError, match="calls no MuJoCo Playground loop of physics steps"):
+            jax.make_jaxpr(lambda *given: env_step(*given))(state, action)
     refused_in_one_line(capsys, tmp_path / "kept", "--physics-step-carry", "--env",
                         "envs_for_tests:make_substepped_ball", "--physics-step-carry", "kept", "--epochs", "1")
     refused_in_one_line(capsys, tmp_path / "state", "calls no MuJoCo Playground loop", "--env",

@@ -13,8 +13,6 @@ from stablebptt.physics.mjx_internals import mjx
 
 from conftest import float64
 
-pytestmark = pytest.mark.fast
-
 # A free body falling onto the floor beside a hinge arm with a motor and a filtered actuator (an activation), a
 # fingertip sensor, a mocap target and an accelerometer: contacts and their solver, actuators, activations and
 # sensors, so every stage of a step runs.
