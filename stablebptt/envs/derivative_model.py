@@ -53,9 +53,9 @@ def steps_traced(contact_geometry_held: bool, physics_steps_recomputed: bool, re
     ``unread_outputs``; MuJoCo Playground's loop of physics steps carrying the state alone:
     ``carrying_state``), and ``reward_context``. Where recomputed physics steps or the state carried were
     asked for, a step that took neither (it calls no ``mujoco.mjx.step`` through MJX's package, or no
-    ``mjx_env.step`` through Playground's module) is refused as its first trace ends: the choice would
-    change nothing. Only the first: a step the env jits itself is traced again from JAX's cache, which
-    calls nothing."""
+    ``mjx_env.step`` through Playground's module) is refused as its first trace ends, and again at every
+    trace until one passes: the choice would change nothing. Only until then: a step the env jits itself is
+    traced again from JAX's cache, which calls nothing."""
     def traced(env):
         unchecked = recomputed_as_asked or physics_steps_carrying_state  # whether the first trace is to be checked
 
@@ -105,7 +105,11 @@ def carrying_state():
 
 
 def _state_carried_patch() -> tuple:
-    mjx_env = importlib.import_module("mujoco_playground._src.mjx_env")
+    try:
+        mjx_env = importlib.import_module("mujoco_playground._src.mjx_env")
+    except ImportError:
+        raise EnvError("the physics steps' loop carrying the state alone is MuJoCo Playground's, which is not "
+                       "installed: drop physics_steps_carrying_state=True (--physics-step-carry state)") from None
     own = mjx_env.step
 
     def step(model, data, action, n_substeps=1):
