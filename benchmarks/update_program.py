@@ -25,9 +25,6 @@ derivative, none of the flows' machinery, no critic).
     python benchmarks/update_program.py --substeps-unrolled --env HumanoidStand ...   # MuJoCo Playground's
         # loop over a control step's physics steps unrolled (a what-if; with --physics-step-residuals
         # stored, nothing stacked per physics step)
-    python benchmarks/update_program.py --state-carried --env FishSwim ...   # that loop carrying mjx.step's
-        # state alone (the fields it reads), not the whole data, its last physics step taken after the loop
-        # (stablebptt.physics.state_carried; training takes it with --physics-step-carry state)
     python benchmarks/update_program.py --profile --env HumanoidStand ...   # each program's device time,
         # distinct ops and the kernels they launched by MJX stage and the call within it, and by name stack,
         # from one call under JAX's profiler
@@ -103,16 +100,6 @@ if "--substeps-unrolled" in arguments:  # MuJoCo Playground's loop over a contro
         return jax.lax.scan(physics_step, data, (), n_substeps, unroll=n_substeps)[0]
     mjx_env.step = physics_steps
     print("MuJoCo Playground's physics steps per control step unrolled (--substeps-unrolled)", flush=True)
-if "--state-carried" in arguments:  # that loop carrying the state alone, its last physics step taken after it
-    arguments.remove("--state-carried")
-    from mujoco_playground._src import mjx_env  # noqa: E402
-    from stablebptt.physics import state_carried  # noqa: E402
-
-    def physics_steps(model, data, action, n_substeps=1):
-        return state_carried.steps(model, data.replace(ctrl=action), n_substeps)
-    mjx_env.step = physics_steps
-    print("MuJoCo Playground's physics steps carry the state alone, the last taken after the loop (--state-carried)",
-          flush=True)
 if "--self-collision-held" in arguments:
     arguments.remove("--self-collision-held")
     from stablebptt.physics.mjx_internals import collision_driver  # noqa: E402
