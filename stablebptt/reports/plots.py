@@ -12,6 +12,7 @@ drawn (a run's tables, smoothing, the band) come from ``stablebptt.reports.curve
 """
 from __future__ import annotations
 
+import functools
 import io
 import warnings
 from collections import Counter
@@ -296,12 +297,27 @@ def _default_title(runs: Sequence[Run], smooth: int, band: str) -> str:
     return f"{setting}\n{shown}" if setting else shown
 
 
+@functools.cache
+def _shipped_fonts_listed() -> None:
+    """Matplotlib's own fonts in its font list, added where its font cache left them out.
+
+    Its mathematics (the panels' labels) draws with them; a cache written without them (seen on a fresh
+    machine) makes every formula warn, font by font, that it fell back: 20 lines on stderr.
+    """
+    from matplotlib import font_manager
+    listed = {Path(font.fname).resolve() for font in font_manager.fontManager.ttflist}
+    for path in sorted(Path(matplotlib.get_data_path(), "fonts", "ttf").glob("*.ttf")):
+        if path.resolve() not in listed:
+            font_manager.fontManager.addfont(str(path))
+
+
 def render(figure: Figure, out_path: Path, dpi: int = 150) -> Path:
     """Save ``figure`` atomically (rendered into memory first); the format follows the suffix."""
     if out_path.suffix.lower() not in FORMATS:
         raise InputError(f"{out_path}: give a file name ending in {', '.join(FORMATS)}")
     if not out_path.parent.is_dir():
         raise InputError(f"cannot write {out_path}: the directory {out_path.parent} does not exist")
+    _shipped_fonts_listed()
     buffer = io.BytesIO()
     with warnings.catch_warnings():
         # A character no installed font has is drawn as a box; matplotlib's warning of it says no more.

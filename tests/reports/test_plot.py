@@ -1,12 +1,15 @@
 """Learning-curve plots: smoothing, the seed band, run loading, the figure and scripts/plot.py."""
 from __future__ import annotations
 
+import copy
 import csv
+import os
 import subprocess
 import sys
 import warnings
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import pytest
 from matplotlib.colors import to_rgb
@@ -361,15 +364,28 @@ def test_out_of_range_arguments_are_input_errors(tmp_path):
 
 # ---- scripts/plot.py ----
 
-def run_script(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, str(SCRIPT), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def run_script(*args: str, env: dict | None = None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(SCRIPT), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
 
 
-def test_script_writes_the_figure_and_names_it(tmp_path):
+def font_cache_without_matplotlibs_fonts(folder: Path) -> Path:
+    """A matplotlib configuration folder whose font cache lists no font matplotlib ships (its mathematics' fonts)."""
+    from matplotlib import font_manager
+    shipped = Path(matplotlib.get_data_path()).resolve()
+    cache = copy.copy(font_manager.fontManager)
+    cache.ttflist = [font for font in cache.ttflist if shipped not in Path(font.fname).resolve().parents]
+    folder.mkdir()
+    font_manager.json_dump(cache, folder / f"fontlist-v{font_manager.FontManager.__version__}.json")
+    return folder
+
+
+def test_script_writes_the_figure_names_it_and_says_nothing_else_though_the_font_cache_lacks_fonts(tmp_path):
     run = write_run(tmp_path / "run")
-    process = run_script(str(run))
+    config = font_cache_without_matplotlibs_fonts(tmp_path / "matplotlib")
+    process = run_script(str(run), env={**os.environ, "MPLCONFIGDIR": str(config)})
     stdout, stderr = process.communicate(timeout=60)
-    assert process.returncode == 0, stderr
+    assert process.returncode == 0 and stderr == "", stderr
     assert stdout.strip().splitlines() == [f"wrote {run / plots.FIGURE_FILE}"]
     assert (run / plots.FIGURE_FILE).read_bytes().startswith(PNG_SIGNATURE)
 
