@@ -48,6 +48,17 @@ def _poisoned(data, fields):
     return data.replace(**{name: jax.tree.map(nan, getattr(data, name)) for name in fields})
 
 
+def test_the_state_carried_is_mujocos_integration_state():
+    # MuJoCo's own count of its integration state's numbers: a field left out of READ_BY_STEP (the solver's warm
+    # start, whose absence changes no value the other tests see) or one too many makes the counts differ. The scene
+    # has one of each part with a size: mocap, activation, warm start, applied forces.
+    model = mujoco.MjModel.from_xml_string(SCENE)
+    data = mujoco.MjData(model)
+    sizes = {name: np.size(getattr(data, name)) for name in state_carried.READ_BY_STEP}
+    assert sum(sizes.values()) == mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_INTEGRATION)
+    assert all(sizes[name] for name in ("qacc_warmstart", "act", "mocap_quat", "xfrc_applied"))
+
+
 def test_a_step_reads_no_field_outside_the_state(scene):
     # Every field outside READ_BY_STEP made NaN: the step's outputs are those of the data as it was, but for the
     # fields it passes on untouched, which it returns as given.
