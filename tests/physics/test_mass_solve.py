@@ -44,6 +44,7 @@ def chain():
     return model, data, start, stepped
 
 
+@pytest.mark.slow  # 25 s of float64 compiles: the full tier (the fast one checks the step's derivative against C's)
 def test_values_are_mjxs_to_the_bit_and_the_derivative_both_ways_mjxs_own(chain):
     _, _, start, stepped = chain
     rng = np.random.default_rng(0)

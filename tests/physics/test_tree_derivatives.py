@@ -146,6 +146,7 @@ def moving(trees):
     return (start.qpos, start.qvel, start.qacc), velocity_stage, models
 
 
+@pytest.mark.slow  # 25 s of float64 compiles: the full tier (the fast one checks the stage's derivative against C's)
 def test_the_velocity_stage_keeps_mjxs_values_and_its_derivative_is_mjxs_own(moving):
     state, velocity_stage, models = moving
     rng = np.random.default_rng(3)
