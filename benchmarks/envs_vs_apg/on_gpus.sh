@@ -7,7 +7,7 @@
 #   benchmarks/envs_vs_apg/on_gpus.sh LOGS 'stablebptt train --env CheetahRun --seeds 5 --budget 300 --out RUNS/CheetahRun' \
 #       'python3 benchmarks/envs_vs_apg/ppo_baseline.py --envs CheetahRun ...'
 #
-# Runs longer than one sitting (a budget of 900 s beside a shell that may only live 10 minutes): --detach
+# Runs that outlive the shell starting them (a budget of 900 s from a shell limited to 10 minutes): --detach
 # starts each in a session of its own, which outlives the shell, and returns at once; --wait LOGS SECONDS
 # then returns once all have ended (their status as above) or, after SECONDS, with status 3 and the
 # commands still running. Write their run folders where the machine keeps them between shells.

@@ -7,7 +7,7 @@ budget that counts set-up and compile, seeds batched in one program:
       'stablebptt train --env CartpoleSwingup --critic --discount 0.99 --seeds 5 --budget 300 --no-progress --out RUNS/CartpoleSwingup' \
       'stablebptt train --env CheetahRun --seeds 5 --budget 300 --no-progress --out RUNS/CheetahRun' ...
 
-A run longer than one sitting goes on with `stablebptt train --resume RUNS/E --budget S`: its row names
+A run continued by later commands goes on with `stablebptt train --resume RUNS/E --budget S`: its row names
 the first command (without its budget) and its starts, and a table of its returns along the wall clock
 (every start's set-up and compile counted, as `stablebptt plot --x wall-clock` draws it) follows. This script
 reads each run folder (config.json, metrics.csv, startup.json), keeps what the table needs in
