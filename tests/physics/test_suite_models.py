@@ -198,7 +198,8 @@ def test_a_contact_rollout_follows_mujocos_c_step_with_the_files_own_solver(suit
 
 def test_a_suite_model_trains_and_renders_from_the_command_line(suite, tmp_path):
     """stablebptt/models/README.md's worked example, shortened: dm_control's pendulum, file untouched, swung up from
-    hanging by a task file; the suite's energy flag off, the model's name in every message and record."""
+    hanging by a task file: the command names the model, its record resolves the task file's pose and horizon
+    against the file, the file is kept as it was, the loss falls below a quarter of hanging's, and it renders."""
     run, task_file = tmp_path / "run", tmp_path / "swing_up.task.json"
     task_file.write_text('{"init_pose": "hinge=3.14159", "horizon_seconds": 7}')
     train = subprocess.run([sys.executable, "scripts/train.py", "--model", str(suite / "pendulum.xml"),
@@ -361,8 +362,9 @@ def test_a_slide_pushed_past_its_range_keeps_its_contact():
     assert data.ncon > 0
 
 
-def test_springs_and_dampers_of_higher_order_are_simulated():
-    """A tendon's quadratic stiffness and a joint's quadratic damping have no linear coefficient."""
+def test_springs_and_dampers_of_higher_order_are_found_and_the_generated_step_refuses_them():
+    """A tendon's stiffness and damping with a quadratic coefficient alone: no linear coefficient shows them, yet
+    the scene's analysis finds both, and the generated rigid-body step, which has no such terms, refuses the scene."""
     model = mujoco.MjModel.from_xml_string("""<mujoco><worldbody><body><joint name="a" type="slide" axis="1 0 0"/>
       <geom type="sphere" size="0.1" contype="0" conaffinity="0"/></body></worldbody>
       <tendon><fixed stiffness="0 50" damping="0 5"><joint joint="a" coef="1"/></fixed></tendon></mujoco>""")

@@ -140,24 +140,28 @@ def test_a_signal_at_any_moment_leaves_a_folder_that_resumes(tmp_path, capsys, h
 def test_signals_are_handled_while_the_work_sits_in_one_long_native_call():
     # XLA compiles a large contact scene in one call for many minutes; Python runs a signal handler
     # only when the main thread's call returns, so the work runs in a worker thread. The native call
-    # here is LAPACK's (it releases the interpreter, as XLA's compiler does).
+    # here is libc's poll of a pipe, which only the handler writes to: the signal blocked in the calling
+    # thread (no EINTR ends the call early), it waits up to 60 s, so a handler that ran only once the
+    # call returned (the work in the main thread) would come too late and the poll would find nothing.
+    import ctypes
     from stablebptt.cli import in_worker_thread
-    handled, call = [], []
-    previous = signal.signal(signal.SIGUSR1, lambda signum, frame: handled.append(time.perf_counter()))
+
+    class PollFd(ctypes.Structure):
+        _fields_ = [("fd", ctypes.c_int), ("events", ctypes.c_short), ("revents", ctypes.c_short)]
+
+    poll = ctypes.CDLL(None, use_errno=True).poll
+    readable, writable = os.pipe()
+    previous = signal.signal(signal.SIGUSR1, lambda signum, frame: os.write(writable, b"x"))
     try:
         def work():
-            matrix = np.random.default_rng(0).standard_normal((2000, 2000))
-            threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGUSR1)).start()
-            call.append(time.perf_counter())
-            np.linalg.eigvals(matrix)  # about 2 s on one core
-            call.append(time.perf_counter())
-            return "done"
-        assert in_worker_thread(work) == "done"
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGUSR1})  # the main thread takes it
+            os.kill(os.getpid(), signal.SIGUSR1)
+            waiting = PollFd(readable, 1, 0)  # POLLIN
+            return poll(ctypes.byref(waiting), 1, 60_000)  # 1 once the pipe holds the handler's byte; 0 at 60 s
+        assert in_worker_thread(work) == 1
     finally:
         signal.signal(signal.SIGUSR1, previous)
-    # Handled in the first half of the call, not after it (in the main thread it would wait for the return).
-    start, end = call
-    assert handled and handled[0] - start < (end - start) / 2, (handled, call)
+        os.close(readable), os.close(writable)
     def failing_work():
         raise InputError("raised in the worker")
     with pytest.raises(InputError, match="raised in the worker"):
@@ -483,7 +487,6 @@ def test_a_budget_stops_the_epoch_loop_where_one_more_epoch_and_an_evaluation_wo
                                     lambda *saved: None, 1, evaluate=evaluate,
                                     out_of_time=lambda ahead: clock.now + ahead > budget)
     assert (status, epoch, clock.now) == ("budget", last_epoch, ends_at) and evaluated[-1] == last_epoch
-    assert clock.now <= max(budget, 18.0)  # within the budget, but for the first epoch, which always trains
     # Resumed after epoch 4, whose evaluation took 3 s: the room for the last one is kept from its first epoch on.
     clock.now, evaluated[:] = 5.0, []
     before = np.zeros((1, len(COLUMNS)))

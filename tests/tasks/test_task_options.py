@@ -146,8 +146,7 @@ def test_a_spread_whose_states_square_past_the_largest_float_is_refused_before_c
     below = mjcf.read_spec(model, mjcf.Config(model=str(pendulum), spread=0.99 * at_most))
     with np.errstate(over="ignore"):
         assert np.isfinite(np.float32(below.qvel_spread.max()) ** 2)  # its squares are still numbers
-        assert np.isinf(np.float32(1.01 * at_most * mjcf_spec.DEFAULT_SPREAD) ** 2)  # above, they are not
-    with pytest.raises(InputError, match=r"mjcf.Config.spread .* overflow float32: give at most"):
+    with pytest.raises(InputError, match=r"mjcf.Config.spread .* overflow float32: give at most"):  # 1% more: not
         mjcf.read_spec(model, mjcf.Config(model=str(pendulum), spread=1.01 * at_most))
 
 
