@@ -9,15 +9,18 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
+
 from conftest import ROOT
-from held_compile import COMPILING, STARTED, held_command, release, stderr_through, wait_for
+from held_compile import (CHECKPOINTED, COMPILING, STARTED, held_command, release, release_checkpoint,
+                          stderr_through, wait_for)
 from stablebptt.cli import INTERRUPTED
 
 TRAIN = ["scripts/train.py", "--poles", "1", "--steps", "10", "--epochs", "3", "--train-size", "16",
          "--test-size", "16", "--batch", "8", "--no-progress"]
-# Moments of a run, each one observed rather than guessed from the seconds since its start (the compile
-# waits for the test: tests/held_compile.py): the imports, the claimed folder (the scene built and
-# traced), the compile, training or its end.
+# Moments of a run, each one observed rather than guessed from the seconds since its start (the compile and
+# the first checkpoint wait for the test: tests/held_compile.py): the imports, the claimed folder (the scene
+# built and traced), the compile, its first epoch saved.
 MOMENTS = ("loading", "claimed", "compiling", "checkpointed")
 
 
@@ -44,20 +47,22 @@ def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resum
         argv = [*TRAIN, "--out", str(tmp_path / f"run{index}")]
         if index == 1:  # the installed command's entry point
             argv = ["-m", "stablebptt.commands.main", "train", *argv[1:]]
-        processes[moment] = subprocess.Popen(held_command(tmp_path / f"hold{index}", *argv), cwd=ROOT, env=env,
+        held = held_command(tmp_path / f"hold{index}", *argv, at_checkpoint=moment == "checkpointed")
+        processes[moment] = subprocess.Popen(held, cwd=ROOT, env=env,
                                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                              text=True)
     for index, (moment, process) in enumerate(processes.items()):
         hold, run = tmp_path / f"hold{index}", tmp_path / f"run{index}"
-        if moment == "checkpointed":  # compiled at once, then Ctrl-C once an epoch is saved (the last, maybe)
+        if moment == "checkpointed":  # compiled at once, then Ctrl-C once its first epoch is saved, held there
             wait_for(hold / COMPILING, process)
             release(hold)
         wait_for({"loading": hold / STARTED, "claimed": run / "config.json", "compiling": hold / COMPILING,
-                  "checkpointed": run / "checkpoint.npz"}[moment], process)
+                  "checkpointed": hold / CHECKPOINTED}[moment], process)
         process.send_signal(signal.SIGINT)
-        if moment == "compiling":  # taken while it compiles: the run stops before its first epoch
+        if moment in ("compiling", "checkpointed"):  # the run takes it before it goes on
             seen[moment] = stderr_through(process, "SIGINT: stopping")
         release(hold)
+        release_checkpoint(hold)
     outcomes = {moment: (process.wait(timeout=600), seen[moment] + process.stderr.read())
                 for moment, process in processes.items()}
     for moment, (code, stderr) in outcomes.items():
@@ -67,17 +72,21 @@ def test_ctrl_c_at_any_moment_is_one_or_two_lines_and_leaves_a_folder_that_resum
         lines = [line for line in stderr.splitlines() if line.strip()]
         assert "Traceback" not in stderr and len(lines) <= 2, f"{moment}: {stderr}"
     codes = {moment: code for moment, (code, _) in outcomes.items()}
-    assert codes["loading"] in (130, -signal.SIGINT) and codes["claimed"] == codes["compiling"] == 130, codes
-    stopped = [index for index, moment in enumerate(MOMENTS) if codes[moment] in (130, -signal.SIGINT)]
-    for index in stopped:
+    assert codes["loading"] in (130, -signal.SIGINT), codes
+    assert codes["claimed"] == codes["compiling"] == codes["checkpointed"] == 130, codes
+    for index, moment in enumerate(MOMENTS):
         folder = tmp_path / f"run{index}"
         assert not folder.exists() or (folder / "config.json").is_file(), os.listdir(folder)
-    # The latest one: stopped as it compiled (its config.json alone), or one that trained a little.
-    resumable = [index for index in stopped if (tmp_path / f"run{index}" / "config.json").is_file()]
-    resumed = subprocess.run([sys.executable, "scripts/train.py", "--resume", str(tmp_path / f"run{resumable[-1]}"),
-                              "--no-progress"], cwd=ROOT, capture_output=True, text=True, timeout=600,
-                             env={**os.environ, "STABLEBPTT_COMPILE_CACHE": str(tmp_path / "cache-resume")})
-    assert resumed.returncode == 0, resumed.stderr
+    with np.load(tmp_path / f"run{MOMENTS.index('checkpointed')}" / "checkpoint.npz") as checkpoint:
+        assert int(checkpoint["epoch"]) == 1  # stopped after the epoch it was in, of 3
+    # Both kinds of folder a stop leaves resume: a claimed one (its config.json alone) and one that trained a little.
+    resumes = [subprocess.Popen([sys.executable, "scripts/train.py", "--resume", str(tmp_path / f"run{index}"),
+                                 "--no-progress"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, "STABLEBPTT_COMPILE_CACHE": str(tmp_path / f"cache-resume{index}")})
+               for index in (MOMENTS.index("claimed"), MOMENTS.index("checkpointed"))]
+    for process in resumes:
+        _, stderr = process.communicate(timeout=600)
+        assert process.returncode == 0, stderr
 
 
 def test_the_same_stop_request_arriving_after_the_run_stopped_is_ignored_and_a_later_one_is_not():

@@ -24,6 +24,7 @@ from stablebptt.runs import epochs, run_folder
 from stablebptt.tasks import repulsion
 
 from conftest import ROOT
+from held_compile import CHECKPOINTED, held_command, release, wait_for
 
 SMALL = TrainConfig(epochs=3, train_size=32, test_size=32, batch=8, mode="C")
 TRAIN = [sys.executable, str(ROOT / "scripts" / "train.py")]
@@ -431,15 +432,19 @@ def test_a_run_directory_holds_config_metrics_params_and_checkpoint(uninterrupte
 
 
 def test_resume_after_sigkill_ends_with_the_uninterrupted_metrics(uninterrupted, tmp_path):
-    run_dir = tmp_path / "killed"
-    process = subprocess.Popen(TRAIN + SMALL_CLI + ["--epochs", "4", "--out", str(run_dir)], cwd=ROOT,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 120
-    while not (run_dir / run_folder.CHECKPOINT_FILE).exists() and time.monotonic() < deadline and process.poll() is None:
-        time.sleep(0.05)
+    # Killed once its first checkpoint is written, before its metrics and its second epoch (held there:
+    # tests/held_compile.py); the checkpoint holds the metrics the resume writes again.
+    run_dir, hold = tmp_path / "killed", tmp_path / "hold"
+    hold.mkdir()
+    release(hold)  # its compile is not held
+    process = subprocess.Popen(held_command(hold, *TRAIN[1:], *SMALL_CLI, "--epochs", "4", "--out", str(run_dir),
+                                            at_checkpoint=True), cwd=ROOT, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True)
+    wait_for(hold / CHECKPOINTED, process)
     process.send_signal(signal.SIGKILL)
-    process.wait()
-    assert (run_dir / run_folder.CHECKPOINT_FILE).exists()
+    assert process.wait() == -signal.SIGKILL
+    with np.load(run_dir / run_folder.CHECKPOINT_FILE) as checkpoint:
+        assert int(checkpoint["epoch"]) == 1
     result = train_cli("--resume", str(run_dir), "--no-progress")
     assert result.returncode == 0, result.stderr
     assert metrics_without_time(run_dir) == metrics_without_time(uninterrupted)
