@@ -411,7 +411,7 @@ WELDED = BRANCHES.format(integrator="Euler").replace(
         "</actuator>", '<general site="thrust" gear="0 0 1 0 0 0"/></actuator>'), None,
      "actuators other than fixed-gain actuators of joints or fixed tendons"),
 ])
-def test_scenes_the_generator_does_not_cover_run_through_mjx(source, edit, reason):
+def test_scenes_the_generator_does_not_cover_are_refused_by_it_and_take_mjxs_step(source, edit, reason):
     model = mujoco.MjModel.from_xml_string(source)
     if edit:
         edit(model)
@@ -419,7 +419,7 @@ def test_scenes_the_generator_does_not_cover_run_through_mjx(source, edit, reaso
     assert reason in rigid_body.unsupported(lean, effects)
     assert not lean_step.generated_step_applies(lean, effects)
     # The default pipeline then is MJX's: its step runs and stays finite. A floating body's MJX step in
-    # contact compiles for a minute or more on a CPU: there it is traced, which builds every stage.
+    # contact compiles for a minute or more on a CPU: there it is only traced, which builds every stage.
     step = lean_step.make_step(lean, effects)
     initial = lean_step.initial_state(lean)
     if 'type="free"' in source:

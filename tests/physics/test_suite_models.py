@@ -65,16 +65,13 @@ def test_every_suite_model_becomes_a_task_or_is_refused_in_one_line(suite, name)
         assert "constraint solver: " in task.summary
     # Every input's tangent passes the solver: forward mode's Jacobians are built in one pass.
     assert task.plan.jacobian_per_input == (not effects.constraints)
-    # The memory of the gradient path fits this machine, or is made to fit: on models that span the
-    # plans (forward mode, reverse mode with contacts, the largest tree), since tracing a large step's
-    # derivative for the plan takes seconds per model.
+    # The gradient path's memory is planned from a trace of its step, without an error, on models that span
+    # the plans (forward mode, reverse mode with contacts, the largest tree), since tracing a large step's
+    # derivative for the plan takes seconds per model (how a plan chunks or stores: tests/flows/test_flows.py).
     if name not in PLANNED:
         return
     initial = jax.tree.map(lambda a: a[0], task.sample_initial_states(jax.random.PRNGKey(0), 1))
-    memory = memory_plan(task, TrainConfig(), initial)
-    assert memory.estimate > 0
-    if task.plan.step_derivative == "forward" and memory.jacobian_chunk is not None:
-        assert (task.dynamics.horizon * TrainConfig().batch) % memory.jacobian_chunk == 0
+    assert memory_plan(task, TrainConfig(), initial).estimate > 0
 
 
 # Models whose differentiated step is checked against MuJoCo's C step: the energy flag (pendulum),
