@@ -24,7 +24,9 @@ _TYPES = {"int": int, "float": float, "str": str, "bool": bool}
 def fail(message: str, code: int = 2) -> NoReturn:
     """Print one line on stderr and exit (2 = bad input); config fields are named as their options."""
     from stablebptt.errors import as_options
-    print(f"error: {as_options(message)}", file=sys.stderr)
+    # One line whatever the message holds: a user's module or factory may raise with line breaks in its words.
+    one_line = " / ".join(part.strip() for part in str(message).splitlines() if part.strip())
+    print(f"error: {as_options(one_line)}", file=sys.stderr)
     leave(code)
 
 

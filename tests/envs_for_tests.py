@@ -77,6 +77,11 @@ def make_cart() -> Cart:
     return Cart()
 
 
+def make_nothing_in_two_lines() -> Cart:
+    """A factory that fails with a message of two lines, as a user's may."""
+    raise RuntimeError("no cart today\nask again tomorrow")
+
+
 step_reward_cart = Cart("step")
 
 

@@ -25,6 +25,7 @@ update, with an empty compile cache and again with the cache that run filled.
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import shlex
@@ -125,6 +126,9 @@ def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
         os.killpg(process.pid, signal.SIGKILL)
         process.communicate()
         return {"status": f"timeout after {timeout:.0f} s", "wall_s": time.perf_counter() - started}
+    except BaseException:  # this command stopped (Ctrl-C): in a session of its own, the run would go on without it
+        os.killpg(process.pid, signal.SIGKILL)
+        raise
     record = {"wall_s": time.perf_counter() - started}
     found = [line.split(" ", 1)[1] for line in stdout.splitlines() if line.startswith("startup-record ")]
     if process.returncode != 0 or not found:
@@ -143,8 +147,8 @@ def startup(config, argv: list[str]) -> int:
         envs = resolve_envs(config.env_list)
     except InputError as error:
         fail(str(error))
-    if config.timeout <= 0:
-        fail("--timeout must be positive")
+    if not (math.isfinite(config.timeout) and config.timeout > 0):
+        fail(f"--timeout must be a positive number of seconds, got {config.timeout}")
     options = {"--model": shlex.split(config.train_args), "--env": shlex.split(config.env_args)}
     for flag, name in (("--model", "--train-args"), ("--env", "--env-args")):
         if any(argument in (flag, "--out", "--resume") or argument.startswith((f"{flag}=", "--out=", "--resume="))

@@ -31,6 +31,9 @@ from stablebptt.render.mujoco_frames import MAX_VIDEO_FRAMES, video_indices, vid
 
 RENDERS_ROOT = Path("renders")
 STEM = "rollout"  # default name of the files written into a run directory
+# A panel's side at most: 4K's width; drawn at twice that (mujoco_frames.SUPERSAMPLE), within the 8192 pixels
+# an offscreen framebuffer holds on Mesa's renderers.
+MAX_PANEL_PIXELS = 3840
 
 
 @dataclass(frozen=True)
@@ -40,8 +43,8 @@ class RenderConfig:
     rollouts: int = field(default=3, metadata={"help": "rollouts to show, from the first test initial states (at most the run's test size)"})
     seed_index: int = field(default=0, metadata={"help": "which of the run's seeds to roll out (0: the first)"})
     steps: int = field(default=0, metadata={"help": "steps of each rollout: with --model, 0 for the MJCF's bptt_horizon, else 100; a run on carried episodes, 0 for its episode length (at most that); a run from fixed starts rolls out its horizon"})
-    width: int = field(default=400, metadata={"help": "width in pixels of one rollout's video panel"})
-    height: int = field(default=300, metadata={"help": "height in pixels of one rollout's video panel"})
+    width: int = field(default=400, metadata={"help": f"width in pixels of one rollout's video panel (16 to {MAX_PANEL_PIXELS})"})
+    height: int = field(default=300, metadata={"help": f"height in pixels of one rollout's video panel (16 to {MAX_PANEL_PIXELS})"})
     fps: float = field(default=30.0, metadata={"help": "video frames per second (one frame per drawn step: --frame-every)"})
     gif: bool = field(default=False, metadata={"help": "write a GIF instead of an MP4"})
     video: bool = field(default=True, metadata={"help": "write the video (--no-video: only the pictures)"})
@@ -56,8 +59,8 @@ class RenderConfig:
             raise InputError("--seed-index, --steps and --frame-every must be zero or positive")
         if not self.fps > 0:
             raise InputError(f"--fps must be a positive number, got {self.fps}")
-        if self.width < 16 or self.height < 16:
-            raise InputError(f"--width and --height must be at least 16 pixels, got {self.width}x{self.height}")
+        if not (16 <= self.width <= MAX_PANEL_PIXELS and 16 <= self.height <= MAX_PANEL_PIXELS):
+            raise InputError(f"--width and --height must be 16 to {MAX_PANEL_PIXELS} pixels, got {self.width}x{self.height}")
 
 
 def parse(argv: list[str]) -> tuple[argparse.Namespace, RenderConfig]:
@@ -106,6 +109,9 @@ def roll_out(args, config: RenderConfig, task, train, params):
 
     # Whether the run trained on carried episodes; rolled out at the task's length, however soon training cut them.
     episodes = None if args.run_dir is None or episodes_of(task, train) is None else task.episodes
+    if args.run_dir is not None and config.rollouts > train.test_size:
+        raise InputError(f"--rollouts {config.rollouts}: the run tested {train.test_size} states "
+                         f"(give 1 to {train.test_size})")
     if episodes is None:
         if args.run_dir is not None and config.steps:
             raise InputError(f"--steps applies to --model and to runs on carried episodes: this run trained from fixed "

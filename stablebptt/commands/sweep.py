@@ -84,9 +84,14 @@ def parse_list(text: str, allowed, name: str, kind=str) -> list:
         values = [kind(v) for v in text.split(",") if v.strip()]
     except ValueError:
         fail(f"--{name} takes comma-separated values, got {text!r}")
+    if not values:
+        fail(f"--{name} takes comma-separated values, got none in {text!r}")
     bad = [v for v in values if allowed is not None and v not in allowed]
-    if bad or not values:
-        fail(f"--{name}: {bad[0] if bad else 'nothing'} is not one of {', '.join(map(str, allowed))}")
+    if bad:
+        fail(f"--{name}: {bad[0]} is not one of {', '.join(map(str, allowed))}")
+    twice = [v for index, v in enumerate(values) if v in values[:index]]
+    if twice:  # each value is a cell of the grid: the same one twice would train it twice under one name
+        fail(f"--{name} lists {twice[0]} more than once")
     return values
 
 

@@ -11,12 +11,14 @@ stablebptt.flows.gradients.sign_agreement).
 """
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from stablebptt.cli import parse_config
+from stablebptt.cli import one_line_errors, parse_config
 from stablebptt.errors import InputError
+from stablebptt.reports.plots import FORMATS, render
 
 
 @dataclass(frozen=True)
@@ -30,8 +32,14 @@ class ToyConfig:
     def __post_init__(self):
         if not (0 <= abs(self.angle) < 90):
             raise InputError(f"--angle must be within (-90, 90) degrees, got {self.angle}")
-        if self.steps <= 0 or not self.lr > 0:
-            raise InputError("--steps and --lr must be positive")
+        if not (math.isfinite(self.anisotropy) and self.anisotropy > 0):
+            raise InputError(f"--anisotropy must be a positive number, got {self.anisotropy}")
+        if self.steps <= 0:
+            raise InputError(f"--steps must be positive, got {self.steps}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise InputError(f"--lr must be a positive number, got {self.lr}")
+        if Path(self.out).suffix.lower() not in FORMATS:  # known before Adam runs, not after
+            raise InputError(f"--out {self.out}: give a file name ending in {', '.join(FORMATS)}")
 
 
 def main(argv: list[str]) -> int:
@@ -43,7 +51,6 @@ def main(argv: list[str]) -> int:
     from matplotlib.figure import Figure
 
     from stablebptt.flows.modes import sign_agreement
-    from stablebptt.reports.plots import render
 
     curvature = jnp.array([1.0, config.anisotropy])
     loss = lambda p: 0.5 * jnp.sum(curvature * p**2)
@@ -84,8 +91,12 @@ def main(argv: list[str]) -> int:
     losses.set(xlabel="Adam step", ylabel="loss", title="loss along the path")
     losses.grid(alpha=0.3, which="both")
     out = Path(config.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    render(figure, out)
+    with one_line_errors():
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise InputError(f"cannot write {out}: {error.strerror}") from None
+        render(figure, out)
     finals = {name: float(loss(jnp.asarray(path[-1]))) for name, path in paths.items()}
     print("final loss: " + ", ".join(f"{name} {value:.2e}" for name, value in finals.items()))
     print(f"wrote {out}")

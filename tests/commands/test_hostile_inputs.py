@@ -160,6 +160,7 @@ NAMED_REFUSALS = [
     (["--env", "envs_for_tests:make_cart", "--steps", "4", "--episode-length", "6", "--unroll", "7"],
      ("--unroll 7", "has 6 steps")),
     (["--env", ":"], ("package.module:attribute",)),
+    (["--env", "envs_for_tests:make_nothing_in_two_lines"], ("no cart today / ask again tomorrow",)),
 ]
 BAD_COMMAND_LINES += [(arguments, None) for arguments, _ in CONFLICTS + NAMED_REFUSALS]
 
@@ -424,3 +425,13 @@ def test_a_library_users_process_refused_while_work_runs_beside_exits_as_python_
         assert exited.value.code == 2
     finally:
         release.set()
+
+
+@pytest.mark.parametrize("arguments", [["--anisotropy", "nan"], ["--anisotropy", "-1"], ["--lr", "inf"], ["--steps", "0"],
+                                       ["--out", "toy.txt"]])
+def test_the_toy_problem_refuses_bad_input_before_adam_runs(capsys, arguments):
+    from stablebptt.commands import toy
+    with pytest.raises(SystemExit) as exit_:
+        toy.main(arguments)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert exit_.value.code == 2 and len(lines) == 1 and arguments[0] in lines[0], lines

@@ -375,6 +375,8 @@ def bad_inputs(root: Path, repulsion_run: Path, tmp_path: Path) -> dict[str, lis
         "seed out of range": [repulsion_run, "--seed-index", 5],
         "--steps with a run": [repulsion_run, "--steps", 5],
         "zero width": [repulsion_run, "--width", 0],
+        "a width no framebuffer holds": [repulsion_run, "--width", 100000000],
+        "more rollouts than the run tested": [repulsion_run, "--rollouts", 99],
         "not a video name": [repulsion_run, "--out", tmp_path / "x.avi"],
         "--gif with an .mp4 name": [repulsion_run, "--gif", "--out", tmp_path / "x.mp4"],
         "existing --out": ["--model", MODEL, "--out", root / "cartpole.mp4"],
