@@ -26,9 +26,12 @@ def usage() -> str:
 def main(argv: list[str] | None = None) -> int:
     stop_at_once_on_interrupt()  # first: Ctrl-C stops in one line in every phase of a command
     argv = sys.argv[1:] if argv is None else argv
-    if not argv or argv[0] in ("-h", "--help"):
+    if argv and argv[0] in ("-h", "--help"):
         print(usage())
         return 0
+    if not argv:  # a command to run is missing: the usage says which there are
+        print(usage(), file=sys.stderr)
+        return 2
     if argv[0] not in SUBCOMMANDS:
         print(f"error: unknown subcommand {argv[0]!r}; one of {', '.join(SUBCOMMANDS)}", file=sys.stderr)
         return 2

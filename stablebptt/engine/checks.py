@@ -61,12 +61,17 @@ def check_dynamics(dynamics: Any) -> None:
             raise TaskError(f"Dynamics.{name} must be a function, got {getattr(dynamics, name)!r}")
 
 
+def require_task(task: Any) -> None:
+    """Raise ``TaskError`` unless ``task`` is a ``Task``: before anything reads its fields."""
+    if not isinstance(task, Task):
+        raise TaskError(f"expected a stablebptt.Task, got {type(task).__name__}")
+
+
 def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2,)) -> None:
     """Trace ``task`` with shapes only and raise ``TaskError`` naming the first field that does not fit;
     its sampler at each of ``counts`` (a trainer's: the counts it draws, so that an environment's batched
     reset, a large trace, is traced for no other)."""
-    if not isinstance(task, Task):
-        raise TaskError(f"expected a stablebptt.Task, got {type(task).__name__}")
+    require_task(task)
     dynamics = task.dynamics
     check_dynamics(dynamics)
     if not isinstance(task.plan, Plan):

@@ -11,6 +11,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 
+from stablebptt.engine.checks import require_task
 from stablebptt.engine.compiling import CompiledBeside, beside, host_cpu, untimed_options
 from stablebptt.engine.config import TrainConfig
 from stablebptt.engine.lowering import LoweredEpoch, lowered_epoch, lowered_refill, programs_beside, refill_kept_also
@@ -48,6 +49,7 @@ def prepare(task: Any, config: TrainConfig, program_key: dict | None = None, res
     Raises:
       InputError: the task refused by its checks, or by the trainer's set-up, named.
     """
+    require_task(task)
     phases: dict[str, float] = {}
     lap = _lap_clock(phases)
     program_key = _smoothed_key(program_key, task)

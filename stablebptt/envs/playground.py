@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from stablebptt.errors import InputError
+from stablebptt.physics import mujoco_log
 from stablebptt.imports import imported_without
 
 EXTRA = "pip install 'stablebptt[playground]'"
@@ -132,7 +133,8 @@ def load(name: str) -> Any:
         raise InputError(f"{name} has no 'impl' setting: it runs on MuJoCo Warp only, which has no gradients")
     fetch_menagerie(name)
     try:
-        env = known.load(name, config_overrides={"impl": "jax"})
+        with mujoco_log.collected() as notices:
+            env = known.load(name, config_overrides={"impl": "jax"})
     except Exception as error:  # noqa: BLE001 - an env that cannot be built on MJX's JAX implementation
         mjx_env = _module("mujoco_playground._src.mjx_env")
         if mjx_env.MENAGERIE_PATH.name in str(error):  # a checkout that lacks what the robot loads
@@ -144,6 +146,9 @@ def load(name: str) -> Any:
     impl = getattr(getattr(env, "mjx_model", None), "impl", None)
     if impl is not None and getattr(impl, "value", impl) != "jax":
         raise InputError(f"{name} runs on {getattr(impl, 'value', impl)}, not MJX's JAX implementation: no gradients")
+    for notice in notices:  # an attribute Playground's own file uses, which MuJoCo will drop, is no user's to change
+        if "is deprecated" not in notice:
+            print(f"mujoco ({name}'s model): {notice}", file=sys.stderr)
     return env
 
 

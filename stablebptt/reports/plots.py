@@ -28,7 +28,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.cli import typed_option
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, StorageError
 from stablebptt.flows.modes import MODE_ORDER, MODES
 from stablebptt.reports.choices import BANDS
 from stablebptt.reports.curves import (
@@ -325,8 +325,8 @@ def render(figure: Figure, out_path: Path, dpi: int = 150) -> Path:
         figure.savefig(buffer, format=out_path.suffix.lower()[1:], dpi=dpi)
     try:
         atomic_write(out_path, buffer.getvalue())
-    except OSError as error:
-        raise InputError(f"cannot write {out_path}: {error.strerror}") from None
+    except StorageError as error:  # its words already name the file
+        raise InputError(error.strerror) from None
     return out_path
 
 

@@ -47,7 +47,7 @@ FREE, BALL, SLIDE, HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.
 def load_model(path: Path) -> mujoco.MjModel:
     """Load an MJCF (or a compiled ``.mjb``, or ``.mjb.gz`` as runs keep it); any failure becomes one clear InputError line."""
     if not path.is_file():
-        raise InputError(f"model file {path} does not exist")
+        raise InputError(f"model file {path} {'is a folder, not a file' if path.is_dir() else 'does not exist'}")
     try:
         with mujoco_log.collected() as warnings:
             if path.suffix in (".mjb", ".gz"):

@@ -50,6 +50,7 @@ CASES = {
     "--eval-every of no updates": ({}, ["--eval-every", "0"], "--eval-every"),
     "--eval-every of negative seconds": ({}, ["--eval-every", "-3s"], "--eval-every"),
     "--eval-every of no number": ({}, ["--eval-every", "often"], "--eval-every"),
+    "--eval-every past a count": ({}, ["--eval-every", str(2**70)], "--eval-every"),
     "a collision pair MJX lacks": (dict(extra_body='<body pos="0 0 -3"><freejoint/><geom type="cylinder" size="0.1 0.1"/>'
                                                    '</body><geom type="box" size="1 1 0.1" pos="0 0 -4"/>'),
                                    [], "cylinder-box contacts"),
@@ -161,6 +162,8 @@ NAMED_REFUSALS = [
      ("--unroll 7", "has 6 steps")),
     (["--env", ":"], ("package.module:attribute",)),
     (["--env", "envs_for_tests:make_nothing_in_two_lines"], ("no cart today / ask again tomorrow",)),
+    # Playground's cheetah as shipped uses an attribute MuJoCo has deprecated: no line of its own.
+    (["--env", "CheetahRun", "--devices", "99"], ("CheetahRun", "--devices 99")),
 ]
 BAD_COMMAND_LINES += [(arguments, None) for arguments, _ in CONFLICTS + NAMED_REFUSALS]
 
@@ -323,6 +326,13 @@ TASK_CASES = {
     "sampler size": "Task.sample_initial_states(key, 8) must return 8 states",  # the training states' count
     "integer parameters": "Task.init_params must return float parameters",
 }
+
+
+def test_train_given_no_task_says_so_in_its_own_terms():
+    import stablebptt as sb
+    from stablebptt.engine.checks import TaskError
+    with pytest.raises(TaskError, match="expected a stablebptt.Task, got str"):
+        sb.train("CartpoleSwingup", sb.TrainConfig(epochs=1))
 
 
 @pytest.mark.parametrize("case", sorted(TASK_CASES))
