@@ -166,10 +166,12 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
     check_env_task_arguments(**{argument: value for argument, value in locals().items() if argument != "env"})
+    if _is_playground(env):
+        from stablebptt.envs import playground
+        playground.require_jax_impl(env, type(env).__name__, EnvError)  # MuJoCo Warp, Playground's default
     if reward_context is None:
         reward_context = contextlib.nullcontext
         if _is_playground(env):
-            from stablebptt.envs import playground
             reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
     # The step searched as the task traces it, inside the reward's repair: the returns the same to the bit.
     left_out = unread_outputs_off(env, diagnosis_key, reward_context)

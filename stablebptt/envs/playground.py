@@ -125,6 +125,20 @@ def _menagerie_remedy(mjx_env: Any) -> str:
             f"git -C {path} checkout {mjx_env.MENAGERIE_COMMIT_SHA}, or a copy of one from a machine with network)")
 
 
+def simulated_by(env: Any) -> str | None:
+    """Which implementation of MJX a Playground env steps with ("jax", "warp"), or None where it says nothing."""
+    impl = getattr(getattr(env, "mjx_model", None), "impl", None)
+    return None if impl is None else str(getattr(impl, "value", impl))
+
+
+def require_jax_impl(env: Any, name: str, error: type[InputError] = InputError) -> None:
+    """Refuse an env simulated by other than MJX's JAX implementation, the only one with gradients."""
+    impl = simulated_by(env)
+    if impl not in (None, "jax"):
+        raise error(f"{name} runs on {impl}, not MJX's JAX implementation, the only one with gradients: load it "
+                    f"with config_overrides={{'impl': 'jax'}}")
+
+
 def load(name: str) -> Any:
     """The environment ``name`` of Playground's registry, simulated by MJX's JAX implementation."""
     known = check_name(name)
@@ -143,9 +157,7 @@ def load(name: str) -> Any:
                              f"({first_line(error)}): remove the folder and {_menagerie_remedy(mjx_env)}") from None
         raise InputError(f"{name} cannot be built with impl='jax' ({type(error).__name__}: "
                          f"{str(error).splitlines()[0] if str(error) else ''}): it needs MuJoCo Warp, which has no gradients") from None
-    impl = getattr(getattr(env, "mjx_model", None), "impl", None)
-    if impl is not None and getattr(impl, "value", impl) != "jax":
-        raise InputError(f"{name} runs on {getattr(impl, 'value', impl)}, not MJX's JAX implementation: no gradients")
+    require_jax_impl(env, name)
     for notice in notices:  # an attribute Playground's own file uses, which MuJoCo will drop, is no user's to change
         if "is deprecated" not in notice:
             print(f"mujoco ({name}'s model): {notice}", file=sys.stderr)

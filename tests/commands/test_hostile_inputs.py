@@ -328,6 +328,18 @@ TASK_CASES = {
 }
 
 
+def test_a_playground_env_on_mujoco_warp_is_refused_naming_the_setting_that_fixes_it():
+    import types
+
+    import stablebptt as sb
+    from stablebptt.envs.protocol import EnvError
+    # As Playground's registry.load gives it without config_overrides: simulated by MuJoCo Warp.
+    OnWarp = type("OnWarp", (), {"__module__": "mujoco_playground._src.dm_control_suite.cartpole",
+                                 "mjx_model": types.SimpleNamespace(impl=types.SimpleNamespace(value="warp"))})
+    with pytest.raises(EnvError, match=r"OnWarp runs on warp, .* config_overrides=\{'impl': 'jax'\}"):
+        sb.env_task(OnWarp(), horizon=16, diagnose=False)
+
+
 def test_train_given_no_task_says_so_in_its_own_terms():
     import stablebptt as sb
     from stablebptt.engine.checks import TaskError
