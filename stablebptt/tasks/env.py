@@ -104,7 +104,12 @@ def recipe_options(name: str, env: str = "", given: Mapping[str, object] | None 
         raise InputError(f"no recipe {name!r}: choose one of {', '.join(sorted(RECIPES))}")
     if not isinstance(env, str):
         raise InputError(f"a recipe's env is the env's name (a string, as --env takes it), got {type(env).__name__}")
-    options = {**RECIPES[name], **RECIPES_BY_ENV.get(name, {}).get(env, {})}
+    own = RECIPES_BY_ENV.get(name, {})
+    spelled = [known for known in own if known.lower() == env.lower() and known != env]
+    if spelled:  # its own values would be left out without a word: a name of yours alone takes the common ones
+        raise InputError(f"recipe {name} has options of its own for {spelled[0]}, not {env!r}: name the env as the "
+                         f"registry does")
+    options = {**RECIPES[name], **own.get(env, {})}
     defaults = {option.name: option.default for config in (TrainConfig, Config) for option in fields(config)}
     while True:  # until no value left out leaves another's reason gone
         chosen = {**defaults, **options, **(given or {})}  # every option's value as the run will take it

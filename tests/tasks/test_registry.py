@@ -227,6 +227,11 @@ def test_a_recipe_from_python_is_env_tasks_arguments_and_the_train_configs_field
     assert all(getattr(train, name) == value for name, value in train_options.items())
     with pytest.raises(InputError, match="no recipe 'swimming': choose one of locomotion"):
         sb.recipe("swimming")
+    # An env of the user's own takes the common options; a registry name spelled otherwise is refused, not
+    # given the common ones in place of its own.
+    assert sb.recipe("locomotion", "MyLabsHexapod") == sb.recipe("locomotion")
+    with pytest.raises(InputError, match="options of its own for CheetahRun, not 'cheetahrun'"):
+        sb.recipe("locomotion", "cheetahrun")
 
 
 def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_option_beside_still_wins():
