@@ -256,6 +256,13 @@ def refuse_used(path: Path) -> None:
         raise InputError(f"{path} is a file: give a directory for the run")
     if path.is_dir() and any(not entry.name.startswith(".") for entry in path.iterdir()):
         raise InputError(f"{path} already exists and is not empty: choose another --out, or continue it with --resume {path}")
+    above = path.absolute()
+    while not above.exists() and above != above.parent:  # the nearest folder that is there, to make the run's in
+        above = above.parent
+    if above.exists() and not above.is_dir():
+        raise InputError(f"cannot create {path}: {above} is a file")
+    if above.is_dir() and not os.access(above, os.W_OK | os.X_OK):
+        raise InputError(f"cannot create {path}: {above} is not writable")
 
 
 def create_run(path: Path, record: dict) -> RunLock:

@@ -814,3 +814,14 @@ def test_the_out_of_memory_line_offers_what_holds_fewer_states_in_the_runs_own_n
     assert f"--resume {tmp_path} --devices 2 (its states split over 2 of the 4 devices JAX sees)" in _less_memory(
         env_config, TrainConfig(batch=10), tmp_path, horizon=16)
     assert "--devices" not in _less_memory(env_config, TrainConfig(batch=256, devices=0), tmp_path, horizon=16)
+
+
+@pytest.mark.parametrize("out, words", [("file", "is a file: give a directory"), ("file/run", "cannot create"),
+                                        ("used", "already exists and is not empty")])
+def test_an_out_that_cannot_hold_the_run_is_refused_in_one_line(tmp_path, capsys, out, words):
+    (tmp_path / "file").write_text("kept")
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "notes.txt").write_text("kept")
+    code, err, _ = train(capsys, *SMALL, "--epochs", "1", "--out", str(tmp_path / out))
+    assert code == 2 and len(err) == 1 and words in err[0], err
+    assert (tmp_path / "file").read_text() == (tmp_path / "used" / "notes.txt").read_text() == "kept"
