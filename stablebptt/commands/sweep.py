@@ -95,18 +95,23 @@ def parse_list(text: str, allowed, name: str, kind=str) -> list:
     return values
 
 
-def start_processes(config: SweepConfig) -> None:
-    """jax.distributed for several hosts, when asked; the compilation cache."""
+def hosts_given(config: SweepConfig) -> bool:
+    """Whether the command names its hosts (jax.distributed's three settings); refused where it names some."""
     given = [config.coordinator != "", config.num_processes != 0, config.process_id != -1]
     if any(given) and not all(given):
         fail("--coordinator, --num-processes and --process-id go together")
     if all(given) and not (config.num_processes > 0 and 0 <= config.process_id < config.num_processes):
         fail(f"--process-id must be 0 to --num-processes - 1 ({config.num_processes - 1}), got {config.process_id}")
+    return all(given)
+
+
+def start_processes(config: SweepConfig) -> None:
+    """jax.distributed for several hosts, when asked; the compilation cache."""
     import jax
 
     from stablebptt.cli import use_compile_cache
     use_compile_cache(config.compile_cache)
-    if all(given):
+    if hosts_given(config):
         jax.distributed.initialize(config.coordinator, config.num_processes, config.process_id)
     elif config.distributed:
         jax.distributed.initialize()
@@ -207,6 +212,7 @@ def main(argv: list[str]) -> int:
             fail(f"--{name.replace('_', '-')} must be a number of seconds, 0 or more, got {getattr(config, name)}")
     if config.seed_range and (config.merge or config.report):
         fail("--seed-range trains a piece; --merge and --report train nothing: give one")
+    hosts_given(config)  # before the task is built
     from stablebptt.grids.pieces import parse_seed_range
     with one_line_errors():
         start, stop = parse_seed_range(config.seed_range, config.seeds) if config.seed_range else (0, config.seeds)
