@@ -61,9 +61,12 @@ class BenchConfig:
     @property
     def pole_list(self) -> list[int]:
         try:
-            return [int(count) for count in self.poles.split(",") if count]
+            counts = [int(count) for count in self.poles.split(",") if count.strip()]
         except ValueError:
-            raise InputError(f"--poles takes comma-separated integers, got {self.poles!r}") from None
+            counts = []
+        if not counts:
+            raise InputError(f"--poles takes comma-separated integers, got {self.poles!r}")
+        return counts
 
 
 @dataclass(frozen=True)

@@ -46,13 +46,17 @@ def main(argv: list[str]) -> int:
     config = parse_config(BenchConfig, argv, __doc__, "benchmark")
     if config.startup:
         return startup(config, argv)
+    for name in ("models", "envs", "suite"):  # the tables time tasks: these would change nothing there
+        if getattr(config, name):
+            fail(f"--{name} chooses what --startup times: give --startup, or leave --{name} out")
     from stablebptt import tasks
     names = config.task_list  # "cartpole": the MJCF task's cart-poles (--poles)
     unknown = [t for t in names if tasks.canonical(t) not in tasks.entries()]
     if unknown:
         fail(f"unknown task {unknown[0]!r}: choose from {', '.join(sorted(tasks.entries()))}")
-    if config.rounds <= 0 or config.batch <= 0:
-        fail("--rounds and --batch must be positive")
+    for name in ("rounds", "batch"):
+        if getattr(config, name) <= 0:
+            fail(f"--{name} must be positive, got {getattr(config, name)}")
     tables = config.table_list
     if not tables or any(name not in TABLES for name in tables):
         fail(f"--tables takes a comma-separated subset of {', '.join(TABLES)}, got {','.join(tables) or 'nothing'}")
@@ -140,6 +144,8 @@ def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
 def startup(config, argv: list[str]) -> int:
     """The start-up table (``--startup``): cold and warm fresh processes per model and environment, a row at a time."""
     from stablebptt.apps.startup import resolve_envs, resolve_models, table
+    if not (math.isfinite(config.timeout) and config.timeout > 0):
+        fail(f"--timeout must be a positive number of seconds, got {config.timeout}")
     from stablebptt.errors import InputError
     from stablebptt.storage import atomic_write
     try:  # the default models only where neither models nor environments are named
@@ -147,8 +153,6 @@ def startup(config, argv: list[str]) -> int:
         envs = resolve_envs(config.env_list)
     except InputError as error:
         fail(str(error))
-    if not (math.isfinite(config.timeout) and config.timeout > 0):
-        fail(f"--timeout must be a positive number of seconds, got {config.timeout}")
     options = {"--model": shlex.split(config.train_args), "--env": shlex.split(config.env_args)}
     for flag, name in (("--model", "--train-args"), ("--env", "--env-args")):
         if any(argument in (flag, "--out", "--resume") or argument.startswith((f"{flag}=", "--out=", "--resume="))

@@ -55,8 +55,9 @@ class RenderConfig:
         for name in ("rollouts", "width", "height", "strip_states"):
             if getattr(self, name) <= 0:
                 raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
-        if self.seed_index < 0 or self.steps < 0 or self.frame_every < 0:
-            raise InputError("--seed-index, --steps and --frame-every must be zero or positive")
+        for name in ("seed_index", "steps", "frame_every"):
+            if getattr(self, name) < 0:
+                raise InputError(f"--{name.replace('_', '-')} must be zero or positive, got {getattr(self, name)}")
         if not self.fps > 0:
             raise InputError(f"--fps must be a positive number, got {self.fps}")
         if not (16 <= self.width <= MAX_PANEL_PIXELS and 16 <= self.height <= MAX_PANEL_PIXELS):

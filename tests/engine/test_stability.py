@@ -264,9 +264,11 @@ def test_bench_command_writes_the_tables_it_is_asked_for(tmp_path, capsys):
     """`stablebptt bench` (through the installed command's dispatcher): a row per mode for repulsion; for the
     cart-pole with `--tables steps --simulators generated,floor`, only those simulators and the parts."""
     from stablebptt.commands import bench as bench_command
-    code, lines = refused_in_process(bench_command.main, ["--rounds", "1", "--tasks", "cartpole", "--simulators",
-                                                          "generated,warp"], capsys)
-    assert code == 2 and len(lines) == 1 and "--simulators" in lines[0], lines
+    for arguments, named in ((["--tasks", "cartpole", "--simulators", "generated,warp"], "--simulators"),
+                             (["--tasks", "cartpole", "--poles", ","], "--poles"), (["--envs", "CheetahRun"], "--envs"),
+                             (["--batch", "0"], "--batch"), (["--startup", "--timeout", "nan"], "--timeout")):
+        code, lines = refused_in_process(bench_command.main, ["--rounds", "1", *arguments], capsys)
+        assert code == 2 and len(lines) == 1 and named in lines[0], (arguments, lines)
     command = [sys.executable, "-m", "stablebptt.commands.main", "bench", "--rounds", "1"]
     modes, steps = tmp_path / "modes.md", tmp_path / "steps.md"
     # Side by side: the two commands share nothing but the machine.
