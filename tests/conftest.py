@@ -31,7 +31,7 @@ import pytest
 import stablebptt
 
 stablebptt.one_cpu_thread()  # XLA:CPU's set-up, before JAX creates its CPU client
-from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+from stablebptt.runtime import COMPILE_CACHE_ENV, use_compile_cache
 
 # One compilation cache for the session, its workers and the command lines the tests start included:
 # a program compiled once (the same small run, resumed, killed, rendered, or built by tests on another

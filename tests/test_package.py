@@ -76,7 +76,8 @@ def test_installed_command_runs_subcommands_and_refuses_bad_input_in_one_line(in
     unknown = _run_installed(target, tmp_path, sys.executable, str(command), "fly")
     assert unknown.returncode == 2 and "unknown subcommand" in unknown.stderr
     missing = _run_installed(target, tmp_path, sys.executable, str(command))
-    assert missing.returncode == 2 and "train" in missing.stderr and missing.stdout == "", missing
+    assert missing.returncode == 2 and missing.stdout == "" and len(missing.stderr.strip().splitlines()) == 1, missing
+    assert "give a subcommand" in missing.stderr and "train" in missing.stderr
     assert not list(tmp_path.iterdir())  # nothing written into the working directory
 
 

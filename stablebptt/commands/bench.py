@@ -37,7 +37,7 @@ import time
 from pathlib import Path
 
 from stablebptt.apps.bench import TABLES, BenchConfig
-from stablebptt.cli import fail, parse_config
+from stablebptt.cli import ended_with_the_command, fail, parse_config
 from stablebptt.errors import InputError
 from stablebptt.timing import machine, usable_cores
 
@@ -125,14 +125,12 @@ def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
     process = subprocess.Popen([sys.executable, "-c", _PROBE] + command, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, env=environment, start_new_session=True)
     try:
-        stdout, stderr = process.communicate(timeout=timeout)
+        with ended_with_the_command(lambda: os.killpg(process.pid, signal.SIGKILL)):  # Ctrl-C of this command
+            stdout, stderr = process.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         os.killpg(process.pid, signal.SIGKILL)
         process.communicate()
         return {"status": f"timeout after {timeout:.0f} s", "wall_s": time.perf_counter() - started}
-    except BaseException:  # this command stopped (Ctrl-C): in a session of its own, the run would go on without it
-        os.killpg(process.pid, signal.SIGKILL)
-        raise
     record = {"wall_s": time.perf_counter() - started}
     found = [line.split(" ", 1)[1] for line in stdout.splitlines() if line.startswith("startup-record ")]
     if process.returncode != 0 or not found:

@@ -29,8 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] in ("-h", "--help"):
         print(usage())
         return 0
-    if not argv:  # a command to run is missing: the usage says which there are
-        print(usage(), file=sys.stderr)
+    if not argv:
+        print(f"error: give a subcommand: one of {', '.join(SUBCOMMANDS)} (stablebptt --help)", file=sys.stderr)
         return 2
     if argv[0] not in SUBCOMMANDS:
         print(f"error: unknown subcommand {argv[0]!r}; one of {', '.join(SUBCOMMANDS)}", file=sys.stderr)

@@ -27,24 +27,29 @@ from pathlib import Path
 from stablebptt.cli import Parser, add_options, build, fail, one_line_errors, path_named
 from stablebptt.errors import InputError
 from stablebptt.render.media import fresh_outputs
-from stablebptt.render.mujoco_frames import MAX_VIDEO_FRAMES, video_indices, video_stride
+from stablebptt.render.mujoco_frames import MAX_VIDEO_FRAMES, SUPERSAMPLE, video_indices, video_stride
 
 RENDERS_ROOT = Path("renders")
 STEM = "rollout"  # default name of the files written into a run directory
-# A panel's side at most: 4K's width; drawn at twice that (mujoco_frames.SUPERSAMPLE), within the 8192 pixels
-# an offscreen framebuffer holds on Mesa's renderers.
-MAX_PANEL_PIXELS = 3840
+DEFAULT_ROLLOUTS = 3
+# A panel's side at most: its frame strip is twice the panel, drawn at SUPERSAMPLE times that, within the 8192
+# pixels an offscreen framebuffer holds on every renderer MuJoCo draws with here (Mesa's, EGL's).
+MAX_PANEL_PIXELS = 8192 // (2 * SUPERSAMPLE)
 
 
 @dataclass(frozen=True)
 class RenderConfig:
     """Options of scripts/render.py."""
 
-    rollouts: int = field(default=3, metadata={"help": "rollouts to show, from the first test initial states (at most the run's test size)"})
+    rollouts: int = field(default=0, metadata={
+        "help": f"rollouts to show, from the first test initial states, at most the run's test size "
+                f"(0: {DEFAULT_ROLLOUTS}, or all where it tested fewer)"})
     seed_index: int = field(default=0, metadata={"help": "which of the run's seeds to roll out (0: the first)"})
     steps: int = field(default=0, metadata={"help": "steps of each rollout: with --model, 0 for the MJCF's bptt_horizon, else 100; a run on carried episodes, 0 for its episode length (at most that); a run from fixed starts rolls out its horizon"})
-    width: int = field(default=400, metadata={"help": f"width in pixels of one rollout's video panel (16 to {MAX_PANEL_PIXELS})"})
-    height: int = field(default=300, metadata={"help": f"height in pixels of one rollout's video panel (16 to {MAX_PANEL_PIXELS})"})
+    width: int = field(default=400, metadata={
+        "help": f"width in pixels of one rollout's video panel (16 to {MAX_PANEL_PIXELS})"})
+    height: int = field(default=300, metadata={
+        "help": f"height in pixels of one rollout's video panel (16 to {MAX_PANEL_PIXELS})"})
     fps: float = field(default=30.0, metadata={"help": "video frames per second (one frame per drawn step: --frame-every)"})
     gif: bool = field(default=False, metadata={"help": "write a GIF instead of an MP4"})
     video: bool = field(default=True, metadata={"help": "write the video (--no-video: only the pictures)"})
@@ -52,16 +57,17 @@ class RenderConfig:
     frame_every: int = field(default=0, metadata={"help": f"MuJoCo scenes: the video draws every this many steps' state, and the last (0: every step's up to {MAX_VIDEO_FRAMES - 1} steps, else the smallest stride that keeps the video within {MAX_VIDEO_FRAMES} frames)"})
 
     def __post_init__(self):
-        for name in ("rollouts", "width", "height", "strip_states"):
+        for name in ("width", "height", "strip_states"):
             if getattr(self, name) <= 0:
                 raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
-        for name in ("seed_index", "steps", "frame_every"):
+        for name in ("rollouts", "seed_index", "steps", "frame_every"):
             if getattr(self, name) < 0:
                 raise InputError(f"--{name.replace('_', '-')} must be zero or positive, got {getattr(self, name)}")
         if not self.fps > 0:
             raise InputError(f"--fps must be a positive number, got {self.fps}")
         if not (16 <= self.width <= MAX_PANEL_PIXELS and 16 <= self.height <= MAX_PANEL_PIXELS):
-            raise InputError(f"--width and --height must be 16 to {MAX_PANEL_PIXELS} pixels, got {self.width}x{self.height}")
+            raise InputError(f"--width and --height must be 16 to {MAX_PANEL_PIXELS} pixels, "
+                             f"got {self.width}x{self.height}")
 
 
 def parse(argv: list[str]) -> tuple[argparse.Namespace, RenderConfig]:
@@ -113,18 +119,19 @@ def roll_out(args, config: RenderConfig, task, train, params):
     if args.run_dir is not None and config.rollouts > train.test_size:
         raise InputError(f"--rollouts {config.rollouts}: the run tested {train.test_size} states "
                          f"(give 1 to {train.test_size})")
+    count = config.rollouts or min(DEFAULT_ROLLOUTS, train.test_size)
     if episodes is None:
         if args.run_dir is not None and config.steps:
             raise InputError(f"--steps applies to --model and to runs on carried episodes: this run trained from fixed "
                              f"starts and is rolled out over its horizon of {task.dynamics.horizon} steps")
-        states, controls, losses = rollouts_from_test_states(task, train, params, config.rollouts)
+        states, controls, losses = rollouts_from_test_states(task, train, params, count)
         titles = [f"test state {i + 1}: loss {loss:.3g}" for i, loss in enumerate(losses)]
         return states, controls, titles, (f"{plural(len(losses), 'rollout')} of {controls.shape[1]} steps, "
                                           f"losses {', '.join(f'{loss:.4g}' for loss in losses)}")
     if config.steps > episodes.length:
         raise InputError(f"--steps {config.steps}: the run's episodes are {episodes.length} steps long "
                          f"(give 1 to {episodes.length})")
-    episode = episodes_from_test_states(task, episodes, params, train, config.rollouts, config.steps)
+    episode = episodes_from_test_states(task, episodes, params, train, count, config.steps)
     steps = episode.controls.shape[1]
     ended = [f"episode {i + 1} ended after {length} steps" for i, length in enumerate(episode.lengths) if length < steps]
     titles = [f"test state {i + 1}: return {value:.3g}" for i, value in enumerate(episode.returns)]
@@ -145,8 +152,9 @@ def main(argv: list[str]) -> int:
             from stablebptt.runs import run_folder  # imports JAX: only once there is a run to read
             task_name = run_folder.open_run(args.run_dir)["task"]
         else:
-            if not args.model.is_file():
-                raise InputError(f"model file {args.model} does not exist")
+            if not args.model.is_file():  # as loading it would say, before a task is built
+                from stablebptt.tasks.mjcf_spec import model_file_missing
+                raise InputError(model_file_missing(args.model))
             task_name = tasks.MJCF_TASK
         entry = tasks.entry(task_name)
         if not entry.draw:
@@ -159,7 +167,8 @@ def main(argv: list[str]) -> int:
             from stablebptt.render.gl_backend import select_gl_backend
             select_gl_backend()
 
-    from stablebptt.cli import leave_out_unused_backends, use_compile_cache
+    from stablebptt.cli import leave_out_unused_backends
+    from stablebptt.runtime import use_compile_cache
     leave_out_unused_backends()  # after the GL backend is chosen: it imports MJX, and MJX mujoco
     use_compile_cache()
 

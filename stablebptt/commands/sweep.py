@@ -109,7 +109,7 @@ def start_processes(config: SweepConfig) -> None:
     """jax.distributed for several hosts, when asked; the compilation cache."""
     import jax
 
-    from stablebptt.cli import use_compile_cache
+    from stablebptt.runtime import use_compile_cache
     use_compile_cache(config.compile_cache)
     if hosts_given(config):
         jax.distributed.initialize(config.coordinator, config.num_processes, config.process_id)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from stablebptt.cli import one_line_errors, parse_config
 from stablebptt.errors import InputError
-from stablebptt.reports.plots import FORMATS, render
+from stablebptt.reports.choices import FORMATS
 
 
 @dataclass(frozen=True)
@@ -51,6 +51,7 @@ def main(argv: list[str]) -> int:
     from matplotlib.figure import Figure
 
     from stablebptt.flows.modes import sign_agreement
+    from stablebptt.reports.plots import render
 
     curvature = jnp.array([1.0, config.anisotropy])
     loss = lambda p: 0.5 * jnp.sum(curvature * p**2)

@@ -130,7 +130,7 @@ def train(argv: list[str], held: list) -> int:
     import jax  # after parsing: --x64 must be set before any array exists
     jax.config.update("jax_enable_x64", train_config.x64)
     jax.config.update("jax_default_matmul_precision", train_config.matmul_precision)
-    from stablebptt.cli import use_compile_cache
+    from stablebptt.runtime import use_compile_cache
     use_compile_cache(args.compile_cache)
     from stablebptt.errors import StorageError
     from stablebptt.runs import session

@@ -181,11 +181,11 @@ def eval_cadence(config: TrainConfig, episodes: bool = True) -> tuple[str, float
         value = float(number) if kind == "seconds" else int(number)
     except ValueError:
         value = math.nan
+    if kind == "updates" and value > MAX_COUNT:  # counted in the epoch's program, as a count of its loop
+        raise InputError(f"{config_field(config, 'eval_every')} counts at most {MAX_COUNT} updates, got {number}")
     if not (math.isfinite(value) and value > 0):
         raise InputError(f"{config_field(config, 'eval_every')} must be epoch, auto, a number of updates (10) or of "
                          f"seconds (30s), got {config.eval_every!r}")
-    if kind == "updates" and value > MAX_COUNT:  # counted in the epoch's program, as a count of its loop
-        raise InputError(f"{config_field(config, 'eval_every')} counts at most {MAX_COUNT} updates, got {number}")
     return kind, float(value)
 
 

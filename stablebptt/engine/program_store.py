@@ -1,6 +1,6 @@
 """Traced programs kept between runs: a second identical run skips tracing as well as compiling.
 
-JAX's persistent cache (``cli.use_compile_cache``) keeps what XLA compiled, but it is keyed by the
+JAX's persistent cache (``runtime.use_compile_cache``) keeps what XLA compiled, but it is keyed by the
 lowered program, so every run still traces and differentiates the step first: for a scene with
 contacts, most of a warm start. Here the traced and lowered epoch is kept too, serialized with
 ``jax.export``, under a key of everything that decides it:

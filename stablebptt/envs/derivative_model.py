@@ -196,7 +196,8 @@ def _take_substeps(env: Any, substeps: int, label: str) -> None:
                        f"{type(env).__name__} does not")
     if own % substeps:  # env_task refuses a count below 1
         raise EnvError(f"{label} simulates {own} physics step{'s' if own != 1 else ''} per control step: "
-                       f"gradient_substeps (--gradient-substeps), the derivative's count, must divide it, got {substeps}")
+                       f"gradient_substeps (--gradient-substeps), the derivative's count, must divide it, "
+                       f"got {substeps}")
     factor = own // substeps
     env._sim_dt = env._sim_dt * factor
     model = env._mjx_model

@@ -30,7 +30,7 @@ from matplotlib.ticker import LogFormatter, MaxNLocator
 from stablebptt.cli import typed_option
 from stablebptt.errors import InputError, StorageError
 from stablebptt.flows.modes import MODE_ORDER, MODES
-from stablebptt.reports.choices import BANDS
+from stablebptt.reports.choices import BANDS, FORMATS
 from stablebptt.reports.curves import (
     LOSS,
     Run,
@@ -45,7 +45,6 @@ from stablebptt.reports.curves import (
 from stablebptt.storage import atomic_write
 
 FIGURE_FILE = "learning_curves.png"
-FORMATS = (".png", ".pdf", ".svg")
 
 # Okabe-Ito colours (distinguishable with colour blindness), given to the modes in MODE_TABLE's order.
 PALETTE = ("#0072B2", "#E69F00", "#CC79A7", "#009E73", "#D55E00", "#56B4E9", "#F0E442", "#000000")

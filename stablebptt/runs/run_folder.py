@@ -15,6 +15,7 @@ holds a lock on its folder while it lives (released by the OS however it ends).
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import io
@@ -50,8 +51,7 @@ def write_metrics(path: Path, rows: np.ndarray) -> None:
     text = io.StringIO()
     writer = csv.writer(text, lineterminator="\n")
     writer.writerow(COLUMNS)
-    for row in rows:
-        writer.writerow([int(row[0]), int(row[1])] + [repr(float(v)) for v in row[2:]])
+    writer.writerows([int(row[0]), int(row[1])] + [repr(float(v)) for v in row[2:]] for row in rows)
     atomic_write(path, text.getvalue().encode())
 
 
@@ -248,21 +248,17 @@ class RunLock:
 
 
 def refuse_used(path: Path) -> None:
-    """``InputError`` where ``create_run`` would refuse ``path`` as it stands (a file, or a folder
-    holding anything but hidden files), checked without creating anything: a command refuses a used
-    ``--out`` at once, and claims the folder once its set-up is done."""
+    """``InputError`` where ``create_run`` would refuse ``path`` as it stands (a file, a folder holding
+    anything but hidden files, or one that cannot be made there), checked without creating anything: a
+    command refuses such an ``--out`` at once, and claims the folder once its set-up is done."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise InputError(f"{path} is a file: give a directory for the run")
     if path.is_dir() and any(not entry.name.startswith(".") for entry in path.iterdir()):
         raise InputError(f"{path} already exists and is not empty: choose another --out, or continue it with --resume {path}")
-    above = path.absolute()
-    while not above.exists() and above != above.parent:  # the nearest folder that is there, to make the run's in
-        above = above.parent
-    if above.exists() and not above.is_dir():
-        raise InputError(f"cannot create {path}: {above} is a file")
-    if above.is_dir() and not os.access(above, os.W_OK | os.X_OK):
-        raise InputError(f"cannot create {path}: {above} is not writable")
+    above = next(folder for folder in (path.absolute(), *path.absolute().parents) if folder.exists())  # "/" is
+    if not (above.is_dir() and os.access(above, os.W_OK | os.X_OK)):  # the nearest there: the run's is made in it
+        raise InputError(f"cannot create {path}: {above} is {'not writable' if above.is_dir() else 'a file'}")
 
 
 def create_run(path: Path, record: dict) -> RunLock:
@@ -292,17 +288,14 @@ def create_run(path: Path, record: dict) -> RunLock:
         finally:
             temporary.unlink(missing_ok=True)
     except BaseException:
-        # A claim that did not complete (a refusal, a signal at any point of it) leaves nothing half-made:
-        # no temporary, and no trace of a folder it made itself.
+        # A claim left incomplete (a refusal, a signal anywhere in it) leaves no temporary, nor a folder it made.
         for temporary in path.glob(".*.tmp"):  # under the lock: only the holder writes them
             temporary.unlink(missing_ok=True)
         lock.release()
         if made and not (path / CONFIG_FILE).exists():
-            try:
+            with contextlib.suppress(OSError):  # another start put something there meanwhile: it is theirs
                 (path / LOCK_FILE).unlink(missing_ok=True)
                 path.rmdir()
-            except OSError:  # another start put something there meanwhile: it is theirs
-                pass
         raise
     return lock
 

@@ -44,10 +44,15 @@ FREE, BALL, SLIDE, HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.
                                             mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE))
 
 
+def model_file_missing(path: Path) -> str:
+    """What is wrong with a model file that is no file."""
+    return f"model file {path} {'is a folder, not a file' if path.is_dir() else 'does not exist'}"
+
+
 def load_model(path: Path) -> mujoco.MjModel:
     """Load an MJCF (or a compiled ``.mjb``, or ``.mjb.gz`` as runs keep it); any failure becomes one clear InputError line."""
     if not path.is_file():
-        raise InputError(f"model file {path} {'is a folder, not a file' if path.is_dir() else 'does not exist'}")
+        raise InputError(model_file_missing(path))
     try:
         with mujoco_log.collected() as warnings:
             if path.suffix in (".mjb", ".gz"):

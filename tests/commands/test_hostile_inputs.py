@@ -51,6 +51,7 @@ CASES = {
     "--eval-every of negative seconds": ({}, ["--eval-every", "-3s"], "--eval-every"),
     "--eval-every of no number": ({}, ["--eval-every", "often"], "--eval-every"),
     "--eval-every past a count": ({}, ["--eval-every", str(2**70)], "--eval-every"),
+    "--eval-every past a float": ({}, ["--eval-every", "1" * 400], "--eval-every"),
     "a collision pair MJX lacks": (dict(extra_body='<body pos="0 0 -3"><freejoint/><geom type="cylinder" size="0.1 0.1"/>'
                                                    '</body><geom type="box" size="1 1 0.1" pos="0 0 -4"/>'),
                                    [], "cylinder-box contacts"),
@@ -168,7 +169,10 @@ NAMED_REFUSALS = [
 BAD_COMMAND_LINES += [(arguments, None) for arguments, _ in CONFLICTS + NAMED_REFUSALS]
 
 
-@pytest.mark.parametrize("arguments, content", BAD_COMMAND_LINES, ids=[" ".join(a) for a, _ in BAD_COMMAND_LINES])
+# Loading Playground's cheetah takes 12 s: the full tier.
+@pytest.mark.parametrize("arguments, content", [pytest.param(*case, marks=[needs_playground, pytest.mark.slow])
+                                                if "CheetahRun" in case[0] else case for case in BAD_COMMAND_LINES],
+                         ids=[" ".join(a) for a, _ in BAD_COMMAND_LINES])
 def test_bad_command_line_is_one_line_and_exit_code_2(train_main, tmp_path, capsys, arguments, content):
     from stablebptt import models
     named = dict((tuple(given), words) for given, words in CONFLICTS + NAMED_REFUSALS).get(tuple(arguments), ())
@@ -449,8 +453,8 @@ def test_a_library_users_process_refused_while_work_runs_beside_exits_as_python_
         release.set()
 
 
-@pytest.mark.parametrize("arguments", [["--anisotropy", "nan"], ["--anisotropy", "-1"], ["--lr", "inf"], ["--steps", "0"],
-                                       ["--out", "toy.txt"]])
+@pytest.mark.parametrize("arguments", [["--anisotropy", "nan"], ["--anisotropy", "-1"], ["--lr", "inf"],
+                                       ["--steps", "0"], ["--out", "toy.txt"]])
 def test_the_toy_problem_refuses_bad_input_before_adam_runs(capsys, arguments):
     from stablebptt.commands import toy
     with pytest.raises(SystemExit) as exit_:

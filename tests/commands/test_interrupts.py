@@ -8,6 +8,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 
@@ -148,3 +149,36 @@ def test_a_second_ctrl_c_while_the_first_ends_the_command_does_not_hang_it():
     done = subprocess.run([sys.executable, "-c", CTRL_C_WHILE_ENDING], cwd=ROOT, capture_output=True, text=True,
                           timeout=120)
     assert (done.returncode, done.stdout, done.stderr) == (0, "returned", "")
+
+
+def test_ctrl_c_of_bench_ends_the_run_it_times_in_a_session_of_its_own(tmp_path):
+    # The timed run is in a session of its own (a timeout stops it whole), where the terminal's Ctrl-C does not
+    # reach it: the bench's stop at once ends it first. Here the run is a script that says it has begun, then waits.
+    waiter, began = tmp_path / "waiter.py", tmp_path / "began"
+    waiter.write_text(f"import os, pathlib, time\npathlib.Path({str(began)!r}).write_text(str(os.getpid()))\n"
+                      "time.sleep(300)\n")
+    script = (f"from pathlib import Path\nfrom stablebptt import cli\nfrom stablebptt.commands import bench\n"
+              f"cli.stop_at_once_on_interrupt()\nbench._time_run([{str(waiter)!r}], Path({str(tmp_path)!r}), 300)\n")
+    process = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    wait_for(began, process)
+    child = int(began.read_text())
+    process.send_signal(signal.SIGINT)
+    assert process.wait(timeout=60) == 130
+    deadline = time.monotonic() + 60
+    try:
+        while running(child) and time.monotonic() < deadline:
+            time.sleep(0.05)  # a polling interval
+        assert not running(child)
+    finally:
+        if running(child):  # left by a failure: not by the test run
+            os.kill(child, signal.SIGKILL)
+
+
+def running(pid: int) -> bool:
+    """Whether process ``pid`` is there and not a zombie (its parent gone, it may wait to be reaped)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False

@@ -46,7 +46,9 @@ def test_the_tasks_step_keeps_the_envs_values_and_takes_the_derivative_of_fewer_
 def test_an_env_without_substeps_and_bad_counts_are_refused_in_one_line(tmp_path, capsys):
     with pytest.raises(EnvError, match="Ball: fewer physics steps in the derivative need an env that keeps its physics step"):
         env_task(Ball(), horizon=4, diagnose=False, gradient_substeps=1)
-    with pytest.raises(EnvError, match=r"SubsteppedBall simulates 10 physics steps per control step: gradient_substeps \(--gradient-substeps\), the derivative's count, must divide it, got 3"):
+    with pytest.raises(EnvError, match=r"SubsteppedBall simulates 10 physics steps per control step: "
+                                       r"gradient_substeps \(--gradient-substeps\), the derivative's count, must "
+                                       r"divide it, got 3"):
         env_task(SubsteppedBall(), horizon=4, diagnose=False, gradient_substeps=3)
     with pytest.raises(EnvError, match="env_task's gradient_substeps must be a whole number of physics steps >= 1"):
         env_task(SubsteppedBall(), horizon=4, diagnose=False, gradient_substeps=0)

@@ -737,7 +737,7 @@ def test_the_library_trains_in_any_thread_and_its_runs_plot(tmp_path):
 
 
 def test_a_compile_cache_that_cannot_be_written_is_one_line_and_left_off(tmp_path, monkeypatch):
-    from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+    from stablebptt.runtime import COMPILE_CACHE_ENV, use_compile_cache
     before = jax.config.jax_compilation_cache_dir
     (tmp_path / "a-file").write_text("")
     monkeypatch.setenv(COMPILE_CACHE_ENV, str(tmp_path / "a-file" / "cache"))
@@ -753,7 +753,7 @@ def test_a_damaged_compile_cache_entry_is_compiled_again_and_replaced_with_one_l
     import jax.numpy as jnp
     from jax._src import compilation_cache, lru_cache
 
-    from stablebptt.cli import COMPILE_CACHE_ENV, use_compile_cache
+    from stablebptt.runtime import COMPILE_CACHE_ENV, use_compile_cache
     session_cache, minimum = os.environ[COMPILE_CACHE_ENV], jax.config.jax_persistent_cache_min_compile_time_secs
     cache, notes = tmp_path / "cache", []
     program = lambda x: jnp.tanh(x) * 3.25 - 7.5  # noqa: E731
@@ -816,12 +816,21 @@ def test_the_out_of_memory_line_offers_what_holds_fewer_states_in_the_runs_own_n
     assert "--devices" not in _less_memory(env_config, TrainConfig(batch=256, devices=0), tmp_path, horizon=16)
 
 
-@pytest.mark.parametrize("out, words", [("file", "is a file: give a directory"), ("file/run", "cannot create"),
-                                        ("used", "already exists and is not empty")])
-def test_an_out_that_cannot_hold_the_run_is_refused_in_one_line(tmp_path, capsys, out, words):
+@pytest.mark.parametrize("out, words", [("file", "file is a file: give a directory"),
+                                        ("file/run", "cannot create {dir}/file/run: {dir}/file is a file"),
+                                        ("locked/run", "cannot create {dir}/locked/run: {dir}/locked is not writable"),
+                                        ("used", "used already exists and is not empty")])
+def test_an_out_that_cannot_hold_the_run_is_refused_in_one_line_before_its_set_up(tmp_path, capsys, monkeypatch, out,
+                                                                                  words):
+    from stablebptt.runs import session
     (tmp_path / "file").write_text("kept")
     (tmp_path / "used").mkdir()
     (tmp_path / "used" / "notes.txt").write_text("kept")
+    (tmp_path / "locked").mkdir()
+    writable = os.access  # as root every folder is: one that is not, as os.access would say it
+    monkeypatch.setattr(os, "access", lambda path, mode: Path(path) != tmp_path / "locked" and writable(path, mode))
+    monkeypatch.setattr(session, "task_of", lambda *args, **kwargs: pytest.fail("set up before --out was checked"))
     code, err, _ = train(capsys, *SMALL, "--epochs", "1", "--out", str(tmp_path / out))
-    assert code == 2 and len(err) == 1 and words in err[0], err
+    assert code == 2 and len(err) == 1 and words.format(dir=tmp_path) in err[0], err
     assert (tmp_path / "file").read_text() == (tmp_path / "used" / "notes.txt").read_text() == "kept"
+    assert not (tmp_path / "locked" / "run").exists()
