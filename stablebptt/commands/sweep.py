@@ -212,6 +212,8 @@ def main(argv: list[str]) -> int:
             fail(f"--{name.replace('_', '-')} must be a number of seconds, 0 or more, got {getattr(config, name)}")
     if config.seed_range and (config.merge or config.report):
         fail("--seed-range trains a piece; --merge and --report train nothing: give one")
+    if config.merge and config.report:
+        fail("--merge reports too, from the pieces it merges: give --merge, or --report alone")
     hosts_given(config)  # before the task is built
     from stablebptt.grids.pieces import parse_seed_range
     with one_line_errors():

@@ -112,7 +112,8 @@ def test_bad_sweep_input_gets_one_line_and_exit_code_2():
                       ["--task", "repulsion", "--lrs", "-1"], ["--seed-range", "3:2"], ["--seed-range", "0:1", "--merge"],
                       ["--task", "repulsion", "--steps", "5", "--task-steps", "5"], ["--preset", "repulsion", "--poles", "2"],
                       ["--modes", "R,R"], ["--clips", "value,norm,value"], ["--task", "repulsion", "--lrs", ","],
-                      ["--task", "repulsion", "--lrs", "0.01,1e-2"]):  # a value twice: each is a cell of the grid
+                      ["--task", "repulsion", "--lrs", "0.01,1e-2"],  # a value twice: each is a cell of the grid
+                      ["--merge", "--report"]):
         code, stderr = sweep_in_process(*arguments)
         lines = [line for line in stderr.splitlines() if line.strip()]
         assert code == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, stderr)
