@@ -4,7 +4,11 @@ Library errors name what a Python user set: a config field (``TrainConfig.lr``,
 ``mjcf.Config.dt``), a ``Dynamics`` or a ``Plan`` field. The command line shows
 each as its option (``--lr``, ``--dt``): ``as_options``.
 """
+import dataclasses
+import numbers
+import os
 import re
+import sys
 
 # A field the command line sets under another name.
 _OPTION_OF = {"Dynamics.horizon": "steps"}
@@ -16,6 +20,25 @@ def config_field(config, name: str) -> str:
     cls = config if isinstance(config, type) else type(config)
     owner = cls.__name__ if cls.__name__ != "Config" else f"{cls.__module__.rsplit('.', 1)[-1]}.Config"
     return f"{owner}.{name}"
+
+
+# What a config field annotated int, float, str or bool takes (a NumPy scalar too; a path for a str).
+_KINDS = {"int": lambda value: isinstance(value, numbers.Integral) and not isinstance(value, bool),
+          "float": lambda value: isinstance(value, numbers.Real) and not isinstance(value, bool),
+          "str": lambda value: isinstance(value, (str, os.PathLike)),
+          "bool": lambda value: isinstance(value, bool) or type(value).__name__ == "bool_"}
+
+
+def check_field_types(config) -> None:
+    """``InputError`` naming the first field of the dataclass ``config`` whose value is not of its annotated
+    kind: from Python anything can arrive (2.5 epochs, lr "0.1", batch None, poles "2")."""
+    for item in dataclasses.fields(config):
+        value, kind = getattr(config, item.name), item.type if isinstance(item.type, str) else item.type.__name__
+        if kind in _KINDS and not _KINDS[kind](value):
+            raise InputError(f"{config_field(config, item.name)} must be {'a whole number' if kind == 'int' else kind}, "
+                             f"got {value!r}")
+        if kind == "float" and isinstance(value, numbers.Integral) and abs(value) > sys.float_info.max:
+            raise InputError(f"{config_field(config, item.name)} is past the largest float, got {value}")
 
 
 def as_options(message: str) -> str:

@@ -18,10 +18,11 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.task import Task
 from stablebptt.errors import InputError, config_field
-from stablebptt.flows.dynamics import Plan
+from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.flows.modes import flows_needed
 
 
@@ -62,9 +63,20 @@ def check_dynamics(dynamics: Any) -> None:
 
 
 def require_task(task: Any) -> None:
-    """Raise ``TaskError`` unless ``task`` is a ``Task``: before anything reads its fields."""
+    """Raise ``TaskError`` unless ``task`` is a ``Task`` whose fields are of their kinds (no tracing): before
+    anything reads them."""
     if not isinstance(task, Task):
         raise TaskError(f"expected a stablebptt.Task, got {type(task).__name__}")
+    for name, kind, words in (("dynamics", Dynamics, "a stablebptt.Dynamics"), ("plan", Plan, "a stablebptt.Plan"),
+                              ("episodes", (Episodes, type(None)), "a stablebptt.Episodes or None")):
+        if not isinstance(getattr(task, name), kind):
+            raise TaskError(f"Task.{name} must be {words}, got {type(getattr(task, name)).__name__}")
+    for name in ("init_params", "sample_initial_states"):
+        if not callable(getattr(task, name)):
+            raise TaskError(f"Task.{name} must be a function, got {getattr(task, name)!r}")
+    for name in ("evaluation", "settle", "refresh_statistics"):
+        if not (getattr(task, name) is None or callable(getattr(task, name))):
+            raise TaskError(f"Task.{name} must be a function or None, got {getattr(task, name)!r}")
 
 
 def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2,)) -> None:
@@ -74,8 +86,6 @@ def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2
     require_task(task)
     dynamics = task.dynamics
     check_dynamics(dynamics)
-    if not isinstance(task.plan, Plan):
-        raise TaskError(f"Task.plan must be a stablebptt.Plan, got {type(task.plan).__name__}")
     key = jax.random.PRNGKey(0)
     try:
         params = parameter_shapes(task, zero_output)

@@ -2,15 +2,13 @@
 from __future__ import annotations
 
 import math
-import numbers
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import jax
 import jax.extend
 import jax.numpy as jnp
-import numpy as np
 
-from stablebptt.errors import InputError, config_field
+from stablebptt.errors import InputError, check_field_types, config_field
 from stablebptt.flows.modes import MODE_TABLE, MODES
 
 CLIP_MODES = ("value", "norm", "none")
@@ -93,14 +91,7 @@ class TrainConfig:
     epoch_program: str = field(default="auto", metadata={"help": "whole: an epoch is one compiled program (fastest for small scenes, and on a GPU); per-update: the epoch loops in Python over one compiled update and one evaluation (large scenes compile in a fraction of the time and memory); auto: per-update for steps of more than " + f"{LARGE_STEP} operations, and on a CPU of several cores for steps with a constraint solver (update and evaluation compile side by side)", "choices": EPOCH_PROGRAMS})
 
     def __post_init__(self):
-        for item in fields(self):  # from Python anything can arrive: 2.5 epochs, lr "0.1", batch None
-            value, kind = getattr(self, item.name), item.type if isinstance(item.type, str) else item.type.__name__
-            fits = {"int": isinstance(value, numbers.Integral) and not isinstance(value, bool),
-                    "float": isinstance(value, numbers.Real) and not isinstance(value, bool),
-                    "str": isinstance(value, str), "bool": isinstance(value, (bool, np.bool_))}[kind]
-            if not fits:
-                raise InputError(f"{config_field(self, item.name)} must be {'a whole number' if kind == 'int' else kind}, "
-                                 f"got {value!r}")
+        check_field_types(self)
         if self.mode not in MODES:
             raise InputError(f"unknown mode {self.mode!r}: choose one of {', '.join(MODES)}")
         if self.clip not in CLIP_MODES:

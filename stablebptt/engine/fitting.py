@@ -23,6 +23,7 @@ from stablebptt.engine.divergence import (
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, env_steps_trained, epoch_rows
 from stablebptt.engine.starting import compiled_refill, compiled_then_made, lowered_for, prepare
 from stablebptt.engine.training import Trainer
+from stablebptt.errors import InputError
 
 
 def fit(
@@ -299,6 +300,10 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
       print(result.test_loss[-1])
     """
     started = time.perf_counter()
+    for name, function in (("on_epoch", on_epoch), ("progress_fn", progress_fn), ("should_stop", should_stop)):
+        if not (callable(function) or function is None and name == "progress_fn"):  # called only once compiled
+            raise InputError(f"train's {name} must be a function{' or None' if name == 'progress_fn' else ''}, "
+                             f"got {function!r}")
     if isinstance(config, TrainConfig):  # anything else make_trainer names
         check_options(config)
         widened = config.x64 and not jax.config.jax_enable_x64

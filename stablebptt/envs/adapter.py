@@ -166,6 +166,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
     check_env_task_arguments(**{argument: value for argument, value in locals().items() if argument != "env"})
+    if isinstance(env, type):  # its methods are the class's: the task's would be set on it, for every instance
+        raise EnvError(f"env_task takes an environment, got the class {env.__name__}: give an instance of it "
+                       f"({env.__name__}(...))")
     if _is_playground(env):
         from stablebptt.envs import playground
         playground.require_jax_impl(env, type(env).__name__, EnvError)  # MuJoCo Warp, Playground's default

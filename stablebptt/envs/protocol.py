@@ -62,7 +62,8 @@ def check_protocol(env: Any) -> int:
             raise EnvError(f"{type(env).__name__}'s observation is a dict without a 'state' entry "
                            f"({', '.join(size)}): give an environment with a vector observation")
         size = size["state"]
-    if not (isinstance(size, (int, np.integer)) or (isinstance(size, tuple) and len(size) == 1)):
+    counted = isinstance(size, (int, np.integer)) and not isinstance(size, bool)  # True is no count
+    if not (counted or isinstance(size, tuple) and len(size) == 1):
         raise EnvError(f"{type(env).__name__}'s observation has shape {size}: only vector observations are supported")
     size = int(size[0] if isinstance(size, tuple) else size)
     actions = env.action_size

@@ -7,10 +7,11 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from stablebptt.errors import InputError
 from stablebptt.flows.adjoint_step import multi_adjoint_step
 from stablebptt.flows.dynamics import Dynamics, Plan, PyTree, first_copy, ravel_examples, stack_copies
 from stablebptt.flows.linearized import linearized_gradients, policy_gradients
-from stablebptt.flows.modes import KEEPS
+from stablebptt.flows.modes import FLOWS, KEEPS
 
 
 def flow_losses(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, initial_states: PyTree,
@@ -72,6 +73,10 @@ def flow_window(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, init
       ``WindowGradients``: ``grads`` as ``flow_gradients``', the batch after ``dynamics.horizon`` steps
       and the states each step started from.
     """
+    if not (isinstance(flows, (tuple, list)) and flows and all(flow in FLOWS for flow in flows)):
+        raise InputError(f"flows must name one or more of {', '.join(FLOWS)}, got {flows!r}")
+    if not isinstance(plan, Plan):
+        raise InputError(f"plan must be a stablebptt.Plan, got {type(plan).__name__}")
     if plan.step_derivative == "forward":
         return WindowGradients(*linearized_gradients(dynamics, flows, params, initial_states, plan))
 

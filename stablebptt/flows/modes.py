@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from stablebptt.errors import InputError
 from stablebptt.flows.dynamics import PyTree
 
 FLOWS = ("R", "M", "S")
@@ -64,7 +65,7 @@ def flows_needed(mode: str, with_cosine: bool = True) -> tuple[str, ...]:
     is cheap because the forward pass is shared.
     """
     if mode not in MODE_TABLE:
-        raise ValueError(f"unknown mode {mode!r}: choose one of {', '.join(MODES)}")
+        raise InputError(f"unknown mode {mode!r}: choose one of {', '.join(MODES)}")
     needed = set(MODE_TABLE[mode].flows)
     if with_cosine:
         needed |= {"M", "R"}
@@ -95,7 +96,7 @@ def select_flow(mode: str, flows: tuple[str, ...]) -> optax.GradientTransformati
     needed = flows_needed(mode, with_cosine=False)
     missing = [f for f in needed if f not in flows]
     if missing:
-        raise ValueError(f"mode {mode} needs flows {needed}, but only {flows} are computed")
+        raise InputError(f"mode {mode} needs flows {needed}, but only {flows} are computed")
 
     def update(updates, state, params=None):
         del params

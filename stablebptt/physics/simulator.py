@@ -20,7 +20,7 @@ from typing import Any, Callable
 import jax
 import mujoco
 
-from stablebptt.errors import InputError, config_field
+from stablebptt.errors import InputError, check_field_types, config_field
 from stablebptt.flows.dynamics import KnownColumns
 from stablebptt.physics import lean_step, mjx_support, scene, symmetries
 from stablebptt.physics.effects import SceneEffects
@@ -47,6 +47,7 @@ class SimulatorConfig:
     step_derivative: str = field(default="auto", metadata={"help": "how gradients pass through a step: forward (every step's Jacobian by forward mode, all steps in one batch after the rollout), reverse, or auto (forward for states of at most 64 numbers whose tangents times constraint rows stay within 500)", "choices": STEP_DERIVATIVES})
 
     def __post_init__(self):
+        check_field_types(self)  # its subclasses' fields too (mjcf.Config's)
         if not (math.isfinite(self.dt) and self.dt >= 0):
             raise InputError(f"{config_field(self, 'dt')} must be a finite positive time step (or 0 for the MJCF's own), got {self.dt}")
         if not 0 <= self.solver_iterations <= 10_000:

@@ -45,6 +45,7 @@ from stablebptt.reports.curves import (
 from stablebptt.storage import atomic_write
 
 FIGURE_FILE = "learning_curves.png"
+MAX_DPI = 1200  # a print's resolution; far more makes an image past matplotlib's 65,536 pixels a side
 
 # Okabe-Ito colours (distinguishable with colour blindness), given to the modes in MODE_TABLE's order.
 PALETTE = ("#0072B2", "#E69F00", "#CC79A7", "#009E73", "#D55E00", "#56B4E9", "#F0E442", "#000000")
@@ -341,7 +342,7 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
         None = ``default_smooth`` of the longest run.
       band: ``"minmax"`` (band spans all seeds) or ``"std"`` (mean +- one standard deviation).
       title: figure title; by default the shared task settings and what line and band show.
-      dpi: resolution of a PNG.
+      dpi: resolution of a PNG, 1 to ``MAX_DPI``.
       note: told where a run's metrics were read from elsewhere than its ``metrics.csv``.
       x_axis: what the curves are drawn against (``choices.X_AXES``).
 
@@ -351,6 +352,10 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
     Raises:
       InputError: a run directory is missing or unreadable, or an argument is out of range.
     """
+    if isinstance(run_dirs, (str, Path)):  # one run directory, not a list of its name's characters
+        run_dirs = [run_dirs]
+    if not (isinstance(dpi, (int, float)) and not isinstance(dpi, bool) and 1 <= dpi <= MAX_DPI):
+        raise InputError(f"dpi must be a number from 1 to {MAX_DPI}, got {dpi!r}")
     unique = {}
     for run_dir in map(Path, run_dirs):
         unique.setdefault(run_dir.resolve(), run_dir)  # keep the caller's spelling for messages

@@ -20,7 +20,7 @@ from stablebptt.engine.config import MAX_COUNT, MAX_DEPTH, TrainConfig
 from stablebptt.engine.task import Task
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import load_env, load_reward
-from stablebptt.errors import InputError, config_field
+from stablebptt.errors import InputError, check_field_types, config_field
 from stablebptt.physics.backward_contacts import ContactSmoothing, check_smoothing
 
 DEFAULT_EPOCHS = 200
@@ -160,6 +160,7 @@ class Config:
     sloped_reward_tails: bool = field(default=False, metadata={"help": "a MuJoCo Playground env's tolerance rewards whose linear, quadratic or cosine sigmoid ends at 0 (the walker's move reward at speed <= 0, the cheetah's run reward) keep, in the derivative only, the sigmoid's mean slope past that end: where the reward was flat the windows' gradient points towards its bounds; its values, and every return, stay as written"})
 
     def __post_init__(self):
+        check_field_types(self)
         if not 0 <= self.steps <= MAX_STEPS:
             raise InputError(f"{config_field(self, 'steps')} must be between 1 and {MAX_STEPS} (or 0 for {DEFAULT_STEPS}), got {self.steps}")
         if not (math.isfinite(self.discount) and 0 < self.discount <= 1):

@@ -315,6 +315,9 @@ def _spoiled(case):
             d, policy=lambda p, s: jnp.zeros((3, 2)))),
         "sampler size": lambda: dataclasses.replace(task, sample_initial_states=lambda key, n: (jnp.zeros(n + 1), jnp.zeros(n + 1))),
         "integer parameters": lambda: dataclasses.replace(task, init_params=lambda key, zero_output: [jnp.zeros(3, int)]),
+        "dynamics a string": lambda: dataclasses.replace(task, dynamics="pendulum"),
+        "episodes a string": lambda: dataclasses.replace(task, episodes="yes"),
+        "evaluation a string": lambda: dataclasses.replace(task, evaluation="mean return"),
     }[case]
     return sb, change()
 
@@ -329,6 +332,9 @@ TASK_CASES = {
     "wrong control shape": "Dynamics.step must return a state like the one it is given",  # it broadcast the control
     "sampler size": "Task.sample_initial_states(key, 8) must return 8 states",  # the training states' count
     "integer parameters": "Task.init_params must return float parameters",
+    "dynamics a string": "Task.dynamics must be a stablebptt.Dynamics, got str",
+    "episodes a string": "Task.episodes must be a stablebptt.Episodes or None, got str",
+    "evaluation a string": "Task.evaluation must be a function or None, got 'mean return'",
 }
 
 
@@ -342,6 +348,16 @@ def test_a_playground_env_on_mujoco_warp_is_refused_naming_the_setting_that_fixe
                                  "mjx_model": types.SimpleNamespace(impl=types.SimpleNamespace(value="warp"))})
     with pytest.raises(EnvError, match=r"OnWarp runs on warp, .* config_overrides=\{'impl': 'jax'\}"):
         sb.env_task(OnWarp(), horizon=16, diagnose=False)
+
+
+def test_env_task_given_an_environments_class_refuses_it_and_leaves_the_class_as_it_was():
+    import stablebptt as sb
+    from envs_for_tests import Cart
+    from stablebptt.envs.protocol import EnvError
+    reset = Cart.reset
+    with pytest.raises(EnvError, match=r"got the class Cart: give an instance of it \(Cart\(...\)\)"):
+        sb.env_task(Cart, horizon=4, diagnose=False)
+    assert Cart.reset is reset
 
 
 def test_train_given_no_task_says_so_in_its_own_terms():
@@ -379,11 +395,18 @@ def test_a_plan_names_its_wrong_field_and_dynamics_sends_engine_settings_to_plan
 
 
 @pytest.mark.parametrize("field, value", [("epochs", 2.5), ("lr", "0.1"), ("batch", None), ("seeds", True),
-                                          ("clip", 1), ("x64", "yes")])
+                                          ("clip", 1), ("x64", "yes"), ("lr", 10**400)])
 def test_a_train_config_field_of_the_wrong_type_is_named(field, value):
     import stablebptt as sb
-    with pytest.raises(sb.InputError, match=f"TrainConfig.{field} must be"):
+    with pytest.raises(sb.InputError, match=f"TrainConfig.{field} (must be|is past the largest float)"):
         sb.TrainConfig(**{field: value})
+
+
+@pytest.mark.parametrize("callback", ["on_epoch", "progress_fn", "should_stop"])
+def test_train_refuses_a_callback_that_is_no_function_before_compiling(callback):
+    import stablebptt as sb
+    with pytest.raises(sb.InputError, match=f"train's {callback} must be a function"):
+        sb.train(_pendulum(), sb.TrainConfig(epochs=1, train_size=8, test_size=8), **{callback: True})
 
 
 def test_a_dict_for_the_train_config_and_a_float64_trainer_made_in_float32_are_named():
@@ -461,3 +484,12 @@ def test_the_toy_problem_refuses_bad_input_before_adam_runs(capsys, arguments):
         toy.main(arguments)
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert exit_.value.code == 2 and len(lines) == 1 and arguments[0] in lines[0], lines
+
+
+@pytest.mark.parametrize("config, field, value", [("mjcf", "poles", "2"), ("mjcf", "dt", "0.01"), ("mjcf", "model", 5),
+                                                  ("env", "env", 5), ("env", "discount", "0.9")])
+def test_a_task_config_field_of_the_wrong_type_is_named(config, field, value):
+    from stablebptt.errors import InputError
+    from stablebptt.tasks import env, mjcf
+    with pytest.raises(InputError, match=f"{config}.Config.{field} must be"):
+        {"mjcf": mjcf, "env": env}[config].Config(**{field: value})

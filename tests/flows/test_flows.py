@@ -1,6 +1,7 @@
 """The gradient flows R, M, S and the combination C: closed forms, definitions, invariants."""
 
 import os
+import re
 
 import jax
 import jax.numpy as jnp
@@ -87,7 +88,7 @@ def test_select_flow_heads_one_optax_chain():
         chain = optax.chain(select_flow(mode, flows), optax.clip(0.5), optax.sgd(1.0))
         updates, _ = chain.update(stacked, chain.init(params), params)
         np.testing.assert_allclose(updates["w"], -np.clip(expected, -0.5, 0.5))
-    with pytest.raises(ValueError, match="needs flows"):
+    with pytest.raises(InputError, match="needs flows"):
         select_flow("S", flows)
 
 
@@ -95,8 +96,18 @@ def test_flows_needed():
     assert flows_needed("C", with_cosine=False) == ("R", "M")
     assert flows_needed("S", with_cosine=True) == ("R", "M", "S")
     assert flows_needed("R", with_cosine=False) == ("R",)
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="unknown mode 'X'"):
         flows_needed("X")
+
+
+def test_flow_gradients_name_what_they_are_given_wrong():
+    dynamics = Dynamics(policy=lambda p, x: p * x, step=lambda x, u: x + u, loss=lambda xs, us: jnp.sum(xs ** 2),
+                        horizon=2)
+    for flows, plan, words in ((("X",), Plan(), "flows must name one or more of R, M, S, got ('X',)"),
+                               ((), Plan(), "flows must name one or more of R, M, S, got ()"),
+                               (("R",), "forward", "plan must be a stablebptt.Plan, got str")):
+        with pytest.raises(InputError, match=re.escape(words)):
+            flow_gradients(dynamics, flows, jnp.array(0.4), jnp.array([1.1]), plan)
 
 
 @pytest.mark.parametrize("step_derivative, unroll, memory", [

@@ -360,6 +360,10 @@ def test_out_of_range_arguments_are_input_errors(tmp_path):
         plots.learning_curves([run], tmp_path / "x.jpg")
     with pytest.raises(InputError, match="does not exist"):
         plots.learning_curves([run], tmp_path / "missing" / "x.png")
+    for dpi in (0, -5, float("nan"), 10**6, "x"):
+        with pytest.raises(InputError, match="dpi must be a number from 1 to"):
+            plots.learning_curves([run], tmp_path / "x.png", dpi=dpi)
+    assert plots.learning_curves(run, tmp_path / "one.png").is_file()  # one run directory, not a list of them
 
 
 # ---- scripts/plot.py ----
