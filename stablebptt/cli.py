@@ -183,8 +183,11 @@ _ENDED_WITH_THE_COMMAND: list[Callable[[], None]] = []  # what a stop at once en
 @contextlib.contextmanager
 def ended_with_the_command(end: Callable[[], None]) -> Iterator[None]:
     """Within the block, a stop at once (Ctrl-C outside a training loop) calls ``end`` before the process
-    exits: a child process in a session of its own, which the terminal's Ctrl-C does not reach, would run on."""
+    exits: a child process in a session of its own, which the terminal's Ctrl-C does not reach, would run on.
+    ``end`` must return at once (a second Ctrl-C waits for it)."""
     _ENDED_WITH_THE_COMMAND.append(end)
+    if _ENDING.locked():  # the stop began before this was added: it may have passed the list
+        end()
     try:
         yield
     finally:

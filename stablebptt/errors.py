@@ -6,7 +6,6 @@ each as its option (``--lr``, ``--dt``): ``as_options``.
 """
 import dataclasses
 import numbers
-import os
 import re
 import sys
 
@@ -22,23 +21,29 @@ def config_field(config, name: str) -> str:
     return f"{owner}.{name}"
 
 
-# What a config field annotated int, float, str or bool takes (a NumPy scalar too; a path for a str).
+def _numpy_bool(value) -> bool:
+    return type(value).__module__ == "numpy" and type(value).__name__ in ("bool", "bool_")  # NumPy 2's and 1's
+
+
+# What a config field annotated int, float, str or bool takes (a NumPy scalar too).
 _KINDS = {"int": lambda value: isinstance(value, numbers.Integral) and not isinstance(value, bool),
           "float": lambda value: isinstance(value, numbers.Real) and not isinstance(value, bool),
-          "str": lambda value: isinstance(value, (str, os.PathLike)),
-          "bool": lambda value: isinstance(value, bool) or type(value).__name__ == "bool_"}
+          "str": lambda value: isinstance(value, str),
+          "bool": lambda value: isinstance(value, bool) or _numpy_bool(value)}
 
 
 def check_field_types(config) -> None:
     """``InputError`` naming the first field of the dataclass ``config`` whose value is not of its annotated
     kind: from Python anything can arrive (2.5 epochs, lr "0.1", batch None, poles "2")."""
     for item in dataclasses.fields(config):
-        value, kind = getattr(config, item.name), item.type if isinstance(item.type, str) else item.type.__name__
+        value = getattr(config, item.name)
+        kind = item.type if isinstance(item.type, str) else getattr(item.type, "__name__", None)  # int | None: none
         if kind in _KINDS and not _KINDS[kind](value):
-            raise InputError(f"{config_field(config, item.name)} must be {'a whole number' if kind == 'int' else kind}, "
-                             f"got {value!r}")
+            raise InputError(f"{config_field(config, item.name)} must be "
+                             f"{'a whole number' if kind == 'int' else kind}, got {value!r}")
         if kind == "float" and isinstance(value, numbers.Integral) and abs(value) > sys.float_info.max:
-            raise InputError(f"{config_field(config, item.name)} is past the largest float, got {value}")
+            raise InputError(f"{config_field(config, item.name)} is past the largest float, got an integer of "
+                             f"{int(value).bit_length()} bits")  # its digits may be too many for str()
 
 
 def as_options(message: str) -> str:

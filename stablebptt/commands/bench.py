@@ -131,6 +131,9 @@ def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
         os.killpg(process.pid, signal.SIGKILL)
         process.communicate()
         return {"status": f"timeout after {timeout:.0f} s", "wall_s": time.perf_counter() - started}
+    except BaseException:  # anything else that ends this command ends the run in its session too
+        os.killpg(process.pid, signal.SIGKILL)
+        raise
     record = {"wall_s": time.perf_counter() - started}
     found = [line.split(" ", 1)[1] for line in stdout.splitlines() if line.startswith("startup-record ")]
     if process.returncode != 0 or not found:

@@ -256,8 +256,8 @@ def refuse_used(path: Path) -> None:
         raise InputError(f"{path} is a file: give a directory for the run")
     if path.is_dir() and any(not entry.name.startswith(".") for entry in path.iterdir()):
         raise InputError(f"{path} already exists and is not empty: choose another --out, or continue it with --resume {path}")
-    above = next(folder for folder in (path.absolute(), *path.absolute().parents) if folder.exists())  # "/" is
-    if not (above.is_dir() and os.access(above, os.W_OK | os.X_OK)):  # the nearest there: the run's is made in it
+    above = next(folder for folder in (path.absolute(), *path.absolute().parents) if folder.exists())  # made in it
+    if not (above.is_dir() and os.access(above, os.W_OK | os.X_OK)):
         raise InputError(f"cannot create {path}: {above} is {'not writable' if above.is_dir() else 'a file'}")
 
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.engine.task import CellOption, Task
-from stablebptt.errors import InputError, config_field
+from stablebptt.errors import InputError, check_field_types, config_field
 from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.networks import glorot_uniform
 
@@ -35,6 +35,7 @@ class Config:
     dt: float = field(default=0.0625, metadata={"help": "Crank-Nicolson time step (the paper: 0.0625)"})
 
     def __post_init__(self):
+        check_field_types(self)
         if self.target not in TARGETS:
             raise InputError(f"{config_field(self, 'target')} must be one of {', '.join(map(str, TARGETS))} (the eigenstate to reach), got {self.target}")
         if self.steps <= 0:

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from stablebptt.engine.task import CellOption, Task
-from stablebptt.errors import InputError, config_field
+from stablebptt.errors import InputError, check_field_types, config_field
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.physics.integrators import INTEGRATORS
@@ -29,6 +29,7 @@ class Config:
     steps: int = field(default=60, metadata={"help": "time steps over T = 4 (the paper: 60)"})
 
     def __post_init__(self):
+        check_field_types(self)
         if not self.rc >= 0:
             raise InputError(f"{config_field(self, 'rc')} must be zero or positive, got {self.rc}")
         if self.steps <= 0:

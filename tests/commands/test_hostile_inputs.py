@@ -403,8 +403,10 @@ def test_a_train_config_field_of_the_wrong_type_is_named(field, value):
 
 
 @pytest.mark.parametrize("callback", ["on_epoch", "progress_fn", "should_stop"])
-def test_train_refuses_a_callback_that_is_no_function_before_compiling(callback):
+def test_train_refuses_a_callback_that_is_no_function_before_compiling(callback, monkeypatch):
     import stablebptt as sb
+    from stablebptt.engine import fitting
+    monkeypatch.setattr(fitting, "prepare", lambda *args, **kwargs: pytest.fail("the run's start began first"))
     with pytest.raises(sb.InputError, match=f"train's {callback} must be a function"):
         sb.train(_pendulum(), sb.TrainConfig(epochs=1, train_size=8, test_size=8), **{callback: True})
 
@@ -487,9 +489,18 @@ def test_the_toy_problem_refuses_bad_input_before_adam_runs(capsys, arguments):
 
 
 @pytest.mark.parametrize("config, field, value", [("mjcf", "poles", "2"), ("mjcf", "dt", "0.01"), ("mjcf", "model", 5),
-                                                  ("env", "env", 5), ("env", "discount", "0.9")])
-def test_a_task_config_field_of_the_wrong_type_is_named(config, field, value):
+                                                  ("env", "env", 5), ("env", "discount", "0.9"),
+                                                  ("repulsion", "steps", 2.5), ("quantum", "dt", "0.1")])
+def test_a_task_config_field_of_the_wrong_type_is_named_and_numpys_scalars_are_taken(config, field, value):
+    import numpy as np
+
+    import stablebptt as sb
     from stablebptt.errors import InputError
-    from stablebptt.tasks import env, mjcf
+    from stablebptt.tasks import env, mjcf, quantum, repulsion
+    module = {"mjcf": mjcf, "env": env, "repulsion": repulsion, "quantum": quantum}[config]
     with pytest.raises(InputError, match=f"{config}.Config.{field} must be"):
-        {"mjcf": mjcf, "env": env}[config].Config(**{field: value})
+        module.Config(**{field: value})
+    # NumPy's scalars are numbers and truth values as Python's are.
+    assert sb.TrainConfig(x64=np.False_, epochs=np.int64(3), lr=np.float32(1e-3)).epochs == 3
+    assert mjcf.Config(poles=np.int64(2), dt=np.float64(0.01)).poles == 2
+    assert env.Config(reward_check=np.False_, discount=np.float32(0.99)).reward_check == np.False_

@@ -112,18 +112,20 @@ def test_bad_sweep_input_gets_one_line_and_exit_code_2():
                       ["--task", "repulsion", "--lrs", "-1"], ["--seed-range", "3:2"], ["--seed-range", "0:1", "--merge"],
                       ["--task", "repulsion", "--steps", "5", "--task-steps", "5"], ["--preset", "repulsion", "--poles", "2"],
                       ["--modes", "R,R"], ["--clips", "value,norm,value"], ["--task", "repulsion", "--lrs", ","],
-                      ["--task", "repulsion", "--lrs", "0.01,1e-2"],  # a value twice: each is a cell of the grid
-                      ["--merge", "--report"]):
+                      ["--task", "repulsion", "--lrs", "0.01,1e-2"]):  # a value twice: each is a cell of the grid
         code, stderr = sweep_in_process(*arguments)
         lines = [line for line in stderr.splitlines() if line.strip()]
         assert code == 2 and len(lines) == 1 and lines[0].startswith("error:"), (arguments, stderr)
 
 
-def test_hosts_named_in_part_are_refused_before_the_grid_is_planned(monkeypatch):
+@pytest.mark.parametrize("arguments, line", [
+    (["--process-id", "3", "--num-processes", "2"], "error: --coordinator, --num-processes and --process-id go together"),
+    (["--merge", "--report"], "error: --merge reports too, from the pieces it merges: give --merge, or --report alone")])
+def test_options_that_cannot_go_together_are_refused_before_the_grid_is_planned(monkeypatch, tmp_path, arguments, line):
     from stablebptt.commands import sweep as sweep_command
     monkeypatch.setattr(sweep_command, "plan_grid", lambda *args, **kwargs: pytest.fail("the grid planned first"))
-    code, stderr = sweep_in_process("--task", "repulsion", "--process-id", "3", "--num-processes", "2")
-    assert code == 2 and stderr.splitlines() == ["error: --coordinator, --num-processes and --process-id go together"]
+    code, stderr = sweep_in_process("--task", "repulsion", "--out", str(tmp_path), *arguments)
+    assert code == 2 and stderr.splitlines() == [line]
 
 
 def test_running_out_of_device_memory_ends_a_sweep_in_one_line(tmp_path, capsys, monkeypatch):
