@@ -21,12 +21,17 @@ def config_field(config, name: str) -> str:
     return f"{owner}.{name}"
 
 
+def whole_number(value) -> bool:
+    """An int or NumPy integer, not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
 def _numpy_bool(value) -> bool:
     return type(value).__module__ == "numpy" and type(value).__name__ in ("bool", "bool_")  # NumPy 2's and 1's
 
 
 # What a config field annotated int, float, str or bool takes (a NumPy scalar too).
-_KINDS = {"int": lambda value: isinstance(value, numbers.Integral) and not isinstance(value, bool),
+_KINDS = {"int": whole_number,
           "float": lambda value: isinstance(value, numbers.Real) and not isinstance(value, bool),
           "str": lambda value: isinstance(value, str),
           "bool": lambda value: isinstance(value, bool) or _numpy_bool(value)}

@@ -32,8 +32,8 @@ from stablebptt.render.mujoco_frames import MAX_VIDEO_FRAMES, SUPERSAMPLE, video
 RENDERS_ROOT = Path("renders")
 STEM = "rollout"  # default name of the files written into a run directory
 DEFAULT_ROLLOUTS = 3
-# A panel's side at most: its frame strip is twice the panel, drawn at SUPERSAMPLE times that, within the 8192
-# pixels an offscreen framebuffer holds on every renderer MuJoCo draws with here (Mesa's, EGL's).
+# A panel's side at most: its frame strip is twice the panel, drawn at SUPERSAMPLE times that, within an offscreen
+# framebuffer of 8192 pixels a side (a panel of 2048 x 2048 drew on Mesa's renderer; 40000 did not).
 MAX_PANEL_PIXELS = 8192 // (2 * SUPERSAMPLE)
 
 

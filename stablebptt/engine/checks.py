@@ -12,7 +12,6 @@ meaningless, before a run records both as if they applied.
 from __future__ import annotations
 
 import dataclasses
-import numbers
 from typing import Any
 
 import jax
@@ -21,7 +20,7 @@ import jax.numpy as jnp
 from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.task import Task
-from stablebptt.errors import InputError, config_field
+from stablebptt.errors import InputError, config_field, whole_number
 from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.flows.modes import flows_needed
 
@@ -34,11 +33,6 @@ def parameter_shapes(task: Any, zero_output: bool) -> Any:
     """The shapes of ``task.init_params(key, zero_output)``, traced with no values (``tracing_shapes``)."""
     with tracing_shapes():
         return jax.eval_shape(lambda key: task.init_params(key, zero_output), jax.random.PRNGKey(0))
-
-
-def whole_number(value: Any) -> bool:
-    """An int or NumPy integer, not a bool."""
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def _describe(tree: Any) -> str:

@@ -30,7 +30,6 @@ import jax
 import jax.numpy as jnp
 
 from stablebptt.engine import program_store
-from stablebptt.engine.checks import whole_number
 from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.observations import StandardizedNetwork, no_observations, refresh_from, standardized
 from stablebptt.engine.shapes import shapes_only
@@ -46,6 +45,7 @@ from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_state
 from stablebptt.envs.returns import EpisodeState, episode_dynamics, rollout_loss
 from stablebptt.envs.reward_direction import Direction
 from stablebptt.envs.unread_outputs import unread_outputs_off
+from stablebptt.errors import whole_number
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import floored_tanh, mlp_apply, mlp_init

@@ -6,8 +6,8 @@ import math
 import numbers
 from typing import Any, Sequence
 
-from stablebptt.engine.checks import whole_number
 from stablebptt.envs.protocol import EnvError
+from stablebptt.errors import whole_number
 from stablebptt.physics.backward_contacts import ContactSmoothing
 
 

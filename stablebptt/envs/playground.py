@@ -125,15 +125,11 @@ def _menagerie_remedy(mjx_env: Any) -> str:
             f"git -C {path} checkout {mjx_env.MENAGERIE_COMMIT_SHA}, or a copy of one from a machine with network)")
 
 
-def simulated_by(env: Any) -> str | None:
-    """Which implementation of MJX a Playground env steps with ("jax", "warp"), or None where it says nothing."""
-    impl = getattr(getattr(env, "mjx_model", None), "impl", None)
-    return None if impl is None else str(getattr(impl, "value", impl))
-
-
 def require_jax_impl(env: Any, name: str, error: type[InputError] = InputError) -> None:
-    """Refuse an env simulated by other than MJX's JAX implementation, the only one with gradients."""
-    impl = simulated_by(env)
+    """Refuse an env simulated by other than MJX's JAX implementation, the only one with gradients (one that
+    names no implementation is left as it is)."""
+    impl = getattr(getattr(env, "mjx_model", None), "impl", None)
+    impl = None if impl is None else str(getattr(impl, "value", impl))
     if impl not in (None, "jax"):
         raise error(f"{name} runs on {impl}, not MJX's JAX implementation, the only one with gradients: load it "
                     f"with config_overrides={{'impl': 'jax'}}")

@@ -8,7 +8,6 @@ those batches.
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, fields
 from typing import Any, Callable, NamedTuple
 
@@ -17,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, whole_number
 
 PyTree = Any
 
@@ -100,13 +99,12 @@ class Plan:
     chunk_placement: Callable[[PyTree], PyTree] | None = None
 
     def __post_init__(self):
-        whole = lambda value: isinstance(value, numbers.Integral) and not isinstance(value, bool)  # noqa: E731
         for name, allowed in (("step_derivative", STEP_DERIVATIVES), ("policy_gradient", POLICY_GRADIENTS)):
             if getattr(self, name) not in allowed:
                 raise InputError(f"Plan.{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
-        if not whole(self.unroll) or self.unroll < 1:
+        if not whole_number(self.unroll) or self.unroll < 1:
             raise InputError(f"Plan.unroll must be a positive whole number, got {self.unroll!r}")
-        if self.jacobian_chunk is not None and (not whole(self.jacobian_chunk) or self.jacobian_chunk < 1):
+        if self.jacobian_chunk is not None and (not whole_number(self.jacobian_chunk) or self.jacobian_chunk < 1):
             raise InputError(f"Plan.jacobian_chunk must be None or a positive whole number, got {self.jacobian_chunk!r}")
         for name in ("rematerialize", "jacobian_per_input"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):

@@ -302,7 +302,7 @@ def _shipped_fonts_listed() -> None:
     """Matplotlib's own fonts in its font list, added where its font cache left them out.
 
     Its mathematics (the panels' labels) draws with them; a cache written without them (seen on a fresh
-    machine) makes every formula warn, font by font, that it fell back: 20 lines on stderr.
+    machine) makes every formula warn on stderr, font by font, that it fell back.
     """
     from matplotlib import font_manager
     listed = {Path(font.fname).resolve() for font in font_manager.fontManager.ttflist}
