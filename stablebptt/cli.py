@@ -30,7 +30,7 @@ def fail(message: str, code: int = 2) -> NoReturn:
     leave(code)
 
 
-# Set where this process is a command's (``stop_at_once_on_interrupt``): only there may it end without unwinding.
+# Set where this process is a command's (``stop_at_once_on_signals``): only there may it end without unwinding.
 _COMMAND_PROCESS = threading.Event()
 
 
@@ -170,8 +170,20 @@ REPEAT_SECONDS = 1.0
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
-INTERRUPTED = ("stopped by Ctrl-C: files are written whole, nothing is half-made; a run folder it claimed "
-               "(config.json alone, or a checkpoint) continues with --resume")
+def stopped_by(signum: int) -> str:
+    """The one line of a command that ``signum`` stopped at once."""
+    by = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+    return (f"stopped by {by}: files are written whole, nothing is half-made; a run folder it claimed "
+            "(config.json alone, or a checkpoint) continues with --resume")
+
+
+INTERRUPTED = stopped_by(signal.SIGINT)
+
+
+def taken_signals() -> tuple[int, ...]:
+    """The stop signals a command takes: not one this process was started ignoring (``nohup`` ignores SIGHUP,
+    for the command to outlive its terminal)."""
+    return tuple(signum for signum in STOP_SIGNALS if signal.getsignal(signum) is not signal.SIG_IGN)
 
 
 _ENDING = threading.Lock()  # taken by the first of the handler and the watcher to end the process: one line
@@ -195,21 +207,24 @@ def ended_with_the_command(end: Callable[[], None]) -> Iterator[None]:
 
 
 def _stop_at_once(signum, frame) -> None:
-    """Ctrl-C outside a training loop, in the main thread (Python's handler) or the watcher's. The handler
-    ends the process itself: the watcher may look only once a training loop's handler is set, and leave the
-    signal to it. A second Ctrl-C meanwhile returns (a handler run within itself would wait forever)."""
+    """A stop signal outside a training loop, in the main thread (Python's handler) or the watcher's. The
+    handler ends the process itself: the watcher may look only once a training loop's handler is set, and
+    leave the signal to it. A second signal meanwhile returns (a handler run within itself would wait forever)."""
     if not _ENDING.acquire(blocking=False):
         return
     for end in list(_ENDED_WITH_THE_COMMAND):
         with contextlib.suppress(Exception):  # a child that has ended already: nothing to end
             end()
-    os.write(2, f"{INTERRUPTED}\n".encode())
-    os._exit(130)
+    os.write(2, f"{stopped_by(signum)}\n".encode())
+    os._exit(128 + signum)  # the shell's code for a process the signal ended: 130 for Ctrl-C
 
 
-def stop_at_once_on_interrupt() -> None:
-    """From here on, Ctrl-C outside a training loop (``stop_on_signals``) ends the process at once with one
-    line on stderr and exit code 130, in any phase: imports, tracing, compiling, the reward diagnosis.
+def stop_at_once_on_signals() -> None:
+    """From here on, Ctrl-C, SIGTERM or SIGHUP outside a training loop (``stop_on_signals``) ends the process
+    at once with one line on stderr and exit code 128 + the signal's number (130 for Ctrl-C, 143 for
+    SIGTERM), in any phase: imports, tracing, compiling, the reward diagnosis; a child process the command
+    runs in a session of its own (``ended_with_the_command``) is ended with it. A signal the process was
+    started ignoring stays ignored (``taken_signals``).
 
     Python runs a signal's handler only between the main thread's calls, and a compile can hold the
     main thread for minutes: the signal is taken at C level too (``signal.set_wakeup_fd``), and a
@@ -224,17 +239,20 @@ def stop_at_once_on_interrupt() -> None:
     _COMMAND_PROCESS.set()
     readable, writable = os.pipe()
     os.set_blocking(writable, False)
-    signal.signal(signal.SIGINT, _stop_at_once)
+    taken = taken_signals()
+    for signum in taken:
+        signal.signal(signum, _stop_at_once)
     signal.set_wakeup_fd(writable, warn_on_full_buffer=False)
 
     def watch() -> None:
         while True:
             received = os.read(readable, 64)
-            # Within a training loop stop_on_signals holds Ctrl-C (stop after this epoch): left to it.
-            if signal.SIGINT in received and signal.getsignal(signal.SIGINT) is _stop_at_once:
-                _stop_at_once(signal.SIGINT, None)
+            # Within a training loop stop_on_signals holds them (stop after this epoch): left to it.
+            for signum in taken:
+                if signum in received and signal.getsignal(signum) is _stop_at_once:
+                    _stop_at_once(signum, None)
 
-    threading.Thread(target=watch, name="ctrl-c", daemon=True).start()
+    threading.Thread(target=watch, name="stop-signals", daemon=True).start()
 
 
 @contextlib.contextmanager
@@ -247,8 +265,8 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None,
     ``REPEAT_SECONDS`` later) ends the process at once; the run folder still
     resumes, from its last checkpoint. ``at_once()``: where stopping now loses nothing (no epoch
     begun: the compile, minutes on a large scene, would be waited for to save nothing), the line
-    that says so, and the first signal ends the process at once with it (exit code 130); else None.
-    Main thread only (as Python's signals).
+    that says so, and the first signal ends the process at once with it (exit code 128 + the signal's
+    number); else None. A signal the process was started ignoring stays ignored. Main thread only (as Python's signals).
     """
     requested: list[tuple[int, float]] = []  # (signal, when)
 
@@ -256,7 +274,7 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None,
         if not requested and (line := at_once()):
             announce(f"{signal.Signals(signum).name}: {line}")
             sys.stderr.flush()
-            os._exit(130)  # as Ctrl-C outside training: no unwinding while XLA compiles beside
+            os._exit(128 + signum)  # as outside training: no unwinding while XLA compiles beside
         now = time.monotonic()
         if requested and requested[0][0] == signum and now - requested[0][1] < REPEAT_SECONDS:
             return  # the same request again: timeout and Slurm signal the process, then its group
@@ -267,7 +285,7 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None,
         announce(f"{signal.Signals(signum).name}: stopping after this epoch (the checkpoint is saved; "
                  "send it again to stop at once)")
 
-    previous = {signum: signal.signal(signum, handler) for signum in STOP_SIGNALS}
+    previous = {signum: signal.signal(signum, handler) for signum in taken_signals()}
     try:
         yield lambda: bool(requested)
     finally:

@@ -24,6 +24,7 @@ update, with an empty compile cache and again with the cache that run filled.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -44,11 +45,9 @@ from stablebptt.timing import machine, usable_cores
 
 def main(argv: list[str]) -> int:
     config = parse_config(BenchConfig, argv, __doc__, "benchmark")
+    refuse_options_of_the_other_table(config)
     if config.startup:
         return startup(config, argv)
-    for name in ("models", "envs", "suite"):  # the tables time tasks: these would change nothing there
-        if getattr(config, name):
-            fail(f"--{name} chooses what --startup times: give --startup, or leave --{name} out")
     from stablebptt import tasks
     names = config.task_list  # "cartpole": the MJCF task's cart-poles (--poles)
     unknown = [t for t in names if tasks.canonical(t) not in tasks.entries()]
@@ -115,6 +114,19 @@ class Recorded(cli.EpochProgress):
 cli.EpochProgress = Recorded
 runpy.run_path(sys.argv[0], run_name="__main__")
 """
+
+
+def refuse_options_of_the_other_table(config: BenchConfig) -> None:
+    """One line, exit 2, for an option that changes nothing in what the command makes: the start-up table's
+    options (their help begins "for --startup:") without --startup, the update tables' with it."""
+    for option in dataclasses.fields(BenchConfig):
+        if option.name in ("startup", "out") or getattr(config, option.name) == option.default:
+            continue
+        flag = "--" + option.name.replace("_", "-")
+        if option.metadata["help"].startswith("for --startup:") and not config.startup:
+            fail(f"{flag} is an option of the start-up table: give --startup, or leave {flag} out")
+        if not option.metadata["help"].startswith("for --startup:") and config.startup:
+            fail(f"{flag} is an option of the update tables, which --startup does not make: leave {flag} out")
 
 
 def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
@@ -209,6 +221,6 @@ def startup(config, argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    from stablebptt.cli import stop_at_once_on_interrupt
-    stop_at_once_on_interrupt()
+    from stablebptt.cli import stop_at_once_on_signals
+    stop_at_once_on_signals()
     sys.exit(main(sys.argv[1:]))

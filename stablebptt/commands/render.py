@@ -206,6 +206,6 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    from stablebptt.cli import stop_at_once_on_interrupt
-    stop_at_once_on_interrupt()
+    from stablebptt.cli import stop_at_once_on_signals
+    stop_at_once_on_signals()
     sys.exit(main(sys.argv[1:]))

@@ -266,6 +266,6 @@ def _epochs(count: int) -> str:
 
 
 if __name__ == "__main__":
-    from stablebptt.cli import stop_at_once_on_interrupt
-    stop_at_once_on_interrupt()
+    from stablebptt.cli import stop_at_once_on_signals
+    stop_at_once_on_signals()
     sys.exit(main(sys.argv[1:]))

@@ -444,7 +444,7 @@ def test_x64_from_python_trains_in_float64_as_the_command_line_and_leaves_jax_as
 # A refusal while a compile runs beside (the reward check's, XLA cannot stop it): work that never ends by itself.
 REFUSED_WHILE_WORKING = """
 import threading
-from stablebptt.cli import fail, stop_at_once_on_interrupt
+from stablebptt.cli import fail, stop_at_once_on_signals
 from stablebptt.engine.compiling import beside
 {arm}
 never = threading.Event()
@@ -459,7 +459,7 @@ def test_a_command_refused_while_a_compile_runs_beside_exits_at_once_with_its_ou
     held thread (which never ends) cannot hold its one line and exit code 2 back. Without that this hangs."""
     import subprocess
     import sys
-    done = subprocess.run([sys.executable, "-c", REFUSED_WHILE_WORKING.format(arm="stop_at_once_on_interrupt()")],
+    done = subprocess.run([sys.executable, "-c", REFUSED_WHILE_WORKING.format(arm="stop_at_once_on_signals()")],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert (done.returncode, done.stdout, done.stderr) == (2, "written before", "error: refused\n")
 

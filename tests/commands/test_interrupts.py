@@ -11,11 +11,12 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 from conftest import ROOT
 from held_compile import (CHECKPOINTED, COMPILING, STARTED, held_command, release, release_checkpoint,
                           stderr_through, wait_for)
-from stablebptt.cli import INTERRUPTED
+from stablebptt.cli import INTERRUPTED, STOP_SIGNALS, stopped_by
 
 TRAIN = ["scripts/train.py", "--poles", "1", "--steps", "10", "--epochs", "3", "--train-size", "16",
          "--test-size", "16", "--batch", "8", "--no-progress"]
@@ -111,31 +112,52 @@ def test_the_same_stop_request_arriving_after_the_run_stopped_is_ignored_and_a_l
     assert done.stdout.split() == ["survived"] and done.returncode == -signal.SIGTERM, (done.stdout, done.stderr)
 
 
-# Ctrl-C an instant before a training loop sets its own handler: the process-wide handler has taken it.
-CTRL_C_BEFORE_THE_LOOP = """
-import os, signal
-from stablebptt.cli import stop_at_once_on_interrupt, stop_on_signals
-stop_at_once_on_interrupt()
-os.kill(os.getpid(), signal.SIGINT)
+# A stop signal an instant before a training loop sets its own handler: the process-wide handler has taken it.
+SIGNAL_BEFORE_THE_LOOP = """
+import os, signal, sys
+from stablebptt.cli import stop_at_once_on_signals, stop_on_signals
+stop_at_once_on_signals()
+os.kill(os.getpid(), int(sys.argv[1]))
 with stop_on_signals() as should_stop:
     print("went on; stop asked:", should_stop())
 """
 
 
-def test_ctrl_c_just_before_a_training_loop_ends_the_command_and_is_not_lost():
+@pytest.mark.parametrize("signum", STOP_SIGNALS)
+def test_a_stop_signal_just_before_a_training_loop_ends_the_command_and_is_not_lost(signum):
     """Python's handler runs in the main thread just after the signal, before the loop begins; the watcher
     thread, woken by the same signal, may look only once the loop's handler is set and leave the signal to
-    it. The handler ends the command itself: one line and exit code 130, never training on."""
-    done = subprocess.run([sys.executable, "-c", CTRL_C_BEFORE_THE_LOOP], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)
-    assert (done.returncode, done.stdout, done.stderr) == (130, "", f"{INTERRUPTED}\n")
+    it. The handler ends the command itself: one line and the shell's exit code for the signal (130 for
+    Ctrl-C), never training on."""
+    done = subprocess.run([sys.executable, "-c", SIGNAL_BEFORE_THE_LOOP, str(int(signum))], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stdout, done.stderr) == (128 + signum, "", f"{stopped_by(signum)}\n")
+    assert stopped_by(signal.SIGINT) == INTERRUPTED and "SIGTERM" in stopped_by(signal.SIGTERM)
+
+
+# A command started under nohup, which ignores SIGHUP so that the command outlives its terminal.
+UNDER_NOHUP = """
+import signal
+from stablebptt.cli import stop_at_once_on_signals, stop_on_signals
+stop_at_once_on_signals()
+signal.raise_signal(signal.SIGHUP)
+with stop_on_signals() as should_stop:
+    signal.raise_signal(signal.SIGHUP)
+    print("stop asked:", should_stop())
+"""
+
+
+def test_a_signal_the_command_was_started_ignoring_stays_ignored():
+    done = subprocess.run([sys.executable, "-c", UNDER_NOHUP], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120, preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    assert (done.returncode, done.stdout, done.stderr) == (0, "stop asked: False\n", "")
 
 
 # A second Ctrl-C while the first one ends the process (its line being written): the lock is taken.
 CTRL_C_WHILE_ENDING = """
 import os, signal
 from stablebptt import cli
-cli.stop_at_once_on_interrupt()
+cli.stop_at_once_on_signals()
 cli._ENDING.acquire()
 os.kill(os.getpid(), signal.SIGINT)
 print("returned", end="")
@@ -151,20 +173,22 @@ def test_a_second_ctrl_c_while_the_first_ends_the_command_does_not_hang_it():
     assert (done.returncode, done.stdout, done.stderr) == (0, "returned", "")
 
 
-def test_ctrl_c_of_bench_ends_the_run_it_times_in_a_session_of_its_own(tmp_path):
-    # The timed run is in a session of its own (a timeout stops it whole), where the terminal's Ctrl-C does not
-    # reach it: the bench's stop at once ends it first. Here the run is a script that says it has begun, then waits.
+@pytest.mark.parametrize("signum", (signal.SIGINT, signal.SIGTERM))
+def test_a_stop_signal_to_bench_ends_the_run_it_times_in_a_session_of_its_own(tmp_path, signum):
+    # The timed run is in a session of its own (a timeout stops it whole), where the terminal's Ctrl-C or a
+    # SIGTERM to the bench does not reach it: the bench's stop at once ends it first. Here the run is a script
+    # that says it has begun, then waits.
     waiter, began = tmp_path / "waiter.py", tmp_path / "began"
     waiter.write_text(f"import os, pathlib, time\npathlib.Path({str(began)!r}).write_text(str(os.getpid()))\n"
                       "time.sleep(300)\n")
     script = (f"from pathlib import Path\nfrom stablebptt import cli\nfrom stablebptt.commands import bench\n"
-              f"cli.stop_at_once_on_interrupt()\nbench._time_run([{str(waiter)!r}], Path({str(tmp_path)!r}), 300)\n")
+              f"cli.stop_at_once_on_signals()\nbench._time_run([{str(waiter)!r}], Path({str(tmp_path)!r}), 300)\n")
     process = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     wait_for(began, process)
     child = int(began.read_text())
-    process.send_signal(signal.SIGINT)
-    assert process.wait(timeout=60) == 130
+    process.send_signal(signum)
+    assert process.wait(timeout=60) == 128 + signum
     deadline = time.monotonic() + 60
     try:
         while running(child) and time.monotonic() < deadline:

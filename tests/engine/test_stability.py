@@ -264,10 +264,14 @@ def test_bench_command_writes_the_tables_it_is_asked_for(tmp_path, capsys):
     """`stablebptt bench` (through the installed command's dispatcher): a row per mode for repulsion; for the
     cart-pole with `--tables steps --simulators generated,floor`, only those simulators and the parts."""
     from stablebptt.commands import bench as bench_command
-    for arguments, named in ((["--tasks", "cartpole", "--simulators", "generated,warp"], "--simulators"),
+    for arguments, named in ((["--rounds", "1", "--tasks", "cartpole", "--simulators", "generated,warp"],
+                              "--simulators"),
                              (["--tasks", "cartpole", "--poles", ","], "--poles"), (["--envs", "CheetahRun"], "--envs"),
-                             (["--batch", "0"], "--batch"), (["--startup", "--timeout", "nan"], "--timeout")):
-        code, lines = refused_in_process(bench_command.main, ["--rounds", "1", *arguments], capsys)
+                             (["--batch", "0"], "--batch"), (["--startup", "--timeout", "nan"], "--timeout"),
+                             # each table's options are refused beside the other
+                             (["--timeout", "60"], "--timeout"), (["--train-args", "--epochs 2"], "--train-args"),
+                             (["--startup", "--rounds", "1"], "--rounds"), (["--startup", "--poles", "2"], "--poles")):
+        code, lines = refused_in_process(bench_command.main, arguments, capsys)
         assert code == 2 and len(lines) == 1 and named in lines[0], (arguments, lines)
     command = [sys.executable, "-m", "stablebptt.commands.main", "bench", "--rounds", "1"]
     modes, steps = tmp_path / "modes.md", tmp_path / "steps.md"
