@@ -73,6 +73,17 @@ def require_task(task: Any) -> None:
             raise TaskError(f"Task.{name} must be a function or None, got {getattr(task, name)!r}")
 
 
+def evaluated(task: Task, params: Any, initial_states: Any) -> jax.Array:
+    """``task.evaluation(params, initial_states)``, checked as it is traced: one float loss per state, or
+    ``TaskError`` (a loss of another shape would be averaged, or its states mixed, without a word)."""
+    losses = task.evaluation(params, initial_states)
+    count = jax.tree.leaves(initial_states)[0].shape[0]
+    if not (hasattr(losses, "shape") and losses.shape == (count,) and jnp.issubdtype(losses.dtype, jnp.floating)):
+        raise TaskError(f"Task.evaluation(params, initial_states) must return one float loss per initial state "
+                        f"(float[{count}] for {count} states), got {_describe(losses)}")
+    return losses
+
+
 def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2,)) -> None:
     """Trace ``task`` with shapes only and raise ``TaskError`` naming the first field that does not fit;
     its sampler at each of ``counts`` (a trainer's: the counts it draws, so that an environment's batched

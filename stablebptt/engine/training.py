@@ -15,7 +15,7 @@ import jax.extend
 import jax.numpy as jnp
 import optax
 
-from stablebptt.engine.checks import check_task
+from stablebptt.engine.checks import check_task, evaluated
 from stablebptt.engine.compiling import compiler_options, run_plan, step_size
 from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches, eval_cadence, seed_batching
 from stablebptt.engine.critic import bootstrap, fit_to_window, init_critic
@@ -230,7 +230,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
 
     def evaluate(params, initial_states, dynamics=task.dynamics):
         if task.evaluation is not None:
-            return task.evaluation(params, initial_states).mean()
+            return evaluated(task, params, initial_states).mean()
         return reference_loss(dynamics, params, initial_states, plan=plan)
 
     def update(dynamics, state, batch):
@@ -278,7 +278,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
         # Training and test states in one rollout: the program holds one copy of the simulator, not two.
         both = split_where_even(spread, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), train_states, test_states))
         if task.evaluation is not None:
-            return task.evaluation(params, both)
+            return evaluated(task, params, both)
         return reference_losses(dynamics, params, both, plan=plan)
 
     metrics = EpochMetrics(config)

@@ -318,6 +318,7 @@ def _spoiled(case):
         "dynamics a string": lambda: dataclasses.replace(task, dynamics="pendulum"),
         "episodes a string": lambda: dataclasses.replace(task, episodes="yes"),
         "evaluation a string": lambda: dataclasses.replace(task, evaluation="mean return"),
+        "evaluation a mean": lambda: dataclasses.replace(task, evaluation=lambda params, states: jnp.cos(states[0]).mean()),
     }[case]
     return sb, change()
 
@@ -373,6 +374,15 @@ def test_the_python_api_names_what_is_wrong_with_a_task_before_compiling(case):
     sb, task = _spoiled(case)
     with pytest.raises(TaskError, match=TASK_CASES[case].replace("(", r"\(").replace(")", r"\)")):
         sb.make_trainer(task, sb.TrainConfig(epochs=1, train_size=8, test_size=8))
+
+
+def test_an_evaluation_of_another_shape_than_a_loss_per_state_is_named_as_it_is_traced():
+    from stablebptt.engine.checks import TaskError
+    sb, task = _spoiled("evaluation a mean")  # a mean over the states where a loss per state is asked for: here its 8 training and 8 test states at once
+    with pytest.raises(TaskError, match=r"Task.evaluation\(params, initial_states\) must return one float loss per "
+                                        r"initial state \(float\[16\] for 16 states\), got PyTreeDef\(\*\) with leaves "
+                                        r"float32\[\]"):
+        sb.train(task, sb.TrainConfig(epochs=1, train_size=8, test_size=8, batch=8))
 
 
 def test_a_plan_names_its_wrong_field_and_dynamics_sends_engine_settings_to_plan():
