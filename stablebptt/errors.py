@@ -66,5 +66,9 @@ class InputError(ValueError):
     """Bad user input. Scripts print its message as one line and exit with code 2."""
 
 
+class TaskError(InputError):
+    """A ``Task`` or its ``Dynamics`` that cannot train: the message names the field."""
+
+
 class StorageError(OSError):
     """A file could not be written (full disk, permissions). Scripts print one line and exit with code 1."""

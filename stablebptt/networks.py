@@ -6,6 +6,8 @@ from typing import Callable, Sequence
 import jax
 import jax.numpy as jnp
 
+from stablebptt.errors import InputError, whole_number
+
 
 def glorot_uniform(key: jax.Array, fan_in: int, fan_out: int, shape: tuple[int, ...] | None = None) -> jax.Array:
     """Glorot/Xavier uniform initialisation, the Keras default the original uses."""
@@ -22,6 +24,10 @@ def mlp_init(key: jax.Array, sizes: Sequence[int], zero_output: bool = True) -> 
       zero_output: start the output layer's weights at zero, so the initial
         policy outputs exactly zero, as the paper's public run scripts do.
     """
+    if (isinstance(sizes, (str, bytes)) or not isinstance(sizes, Sequence) or len(sizes) < 2
+            or not all(whole_number(size) and size > 0 for size in sizes)):
+        raise InputError(f"mlp_init's sizes are the layers' widths, the input's first and the output's last: two or "
+                         f"more positive whole numbers, e.g. (6, 100, 100, 1); got {sizes!r}")
     keys = jax.random.split(key, len(sizes) - 1)
     layers = []
     for index, (k, fan_in, fan_out) in enumerate(zip(keys, sizes[:-1], sizes[1:])):

@@ -20,13 +20,9 @@ import jax.numpy as jnp
 from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.task import Task
-from stablebptt.errors import InputError, config_field, whole_number
-from stablebptt.flows.dynamics import Dynamics, Plan
+from stablebptt.errors import InputError, TaskError, config_field, whole_number
+from stablebptt.flows.dynamics import Dynamics, Plan, check_dynamics
 from stablebptt.flows.modes import flows_needed
-
-
-class TaskError(InputError):
-    """A ``Task`` or its ``Dynamics`` that cannot train: the message names the field."""
 
 
 def parameter_shapes(task: Any, zero_output: bool) -> Any:
@@ -45,15 +41,6 @@ def first_line(error: Exception) -> str:
     """An error in one line: its type and the first line of its message."""
     text = str(error).strip().splitlines()
     return f"{type(error).__name__}: {text[0] if text else ''}"
-
-
-def check_dynamics(dynamics: Any) -> None:
-    """The fields of a ``Dynamics`` that need no tracing: the horizon, and functions where functions belong."""
-    if not whole_number(dynamics.horizon) or dynamics.horizon < 1:
-        raise TaskError(f"Dynamics.horizon must be a positive whole number of steps, got {dynamics.horizon!r}")
-    for name in ("step", "policy", "loss"):
-        if not callable(getattr(dynamics, name)):
-            raise TaskError(f"Dynamics.{name} must be a function, got {getattr(dynamics, name)!r}")
 
 
 def require_task(task: Any) -> None:

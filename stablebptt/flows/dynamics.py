@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from stablebptt.errors import InputError, whole_number
+from stablebptt.errors import InputError, TaskError, whole_number
 
 PyTree = Any
 
@@ -145,6 +145,17 @@ class Dynamics:
                              "make_trainer's or flow_gradients' plan argument")
         for name, value in (("step", step), ("policy", policy), ("loss", loss), ("horizon", horizon)):
             object.__setattr__(self, name, value)
+
+
+def check_dynamics(dynamics: Any) -> None:
+    """The fields of a ``Dynamics`` that need no tracing: the horizon, and functions where functions belong."""
+    if not isinstance(dynamics, Dynamics):
+        raise TaskError(f"expected a stablebptt.Dynamics, got {type(dynamics).__name__}")
+    if not whole_number(dynamics.horizon) or dynamics.horizon < 1:
+        raise TaskError(f"Dynamics.horizon must be a positive whole number of steps, got {dynamics.horizon!r}")
+    for name in ("step", "policy", "loss"):
+        if not callable(getattr(dynamics, name)):
+            raise TaskError(f"Dynamics.{name} must be a function, got {getattr(dynamics, name)!r}")
 
 
 def differentiable(leaf) -> bool:

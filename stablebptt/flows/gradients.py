@@ -9,7 +9,7 @@ import jax.numpy as jnp
 
 from stablebptt.errors import InputError
 from stablebptt.flows.adjoint_step import multi_adjoint_step
-from stablebptt.flows.dynamics import Dynamics, Plan, PyTree, first_copy, ravel_examples, stack_copies
+from stablebptt.flows.dynamics import Dynamics, Plan, PyTree, check_dynamics, first_copy, ravel_examples, stack_copies
 from stablebptt.flows.linearized import linearized_gradients, policy_gradients
 from stablebptt.flows.modes import FLOWS, KEEPS
 
@@ -73,6 +73,7 @@ def flow_window(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, init
       ``WindowGradients``: ``grads`` as ``flow_gradients``', the batch after ``dynamics.horizon`` steps
       and the states each step started from.
     """
+    check_dynamics(dynamics)
     if not (isinstance(flows, (tuple, list)) and flows and all(flow in FLOWS for flow in flows)):
         raise InputError(f"flows must name one or more of {', '.join(FLOWS)}, got {flows!r}")
     if not isinstance(plan, Plan):

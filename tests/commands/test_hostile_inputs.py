@@ -514,3 +514,31 @@ def test_a_task_config_field_of_the_wrong_type_is_named_and_numpys_scalars_are_t
     assert sb.TrainConfig(x64=np.False_, epochs=np.int64(3), lr=np.float32(1e-3)).epochs == 3
     assert mjcf.Config(poles=np.int64(2), dt=np.float64(0.01)).poles == 2
     assert env.Config(reward_check=np.False_, discount=np.float32(0.99)).reward_check == np.False_
+
+
+@pytest.mark.parametrize("sizes", [(3,), (3, 0, 1), (3, 2.5, 1), (3, True), "31", 3])
+def test_mlp_init_names_sizes_that_make_no_network(sizes):
+    import jax
+
+    import stablebptt as sb
+    with pytest.raises(sb.InputError, match=r"^mlp_init's sizes are the layers' widths, .*; got "):
+        sb.mlp_init(jax.random.PRNGKey(0), sizes)
+    assert [weights.shape for weights, _ in sb.mlp_init(jax.random.PRNGKey(0), (3, 4, 1))] == [(3, 4), (4, 1)]
+
+
+def test_flow_gradients_names_a_horizon_that_makes_no_window():
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    import stablebptt as sb
+    from stablebptt.errors import TaskError
+    task = _pendulum()
+    params = task.init_params(jax.random.PRNGKey(0), False)
+    states = task.sample_initial_states(jax.random.PRNGKey(1), 4)
+    loss, grads = sb.flow_gradients(task.dynamics, ("R",), params, states)
+    assert loss.shape == () and all(jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(grads))
+    for horizon in (0, 2.5):
+        with pytest.raises(TaskError, match=f"^Dynamics.horizon must be a positive whole number of steps, got {horizon}$"):
+            sb.flow_gradients(dataclasses.replace(task.dynamics, horizon=horizon), ("R",), params, states)
