@@ -98,6 +98,8 @@ def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2
     state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype), states)
     try:
         control = jax.eval_shape(dynamics.policy, params, state)
+    except InputError:  # the library's own refusal, of an env's policy: in its words already
+        raise
     except Exception as error:  # noqa: BLE001
         raise TaskError(f"Dynamics.policy(params, state) fails on one sampled state: {first_line(error)}") from None
     try:

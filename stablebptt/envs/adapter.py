@@ -213,10 +213,17 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     # One per reward whose direction the states carry (trained; else None, one for all): a task the check settles into
     # keeps its pending task's policy, starts, evaluation and episodes, and a trainer of it the pending one's programs.
+    def observed(state):  # observation_size's promise, kept as it is traced (the reward check traces no policy)
+        seen = observation(state)
+        if seen.shape[-1:] != (observations,):
+            raise EnvError(f"{label}: its states' observations have shape {tuple(seen.shape)}, but observation_size "
+                           f"is {observations}")
+        return seen
+
     @functools.cache
     def parts_of(trained):  # the direction its states carry, what the policy sees, the policy, the starts, ...
         direction = Direction(trained, int(env.action_size), reward_direction_observed)
-        seen = direction.seen(observation)
+        seen = direction.seen(observed)
         policy = lambda params, state: observation_policy(params, seen(state), squash)  # noqa: E731
         rollout = episode_dynamics(direction.stepping(step), policy, episode_length)
         evaluation = lambda params, states: reference_losses(rollout, params, EpisodeState(  # noqa: E731

@@ -359,6 +359,14 @@ def test_a_step_that_returns_a_state_of_another_tree_is_refused_before_anything_
         env_task(TreeChangingCart(), horizon=5, diagnose=diagnose)
 
 
+def test_an_observation_size_its_observations_break_is_named_with_the_reward_check_on():
+    # The check traces the step and the reward, no policy: the observation's size is kept as the policy is traced.
+    WrongSize = type("WrongSize", (Cart,), {"observation_size": 3})
+    task = env_task(WrongSize(), horizon=5, diagnose=True)
+    with pytest.raises(EnvError, match=r"WrongSize: its states' observations have shape \(2,\), but observation_size is 3"):
+        sb.make_trainer(task, sb.TrainConfig(epochs=1, batch=4))
+
+
 def test_an_env_module_that_fails_as_it_imports_is_one_line_and_the_current_folder_is_searched(
         tmp_path, monkeypatch, capsys):
     (tmp_path / "lab_env_divides.py").write_text("RATE = 1 / 0\n")
