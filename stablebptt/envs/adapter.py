@@ -41,7 +41,7 @@ from stablebptt.envs.derivative_model import (check_contacts, contact_cut, deriv
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
                                        start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, check_protocol, check_same_states, check_step, check_surrogate_reward,
-                                      function_name, observation)
+                                      function_name, sized_observation)
 from stablebptt.envs.returns import EpisodeState, episode_dynamics, rollout_loss
 from stablebptt.envs.reward_direction import Direction
 from stablebptt.envs.unread_outputs import unread_outputs_off
@@ -210,16 +210,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     loaded = loaded_states(env, contact_gradient_cut, label) if contact_gradient_cut else None
     # One cut step per step cut: a settled task keeps its pending task's step (a new one reads as smoothed: starting.py).
     cut = functools.cache(contact_cut(loaded)) if loaded else (lambda trained: trained)
+    observed = sized_observation(observations, label)  # checked as traced: the reward check traces no policy
 
     # One per reward whose direction the states carry (trained; else None, one for all): a task the check settles into
     # keeps its pending task's policy, starts, evaluation and episodes, and a trainer of it the pending one's programs.
-    def observed(state):  # observation_size's promise, kept as it is traced (the reward check traces no policy)
-        seen = observation(state)
-        if seen.shape[-1:] != (observations,):
-            raise EnvError(f"{label}: its states' observations have shape {tuple(seen.shape)}, but observation_size "
-                           f"is {observations}")
-        return seen
-
     @functools.cache
     def parts_of(trained):  # the direction its states carry, what the policy sees, the policy, the starts, ...
         direction = Direction(trained, int(env.action_size), reward_direction_observed)

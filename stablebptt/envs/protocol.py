@@ -39,6 +39,18 @@ def observation(state: PyTree) -> jax.Array:
     return obs
 
 
+def sized_observation(size: int, label: str) -> Callable[[PyTree], jax.Array]:
+    """``observation``, checked as it is traced against the ``size`` that ``observation_size`` gave: ``EnvError``
+    naming both, where a policy of ``size`` inputs would meet a shape error."""
+    def observed(state: PyTree) -> jax.Array:
+        seen = observation(state)
+        if seen.shape[-1:] != (size,):
+            raise EnvError(f"{label}: its states' observations have shape {tuple(seen.shape)}, but observation_size "
+                           f"is {size}")
+        return seen
+    return observed
+
+
 def check_protocol(env: Any) -> int:
     """The length of ``env``'s observation vector; ``EnvError`` naming what ``env`` lacks of Brax's
     environment protocol.
