@@ -28,7 +28,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.cli import typed_option
-from stablebptt.errors import InputError, StorageError
+from stablebptt.errors import InputError, StorageError, whole_number
 from stablebptt.flows.modes import MODE_ORDER, MODES
 from stablebptt.reports.choices import BANDS, FORMATS
 from stablebptt.reports.curves import (
@@ -209,8 +209,8 @@ def draw(runs: Sequence[Run], smooth: int = 0, band: str = "minmax", title: str 
 def _draw(runs: Sequence[Run], smooth: int, band: str, title: str | None, x_axis: str = "epoch") -> Figure:
     if not runs:
         raise InputError("no run to draw: give at least one run directory")
-    if smooth < 0:
-        raise InputError(f"--smooth must be zero or positive, got {smooth}")
+    if not (whole_number(smooth) and smooth >= 0):  # the command checks its --smooth before this
+        raise InputError(f"smooth must be a whole number of epochs, zero or more, got {smooth!r}")
     if band not in BANDS:
         raise InputError(f"unknown band {band!r}: choose one of {', '.join(BANDS)}")
     runs = sorted(runs, key=_sort_key)  # stable: runs of one flow and clip keep the caller's order

@@ -354,8 +354,9 @@ def test_a_config_whose_drawn_fields_have_the_wrong_types_is_not_a_run(tmp_path,
 
 def test_out_of_range_arguments_are_input_errors(tmp_path):
     run = write_run(tmp_path / "run")
-    with pytest.raises(InputError, match="smooth"):
-        plots.learning_curves([run], tmp_path / "x.png", smooth=-1)
+    for smooth in (-1, 2.5, "30", True):  # named as the function's parameter, not the command's option
+        with pytest.raises(InputError, match=f"^smooth must be a whole number of epochs, zero or more, got {smooth!r}$"):
+            plots.learning_curves([run], tmp_path / "x.png", smooth=smooth)
     with pytest.raises(InputError, match=r"\.png"):
         plots.learning_curves([run], tmp_path / "x.jpg")
     with pytest.raises(InputError, match="does not exist"):
