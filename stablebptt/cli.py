@@ -177,13 +177,13 @@ def stopped_by(signum: int) -> str:
             "(config.json alone, or a checkpoint) continues with --resume")
 
 
-INTERRUPTED = stopped_by(signal.SIGINT)
-
 
 def taken_signals() -> tuple[int, ...]:
-    """The stop signals a command takes: not one this process was started ignoring (``nohup`` ignores SIGHUP,
-    for the command to outlive its terminal)."""
-    return tuple(signum for signum in STOP_SIGNALS if signal.getsignal(signum) is not signal.SIG_IGN)
+    """The stop signals a command takes: Ctrl-C always (a shell starts a background job ignoring it, and the
+    scripts take it back: a user's kill -INT still stops the run), SIGTERM and SIGHUP unless this process was
+    started ignoring them (``nohup`` ignores SIGHUP for the command to outlive its terminal)."""
+    return tuple(signum for signum in STOP_SIGNALS
+                 if signum == signal.SIGINT or signal.getsignal(signum) is not signal.SIG_IGN)
 
 
 _ENDING = threading.Lock()  # taken by the first of the handler and the watcher to end the process: one line
@@ -194,9 +194,9 @@ _ENDED_WITH_THE_COMMAND: list[Callable[[], None]] = []  # what a stop at once en
 
 @contextlib.contextmanager
 def ended_with_the_command(end: Callable[[], None]) -> Iterator[None]:
-    """Within the block, a stop at once (Ctrl-C outside a training loop) calls ``end`` before the process
-    exits: a child process in a session of its own, which the terminal's Ctrl-C does not reach, would run on.
-    ``end`` must return at once (a second Ctrl-C waits for it)."""
+    """Within the block, a stop at once (a stop signal outside a training loop) calls ``end`` before the process
+    exits: a child process in a session of its own, which the terminal's Ctrl-C or a signal to this process does
+    not reach, would run on. ``end`` must return at once (a second signal waits for it)."""
     _ENDED_WITH_THE_COMMAND.append(end)
     if _ENDING.locked():  # the stop began before this was added: it may have passed the list
         end()
@@ -215,8 +215,12 @@ def _stop_at_once(signum, frame) -> None:
     for end in list(_ENDED_WITH_THE_COMMAND):
         with contextlib.suppress(Exception):  # a child that has ended already: nothing to end
             end()
-    os.write(2, f"{stopped_by(signum)}\n".encode())
-    os._exit(128 + signum)  # the shell's code for a process the signal ended: 130 for Ctrl-C
+    try:
+        os.write(2, f"{stopped_by(signum)}\n".encode())
+    except OSError:  # stderr gone (a closed terminal's SIGHUP, a pipe whose reader ended): end all the same
+        pass
+    finally:
+        os._exit(128 + signum)  # the shell's code for a process the signal ended: 130 for Ctrl-C
 
 
 def stop_at_once_on_signals() -> None:
@@ -260,8 +264,8 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None,
                     at_once: Callable[[], str | None] = lambda: None) -> Iterator[Callable[[], bool]]:
     """Within the block, Ctrl-C, SIGTERM (timeout, Slurm, Kubernetes, docker stop) and SIGHUP ask to stop.
 
-    Yields ``should_stop()``, which the training loop polls between epochs: it
-    saves and stops. A second signal (another kind, or the same one more than
+    Yields ``should_stop()`` (a ``StopRequest``), which the training loop polls between epochs: it
+    saves and stops, and the command exits with ``should_stop.exit_code``. A second signal (another kind, or the same one more than
     ``REPEAT_SECONDS`` later) ends the process at once; the run folder still
     resumes, from its last checkpoint. ``at_once()``: where stopping now loses nothing (no epoch
     begun: the compile, minutes on a large scene, would be waited for to save nothing), the line
@@ -272,9 +276,13 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None,
 
     def handler(signum, frame):
         if not requested and (line := at_once()):
-            announce(f"{signal.Signals(signum).name}: {line}")
-            sys.stderr.flush()
-            os._exit(128 + signum)  # as outside training: no unwinding while XLA compiles beside
+            try:
+                announce(f"{signal.Signals(signum).name}: {line}")
+                sys.stderr.flush()
+            except OSError:  # stderr gone: end all the same
+                pass
+            finally:
+                os._exit(128 + signum)  # as outside training: no unwinding while XLA compiles beside
         now = time.monotonic()
         if requested and requested[0][0] == signum and now - requested[0][1] < REPEAT_SECONDS:
             return  # the same request again: timeout and Slurm signal the process, then its group
@@ -287,12 +295,28 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None,
 
     previous = {signum: signal.signal(signum, handler) for signum in taken_signals()}
     try:
-        yield lambda: bool(requested)
+        yield StopRequest(requested)
     finally:
         for signum, old in previous.items():
-            signal.signal(signum, old)
-        if requested:  # the same request may still be on its way (timeout signals the group after the process)
-            _ignore_the_repeat(*requested[0], previous[requested[0][0]])
+            if requested and signum == requested[0][0]:  # the same request may still be on its way (timeout
+                _ignore_the_repeat(*requested[0], old)  # signals the group after the process): never unguarded
+            else:
+                signal.signal(signum, old)
+
+
+class StopRequest:
+    """Whether a stop signal asked a training loop to stop (called), and the exit code it asks for: the shell's
+    for the signal, as a stop at once gives (130 for Ctrl-C, 143 for SIGTERM); 0 where none asked."""
+
+    def __init__(self, requested: list[tuple[int, float]]):
+        self.requested = requested  # (signal, when), the first the request
+
+    def __call__(self) -> bool:
+        return bool(self.requested)
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.requested[0][0] if self.requested else 0
 
 
 def _ignore_the_repeat(signum: int, first: float, previous: Any) -> None:

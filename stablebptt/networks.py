@@ -24,6 +24,8 @@ def mlp_init(key: jax.Array, sizes: Sequence[int], zero_output: bool = True) -> 
       zero_output: start the output layer's weights at zero, so the initial
         policy outputs exactly zero, as the paper's public run scripts do.
     """
+    if getattr(sizes, "ndim", None) == 1:  # a NumPy or JAX vector of widths
+        sizes = sizes.tolist()
     if (isinstance(sizes, (str, bytes)) or not isinstance(sizes, Sequence) or len(sizes) < 2
             or not all(whole_number(size) and size > 0 for size in sizes)):
         raise InputError(f"mlp_init's sizes are the layers' widths, the input's first and the output's last: two or "

@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 from stablebptt.apps.bench import TABLES, BenchConfig
-from stablebptt.cli import ended_with_the_command, fail, parse_config
+from stablebptt.cli import ended_with_the_command, fail, option_name, parse_config
 from stablebptt.errors import InputError
 from stablebptt.timing import machine, usable_cores
 
@@ -122,7 +122,7 @@ def refuse_options_of_the_other_table(config: BenchConfig) -> None:
     for option in dataclasses.fields(BenchConfig):
         if option.name in ("startup", "out") or getattr(config, option.name) == option.default:
             continue
-        flag = "--" + option.name.replace("_", "-")
+        flag = option_name(option.name)
         if option.metadata["help"].startswith("for --startup:") and not config.startup:
             fail(f"{flag} is an option of the start-up table: give --startup, or leave {flag} out")
         if not option.metadata["help"].startswith("for --startup:") and config.startup:
@@ -137,7 +137,7 @@ def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
     process = subprocess.Popen([sys.executable, "-c", _PROBE] + command, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, env=environment, start_new_session=True)
     try:
-        with ended_with_the_command(lambda: os.killpg(process.pid, signal.SIGKILL)):  # Ctrl-C of this command
+        with ended_with_the_command(lambda: os.killpg(process.pid, signal.SIGKILL)):  # a stop signal to this command
             stdout, stderr = process.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         os.killpg(process.pid, signal.SIGKILL)

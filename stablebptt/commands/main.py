@@ -24,7 +24,7 @@ def usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    stop_at_once_on_signals()  # first: Ctrl-C stops in one line in every phase of a command
+    stop_at_once_on_signals()  # first: a stop signal ends it in one line in every phase
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] in ("-h", "--help"):
         print(usage())

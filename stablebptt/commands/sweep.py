@@ -286,7 +286,7 @@ def main(argv: list[str]) -> int:
                      f"run the same command again to resume, or give fewer --seeds", code=1)
         if interrupted():
             print("interrupted: the programs checkpointed; run the same command again to resume", file=sys.stderr)
-            return 130
+            return interrupted.exit_code
         finished = all(r["epochs_done"] == config.epochs for r in outcome)
         record = grids.write_record(where, {"preset": plan.name, "option": plan.option,
                                             "config": dataclasses.asdict(config), "finished": finished,

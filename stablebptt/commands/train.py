@@ -204,7 +204,7 @@ def train(argv: list[str], held: list) -> int:
         return 1
     if outcome.status == "interrupted":
         print(outcome.message, file=sys.stderr)
-        return 130
+        return should_stop.exit_code
     if outcome.status == "budget":
         print(outcome.message)
     from stablebptt.reports.plots import plot_run

@@ -33,7 +33,8 @@ def parameter_shapes(task: Any, zero_output: bool) -> Any:
 
 def _describe(tree: Any) -> str:
     leaves = jax.tree.leaves(tree)
-    shown = ", ".join(f"{leaf.dtype}{list(leaf.shape)}" for leaf in leaves[:4])
+    # a user's function may return Python numbers or lists where arrays belong
+    shown = ", ".join(f"{getattr(leaf, 'dtype', type(leaf).__name__)}{list(jnp.shape(leaf))}" for leaf in leaves[:4])
     return f"{jax.tree.structure(tree)} with leaves {shown}{', ...' if len(leaves) > 4 else ''}"
 
 

@@ -319,6 +319,7 @@ def _spoiled(case):
         "episodes a string": lambda: dataclasses.replace(task, episodes="yes"),
         "evaluation a string": lambda: dataclasses.replace(task, evaluation="mean return"),
         "evaluation a mean": lambda: dataclasses.replace(task, evaluation=lambda params, states: jnp.cos(states[0]).mean()),
+        "evaluation a number": lambda: dataclasses.replace(task, evaluation=lambda params, states: 0.5),
     }[case]
     return sb, change()
 
@@ -376,12 +377,15 @@ def test_the_python_api_names_what_is_wrong_with_a_task_before_compiling(case):
         sb.make_trainer(task, sb.TrainConfig(epochs=1, train_size=8, test_size=8))
 
 
-def test_an_evaluation_of_another_shape_than_a_loss_per_state_is_named_as_it_is_traced():
+@pytest.mark.parametrize("case, given", [("evaluation a mean", "float32"), ("evaluation a number", "float")])
+def test_an_evaluation_of_another_shape_than_a_loss_per_state_is_named_as_it_is_traced(case, given):
     from stablebptt.engine.checks import TaskError
-    sb, task = _spoiled("evaluation a mean")  # a mean over the states where a loss per state is asked for: here its 8 training and 8 test states at once
+    # A mean over the states, or a Python number, where a loss per state is asked for: here its 8 training and 8
+    # test states at once.
+    sb, task = _spoiled(case)
     with pytest.raises(TaskError, match=r"Task.evaluation\(params, initial_states\) must return one float loss per "
                                         r"initial state \(float\[16\] for 16 states\), got PyTreeDef\(\*\) with leaves "
-                                        r"float32\[\]"):
+                                        rf"{given}\[\]"):
         sb.train(task, sb.TrainConfig(epochs=1, train_size=8, test_size=8, batch=8))
 
 
@@ -519,11 +523,13 @@ def test_a_task_config_field_of_the_wrong_type_is_named_and_numpys_scalars_are_t
 @pytest.mark.parametrize("sizes", [(3,), (3, 0, 1), (3, 2.5, 1), (3, True), "31", 3])
 def test_mlp_init_names_sizes_that_make_no_network(sizes):
     import jax
+    import numpy as np
 
     import stablebptt as sb
     with pytest.raises(sb.InputError, match=r"^mlp_init's sizes are the layers' widths, .*; got "):
         sb.mlp_init(jax.random.PRNGKey(0), sizes)
-    assert [weights.shape for weights, _ in sb.mlp_init(jax.random.PRNGKey(0), (3, 4, 1))] == [(3, 4), (4, 1)]
+    for good in ((3, 4, 1), [3, 4, 1], np.array([3, 4, 1])):
+        assert [weights.shape for weights, _ in sb.mlp_init(jax.random.PRNGKey(0), good)] == [(3, 4), (4, 1)]
 
 
 def test_flow_gradients_names_a_horizon_that_makes_no_window():

@@ -16,7 +16,7 @@ import pytest
 from conftest import ROOT
 from held_compile import (CHECKPOINTED, COMPILING, STARTED, held_command, release, release_checkpoint,
                           stderr_through, wait_for)
-from stablebptt.cli import INTERRUPTED, STOP_SIGNALS, stopped_by
+from stablebptt.cli import STOP_SIGNALS, stopped_by
 
 TRAIN = ["scripts/train.py", "--poles", "1", "--steps", "10", "--epochs", "3", "--train-size", "16",
          "--test-size", "16", "--batch", "8", "--no-progress"]
@@ -24,6 +24,7 @@ TRAIN = ["scripts/train.py", "--poles", "1", "--steps", "10", "--epochs", "3", "
 # the first checkpoint wait for the test: tests/held_compile.py): the imports, the claimed folder (the scene
 # built and traced), the compile, its first epoch saved.
 MOMENTS = ("loading", "claimed", "compiling", "checkpointed")
+INTERRUPTED = stopped_by(signal.SIGINT)  # the line of a command Ctrl-C stopped at once
 
 
 def no_frame_in_the_repository(traceback: str) -> bool:
@@ -132,7 +133,23 @@ def test_a_stop_signal_just_before_a_training_loop_ends_the_command_and_is_not_l
     done = subprocess.run([sys.executable, "-c", SIGNAL_BEFORE_THE_LOOP, str(int(signum))], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     assert (done.returncode, done.stdout, done.stderr) == (128 + signum, "", f"{stopped_by(signum)}\n")
-    assert stopped_by(signal.SIGINT) == INTERRUPTED and "SIGTERM" in stopped_by(signal.SIGTERM)
+    assert stopped_by(signum).startswith("stopped by " + ("Ctrl-C" if signum == signal.SIGINT else signum.name))
+
+
+# The signal's line cannot be written (a closed terminal, a pipe whose reader ended): the command ends all the same.
+STDERR_GONE = """
+import os, signal
+from stablebptt.cli import stop_at_once_on_signals
+stop_at_once_on_signals()
+os.close(2)
+os.kill(os.getpid(), signal.SIGTERM)
+print("went on", flush=True)
+"""
+
+
+def test_a_stop_signal_ends_the_command_where_its_line_cannot_be_written():
+    done = subprocess.run([sys.executable, "-c", STDERR_GONE], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stdout) == (128 + signal.SIGTERM, "")
 
 
 # A command started under nohup, which ignores SIGHUP so that the command outlives its terminal.
