@@ -120,7 +120,8 @@ def draw(run_dirs: list[Path], out: Path) -> Path:
 
     from stablebptt.reports.plots import render
     runs = [curves.load_run(path) for path in run_dirs]
-    figure, axes = plt.subplots(len(runs), 2, figsize=(10, 3.4 * len(runs)), squeeze=False)
+    # Laid out as render saves it, once matplotlib's own fonts are listed (a layout before warned font by font).
+    figure, axes = plt.subplots(len(runs), 2, figsize=(10, 3.4 * len(runs)), squeeze=False, layout="tight")
     for row, run in zip(axes, runs):
         env, mine = run.config["task_config"]["env"], ours(run)
         mine_mean, mine_low, mine_high = curves.aggregate(mine["returns"])
@@ -141,7 +142,6 @@ def draw(run_dirs: list[Path], out: Path) -> Path:
             ax.set_xlabel(label)
             ax.set_ylabel(f"{env} return")
             ax.legend(fontsize=8, loc="upper left")
-    figure.tight_layout()
     return render(figure, out)
 
 

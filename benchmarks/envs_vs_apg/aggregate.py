@@ -50,11 +50,6 @@ def recipe_command(env: str, recipe: str = RECIPE) -> str:
                                    "train": dataclasses.asdict(train_config)})
 
 
-def spelled_without_budgets(command: str) -> str:
-    """A record's command less its budgets and resumes (``--budget S, then --resume RUN --budget S``)."""
-    return suite_table.without_budget(command.split(",")[0])
-
-
 def recipe_runs(records: list[dict], mark: int, envs: tuple[str, ...] = STUDY_ENVS) -> dict[str, dict]:
     """Per env, the latest run of the recipe as it stands that trained until ``mark`` s: runs of other
     options, of fewer seeds, without a budget or from a warm compile cache are left out. A run whose budget
@@ -64,7 +59,7 @@ def recipe_runs(records: list[dict], mark: int, envs: tuple[str, ...] = STUDY_EN
     for env in envs:
         wanted = recipe_command(env)
         runs = [record for record in records if record["env"] == env
-                and spelled_without_budgets(record["command"]) == wanted and len(record["seeds"]) >= SEEDS
+                and suite_table.what_trains(record["command"]) == wanted and len(record["seeds"]) >= SEEDS
                 and record.get("budget", 0.0) > 0 and suite_table.fresh_start(record)
                 and suite_table.by_mark(record, mark) is not None]
         if runs:
@@ -152,7 +147,8 @@ def draw(summary: dict, envs: list[str], mark: int, out: Path) -> Path:
     import matplotlib.pyplot as plt
     from stablebptt.reports.plots import render
     metrics = list(summary[OURS])
-    figure, axes = plt.subplots(1, len(metrics) + 1, figsize=(3.0 * (len(metrics) + 1), 2.2))
+    # Laid out as render saves it, once matplotlib's own fonts are listed (a layout before warned font by font).
+    figure, axes = plt.subplots(1, len(metrics) + 1, figsize=(3.0 * (len(metrics) + 1), 2.2), layout="tight")
     for ax, metric in zip(axes, metrics):
         for row, (name, colour) in enumerate(((PPO, "tab:gray"), (OURS, "tab:blue"))):
             point, low, high = summary[name][metric]
@@ -167,7 +163,6 @@ def draw(summary: dict, envs: list[str], mark: int, out: Path) -> Path:
     axes[-1].axvline(0.5, color="tab:gray", linestyle="--")
     axes[-1].set(xlim=(0, 1), yticks=[], title="P(ours > PPO)")
     figure.suptitle(f"By {mark} s over {', '.join(envs)} (95% stratified bootstrap intervals)", fontsize=9)
-    figure.tight_layout()
     return render(figure, out)
 
 

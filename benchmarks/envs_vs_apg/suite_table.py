@@ -18,7 +18,8 @@ seeds, the first evaluation's, the update's and the start-up's seconds, and Brax
 budget where `results/envs/baselines/ppo.json` has one (Brax's own loop, `ppo_baseline.py`), with
 MuJoCo Playground's published PPO return as the reference; then, per env with a reference, its best
 command's return by 300 s in runs of 5 seeds or more on the reported seeds (a command run more than
-once: its runs' seeds pooled), and how many envs stand at half of it or more.
+once, whatever its budgets and resumes: its runs' seeds pooled), and how many envs stand at half of it or
+more.
 
   python benchmarks/envs_vs_apg/suite_table.py --runs RUNS/* --out results/envs/suite
   python benchmarks/envs_vs_apg/suite_table.py --out results/envs/suite      # from OUT/records.json again
@@ -162,6 +163,12 @@ def fresh_start(record: dict) -> bool:
 def without_budget(command: str) -> str:
     words = command.split(" ")
     return " ".join(word for i, word in enumerate(words) if word != "--budget" and (i == 0 or words[i - 1] != "--budget"))
+
+
+def what_trains(command: str) -> str:
+    """A record's command without its budgets and resumes: runs of one recipe given other budgets, or
+    resumed past the mark, are reruns of one command (pooled by the mark, not the best of them taken)."""
+    return without_budget(command.split(", then ")[0].split(" (resumed: ")[0])
 
 
 def _ended(start: dict, budget: float, elapsed: float) -> str:
@@ -341,7 +348,7 @@ def against_reference(records: list[dict]) -> list[str]:
         # Only runs given a wall-clock budget: a screen of fixed epochs may have shared its GPU.
         if (record["env"] in PPO_REFERENCE and returns is not None and len(record["seeds"]) >= MIN_SEEDS
                 and reported_seeds(record) and fresh_start(record) and record.get("budget", 0.0) > 0):
-            pooled[record["env"], record["command"]].append(list(returns))
+            pooled[record["env"], what_trains(record["command"])].append(list(returns))
     best = {}
     for (env, command), runs in pooled.items():
         returns = [value for run in runs for value in run]
@@ -352,10 +359,10 @@ def against_reference(records: list[dict]) -> list[str]:
     lines = [f"Against MuJoCo Playground's published PPO return, by {AT_S} s of wall clock (set-up and compile "
              f"counted; each env's best command above in runs of {MIN_SEEDS} seeds or more, the reported ones, given a "
              f"wall-clock budget, whose first start compiled its programs, loading at most {WARM_S:g} s of compile from the "
-             f"cache; a command run more than once with its runs' seeds pooled): {len(at_half)} of the {len(PPO_REFERENCE)} "
+             f"cache; a command run more than once, whatever its budgets and resumes, with its runs' seeds pooled): {len(at_half)} of the {len(PPO_REFERENCE)} "
              f"envs with a reference stand at {HALF:.0%} of it or more" + (f" ({', '.join(at_half)})" if at_half else "") +
              f"; {len(PPO_REFERENCE) - len(best)} have no such run on record.", "",
-             f"| env | PPO reference | best by {AT_S} s | share | runs (each one's mean) | command |",
+             f"| env | PPO reference | best by {AT_S} s | share | runs (each one's mean) | command (budgets left out) |",
              "|---|---:|---|---:|---|---|"]
     for env in sorted(best):
         mean, returns, runs, command = best[env]

@@ -150,6 +150,21 @@ def test_an_env_counts_against_ppos_reference_by_its_best_command_at_300_s_on_th
     assert "| 440.0 [" in pooled["WalkerStand"] and "| 44% | 3: 360.0 / 400.0 / 560.0 | `stand` |" in pooled["WalkerStand"]
 
 
+def test_runs_of_one_command_given_other_budgets_or_resumed_past_the_mark_pool_as_reruns():
+    assert suite_table.what_trains("stablebptt train --env W --steps 2 --budget 545, then --resume RUN --budget 365") \
+        == suite_table.what_trains("stablebptt train --env W --steps 2 --budget 300") == "stablebptt train --env W --steps 2"
+    assert suite_table.what_trains("stablebptt train --env W --critic (resumed: 2 starts)") == "stablebptt train --env W --critic"
+    records = [{"env": "WalkerWalk", "command": command, "started": started, "budget": budget, "starts": starts,
+                "seeds": list(range(42, 47)), "final_return": final, "returns_by_wall_clock": along}
+               for command, started, budget, starts, final, along in (
+                   ("walk --budget 300", "2026-01-01T10:00:00", 300.0, 1, [500.0] * 5, {}),
+                   # the better run by 300 s, of a longer budget: a rerun of the same command, not a command of its own
+                   ("walk --budget 545, then --resume RUN --budget 365", "2026-01-02T10:00:00", 365.0, 2, [900.0] * 5,
+                    {"300": [700.0] * 5, "600": [880.0] * 5}))]
+    (row,) = suite_table.against_reference(records)[4:]
+    assert "| 600.0 [" in row and "| 62% | 2: 500.0 / 700.0 | `walk` |" in row
+
+
 def test_brax_ppos_runs_are_read_campaign_by_campaign_each_at_the_budget_it_was_started_with(monkeypatch):
     def run(seed, budget, returns, status="budget"):  # an evaluation every 100 s from 100 s, one return each
         points = [{"train_wall_s": 100.0 * (i + 1), "env_steps": i, "return": value} for i, value in enumerate(returns)]
