@@ -338,11 +338,21 @@ def ended_near(record: dict, mark: float) -> bool:
     return abs(record.get("wall_s", record.get("budget", 0.0)) - mark) <= MARK_WITHIN_S
 
 
+def first_start(record: dict) -> tuple:
+    """What tells a run folder's first start apart: a folder recorded again after a later resume is one run,
+    counted once. Its start time where the record has one; else what that start measured."""
+    if record.get("started"):
+        return record["env"], what_trains(record["command"]), record["started"]
+    return (record["env"], what_trains(record["command"]), record.get("seconds_to_training"),
+            tuple(record.get("first_return") or ()), tuple(record["seeds"]))
+
+
 def against_reference(records: list[dict]) -> list[str]:
     """Per env with a PPO reference, its best command's mean return by AT_S seconds (runs of MIN_SEEDS seeds
     or more) and that share of the reference; and how many envs stand at HALF of it or more. A command run
     more than once counts once, every run's seeds pooled: a rerun cannot lift an env by luck."""
     pooled = collections.defaultdict(list)  # (env, command) -> each counted run's returns by AT_S
+    records = list({first_start(record): record for record in records}.values())
     for record in records:
         returns = by_mark(record)
         # Only runs given a wall-clock budget: a screen of fixed epochs may have shared its GPU.

@@ -155,7 +155,8 @@ def test_runs_of_one_command_given_other_budgets_or_resumed_past_the_mark_pool_a
         == suite_table.what_trains("stablebptt train --env W --steps 2 --budget 300") == "stablebptt train --env W --steps 2"
     assert suite_table.what_trains("stablebptt train --env W --critic (resumed: 2 starts)") == "stablebptt train --env W --critic"
     records = [{"env": "WalkerWalk", "command": command, "started": started, "budget": budget, "starts": starts,
-                "seeds": list(range(42, 47)), "final_return": final, "returns_by_wall_clock": along}
+                "seeds": list(range(42, 47)), "final_return": final, "returns_by_wall_clock": along,
+                "seconds_to_training": 60.0 + len(along), "first_return": [100.0 + len(along)] * 5}
                for command, started, budget, starts, final, along in (
                    ("walk --budget 300", "2026-01-01T10:00:00", 300.0, 1, [500.0] * 5, {}),
                    # the better run by 300 s, of a longer budget: a rerun of the same command, not a command of its own
@@ -163,6 +164,12 @@ def test_runs_of_one_command_given_other_budgets_or_resumed_past_the_mark_pool_a
                     {"300": [700.0] * 5, "600": [880.0] * 5}))]
     (row,) = suite_table.against_reference(records)[4:]
     assert "| 600.0 [" in row and "| 62% | 2: 500.0 / 700.0 | `walk` |" in row
+    # The second run's folder recorded again after a third start: the same run, counted once.
+    again = dict(records[1], command=records[1]["command"] + ", then --resume RUN --budget 300", starts=3)
+    assert suite_table.against_reference(records + [again])[4:] == [row]
+    for record in records + [again]:  # records from before runs recorded their start time
+        record.pop("started")
+    assert suite_table.against_reference(records + [again])[4:] == [row]
 
 
 def test_brax_ppos_runs_are_read_campaign_by_campaign_each_at_the_budget_it_was_started_with(monkeypatch):
