@@ -123,6 +123,34 @@ def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2
                         f"{first_line(error)}") from None
     if not (hasattr(loss, "shape") and loss.shape == () and jnp.issubdtype(loss.dtype, jnp.floating)):
         raise TaskError(f"Dynamics.loss must return one float for a trajectory, got {_describe(loss)}")
+    if task.episodes is not None:
+        check_episodes(task.episodes, state)
+
+
+# What each function of a task's Episodes returns for one state: (its shape's words, whether it holds).
+EPISODE_OUTPUTS = {
+    "reward": ("one float", lambda out: out.shape == () and jnp.issubdtype(out.dtype, jnp.floating)),
+    "done": ("one bool or number", lambda out: out.shape == () and (out.dtype == jnp.bool_ or
+                                                                   jnp.issubdtype(out.dtype, jnp.number))),
+    "gradient_cut": ("one bool or number", lambda out: out.shape == () and (out.dtype == jnp.bool_ or
+                                                                           jnp.issubdtype(out.dtype, jnp.number))),
+    "observe": ("a float vector", lambda out: out.ndim == 1 and jnp.issubdtype(out.dtype, jnp.floating))}
+
+
+def check_episodes(episodes: Episodes, state: Any) -> None:
+    """``TaskError`` naming the first function of ``episodes`` that fails on one sampled ``state`` (shapes
+    only), or returns another shape than a window's loop reads (a vector reward was summed into every
+    env's return, or broadcast over the batch, without a word). Its reset is the sampler's, traced above."""
+    for name, (words, holds) in EPISODE_OUTPUTS.items():
+        function = getattr(episodes, name)
+        if function is None:
+            continue
+        try:
+            out = jax.eval_shape(function, state)
+        except Exception as error:  # noqa: BLE001 - the user's function failed: one line naming it
+            raise TaskError(f"Episodes.{name}(state) fails on one sampled state: {first_line(error)}") from None
+        if not (hasattr(out, "shape") and holds(out)):
+            raise TaskError(f"Episodes.{name}(state) must return {words} for one state, got {_describe(out)}")
 
 
 def _given(config: Any, name: str) -> bool:

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from stablebptt.errors import InputError
 from stablebptt.flows.dynamics import (
     Dynamics,
     KnownColumns,
@@ -27,6 +28,18 @@ from stablebptt.flows.dynamics import (
     stack_copies,
 )
 from stablebptt.flows.modes import KEEPS
+
+
+def check_known_columns(known: KnownColumns, state_size: int) -> None:
+    """``InputError`` unless ``known`` gives whole columns of the step's state Jacobian: indices of the
+    flattened state (one past it would take a control's column, changing the gradients without a word) and
+    columns as long as the state."""
+    indices, columns = np.asarray(known.indices), np.asarray(known.columns)
+    if not (indices.ndim == 1 and np.issubdtype(indices.dtype, np.integer) and np.all((indices >= 0) & (indices < state_size))
+            and len(set(indices.tolist())) == indices.size and columns.shape == (state_size, indices.size)):
+        raise InputError(f"Plan.known_columns must give distinct indices of the flattened state's {state_size} entries "
+                         f"and columns of shape ({state_size}, indices), got indices {indices.tolist()} and columns "
+                         f"of shape {columns.shape}")
 
 
 def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns | None = None,
@@ -52,6 +65,8 @@ def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns |
       leaves; its other leaves have no derivative).
     """
     state_size = sum(leaf.size for leaf in split(jax.tree.map(lambda a: a[0], states)).floats)  # the output is a state too
+    if known is not None:
+        check_known_columns(known, state_size)
     known_at = {} if known is None else {int(i): np.asarray(c) for i, c in zip(known.indices, np.transpose(known.columns))}
 
     def one(state, control):

@@ -5,6 +5,7 @@ Run in-process through scripts/train.py's ``main``: each case fails before anyth
 from __future__ import annotations
 
 import importlib.util
+import re
 
 import pytest
 
@@ -548,3 +549,22 @@ def test_flow_gradients_names_a_horizon_that_makes_no_window():
     for horizon in (0, 2.5):
         with pytest.raises(TaskError, match=f"^Dynamics.horizon must be a positive whole number of steps, got {horizon}$"):
             sb.flow_gradients(dataclasses.replace(task.dynamics, horizon=horizon), ("R",), params, states)
+
+
+def test_known_columns_outside_the_state_are_named_before_they_change_a_gradient():
+    import jax
+    import numpy as np
+
+    import stablebptt as sb
+    from stablebptt.flows.dynamics import KnownColumns
+    task = _pendulum()  # a state of 2 entries: index 2 would be the control's column
+    params = task.init_params(jax.random.PRNGKey(0), False)
+    states = task.sample_initial_states(jax.random.PRNGKey(1), 4)
+    good = KnownColumns(np.array([1]), np.zeros((2, 1)))
+    sb.flow_gradients(task.dynamics, ("R",), params, states, sb.Plan(step_derivative="forward", known_columns=good))
+    for indices, columns in (([2], (2, 1)), ([0, 0], (2, 2)), ([1], (3, 1))):
+        plan = sb.Plan(step_derivative="forward", known_columns=KnownColumns(np.array(indices), np.zeros(columns)))
+        expected = (f"Plan.known_columns must give distinct indices of the flattened state's 2 entries and columns of "
+                    f"shape (2, indices), got indices {indices} and columns of shape {columns}")
+        with pytest.raises(sb.InputError, match=f"^{re.escape(expected)}$"):
+            sb.flow_gradients(task.dynamics, ("R",), params, states, plan)

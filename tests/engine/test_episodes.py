@@ -23,7 +23,7 @@ from stablebptt.engine.episodes import (
 )
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import make_trainer
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, TaskError
 from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.flows.gradients import flow_window, reference_loss, reference_rollout
 
@@ -567,3 +567,17 @@ def test_the_task_check_samples_at_the_counts_the_states_are_drawn_at_and_no_oth
     fixed = dataclasses.replace(task, sample_initial_states=lambda key, n: jax.random.uniform(key, (6,)))
     with pytest.raises(InputError, match=r"sample_initial_states\(key, 4\) must return 4 states"):
         make_trainer(fixed, TrainConfig(epochs=1, batch=3, train_size=6, test_size=4))
+
+
+@pytest.mark.parametrize("name, function, words", [
+    ("reward", lambda x: jnp.stack([-x, x]), r"Episodes.reward\(state\) must return one float for one state, got .*float32\[2\]"),
+    ("done", lambda x: jnp.stack([x > 0, x < 0]), r"Episodes.done\(state\) must return one bool or number for one state"),
+    ("observe", lambda x: x, r"Episodes.observe\(state\) must return a float vector for one state, got .*float32\[\]"),
+    ("reward", lambda x: x.missing, r"Episodes.reward\(state\) fails on one sampled state: AttributeError")])
+def test_an_episodes_function_of_another_shape_is_named_before_compiling(name, function, words):
+    """A vector reward would be summed into each env's return, or broadcast over the batch, without a word."""
+    task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
+                sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)),
+                episodes=Episodes(**{**episodes().__dict__, "observe": lambda x: jnp.stack([x]), name: function}))
+    with pytest.raises(TaskError, match=f"^{words}"):
+        make_trainer(task, TrainConfig(epochs=1, batch=8, train_size=2, test_size=2, critic=True))
