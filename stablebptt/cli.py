@@ -177,7 +177,6 @@ def stopped_by(signum: int) -> str:
             "(config.json alone, or a checkpoint) continues with --resume")
 
 
-
 def taken_signals() -> tuple[int, ...]:
     """The stop signals a command takes: Ctrl-C always (a shell starts a background job ignoring it, and the
     scripts take it back: a user's kill -INT still stops the run), SIGTERM and SIGHUP unless this process was

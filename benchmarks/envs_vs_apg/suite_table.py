@@ -340,9 +340,7 @@ def ended_near(record: dict, mark: float) -> bool:
 
 def first_start(record: dict) -> tuple:
     """What tells a run folder's first start apart: a folder recorded again after a later resume is one run,
-    counted once. Its start time where the record has one; else what that start measured."""
-    if record.get("started"):
-        return record["env"], what_trains(record["command"]), record["started"]
+    counted once. What that start measured, which every record holds (its start time only the newer ones)."""
     return (record["env"], what_trains(record["command"]), record.get("seconds_to_training"),
             tuple(record.get("first_return") or ()), tuple(record["seeds"]))
 

@@ -3,8 +3,9 @@
 ``check_task`` traces a ``Task`` with shapes only (``jax.eval_shape``: nothing
 runs): the initial-state sampler's leading size, float parameters, a control
 the step accepts, a step that returns the state's own structure, a scalar
-loss, and a ``Plan`` as the task's plan (a ``Plan`` checks its own fields when
-it is made). Each failure is a ``TaskError`` that names the field and what was
+loss, a ``Plan`` as the task's plan (a ``Plan`` checks its own fields when
+it is made; its known columns are checked against the state here), and its
+``Episodes``' functions on one state. Each failure is a ``TaskError`` that names the field and what was
 found, instead of an error deep inside JAX.
 ``check_options`` refuses options given together where one makes the other
 meaningless, before a run records both as if they applied.
@@ -21,7 +22,7 @@ from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.task import Task
 from stablebptt.errors import InputError, TaskError, config_field, whole_number
-from stablebptt.flows.dynamics import Dynamics, Plan, check_dynamics
+from stablebptt.flows.dynamics import Dynamics, Plan, check_dynamics, check_known_columns, split
 from stablebptt.flows.modes import flows_needed
 
 
@@ -123,30 +124,44 @@ def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2
                         f"{first_line(error)}") from None
     if not (hasattr(loss, "shape") and loss.shape == () and jnp.issubdtype(loss.dtype, jnp.floating)):
         raise TaskError(f"Dynamics.loss must return one float for a trajectory, got {_describe(loss)}")
+    if task.plan.known_columns is not None:  # the memory plan counts them before the Jacobians are traced
+        check_known_columns(task.plan.known_columns, sum(leaf.size for leaf in split(state).floats))
     if task.episodes is not None:
         check_episodes(task.episodes, state)
 
 
-# What each function of a task's Episodes returns for one state: (its shape's words, whether it holds).
+def _one_float(out) -> bool:
+    return out.shape == () and jnp.issubdtype(out.dtype, jnp.floating)
+
+
+def _one_bool(out) -> bool:
+    return out.shape == () and out.dtype == jnp.bool_
+
+
+# What each function of a task's Episodes returns for one state, as a window's loop reads it: (words, test).
+# done is negated (a number reads as its truth); gradient_cut is and-ed with a mask, which takes a bool alone.
 EPISODE_OUTPUTS = {
-    "reward": ("one float", lambda out: out.shape == () and jnp.issubdtype(out.dtype, jnp.floating)),
-    "done": ("one bool or number", lambda out: out.shape == () and (out.dtype == jnp.bool_ or
-                                                                   jnp.issubdtype(out.dtype, jnp.number))),
-    "gradient_cut": ("one bool or number", lambda out: out.shape == () and (out.dtype == jnp.bool_ or
-                                                                           jnp.issubdtype(out.dtype, jnp.number))),
+    "reward": ("one float", _one_float),
+    "done": ("one bool or number",
+             lambda out: _one_bool(out) or (out.shape == () and jnp.issubdtype(out.dtype, jnp.number))),
+    "gradient_cut": ("one bool", _one_bool),
     "observe": ("a float vector", lambda out: out.ndim == 1 and jnp.issubdtype(out.dtype, jnp.floating))}
 
 
 def check_episodes(episodes: Episodes, state: Any) -> None:
     """``TaskError`` naming the first function of ``episodes`` that fails on one sampled ``state`` (shapes
     only), or returns another shape than a window's loop reads (a vector reward was summed into every
-    env's return, or broadcast over the batch, without a word). Its reset is the sampler's, traced above."""
+    env's return, or broadcast over the batch, without a word). Its reset is not traced here: an env's
+    reset is a large trace, which a start would pay for twice; a task's sampler, traced above, draws from it
+    in the library's tasks."""
     for name, (words, holds) in EPISODE_OUTPUTS.items():
         function = getattr(episodes, name)
         if function is None:
             continue
         try:
             out = jax.eval_shape(function, state)
+        except InputError:  # the library's own refusal: in its words already
+            raise
         except Exception as error:  # noqa: BLE001 - the user's function failed: one line naming it
             raise TaskError(f"Episodes.{name}(state) fails on one sampled state: {first_line(error)}") from None
         if not (hasattr(out, "shape") and holds(out)):

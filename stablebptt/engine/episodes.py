@@ -47,7 +47,8 @@ class Episodes:
     Attributes:
       reset: ``reset(key) -> state``, one state at an episode's start (the task's state, as ``Dynamics.step`` takes).
       reward: ``reward(state) -> scalar``, the reward of the step that reached ``state``.
-      done: ``done(state) -> bool``, whether the episode ends at ``state`` before its length.
+      done: ``done(state) -> bool`` (or a number, read as its truth), whether the episode ends at ``state``
+        before its length.
       length: steps of an episode.
       discount: per-step discount of a window's return, in (0, 1].
       observe: ``observe(state) -> vector``, what a learned value sees (``TrainConfig.critic``); None: no critic.

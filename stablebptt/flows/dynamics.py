@@ -33,6 +33,19 @@ class KnownColumns(NamedTuple):
     columns: np.ndarray  # [state, known]
 
 
+def check_known_columns(known: KnownColumns, state_size: int) -> None:
+    """``InputError`` unless ``known`` gives whole columns of the step's state Jacobian: indices of the
+    flattened state (one past it would take a control's column, changing the gradients without a word) and
+    columns as long as the state."""
+    indices, columns = np.asarray(known.indices), np.asarray(known.columns)
+    within = np.all((indices >= 0) & (indices < state_size))
+    if not (indices.ndim == 1 and np.issubdtype(indices.dtype, np.integer) and within
+            and len(set(indices.tolist())) == indices.size and columns.shape == (state_size, indices.size)):
+        raise InputError(f"Plan.known_columns must give distinct indices of the flattened state's {state_size} entries "
+                         f"and columns of shape ({state_size}, indices), got indices {indices.tolist()} and columns "
+                         f"of shape {columns.shape}")
+
+
 STEP_DERIVATIVES = ("reverse", "forward")
 POLICY_GRADIENTS = ("batched", "per-step")
 

@@ -15,12 +15,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from stablebptt.errors import InputError
 from stablebptt.flows.dynamics import (
     Dynamics,
     KnownColumns,
     Plan,
     PyTree,
+    check_known_columns,
     join,
     merge_axes,
     ravel_examples,
@@ -28,18 +28,6 @@ from stablebptt.flows.dynamics import (
     stack_copies,
 )
 from stablebptt.flows.modes import KEEPS
-
-
-def check_known_columns(known: KnownColumns, state_size: int) -> None:
-    """``InputError`` unless ``known`` gives whole columns of the step's state Jacobian: indices of the
-    flattened state (one past it would take a control's column, changing the gradients without a word) and
-    columns as long as the state."""
-    indices, columns = np.asarray(known.indices), np.asarray(known.columns)
-    if not (indices.ndim == 1 and np.issubdtype(indices.dtype, np.integer) and np.all((indices >= 0) & (indices < state_size))
-            and len(set(indices.tolist())) == indices.size and columns.shape == (state_size, indices.size)):
-        raise InputError(f"Plan.known_columns must give distinct indices of the flattened state's {state_size} entries "
-                         f"and columns of shape ({state_size}, indices), got indices {indices.tolist()} and columns "
-                         f"of shape {columns.shape}")
 
 
 def step_jacobians(step, states: PyTree, controls: PyTree, known: KnownColumns | None = None,

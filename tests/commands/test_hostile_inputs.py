@@ -552,6 +552,8 @@ def test_flow_gradients_names_a_horizon_that_makes_no_window():
 
 
 def test_known_columns_outside_the_state_are_named_before_they_change_a_gradient():
+    import dataclasses
+
     import jax
     import numpy as np
 
@@ -568,3 +570,5 @@ def test_known_columns_outside_the_state_are_named_before_they_change_a_gradient
                     f"shape (2, indices), got indices {indices} and columns of shape {columns}")
         with pytest.raises(sb.InputError, match=f"^{re.escape(expected)}$"):
             sb.flow_gradients(task.dynamics, ("R",), params, states, plan)
+        with pytest.raises(sb.InputError, match=f"^{re.escape(expected)}$"):  # a task's: before its memory plan
+            sb.make_trainer(dataclasses.replace(task, plan=plan), sb.TrainConfig(epochs=1, train_size=8, test_size=8))

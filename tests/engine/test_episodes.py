@@ -573,11 +573,13 @@ def test_the_task_check_samples_at_the_counts_the_states_are_drawn_at_and_no_oth
     ("reward", lambda x: jnp.stack([-x, x]), r"Episodes.reward\(state\) must return one float for one state, got .*float32\[2\]"),
     ("done", lambda x: jnp.stack([x > 0, x < 0]), r"Episodes.done\(state\) must return one bool or number for one state"),
     ("observe", lambda x: x, r"Episodes.observe\(state\) must return a float vector for one state, got .*float32\[\]"),
-    ("reward", lambda x: x.missing, r"Episodes.reward\(state\) fails on one sampled state: AttributeError")])
+    ("reward", lambda x: x.missing, r"Episodes.reward\(state\) fails on one sampled state: AttributeError"),
+    # and-ed with the running mask in the window's loop, which takes a bool alone
+    ("gradient_cut", lambda x: x * 0.5, r"Episodes.gradient_cut\(state\) must return one bool for one state")])
 def test_an_episodes_function_of_another_shape_is_named_before_compiling(name, function, words):
     """A vector reward would be summed into each env's return, or broadcast over the batch, without a word."""
     task = Task(name="drift", dynamics=drift(), init_params=lambda key, zero: jnp.zeros(2),
                 sample_initial_states=lambda key, n: jax.random.uniform(key, (n,)),
-                episodes=Episodes(**{**episodes().__dict__, "observe": lambda x: jnp.stack([x]), name: function}))
+                episodes=dataclasses.replace(episodes(), **{"observe": lambda x: jnp.stack([x]), name: function}))
     with pytest.raises(TaskError, match=f"^{words}"):
         make_trainer(task, TrainConfig(epochs=1, batch=8, train_size=2, test_size=2, critic=True))

@@ -114,7 +114,8 @@ def test_a_command_run_again_adds_a_row_and_a_folder_read_again_replaces_its_own
 def test_an_env_counts_against_ppos_reference_by_its_best_command_at_300_s_on_the_reported_seeds_runs_pooled():
     def record(env, command, returns, budget, along=None, seeds=5, started="2026-01-01T10:00:00"):
         return {"env": env, "command": command, "started": started, "budget": budget, "starts": 1,
-                "seeds": list(range(42, 42 + seeds)), "final_return": returns, "returns_by_wall_clock": along or {}}
+                "seeds": list(range(42, 42 + seeds)), "final_return": returns, "returns_by_wall_clock": along or {},
+                "seconds_to_training": 60.0 + int(started[8:10]), "first_return": [0.0] * seeds}  # its own first start
     records = [
         record("CheetahRun", "cheetah", [430.0] * 5, 300.0),  # 51% of 850
         record("CheetahRun", "cheetah alone", [800.0], 300.0, seeds=1),  # one seed: not counted
