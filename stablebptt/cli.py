@@ -119,6 +119,14 @@ def parse_config(config_class: type, argv: list[str], description: str, title: s
         fail(str(error))
 
 
+def fields_given(config_class: type, argv: list[str]) -> set[str]:
+    """The fields of ``config_class`` that ``argv`` sets, its default value typed included (``argv`` already
+    parsed by ``parse_config``: its errors are said there)."""
+    parser = Parser()
+    add_options(parser, config_class, "")
+    return set(vars(parser.parse_args(argv)))
+
+
 def build(config_class: type, values: dict[str, Any], source: str = ""):
     """The dataclass from the given values (unknown keys ignored); validation errors propagate.
 

@@ -38,14 +38,14 @@ import time
 from pathlib import Path
 
 from stablebptt.apps.bench import TABLES, BenchConfig
-from stablebptt.cli import ended_with_the_command, fail, option_name, parse_config
+from stablebptt.cli import ended_with_the_command, fail, fields_given, option_name, parse_config
 from stablebptt.errors import InputError
 from stablebptt.timing import machine, usable_cores
 
 
 def main(argv: list[str]) -> int:
     config = parse_config(BenchConfig, argv, __doc__, "benchmark")
-    refuse_options_of_the_other_table(config)
+    refuse_options_of_the_other_table(config, fields_given(BenchConfig, argv))
     if config.startup:
         return startup(config, argv)
     from stablebptt import tasks
@@ -116,11 +116,12 @@ runpy.run_path(sys.argv[0], run_name="__main__")
 """
 
 
-def refuse_options_of_the_other_table(config: BenchConfig) -> None:
-    """One line, exit 2, for an option that changes nothing in what the command makes: the start-up table's
-    options (their help begins "for --startup:") without --startup, the update tables' with it."""
+def refuse_options_of_the_other_table(config: BenchConfig, given: set[str]) -> None:
+    """One line, exit 2, for an option given that changes nothing in what the command makes (its default value
+    typed included): the start-up table's options (their help begins "for --startup:") without --startup, the
+    update tables' with it."""
     for option in dataclasses.fields(BenchConfig):
-        if option.name in ("startup", "out") or getattr(config, option.name) == option.default:
+        if option.name in ("startup", "out") or option.name not in given:
             continue
         flag = option_name(option.name)
         if option.metadata["help"].startswith("for --startup:") and not config.startup:

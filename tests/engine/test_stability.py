@@ -270,7 +270,8 @@ def test_bench_command_writes_the_tables_it_is_asked_for(tmp_path, capsys):
                              (["--batch", "0"], "--batch"), (["--startup", "--timeout", "nan"], "--timeout"),
                              # each table's options are refused beside the other
                              (["--timeout", "60"], "--timeout"), (["--train-args", "--epochs 2"], "--train-args"),
-                             (["--startup", "--rounds", "1"], "--rounds"), (["--startup", "--poles", "2"], "--poles")):
+                             (["--startup", "--rounds", "1"], "--rounds"), (["--startup", "--poles", "2"], "--poles"),
+                             (["--startup", "--rounds", "20"], "--rounds"), (["--timeout", "300"], "--timeout")):  # defaults
         code, lines = refused_in_process(bench_command.main, arguments, capsys)
         assert code == 2 and len(lines) == 1 and named in lines[0], (arguments, lines)
     command = [sys.executable, "-m", "stablebptt.commands.main", "bench", "--rounds", "1"]
