@@ -110,21 +110,19 @@ def parse_config(config_class: type, argv: list[str], description: str, title: s
     Unknown options, bad types and the dataclass's own validation errors all
     end as one line on stderr with exit code 2.
     """
+    return parse_config_given(config_class, argv, description, title)[0]
+
+
+def parse_config_given(config_class: type, argv: list[str], description: str, title: str) -> tuple[Any, set[str]]:
+    """``parse_config``'s config, and the fields ``argv`` set (a default value typed included)."""
     from stablebptt.errors import InputError
     parser = Parser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_options(parser, config_class, title)
+    given = vars(parser.parse_args(argv))  # unset options stay absent (add_options)
     try:
-        return build(config_class, vars(parser.parse_args(argv)))
+        return build(config_class, given), set(given)
     except InputError as error:
         fail(str(error))
-
-
-def fields_given(config_class: type, argv: list[str]) -> set[str]:
-    """The fields of ``config_class`` that ``argv`` sets, its default value typed included (``argv`` already
-    parsed by ``parse_config``: its errors are said there)."""
-    parser = Parser()
-    add_options(parser, config_class, "")
-    return set(vars(parser.parse_args(argv)))
 
 
 def build(config_class: type, values: dict[str, Any], source: str = ""):
@@ -222,10 +220,8 @@ def _stop_at_once(signum, frame) -> None:
     for end in list(_ENDED_WITH_THE_COMMAND):
         with contextlib.suppress(Exception):  # a child that has ended already: nothing to end
             end()
-    try:
+    try:  # stderr may be gone (a closed terminal's SIGHUP, a pipe whose reader ended): the process ends all the same
         os.write(2, f"{stopped_by(signum)}\n".encode())
-    except OSError:  # stderr gone (a closed terminal's SIGHUP, a pipe whose reader ended): end all the same
-        pass
     finally:
         os._exit(128 + signum)  # the shell's code for a process the signal ended: 130 for Ctrl-C
 
@@ -234,8 +230,8 @@ def stop_at_once_on_signals() -> None:
     """From here on, Ctrl-C, SIGTERM or SIGHUP outside a training loop (``stop_on_signals``) ends the process
     at once with one line on stderr and exit code 128 + the signal's number (130 for Ctrl-C, 143 for
     SIGTERM), in any phase: imports, tracing, compiling, the reward diagnosis; a child process the command
-    runs in a session of its own (``ended_with_the_command``) is ended with it. A signal the process was
-    started ignoring stays ignored (``taken_signals``).
+    runs in a session of its own (``ended_with_the_command``) is ended with it. A SIGTERM or SIGHUP the
+    process was started ignoring stays ignored (``taken_signals``).
 
     Python runs a signal's handler only between the main thread's calls, and a compile can hold the
     main thread for minutes: the signal is taken at C level too (``signal.set_wakeup_fd``), and a
@@ -268,7 +264,7 @@ def stop_at_once_on_signals() -> None:
 
 @contextlib.contextmanager
 def stop_on_signals(announce: Callable[[str], None] = lambda message: None,
-                    at_once: Callable[[], str | None] = lambda: None) -> Iterator[Callable[[], bool]]:
+                    at_once: Callable[[], str | None] = lambda: None) -> Iterator["StopRequest"]:
     """Within the block, Ctrl-C, SIGTERM (timeout, Slurm, Kubernetes, docker stop) and SIGHUP ask to stop.
 
     Yields ``should_stop()`` (a ``StopRequest``), which the training loop polls between epochs: it
@@ -277,17 +273,16 @@ def stop_on_signals(announce: Callable[[str], None] = lambda message: None,
     resumes, from its last checkpoint. ``at_once()``: where stopping now loses nothing (no epoch
     begun: the compile, minutes on a large scene, would be waited for to save nothing), the line
     that says so, and the first signal ends the process at once with it (exit code 128 + the signal's
-    number); else None. A signal the process was started ignoring stays ignored. Main thread only (as Python's signals).
+    number); else None. A SIGTERM or SIGHUP the process was started ignoring stays ignored (``taken_signals``).
+    Main thread only (as Python's signals).
     """
     requested: list[tuple[int, float]] = []  # (signal, when)
 
     def handler(signum, frame):
         if not requested and (line := at_once()):
-            try:
+            try:  # stderr may be gone: the process ends all the same
                 announce(f"{signal.Signals(signum).name}: {line}")
                 sys.stderr.flush()
-            except OSError:  # stderr gone: end all the same
-                pass
             finally:
                 os._exit(128 + signum)  # as outside training: no unwinding while XLA compiles beside
         now = time.monotonic()

@@ -26,13 +26,18 @@ def whole_number(value) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
+def real_number(value) -> bool:
+    """An int, float or NumPy number that is not a bool (NaN and infinities included)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def _numpy_bool(value) -> bool:
     return type(value).__module__ == "numpy" and type(value).__name__ in ("bool", "bool_")  # NumPy 2's and 1's
 
 
 # What a config field annotated int, float, str or bool takes (a NumPy scalar too).
 _KINDS = {"int": whole_number,
-          "float": lambda value: isinstance(value, numbers.Real) and not isinstance(value, bool),
+          "float": real_number,
           "str": lambda value: isinstance(value, str),
           "bool": lambda value: isinstance(value, bool) or _numpy_bool(value)}
 

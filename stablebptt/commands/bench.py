@@ -38,14 +38,14 @@ import time
 from pathlib import Path
 
 from stablebptt.apps.bench import TABLES, BenchConfig
-from stablebptt.cli import ended_with_the_command, fail, fields_given, option_name, parse_config
+from stablebptt.cli import ended_with_the_command, fail, option_name, parse_config_given
 from stablebptt.errors import InputError
 from stablebptt.timing import machine, usable_cores
 
 
 def main(argv: list[str]) -> int:
-    config = parse_config(BenchConfig, argv, __doc__, "benchmark")
-    refuse_options_of_the_other_table(config, fields_given(BenchConfig, argv))
+    config, given = parse_config_given(BenchConfig, argv, __doc__, "benchmark")
+    refuse_options_of_the_other_table(config, given)
     if config.startup:
         return startup(config, argv)
     from stablebptt import tasks
@@ -123,11 +123,10 @@ def refuse_options_of_the_other_table(config: BenchConfig, given: set[str]) -> N
     for option in dataclasses.fields(BenchConfig):
         if option.name in ("startup", "out") or option.name not in given:
             continue
-        flag = option_name(option.name)
-        if option.metadata["help"].startswith("for --startup:") and not config.startup:
-            fail(f"{flag} is an option of the start-up table: give --startup, or leave {flag} out")
-        if not option.metadata["help"].startswith("for --startup:") and config.startup:
-            fail(f"{flag} is an option of the update tables, which --startup does not make: leave {flag} out")
+        flag, for_startup = option_name(option.name), option.metadata["help"].startswith("for --startup:")
+        if for_startup != config.startup:
+            fail(f"{flag} is an option of the start-up table: give --startup, or leave {flag} out" if for_startup else
+                 f"{flag} is an option of the update tables, which --startup does not make: leave {flag} out")
 
 
 def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
@@ -137,15 +136,16 @@ def _time_run(command: list[str], cache: Path, timeout: float) -> dict:
     # A session of its own, so that a timeout stops the process and every thread and child it started.
     process = subprocess.Popen([sys.executable, "-c", _PROBE] + command, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, env=environment, start_new_session=True)
+    end = lambda: os.killpg(process.pid, signal.SIGKILL)  # noqa: E731 - the run and all it started
     try:
-        with ended_with_the_command(lambda: os.killpg(process.pid, signal.SIGKILL)):  # a stop signal to this command
+        with ended_with_the_command(end):  # a stop signal to this command
             stdout, stderr = process.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
+        end()
         process.communicate()
         return {"status": f"timeout after {timeout:.0f} s", "wall_s": time.perf_counter() - started}
     except BaseException:  # anything else that ends this command ends the run in its session too
-        os.killpg(process.pid, signal.SIGKILL)
+        end()
         raise
     record = {"wall_s": time.perf_counter() - started}
     found = [line.split(" ", 1)[1] for line in stdout.splitlines() if line.startswith("startup-record ")]

@@ -27,14 +27,12 @@ from pathlib import Path
 from stablebptt.cli import Parser, add_options, build, fail, one_line_errors, path_named
 from stablebptt.errors import InputError
 from stablebptt.render.media import fresh_outputs
-from stablebptt.render.mujoco_frames import MAX_VIDEO_FRAMES, SUPERSAMPLE, video_indices, video_stride
+from stablebptt.render.drawing import MAX_PANEL_PIXELS, MIN_PANEL_PIXELS
+from stablebptt.render.mujoco_frames import MAX_VIDEO_FRAMES, video_indices, video_stride
 
 RENDERS_ROOT = Path("renders")
 STEM = "rollout"  # default name of the files written into a run directory
 DEFAULT_ROLLOUTS = 3
-# A panel's side at most: its frame strip is twice the panel, drawn at SUPERSAMPLE times that, within an offscreen
-# framebuffer of 8192 pixels a side (a panel of 2048 x 2048 drew on Mesa's renderer; 40000 did not).
-MAX_PANEL_PIXELS = 8192 // (2 * SUPERSAMPLE)
 
 
 @dataclass(frozen=True)
@@ -47,9 +45,9 @@ class RenderConfig:
     seed_index: int = field(default=0, metadata={"help": "which of the run's seeds to roll out (0: the first)"})
     steps: int = field(default=0, metadata={"help": "steps of each rollout: with --model, 0 for the MJCF's bptt_horizon, else 100; a run on carried episodes, 0 for its episode length (at most that); a run from fixed starts rolls out its horizon"})
     width: int = field(default=400, metadata={
-        "help": f"width in pixels of one rollout's video panel (16 to {MAX_PANEL_PIXELS})"})
+        "help": f"width in pixels of one rollout's video panel ({MIN_PANEL_PIXELS} to {MAX_PANEL_PIXELS})"})
     height: int = field(default=300, metadata={
-        "help": f"height in pixels of one rollout's video panel (16 to {MAX_PANEL_PIXELS})"})
+        "help": f"height in pixels of one rollout's video panel ({MIN_PANEL_PIXELS} to {MAX_PANEL_PIXELS})"})
     fps: float = field(default=30.0, metadata={"help": "video frames per second (one frame per drawn step: --frame-every)"})
     gif: bool = field(default=False, metadata={"help": "write a GIF instead of an MP4"})
     video: bool = field(default=True, metadata={"help": "write the video (--no-video: only the pictures)"})
@@ -65,8 +63,9 @@ class RenderConfig:
                 raise InputError(f"--{name.replace('_', '-')} must be zero or positive, got {getattr(self, name)}")
         if not self.fps > 0:
             raise InputError(f"--fps must be a positive number, got {self.fps}")
-        if not (16 <= self.width <= MAX_PANEL_PIXELS and 16 <= self.height <= MAX_PANEL_PIXELS):
-            raise InputError(f"--width and --height must be 16 to {MAX_PANEL_PIXELS} pixels, "
+        # before the rollouts compile (DrawSettings, made once they have run, checks the same)
+        if not all(MIN_PANEL_PIXELS <= side <= MAX_PANEL_PIXELS for side in (self.width, self.height)):
+            raise InputError(f"--width and --height must be {MIN_PANEL_PIXELS} to {MAX_PANEL_PIXELS} pixels, "
                              f"got {self.width}x{self.height}")
 
 

@@ -105,13 +105,13 @@ def hosts_given(config: SweepConfig) -> bool:
     return all(given)
 
 
-def start_processes(config: SweepConfig) -> None:
-    """jax.distributed for several hosts, when asked; the compilation cache."""
+def start_processes(config: SweepConfig, hosts: bool) -> None:
+    """jax.distributed for several hosts, when asked (``hosts``: ``hosts_given``); the compilation cache."""
     import jax
 
     from stablebptt.runtime import use_compile_cache
     use_compile_cache(config.compile_cache)
-    if hosts_given(config):
+    if hosts:
         jax.distributed.initialize(config.coordinator, config.num_processes, config.process_id)
     elif config.distributed:
         jax.distributed.initialize()
@@ -214,7 +214,7 @@ def main(argv: list[str]) -> int:
         fail("--seed-range trains a piece; --merge and --report train nothing: give one")
     if config.merge and config.report:
         fail("--merge reports too, from the pieces it merges: give --merge, or --report alone")
-    hosts_given(config)  # before the task is built
+    hosts = hosts_given(config)  # before the task is built
     from stablebptt.grids.pieces import parse_seed_range
     with one_line_errors():
         start, stop = parse_seed_range(config.seed_range, config.seeds) if config.seed_range else (0, config.seeds)
@@ -253,7 +253,7 @@ def main(argv: list[str]) -> int:
         print(f"merged {merged} pieces into {root}")
         return 0
 
-    start_processes(config)
+    start_processes(config, hosts)
     import jax
     from tqdm import tqdm
     where = grid_pieces.piece_root(root, start, stop) if config.seed_range else root

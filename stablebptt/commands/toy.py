@@ -18,7 +18,7 @@ from pathlib import Path
 
 from stablebptt.cli import one_line_errors, parse_config
 from stablebptt.errors import InputError
-from stablebptt.reports.choices import FORMATS
+from stablebptt.reports.choices import format_problem
 
 
 @dataclass(frozen=True)
@@ -38,8 +38,8 @@ class ToyConfig:
             raise InputError(f"--steps must be positive, got {self.steps}")
         if not (math.isfinite(self.lr) and self.lr > 0):
             raise InputError(f"--lr must be a positive number, got {self.lr}")
-        if Path(self.out).suffix.lower() not in FORMATS:  # known before Adam runs, not after
-            raise InputError(f"--out {self.out}: give a file name ending in {', '.join(FORMATS)}")
+        if problem := format_problem(self.out):  # known before Adam runs, not after
+            raise InputError(f"--out {self.out}: {problem}")
 
 
 def main(argv: list[str]) -> int:

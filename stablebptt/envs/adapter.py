@@ -172,10 +172,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     if _is_playground(env):
         from stablebptt.envs import playground
         playground.require_jax_impl(env, type(env).__name__, EnvError)  # MuJoCo Warp, Playground's default
-    if reward_context is None:
-        reward_context = contextlib.nullcontext
-        if _is_playground(env):
+        if reward_context is None:
             reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
+    reward_context = reward_context or contextlib.nullcontext
     # The step searched as the task traces it, inside the reward's repair: the returns the same to the bit.
     left_out = unread_outputs_off(env, diagnosis_key, reward_context)
     env = left_out.env

@@ -3,17 +3,16 @@ refused in one line, named as ``env_task`` takes it."""
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Any, Sequence
 
 from stablebptt.envs.protocol import EnvError
-from stablebptt.errors import whole_number
+from stablebptt.errors import real_number, whole_number
 from stablebptt.physics.backward_contacts import ContactSmoothing
 
 
 def _real(value: Any) -> bool:
     """A finite real number, not a bool."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    return real_number(value) and math.isfinite(value)
 
 
 def check_env_task_arguments(**given: Any) -> None:

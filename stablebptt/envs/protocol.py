@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.engine.checks import first_line
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, whole_number
 from stablebptt.physics.c_sensors import sensors_as_c_computes
 
 PyTree = Any
@@ -74,13 +74,12 @@ def check_protocol(env: Any) -> int:
             raise EnvError(f"{type(env).__name__}'s observation is a dict without a 'state' entry "
                            f"({', '.join(size)}): give an environment with a vector observation")
         size = size["state"]
-    counted = isinstance(size, (int, np.integer)) and not isinstance(size, bool)  # True is no count
-    if not (counted or isinstance(size, tuple) and len(size) == 1):
+    if not (whole_number(size) or isinstance(size, tuple) and len(size) == 1):  # True is no count
         raise EnvError(f"{type(env).__name__}'s observation has shape {size}: only vector observations are supported")
     size = int(size[0] if isinstance(size, tuple) else size)
     actions = env.action_size
     # Nothing to act on, or nothing to see: every update would be zero, a run that only seems to train.
-    if not (isinstance(actions, (int, np.integer)) and not isinstance(actions, bool) and actions >= 1):
+    if not (whole_number(actions) and actions >= 1):
         raise EnvError(f"{type(env).__name__}'s action_size is {actions!r}: a policy needs at least one action to train")
     if size < 1:
         raise EnvError(f"{type(env).__name__}'s observation_size is {size}: a policy needs at least one observation")

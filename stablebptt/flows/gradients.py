@@ -45,6 +45,12 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
       ``(loss, grads)`` where each leaf of ``grads`` has a leading axis of
       length ``len(flows)`` in the order of ``flows``.
     """
+    # The public entry checks what it is given; the trainer's windows (flow_window) take what make_trainer checked.
+    check_dynamics(dynamics)
+    if not (isinstance(flows, (tuple, list)) and flows and all(flow in FLOWS for flow in flows)):
+        raise InputError(f"flows must name one or more of {', '.join(FLOWS)}, got {flows!r}")
+    if not isinstance(plan, Plan):
+        raise InputError(f"plan must be a stablebptt.Plan, got {type(plan).__name__}")
     window = flow_window(dynamics, flows, params, initial_states, plan)
     return window.loss, window.grads
 
@@ -73,11 +79,6 @@ def flow_window(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, init
       ``WindowGradients``: ``grads`` as ``flow_gradients``', the batch after ``dynamics.horizon`` steps
       and the states each step started from.
     """
-    check_dynamics(dynamics)
-    if not (isinstance(flows, (tuple, list)) and flows and all(flow in FLOWS for flow in flows)):
-        raise InputError(f"flows must name one or more of {', '.join(FLOWS)}, got {flows!r}")
-    if not isinstance(plan, Plan):
-        raise InputError(f"plan must be a stablebptt.Plan, got {type(plan).__name__}")
     if plan.step_derivative == "forward":
         return WindowGradients(*linearized_gradients(dynamics, flows, params, initial_states, plan))
 

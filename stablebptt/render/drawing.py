@@ -39,6 +39,11 @@ from stablebptt.render.mujoco_frames import (
     video_stride,
 )
 
+# A frame strip is a picture for print: STRIP_SCALE times the video panel, drawn at SUPERSAMPLE times that within an
+# offscreen framebuffer of 8192 pixels a side (a panel of 2048 x 2048 drew on Mesa's renderer; 40000 did not).
+STRIP_SCALE = 2
+MIN_PANEL_PIXELS, MAX_PANEL_PIXELS = 16, 8192 // (STRIP_SCALE * SUPERSAMPLE)
+
 
 @dataclass(frozen=True)
 class DrawSettings:
@@ -60,14 +65,20 @@ class DrawSettings:
     frame_every: int = 0
 
     def __post_init__(self):
-        if not (self.width >= 16 and self.height >= 16):
-            raise InputError(f"a video panel must be at least 16x16 pixels, got {self.width}x{self.height}")
+        if not all(MIN_PANEL_PIXELS <= side <= MAX_PANEL_PIXELS for side in (self.width, self.height)):
+            raise InputError(f"a video panel must be at least {MIN_PANEL_PIXELS}x{MIN_PANEL_PIXELS} pixels and at most "
+                             f"{MAX_PANEL_PIXELS}x{MAX_PANEL_PIXELS}, got {self.width}x{self.height}")
         if not (math.isfinite(self.fps) and self.fps > 0):
             raise InputError(f"frames per second must be a positive number, got {self.fps}")
         if self.strip_states <= 0:
             raise InputError(f"a frame strip needs at least one state, got strip_states={self.strip_states}")
         if self.frame_every < 0:
             raise InputError(f"frame_every must be a number of steps, or 0 for one chosen by the rollout's length, got {self.frame_every}")
+
+    @property
+    def strip_size(self) -> tuple[int, int]:
+        """A frame strip's pixels: a picture for print, ``STRIP_SCALE`` times the video panel."""
+        return STRIP_SCALE * self.width, STRIP_SCALE * self.height
 
 
 @dataclass(frozen=True)
@@ -102,7 +113,7 @@ def draw_mujoco_rollouts(request: DrawRequest) -> list[Path]:
     """An MJCF task's rollouts (``request.task_config.model_path``): a video of them side by side and
     the frame strip of the first."""
     settings = request.settings
-    strip_size = (2 * settings.width, 2 * settings.height)  # a picture for print: twice the video panel
+    strip_size = settings.strip_size
     model = render_model(request.task_config.model_path,
                          framebuffer=(SUPERSAMPLE * strip_size[0], SUPERSAMPLE * strip_size[1]))
     return _draw_qpos(model, request.states.qpos, settings, request.video, request.picture)
@@ -118,7 +129,7 @@ def draw_env_rollouts(request: DrawRequest) -> list[Path]:
     if model is None or qpos is None:
         raise InputError(f"{env_name} has no mj_model or its states no data.qpos: nothing to draw it from")
     settings = request.settings
-    strip_size = (2 * settings.width, 2 * settings.height)
+    strip_size = settings.strip_size
     brighten_headlight(model.vis.headlight)
     model.vis.global_.offwidth = max(model.vis.global_.offwidth, SUPERSAMPLE * strip_size[0])
     model.vis.global_.offheight = max(model.vis.global_.offheight, SUPERSAMPLE * strip_size[1])
@@ -127,7 +138,7 @@ def draw_env_rollouts(request: DrawRequest) -> list[Path]:
 
 def _draw_qpos(model, qpos: np.ndarray, settings: DrawSettings, video: Path | None, strip: Path) -> list[Path]:
     """Rollouts given as positions [N, T+1, nq]: the video side by side and the strip of the first."""
-    strip_size = (2 * settings.width, 2 * settings.height)
+    strip_size = settings.strip_size
     written = []
     cameras = [frame_camera(model, *rollout_extent(model, q), settings.width, settings.height) for q in qpos]
     if video is not None:

@@ -28,9 +28,9 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import LogFormatter, MaxNLocator
 
 from stablebptt.cli import typed_option
-from stablebptt.errors import InputError, StorageError, whole_number
+from stablebptt.errors import InputError, StorageError, real_number, whole_number
 from stablebptt.flows.modes import MODE_ORDER, MODES
-from stablebptt.reports.choices import BANDS, FORMATS
+from stablebptt.reports.choices import BANDS, format_problem
 from stablebptt.reports.curves import (
     LOSS,
     Run,
@@ -313,8 +313,8 @@ def _shipped_fonts_listed() -> None:
 
 def render(figure: Figure, out_path: Path, dpi: int = 150) -> Path:
     """Save ``figure`` atomically (rendered into memory first); the format follows the suffix."""
-    if out_path.suffix.lower() not in FORMATS:
-        raise InputError(f"{out_path}: give a file name ending in {', '.join(FORMATS)}")
+    if problem := format_problem(out_path):
+        raise InputError(f"{out_path}: {problem}")
     if not out_path.parent.is_dir():
         raise InputError(f"cannot write {out_path}: the directory {out_path.parent} does not exist")
     _shipped_fonts_listed()
@@ -354,7 +354,7 @@ def learning_curves(run_dirs: Iterable[str | Path], out_path: str | Path, smooth
     """
     if isinstance(run_dirs, (str, Path)):  # one run directory, not a list of its name's characters
         run_dirs = [run_dirs]
-    if not (isinstance(dpi, (int, float)) and not isinstance(dpi, bool) and 1 <= dpi <= MAX_DPI):
+    if not (real_number(dpi) and 1 <= dpi <= MAX_DPI):
         raise InputError(f"dpi must be a number from 1 to {MAX_DPI}, got {dpi!r}")
     unique = {}
     for run_dir in map(Path, run_dirs):

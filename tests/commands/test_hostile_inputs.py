@@ -506,16 +506,19 @@ def test_the_toy_problem_refuses_bad_input_before_adam_runs(capsys, arguments):
 @pytest.mark.parametrize("config, field, value", [("mjcf", "poles", "2"), ("mjcf", "dt", "0.01"), ("mjcf", "model", 5),
                                                   ("env", "env", 5), ("env", "discount", "0.9"),
                                                   ("repulsion", "steps", 2.5), ("quantum", "dt", "0.1")])
-def test_a_task_config_field_of_the_wrong_type_is_named_and_numpys_scalars_are_taken(config, field, value):
-    import numpy as np
-
-    import stablebptt as sb
+def test_a_task_config_field_of_the_wrong_type_is_named(config, field, value):
     from stablebptt.errors import InputError
     from stablebptt.tasks import env, mjcf, quantum, repulsion
     module = {"mjcf": mjcf, "env": env, "repulsion": repulsion, "quantum": quantum}[config]
     with pytest.raises(InputError, match=f"{config}.Config.{field} must be"):
         module.Config(**{field: value})
-    # NumPy's scalars are numbers and truth values as Python's are.
+
+
+def test_numpys_scalars_are_numbers_and_truth_values_in_configs_as_pythons_are():
+    import numpy as np
+
+    import stablebptt as sb
+    from stablebptt.tasks import env, mjcf
     assert sb.TrainConfig(x64=np.False_, epochs=np.int64(3), lr=np.float32(1e-3)).epochs == 3
     assert mjcf.Config(poles=np.int64(2), dt=np.float64(0.01)).poles == 2
     assert env.Config(reward_check=np.False_, discount=np.float32(0.99)).reward_check == np.False_
@@ -524,11 +527,17 @@ def test_a_task_config_field_of_the_wrong_type_is_named_and_numpys_scalars_are_t
 @pytest.mark.parametrize("sizes", [(3,), (3, 0, 1), (3, 2.5, 1), (3, True), "31", 3])
 def test_mlp_init_names_sizes_that_make_no_network(sizes):
     import jax
-    import numpy as np
 
     import stablebptt as sb
     with pytest.raises(sb.InputError, match=r"^mlp_init's sizes are the layers' widths, .*; got "):
         sb.mlp_init(jax.random.PRNGKey(0), sizes)
+
+
+def test_mlp_init_takes_a_tuple_a_list_or_a_vector_of_widths():
+    import jax
+    import numpy as np
+
+    import stablebptt as sb
     for good in ((3, 4, 1), [3, 4, 1], np.array([3, 4, 1])):
         assert [weights.shape for weights, _ in sb.mlp_init(jax.random.PRNGKey(0), good)] == [(3, 4), (4, 1)]
 

@@ -133,7 +133,8 @@ def test_a_stop_signal_just_before_a_training_loop_ends_the_command_and_is_not_l
     done = subprocess.run([sys.executable, "-c", SIGNAL_BEFORE_THE_LOOP, str(int(signum))], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     assert (done.returncode, done.stdout, done.stderr) == (128 + signum, "", f"{stopped_by(signum)}\n")
-    assert stopped_by(signum).startswith("stopped by " + ("Ctrl-C" if signum == signal.SIGINT else signum.name))
+    said = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}[signum]  # as a user knows it
+    assert done.stderr.startswith(f"stopped by {said}: files are written whole")
 
 
 # The signal's line cannot be written (a closed terminal, a pipe whose reader ended): the command ends all the same.
