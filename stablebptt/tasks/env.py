@@ -70,7 +70,9 @@ RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normal
 # on the reported seeds against 14% from 0.3, 26% on the tuning seeds ("Noise from 0.6 on the spinner's
 # reported seeds, a decaying step on the hopper, the humanoid's start on one host"). FishSwim's target term
 # is exp(-35) at its median sampled state, lost beside its upright term: widened (smoothing always), the
-# reported seeds reached 125.7 by 300 s against 76.2 ("The fish's target widened").
+# reported seeds reached 125.7 by 300 s against 76.2 ("The fish's target widened"); in mode R alone with
+# only the integration state carried between its 20 physics steps its update took 0.68x the time, and its
+# tuning seeds reached 123.0 by 300 s against C's 91.2 ("WalkerStand for 900 s, the fish in mode R").
 RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 2}, "WalkerStand": {"steps": 2}, "WalkerRun": {"steps": 2},
                                  "CheetahRun": {"mode": "R", "cosine": False},
                                  **{env: {"observe_reward_direction": True} for env in ("ReacherEasy", "ReacherHard")},
@@ -79,7 +81,8 @@ RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 2}, "WalkerStand": {"st
                                                     "steps": 4, "action_noise": 0.6, "entropy": 0.003},
                                  "FingerSpin": {"action_noise": 0.6},
                                  "HopperStand": {"action_noise": 0.6, "training_episode_length": 64},
-                                 "FishSwim": {"smoothing": "always"}}}
+                                 "FishSwim": {"smoothing": "always", "mode": "R", "cosine": False,
+                                              "physics_step_carry": "state"}}}
 # A recipe's value chosen for a value of another option (a test of that option's value): given a value beside the
 # recipe that fails it, the option keeps its own default, and what was chosen for it goes in turn (docs/running.md).
 RECIPE_VALUES_CHOSEN_FOR = {
@@ -93,6 +96,12 @@ RECIPE_VALUES_CHOSEN_FOR = {
     "entropy": (("learn_action_noise", lambda learned: learned),)}
 # --physics-step-residuals: each choice as env_task's physics_steps_recomputed (None: by the env's physics steps).
 PHYSICS_STEP_RESIDUALS = {"auto": None, "recomputed": True, "stored": False}
+# --physics-step-carry: each choice as env_task's physics_steps_carrying_state.
+PHYSICS_STEP_CARRIES_STATE = {"data": False, "state": True}
+# A task option whose env_task argument has another name or value: that name, and the value from the option's.
+ENV_TASK_ARGUMENTS = {"steps": ("horizon", int), "observe_reward_direction": ("reward_direction_observed", bool),
+                      "physics_step_carry": ("physics_steps_carrying_state", PHYSICS_STEP_CARRIES_STATE.__getitem__),
+                      "physics_step_residuals": ("physics_steps_recomputed", PHYSICS_STEP_RESIDUALS.__getitem__)}
 
 
 def recipe_options(name: str, env: str = "", given: Mapping[str, object] | None = None) -> dict:
@@ -129,8 +138,11 @@ def recipe(name: str, env: str = "") -> tuple[dict, dict]:
     """
     options = recipe_options(name, env)
     task_fields = {option.name for option in fields(Config)}
-    task_options = {("horizon" if key == "steps" else key): value for key, value in options.items()
-                    if key in task_fields}  # the task option --steps is env_task's horizon
+    task_options = {}
+    for key, value in options.items():  # the task option --steps is env_task's horizon, and so on
+        if key in task_fields:
+            argument, value_of = ENV_TASK_ARGUMENTS.get(key, (key, lambda given: given))
+            task_options[argument] = value_of(value)
     return task_options, {key: value for key, value in options.items() if key not in task_fields}
 
 
@@ -152,7 +164,7 @@ class Config:
     contact_gradient_softness: float = field(default=1.0, metadata={"help": "the derivative is taken through the env's model with every contact's time constant this many times the file's, >= 1 (the simulation stays the file's)"})
     contact_gradient_geometry: str = field(default="exact", metadata={"help": "held: the derivative holds the point and frame of each contact between planes, spheres, capsules and boxes on a plane, and differentiates its distance by the closed form n . (v2 - v1), exact to first order for those pairs, so MJX's collision functions of those pairs are not differentiated (a shorter update: docs/performance.md); other pairs keep MJX's derivative. exact: MJX's own derivative of its collision. The simulation stays the file's", "choices": ("exact", "held")})
     physics_step_residuals: str = field(default="auto", metadata={"help": "what reverse mode keeps of each physics step for the backward pass: recomputed, the state it starts from, the constraint solver's solution and the values of MJX's functions this package differentiates, the rest of the step run again in the backward pass (jax.checkpoint: the same derivative, a shorter update where a control step spans several physics steps, as the walkers' and the humanoids' do: docs/performance.md); stored, every intermediate; auto: recomputed where a control step's derivative spans more than one physics step", "choices": tuple(PHYSICS_STEP_RESIDUALS)})
-    physics_step_carry: str = field(default="data", metadata={"help": "what MuJoCo Playground's loop of a control step's physics steps carries from one to the next: data, the whole of MJX's data (the env's own loop); state, only what a physics step reads (MuJoCo's integration state, the inputs and the solver's warm start), the last step taken after the loop: the same physics, values equal to rounding, the step traced twice (on one H100 FishSwim's update ran in 250.8 ms against 290.3, compiling 6.2 s longer: docs/performance.md)", "choices": ("data", "state")})
+    physics_step_carry: str = field(default="data", metadata={"help": "what MuJoCo Playground's loop of a control step's physics steps carries from one to the next: data, the whole of MJX's data (the env's own loop); state, only what a physics step reads (MuJoCo's integration state, the inputs and the solver's warm start), the last step taken after the loop: the same physics, values equal to rounding, the step traced twice (on one H100 FishSwim's update ran in 250.8 ms against 290.3, compiling 6.2 s longer: docs/performance.md)", "choices": tuple(PHYSICS_STEP_CARRIES_STATE)})
     gradient_substeps: int = field(default=0, metadata={"help": "the derivative is taken through each control step in this many physics steps of equal length, a divisor of the env's own count (MuJoCo Playground's WalkerWalk simulates 10; 0: the env's own): a shorter backward pass; the simulation stays the file's"})
     squash_gradient_floor: float = field(default=0.0, metadata={"help": "the derivative of the policy's tanh squash is kept at least this, in [0, 1): an action at its bound, where tanh's slope is nearly 0, still passes this share of its gradient back to the policy; its values, and every action taken, stay tanh's (0: tanh's own derivative)"})
     contact_gradient_cut: float = field(default=0.0, metadata={"help": "the windows' derivative stops at a state whose constraint forces pass this many body weights (the norm of MJX's qfrc_constraint over the model's weight): a window's later rewards reach no earlier state or action through a hard contact, the reward of that state still does; its values, and every return, stay the env's (0: no cut; MuJoCo Playground's envs)"})
@@ -180,7 +192,7 @@ class Config:
         if self.physics_step_residuals not in PHYSICS_STEP_RESIDUALS:
             raise InputError(f"{config_field(self, 'physics_step_residuals')} must be auto, recomputed or stored, "
                              f"got {self.physics_step_residuals!r}")
-        if self.physics_step_carry not in ("data", "state"):
+        if self.physics_step_carry not in PHYSICS_STEP_CARRIES_STATE:
             raise InputError(f"{config_field(self, 'physics_step_carry')} must be data or state, "
                              f"got {self.physics_step_carry!r}")
         if self.gradient_substeps < 0:
@@ -283,7 +295,7 @@ def _make(config: Config, defer_diagnosis: bool, smoothing_choices: dict | None 
                     contact_gradient_cut=config.contact_gradient_cut,
                     contact_geometry_held=config.contact_gradient_geometry == "held",
                     physics_steps_recomputed=PHYSICS_STEP_RESIDUALS[config.physics_step_residuals],
-                    physics_steps_carrying_state=config.physics_step_carry == "state",
+                    physics_steps_carrying_state=PHYSICS_STEP_CARRIES_STATE[config.physics_step_carry],
                     reward_direction_observed=config.observe_reward_direction, smoothing_choices=smoothing_choices,
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})

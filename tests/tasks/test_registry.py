@@ -235,6 +235,8 @@ def test_a_recipe_from_python_is_env_tasks_arguments_and_the_train_configs_field
 
 
 def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_option_beside_still_wins():
+    import inspect
+
     from envs_for_tests import Cart
 
     import stablebptt as sb
@@ -244,10 +246,14 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
             command = ["--env", env_name, "--recipe", name]
             _, task_config, train, _, _ = train_command.configure(*train_command.parse(command))
             task_options, train_options = sb.recipe(name, env_name)
+            # From Python, env_task's own arguments (the reacher's direction and the fish's carry are named there
+            # otherwise, the carry a bool).
+            assert set(task_options) <= set(inspect.signature(sb.env_task).parameters), env_name
             for option, value in {**env.RECIPES[name], **options}.items():
                 config = task_config if hasattr(task_config, option) else train
                 assert getattr(config, option) == value, (env_name, option)
-                assert {**task_options, **train_options}["horizon" if option == "steps" else option] == value
+                argument, value_of = env.ENV_TASK_ARGUMENTS.get(option, (option, lambda given: given))
+                assert {**task_options, **train_options}[argument] == value_of(value)
             assert train_command.configure(*train_command.parse(command + ["--steps", "12"]))[1].steps == 12
     # An env the recipe has nothing of its own for takes the recipe as it is.
     assert sb.recipe("locomotion", "HopperHop") == sb.recipe("locomotion")
@@ -268,6 +274,9 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
     assert (fish().smoothing, fish("--no-reward-check").smoothing, fish("--no-reward-check").reward_check) == (
         "always", "auto", False)
     assert fish("--surrogate-reward", "envs_for_tests:position_reward").smoothing == "auto"  # trained as given
+    fish_task, fish_train = sb.recipe("locomotion", "FishSwim")
+    assert (fish_task["physics_steps_carrying_state"], fish_train["mode"], fish_train["cosine"]) == (True, "R", False)
+    assert sb.recipe("locomotion", "ReacherEasy")[0]["reward_direction_observed"] is True
     # The hopper's cut was measured on carried episodes of the env's own length with the cut state valued:
     # without any of those it is left out, and a cut given beside stays.
     hopper = lambda *beside: train_command.configure(*train_command.parse(  # noqa: E731
