@@ -24,7 +24,7 @@ _HOMES = {
     "train": "stablebptt.engine.fitting",
     "Task": "stablebptt.engine.task",
     "make_trainer": "stablebptt.engine.training",
-    "InputError": "stablebptt.errors",
+    "InputError": "stablebptt.errors", "TaskError": "stablebptt.errors", "EnvError": "stablebptt.envs.protocol",
     "Dynamics": "stablebptt.flows.dynamics", "Plan": "stablebptt.flows.dynamics",
     "flow_gradients": "stablebptt.flows.gradients",
     "FLOWS": "stablebptt.flows.modes", "MODES": "stablebptt.flows.modes",
@@ -32,7 +32,7 @@ _HOMES = {
     "mlp_apply": "stablebptt.networks", "mlp_init": "stablebptt.networks",
     "one_cpu_thread": "stablebptt.runtime",
     "rarer_garbage_collections": "stablebptt.runtime",
-    "env_task": "stablebptt.envs.adapter", "recipe": "stablebptt.tasks.env",
+    "env_task": "stablebptt.envs.adapter", "load_env": "stablebptt.envs.protocol", "recipe": "stablebptt.tasks.env",
     "ContactSmoothing": "stablebptt.physics.backward_contacts",
 }
 __all__ = sorted(_HOMES)

@@ -30,7 +30,10 @@ def mlp_init(key: jax.Array, sizes: Sequence[int], zero_output: bool = True) -> 
             or not all(whole_number(size) and size > 0 for size in sizes)):
         raise InputError(f"mlp_init's sizes are the layers' widths, the input's first and the output's last: two or "
                          f"more positive whole numbers, e.g. (6, 100, 100, 1); got {sizes!r}")
-    keys = jax.random.split(key, len(sizes) - 1)
+    try:
+        keys = jax.random.split(key, len(sizes) - 1)
+    except TypeError as error:  # JAX's "invalid PRNG key data"
+        raise InputError(f"mlp_init's key is a PRNG key, e.g. jax.random.PRNGKey(0); got {key!r} ({error})") from None
     layers = []
     for index, (k, fan_in, fan_out) in enumerate(zip(keys, sizes[:-1], sizes[1:])):
         is_output = index == len(sizes) - 2

@@ -112,8 +112,12 @@ def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2
             and all(a.shape == b.shape and a.dtype == b.dtype
                     for a, b in zip(jax.tree.leaves(reached), jax.tree.leaves(state))))
     if not same:
+        dtypes_alone = jax.tree.structure(reached) == jax.tree.structure(state) and all(
+            a.shape == b.shape for a, b in zip(jax.tree.leaves(reached), jax.tree.leaves(state)))
         raise TaskError(f"Dynamics.step must return a state like the one it is given ({_describe(state)}), "
-                        f"got {_describe(reached)}")
+                        f"got {_describe(reached)}" + ("; only the dtypes differ: the step keeps those of the states "
+                                                       "Task.sample_initial_states gives (floats where it computes "
+                                                       "in floats)" if dtypes_alone else ""))
     over_time = lambda tree: jax.tree.map(  # noqa: E731
         lambda leaf: jax.ShapeDtypeStruct((dynamics.horizon,) + leaf.shape, leaf.dtype), tree)
     loss = _traced(f"Dynamics.loss(states, controls) fails on a rollout of {dynamics.horizon} steps",

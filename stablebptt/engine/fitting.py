@@ -304,6 +304,7 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
         if not (callable(function) or function is None and name == "progress_fn"):  # called only once compiled
             raise InputError(f"train's {name} must be a function{' or None' if name == 'progress_fn' else ''}, "
                              f"got {function!r}")
+    should_stop = _one_answer(should_stop)
     if isinstance(config, TrainConfig):  # anything else make_trainer names
         check_options(config)
         widened = config.x64 and not jax.config.jax_enable_x64
@@ -314,6 +315,17 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
             trained = _train(task, config, on_epoch, progress_fn, should_stop, started)
             return trained._replace(params=jax.device_get(trained.params)) if widened else trained
     return _train(task, config, on_epoch, progress_fn, should_stop, started)
+
+
+def _one_answer(should_stop: Callable[[], bool]) -> Callable[[], bool]:
+    """``should_stop`` whose answer is one truth value, or ``InputError`` naming what it gave."""
+    def asked() -> bool:
+        answer = should_stop()
+        try:
+            return bool(answer)
+        except (TypeError, ValueError):  # an array of several values has no single truth
+            raise InputError(f"train's should_stop must return one bool, got {answer!r}") from None
+    return asked
 
 
 def _train(task: Any, config: TrainConfig, on_epoch: Callable[[int, dict], None],

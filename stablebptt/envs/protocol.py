@@ -14,6 +14,7 @@ import inspect
 import numbers
 import os
 import sys
+import types
 from typing import Any, Callable
 
 import jax
@@ -49,6 +50,17 @@ def sized_observation(size: int, label: str) -> Callable[[PyTree], jax.Array]:
                            f"is {size}")
         return seen
     return observed
+
+
+def check_instance(env: Any) -> None:
+    """``EnvError`` where ``env`` is a class or a module, which env_task would set its jitted reset on: what
+    takes an environment takes an instance."""
+    if isinstance(env, type):  # its methods are the class's: the task's would be set on it, for every instance
+        raise EnvError(f"env_task takes an environment, got the class {env.__name__}: give an instance of it "
+                       f"({env.__name__}(...))")
+    if isinstance(env, types.ModuleType):
+        raise EnvError(f"env_task takes an environment, got the module {env.__name__}: give the environment it "
+                       "makes, or load it by name with sb.load_env('package.module:attribute')")
 
 
 def check_protocol(env: Any) -> int:
@@ -211,6 +223,9 @@ def load_env(spec: str) -> Any:
 
     Whether it follows Brax's protocol is ``env_task``'s check, made once where the environment is
     used: reading ``observation_size`` may trace ``reset``, which a rendering has no need of."""
+    if not isinstance(spec, str):
+        raise EnvError(f"an environment is named by a string, a name in MuJoCo Playground's registry or "
+                       f"package.module:attribute; got {spec!r}")
     if ":" not in spec:
         from stablebptt.envs import playground
         return playground.load(spec)

@@ -70,9 +70,7 @@ RECIPES = {"locomotion": {"steps": 16, "discount": 0.99, "critic": True, "normal
 # on the reported seeds against 14% from 0.3, 26% on the tuning seeds ("Noise from 0.6 on the spinner's
 # reported seeds, a decaying step on the hopper, the humanoid's start on one host"). FishSwim's target term
 # is exp(-35) at its median sampled state, lost beside its upright term: widened (smoothing always), the
-# reported seeds reached 125.7 by 300 s against 76.2 ("The fish's target widened"); in mode R alone with
-# only the integration state carried between its 20 physics steps its update took 0.68x the time, and its
-# tuning seeds reached 123.0 by 300 s against C's 91.2 ("WalkerStand for 900 s, the fish in mode R").
+# reported seeds reached 125.7 by 300 s against 76.2 ("The fish's target widened").
 RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 2}, "WalkerStand": {"steps": 2}, "WalkerRun": {"steps": 2},
                                  "CheetahRun": {"mode": "R", "cosine": False},
                                  **{env: {"observe_reward_direction": True} for env in ("ReacherEasy", "ReacherHard")},
@@ -81,8 +79,7 @@ RECIPES_BY_ENV = {"locomotion": {"WalkerWalk": {"steps": 2}, "WalkerStand": {"st
                                                     "steps": 4, "action_noise": 0.6, "entropy": 0.003},
                                  "FingerSpin": {"action_noise": 0.6},
                                  "HopperStand": {"action_noise": 0.6, "training_episode_length": 64},
-                                 "FishSwim": {"smoothing": "always", "mode": "R", "cosine": False,
-                                              "physics_step_carry": "state"}}}
+                                 "FishSwim": {"smoothing": "always"}}}
 # A recipe's value chosen for a value of another option (a test of that option's value): given a value beside the
 # recipe that fails it, the option keeps its own default, and what was chosen for it goes in turn (docs/running.md).
 RECIPE_VALUES_CHOSEN_FOR = {
@@ -109,7 +106,7 @@ def recipe_options(name: str, env: str = "", given: Mapping[str, object] | None 
     registry) where ``RECIPES_BY_ENV`` has values of its own for it. ``given``: the options a user sets
     beside it, which win, and which leave out the recipe's values chosen for another value of theirs
     (``RECIPE_VALUES_CHOSEN_FOR``)."""
-    if name not in RECIPES:
+    if not isinstance(name, str) or name not in RECIPES:
         raise InputError(f"no recipe {name!r}: choose one of {', '.join(sorted(RECIPES))}")
     if not isinstance(env, str):
         raise InputError(f"a recipe's env is the env's name (a string, as --env takes it), got {type(env).__name__}")

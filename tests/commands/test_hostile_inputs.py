@@ -315,6 +315,7 @@ def _spoiled(case):
         "wrong control shape": lambda: dataclasses.replace(task, dynamics=dataclasses.replace(
             d, policy=lambda p, s: jnp.zeros((3, 2)))),
         "sampler size": lambda: dataclasses.replace(task, sample_initial_states=lambda key, n: (jnp.zeros(n + 1), jnp.zeros(n + 1))),
+        "integer states": lambda: dataclasses.replace(task, sample_initial_states=lambda key, n: (jnp.zeros(n, int),) * 2),
         "integer parameters": lambda: dataclasses.replace(task, init_params=lambda key, zero_output: [jnp.zeros(3, int)]),
         "dynamics a string": lambda: dataclasses.replace(task, dynamics="pendulum"),
         "episodes a string": lambda: dataclasses.replace(task, episodes="yes"),
@@ -334,6 +335,7 @@ TASK_CASES = {
     "vector loss": "Dynamics.loss must return one float for a trajectory",
     "wrong control shape": "Dynamics.step must return a state like the one it is given",  # it broadcast the control
     "sampler size": "Task.sample_initial_states(key, 8) must return 8 states",  # the training states' count
+    "integer states": "only the dtypes differ: the step keeps those of the states Task.sample_initial_states gives",
     "integer parameters": "Task.init_params must return float parameters",
     "dynamics a string": "Task.dynamics must be a stablebptt.Dynamics, got str",
     "episodes a string": "Task.episodes must be a stablebptt.Episodes or None, got str",
@@ -361,6 +363,13 @@ def test_env_task_given_an_environments_class_refuses_it_and_leaves_the_class_as
     with pytest.raises(EnvError, match=r"got the class Cart: give an instance of it \(Cart\(...\)\)"):
         sb.env_task(Cart, horizon=4, diagnose=False)
     assert Cart.reset is reset
+    import envs_for_tests
+    with pytest.raises(sb.EnvError, match="got the module envs_for_tests: give the environment it makes"):
+        sb.env_task(envs_for_tests, horizon=4, diagnose=False)
+    with pytest.raises(sb.EnvError, match="an environment is named by a string"):
+        sb.load_env(3)
+    with pytest.raises(sb.InputError, match=r"no recipe \['locomotion'\]: choose one of locomotion"):
+        sb.recipe(["locomotion"])
 
 
 def test_train_given_no_task_says_so_in_its_own_terms():
@@ -424,6 +433,21 @@ def test_train_refuses_a_callback_that_is_no_function_before_compiling(callback,
     monkeypatch.setattr(fitting, "prepare", lambda *args, **kwargs: pytest.fail("the run's start began first"))
     with pytest.raises(sb.InputError, match=f"train's {callback} must be a function"):
         sb.train(_pendulum(), sb.TrainConfig(epochs=1, train_size=8, test_size=8), **{callback: True})
+
+
+def test_a_should_stop_that_answers_more_than_one_truth_value_is_named(monkeypatch):
+    import numpy as np
+
+    import stablebptt as sb
+    from stablebptt.engine import fitting
+    polled = []  # the should_stop each call trains with, the training itself left out
+    monkeypatch.setattr(fitting, "_train", lambda task, config, on_epoch, progress_fn, should_stop, started:
+                        polled.append(should_stop))
+    for answer in (np.array([True, False]), np.bool_(True)):
+        sb.train(_pendulum(), sb.TrainConfig(epochs=1, train_size=8, test_size=8), should_stop=lambda answer=answer: answer)
+    with pytest.raises(sb.InputError, match=r"train's should_stop must return one bool, got array\(\[ True, False\]\)"):
+        polled[0]()
+    assert polled[1]() is True
 
 
 def test_a_dict_for_the_train_config_and_a_float64_trainer_made_in_float32_are_named():
@@ -531,6 +555,15 @@ def test_mlp_init_names_sizes_that_make_no_network(sizes):
     import stablebptt as sb
     with pytest.raises(sb.InputError, match=r"^mlp_init's sizes are the layers' widths, .*; got "):
         sb.mlp_init(jax.random.PRNGKey(0), sizes)
+
+
+@pytest.mark.parametrize("key", [0, "a", (0, 0, 0)])
+def test_mlp_init_names_a_key_that_is_no_prng_key(key):
+    import jax.numpy as jnp
+
+    import stablebptt as sb
+    with pytest.raises(sb.InputError, match=r"^mlp_init's key is a PRNG key, e.g. jax.random.PRNGKey\(0\); got "):
+        sb.mlp_init(jnp.asarray(key, jnp.uint32) if isinstance(key, tuple) else key, (3, 2, 1))
 
 
 def test_mlp_init_takes_a_tuple_a_list_or_a_vector_of_widths():

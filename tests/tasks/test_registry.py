@@ -208,6 +208,22 @@ def test_an_option_given_beside_a_recipe_leaves_out_what_the_recipe_set_for_the_
         train_command.configure(*train_command.parse(command + ["--no-learn-action-noise", "--entropy", "0.01"]))
 
 
+def test_a_recipe_names_each_task_option_as_env_task_takes_it(monkeypatch):
+    import inspect
+
+    import stablebptt as sb
+    from stablebptt.tasks import env
+    # A task option that env_task takes under another name, or as another value, reaches it so.
+    monkeypatch.setitem(env.RECIPES, "trial", {"steps": 8, "observe_reward_direction": True,
+                                               "physics_step_carry": "state", "physics_step_residuals": "stored",
+                                               "smoothing": "always", "batch": 4})
+    task_options, train_options = sb.recipe("trial")
+    assert task_options == {"horizon": 8, "reward_direction_observed": True, "physics_steps_carrying_state": True,
+                            "physics_steps_recomputed": False, "smoothing": "always"}
+    assert train_options == {"batch": 4}
+    assert set(task_options) <= set(inspect.signature(sb.env_task).parameters)
+
+
 def test_a_recipe_from_python_is_env_tasks_arguments_and_the_train_configs_fields():
     import inspect
 
@@ -246,8 +262,7 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
             command = ["--env", env_name, "--recipe", name]
             _, task_config, train, _, _ = train_command.configure(*train_command.parse(command))
             task_options, train_options = sb.recipe(name, env_name)
-            # From Python, env_task's own arguments (the reacher's direction and the fish's carry are named there
-            # otherwise, the carry a bool).
+            # From Python, env_task's own arguments (the reachers' and the fingers' direction is named there otherwise).
             assert set(task_options) <= set(inspect.signature(sb.env_task).parameters), env_name
             for option, value in {**env.RECIPES[name], **options}.items():
                 config = task_config if hasattr(task_config, option) else train
@@ -274,8 +289,6 @@ def test_a_recipe_takes_its_values_for_the_env_named_where_it_has_them_and_an_op
     assert (fish().smoothing, fish("--no-reward-check").smoothing, fish("--no-reward-check").reward_check) == (
         "always", "auto", False)
     assert fish("--surrogate-reward", "envs_for_tests:position_reward").smoothing == "auto"  # trained as given
-    fish_task, fish_train = sb.recipe("locomotion", "FishSwim")
-    assert (fish_task["physics_steps_carrying_state"], fish_train["mode"], fish_train["cosine"]) == (True, "R", False)
     assert sb.recipe("locomotion", "ReacherEasy")[0]["reward_direction_observed"] is True
     # The hopper's cut was measured on carried episodes of the env's own length with the cut state valued:
     # without any of those it is left out, and a cut given beside stays.
