@@ -21,6 +21,12 @@ def config_field(config, name: str) -> str:
     return f"{owner}.{name}"
 
 
+def first_line(error: Exception) -> str:
+    """An error in one line: its type and the first line of its message."""
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0] if text else ''}"
+
+
 def whole_number(value) -> bool:
     """An int or NumPy integer, not a bool."""
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.task import Task
-from stablebptt.errors import InputError, TaskError, config_field
+from stablebptt.errors import InputError, TaskError, config_field, first_line
 from stablebptt.flows.dynamics import Dynamics, Plan, check_dynamics, check_known_columns, split
 from stablebptt.flows.modes import flows_needed
 
@@ -39,12 +39,6 @@ def _describe(tree: Any) -> str:
     return f"{jax.tree.structure(tree)} with leaves {shown}{', ...' if len(leaves) > 4 else ''}"
 
 
-def first_line(error: Exception) -> str:
-    """An error in one line: its type and the first line of its message."""
-    text = str(error).strip().splitlines()
-    return f"{type(error).__name__}: {text[0] if text else ''}"
-
-
 def require_task(task: Any) -> None:
     """Raise ``TaskError`` unless ``task`` is a ``Task`` whose fields are of their kinds (no tracing): before
     anything reads them."""
@@ -54,6 +48,8 @@ def require_task(task: Any) -> None:
                               ("episodes", (Episodes, type(None)), "a stablebptt.Episodes or None")):
         if not isinstance(getattr(task, name), kind):
             raise TaskError(f"Task.{name} must be {words}, got {type(getattr(task, name)).__name__}")
+    if not isinstance(task.name, str):  # it names the run's folder and every message about the task
+        raise TaskError(f"Task.name must be a string, got {task.name!r}")
     for name in ("init_params", "sample_initial_states"):
         if not callable(getattr(task, name)):
             raise TaskError(f"Task.{name} must be a function, got {getattr(task, name)!r}")

@@ -148,7 +148,7 @@ def load(name: str) -> Any:
     except Exception as error:  # noqa: BLE001 - an env that cannot be built on MJX's JAX implementation
         mjx_env = _module("mujoco_playground._src.mjx_env")
         if mjx_env.MENAGERIE_PATH.name in str(error):  # a checkout that lacks what the robot loads
-            from stablebptt.engine.checks import first_line
+            from stablebptt.errors import first_line
             raise InputError(f"{name}: MuJoCo Menagerie's checkout at {mjx_env.MENAGERIE_PATH} lacks what it loads "
                              f"({first_line(error)}): remove the folder and {_menagerie_remedy(mjx_env)}") from None
         raise InputError(f"{name} cannot be built with impl='jax' ({type(error).__name__}: "

@@ -21,8 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stablebptt.engine.checks import first_line
-from stablebptt.errors import InputError, whole_number
+from stablebptt.errors import InputError, first_line, whole_number
 from stablebptt.physics.c_sensors import sensors_as_c_computes
 
 PyTree = Any

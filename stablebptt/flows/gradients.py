@@ -7,7 +7,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, TaskError, first_line
 from stablebptt.flows.adjoint_step import multi_adjoint_step
 from stablebptt.flows.dynamics import Dynamics, Plan, PyTree, check_dynamics, first_copy, ravel_examples, stack_copies
 from stablebptt.flows.linearized import linearized_gradients, policy_gradients
@@ -51,6 +51,15 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
         raise InputError(f"flows must name one or more of {', '.join(FLOWS)}, got {flows!r}")
     if not isinstance(plan, Plan):
         raise InputError(f"plan must be a stablebptt.Plan, got {type(plan).__name__}")
+    one_state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(jnp.shape(leaf)[1:], jnp.result_type(leaf)),
+                             initial_states)
+    try:  # the parameters against the policy, on shapes alone: a mismatch reads in JAX's terms deep in the window
+        jax.eval_shape(dynamics.policy, params, one_state)
+    except InputError:
+        raise
+    except Exception as error:  # noqa: BLE001 - the user's policy, params or states: one line naming which call
+        raise TaskError(f"Dynamics.policy(params, state) fails on the params given and one of initial_states: "
+                        f"{first_line(error)}") from None
     window = flow_window(dynamics, flows, params, initial_states, plan)
     return window.loss, window.grads
 

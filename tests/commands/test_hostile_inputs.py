@@ -318,6 +318,7 @@ def _spoiled(case):
         "integer states": lambda: dataclasses.replace(task, sample_initial_states=lambda key, n: (jnp.zeros(n, int),) * 2),
         "integer parameters": lambda: dataclasses.replace(task, init_params=lambda key, zero_output: [jnp.zeros(3, int)]),
         "dynamics a string": lambda: dataclasses.replace(task, dynamics="pendulum"),
+        "name a number": lambda: dataclasses.replace(task, name=3),
         "episodes a string": lambda: dataclasses.replace(task, episodes="yes"),
         "evaluation a string": lambda: dataclasses.replace(task, evaluation="mean return"),
         "evaluation a mean": lambda: dataclasses.replace(task, evaluation=lambda params, states: jnp.cos(states[0]).mean()),
@@ -338,6 +339,7 @@ TASK_CASES = {
     "integer states": "only the dtypes differ: the step keeps those of the states Task.sample_initial_states gives",
     "integer parameters": "Task.init_params must return float parameters",
     "dynamics a string": "Task.dynamics must be a stablebptt.Dynamics, got str",
+    "name a number": "Task.name must be a string, got 3",
     "episodes a string": "Task.episodes must be a stablebptt.Episodes or None, got str",
     "evaluation a string": "Task.evaluation must be a function or None, got 'mean return'",
 }
@@ -591,6 +593,10 @@ def test_flow_gradients_names_a_horizon_that_makes_no_window():
     for horizon in (0, 2.5):
         with pytest.raises(TaskError, match=f"^Dynamics.horizon must be a positive whole number of steps, got {horizon}$"):
             sb.flow_gradients(dataclasses.replace(task.dynamics, horizon=horizon), ("R",), params, states)
+    unfit = sb.mlp_init(jax.random.PRNGKey(0), (5, 8, 1), False)  # the pendulum's policy reads 2 numbers
+    with pytest.raises(TaskError, match=r"^Dynamics.policy\(params, state\) fails on the params given and one of "
+                                        r"initial_states: TypeError: dot_general"):
+        sb.flow_gradients(task.dynamics, ("R",), unfit, states)
 
 
 def test_known_columns_outside_the_state_are_named_before_they_change_a_gradient():
