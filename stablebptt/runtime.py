@@ -4,6 +4,7 @@ from __future__ import annotations
 import gc
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Any, Callable
 
@@ -25,8 +26,17 @@ def one_cpu_thread() -> None:
 
       import stablebptt as sb
       sb.one_cpu_thread()  # before anything runs on JAX's CPU backend
+
+    Called after JAX's first computation it changes nothing in this process, and warns.
     """
-    os.environ.setdefault("PJRT_NPROC", "1")
+    if "PJRT_NPROC" in os.environ:
+        return
+    os.environ["PJRT_NPROC"] = "1"
+    bridge = sys.modules.get("jax._src.xla_bridge")  # JAX's backends, where JAX is loaded at all
+    if bridge is not None and getattr(bridge, "backends_are_initialized", lambda: False)():
+        warnings.warn("one_cpu_thread came after JAX's first computation: its CPU client keeps the threads it was "
+                      "made with (with more than one, MJX's solver can deadlock); call it before anything runs",
+                      RuntimeWarning, stacklevel=2)
 
 
 def rarer_garbage_collections() -> None:

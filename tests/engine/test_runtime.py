@@ -51,6 +51,26 @@ def test_concurrent_batched_lapack_calls_finish():
     assert "intra-op threads: 1" in result.stdout, result.stdout
 
 
+def test_one_cpu_thread_after_jaxs_first_computation_warns_and_before_it_is_silent():
+    env = {**{k: v for k, v in os.environ.items() if k not in ("PJRT_NPROC", "NPROC")}, "PYTHONPATH": str(ROOT)}
+    program = textwrap.dedent("""
+        import warnings
+        warnings.simplefilter("error")  # a warning fails the call that raises it
+        import stablebptt, jax
+        {before}
+        try:
+            stablebptt.one_cpu_thread()
+            print("silent")
+        except RuntimeWarning as warning:
+            print(warning)
+    """)
+    said = [subprocess.run([sys.executable, "-c", program.format(before=before)], env=env, capture_output=True,
+                           text=True, timeout=120) for before in ("", "jax.numpy.zeros(2).block_until_ready()")]
+    assert [result.returncode for result in said] == [0, 0], [result.stderr for result in said]
+    assert said[0].stdout == "silent\n"
+    assert said[1].stdout.startswith("one_cpu_thread came after JAX's first computation"), said[1].stdout
+
+
 def test_gpu_programs_compile_with_unchecked_autotuning_on_every_core_unless_xla_flags_say_otherwise(monkeypatch):
     """On a GPU every program compiles with XLA's autotuning unchecked (level 1), its kernels compiled
     on every usable core (``compiling.gpu_options``); an option the user put in XLA_FLAGS is left to
