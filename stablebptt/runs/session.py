@@ -20,6 +20,7 @@ may leave a check running while its trainer is built (an environment's reward di
 from __future__ import annotations
 
 import functools
+import os
 import time
 from pathlib import Path
 from types import ModuleType
@@ -35,6 +36,7 @@ from stablebptt.engine.program_store import compile_seconds_saved, run_key
 from stablebptt.engine.starting import prepare
 from stablebptt.engine.task import Task
 from stablebptt.engine.training import Trainer, TrainState
+from stablebptt.errors import InputError
 from stablebptt.runs.run_folder import Run, default_run_dir, new_record, refuse_used
 
 
@@ -73,6 +75,19 @@ def task_of(task_module: ModuleType, task_config: Any, resolved: dict | None = N
     return task_module.make_deferred(task_config) if deferred else task_module.make(task_config)
 
 
+def _check_arguments(task_module: Any, task_name: str, task_config: Any, train_config: Any, run_dir: Any) -> None:
+    """``InputError`` naming an argument of ``begin`` of another kind than it takes, before anything is built."""
+    if not callable(getattr(task_module, "make", None)):
+        raise InputError(f"begin's task_module is a task's module, stablebptt.tasks.load({task_name!r}); got {task_module!r}")
+    config_type = getattr(task_module, "Config", None)
+    if isinstance(config_type, type) and not isinstance(task_config, config_type):
+        raise InputError(f"begin's task_config is a {task_module.__name__}.Config, got {type(task_config).__name__}")
+    if not isinstance(train_config, TrainConfig):
+        raise InputError(f"begin's train_config is a stablebptt.TrainConfig, got {type(train_config).__name__}")
+    if not (run_dir is None or isinstance(run_dir, (str, os.PathLike))):
+        raise InputError(f"begin's run_dir is a folder's path or None, got {run_dir!r}")
+
+
 def begin(task_module: ModuleType, task_name: str, task_config: Any, train_config: TrainConfig,
           run_dir: Path | None = None, record: dict | None = None, runs_root: Path = Path("runs")) -> Session:
     """Begin a new run (``record`` None) or resume the one in ``run_dir`` (its ``config.json`` as ``record``).
@@ -88,6 +103,8 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
       InputError: bad input, a task that cannot train (named), a folder in use; no folder is left behind.
       StorageError: the folder cannot be written.
     """
+    _check_arguments(task_module, task_name, task_config, train_config, run_dir)
+    run_dir = None if run_dir is None else Path(run_dir)
     run = None
     compile_saved_mark = compile_seconds_saved()
     try:

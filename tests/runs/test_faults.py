@@ -834,3 +834,20 @@ def test_an_out_that_cannot_hold_the_run_is_refused_in_one_line_before_its_set_u
     assert code == 2 and len(err) == 1 and words.format(dir=tmp_path) in err[0], err
     assert (tmp_path / "file").read_text() == (tmp_path / "used" / "notes.txt").read_text() == "kept"
     assert not (tmp_path / "locked" / "run").exists()
+
+
+def test_begin_from_python_names_an_argument_of_another_kind_before_it_builds_anything(tmp_path, monkeypatch):
+    from stablebptt import tasks
+    from stablebptt.engine.config import TrainConfig
+    from stablebptt.runs import session
+    module = tasks.load("repulsion")
+    monkeypatch.setattr(session, "task_of", lambda *args, **kwargs: pytest.fail("built before its arguments were checked"))
+    train_config = TrainConfig(epochs=1)
+    for arguments, words in (
+            ((module, "repulsion", {"steps": 16}, train_config), "begin's task_config is a stablebptt.tasks.repulsion.Config, got dict"),
+            ((module, "repulsion", module.Config(), {"epochs": 1}), "begin's train_config is a stablebptt.TrainConfig, got dict"),
+            (("repulsion", "repulsion", module.Config(), train_config), "begin's task_module is a task's module"),
+            ((module, "repulsion", module.Config(), train_config, 7), "begin's run_dir is a folder's path or None, got 7")):
+        with pytest.raises(errors.InputError, match=words.replace("(", r"\(").replace(")", r"\)")):
+            session.begin(*arguments, runs_root=tmp_path)
+    assert not list(tmp_path.iterdir())
