@@ -32,8 +32,9 @@ def mlp_init(key: jax.Array, sizes: Sequence[int], zero_output: bool = True) -> 
                          f"more positive whole numbers, e.g. (6, 100, 100, 1); got {sizes!r}")
     try:
         keys = jax.random.split(key, len(sizes) - 1)
-    except TypeError as error:  # JAX's "invalid PRNG key data"
-        raise InputError(f"mlp_init's key is a PRNG key, e.g. jax.random.PRNGKey(0); got {key!r} ({error})") from None
+    except (TypeError, ValueError):  # JAX's "invalid PRNG key data", or a batch of keys
+        shown = repr(key) if getattr(key, "shape", None) is None else f"an array of shape {tuple(key.shape)}"
+        raise InputError(f"mlp_init's key is one PRNG key, e.g. jax.random.PRNGKey(0); got {shown}") from None
     layers = []
     for index, (k, fan_in, fan_out) in enumerate(zip(keys, sizes[:-1], sizes[1:])):
         is_output = index == len(sizes) - 2

@@ -292,7 +292,8 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
     Raises:
       TrainingDiverged: a loss, update or gradient of a computed flow was not finite, for every seed.
       InputError: a config that is not a ``TrainConfig``, options that make each other
-        meaningless (``checks.check_options``), or a task that cannot train (``checks.TaskError``).
+        meaningless (``checks.check_options``), a task that cannot train (``sb.TaskError``), or a
+        ``should_stop`` whose answer is not one truth value.
 
     Example::
 

@@ -168,10 +168,13 @@ def mjx_model_of(env: Any, what: str, label: str) -> Any:
 def check_contacts(env: Any, what: str, label: str) -> None:
     """``EnvError`` where ``env``'s model cannot be seen to have contacts, so that ``what`` (an option on
     its contacts' derivative) would change nothing: no MJX model in ``_mjx_model``, or no pair of geoms
-    that can touch (contacts switched off in its flags, or no pair MJX collides)."""
+    that can touch (contacts or all constraints switched off in its flags, or no pair MJX collides)."""
     model = mjx_model_of(env, what, label)
-    switched_off = int(model.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
-    if switched_off or next(iter(collision_driver.geom_pairs(model)), None) is None:
+    off = int(mujoco.mjtDisableBit.mjDSBL_CONTACT) | int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+    if int(model.opt.disableflags) & off:
+        raise EnvError(f"{label}: its model switches contacts off (opt.disableflags), so {what} change nothing: "
+                       f"drop the contact gradient's options")
+    if next(iter(collision_driver.geom_pairs(model)), None) is None:
         raise EnvError(f"{label}: its model has no pair of geoms that can touch, so {what} change nothing: drop "
                        f"the contact gradient's options")
 

@@ -22,7 +22,7 @@ from typing import Any, Iterable, Iterator
 import jax
 import jax.numpy as jnp
 
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, first_line
 from stablebptt.physics import mujoco_log
 from stablebptt.imports import imported_without
 
@@ -148,11 +148,10 @@ def load(name: str) -> Any:
     except Exception as error:  # noqa: BLE001 - an env that cannot be built on MJX's JAX implementation
         mjx_env = _module("mujoco_playground._src.mjx_env")
         if mjx_env.MENAGERIE_PATH.name in str(error):  # a checkout that lacks what the robot loads
-            from stablebptt.errors import first_line
             raise InputError(f"{name}: MuJoCo Menagerie's checkout at {mjx_env.MENAGERIE_PATH} lacks what it loads "
                              f"({first_line(error)}): remove the folder and {_menagerie_remedy(mjx_env)}") from None
-        raise InputError(f"{name} cannot be built with impl='jax' ({type(error).__name__}: "
-                         f"{str(error).splitlines()[0] if str(error) else ''}): it needs MuJoCo Warp, which has no gradients") from None
+        raise InputError(f"{name} cannot be built with impl='jax' ({first_line(error)}): it needs MuJoCo Warp, which "
+                         "has no gradients") from None
     require_jax_impl(env, name)
     for notice in notices:  # an attribute Playground's own file uses, which MuJoCo will drop, is no user's to change
         if "is deprecated" not in notice:

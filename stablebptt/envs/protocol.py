@@ -52,8 +52,8 @@ def sized_observation(size: int, label: str) -> Callable[[PyTree], jax.Array]:
 
 
 def check_instance(env: Any) -> None:
-    """``EnvError`` where ``env`` is a class or a module, which env_task would set its jitted reset on: what
-    takes an environment takes an instance."""
+    """``EnvError`` where ``env`` is a class or a module, not an environment: env_task would set its jitted
+    reset on a class (for every instance), and cannot copy a module."""
     if isinstance(env, type):  # its methods are the class's: the task's would be set on it, for every instance
         raise EnvError(f"env_task takes an environment, got the class {env.__name__}: give an instance of it "
                        f"({env.__name__}(...))")

@@ -51,6 +51,9 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
         raise InputError(f"flows must name one or more of {', '.join(FLOWS)}, got {flows!r}")
     if not isinstance(plan, Plan):
         raise InputError(f"plan must be a stablebptt.Plan, got {type(plan).__name__}")
+    if not all(jnp.ndim(leaf) >= 1 for leaf in jax.tree.leaves(initial_states)):
+        raise TaskError("initial_states must be a batch of states, every leaf's leading axis the batch: a leaf has "
+                        "none")
     one_state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(jnp.shape(leaf)[1:], jnp.result_type(leaf)),
                              initial_states)
     try:  # the parameters against the policy, on shapes alone: a mismatch reads in JAX's terms deep in the window

@@ -368,6 +368,10 @@ def test_env_task_given_an_environments_class_refuses_it_and_leaves_the_class_as
     import envs_for_tests
     with pytest.raises(sb.EnvError, match="got the module envs_for_tests: give the environment it makes"):
         sb.env_task(envs_for_tests, horizon=4, diagnose=False)
+
+
+def test_load_env_and_recipe_name_a_name_that_is_no_string():
+    import stablebptt as sb
     with pytest.raises(sb.EnvError, match="an environment is named by a string"):
         sb.load_env(3)
     with pytest.raises(sb.InputError, match=r"no recipe \['locomotion'\]: choose one of locomotion"):
@@ -559,13 +563,15 @@ def test_mlp_init_names_sizes_that_make_no_network(sizes):
         sb.mlp_init(jax.random.PRNGKey(0), sizes)
 
 
-@pytest.mark.parametrize("key", [0, "a", (0, 0, 0)])
-def test_mlp_init_names_a_key_that_is_no_prng_key(key):
+@pytest.mark.parametrize("key, shown", [(0, "0"), ("a", "'a'"), ((3,), "an array of shape (3,)"),
+                                        ((4, 2), "an array of shape (4, 2)")])
+def test_mlp_init_names_a_key_that_is_no_prng_key(key, shown):
     import jax.numpy as jnp
 
     import stablebptt as sb
-    with pytest.raises(sb.InputError, match=r"^mlp_init's key is a PRNG key, e.g. jax.random.PRNGKey\(0\); got "):
-        sb.mlp_init(jnp.asarray(key, jnp.uint32) if isinstance(key, tuple) else key, (3, 2, 1))
+    with pytest.raises(sb.InputError) as refused:
+        sb.mlp_init(jnp.zeros(key, jnp.uint32) if isinstance(key, tuple) else key, (3, 2, 1))
+    assert str(refused.value) == f"mlp_init's key is one PRNG key, e.g. jax.random.PRNGKey(0); got {shown}"
 
 
 def test_mlp_init_takes_a_tuple_a_list_or_a_vector_of_widths():
@@ -597,6 +603,8 @@ def test_flow_gradients_names_a_horizon_that_makes_no_window():
     with pytest.raises(TaskError, match=r"^Dynamics.policy\(params, state\) fails on the params given and one of "
                                         r"initial_states: TypeError: dot_general"):
         sb.flow_gradients(task.dynamics, ("R",), unfit, states)
+    with pytest.raises(TaskError, match="^initial_states must be a batch of states, every leaf's leading axis the batch"):
+        sb.flow_gradients(task.dynamics, ("R",), params, jax.tree.map(lambda leaf: leaf[0], states))
 
 
 def test_known_columns_outside_the_state_are_named_before_they_change_a_gradient():
