@@ -95,7 +95,8 @@ RECIPE_VALUES_CHOSEN_FOR = {
 PHYSICS_STEP_RESIDUALS = {"auto": None, "recomputed": True, "stored": False}
 # --physics-step-carry: each choice as env_task's physics_steps_carrying_state.
 PHYSICS_STEP_CARRIES_STATE = {"data": False, "state": True}
-# A task option whose env_task argument has another name or value: that name, and the value from the option's.
+# A task option whose env_task argument has another name or value: that name, and the value from the option's
+# (a run's task is made through it, and a recipe's options given from Python; --steps 0 is the task's own horizon).
 ENV_TASK_ARGUMENTS = {"steps": ("horizon", int), "observe_reward_direction": ("reward_direction_observed", bool),
                       "physics_step_carry": ("physics_steps_carrying_state", PHYSICS_STEP_CARRIES_STATE.__getitem__),
                       "physics_step_residuals": ("physics_steps_recomputed", PHYSICS_STEP_RESIDUALS.__getitem__)}
@@ -290,10 +291,9 @@ def _make(config: Config, defer_diagnosis: bool, smoothing_choices: dict | None 
                     contact_smoothing=smoothing, gradient_substeps=config.gradient_substeps or None,
                     squash_gradient_floor=config.squash_gradient_floor,
                     contact_gradient_cut=config.contact_gradient_cut,
-                    contact_geometry_held=config.contact_gradient_geometry == "held",
-                    physics_steps_recomputed=PHYSICS_STEP_RESIDUALS[config.physics_step_residuals],
-                    physics_steps_carrying_state=PHYSICS_STEP_CARRIES_STATE[config.physics_step_carry],
-                    reward_direction_observed=config.observe_reward_direction, smoothing_choices=smoothing_choices,
+                    contact_geometry_held=config.contact_gradient_geometry == "held", smoothing_choices=smoothing_choices,
+                    **{argument: value_of(getattr(config, option))  # the options env_task names otherwise
+                       for option, (argument, value_of) in ENV_TASK_ARGUMENTS.items() if option != "steps"},
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
                                                                **({"trained_reward": trained_reward} if trained_reward else {})})
     if trained_reward:
