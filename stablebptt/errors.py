@@ -81,5 +81,16 @@ class TaskError(InputError):
     """A ``Task`` or its ``Dynamics`` that cannot train: the message names the field."""
 
 
+def users_call(failing: str, call):
+    """``call()``; where a user's function fails in it, a ``TaskError`` of one line, ``failing`` and the error's
+    first line. The library's own refusal (an env's, inside a task's function) passes in its words."""
+    try:
+        return call()
+    except InputError:
+        raise
+    except Exception as error:  # noqa: BLE001 - the user's function failed: one line naming it
+        raise TaskError(f"{failing}: {first_line(error)}") from None
+
+
 class StorageError(OSError):
     """A file could not be written (full disk, permissions). Scripts print one line and exit with code 1."""

@@ -13,7 +13,7 @@ meaningless, before a run records both as if they applied.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -21,8 +21,8 @@ import jax.numpy as jnp
 from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.shapes import tracing_shapes
 from stablebptt.engine.task import Task
-from stablebptt.errors import InputError, TaskError, config_field, first_line
-from stablebptt.flows.dynamics import Dynamics, Plan, check_dynamics, check_known_columns, split
+from stablebptt.errors import InputError, TaskError, config_field, users_call
+from stablebptt.flows.dynamics import Dynamics, Plan, check_dynamics, check_known_columns, one_state_shape, split
 from stablebptt.flows.modes import flows_needed
 
 
@@ -69,17 +69,6 @@ def evaluated(task: Task, params: Any, initial_states: Any) -> jax.Array:
     return losses
 
 
-def _traced(failing: str, trace: Callable[[], Any]) -> Any:
-    """``trace()``'s shapes; where a user's function fails in it, a ``TaskError`` of one line, ``failing`` and the
-    error's first line. The library's own refusal (an env's, inside a task's function) passes in its words."""
-    try:
-        return trace()
-    except InputError:
-        raise
-    except Exception as error:  # noqa: BLE001 - the user's function failed: one line naming it
-        raise TaskError(f"{failing}: {first_line(error)}") from None
-
-
 def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2,)) -> None:
     """Trace ``task`` with shapes only and raise ``TaskError`` naming the first field that does not fit;
     its sampler at each of ``counts`` (a trainer's: the counts it draws, so that an environment's batched
@@ -88,36 +77,33 @@ def check_task(task: Any, zero_output: bool = True, counts: tuple[int, ...] = (2
     dynamics = task.dynamics
     check_dynamics(dynamics)
     key = jax.random.PRNGKey(0)
-    params = _traced("Task.init_params(key, zero_output) fails", lambda: parameter_shapes(task, zero_output))
+    params = users_call("Task.init_params(key, zero_output) fails", lambda: parameter_shapes(task, zero_output))
     not_float = [leaf for leaf in jax.tree.leaves(params) if not jnp.issubdtype(leaf.dtype, jnp.floating)]
     if not jax.tree.leaves(params) or not_float:
         raise TaskError(f"Task.init_params must return float parameters to train, got {_describe(params)}")
     for count in dict.fromkeys(counts):
-        states = _traced(f"Task.sample_initial_states(key, {count}) fails",
-                         lambda: jax.eval_shape(lambda k: task.sample_initial_states(k, count), key))
+        states = users_call(f"Task.sample_initial_states(key, {count}) fails",
+                            lambda: jax.eval_shape(lambda k: task.sample_initial_states(k, count), key))
         sizes = {leaf.shape[0] if leaf.ndim else None for leaf in jax.tree.leaves(states)}
         if sizes != {count}:
             raise TaskError(f"Task.sample_initial_states(key, {count}) must return {count} states (every leaf's "
                             f"leading axis {count}), got {_describe(states)}")
-    state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype), states)
-    control = _traced("Dynamics.policy(params, state) fails on one sampled state",
-                      lambda: jax.eval_shape(dynamics.policy, params, state))
-    reached = _traced(f"Dynamics.step(state, control) fails on one sampled state and the policy's control "
-                      f"({_describe(control)})", lambda: jax.eval_shape(dynamics.step, state, control))
-    same = (jax.tree.structure(reached) == jax.tree.structure(state)
-            and all(a.shape == b.shape and a.dtype == b.dtype
-                    for a, b in zip(jax.tree.leaves(reached), jax.tree.leaves(state))))
-    if not same:
-        dtypes_alone = jax.tree.structure(reached) == jax.tree.structure(state) and all(
-            a.shape == b.shape for a, b in zip(jax.tree.leaves(reached), jax.tree.leaves(state)))
+    state = one_state_shape(states)
+    control = users_call("Dynamics.policy(params, state) fails on one sampled state",
+                         lambda: jax.eval_shape(dynamics.policy, params, state))
+    reached = users_call(f"Dynamics.step(state, control) fails on one sampled state and the policy's control "
+                         f"({_describe(control)})", lambda: jax.eval_shape(dynamics.step, state, control))
+    pairs = list(zip(jax.tree.leaves(reached), jax.tree.leaves(state)))
+    shaped_alike = jax.tree.structure(reached) == jax.tree.structure(state) and all(a.shape == b.shape for a, b in pairs)
+    if not (shaped_alike and all(a.dtype == b.dtype for a, b in pairs)):
         raise TaskError(f"Dynamics.step must return a state like the one it is given ({_describe(state)}), "
                         f"got {_describe(reached)}" + ("; only the dtypes differ: the step keeps those of the states "
                                                        "Task.sample_initial_states gives (floats where it computes "
-                                                       "in floats)" if dtypes_alone else ""))
+                                                       "in floats)" if shaped_alike else ""))
     over_time = lambda tree: jax.tree.map(  # noqa: E731
         lambda leaf: jax.ShapeDtypeStruct((dynamics.horizon,) + leaf.shape, leaf.dtype), tree)
-    loss = _traced(f"Dynamics.loss(states, controls) fails on a rollout of {dynamics.horizon} steps",
-                   lambda: jax.eval_shape(dynamics.loss, over_time(state), over_time(control)))
+    loss = users_call(f"Dynamics.loss(states, controls) fails on a rollout of {dynamics.horizon} steps",
+                      lambda: jax.eval_shape(dynamics.loss, over_time(state), over_time(control)))
     if not (hasattr(loss, "shape") and loss.shape == () and jnp.issubdtype(loss.dtype, jnp.floating)):
         raise TaskError(f"Dynamics.loss must return one float for a trajectory, got {_describe(loss)}")
     if task.plan.known_columns is not None:  # the memory plan counts them before the Jacobians are traced
@@ -154,7 +140,7 @@ def check_episodes(episodes: Episodes, state: Any) -> None:
         function = getattr(episodes, name)
         if function is None:
             continue
-        out = _traced(f"Episodes.{name}(state) fails on one sampled state", lambda: jax.eval_shape(function, state))
+        out = users_call(f"Episodes.{name}(state) fails on one sampled state", lambda: jax.eval_shape(function, state))
         if not (hasattr(out, "shape") and holds(out)):
             raise TaskError(f"Episodes.{name}(state) must return {words} for one state, got {_describe(out)}")
 

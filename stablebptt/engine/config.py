@@ -180,6 +180,12 @@ def eval_cadence(config: TrainConfig, episodes: bool = True) -> tuple[str, float
     return kind, float(value)
 
 
+def require_train_config(config, who: str = "expected") -> None:
+    """``InputError`` unless ``config`` is a ``TrainConfig``; ``who`` begins the message (a function's argument)."""
+    if not isinstance(config, TrainConfig):
+        raise InputError(f"{who} a stablebptt.TrainConfig, got {type(config).__name__}")
+
+
 def batches_divide(train_size: int, batch: int) -> bool:
     """Whether ``batch`` divides ``train_size`` training states into whole minibatches (the paper's protocol)."""
     return train_size % batch == 0

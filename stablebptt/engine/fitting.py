@@ -60,7 +60,8 @@ def fit(
         last save (the end and a stop always save). A checkpoint rewrites
         every metric row so far: a grid of short epochs saving every few
         epochs spends much of its time writing.
-      should_stop: polled before and after every epoch; true saves and stops.
+      should_stop: polled before and after every epoch; true saves and stops (an answer that is not one truth
+        value: ``InputError``).
       on_epoch: gets each epoch's metrics, with its wall time under ``"seconds"``.
       diverged: what failed when an epoch's metrics must not be kept (its state is dropped, the
         last good one saved), else ""; the run's message adds the epoch and the seeds.
@@ -91,6 +92,7 @@ def fit(
       (status, last saved epoch, state, rows, message); status "complete",
       "interrupted", "budget" or "diverged"; the message of a budget's last epoch cut short says so.
     """
+    should_stop = _one_answer(should_stop)
     saved_epoch = start_epoch if start_epoch > 0 else -1  # a start past epoch 0 comes from a checkpoint
     last_save = time.monotonic()
     blocks = [rows]  # joined only when saved or returned: appending by concatenation is quadratic
@@ -305,7 +307,6 @@ def train(task: Any, config: TrainConfig = TrainConfig(),
         if not (callable(function) or function is None and name == "progress_fn"):  # called only once compiled
             raise InputError(f"train's {name} must be a function{' or None' if name == 'progress_fn' else ''}, "
                              f"got {function!r}")
-    should_stop = _one_answer(should_stop)
     if isinstance(config, TrainConfig):  # anything else make_trainer names
         check_options(config)
         widened = config.x64 and not jax.config.jax_enable_x64

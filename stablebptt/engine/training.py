@@ -17,7 +17,8 @@ import optax
 
 from stablebptt.engine.checks import check_task, evaluated
 from stablebptt.engine.compiling import compiler_options, run_plan, step_size
-from stablebptt.engine.config import LARGE_STEP, TrainConfig, check_batches, eval_cadence, seed_batching
+from stablebptt.engine.config import (LARGE_STEP, TrainConfig, check_batches, eval_cadence, require_train_config,
+                                      seed_batching)
 from stablebptt.engine.critic import bootstrap, fit_to_window, init_critic
 from stablebptt.engine.episodes import (
     Episodes,
@@ -161,8 +162,7 @@ def make_trainer(task: Task, config: TrainConfig, grid: bool = False, plan: Plan
     ``starting.prepare``).
     """
     lap = lap or (lambda name: None)
-    if not isinstance(config, TrainConfig):
-        raise InputError(f"expected a stablebptt.TrainConfig, got {type(config).__name__}")
+    require_train_config(config)
     if config.x64 and not jax.config.jax_enable_x64:
         raise InputError(f"{config_field(config, 'x64')} asks for float64, but JAX runs in float32: stablebptt.train "
                          "trains such a config in float64 by itself; with make_trainer, build the trainer and call "

@@ -40,7 +40,7 @@ from stablebptt.envs.derivative_model import (check_contacts, contact_cut, deriv
                                               jit_traced_once, joined, loaded_states, own_substeps, steps_traced)
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
                                        start_checks, start_diagnosis)
-from stablebptt.envs.protocol import (EnvError, check_instance, check_protocol, check_same_states, check_step,
+from stablebptt.envs.protocol import (EnvError, require_env_instance, check_protocol, check_same_states, check_step,
                                       check_surrogate_reward, function_name, sized_observation)
 from stablebptt.envs.returns import EpisodeState, episode_dynamics, rollout_loss
 from stablebptt.envs.reward_direction import Direction
@@ -166,7 +166,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         result = sb.train(task, sb.TrainConfig(mode="C", epochs=50, train_size=64, test_size=16))
     """
     check_env_task_arguments(**{argument: value for argument, value in locals().items() if argument != "env"})
-    check_instance(env)
+    require_env_instance(env)
     if _is_playground(env):
         from stablebptt.envs import playground
         playground.require_jax_impl(env, type(env).__name__, EnvError)  # MuJoCo Warp, Playground's default

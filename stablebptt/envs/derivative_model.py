@@ -170,8 +170,7 @@ def check_contacts(env: Any, what: str, label: str) -> None:
     its contacts' derivative) would change nothing: no MJX model in ``_mjx_model``, or no pair of geoms
     that can touch (contacts or all constraints switched off in its flags, or no pair MJX collides)."""
     model = mjx_model_of(env, what, label)
-    off = int(mujoco.mjtDisableBit.mjDSBL_CONTACT) | int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
-    if int(model.opt.disableflags) & off:
+    if scene.contacts_switched_off(model.opt):
         raise EnvError(f"{label}: its model switches contacts off (opt.disableflags), so {what} change nothing: "
                        f"drop the contact gradient's options")
     if next(iter(collision_driver.geom_pairs(model)), None) is None:

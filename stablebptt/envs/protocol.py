@@ -51,7 +51,7 @@ def sized_observation(size: int, label: str) -> Callable[[PyTree], jax.Array]:
     return observed
 
 
-def check_instance(env: Any) -> None:
+def require_env_instance(env: Any) -> None:
     """``EnvError`` where ``env`` is a class or a module, not an environment: env_task would set its jitted
     reset on a class (for every instance), and cannot copy a module."""
     if isinstance(env, type):  # its methods are the class's: the task's would be set on it, for every instance

@@ -225,6 +225,11 @@ def first_copy(tree: PyTree) -> PyTree:
     return jax.tree.map(lambda a: a[0], tree)
 
 
+def one_state_shape(states: PyTree) -> PyTree:
+    """The shapes and dtypes of one state of the batch ``states`` (arrays or shapes, the batch their leading axis)."""
+    return jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype), states)
+
+
 
 def merge_axes(tree: PyTree, axes: int) -> PyTree:
     """Merge the first ``axes`` axes of every leaf into one."""

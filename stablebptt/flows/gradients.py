@@ -7,9 +7,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stablebptt.errors import InputError, TaskError, first_line
+from stablebptt.errors import InputError, TaskError, users_call
 from stablebptt.flows.adjoint_step import multi_adjoint_step
-from stablebptt.flows.dynamics import Dynamics, Plan, PyTree, check_dynamics, first_copy, ravel_examples, stack_copies
+from stablebptt.flows.dynamics import (Dynamics, Plan, PyTree, check_dynamics, first_copy, one_state_shape,
+                                       ravel_examples, stack_copies)
 from stablebptt.flows.linearized import linearized_gradients, policy_gradients
 from stablebptt.flows.modes import FLOWS, KEEPS
 
@@ -54,15 +55,9 @@ def flow_gradients(dynamics: Dynamics, flows: tuple[str, ...], params: PyTree, i
     if not all(jnp.ndim(leaf) >= 1 for leaf in jax.tree.leaves(initial_states)):
         raise TaskError("initial_states must be a batch of states, every leaf's leading axis the batch: a leaf has "
                         "none")
-    one_state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(jnp.shape(leaf)[1:], jnp.result_type(leaf)),
-                             initial_states)
-    try:  # the parameters against the policy, on shapes alone: a mismatch reads in JAX's terms deep in the window
-        jax.eval_shape(dynamics.policy, params, one_state)
-    except InputError:
-        raise
-    except Exception as error:  # noqa: BLE001 - the user's policy, params or states: one line naming which call
-        raise TaskError(f"Dynamics.policy(params, state) fails on the params given and one of initial_states: "
-                        f"{first_line(error)}") from None
+    # The parameters against the policy, on shapes alone: a mismatch reads in JAX's terms deep in the window.
+    users_call("Dynamics.policy(params, state) fails on the params given and one of initial_states",
+               lambda: jax.eval_shape(dynamics.policy, params, one_state_shape(initial_states)))
     window = flow_window(dynamics, flows, params, initial_states, plan)
     return window.loss, window.grads
 

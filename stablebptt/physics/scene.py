@@ -99,11 +99,16 @@ def touchable_pairs(model: mujoco.MjModel) -> list[tuple[int, int]]:
             if pair >= 0 or can_touch(first, second)]
 
 
+def contacts_switched_off(options) -> bool:
+    """Whether a model's options (MuJoCo's ``opt`` or MJX's) switch its contacts off: their flag, or all
+    constraints'."""
+    return bool(int(options.disableflags) & (int(_DISABLE.mjDSBL_CONTACT) | int(_DISABLE.mjDSBL_CONSTRAINT)))
+
+
 def analyze(model: mujoco.MjModel) -> SceneEffects:
     """Find the effects ``model`` can produce, from its structure and parameters alone."""
     disabled = lambda bit: bool(model.opt.disableflags & bit)
-    contacts = not disabled(_DISABLE.mjDSBL_CONTACT) and not disabled(_DISABLE.mjDSBL_CONSTRAINT) and bool(
-        touchable_pairs(model))
+    contacts = not contacts_switched_off(model.opt) and bool(touchable_pairs(model))
     constraints_on = not disabled(_DISABLE.mjDSBL_CONSTRAINT)
     return SceneEffects(
         contacts=contacts,

@@ -29,7 +29,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from stablebptt.engine.config import TrainConfig, seed_array
+from stablebptt.engine.config import TrainConfig, require_train_config, seed_array
 from stablebptt.engine.fitting import env_steps_per_epoch
 from stablebptt.engine.lowering import LoweredEpoch
 from stablebptt.engine.program_store import compile_seconds_saved, run_key
@@ -75,21 +75,25 @@ def task_of(task_module: ModuleType, task_config: Any, resolved: dict | None = N
     return task_module.make_deferred(task_config) if deferred else task_module.make(task_config)
 
 
-def _check_arguments(task_module: Any, task_name: str, task_config: Any, train_config: Any, run_dir: Any) -> None:
+def _check_arguments(task_module: Any, task_name: str, task_config: Any, train_config: Any, run_dir: Any,
+                     runs_root: Any) -> None:
     """``InputError`` naming an argument of ``begin`` of another kind than it takes, before anything is built."""
     if not callable(getattr(task_module, "make", None)):
-        raise InputError(f"begin's task_module is a task's module, stablebptt.tasks.load({task_name!r}); got {task_module!r}")
+        raise InputError(f"begin's task_module is a task's module, stablebptt.tasks.load({task_name!r}); "
+                         f"got {task_module!r}")
     config_type = getattr(task_module, "Config", None)
     if isinstance(config_type, type) and not isinstance(task_config, config_type):
         raise InputError(f"begin's task_config is a {task_module.__name__}.Config, got {type(task_config).__name__}")
-    if not isinstance(train_config, TrainConfig):
-        raise InputError(f"begin's train_config is a stablebptt.TrainConfig, got {type(train_config).__name__}")
-    if not (run_dir is None or isinstance(run_dir, (str, os.PathLike))):
-        raise InputError(f"begin's run_dir is a folder's path or None, got {run_dir!r}")
+    require_train_config(train_config, "begin's train_config is")
+    for name, folder in (("run_dir", run_dir), ("runs_root", runs_root)):
+        if not (folder is None and name == "run_dir" or isinstance(folder, (str, os.PathLike))):
+            none = " or None" if name == "run_dir" else ""
+            raise InputError(f"begin's {name} is a folder's path{none}, got {folder!r}")
 
 
 def begin(task_module: ModuleType, task_name: str, task_config: Any, train_config: TrainConfig,
-          run_dir: Path | None = None, record: dict | None = None, runs_root: Path = Path("runs")) -> Session:
+          run_dir: Path | str | None = None, record: dict | None = None,
+          runs_root: Path | str = Path("runs")) -> Session:
     """Begin a new run (``record`` None) or resume the one in ``run_dir`` (its ``config.json`` as ``record``).
 
     Args:
@@ -103,8 +107,8 @@ def begin(task_module: ModuleType, task_name: str, task_config: Any, train_confi
       InputError: bad input, a task that cannot train (named), a folder in use; no folder is left behind.
       StorageError: the folder cannot be written.
     """
-    _check_arguments(task_module, task_name, task_config, train_config, run_dir)
-    run_dir = None if run_dir is None else Path(run_dir)
+    _check_arguments(task_module, task_name, task_config, train_config, run_dir, runs_root)
+    run_dir, runs_root = None if run_dir is None else Path(run_dir), Path(runs_root)
     run = None
     compile_saved_mark = compile_seconds_saved()
     try:

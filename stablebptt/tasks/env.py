@@ -291,7 +291,8 @@ def _make(config: Config, defer_diagnosis: bool, smoothing_choices: dict | None 
                     contact_smoothing=smoothing, gradient_substeps=config.gradient_substeps or None,
                     squash_gradient_floor=config.squash_gradient_floor,
                     contact_gradient_cut=config.contact_gradient_cut,
-                    contact_geometry_held=config.contact_gradient_geometry == "held", smoothing_choices=smoothing_choices,
+                    contact_geometry_held=config.contact_gradient_geometry == "held",
+                    smoothing_choices=smoothing_choices,
                     **{argument: value_of(getattr(config, option))  # the options env_task names otherwise
                        for option, (argument, value_of) in ENV_TASK_ARGUMENTS.items() if option != "steps"},
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,

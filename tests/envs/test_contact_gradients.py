@@ -52,7 +52,7 @@ def test_an_env_without_its_mjx_model_and_bad_values_are_refused_in_one_line(tmp
     with pytest.raises(EnvError, match="Ball: its model has no pair of geoms that can touch"):
         env_task(untouchable, horizon=4, diagnose=False, contact_smoothing=SMOOTHING)
     for flag in (mujoco.mjtDisableBit.mjDSBL_CONTACT, mujoco.mjtDisableBit.mjDSBL_CONSTRAINT):
-        switched_off = Ball()  # its pairs as they were, contacts off in the model's flags (as the cart-pole's file says)
+        switched_off = Ball()  # its pairs as they were, contacts off in its flags (as the cart-pole's file says)
         switched_off._mjx_model = switched_off._mjx_model.replace(opt=switched_off._mjx_model.opt.replace(
             disableflags=switched_off._mjx_model.opt.disableflags | flag))
         with pytest.raises(EnvError, match=r"Ball: its model switches contacts off \(opt.disableflags\)"):

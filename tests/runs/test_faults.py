@@ -841,13 +841,17 @@ def test_begin_from_python_names_an_argument_of_another_kind_before_it_builds_an
     from stablebptt.engine.config import TrainConfig
     from stablebptt.runs import session
     module = tasks.load("repulsion")
-    monkeypatch.setattr(session, "task_of", lambda *args, **kwargs: pytest.fail("built before its arguments were checked"))
+    monkeypatch.setattr(session, "task_of", lambda *args, **kwargs: pytest.fail("built before its arguments were read"))
     train_config = TrainConfig(epochs=1)
+    good = (module, "repulsion", module.Config(), train_config)
     for arguments, words in (
-            ((module, "repulsion", {"steps": 16}, train_config), "begin's task_config is a stablebptt.tasks.repulsion.Config, got dict"),
-            ((module, "repulsion", module.Config(), {"epochs": 1}), "begin's train_config is a stablebptt.TrainConfig, got dict"),
+            ((module, "repulsion", {"steps": 16}, train_config),
+             "begin's task_config is a stablebptt.tasks.repulsion.Config, got dict"),
+            ((module, "repulsion", module.Config(), {"epochs": 1}),
+             "begin's train_config is a stablebptt.TrainConfig, got dict"),
             (("repulsion", "repulsion", module.Config(), train_config), "begin's task_module is a task's module"),
-            ((module, "repulsion", module.Config(), train_config, 7), "begin's run_dir is a folder's path or None, got 7")):
+            ((*good, 7), "begin's run_dir is a folder's path or None, got 7"),
+            ((*good, None, None, 5), "begin's runs_root is a folder's path, got 5")):
         with pytest.raises(errors.InputError, match=words.replace("(", r"\(").replace(")", r"\)")):
-            session.begin(*arguments, runs_root=tmp_path)
+            session.begin(*arguments, **({} if len(arguments) > 6 else {"runs_root": tmp_path}))
     assert not list(tmp_path.iterdir())
