@@ -326,7 +326,7 @@ def _one_answer(should_stop: Callable[[], bool]) -> Callable[[], bool]:
         try:
             return bool(answer)
         except (TypeError, ValueError):  # an array of several values has no single truth
-            raise InputError(f"train's should_stop must return one bool, got {answer!r}") from None
+            raise InputError(f"should_stop must return one bool, got {answer!r}") from None
     return asked
 
 

@@ -230,7 +230,6 @@ def one_state_shape(states: PyTree) -> PyTree:
     return jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype), states)
 
 
-
 def merge_axes(tree: PyTree, axes: int) -> PyTree:
     """Merge the first ``axes`` axes of every leaf into one."""
     return jax.tree.map(lambda a: a.reshape((math.prod(a.shape[:axes]),) + a.shape[axes:]), tree)

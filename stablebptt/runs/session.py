@@ -85,10 +85,10 @@ def _check_arguments(task_module: Any, task_name: str, task_config: Any, train_c
     if isinstance(config_type, type) and not isinstance(task_config, config_type):
         raise InputError(f"begin's task_config is a {task_module.__name__}.Config, got {type(task_config).__name__}")
     require_train_config(train_config, "begin's train_config is")
-    for name, folder in (("run_dir", run_dir), ("runs_root", runs_root)):
-        if not (folder is None and name == "run_dir" or isinstance(folder, (str, os.PathLike))):
-            none = " or None" if name == "run_dir" else ""
-            raise InputError(f"begin's {name} is a folder's path{none}, got {folder!r}")
+    if not (run_dir is None or isinstance(run_dir, (str, os.PathLike))):
+        raise InputError(f"begin's run_dir is a folder's path or None, got {run_dir!r}")
+    if not isinstance(runs_root, (str, os.PathLike)):
+        raise InputError(f"begin's runs_root is a folder's path, got {runs_root!r}")
 
 
 def begin(task_module: ModuleType, task_name: str, task_config: Any, train_config: TrainConfig,
