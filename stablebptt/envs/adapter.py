@@ -41,7 +41,7 @@ from stablebptt.envs.derivative_model import (check_contacts, contact_cut, deriv
 from stablebptt.envs.diagnosis import (PendingDiagnosis, RewardDiagnosis, check_device, sample_for_diagnosis,
                                        start_checks, start_diagnosis)
 from stablebptt.envs.protocol import (EnvError, require_env_instance, check_protocol, check_same_states, check_step,
-                                      check_surrogate_reward, function_name, sized_observation)
+                                      check_surrogate_reward, function_name, sized_observation, trained_reward_words)
 from stablebptt.envs.returns import EpisodeState, episode_dynamics, rollout_loss
 from stablebptt.envs.reward_direction import Direction
 from stablebptt.envs.unread_outputs import unread_outputs_off
@@ -227,6 +227,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     # What the windows train on: the env's reward, the user's surrogate, or another env's step's reward (diagnosed alike).
     training_step, training_steps = step, own_steps
+    trained_reward = trained_reward_words(surrogate_reward, reward_env, dense_variant)
     if surrogate_reward is not None:  # checked where it is given, from shapes: a refusal names it in one line
         check_step(env, step, observations, label)
         check_surrogate_reward(env, step, surrogate_reward, label)
@@ -355,6 +356,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     summary += f"; repaired: {reward_repairs}" if reward_repairs else ""
     summary += f"; {left_out.sensors} sensors nothing returned reads not simulated" if left_out.sensors else ""
     summary += "; camera poses nothing returned reads not computed (held at the reset's)" if camera_poses_held else ""
+    summary += f"; trained on {trained_reward} (returns reported: the env's own)" if trained_reward else ""
 
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None,
              answer: Callable[[], str] | None = None) -> Task:  # answer: the pending check's kind, waited for
@@ -375,6 +377,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                       **({"normalize_observations": True} if normalize_observations else {}),
                       **({"squash_gradient_floor": squash_gradient_floor} if squash_gradient_floor else {}),
                       **({"reward_direction_observed": True} if reward_direction_observed else {}),
+                      **({"trained_reward": trained_reward} if trained_reward else {}),
                       **({"contact_gradient_cut": contact_gradient_cut} if contact_gradient_cut else {}),
                       **({"reward_smoothing": smoothed_terms, "reward_smoothing_choices": choices} if smoothed else {})},
             evaluation=evaluation, episodes=episodes, refresh_statistics=refresh_from(seen) if normalize_observations else None)

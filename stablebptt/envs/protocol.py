@@ -154,6 +154,16 @@ def function_name(function: Callable) -> str:
     return f"{module}:{name}" if module and name else repr(function)
 
 
+def trained_reward_words(surrogate_reward: Callable | None, reward_env: Any, dense_variant: str) -> str:
+    """What a task's windows train on besides its env's own reward, in words ('' for the env's own): the
+    user's surrogate, or another env's step's reward (a ``...Sparse`` env's dense variant, named so)."""
+    if surrogate_reward is not None:
+        return f"the reward {function_name(surrogate_reward)}"
+    if reward_env is None:
+        return ""
+    return f"the reward of {dense_variant + ', its dense variant' if dense_variant else type(reward_env).__name__}"
+
+
 def check_surrogate_reward(env: Any, step: Callable, reward: Callable, label: str) -> bool:
     """``EnvError`` in one line naming ``reward`` (a surrogate of the user's, ``reward(state reached)``)
     where its signature or tracing it on the state ``step`` reaches shows it cannot be trained on: it

@@ -278,7 +278,7 @@ def _make(config: Config, defer_diagnosis: bool, smoothing_choices: dict | None 
     # A registry env's name and the package versions say what its reward computes: its diagnosis is
     # kept for an identical later run, like its programs.
     inputs = program_inputs(config)
-    trained_reward, reward_env = trained_reward_of(config, dense)
+    reward_env = dense_reward_env(config, dense)
     smoothing = ContactSmoothing(config.contact_gradient_margin, config.contact_gradient_softness)
     task = env_task(env, horizon=config.steps or DEFAULT_STEPS, discount=config.discount,
                     hidden=(config.policy_width,) * config.policy_depth,
@@ -296,33 +296,28 @@ def _make(config: Config, defer_diagnosis: bool, smoothing_choices: dict | None 
                     **{argument: value_of(getattr(config, option))  # the options env_task names otherwise
                        for option, (argument, value_of) in ENV_TASK_ARGUMENTS.items() if option != "steps"},
                     diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
-                                                               **({"trained_reward": trained_reward} if trained_reward else {})})
-    if trained_reward:
-        task = _trained_on(task, trained_reward)
+                                                               **trained_reward_key(config)})
     if ":" in config.env:
         return task
     # A registry env is its name and the package's release: the run records which, and resumes only on it.
     return _with_release(task, _playground_version())
 
 
-def trained_reward_of(config: Config, dense: str) -> tuple[str, object]:
-    """What the windows train on besides the env's own reward, in words ('' for the env's own), and the
-    env whose step gives it (None: the env's own step, or the user's surrogate on it)."""
-    if config.dense_reward:
-        if not dense:
-            raise InputError(f"{config_field(config, 'dense_reward')}: {config.env} has no dense variant in MuJoCo "
-                             "Playground's registry (its ...Sparse envs have one); give --surrogate-reward instead")
-        return f"the reward of {dense}, its dense variant", load_env(dense)
-    if config.surrogate_reward:
-        return f"the reward {config.surrogate_reward}", None
-    return "", None
+def dense_reward_env(config: Config, dense: str) -> object:
+    """The env whose step's reward the windows train on where ``--dense-reward`` asks for ``dense``, the
+    env's dense variant; None: the env's own step (or the user's surrogate on it)."""
+    if not config.dense_reward:
+        return None
+    if not dense:
+        raise InputError(f"{config_field(config, 'dense_reward')}: {config.env} has no dense variant in MuJoCo "
+                         "Playground's registry (its ...Sparse envs have one); give --surrogate-reward instead")
+    return load_env(dense)
 
 
-def _trained_on(task: Task, trained_reward: str) -> Task:
-    """``task`` saying in its summary and record which reward its windows train on, also once settled."""
-    return _also_once_settled(task, lambda known: replace(
-        known, summary=f"{known.summary}; trained on {trained_reward} (returns reported: the env's own)",
-        resolved={**known.resolved, "trained_reward": trained_reward}))
+def trained_reward_key(config: Config) -> dict:
+    """What a kept reward diagnosis is of besides the env (``env_task``'s ``diagnosis_key``): the reward trained on."""
+    return ({"dense_reward": True} if config.dense_reward else {}) | (
+        {"surrogate_reward": config.surrogate_reward} if config.surrogate_reward else {})
 
 
 def _with_release(task: Task, version: str) -> Task:

@@ -40,11 +40,14 @@ def test_a_labs_env_with_a_step_reward_trains_on_its_surrogate_and_reports_its_t
     # A surrogate of the user's own is trained on as given, and diagnosed.
     own = env_task(Cart("step"), horizon=5, surrogate_reward=lambda state: -state.data["position"] ** 2)
     assert own.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in own.resolved
+    # From Python as from the command, the task says which reward it trains on, and the returns it reports.
+    assert "; trained on the reward " in own.summary and ".<lambda> (returns reported: the env's own)" in own.summary
     reached = own.dynamics.step(jax.tree.map(lambda a: a[0], states), jnp.array([0.3]))
     assert float(reached.reward) == pytest.approx(-float(reached.data["position"]) ** 2)
     # Or the reward of another env's step on the same states (a sparse env's dense variant), reported on its own.
     dense = env_task(Cart("step"), horizon=5, reward_env=Cart())
     assert dense.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in dense.resolved
+    assert dense.resolved["trained_reward"] == "the reward of Cart" and "; trained on the reward of Cart" in dense.summary
     reached = dense.dynamics.step(jax.tree.map(lambda a: a[0], states), jnp.array([0.3]))
     assert float(reached.reward) == pytest.approx(-float(reached.data["position"]) ** 2 - 0.01 * 0.3 ** 2)
     np.testing.assert_array_equal(dense.evaluation(params, states), plain.evaluation(params, states))
