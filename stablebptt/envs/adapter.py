@@ -102,7 +102,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         ``reward_repairs`` names it for the summary). None: for Playground's envs ``playground.repaired_rewards``.
       diagnose: look at the reward's gradient before training (``diagnose_env``); a reward with no usable
         gradient raises ``EnvError``.
-      dense_variant: an environment with the same task and a dense reward, which a flat reward's refusal suggests.
+      dense_variant: an environment with the same task and a dense reward, which a flat reward's refusal suggests;
+        given with ``reward_env``, the name of that env (the summary says the windows train on its reward).
       diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its registry name):
         while JAX's compile cache is on, the diagnosis is kept under it (with ``reward_repairs``) beside the
         compiled programs (``program_store.kept_answer``) for an identical later run to read instead of tracing
@@ -197,11 +198,9 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     camera_poses_held = left_out.camera_poses_held and surrogate_reward is None and reward_env is None
     traced = steps_traced(contact_geometry_held, physics_steps_recomputed, recomputed_as_asked, reward_context, label,
                           camera_poses_held, physics_steps_carrying_state)
-
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.
     own_steps = derivative_steps(traced, env, contact_smoothing, gradient_substeps, label)  # values, derivative
     step = jit_traced_once(joined(*own_steps))
-
     squash = floored_tanh(squash_gradient_floor)
     # The windows' step alone is cut; an env that cannot take the cut is refused here, in one line.
     loaded = loaded_states(env, contact_gradient_cut, label) if contact_gradient_cut else None
@@ -257,7 +256,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         **({} if contact_smoothing is None else
            {"contact_smoothing": [contact_smoothing.margin, contact_smoothing.softness]}),
         **({} if gradient_substeps is None else {"gradient_substeps": gradient_substeps}),
-        **({"contact_geometry": "held"} if contact_geometry_held else {})}
+        **({"contact_geometry": "held"} if contact_geometry_held else {}),
+        **({"trained_reward": trained_reward} if trained_reward else {})}  # another reward is diagnosed
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
     at_shapes: list[tuple] = []  # the step a surrogate would be made of, traced at shapes (once)
     choosing: list[Callable[[], dict]] = []  # a surrogate's choices, begun beside the check
@@ -363,7 +363,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         start = {"pending": "pending", "nan at zero action": "small"}.get(gradient, "zero")
         trained_step, smoothed_terms, choices = smoothed or (training_step, "", None)
         direction, seen, policy, sample, evaluation, episodes = parts_of(trained_step if reward_direction_observed else None)
-        if smoothed and dense_variant:  # measured: a sparse env's surrogate trains less far than its dense reward
+        if smoothed and dense_variant and reward_env is None:  # measured: a sparse env's surrogate trains less far
             smoothed_terms += f" ({dense_variant}'s reward, its dense variant, may train further: --dense-reward)"
         return Task(
             name=label,

@@ -9,6 +9,7 @@ The protocol (Brax's, which MuJoCo Playground follows): ``env.reset(key) -> Stat
 from __future__ import annotations
 
 import copy
+import functools
 import importlib
 import inspect
 import numbers
@@ -151,7 +152,12 @@ def check_same_states(env: Any, step: Callable, label: str) -> bool:
 def function_name(function: Callable) -> str:
     """How messages name a function of the user's: ``module:name``, as ``--surrogate-reward`` takes it."""
     module, name = getattr(function, "__module__", None), getattr(function, "__qualname__", None)
-    return f"{module}:{name}" if module and name else repr(function)
+    if module and name:
+        return f"{module}:{name}"
+    if isinstance(function, functools.partial):
+        return f"{function_name(function.func)} (partly applied)"
+    kind = type(function)  # a callable object: its class, not its repr (an address, another every run)
+    return f"an instance of {kind.__module__}:{kind.__qualname__}"
 
 
 def trained_reward_words(surrogate_reward: Callable | None, reward_env: Any, dense_variant: str) -> str:

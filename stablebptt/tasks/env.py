@@ -295,8 +295,7 @@ def _make(config: Config, defer_diagnosis: bool, smoothing_choices: dict | None 
                     smoothing_choices=smoothing_choices,
                     **{argument: value_of(getattr(config, option))  # the options env_task names otherwise
                        for option, (argument, value_of) in ENV_TASK_ARGUMENTS.items() if option != "steps"},
-                    diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs,
-                                                               **trained_reward_key(config)})
+                    diagnosis_key=None if inputs is None else {"env": config.env, "inputs": inputs})
     if ":" in config.env:
         return task
     # A registry env is its name and the package's release: the run records which, and resumes only on it.
@@ -312,12 +311,6 @@ def dense_reward_env(config: Config, dense: str) -> object:
         raise InputError(f"{config_field(config, 'dense_reward')}: {config.env} has no dense variant in MuJoCo "
                          "Playground's registry (its ...Sparse envs have one); give --surrogate-reward instead")
     return load_env(dense)
-
-
-def trained_reward_key(config: Config) -> dict:
-    """What a kept reward diagnosis is of besides the env (``env_task``'s ``diagnosis_key``): the reward trained on."""
-    return ({"dense_reward": True} if config.dense_reward else {}) | (
-        {"surrogate_reward": config.surrogate_reward} if config.surrogate_reward else {})
 
 
 def _with_release(task: Task, version: str) -> Task:

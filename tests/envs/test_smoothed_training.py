@@ -3,6 +3,7 @@ from Python and from the command line, and reports its true return; a surrogate 
 function, from Python or the command line) or the reward of another env on the same states (a sparse
 env's dense variant) is trained as given; smoothing off refuses the reward as before."""
 import dataclasses
+import functools
 import json
 
 import jax
@@ -10,12 +11,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import refused_in_one_line
-from envs_for_tests import Cart
+from envs_for_tests import Cart, position_reward
 
 import stablebptt as sb
 from stablebptt.commands import train as train_command
 from stablebptt.envs.adapter import env_task
-from stablebptt.envs.protocol import EnvError
+from stablebptt.envs.protocol import EnvError, function_name
 
 
 def test_a_labs_env_with_a_step_reward_trains_on_its_surrogate_and_reports_its_true_return():
@@ -48,6 +49,11 @@ def test_a_labs_env_with_a_step_reward_trains_on_its_surrogate_and_reports_its_t
     dense = env_task(Cart("step"), horizon=5, reward_env=Cart())
     assert dense.resolved["reward_gradient"] == "usable" and "reward_smoothing" not in dense.resolved
     assert dense.resolved["trained_reward"] == "the reward of Cart" and "; trained on the reward of Cart" in dense.summary
+    named = env_task(Cart("step"), horizon=5, reward_env=Cart(), dense_variant="SmoothCart", diagnose=False)
+    assert named.resolved["trained_reward"] == "the reward of SmoothCart, its dense variant"
+    # A reward with no qualified name of its own is named without its address, the same on every run.
+    assert function_name(functools.partial(position_reward)) == "envs_for_tests:position_reward (partly applied)"
+    assert function_name(Cart()) == "an instance of envs_for_tests:Cart"
     reached = dense.dynamics.step(jax.tree.map(lambda a: a[0], states), jnp.array([0.3]))
     assert float(reached.reward) == pytest.approx(-float(reached.data["position"]) ** 2 - 0.01 * 0.3 ** 2)
     np.testing.assert_array_equal(dense.evaluation(params, states), plain.evaluation(params, states))
