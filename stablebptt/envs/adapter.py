@@ -102,8 +102,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         ``reward_repairs`` names it for the summary). None: for Playground's envs ``playground.repaired_rewards``.
       diagnose: look at the reward's gradient before training (``diagnose_env``); a reward with no usable
         gradient raises ``EnvError``.
-      dense_variant: an environment with the same task and a dense reward, which a flat reward's refusal suggests;
-        given with ``reward_env``, the name of that env (the summary says the windows train on its reward).
+      dense_variant: a dense-reward env of the task, suggested for a flat reward; with ``reward_env``, its name.
       diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its registry name):
         while JAX's compile cache is on, the diagnosis is kept under it (with ``reward_repairs``) beside the
         compiled programs (``program_store.kept_answer``) for an identical later run to read instead of tracing
@@ -226,7 +225,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     # What the windows train on: the env's reward, the user's surrogate, or another env's step's reward (diagnosed alike).
     training_step, training_steps = step, own_steps
-    trained_reward = trained_reward_words(surrogate_reward, reward_env, dense_variant)
+    trained_reward, told_apart = trained_reward_words(surrogate_reward, reward_env, dense_variant)
     if surrogate_reward is not None:  # checked where it is given, from shapes: a refusal names it in one line
         check_step(env, step, observations, label)
         check_surrogate_reward(env, step, surrogate_reward, label)
@@ -249,7 +248,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             resets[count] = program_store.kept_function(reset, (keys,), diagnosis_key, "reset")
         return resets[count](keys)
 
-    answer_key = None if diagnosis_key is None else {
+    answer_key = None if diagnosis_key is None or not told_apart else {  # kept of this reward alone
         **diagnosis_key, "diagnosis_seed": diagnosis_seed, "reward_repairs": reward_repairs,
         "episode_length": episode_length,
         # the diagnosis reads the derivative, which the contacts' smoothing changes
@@ -257,7 +256,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
            {"contact_smoothing": [contact_smoothing.margin, contact_smoothing.softness]}),
         **({} if gradient_substeps is None else {"gradient_substeps": gradient_substeps}),
         **({"contact_geometry": "held"} if contact_geometry_held else {}),
-        **({"trained_reward": trained_reward} if trained_reward else {})}  # another reward is diagnosed
+        **({"trained_reward": trained_reward} if trained_reward else {})}
     started: list[PendingDiagnosis] = []  # the diagnosis begun, where none was kept
     at_shapes: list[tuple] = []  # the step a surrogate would be made of, traced at shapes (once)
     choosing: list[Callable[[], dict]] = []  # a surrogate's choices, begun beside the check
@@ -302,7 +301,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
 
     if diagnose:
         pending = program_store.kept_answer_later(answer_key, "reward diagnosis", begin)
-    advice = (f"train {dense_variant}, its dense variant; or " if dense_variant else "") + "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
+    advice = (f"train {dense_variant}, its dense variant; or " if dense_variant and reward_env is None else ""
+              ) + "give the reward a slope (a tolerance with a margin > 0) or train a reward of your own"
 
     def diagnosed() -> RewardDiagnosis:
         """The diagnosis, waited for; ``EnvError`` for a reward with no usable gradient (flat: where it is not smoothed)."""

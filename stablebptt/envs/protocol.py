@@ -150,24 +150,31 @@ def check_same_states(env: Any, step: Callable, label: str) -> bool:
 
 
 def function_name(function: Callable) -> str:
-    """How messages name a function of the user's: ``module:name``, as ``--surrogate-reward`` takes it."""
+    """How messages name a function of the user's: ``module:name``, as ``--surrogate-reward`` takes it; a
+    partly applied one ``functools.partial(module:name)``, a callable object ``module:Class()`` (never its
+    repr, whose address would change from run to run)."""
     module, name = getattr(function, "__module__", None), getattr(function, "__qualname__", None)
-    if module and name:
-        return f"{module}:{name}"
+    if name:
+        return f"{module}:{name}" if module else name
     if isinstance(function, functools.partial):
-        return f"{function_name(function.func)} (partly applied)"
-    kind = type(function)  # a callable object: its class, not its repr (an address, another every run)
-    return f"an instance of {kind.__module__}:{kind.__qualname__}"
+        return f"functools.partial({function_name(function.func)})"
+    kind = type(function)
+    return f"{kind.__module__}:{kind.__qualname__}()"
 
 
-def trained_reward_words(surrogate_reward: Callable | None, reward_env: Any, dense_variant: str) -> str:
+def trained_reward_words(surrogate_reward: Callable | None, reward_env: Any, dense_variant: str) -> tuple[str, bool]:
     """What a task's windows train on besides its env's own reward, in words ('' for the env's own): the
-    user's surrogate, or another env's step's reward (a ``...Sparse`` env's dense variant, named so)."""
+    user's surrogate, or another env's step's reward (a ``...Sparse`` env's dense variant, named so); and
+    whether those words tell that reward apart, so that a diagnosis kept under them is of it alone: the env's
+    own, or another env's named by ``dense_variant``. A function's name does not tell its body or arguments,
+    nor a class the envs built of it (Playground's cart-poles are all one class)."""
     if surrogate_reward is not None:
-        return f"the reward {function_name(surrogate_reward)}"
+        return f"the reward {function_name(surrogate_reward)}", False
     if reward_env is None:
-        return ""
-    return f"the reward of {dense_variant + ', its dense variant' if dense_variant else type(reward_env).__name__}"
+        return "", True
+    if dense_variant:
+        return f"the reward of {dense_variant}, its dense variant", True
+    return f"the reward of {type(reward_env).__name__}", False
 
 
 def check_surrogate_reward(env: Any, step: Callable, reward: Callable, label: str) -> bool:

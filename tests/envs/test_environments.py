@@ -216,6 +216,11 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
         monkeypatch.setattr(adapter, "start_diagnosis", lambda *a: pytest.fail("diagnosed although kept"))
     monkeypatch.undo()
     assert "train SmoothCart, its dense variant; or give the reward a slope" in str(refusal.value)
+    # Another reward under the same key is diagnosed, not read from the env's own refusal kept there.
+    for named in ("", "SmoothCart"):
+        dense = env_task(Cart("step"), horizon=5, reward_env=Cart(), dense_variant=named, diagnosis_key=key("step"),
+                         smoothing="off")
+        assert dense.resolved["reward_gradient"] == "usable"
     with pytest.raises(EnvError, match=r"gradient is NaN at \d+% of sampled states"):
         env_task(Cart("root"), horizon=5)
     task = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
