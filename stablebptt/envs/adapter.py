@@ -104,10 +104,10 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
         gradient raises ``EnvError``.
       dense_variant: a dense-reward env of the task, suggested for a flat reward; with ``reward_env``, its name.
       diagnosis_key: what names ``env`` beyond the library and the package versions (e.g. its registry name):
-        while JAX's compile cache is on, the diagnosis is kept under it (with ``reward_repairs``) beside the
-        compiled programs (``program_store.kept_answer``) for an identical later run to read instead of tracing
-        the step's derivative again; so are the traced reset and the observation's size (Playground traces the
-        reset to find it). None: diagnosed and traced every time.
+        while JAX's compile cache is on, the diagnosis is kept under it (with ``reward_repairs``; not of a surrogate
+        or of a reward_env without dense_variant, whose names tell no reward apart) for an identical later run to
+        read instead of tracing the step's derivative again; so are the traced reset and the observation's size
+        (Playground traces the reset to find it). None: diagnosed and traced every time.
       defer_diagnosis: return while the diagnosis compiles and runs beside the caller (``start_diagnosis``): the
         task's ``settled()`` waits for it and refuses a reward with no usable gradient; the parameters' values wait
         for it too, their shapes do not, so a trainer can be built meanwhile (``scripts/train.py`` does). Beside an

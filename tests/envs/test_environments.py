@@ -221,6 +221,14 @@ def test_a_reward_without_a_usable_gradient_is_refused_and_a_nan_at_zero_action_
         dense = env_task(Cart("step"), horizon=5, reward_env=Cart(), dense_variant=named, diagnosis_key=key("step"),
                          smoothing="off")
         assert dense.resolved["reward_gradient"] == "usable"
+    # Of another env's reward, a diagnosis is kept only where dense_variant names that env: not of its class alone.
+    with pytest.raises(EnvError, match="gradient is zero") as refusal:
+        env_task(Cart("step"), horizon=5, reward_env=Cart("step"), dense_variant="SmoothCart", smoothing="off")
+    assert "dense variant" not in str(refusal.value)  # the windows train on it already
+    with pytest.raises(EnvError, match="gradient is zero"):
+        env_task(Cart("step"), horizon=5, reward_env=Cart("step"), diagnosis_key=key("class"), smoothing="off")
+    unnamed = env_task(Cart("step"), horizon=5, reward_env=Cart(), diagnosis_key=key("class"), smoothing="off")
+    assert unnamed.resolved["reward_gradient"] == "usable"  # another env of the class, diagnosed anew
     with pytest.raises(EnvError, match=r"gradient is NaN at \d+% of sampled states"):
         env_task(Cart("root"), horizon=5)
     task = env_task(Cart("norm"), horizon=5, diagnosis_key=key("norm"))
