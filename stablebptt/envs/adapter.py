@@ -174,7 +174,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
             reward_context, reward_repairs = playground.repaired_rewards, reward_repairs or playground.REPAIRS
     reward_context = reward_context or contextlib.nullcontext
     # The step searched as the task traces it, inside the reward's repair: the returns the same to the bit.
-    left_out = unread_outputs_off(env, diagnosis_key, reward_context)
+    # A user's surrogate or another env's reward reads states the search does not trace: then nothing is left out.
+    left_out = unread_outputs_off(env, diagnosis_key, reward_context, surrogate_reward is None and reward_env is None)
     env = left_out.env
     # Playground traces the reset to tell the observation's size: kept, an identical later run reads it.
     observations = program_store.kept_answer(diagnosis_key, "observation size", lambda: check_protocol(env))
@@ -193,8 +194,7 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     recomputed_as_asked = physics_steps_recomputed is True
     if physics_steps_recomputed is None:  # where a control step's derivative runs through a loop of physics steps
         physics_steps_recomputed = (gradient_substeps or own_substeps(env) or 1) > 1
-    # Held only where the search saw every reader: a user's surrogate or another env's reward reads states it did not trace.
-    camera_poses_held = left_out.camera_poses_held and surrogate_reward is None and reward_env is None
+    camera_poses_held = left_out.camera_poses_held
     traced = steps_traced(contact_geometry_held, physics_steps_recomputed, recomputed_as_asked, reward_context, label,
                           camera_poses_held, physics_steps_carrying_state)
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.

@@ -242,8 +242,8 @@ def _camera_poses_read(step, paths) -> Literal[False] | None:
     return False
 
 
-def unread_outputs_off(env: Any, answer_key: dict | None = None,
-                       step_context: Callable = contextlib.nullcontext) -> LeftOut:
+def unread_outputs_off(env: Any, answer_key: dict | None = None, step_context: Callable = contextlib.nullcontext,
+                       searched_alone: bool = True) -> LeftOut:
     """``env`` with its reset traced once (``protocol.with_reset_traced_once``) and what nothing it returns
     reads left out (``outputs_read``, its step traced inside ``step_context()``; kept under ``answer_key``
     as ``program_store.kept_answer`` keeps answers): where its MJX model (``_mjx_model``, MuJoCo
@@ -251,12 +251,14 @@ def unread_outputs_off(env: Any, answer_key: dict | None = None,
     at every physics step, the contacts' forces for a touch), a shallow copy whose model leaves out
     every sensor nothing reads; where it has cameras, whether its step may leave their poses as they
     came. The search traces the env's step and, for the sensors, its reset: 0.9-2.5 s of a suite env's
-    start on the 2-core CPU (docs/performance.md, "Cameras no one reads"). ``env`` is left as it is."""
+    start on the 2-core CPU (docs/performance.md, "Cameras no one reads"). ``env`` is left as it is.
+    ``searched_alone`` False: something the search cannot trace reads the states too (a user's surrogate
+    reward, another env's step): nothing is left out."""
     shared = with_reset_traced_once(env)
     model = vars(env).get("_mjx_model") if hasattr(env, "__dict__") else None
     costly = bool(np.any(np.asarray(getattr(model, "sensor_needstage", ())) == mujoco.mjtStage.mjSTAGE_ACC))
     cameras = int(getattr(model, "ncam", 0) or 0) > 0
-    if not (costly or cameras):
+    if not (costly or cameras) or not searched_alone:
         return LeftOut(shared, 0, False)
     searched = env if costly else shared  # the reset's reads searched in its own trace; else its shapes alone
     # The key names the env, and so its model: whether its sensors are searched is not keyed apart.

@@ -147,9 +147,15 @@ def test_a_task_of_the_env_names_the_sensors_left_out_and_leaves_the_callers_env
     task = env_task(arm, horizon=2, diagnose=False)
     assert "; 2 sensors nothing returned reads not simulated" in task.summary
     assert "; camera poses nothing returned reads not computed" in task.summary
-    # Windows trained on another env's reward read states the search did not trace: the cameras stay.
+    # Windows trained on another env's reward or a surrogate read states the search did not trace: all stays.
     dense = Arm(lambda data: jnp.concatenate([data.sensordata[VELOCITY], data.qpos]))
-    assert "camera poses" not in env_task(arm, horizon=2, diagnose=False, reward_env=dense).summary
+    own = env_task(arm, horizon=2, diagnose=False,
+                   surrogate_reward=lambda state: -state.data.sensordata[ACCELERATION].sum())
+    for task in (env_task(arm, horizon=2, diagnose=False, reward_env=dense), own):
+        assert "camera poses" not in task.summary and "sensors nothing returned reads" not in task.summary
+    state = jax.tree.map(lambda leaf: leaf[0], own.sample_initial_states(jax.random.PRNGKey(0), 1))
+    simulated = arm.step(state, jnp.ones(1)).data.sensordata[ACCELERATION]  # the caller's env: every sensor
+    assert float(own.dynamics.step(state, jnp.ones(1)).reward) == pytest.approx(-float(simulated.sum()), rel=1e-5)
     np.testing.assert_array_equal(np.asarray(arm._mjx_model.sensor_needstage), needed)
     every_sensor_read = Arm(lambda data: data.sensordata * 1.0)
     every_sensor_read.observation_size = 10
