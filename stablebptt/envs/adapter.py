@@ -194,9 +194,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
     recomputed_as_asked = physics_steps_recomputed is True
     if physics_steps_recomputed is None:  # where a control step's derivative runs through a loop of physics steps
         physics_steps_recomputed = (gradient_substeps or own_substeps(env) or 1) > 1
-    camera_poses_held = left_out.camera_poses_held
     traced = steps_traced(contact_geometry_held, physics_steps_recomputed, recomputed_as_asked, reward_context, label,
-                          camera_poses_held, physics_steps_carrying_state)
+                          left_out.camera_poses_held, physics_steps_carrying_state)
     # Traced once per state shape: every program and check reuses the one trace, none re-runs the env's Python.
     own_steps = derivative_steps(traced, env, contact_smoothing, gradient_substeps, label)  # values, derivative
     step = jit_traced_once(joined(*own_steps))
@@ -355,7 +354,8 @@ def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: i
                + (f"; the derivative cut at contact loads above {contact_gradient_cut:g} body weights" if contact_gradient_cut else ""))
     summary += f"; repaired: {reward_repairs}" if reward_repairs else ""
     summary += f"; {left_out.sensors} sensors nothing returned reads not simulated" if left_out.sensors else ""
-    summary += "; camera poses nothing returned reads not computed (held at the reset's)" if camera_poses_held else ""
+    summary += ("; camera poses nothing returned reads not computed (held at the reset's)"
+                if left_out.camera_poses_held else "")
     summary += f"; trained on {trained_reward} (returns reported: the env's own)" if trained_reward else ""
 
     def task(diagnosis: RewardDiagnosis | None, gradient: str, smoothed: tuple | None = None,
