@@ -170,9 +170,9 @@ def check_resumable(program: Program, grid: Grid) -> None:
     mine = identity_as_recorded(_identity(program, grid), found)
     if found != mine:
         changed = (" (the model file's contents changed since it trained: restore the file, or train the changed "
-                   "model into another --out)" if found.get("inputs") != mine.get("inputs") else "")
-        raise InputError(f"{program.directory} holds a checkpoint of a different grid{changed}: choose another --out "
-                         f"or remove it")
+                   "model into another output folder, --out)" if found.get("inputs") != mine.get("inputs") else "")
+        raise InputError(f"{program.directory} holds a checkpoint of a different grid{changed}: choose another output "
+                         "folder (--out) or remove it")
 
 
 @dataclass
@@ -373,7 +373,8 @@ def check_cells_are_this_grids(programs: list[Program], grid: Grid, root: Path) 
                 foreign.append(f"{directory.name} ({', '.join(differs)})")
     if foreign:
         raise InputError(f"{root} holds {len(foreign)} cell(s) another grid filled, which this one would overwrite: "
-                         f"{'; '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}: choose another --out")
+                         f"{'; '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}: choose another output folder "
+                         "(--out)")
 
 
 def run_grid(grid: Grid, root: Path, should_stop: Callable[[], bool] = lambda: False,

@@ -54,7 +54,7 @@ def write_manifest(folder: Path, grid_description: dict, start: int, stop: int) 
         found = storage.read_json(path)
         if found != {"grid": as_recorded(grid_description, found.get("grid")), "seed_range": [start, stop]}:
             raise InputError(f"{folder} holds a piece of another grid ({_first_difference(found, manifest)}): "
-                             f"choose another --out or remove it")
+                             "choose another output folder (--out) or remove it")
         return
     folder.mkdir(parents=True, exist_ok=True)
     storage.write_json(path, manifest)

@@ -117,15 +117,17 @@ def fresh_outputs(out: Path | None, default_stem: Path, picture: str, gif: bool,
     suffix = ".gif" if gif else ".mp4"
     if out is not None:
         if out.suffix.lower() not in (".mp4", ".gif"):
-            raise InputError(f"--out {out}: give a video file name ending in .mp4 or .gif")
+            raise InputError(f"{out}: give the video (--out) a file name ending in .mp4 or .gif")
         if gif and out.suffix.lower() != ".gif":
-            raise InputError(f"--gif writes a GIF, but --out {out} ends in {out.suffix}: drop one of the two")
+            raise InputError(f"a GIF (--gif) was asked for, but the video {out} (--out) ends in {out.suffix}: "
+                             "drop one of the two")
         if not out.parent.is_dir():
             raise InputError(f"cannot write {out}: the directory {out.parent} does not exist")
         picture_path = _named_path(out.with_suffix(""), f"-{picture}.png")
         for path in (out, picture_path) if video else (picture_path,):
             if path.exists():
-                raise InputError(f"{path} already exists: choose another --out (render.py never overwrites)")
+                raise InputError(f"{path} already exists: choose another video file (--out); rendering never "
+                                 "overwrites")
         return out, picture_path
     candidate, number = default_stem, 1
     while (video and _named_path(candidate, suffix).exists()) or _named_path(candidate, f"-{picture}.png").exists():

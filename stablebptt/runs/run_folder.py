@@ -107,7 +107,7 @@ def run_metrics(run_dir: Path) -> tuple[list[dict[str, float]], str]:
         epochs = int(saved[:, 0].max())
         return ([dict(zip(COLUMNS, map(float, row))) for row in saved],
                 f"{path} is {problem}: read {epochs} epoch{'s' if epochs != 1 else ''} from {CHECKPOINT_FILE} instead "
-                f"(--resume {run_dir} writes them back into {METRICS_FILE})")
+                f"(resuming the run, --resume {run_dir}, writes them back into {METRICS_FILE})")
     if problem == "cut mid-line" and rows:
         return rows, f"{path} is cut mid-line: its last line is left out"
     if problem in ("missing", "empty", "cut mid-line"):
@@ -188,7 +188,8 @@ def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tup
         raise InputError(f"{path} does not exist: the run never finished an epoch; start it again") from None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
         raise InputError(f"{path} is damaged ({' '.join(str(error).split())}): restore it, or delete it with "
-                         f"{PARAMS_FILE} and {METRICS_FILE} and --resume starts the run again from epoch 0") from None
+                         f"{PARAMS_FILE} and {METRICS_FILE} and resuming (--resume) starts the run again from epoch 0"
+                         ) from None
     if owner and saved_owner and saved_owner != owner:
         raise InputError(f"{path} is the checkpoint of another run (another task or settings than "
                          f"{run_dir / CONFIG_FILE}): put the right checkpoint back, or delete it to start from epoch 0")
@@ -232,7 +233,7 @@ class RunLock:
             holder = handle.read().strip() or "another process"
             handle.close()
             raise InputError(f"{run_dir} is in use by another run (process {holder}): wait for it to end, "
-                             "or choose another --out") from None
+                             "or choose another run folder (--out)") from None
         handle.seek(0)
         handle.truncate()
         handle.write(str(os.getpid()))
@@ -255,7 +256,8 @@ def refuse_used(path: Path) -> None:
     if path.exists() and not path.is_dir():
         raise InputError(f"{path} is a file: give a directory for the run")
     if path.is_dir() and any(not entry.name.startswith(".") for entry in path.iterdir()):
-        raise InputError(f"{path} already exists and is not empty: choose another --out, or continue it with --resume {path}")
+        raise InputError(f"{path} already exists and is not empty: choose another run folder (--out), or continue "
+                         f"its run (--resume {path})")
     above = next(folder for folder in (path.absolute(), *path.absolute().parents) if folder.exists())  # made in it
     if not (above.is_dir() and os.access(above, os.W_OK | os.X_OK)):
         raise InputError(f"cannot create {path}: {above} is {'not writable' if above.is_dir() else 'a file'}")
@@ -282,7 +284,7 @@ def create_run(path: Path, record: dict) -> RunLock:
         try:
             os.link(temporary, path / CONFIG_FILE)  # fails if the name exists: an atomic claim
         except FileExistsError:
-            raise InputError(f"{path} was just claimed by another run: choose another --out") from None
+            raise InputError(f"{path} was just claimed by another run: choose another run folder (--out)") from None
         except OSError as error:
             raise StorageError(error.errno, f"cannot write {path / CONFIG_FILE}: {error.strerror}") from None
         finally:
@@ -405,7 +407,8 @@ class Run:
                 self._refuse_results_without_checkpoint()
             start_epoch, state, rows = 0, fresh(), empty_rows()
         if config.epochs < start_epoch:
-            raise InputError(f"{self.directory} has trained {start_epoch} epochs: --epochs must be at least that to continue")
+            raise InputError(f"{self.directory} has trained {start_epoch} epochs: the epochs (--epochs) must be "
+                             "at least that to continue")
         recorded = self.record["train"]
         if self.resuming and config.epochs > start_epoch and (config.epochs, config.budget) != (
                 recorded["epochs"], recorded.get("budget", 0.0)):
@@ -442,9 +445,9 @@ class Run:
             held = f"{' and '.join(results)} ({epochs} epoch{'s' if epochs != 1 else ''})"
         except (OSError, ValueError, KeyError):
             held = " and ".join(results)
-        raise InputError(f"{self.directory} holds {held} but no {CHECKPOINT_FILE}, so --resume cannot continue it "
-                         f"and would train over them from epoch 0: keep the folder as it is and train anew with "
-                         f"another --out, or move {' and '.join(results)} away to restart it here")
+        raise InputError(f"{self.directory} holds {held} but no {CHECKPOINT_FILE}, so resuming (--resume) cannot "
+                         "continue it and would train over them from epoch 0: keep the folder as it is and train anew "
+                         f"in another run folder (--out), or move {' and '.join(results)} away to restart it here")
 
     def close(self) -> None:
         self.lock.release()

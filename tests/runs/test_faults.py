@@ -85,7 +85,8 @@ def test_resume_without_a_checkpoint_refuses_to_train_over_the_results_it_holds(
     before = snapshot(folder)
     code, err, _ = train(capsys, "--resume", str(folder), "--no-progress")
     assert code == 2 and len(err) == 1, err
-    assert "params.npz and metrics.csv (2 epochs) but no checkpoint.npz" in err[0] and "another --out" in err[0]
+    assert "params.npz and metrics.csv (2 epochs) but no checkpoint.npz" in err[0]
+    assert "another run folder (--out)" in err[0]
     assert snapshot(folder) == before  # nothing trained over, nothing rewritten
 
 
@@ -855,3 +856,17 @@ def test_begin_from_python_names_an_argument_of_another_kind_before_it_builds_an
         with pytest.raises(errors.InputError, match=words.replace("(", r"\(").replace(")", r"\)")):
             session.begin(*arguments, **({} if len(arguments) > 6 else {"runs_root": tmp_path}))
     assert not list(tmp_path.iterdir())
+
+
+def test_begin_from_python_refuses_a_used_folder_in_the_words_of_a_run_folder(tmp_path, monkeypatch):
+    from stablebptt import tasks
+    from stablebptt.engine.config import TrainConfig
+    from stablebptt.runs import session
+    module = tasks.load("repulsion")
+    monkeypatch.setattr(session, "task_of", lambda *args, **kwargs: pytest.fail("built before its folder was checked"))
+    (tmp_path / "notes.txt").write_text("kept")
+    with pytest.raises(errors.InputError) as refused:
+        session.begin(module, "repulsion", module.Config(), TrainConfig(epochs=1), tmp_path)
+    # A Python caller gave no --out: the refusal says what to choose, the command's option beside it.
+    assert f"{tmp_path} already exists and is not empty: choose another run folder (--out)" in str(refused.value)
+    assert (tmp_path / "notes.txt").read_text() == "kept"
