@@ -5,6 +5,7 @@ env's dense variant) is trained as given; smoothing off refuses the reward as be
 import dataclasses
 import functools
 import json
+import types
 
 import jax
 import jax.numpy as jnp
@@ -54,6 +55,9 @@ def test_a_labs_env_with_a_step_reward_trains_on_its_surrogate_and_reports_its_t
     # A reward with no qualified name of its own is named without its address, the same on every run.
     assert function_name(functools.partial(position_reward)) == "functools.partial(envs_for_tests:position_reward)"
     assert function_name(Cart()) == "envs_for_tests:Cart()"
+    made_at_run_time = types.FunctionType(position_reward.__code__, {}, "position_reward")
+    made_at_run_time.__module__ = None  # a function built from code, in no module: its name alone
+    assert function_name(made_at_run_time) == "position_reward"
     reached = dense.dynamics.step(jax.tree.map(lambda a: a[0], states), jnp.array([0.3]))
     assert float(reached.reward) == pytest.approx(-float(reached.data["position"]) ** 2 - 0.01 * 0.3 ** 2)
     np.testing.assert_array_equal(dense.evaluation(params, states), plain.evaluation(params, states))
