@@ -108,11 +108,12 @@ def train_epochs(
     if status == "diverged":
         message = f"{fit_message}; stopped, the last good checkpoint (epoch {epoch}) is kept in {run_dir}"
     elif status == "interrupted":
-        message = f"interrupted after epoch {epoch}; continue with --resume {run_dir}"
+        message = f"interrupted after epoch {epoch}; continue by resuming the run (--resume {run_dir})"
     elif status == "budget":
         ended = (f"ended with epoch {epoch} {fit_message}" if fit_message
                  else f"has no room for another epoch after epoch {epoch}")
-        message = f"the budget of {config.budget:g} s {ended}; train further with --resume {run_dir} --budget SECONDS"
+        message = (f"the budget of {config.budget:g} s {ended}; train further by resuming the run with a budget "
+                   f"(--resume {run_dir} --budget SECONDS)")
     else:
         message = ""
     record_end(run_dir, status, epoch, message)
