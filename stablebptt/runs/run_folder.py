@@ -233,7 +233,7 @@ class RunLock:
             holder = handle.read().strip() or "another process"
             handle.close()
             raise InputError(f"{run_dir} is in use by another run (process {holder}): wait for it to end, "
-                             "or choose another run folder (--out)") from None
+                             "or choose another folder (--out)") from None
         handle.seek(0)
         handle.truncate()
         handle.write(str(os.getpid()))
@@ -407,8 +407,8 @@ class Run:
                 self._refuse_results_without_checkpoint()
             start_epoch, state, rows = 0, fresh(), empty_rows()
         if config.epochs < start_epoch:
-            raise InputError(f"{self.directory} has trained {start_epoch} epochs: the epochs (--epochs) must be "
-                             "at least that to continue")
+            raise InputError(f"{self.directory} has trained {start_epoch} epochs: ask for at least that many epochs "
+                             "(--epochs) to continue")
         recorded = self.record["train"]
         if self.resuming and config.epochs > start_epoch and (config.epochs, config.budget) != (
                 recorded["epochs"], recorded.get("budget", 0.0)):
