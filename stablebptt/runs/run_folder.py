@@ -188,8 +188,7 @@ def load_checkpoint(run_dir: Path, template: TrainState, owner: str = "") -> tup
         raise InputError(f"{path} does not exist: the run never finished an epoch; start it again") from None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:  # truncated or foreign
         raise InputError(f"{path} is damaged ({' '.join(str(error).split())}): restore it, or delete it with "
-                         f"{PARAMS_FILE} and {METRICS_FILE} and resuming (--resume) starts the run again from epoch 0"
-                         ) from None
+                         f"{PARAMS_FILE} and {METRICS_FILE} and resuming (--resume) starts again at epoch 0") from None
     if owner and saved_owner and saved_owner != owner:
         raise InputError(f"{path} is the checkpoint of another run (another task or settings than "
                          f"{run_dir / CONFIG_FILE}): put the right checkpoint back, or delete it to start from epoch 0")
@@ -407,8 +406,7 @@ class Run:
                 self._refuse_results_without_checkpoint()
             start_epoch, state, rows = 0, fresh(), empty_rows()
         if config.epochs < start_epoch:
-            raise InputError(f"{self.directory} has trained {start_epoch} epochs: ask for at least that many epochs "
-                             "(--epochs) to continue")
+            raise InputError(f"{self.directory} has trained {start_epoch} epochs: ask for that many or more (--epochs)")
         recorded = self.record["train"]
         if self.resuming and config.epochs > start_epoch and (config.epochs, config.budget) != (
                 recorded["epochs"], recorded.get("budget", 0.0)):
@@ -445,9 +443,8 @@ class Run:
             held = f"{' and '.join(results)} ({epochs} epoch{'s' if epochs != 1 else ''})"
         except (OSError, ValueError, KeyError):
             held = " and ".join(results)
-        raise InputError(f"{self.directory} holds {held} but no {CHECKPOINT_FILE}, so resuming (--resume) cannot "
-                         "continue it and would train over them from epoch 0: keep the folder as it is and train anew "
-                         f"in another run folder (--out), or move {' and '.join(results)} away to restart it here")
+        raise InputError(f"{self.directory} holds {held} but no {CHECKPOINT_FILE}: resuming (--resume) would train "
+                         f"over them from epoch 0; use another run folder (--out) or move {' and '.join(results)} away")
 
     def close(self) -> None:
         self.lock.release()
