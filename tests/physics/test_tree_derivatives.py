@@ -66,6 +66,7 @@ def _largest_gap(mine, own) -> float:
     return max(float(np.abs(np.asarray(mine[name]) - np.asarray(own[name])).max(initial=0.0)) for name in own)
 
 
+@pytest.mark.slow  # 30 s of compiling MJX's own derivative beside ours: the full tier
 def test_values_are_mjxs_to_the_bit_and_the_derivative_in_every_direction_mjxs_own(trees):
     _, _, start, body_pos, placed = trees
     rng = np.random.default_rng(0)
