@@ -133,7 +133,8 @@ def timed_run(
         clock["last_eval_train_s"] = t
         log(f"  {label} t={t:7.1f}s ep={clock['epoch']} steps={point['env_steps']} "
             f"return={point['return']:.2f} brax={point.get('brax_eval_return')}")
-        keep(summarised(rec, budget))
+        # Timed at every point: a run killed before its end (a machine given back) keeps its compile and epochs.
+        keep(summarised(timed(rec, updates_per_epoch, env_steps_per_update), budget))
 
     class TimedEvaluator(acting.Evaluator):
         def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
@@ -196,23 +197,26 @@ def timed_run(
         acting.Evaluator = saved
     rec["total_wall_s"] = time.perf_counter() - clock["t0"]
     rec["eval_wall_s"] = clock["eval_s"]
+    keep(summarised(timed(rec, updates_per_epoch, env_steps_per_update), budget))
+    if rec["status"] == "interrupted":
+        raise KeyboardInterrupt
+    return rec
 
+
+def timed(rec: dict, updates_per_epoch: int, env_steps_per_update: int) -> dict:
+    """``rec`` with its epochs' times summed up so far: the first epoch's, a steady one's (the median of the
+    later ones), the compile (set-up plus the first epoch's excess over a steady epoch), an update's."""
     epochs = rec["epochs"]
     if epochs:
         rec["first_epoch_s"] = epochs[0]["wall_s"]
         steady = [e["wall_s"] for e in epochs[1:]] or [epochs[0]["wall_s"]]
         rec["steady_epoch_s"] = statistics.median(steady)
-        # Compile = set-up plus the first epoch's excess over a steady epoch.
         rec["compile_s"] = rec.get("setup_s", 0.0) + epochs[0]["wall_s"] - rec["steady_epoch_s"]
         rec["steps_per_update"] = env_steps_per_update
         rec["update_s"] = rec["steady_epoch_s"] / updates_per_epoch
         rec["env_steps_per_s"] = env_steps_per_update / rec["update_s"]
         sps = [e["sps"] for e in epochs[1:] if not isinstance(e["sps"], str)]
         rec["brax_sps_median"] = statistics.median(sps) if sps else None
-    summarised(rec, budget)
-    keep(rec)
-    if rec["status"] == "interrupted":
-        raise KeyboardInterrupt
     return rec
 
 

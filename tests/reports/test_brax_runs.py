@@ -55,6 +55,12 @@ def test_a_run_stopped_by_a_limits_sigint_keeps_the_points_it_scored_and_stops(t
     assert record["final_return"] == RETURNS[2] and record["best_return"] == max(RETURNS[:3])
     assert [len(each["points"]) for each in kept] == [1, 2, 3, 3]  # a record at every point, then the last
     assert [each["status"] for each in kept] == ["running"] * 3 + ["interrupted"]
+    # Each record kept while running holds its epochs' times so far: a run killed there keeps its compile.
+    running = kept[2]
+    steady = float(np.median([epoch["wall_s"] for epoch in running["epochs"][1:]]))
+    assert running["steady_epoch_s"] == pytest.approx(steady) and running["update_s"] == pytest.approx(steady / 2)
+    assert running["compile_s"] == pytest.approx(running["setup_s"] + running["epochs"][0]["wall_s"] - steady)
+    assert "compile_s" not in kept[0]  # no epoch yet
     assert list(tmp_path.iterdir()) == [path]  # no temporary file left beside it
 
 
