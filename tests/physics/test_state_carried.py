@@ -99,11 +99,11 @@ def test_the_state_carried_steps_are_the_whole_datas_loop(scene):
                 data = mjx.step(model, data)
             return data
 
-        carried = jax.jit(lambda data: state_carried.steps(model, data, 6))(data)
-        looped = jax.jit(lambda data: whole(data, 6))(data)
+        carried = jax.jit(lambda data: state_carried.steps(model, data, 3))(data)
+        looped = jax.jit(lambda data: whole(data, 3))(data)
         for (path, expected), found in zip(jax.tree_util.tree_flatten_with_path(looped)[0], jax.tree.leaves(carried)):
             np.testing.assert_allclose(found, expected, rtol=1e-10, atol=1e-12, err_msg=jax.tree_util.keystr(path))
-        assert float(carried.time - data.time) == pytest.approx(6 * float(model.opt.timestep))
+        assert float(carried.time - data.time) == pytest.approx(3 * float(model.opt.timestep))
         assert np.any(np.asarray(carried._impl.efc_force) > 0)  # the ball pressed on the floor: the solver's forces
         assert state_carried.steps(model, data, 0) is data
         one = jax.jit(lambda data: state_carried.steps(model, data, 1))(data)
@@ -115,8 +115,8 @@ def test_the_state_carried_steps_are_the_whole_datas_loop(scene):
         def reached(qvel, steps):
             end = steps(data.replace(qvel=qvel))
             return jnp.concatenate([end.sensordata, end.qvel])
-        expected = jax.jit(jax.jacfwd(lambda qvel: reached(qvel, lambda data: whole(data, 6))))(data.qvel)
-        found = jax.jit(jax.jacfwd(lambda qvel: reached(qvel, lambda data: state_carried.steps(model, data, 6))))(
+        expected = jax.jit(jax.jacfwd(lambda qvel: reached(qvel, lambda data: whole(data, 3))))(data.qvel)
+        found = jax.jit(jax.jacfwd(lambda qvel: reached(qvel, lambda data: state_carried.steps(model, data, 3))))(
             data.qvel)
     assert np.all(np.isfinite(expected)) and np.abs(expected).max() > 1e-3
     np.testing.assert_allclose(found, expected, rtol=1e-9, atol=1e-10)
