@@ -30,6 +30,9 @@ def add_common_arguments(parser, budget: float, eval_envs: int, brax_eval: str) 
     parser.add_argument("--eval-envs", type=int, default=eval_envs)
     parser.add_argument("--brax-eval", choices=("all", "none"), default=brax_eval,
                         help="also run Brax's own evaluator at each point (none: only the shared evaluation.py)")
+    parser.add_argument("--evaluate-after", action="store_true",
+                        help="keep each point's policy and score them all once the run ends, in one program: the "
+                             "same episodes and clock in less device time (a killed process keeps no points)")
     parser.add_argument("--out", required=True)
 
 
@@ -89,6 +92,7 @@ def timed_run(
     brax_eval: str,
     log: Callable[[str], None],
     keep: Callable[[dict], None] = lambda rec: None,
+    evaluate_later: bool = False,
 ) -> dict:
     """Runs `train()` (a Brax trainer's call) under the budget; fills and returns `rec`.
 
@@ -96,7 +100,10 @@ def timed_run(
     `env_steps_per_update` env steps each. `keep(rec)` is called after every point scored (status
     "running") and once the run has ended, so a run stopped from outside keeps the points it scored:
     at once where a wall-clock limit's SIGINT (or Ctrl-C) stops it, which is then raised again as
-    `KeyboardInterrupt` (status "interrupted"); at its last point where the process is killed."""
+    `KeyboardInterrupt` (status "interrupted"); at its last point where the process is killed.
+    ``evaluate_later``: each point's policy is kept as it falls due, and all are scored once the run has
+    ended or stopped, in one program (``evaluate.many``, ``evaluate_variant.many``): the same episodes
+    and the same clock in less of the device's time; a process killed keeps its epochs' times, no point."""
     from brax.training import acting
 
     label = f"[{rec['env']}/{rec.get('variant', rec['algo'])}/s{rec['seed']}]"
@@ -106,6 +113,27 @@ def timed_run(
     def train_s():
         return time.perf_counter() - clock["t0"] - clock["eval_s"]
 
+    pending = []  # with evaluate_later: (params, brax_metrics, t, epoch) of each point due, scored at the end
+
+    def add_point(scores, variant_scores, brax_metrics, t, epoch, eval_s):
+        point = {
+            "train_wall_s": t,
+            "epoch": epoch,
+            "updates": epoch * updates_per_epoch,
+            "env_steps": epoch * updates_per_epoch * env_steps_per_update,
+            "return": scores["mean_return"],
+            "return_std": scores["std_return"],
+            "num_done_early": scores["num_done_early"],
+        }
+        if variant_scores is not None:
+            point["return_train_variant"] = variant_scores["mean_return"]
+        if brax_metrics is not None:
+            point["brax_eval_return"] = finite_or_text(brax_metrics.get("eval/episode_reward", float("nan")))
+        point["eval_s"] = eval_s
+        rec["points"].append(point)
+        log(f"  {label} t={t:7.1f}s ep={epoch} steps={point['env_steps']} "
+            f"return={point['return']:.2f} brax={point.get('brax_eval_return')}")
+
     def record_point(params, brax_metrics, t):
         # ``t``: the training seconds its call was judged due at. Read again here, it would be later
         # than the next call's (the evaluation's seconds come off the clock), and with eval_every 0
@@ -114,27 +142,26 @@ def timed_run(
         # Host copies: the same argument types at every call, so the evaluator compiles once (the
         # replicated training state's arrays may carry another sharding than the initial ones).
         params = jax.tree_util.tree_map(np.asarray, jax.device_get(params))
-        ev = evaluate(params)
-        point = {
-            "train_wall_s": t,
-            "epoch": clock["epoch"],
-            "updates": clock["epoch"] * updates_per_epoch,
-            "env_steps": clock["epoch"] * updates_per_epoch * env_steps_per_update,
-            "return": ev["mean_return"],
-            "return_std": ev["std_return"],
-            "num_done_early": ev["num_done_early"],
-        }
-        if evaluate_variant is not None:
-            point["return_train_variant"] = evaluate_variant(params)["mean_return"]
-        if brax_metrics is not None:
-            point["brax_eval_return"] = finite_or_text(brax_metrics.get("eval/episode_reward", float("nan")))
-        point["eval_s"] = time.perf_counter() - e0
-        rec["points"].append(point)
+        if evaluate_later:
+            pending.append((params, brax_metrics, t, clock["epoch"]))
+        else:
+            add_point(evaluate(params), evaluate_variant(params) if evaluate_variant is not None else None,
+                      brax_metrics, t, clock["epoch"], time.perf_counter() - e0)
         clock["last_eval_train_s"] = t
-        log(f"  {label} t={t:7.1f}s ep={clock['epoch']} steps={point['env_steps']} "
-            f"return={point['return']:.2f} brax={point.get('brax_eval_return')}")
         # Timed at every point: a run killed before its end (a machine given back) keeps its compile and epochs.
         keep(summarised(timed(rec, updates_per_epoch, env_steps_per_update), budget))
+
+    def score_pending():
+        """The points kept for later, scored together (their seconds shared out among them)."""
+        if not pending:
+            return
+        e0 = time.perf_counter()
+        policies = [params for params, *_ in pending]
+        scores = evaluate.many(policies)
+        variants = evaluate_variant.many(policies) if evaluate_variant is not None else [None] * len(policies)
+        rec["evaluated_after_s"] = time.perf_counter() - e0
+        for (_, brax_metrics, t, epoch), each, variant in zip(pending, scores, variants):
+            add_point(each, variant, brax_metrics, t, epoch, rec["evaluated_after_s"] / len(pending))
 
     class TimedEvaluator(acting.Evaluator):
         def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
@@ -197,6 +224,7 @@ def timed_run(
         acting.Evaluator = saved
     rec["total_wall_s"] = time.perf_counter() - clock["t0"]
     rec["eval_wall_s"] = clock["eval_s"]
+    score_pending()
     keep(summarised(timed(rec, updates_per_epoch, env_steps_per_update), budget))
     if rec["status"] == "interrupted":
         raise KeyboardInterrupt

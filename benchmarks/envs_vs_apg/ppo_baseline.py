@@ -60,7 +60,8 @@ def training_steps_per_epoch(hp: dict) -> int:
     return int(per_epoch) * max(hp["num_resets_per_eval"], 1)
 
 
-def run_one(env_name, seed, budget, eval_every, hp, eval_envs, log, brax_eval="none", keep=lambda rec: None):
+def run_one(env_name, seed, budget, eval_every, hp, eval_envs, log, brax_eval="none", keep=lambda rec: None,
+            evaluate_later=False):
     env = evaluation.load_env(env_name)
     episode_length = int(env._config.episode_length)
     rec = {
@@ -91,7 +92,7 @@ def run_one(env_name, seed, budget, eval_every, hp, eval_envs, log, brax_eval="n
     return brax_runs.timed_run(train, rec, evaluate=evaluate, evaluate_variant=None, budget=budget, eval_every=eval_every,
                                updates_per_epoch=training_steps_per_epoch(hp),
                                env_steps_per_update=env_steps_per_training_step(hp), brax_eval=brax_eval, log=log,
-                               keep=keep)
+                               keep=keep, evaluate_later=evaluate_later)
 
 
 def main(argv=None):
@@ -116,7 +117,8 @@ def main(argv=None):
                 # The record is written at every point scored: a run stopped by a wall-clock limit keeps them.
                 path = Path(a.out) / f"{env_name}_ppo_s{seed}.json"
                 rec = run_one(env_name, seed, a.budget, a.eval_every or a.budget / 10, hp, a.eval_envs, log, a.brax_eval,
-                              keep=lambda rec, path=path: write_json(path, {**rec, "argv": sys.argv}))
+                              keep=lambda rec, path=path: write_json(path, {**rec, "argv": sys.argv}),
+                              evaluate_later=a.evaluate_after)
                 log(f"   -> {env_name} s{seed} {rec['status']} final {rec['final_return']} within budget "
                     f"{rec['return_within_budget']} compile {rec.get('compile_s')} env steps/s {rec.get('env_steps_per_s')}")
 

@@ -1,10 +1,15 @@
 """The Brax baselines' timed run (benchmarks/envs_vs_apg/brax_runs.py) keeps its record as it scores:
-a run that a wall-clock limit stops keeps every point it scored, where it kept none."""
+a run that a wall-clock limit stops keeps every point it scored, where it kept none; points scored once
+the run has ended are the points scored during it, and their evaluation (evaluation.py) scores several
+policies in one program as it scores each alone."""
 from __future__ import annotations
 
 import importlib.util
 import json
+from typing import NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -15,21 +20,24 @@ from conftest import ROOT
 _spec = importlib.util.spec_from_file_location("brax_runs", ROOT / "benchmarks" / "envs_vs_apg" / "brax_runs.py")
 brax_runs = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(brax_runs)
+_spec = importlib.util.spec_from_file_location("evaluation", ROOT / "benchmarks" / "envs_vs_apg" / "evaluation.py")
+evaluation = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(evaluation)
 
 RETURNS = [3.0, 5.0, 4.0, 9.0]  # the return scored at each of Brax's evaluator calls
 
 
-def timed(tmp_path, stop_at: int | None, budget: float = 1e9):
-    """A timed run whose trainer calls Brax's evaluator once per epoch (each a point: eval_every 0),
-    raising KeyboardInterrupt (a limit's SIGINT) after call ``stop_at``; its kept records, in turn."""
+def timed(tmp_path, stop_at: int | None, budget: float = 1e9, evaluate_later: bool = False):
+    """A timed run whose trainer calls Brax's evaluator once per epoch (each a point: eval_every 0) with a
+    policy that scores RETURNS[call], raising KeyboardInterrupt (a limit's SIGINT) after call ``stop_at``;
+    its kept records, in turn, and the lists of policies each evaluator call was given."""
     from brax.training import acting
-    path, kept = tmp_path / "CheetahRun_ppo_s0.json", []
-    scores = iter(RETURNS)
+    path, kept, scored = tmp_path / "CheetahRun_ppo_s0.json", [], []
 
     def train():
         evaluator = acting.Evaluator.__new__(acting.Evaluator)  # the run's timed evaluator, in place
         for call in range(len(RETURNS)):
-            evaluator.run_evaluation({"w": np.zeros(2)}, {"training/sps": 1.0})
+            evaluator.run_evaluation({"w": np.full(2, RETURNS[call])}, {"training/sps": 1.0})
             if call == stop_at:
                 raise KeyboardInterrupt
 
@@ -37,16 +45,23 @@ def timed(tmp_path, stop_at: int | None, budget: float = 1e9):
         write_json(path, rec)
         kept.append(json.loads(path.read_text()))
 
+    def evaluate(params):
+        return {"mean_return": float(params["w"][0]), "std_return": 0.0, "num_done_early": 0}
+
+    def many(policies):
+        scored.append(policies)
+        return [evaluate(params) for params in policies]
+    evaluate.many = many
+
     rec = {"env": "CheetahRun", "algo": "brax_ppo", "seed": 0}
     run = lambda: brax_runs.timed_run(  # noqa: E731
-        train, rec, evaluate=lambda params: {"mean_return": next(scores), "std_return": 0.0, "num_done_early": 0},
-        evaluate_variant=None, budget=budget, eval_every=0.0, updates_per_epoch=2, env_steps_per_update=10,
-        brax_eval="none", log=lambda message: None, keep=keep)
-    return run, kept, path
+        train, rec, evaluate=evaluate, evaluate_variant=None, budget=budget, eval_every=0.0, updates_per_epoch=2,
+        env_steps_per_update=10, brax_eval="none", log=lambda message: None, keep=keep, evaluate_later=evaluate_later)
+    return run, kept, path, scored
 
 
 def test_a_run_stopped_by_a_limits_sigint_keeps_the_points_it_scored_and_stops(tmp_path):
-    run, kept, path = timed(tmp_path, stop_at=2)
+    run, kept, path, _ = timed(tmp_path, stop_at=2)
     with pytest.raises(KeyboardInterrupt):
         run()
     record = json.loads(path.read_text())
@@ -65,7 +80,59 @@ def test_a_run_stopped_by_a_limits_sigint_keeps_the_points_it_scored_and_stops(t
 
 
 def test_a_run_its_budget_ends_keeps_its_record_with_the_budgets_status(tmp_path):
-    run, kept, path = timed(tmp_path, stop_at=None, budget=0.0)
+    run, kept, path, _ = timed(tmp_path, stop_at=None, budget=0.0)
     rec = run()  # the first point is past a budget of 0 s: the run ends there
     assert rec["status"] == "budget" and json.loads(path.read_text()) == json.loads(json.dumps(rec))
     assert [each["status"] for each in kept] == ["running", "budget"]
+
+
+@pytest.mark.parametrize("stop_at", [None, 2])
+def test_points_scored_after_the_run_are_the_points_scored_during_it_in_one_call(tmp_path, stop_at):
+    records = []
+    for later in (False, True):
+        (tmp_path / str(later)).mkdir()
+        run, kept, path, scored = timed(tmp_path / str(later), stop_at, evaluate_later=later)
+        try:
+            run()
+        except KeyboardInterrupt:  # a limit's SIGINT: the points kept so far are scored before it is raised again
+            pass
+        records.append(json.loads(path.read_text()))
+    (inline, later), fields = records, ("train_wall_s", "eval_s")
+    assert len(inline["points"]) == (3 if stop_at else len(RETURNS))
+    assert [{k: v for k, v in point.items() if k not in fields} for point in later["points"]] == \
+        [{k: v for k, v in point.items() if k not in fields} for point in inline["points"]]
+    assert later["status"] == inline["status"] and later["final_return"] == inline["final_return"]
+    assert len(scored) == 1 and len(scored[0]) == len(inline["points"])  # all in one call, once the run has ended
+    assert all(not each["points"] for each in kept[:-1]) and kept[-1] == later
+    assert "compile_s" in kept[-2]  # a record kept while running still holds its epochs' times
+
+
+class Drifting(NamedTuple):
+    obs: jax.Array
+    reward: jax.Array
+    done: jax.Array
+
+
+class DriftingEnv:
+    """A point pushed by its actions, paid minus its squared distance from the origin, done past 1.5."""
+
+    def reset(self, key):
+        return Drifting(jax.random.normal(key, (2,)), jnp.zeros(()), jnp.zeros(()))
+
+    def step(self, state, action):
+        obs = state.obs + 0.5 * action
+        return Drifting(obs, -(obs ** 2).sum(), (jnp.abs(obs).max() > 1.5).astype(jnp.float32))
+
+
+def test_several_policies_scored_in_one_program_score_as_each_alone():
+    evaluate = evaluation.make_evaluator(DriftingEnv(), lambda params, obs: params["gain"] * obs + params["push"],
+                                         num_envs=8, episode_length=12)
+    policies = [{"gain": np.float32(gain), "push": np.full(2, push, np.float32)}
+                for gain, push in ((-0.5, 0.0), (0.0, 0.0), (0.3, 0.4))]
+    together, alone = evaluate.many(policies), [evaluate(params) for params in policies]
+    for each, single in zip(together, alone):
+        assert each["mean_return"] == pytest.approx(single["mean_return"], rel=1e-5)
+        assert each["std_return"] == pytest.approx(single["std_return"], rel=1e-4, abs=1e-6)
+        assert each["num_done_early"] == single["num_done_early"]
+    assert len({round(single["mean_return"], 3) for single in alone}) == 3  # three policies, three scores
+    assert alone[0]["num_done_early"] < alone[2]["num_done_early"]  # the push drives episodes past the bound
