@@ -93,7 +93,7 @@ _EVALUATORS: dict = {}
 
 
 def run_one(env_name, variant, seed, budget, eval_every, updates_per_epoch, hp, eval_envs, log, brax_eval="all",
-            keep=lambda rec: None, evaluate_later=False):
+            keep=lambda rec: None, evaluate_after=False):
     """One APG training run; returns its JSON record."""
     shipped = evaluation.load_env(env_name)
     episode_length = int(shipped._config.episode_length)
@@ -157,7 +157,7 @@ def run_one(env_name, variant, seed, budget, eval_every, updates_per_epoch, hp, 
     return brax_runs.timed_run(train, rec, evaluate=eval_shipped, evaluate_variant=eval_variant, budget=budget,
                                eval_every=eval_every, updates_per_epoch=updates_per_epoch,
                                env_steps_per_update=num_envs * horizon, brax_eval=brax_eval, log=log, keep=keep,
-                               evaluate_later=evaluate_later)
+                               evaluate_after=evaluate_after)
 
 
 def main(argv=None):
@@ -205,7 +205,7 @@ def main(argv=None):
                 keep = (lambda rec: None) if a.throughput else (
                     lambda rec, path=path: write_json(path, {**rec, "preset": a.preset, "argv": sys.argv}))
                 rec = run_one(env_name, variant, seed, a.budget, eval_every, a.updates_per_epoch, hp, a.eval_envs, log,
-                              a.brax_eval, keep=keep, evaluate_later=a.evaluate_after)
+                              a.brax_eval, keep=keep, evaluate_after=a.evaluate_after)
                 rec["preset"] = a.preset
                 rec["argv"] = sys.argv
                 if a.throughput:

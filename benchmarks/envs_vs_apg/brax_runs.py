@@ -32,7 +32,8 @@ def add_common_arguments(parser, budget: float, eval_envs: int, brax_eval: str) 
                         help="also run Brax's own evaluator at each point (none: only the shared evaluation.py)")
     parser.add_argument("--evaluate-after", action="store_true",
                         help="keep each point's policy and score them all once the run ends, in one program: the "
-                             "same episodes and clock in less device time (a killed process keeps no points)")
+                             "same episodes and clock, the episodes' steps run once for all points where a GPU "
+                             "runs them one after another (a killed process keeps no points)")
     parser.add_argument("--out", required=True)
 
 
@@ -92,7 +93,7 @@ def timed_run(
     brax_eval: str,
     log: Callable[[str], None],
     keep: Callable[[dict], None] = lambda rec: None,
-    evaluate_later: bool = False,
+    evaluate_after: bool = False,
 ) -> dict:
     """Runs `train()` (a Brax trainer's call) under the budget; fills and returns `rec`.
 
@@ -101,19 +102,21 @@ def timed_run(
     "running") and once the run has ended, so a run stopped from outside keeps the points it scored:
     at once where a wall-clock limit's SIGINT (or Ctrl-C) stops it, which is then raised again as
     `KeyboardInterrupt` (status "interrupted"); at its last point where the process is killed.
-    ``evaluate_later``: each point's policy is kept as it falls due, and all are scored once the run has
-    ended or stopped, in one program (``evaluate.many``, ``evaluate_variant.many``): the same episodes
-    and the same clock in less of the device's time; a process killed keeps its epochs' times, no point."""
+    ``evaluate_after``: each point's policy is kept as it falls due, and all are scored once the run has
+    ended or stopped, in one program per evaluator (``evaluate.many``, ``evaluate_variant.many``), after
+    ``train()`` has returned and outside any context it sets: the same episodes and the same clock. Each
+    point's ``eval_s`` is then an equal share of ``evaluated_after_s``, which ``total_wall_s`` leaves out;
+    a process killed keeps its epochs' times and no point, and a scoring that fails leaves status "error"."""
     from brax.training import acting
 
     label = f"[{rec['env']}/{rec.get('variant', rec['algo'])}/s{rec['seed']}]"
-    rec.update(points=[], epochs=[], status="running", brax_eval_mode=brax_eval)
+    rec.update(points=[], epochs=[], status="running", brax_eval_mode=brax_eval, evaluate_after=evaluate_after)
     clock = {"t0": None, "eval_s": 0.0, "last_eval_train_s": -1e9, "epoch": 0, "last_epoch_end": None}
 
     def train_s():
         return time.perf_counter() - clock["t0"] - clock["eval_s"]
 
-    pending = []  # with evaluate_later: (params, brax_metrics, t, epoch) of each point due, scored at the end
+    pending = []  # with evaluate_after: (params, brax_metrics, t, epoch) of each point due, scored at the end
 
     def add_point(scores, variant_scores, brax_metrics, t, epoch, eval_s):
         point = {
@@ -142,13 +145,13 @@ def timed_run(
         # Host copies: the same argument types at every call, so the evaluator compiles once (the
         # replicated training state's arrays may carry another sharding than the initial ones).
         params = jax.tree_util.tree_map(np.asarray, jax.device_get(params))
-        if evaluate_later:
+        if evaluate_after:
             pending.append((params, brax_metrics, t, clock["epoch"]))
         else:
             add_point(evaluate(params), evaluate_variant(params) if evaluate_variant is not None else None,
                       brax_metrics, t, clock["epoch"], time.perf_counter() - e0)
         clock["last_eval_train_s"] = t
-        # Timed at every point: a run killed before its end (a machine given back) keeps its compile and epochs.
+        # Timed at every point: a process killed from outside before its end keeps its compile and epochs.
         keep(summarised(timed(rec, updates_per_epoch, env_steps_per_update), budget))
 
     def score_pending():
@@ -224,9 +227,15 @@ def timed_run(
         acting.Evaluator = saved
     rec["total_wall_s"] = time.perf_counter() - clock["t0"]
     rec["eval_wall_s"] = clock["eval_s"]
-    score_pending()
+    interrupted = rec["status"] == "interrupted"
+    try:
+        score_pending()
+    except Exception as e:  # noqa: BLE001 - the run's epochs are kept; its points are lost, and say why
+        rec["status"] = "error"
+        rec["error_type"] = type(e).__name__
+        rec["error"] = f"scoring the points after the run: {str(e)[:3000]}"
     keep(summarised(timed(rec, updates_per_epoch, env_steps_per_update), budget))
-    if rec["status"] == "interrupted":
+    if interrupted:
         raise KeyboardInterrupt
     return rec
 

@@ -50,8 +50,8 @@ def make_evaluator(
     `evaluate.many(params_list) -> list[dict]` the same for several params at once, in one program.
 
     Params are an argument (not closed over) so one compilation serves every evaluation of a run. An
-    episode's 1,000 steps run one after another, so a GPU scores 16 envs in about the time it scores
-    several times that many: `many` scores a run's points together once it has ended.
+    episode's 1,000 steps run one after another, which on a GPU takes longer than their arithmetic:
+    `many` runs them once for all of a run's points, scored together once it has ended.
     """
     if episode_length is None:
         episode_length = int(env._config.episode_length)

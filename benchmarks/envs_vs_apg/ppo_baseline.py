@@ -61,7 +61,7 @@ def training_steps_per_epoch(hp: dict) -> int:
 
 
 def run_one(env_name, seed, budget, eval_every, hp, eval_envs, log, brax_eval="none", keep=lambda rec: None,
-            evaluate_later=False):
+            evaluate_after=False):
     env = evaluation.load_env(env_name)
     episode_length = int(env._config.episode_length)
     rec = {
@@ -92,7 +92,7 @@ def run_one(env_name, seed, budget, eval_every, hp, eval_envs, log, brax_eval="n
     return brax_runs.timed_run(train, rec, evaluate=evaluate, evaluate_variant=None, budget=budget, eval_every=eval_every,
                                updates_per_epoch=training_steps_per_epoch(hp),
                                env_steps_per_update=env_steps_per_training_step(hp), brax_eval=brax_eval, log=log,
-                               keep=keep, evaluate_later=evaluate_later)
+                               keep=keep, evaluate_after=evaluate_after)
 
 
 def main(argv=None):
@@ -118,7 +118,7 @@ def main(argv=None):
                 path = Path(a.out) / f"{env_name}_ppo_s{seed}.json"
                 rec = run_one(env_name, seed, a.budget, a.eval_every or a.budget / 10, hp, a.eval_envs, log, a.brax_eval,
                               keep=lambda rec, path=path: write_json(path, {**rec, "argv": sys.argv}),
-                              evaluate_later=a.evaluate_after)
+                              evaluate_after=a.evaluate_after)
                 log(f"   -> {env_name} s{seed} {rec['status']} final {rec['final_return']} within budget "
                     f"{rec['return_within_budget']} compile {rec.get('compile_s')} env steps/s {rec.get('env_steps_per_s')}")
 

@@ -99,6 +99,7 @@ def test_the_state_carried_steps_are_the_whole_datas_loop(scene):
                 data = mjx.step(model, data)
             return data
 
+        # 3 steps: a scan of two, the second reading the state the first carried, then the last step.
         carried = jax.jit(lambda data: state_carried.steps(model, data, 3))(data)
         looped = jax.jit(lambda data: whole(data, 3))(data)
         for (path, expected), found in zip(jax.tree_util.tree_flatten_with_path(looped)[0], jax.tree.leaves(carried)):

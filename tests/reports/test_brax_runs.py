@@ -4,6 +4,7 @@ the run has ended are the points scored during it, and their evaluation (evaluat
 policies in one program as it scores each alone."""
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 from typing import NamedTuple
@@ -27,16 +28,20 @@ _spec.loader.exec_module(evaluation)
 RETURNS = [3.0, 5.0, 4.0, 9.0]  # the return scored at each of Brax's evaluator calls
 
 
-def timed(tmp_path, stop_at: int | None, budget: float = 1e9, evaluate_later: bool = False):
+def timed(tmp_path, stop_at: int | None, budget: float = 1e9, evaluate_after: bool = False, now=None,
+          scoring_fails: bool = False):
     """A timed run whose trainer calls Brax's evaluator once per epoch (each a point: eval_every 0) with a
     policy that scores RETURNS[call], raising KeyboardInterrupt (a limit's SIGINT) after call ``stop_at``;
-    its kept records, in turn, and the lists of policies each evaluator call was given."""
+    its kept records, in turn, and the lists of policies each evaluator call was given. ``now``: a clock
+    (a one-element list) its epochs advance by 10 s each; ``scoring_fails``: the points scored together fail."""
     from brax.training import acting
     path, kept, scored = tmp_path / "CheetahRun_ppo_s0.json", [], []
 
     def train():
         evaluator = acting.Evaluator.__new__(acting.Evaluator)  # the run's timed evaluator, in place
         for call in range(len(RETURNS)):
+            if now is not None:
+                now[0] += 10.0
             evaluator.run_evaluation({"w": np.full(2, RETURNS[call])}, {"training/sps": 1.0})
             if call == stop_at:
                 raise KeyboardInterrupt
@@ -50,13 +55,15 @@ def timed(tmp_path, stop_at: int | None, budget: float = 1e9, evaluate_later: bo
 
     def many(policies):
         scored.append(policies)
+        if scoring_fails:
+            raise RuntimeError("out of memory")
         return [evaluate(params) for params in policies]
     evaluate.many = many
 
     rec = {"env": "CheetahRun", "algo": "brax_ppo", "seed": 0}
     run = lambda: brax_runs.timed_run(  # noqa: E731
         train, rec, evaluate=evaluate, evaluate_variant=None, budget=budget, eval_every=0.0, updates_per_epoch=2,
-        env_steps_per_update=10, brax_eval="none", log=lambda message: None, keep=keep, evaluate_later=evaluate_later)
+        env_steps_per_update=10, brax_eval="none", log=lambda message: None, keep=keep, evaluate_after=evaluate_after)
     return run, kept, path, scored
 
 
@@ -87,24 +94,35 @@ def test_a_run_its_budget_ends_keeps_its_record_with_the_budgets_status(tmp_path
 
 
 @pytest.mark.parametrize("stop_at", [None, 2])
-def test_points_scored_after_the_run_are_the_points_scored_during_it_in_one_call(tmp_path, stop_at):
+def test_points_scored_after_the_run_are_the_points_scored_during_it_in_one_call(tmp_path, monkeypatch, stop_at):
+    now = [0.0]  # a clock only the epochs move: each point falls due at the same seconds in both runs
+    monkeypatch.setattr(brax_runs.time, "perf_counter", lambda: now[0])
     records = []
     for later in (False, True):
         (tmp_path / str(later)).mkdir()
-        run, kept, path, scored = timed(tmp_path / str(later), stop_at, evaluate_later=later)
-        try:
-            run()
-        except KeyboardInterrupt:  # a limit's SIGINT: the points kept so far are scored before it is raised again
-            pass
+        now[0] = 0.0
+        run, kept, path, scored = timed(tmp_path / str(later), stop_at, evaluate_after=later, now=now)
+        with pytest.raises(KeyboardInterrupt) if stop_at is not None else contextlib.nullcontext():
+            run()  # a limit's SIGINT is raised again once the points kept so far are scored
         records.append(json.loads(path.read_text()))
-    (inline, later), fields = records, ("train_wall_s", "eval_s")
-    assert len(inline["points"]) == (3 if stop_at else len(RETURNS))
-    assert [{k: v for k, v in point.items() if k not in fields} for point in later["points"]] == \
-        [{k: v for k, v in point.items() if k not in fields} for point in inline["points"]]
+    inline, later = records
+    assert len(inline["points"]) == (3 if stop_at is not None else len(RETURNS))
+    assert [point["train_wall_s"] for point in inline["points"]][1:] == [20.0, 30.0, 40.0][:len(inline["points"]) - 1]
+    assert [{k: v for k, v in point.items() if k != "eval_s"} for point in later["points"]] == \
+        [{k: v for k, v in point.items() if k != "eval_s"} for point in inline["points"]]
     assert later["status"] == inline["status"] and later["final_return"] == inline["final_return"]
     assert len(scored) == 1 and len(scored[0]) == len(inline["points"])  # all in one call, once the run has ended
-    assert all(not each["points"] for each in kept[:-1]) and kept[-1] == later
+    assert all(not each["points"] for each in kept[:-1]) and kept[-1] == later and later["evaluate_after"]
     assert "compile_s" in kept[-2]  # a record kept while running still holds its epochs' times
+
+
+def test_points_whose_scoring_fails_after_the_run_leave_its_epochs_an_error_and_a_sigint_raised_again(tmp_path):
+    run, kept, path, _ = timed(tmp_path, stop_at=2, evaluate_after=True, scoring_fails=True)
+    with pytest.raises(KeyboardInterrupt):
+        run()
+    record = json.loads(path.read_text())
+    assert record["status"] == "error" and record["error"] == "scoring the points after the run: out of memory"
+    assert not record["points"] and len(record["epochs"]) == 2 and "compile_s" in record
 
 
 class Drifting(NamedTuple):
