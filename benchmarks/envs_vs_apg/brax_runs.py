@@ -118,6 +118,9 @@ def timed_run(
 
     pending = []  # with evaluate_after: (params, brax_metrics, t, epoch) of each point due, scored at the end
 
+    def keep_so_far():  # the record with its returns and epochs' times summed up so far
+        keep(summarised(timed(rec, updates_per_epoch, env_steps_per_update), budget))
+
     def add_point(scores, variant_scores, brax_metrics, t, epoch, eval_s):
         point = {
             "train_wall_s": t,
@@ -151,8 +154,7 @@ def timed_run(
             add_point(evaluate(params), evaluate_variant(params) if evaluate_variant is not None else None,
                       brax_metrics, t, clock["epoch"], time.perf_counter() - e0)
         clock["last_eval_train_s"] = t
-        # Timed at every point: a process killed from outside before its end keeps its compile and epochs.
-        keep(summarised(timed(rec, updates_per_epoch, env_steps_per_update), budget))
+        keep_so_far()  # at every point: a process killed from outside before its end keeps its compile and epochs
 
     def score_pending():
         """The points kept for later, scored together (their seconds shared out among them)."""
@@ -234,7 +236,7 @@ def timed_run(
         rec["status"] = "error"
         rec["error_type"] = type(e).__name__
         rec["error"] = f"scoring the points after the run: {str(e)[:3000]}"
-    keep(summarised(timed(rec, updates_per_epoch, env_steps_per_update), budget))
+    keep_so_far()
     if interrupted:
         raise KeyboardInterrupt
     return rec

@@ -91,7 +91,7 @@ def make_evaluator(
         return scored(*jax.device_get(evaluate_device(params)))
 
     def many(params_list) -> list[dict]:
-        stacked = jax.tree.map(lambda *leaves: np.stack([np.asarray(leaf) for leaf in leaves]), *params_list)
+        stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *params_list)
         rets, alive = jax.device_get(evaluate_stacked(stacked))
         return [scored(*each) for each in zip(rets, alive)]
 
