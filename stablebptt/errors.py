@@ -5,6 +5,9 @@ Library errors name what a Python user set: a config field (``TrainConfig.lr``,
 each as its option (``--lr``, ``--dt``): ``as_options``.
 """
 import dataclasses
+import difflib
+import functools
+import inspect
 import numbers
 import re
 import sys
@@ -75,6 +78,32 @@ def as_options(message: str) -> str:
 
 class InputError(ValueError):
     """Bad user input. Scripts print its message as one line and exit with code 2."""
+
+
+def keywords_named(target):
+    """``target``, a config dataclass or a public function, refusing a keyword it does not take with an
+    ``InputError`` that names the nearest one it takes (Python's own refusal is a TypeError): from Python a
+    misspelt option (``TrainConfig(critc=True)``) is bad input, as on the command line."""
+    config = isinstance(target, type)
+    function = target.__init__ if config else target
+    taken = [parameter.name for parameter in inspect.signature(function).parameters.values() if parameter.name != "self"
+             and parameter.kind in (parameter.POSITIONAL_OR_KEYWORD, parameter.KEYWORD_ONLY)]
+    named = functools.partial(config_field, target) if config else repr
+
+    @functools.wraps(function)
+    def checked(*args, **keywords):
+        for keyword in keywords:
+            if keyword not in taken:
+                nearest = difflib.get_close_matches(keyword, taken, n=1)
+                refusal = (f"no field {named(keyword)}" if config else
+                           f"{target.__name__}() takes no argument {keyword!r}")
+                raise InputError(refusal + (f": did you mean {named(nearest[0])}?" if nearest else ""))
+        return function(*args, **keywords)
+
+    if config:
+        target.__init__ = checked
+        return target
+    return checked
 
 
 class TaskError(InputError):

@@ -8,7 +8,7 @@ import jax
 import jax.extend
 import jax.numpy as jnp
 
-from stablebptt.errors import InputError, check_field_types, config_field
+from stablebptt.errors import InputError, check_field_types, config_field, keywords_named
 from stablebptt.flows.modes import MODE_TABLE, MODES
 
 CLIP_MODES = ("value", "norm", "none")
@@ -45,6 +45,7 @@ PACE_EPOCHS = 3
 BUDGET_MARGIN = 0.1
 
 
+@keywords_named
 @dataclass(frozen=True)
 class TrainConfig:
     """Training options shared by every task; the defaults are the paper's."""

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.engine.shapes import shapes_only
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, keywords_named
 from stablebptt.flows.dynamics import Dynamics, PyTree
 
 # The stream of a seed's PRNG keys that its episodes' resets draw from; the parameters draw from the seed itself.
@@ -40,6 +40,7 @@ RESET_STREAM = 1
 NOISE_STREAM = 3
 
 
+@keywords_named
 @dataclass(frozen=True)
 class Episodes:
     """What a task knows of its episodes, to train on carried ones (``Task.episodes``).

@@ -23,7 +23,7 @@ from stablebptt.engine.divergence import (
 from stablebptt.engine.metrics import COLUMNS, METRICS, empty_rows, env_steps_trained, epoch_rows
 from stablebptt.engine.starting import compiled_refill, compiled_then_made, lowered_for, prepare
 from stablebptt.engine.training import Trainer
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, keywords_named
 
 
 def fit(
@@ -261,6 +261,7 @@ class NonFiniteFlowWarning(RuntimeWarning):
     "zero"), or a seed that failed alone and stopped while the others trained on."""
 
 
+@keywords_named
 def train(task: Any, config: TrainConfig = TrainConfig(),
           on_epoch: Callable[[int, dict], None] = lambda epoch, metrics: None,
           progress_fn: Callable[[int, dict], None] | None = None,

@@ -7,6 +7,7 @@ from typing import Callable
 import jax
 
 from stablebptt.engine.episodes import Episodes
+from stablebptt.errors import keywords_named
 from stablebptt.flows.dynamics import Dynamics, Plan, PyTree
 
 
@@ -26,6 +27,7 @@ class CellOption:
     dynamics: Callable[[jax.Array], Dynamics]
 
 
+@keywords_named
 @dataclass(frozen=True)
 class Task:
     """What a task supplies to the engine: physics, data and a network.

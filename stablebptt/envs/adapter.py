@@ -7,12 +7,10 @@
 - initial states come from ``env.reset`` (jitted, batched);
 - the policy sees ``State.obs`` (and, asked for, the direction of its reward in its actions, which the
   task's states carry: ``reward_direction``) and its actions are squashed into [-1, 1];
-- the train and test losses of every epoch are the negative EPISODE return
-  (``episode_length`` steps, the deterministic policy, from fresh resets), the
-  number Brax and MuJoCo Playground report;
-- an ``mjx.step`` inside ``env.step`` is traced with its constraint solver
-  differentiated implicitly (``constraint_derivatives``), so solvers of any
-  iteration count pass reverse mode.
+- the train and test losses of every epoch are the negative EPISODE return (``episode_length`` steps,
+  the deterministic policy, from fresh resets), the number Brax and MuJoCo Playground report;
+- an ``mjx.step`` inside ``env.step`` is traced with its constraint solver differentiated implicitly
+  (``constraint_derivatives``), so solvers of any iteration count pass reverse mode.
 
 Before training, ``diagnose_env`` looks at the reward's gradient at states sampled along whole episodes
 (where training will look): a reward whose gradient is zero everywhere (a step function) is smoothed, a NaN
@@ -45,7 +43,7 @@ from stablebptt.envs.protocol import (EnvError, require_env_instance, check_prot
 from stablebptt.envs.returns import EpisodeState, episode_dynamics, rollout_loss
 from stablebptt.envs.reward_direction import Direction
 from stablebptt.envs.unread_outputs import unread_outputs_off
-from stablebptt.errors import whole_number
+from stablebptt.errors import keywords_named, whole_number
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.flows.gradients import reference_losses
 from stablebptt.networks import floored_tanh, mlp_apply, mlp_init
@@ -77,6 +75,7 @@ def squashed_output(params: Any, seen: jax.Array) -> jax.Array:
     return mlp_apply(params, seen)
 
 
+@keywords_named
 def env_task(env: Any, horizon: int, *, discount: float = 1.0, episode_length: int | None = None,
              hidden: Sequence[int] = (64, 64), name: str = "", reward_context: Callable | None = None,
              reward_repairs: str = "", diagnose: bool = True, diagnosis_seed: int = 0,

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from stablebptt.errors import InputError, TaskError, whole_number
+from stablebptt.errors import InputError, TaskError, keywords_named, whole_number
 
 PyTree = Any
 
@@ -50,6 +50,7 @@ STEP_DERIVATIVES = ("reverse", "forward")
 POLICY_GRADIENTS = ("batched", "per-step")
 
 
+@keywords_named
 @dataclass(frozen=True, eq=False)
 class Plan:
     """How the engine differentiates a ``Dynamics``: the same gradients, computed another way.
@@ -151,7 +152,7 @@ class Dynamics:
         # The engine settings Dynamics once carried: named, so a caller learns where they went.
         unknown = sorted(set(settings) - {item.name for item in fields(Plan)})
         if unknown:
-            raise TypeError(f"Dynamics() got an unexpected keyword argument {unknown[0]!r}")
+            raise InputError(f"no field Dynamics.{unknown[0]}: it takes step, policy, loss and horizon")
         if settings:
             raise InputError(f"Dynamics takes step, policy, loss and horizon only: {', '.join(sorted(settings))} "
                              f"belong{'s' if len(settings) == 1 else ''} to stablebptt.Plan; pass a Plan as "

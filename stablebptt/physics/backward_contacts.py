@@ -20,11 +20,12 @@ import jax
 import mujoco
 import numpy as np
 
-from stablebptt.errors import InputError
+from stablebptt.errors import InputError, keywords_named
 from stablebptt.physics.mjx_internals import mjx
 from stablebptt.physics.mjx_internals import types as mjx_types
 
 
+@keywords_named
 @dataclasses.dataclass(frozen=True)
 class ContactSmoothing:
     """How the derivative's model softens contacts: ``margin`` metres added to every contact's

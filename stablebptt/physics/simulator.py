@@ -20,7 +20,7 @@ from typing import Any, Callable
 import jax
 import mujoco
 
-from stablebptt.errors import InputError, check_field_types, config_field
+from stablebptt.errors import InputError, check_field_types, config_field, keywords_named
 from stablebptt.flows.dynamics import KnownColumns
 from stablebptt.physics import lean_step, mjx_support, scene, symmetries
 from stablebptt.physics.effects import SceneEffects
@@ -36,6 +36,7 @@ PIPELINES = ("lean", "stages", "mjx")
 STEP_DERIVATIVES = ("auto", "forward", "reverse")
 
 
+@keywords_named
 @dataclass(frozen=True)
 class SimulatorConfig:
     """How a model is simulated and differentiated; every default keeps the file's own settings."""

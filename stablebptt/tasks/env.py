@@ -20,7 +20,7 @@ from stablebptt.engine.config import MAX_COUNT, MAX_DEPTH, TrainConfig
 from stablebptt.engine.task import Task
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import load_env, load_reward
-from stablebptt.errors import InputError, check_field_types, config_field
+from stablebptt.errors import InputError, check_field_types, config_field, keywords_named
 from stablebptt.physics.backward_contacts import ContactSmoothing, check_smoothing
 
 DEFAULT_EPOCHS = 200
@@ -144,6 +144,7 @@ def recipe(name: str, env: str = "") -> tuple[dict, dict]:
     return task_options, {key: value for key, value in options.items() if key not in task_fields}
 
 
+@keywords_named
 @dataclass(frozen=True)
 class Config:
     env: str = field(default="", metadata={"help": "an environment: a name in MuJoCo Playground's registry (e.g. CartpoleSwingup; pip install 'stablebptt[playground]'), or package.module:attribute, an environment in Brax's protocol or a factory of one"})

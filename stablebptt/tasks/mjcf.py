@@ -28,7 +28,7 @@ import numpy as np
 from stablebptt import models
 from stablebptt.engine.episodes import Episodes
 from stablebptt.engine.task import Task
-from stablebptt.errors import InputError, config_field
+from stablebptt.errors import InputError, config_field, keywords_named
 from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.physics import simulator
@@ -48,6 +48,7 @@ MAX_EPISODE = 1_000_000  # steps of an episode (episode_seconds)
 TASK_FILE_OPTIONS = ("init_pose", "target_pose", "reach", "loss_joints", "loss", "horizon_seconds", "spread")
 
 
+@keywords_named
 @dataclass(frozen=True)
 class Config(SimulatorConfig):
     """Options of the MJCF task: the model, the task over what it declares, and (inherited) how it is simulated."""

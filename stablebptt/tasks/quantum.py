@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stablebptt.engine.task import CellOption, Task
-from stablebptt.errors import InputError, check_field_types, config_field
+from stablebptt.errors import InputError, check_field_types, config_field, keywords_named
 from stablebptt.flows.dynamics import Dynamics, Plan
 from stablebptt.networks import glorot_uniform
 
@@ -26,6 +26,7 @@ TARGETS = (3, 4, 5)
 FILTERS = 60  # width of both convolution layers
 
 
+@keywords_named
 @dataclass(frozen=True)
 class Config:
     """Options of the quantum-control task."""

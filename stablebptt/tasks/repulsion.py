@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from stablebptt.engine.task import CellOption, Task
-from stablebptt.errors import InputError, check_field_types, config_field
+from stablebptt.errors import InputError, check_field_types, config_field, keywords_named
 from stablebptt.flows.dynamics import Dynamics
 from stablebptt.networks import mlp_apply, mlp_init
 from stablebptt.physics.integrators import INTEGRATORS
@@ -20,6 +20,7 @@ from stablebptt.physics.integrators import INTEGRATORS
 DEFAULT_EPOCHS = 100  # the public script says 10; the paper's smoothed figures imply more.
 
 
+@keywords_named
 @dataclass(frozen=True)
 class Config:
     """Options of the repulsion task."""

@@ -433,6 +433,31 @@ def test_a_train_config_field_of_the_wrong_type_is_named(field, value):
         sb.TrainConfig(**{field: value})
 
 
+def test_a_misspelt_keyword_is_named_beside_the_nearest_one_taken_and_the_right_one_still_taken():
+    import stablebptt as sb
+    from stablebptt.tasks import env, mjcf, quantum, repulsion
+    refused = [(lambda: sb.TrainConfig(critc=True), "^no field TrainConfig.critc: did you mean TrainConfig.critic\\?$"),
+               (lambda: sb.TrainConfig(zzz=1), "^no field TrainConfig.zzz$"),
+               (lambda: mjcf.Config(dtt=0.01), "^no field mjcf.Config.dtt: did you mean mjcf.Config.dt\\?$"),
+               (lambda: env.Config(discont=0.9), "did you mean env.Config.discount\\?$"),
+               (lambda: quantum.Config(stepz=3), "^no field quantum.Config.stepz"),
+               (lambda: repulsion.Config(stepz=3), "^no field repulsion.Config.stepz"),
+               (lambda: sb.Plan(unrol=2), "did you mean Plan.unroll\\?$"),
+               (lambda: sb.ContactSmoothing(marginn=0.1), "did you mean ContactSmoothing.margin\\?$"),
+               (lambda: sb.Task(nme="x"), "^no field Task.nme: did you mean Task.name\\?$"),
+               (lambda: sb.Episodes(lenght=3), "did you mean Episodes.length\\?$"),
+               (lambda: sb.Dynamics(None, None, None, 3, stepp=1), "^no field Dynamics.stepp"),
+               (lambda: sb.train(None, confg=sb.TrainConfig()), "^train\\(\\) takes no argument 'confg': did you mean "
+                                                                 "'config'\\?$"),
+               (lambda: sb.env_task(None, 3, horizn=2), "^env_task\\(\\) takes no argument 'horizn'")]
+    for call, message in refused:
+        with pytest.raises(sb.InputError, match=message):
+            call()
+    assert sb.TrainConfig(critic=True).critic and mjcf.Config(dt=0.02).dt == 0.02  # the fields spelt right
+    with pytest.raises(sb.TaskError, match="expected a stablebptt.Task, got NoneType"):  # spelt right: train's own
+        sb.train(None, config=sb.TrainConfig())
+
+
 @pytest.mark.parametrize("callback", ["on_epoch", "progress_fn", "should_stop"])
 def test_train_refuses_a_callback_that_is_no_function_before_compiling(callback, monkeypatch):
     import stablebptt as sb
