@@ -130,17 +130,12 @@ def build(config_class: type, values: dict[str, Any], source: str = ""):
 
     A value of the wrong type (read from a file: ``source`` names it) is an InputError.
     """
-    from stablebptt.errors import InputError
+    from stablebptt.errors import InputError, kind_missed
     fields = {f.name: f for f in dataclasses.fields(config_class)}
-    for name, value in values.items():
-        if name not in fields:
-            continue
-        kind = _TYPES[fields[name].type if isinstance(fields[name].type, str) else fields[name].type.__name__]
-        fits = (isinstance(value, bool) if kind is bool else isinstance(value, kind) and not isinstance(value, bool)
-                or kind is float and isinstance(value, int) and not isinstance(value, bool))
-        if not fits:
+    for name, value in values.items():  # before the config's own checks, which may compare it with a number
+        if name in fields and kind_missed(fields[name], value):
             where = f"{source}: " if source else ""
-            raise InputError(f"{where}{name} must be {kind.__name__}, got {value!r}")
+            raise InputError(f"{where}{name} must be {kind_missed(fields[name], value)}, got {value!r}")
     return config_class(**{k: v for k, v in values.items() if k in fields})
 
 

@@ -51,16 +51,24 @@ _KINDS = {"int": whole_number,
           "bool": lambda value: isinstance(value, bool) or _numpy_bool(value)}
 
 
+def _kind(item: dataclasses.Field) -> str | None:
+    return item.type if isinstance(item.type, str) else getattr(item.type, "__name__", None)  # int | None: none
+
+
+def kind_missed(item: dataclasses.Field, value) -> str | None:
+    """What config field ``item`` must be, in words, where ``value`` is not of its annotated kind; else None."""
+    kind = _kind(item)
+    return None if kind not in _KINDS or _KINDS[kind](value) else "a whole number" if kind == "int" else kind
+
+
 def check_field_types(config) -> None:
     """``InputError`` naming the first field of the dataclass ``config`` whose value is not of its annotated
     kind: from Python anything can arrive (2.5 epochs, lr "0.1", batch None, poles "2")."""
     for item in dataclasses.fields(config):
         value = getattr(config, item.name)
-        kind = item.type if isinstance(item.type, str) else getattr(item.type, "__name__", None)  # int | None: none
-        if kind in _KINDS and not _KINDS[kind](value):
-            raise InputError(f"{config_field(config, item.name)} must be "
-                             f"{'a whole number' if kind == 'int' else kind}, got {value!r}")
-        if kind == "float" and isinstance(value, numbers.Integral) and abs(value) > sys.float_info.max:
+        if kind_missed(item, value):
+            raise InputError(f"{config_field(config, item.name)} must be {kind_missed(item, value)}, got {value!r}")
+        if _kind(item) == "float" and isinstance(value, numbers.Integral) and abs(value) > sys.float_info.max:
             raise InputError(f"{config_field(config, item.name)} is past the largest float, got an integer of "
                              f"{int(value).bit_length()} bits")  # its digits may be too many for str()
 
