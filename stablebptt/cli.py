@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Iterator, NoReturn
 
-_TYPES = {"int": int, "float": float, "str": str, "bool": bool}
+_TYPES = {"int": int, "float": float, "str": str, "bool": bool}  # how an option's text is read, by its field's kind
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
@@ -85,13 +85,14 @@ def add_options(parser: argparse.ArgumentParser, config_class: type, title: str,
     says, per field, where the command defaults to another value than the field's
     (``"--task env: norm"``): the help names it beside the field's default.
     """
+    from stablebptt.errors import field_kind
     group = parser.add_argument_group(title)
     names = []
     for field in dataclasses.fields(config_class):
         if field.name in present:
             names.append(field.name)
             continue
-        kind = _TYPES[field.type if isinstance(field.type, str) else field.type.__name__]
+        kind = _TYPES[field_kind(field)]
         otherwise = f"; {defaults[field.name]}" if defaults and field.name in defaults else ""
         help_text = f"{field.metadata.get('help', '')} (default: {field.default}{otherwise})"
         common = dict(dest=field.name, help=help_text, default=argparse.SUPPRESS)
@@ -130,12 +131,11 @@ def build(config_class: type, values: dict[str, Any], source: str = ""):
 
     A value of the wrong type (read from a file: ``source`` names it) is an InputError.
     """
-    from stablebptt.errors import InputError, kind_missed
+    from stablebptt.errors import InputError, wrong_kind
     fields = {f.name: f for f in dataclasses.fields(config_class)}
     for name, value in values.items():  # before the config's own checks, which may compare it with a number
-        if name in fields and kind_missed(fields[name], value):
-            where = f"{source}: " if source else ""
-            raise InputError(f"{where}{name} must be {kind_missed(fields[name], value)}, got {value!r}")
+        if name in fields and (refusal := wrong_kind(fields[name], value, name)):
+            raise InputError(f"{source}: {refusal}" if source else refusal)
     return config_class(**{k: v for k, v in values.items() if k in fields})
 
 

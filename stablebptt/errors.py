@@ -51,14 +51,17 @@ _KINDS = {"int": whole_number,
           "bool": lambda value: isinstance(value, bool) or _numpy_bool(value)}
 
 
-def _kind(item: dataclasses.Field) -> str | None:
-    return item.type if isinstance(item.type, str) else getattr(item.type, "__name__", None)  # int | None: none
+def field_kind(item: dataclasses.Field) -> str | None:
+    """The name of config field ``item``'s annotated type (a union such as ``int | None`` has none)."""
+    return item.type if isinstance(item.type, str) else getattr(item.type, "__name__", None)
 
 
-def kind_missed(item: dataclasses.Field, value) -> str | None:
-    """What config field ``item`` must be, in words, where ``value`` is not of its annotated kind; else None."""
-    kind = _kind(item)
-    return None if kind not in _KINDS or _KINDS[kind](value) else "a whole number" if kind == "int" else kind
+def wrong_kind(item: dataclasses.Field, value, named: str) -> str | None:
+    """The refusal of ``value`` for config field ``item`` (as ``named``) where it is not of the field's kind."""
+    kind = field_kind(item)
+    if kind in _KINDS and not _KINDS[kind](value):
+        return f"{named} must be {'a whole number' if kind == 'int' else kind}, got {value!r}"
+    return None
 
 
 def check_field_types(config) -> None:
@@ -66,9 +69,9 @@ def check_field_types(config) -> None:
     kind: from Python anything can arrive (2.5 epochs, lr "0.1", batch None, poles "2")."""
     for item in dataclasses.fields(config):
         value = getattr(config, item.name)
-        if kind_missed(item, value):
-            raise InputError(f"{config_field(config, item.name)} must be {kind_missed(item, value)}, got {value!r}")
-        if _kind(item) == "float" and isinstance(value, numbers.Integral) and abs(value) > sys.float_info.max:
+        if refusal := wrong_kind(item, value, config_field(config, item.name)):
+            raise InputError(refusal)
+        if field_kind(item) == "float" and isinstance(value, numbers.Integral) and abs(value) > sys.float_info.max:
             raise InputError(f"{config_field(config, item.name)} is past the largest float, got an integer of "
                              f"{int(value).bit_length()} bits")  # its digits may be too many for str()
 
@@ -88,24 +91,31 @@ class InputError(ValueError):
     """Bad user input. Scripts print its message as one line and exit with code 2."""
 
 
+def refuse_keyword(keyword: str, taken, named, refusal: str) -> None:
+    """``InputError``: ``refusal`` of ``keyword`` and the nearest of the keywords ``taken``, as ``named`` names one."""
+    nearest = difflib.get_close_matches(keyword, taken, n=1)
+    raise InputError(refusal + (f": did you mean {named(nearest[0])}?" if nearest else ""))
+
+
 def keywords_named(target):
     """``target``, a config dataclass or a public function, refusing a keyword it does not take with an
     ``InputError`` that names the nearest one it takes (Python's own refusal is a TypeError): from Python a
     misspelt option (``TrainConfig(critc=True)``) is bad input, as on the command line."""
     config = isinstance(target, type)
     function = target.__init__ if config else target
-    taken = [parameter.name for parameter in inspect.signature(function).parameters.values() if parameter.name != "self"
-             and parameter.kind in (parameter.POSITIONAL_OR_KEYWORD, parameter.KEYWORD_ONLY)]
-    named = functools.partial(config_field, target) if config else repr
+    parameters = inspect.signature(function).parameters.values()
+    if any(parameter.kind == parameter.VAR_KEYWORD for parameter in parameters):
+        raise TypeError(f"{target.__qualname__} takes any keyword (**): it refuses its own")  # Dynamics does
+    taken = frozenset(parameter.name for parameter in parameters if parameter.name != "self"
+                      and parameter.kind in (parameter.POSITIONAL_OR_KEYWORD, parameter.KEYWORD_ONLY))
 
     @functools.wraps(function)
     def checked(*args, **keywords):
-        for keyword in keywords:
-            if keyword not in taken:
-                nearest = difflib.get_close_matches(keyword, taken, n=1)
-                refusal = (f"no field {named(keyword)}" if config else
-                           f"{target.__name__}() takes no argument {keyword!r}")
-                raise InputError(refusal + (f": did you mean {named(nearest[0])}?" if nearest else ""))
+        for keyword in keywords.keys() - taken:
+            if config:  # named after the instance's class: a subclass that is no dataclass of its own inherits this
+                named = functools.partial(config_field, type(args[0]))
+                refuse_keyword(keyword, taken, named, f"no field {named(keyword)}")
+            refuse_keyword(keyword, taken, repr, f"{target.__name__}() takes no argument {keyword!r}")
         return function(*args, **keywords)
 
     if config:

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from stablebptt.errors import InputError, TaskError, keywords_named, whole_number
+from stablebptt.errors import InputError, TaskError, keywords_named, refuse_keyword, whole_number
 
 PyTree = Any
 
@@ -152,7 +152,8 @@ class Dynamics:
         # The engine settings Dynamics once carried: named, so a caller learns where they went.
         unknown = sorted(set(settings) - {item.name for item in fields(Plan)})
         if unknown:
-            raise InputError(f"no field Dynamics.{unknown[0]}: it takes step, policy, loss and horizon")
+            refuse_keyword(unknown[0], ("step", "policy", "loss", "horizon"), "Dynamics.{}".format,
+                           f"no field Dynamics.{unknown[0]}")
         if settings:
             raise InputError(f"Dynamics takes step, policy, loss and horizon only: {', '.join(sorted(settings))} "
                              f"belong{'s' if len(settings) == 1 else ''} to stablebptt.Plan; pass a Plan as "

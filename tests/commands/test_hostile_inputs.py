@@ -435,7 +435,12 @@ def test_a_train_config_field_of_the_wrong_type_is_named(field, value):
 
 def test_a_misspelt_keyword_is_named_beside_the_nearest_one_taken_and_the_right_one_still_taken():
     import stablebptt as sb
+    from stablebptt.physics.simulator import SimulatorConfig
     from stablebptt.tasks import env, mjcf, quantum, repulsion
+
+    class Inherited(sb.TrainConfig):
+        pass
+
     refused = [(lambda: sb.TrainConfig(critc=True), "^no field TrainConfig.critc: did you mean TrainConfig.critic\\?$"),
                (lambda: sb.TrainConfig(zzz=1), "^no field TrainConfig.zzz$"),
                (lambda: mjcf.Config(dtt=0.01), "^no field mjcf.Config.dtt: did you mean mjcf.Config.dt\\?$"),
@@ -446,10 +451,14 @@ def test_a_misspelt_keyword_is_named_beside_the_nearest_one_taken_and_the_right_
                (lambda: sb.ContactSmoothing(marginn=0.1), "did you mean ContactSmoothing.margin\\?$"),
                (lambda: sb.Task(nme="x"), "^no field Task.nme: did you mean Task.name\\?$"),
                (lambda: sb.Episodes(lenght=3), "did you mean Episodes.length\\?$"),
-               (lambda: sb.Dynamics(None, None, None, 3, stepp=1), "^no field Dynamics.stepp"),
+               (lambda: sb.Dynamics(None, None, None, 3, stepp=1), "^no field Dynamics.stepp: did you mean "
+                                                                   "Dynamics.step\\?$"),
+               (lambda: SimulatorConfig(dtt=0.1), "^no field SimulatorConfig.dtt: did you mean SimulatorConfig.dt\\?$"),
+               (lambda: Inherited(zzz=1), "^no field Inherited.zzz$"),  # a subclass named as itself
                (lambda: sb.train(None, confg=sb.TrainConfig()), "^train\\(\\) takes no argument 'confg': did you mean "
                                                                  "'config'\\?$"),
-               (lambda: sb.env_task(None, 3, horizn=2), "^env_task\\(\\) takes no argument 'horizn'")]
+               (lambda: sb.env_task(None, 3, horizn=2), "^env_task\\(\\) takes no argument 'horizn': did you mean "
+                                                         "'horizon'\\?$")]
     for call, message in refused:
         with pytest.raises(sb.InputError, match=message):
             call()
