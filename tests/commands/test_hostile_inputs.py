@@ -575,14 +575,26 @@ def test_a_task_config_field_of_the_wrong_type_is_named(config, field, value):
         module.Config(**{field: value})
 
 
-def test_numpys_scalars_are_numbers_and_truth_values_in_configs_as_pythons_are():
+def test_numpys_scalars_are_numbers_and_truth_values_in_configs_as_pythons_are(tmp_path):
+    import json
+
     import numpy as np
 
     import stablebptt as sb
+    from stablebptt.runs import run_folder
     from stablebptt.tasks import env, mjcf
     assert sb.TrainConfig(x64=np.False_, epochs=np.int64(3), lr=np.float32(1e-3)).epochs == 3
     assert mjcf.Config(poles=np.int64(2), dt=np.float64(0.01)).poles == 2
     assert env.Config(reward_check=np.False_, discount=np.float32(0.99)).reward_check == np.False_
+    # ... and a run folder records them as it records Python's: the same config.json, the same identity.
+    records = [run_folder.run_record("mjcf", mjcf.Config(poles=poles, dt=0.01), sb.TrainConfig(x64=x64, epochs=epochs))
+               for poles, x64, epochs in ((np.int64(2), np.False_, np.int64(3)), (2, False, 3))]
+    for name, record in zip(("numpy", "python"), records):
+        (tmp_path / name).mkdir()
+        run_folder.write_config(tmp_path / name, record)
+    written = [json.loads((tmp_path / name / run_folder.CONFIG_FILE).read_text()) for name in ("numpy", "python")]
+    assert written[0] == written[1] and written[0]["train"]["epochs"] == 3
+    assert run_folder.identity(records[0]) == run_folder.identity(records[1])
 
 
 @pytest.mark.parametrize("sizes", [(3,), (3, 0, 1), (3, 2.5, 1), (3, True), "31", 3])
