@@ -44,6 +44,19 @@ def _numpy_bool(value) -> bool:
     return type(value).__module__ == "numpy" and type(value).__name__ in ("bool", "bool_")  # NumPy 2's and 1's
 
 
+def plain_scalar(value):
+    """A config field's number or truth value of a kind JSON cannot write (a NumPy scalar, a Fraction) as
+    Python's own; a NumPy float as the shortest decimal that reads back to it, the number its user wrote
+    (``np.float32(1e-3)``: 0.001, not 0.0010000000474974513). TypeError for anything else."""
+    if _numpy_bool(value):
+        return bool(value)
+    if whole_number(value):
+        return int(value)
+    if real_number(value):
+        return float(str(value)) if type(value).__module__ == "numpy" else float(value)
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
 # What a config field annotated int, float, str or bool takes (a NumPy scalar too).
 _KINDS = {"int": whole_number,
           "float": real_number,
@@ -52,7 +65,7 @@ _KINDS = {"int": whole_number,
 
 
 def field_kind(item: dataclasses.Field) -> str | None:
-    """The name of config field ``item``'s annotated type (a union such as ``int | None`` has none)."""
+    """The name of config field ``item``'s annotated type; a union (``int | None``) is no kind of ``_KINDS``."""
     return item.type if isinstance(item.type, str) else getattr(item.type, "__name__", None)
 
 
@@ -111,9 +124,11 @@ def keywords_named(target):
 
     @functools.wraps(function)
     def checked(*args, **keywords):
-        for keyword in keywords.keys() - taken:
+        for keyword in keywords:  # the first unknown in the caller's order
+            if keyword in taken:
+                continue
             if config:  # named after the instance's class: a subclass that is no dataclass of its own inherits this
-                named = functools.partial(config_field, type(args[0]))
+                named = functools.partial(config_field, type(args[0]) if args else target)
                 refuse_keyword(keyword, taken, named, f"no field {named(keyword)}")
             refuse_keyword(keyword, taken, repr, f"{target.__name__}() takes no argument {keyword!r}")
         return function(*args, **keywords)

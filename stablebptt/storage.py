@@ -13,7 +13,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from stablebptt.errors import InputError, StorageError
+from stablebptt.errors import InputError, StorageError, plain_scalar
 
 
 def _temporary(path: Path) -> Path:
@@ -50,15 +50,8 @@ def atomic_write(path: Path, data: bytes) -> None:
         raise StorageError(error.errno, f"cannot write {path}: {error.strerror or error}") from None
 
 
-def json_number(value: Any) -> Any:
-    """A NumPy scalar as the Python number or truth value JSON writes (a config field takes either kind)."""
-    if type(value).__module__ == "numpy" and hasattr(value, "item") and getattr(value, "ndim", None) == 0:
-        return value.item()
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
-
-
 def json_bytes(payload: Any) -> bytes:
-    return (json.dumps(payload, indent=2, sort_keys=True, default=json_number) + "\n").encode()
+    return (json.dumps(payload, indent=2, sort_keys=True, default=plain_scalar) + "\n").encode()
 
 
 def write_json(path: Path, payload: Any) -> None:

@@ -7,6 +7,7 @@ those batches.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, fields
 from typing import Any, Callable, NamedTuple
@@ -16,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from stablebptt.errors import InputError, TaskError, keywords_named, refuse_keyword, whole_number
+from stablebptt.errors import InputError, TaskError, config_field, keywords_named, refuse_keyword, whole_number
 
 PyTree = Any
 
@@ -150,15 +151,16 @@ class Dynamics:
 
     def __init__(self, step: Callable, policy: Callable, loss: Callable, horizon: int, **settings):
         # The engine settings Dynamics once carried: named, so a caller learns where they went.
+        own = [item.name for item in fields(self)]
         unknown = sorted(set(settings) - {item.name for item in fields(Plan)})
         if unknown:
-            refuse_keyword(unknown[0], ("step", "policy", "loss", "horizon"), "Dynamics.{}".format,
-                           f"no field Dynamics.{unknown[0]}")
+            named = functools.partial(config_field, type(self))
+            refuse_keyword(unknown[0], own, named, f"no field {named(unknown[0])}")
         if settings:
-            raise InputError(f"Dynamics takes step, policy, loss and horizon only: {', '.join(sorted(settings))} "
+            raise InputError(f"Dynamics takes {', '.join(own[:-1])} and {own[-1]} only: {', '.join(sorted(settings))} "
                              f"belong{'s' if len(settings) == 1 else ''} to stablebptt.Plan; pass a Plan as "
                              "make_trainer's or flow_gradients' plan argument")
-        for name, value in (("step", step), ("policy", policy), ("loss", loss), ("horizon", horizon)):
+        for name, value in zip(own, (step, policy, loss, horizon)):
             object.__setattr__(self, name, value)
 
 

@@ -34,9 +34,9 @@ from stablebptt.engine.config import STOPPING_OPTIONS, TrainConfig
 from stablebptt.engine.episodes import checkpointed, restored
 from stablebptt.engine.metrics import COLUMNS, empty_rows, widened
 from stablebptt.engine.training import TrainState
-from stablebptt.errors import InputError, StorageError
+from stablebptt.errors import InputError, StorageError, plain_scalar
 from stablebptt.runs.model_store import copy_model
-from stablebptt.storage import atomic_write, json_bytes, json_number, read_json, write_json, write_temporary
+from stablebptt.storage import atomic_write, json_bytes, read_json, write_json, write_temporary
 
 CONFIG_FILE = "config.json"
 STARTUP_FILE = "startup.json"  # each start's set-up and compile phases (``record_start``)
@@ -166,7 +166,7 @@ def identity(record: dict) -> str:
     """What a checkpoint belongs to: the task and the training settings, except how long to train."""
     train = {k: v for k, v in record.get("train", {}).items() if k not in STOPPING_OPTIONS}
     return hashlib.sha256(json.dumps([record.get("task"), record.get("task_config"), train],
-                                     sort_keys=True, default=json_number).encode()).hexdigest()
+                                     sort_keys=True, default=plain_scalar).encode()).hexdigest()
 
 
 def save_checkpoint(run_dir: Path, epoch: int, state: TrainState, rows: np.ndarray, owner: str = "") -> None:

@@ -435,6 +435,7 @@ def test_a_train_config_field_of_the_wrong_type_is_named(field, value):
 
 def test_a_misspelt_keyword_is_named_beside_the_nearest_one_taken_and_the_right_one_still_taken():
     import stablebptt as sb
+    from stablebptt.errors import keywords_named
     from stablebptt.physics.simulator import SimulatorConfig
     from stablebptt.tasks import env, mjcf, quantum, repulsion
 
@@ -443,6 +444,7 @@ def test_a_misspelt_keyword_is_named_beside_the_nearest_one_taken_and_the_right_
 
     refused = [(lambda: sb.TrainConfig(critc=True), "^no field TrainConfig.critc: did you mean TrainConfig.critic\\?$"),
                (lambda: sb.TrainConfig(zzz=1), "^no field TrainConfig.zzz$"),
+               (lambda: sb.TrainConfig(lr=0.1, zzz=1, critc=True), "^no field TrainConfig.zzz$"),  # the first
                (lambda: mjcf.Config(dtt=0.01), "^no field mjcf.Config.dtt: did you mean mjcf.Config.dt\\?$"),
                (lambda: env.Config(discont=0.9), "did you mean env.Config.discount\\?$"),
                (lambda: quantum.Config(stepz=3), "^no field quantum.Config.stepz"),
@@ -465,6 +467,8 @@ def test_a_misspelt_keyword_is_named_beside_the_nearest_one_taken_and_the_right_
     assert sb.TrainConfig(critic=True).critic and mjcf.Config(dt=0.02).dt == 0.02  # the fields spelt right
     with pytest.raises(sb.TaskError, match="expected a stablebptt.Task, got NoneType"):  # spelt right: train's own
         sb.train(None, config=sb.TrainConfig())
+    with pytest.raises(TypeError, match="takes any keyword"):  # it would refuse every keyword it passes on
+        keywords_named(lambda **options: options)
 
 
 @pytest.mark.parametrize("callback", ["on_epoch", "progress_fn", "should_stop"])
@@ -577,6 +581,7 @@ def test_a_task_config_field_of_the_wrong_type_is_named(config, field, value):
 
 def test_numpys_scalars_are_numbers_and_truth_values_in_configs_as_pythons_are(tmp_path):
     import json
+    from fractions import Fraction
 
     import numpy as np
 
@@ -586,14 +591,17 @@ def test_numpys_scalars_are_numbers_and_truth_values_in_configs_as_pythons_are(t
     assert sb.TrainConfig(x64=np.False_, epochs=np.int64(3), lr=np.float32(1e-3)).epochs == 3
     assert mjcf.Config(poles=np.int64(2), dt=np.float64(0.01)).poles == 2
     assert env.Config(reward_check=np.False_, discount=np.float32(0.99)).reward_check == np.False_
-    # ... and a run folder records them as it records Python's: the same config.json, the same identity.
-    records = [run_folder.run_record("mjcf", mjcf.Config(poles=poles, dt=0.01), sb.TrainConfig(x64=x64, epochs=epochs))
-               for poles, x64, epochs in ((np.int64(2), np.False_, np.int64(3)), (2, False, 3))]
+    # ... and a run folder records them as the numbers written (a float32's 1e-3 as 0.001): the same config.json
+    # and identity as Python's.
+    records = [run_folder.run_record("mjcf", mjcf.Config(poles=poles, dt=0.01),
+                                     sb.TrainConfig(x64=x64, epochs=epochs, lr=lr, clip_threshold=threshold))
+               for poles, x64, epochs, lr, threshold in ((np.int64(2), np.False_, np.int64(3), np.float32(1e-3),
+                                                          Fraction(1, 2)), (2, False, 3, 1e-3, 0.5))]
     for name, record in zip(("numpy", "python"), records):
         (tmp_path / name).mkdir()
         run_folder.write_config(tmp_path / name, record)
     written = [json.loads((tmp_path / name / run_folder.CONFIG_FILE).read_text()) for name in ("numpy", "python")]
-    assert written[0] == written[1] and written[0]["train"]["epochs"] == 3
+    assert written[0] == written[1] and written[0]["train"]["epochs"] == 3 and written[0]["train"]["lr"] == 0.001
     assert run_folder.identity(records[0]) == run_folder.identity(records[1])
 
 
