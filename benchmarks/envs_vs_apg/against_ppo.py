@@ -13,6 +13,7 @@ docs/performance.md reads off the figure: each side's last return and env steps,
 run's last env steps and at each mark of the wall clock, and where either side's mean passes the other's.
 
   python benchmarks/envs_vs_apg/against_ppo.py --runs RUNS/CheetahRun RUNS/WalkerWalk --out results/envs/suite/against_ppo_900s.png
+  python benchmarks/envs_vs_apg/against_ppo.py --ppo WalkerStand H100     # PPO's numbers at the marks alone
 """
 from __future__ import annotations
 
@@ -73,6 +74,22 @@ def _mean_interval(values) -> str:
     return f"{np.mean(values):.1f} [{low:.1f}, {high:.1f}]"
 
 
+def at_marks(runs: list[dict]) -> list[str]:
+    """Brax PPO's ``runs`` at each mark of the wall clock their budget reached: each seed's evaluation nearest
+    the mark, and each seed's last at or before it (as a run of ours is read by a mark), with their times."""
+    lines = []
+    for mark in (mark for mark in suite_table.WALL_CLOCK_MARKS if mark <= runs[0]["budget_s"]):
+        before = [[point for point in run["points"] if point["train_wall_s"] <= mark] for run in runs]
+        for how, points in (("nearest", suite_table.nearest_points(runs, mark)),  # however far: times printed
+                            ("by", [max(seed, key=lambda point: point["train_wall_s"]) for seed in before if seed])):
+            if len(points) < len(runs):
+                continue  # a seed evaluated first past the mark
+            times, returns = [point["train_wall_s"] for point in points], [point["return"] for point in points]
+            lines.append(f"  Brax PPO's evaluations {how} {mark} s, at {min(times):.0f}-{max(times):.0f} s: "
+                         f"{_mean_interval(returns)}; per seed " + " / ".join(f"{value:.0f}" for value in returns))
+    return lines
+
+
 def passings(grid: np.ndarray, gap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Where ``gap`` (PPO's mean less the run's along ``grid``; NaN where the run has not evaluated) turns
     positive, PPO passing the run, and where it turns negative, the run passing PPO: the first point past each."""
@@ -99,11 +116,7 @@ def summary(run: curves.Run) -> list[str]:
                  f"{min(last_steps) / 1e6:.1f}M-{max(last_steps) / 1e6:.1f}M env steps a seed "
                  f"({min(last_steps) / mine['env-steps'][-1]:.1f}-{max(last_steps) / mine['env-steps'][-1]:.1f}x the run's); "
                  f"at the run's last env steps {_mean_interval(at_steps)}")
-    for mark in (mark for mark in suite_table.WALL_CLOCK_MARKS if mark <= runs[0]["budget_s"]):
-        nearest = suite_table.nearest_points(runs, mark)  # each seed's, however far: the times are printed
-        times = [point["train_wall_s"] for point in nearest]
-        lines.append(f"  Brax PPO's evaluations nearest {mark} s, at {min(times):.0f}-{max(times):.0f} s: "
-                     + _mean_interval([point["return"] for point in nearest]))
+    lines += at_marks(runs)
     grid, returns = brax_ppo(env, "wall-clock", on)
     gap = returns.mean(axis=1) - np.interp(grid, mine["wall-clock"], mine["returns"].mean(axis=1), left=np.nan,
                                            right=np.nan)
@@ -147,9 +160,22 @@ def draw(run_dirs: list[Path], out: Path) -> Path:
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--runs", nargs="+", type=Path, required=True, help="run folders of `stablebptt train --env`")
-    parser.add_argument("--out", type=Path, required=True, help="figure file (.png, .pdf or .svg)")
+    parser.add_argument("--runs", nargs="+", type=Path, help="run folders of `stablebptt train --env`")
+    parser.add_argument("--out", type=Path, help="figure file (.png, .pdf or .svg)")
+    parser.add_argument("--ppo", nargs=2, metavar=("ENV", "GPU"),
+                        help="Brax PPO's campaign on ENV at the marks, alone: its longest on the GPU model named "
+                             "(H100, H200), else its longest on any (its machine is printed)")
     args = parser.parse_args(argv)
+    if args.ppo:
+        env, runs = args.ppo[0], campaign(*args.ppo)
+        if not runs:
+            print(f"{env}: no Brax PPO campaign on record")
+            return 0
+        print("\n".join([f"{env}: Brax PPO's {runs[0]['budget_s']:.0f} s campaign, {runs[0].get('machine', 'a GPU')}",
+                         *at_marks(runs)]))
+        return 0
+    if not (args.runs and args.out):
+        parser.error("give --runs and --out, or --ppo")
     for path in args.runs:
         print("\n".join(summary(curves.load_run(path))))
     print(f"wrote {draw(args.runs, args.out)}")

@@ -34,3 +34,17 @@ def test_the_campaign_drawn_beside_a_run_is_the_longest_on_its_gpu_model_else_th
     assert against_ppo.campaign("HopperStand", "H200") == h200_long
     assert against_ppo.campaign("HopperStand", "A100") == h200_long  # none on its model: the longest on any
     assert against_ppo.campaign("CheetahRun", "H100") == []
+
+
+def test_ppo_is_read_by_a_mark_at_each_seeds_last_evaluation_before_it_and_apart_at_its_nearest():
+    def run(times, returns):
+        return {"budget_s": 600.0, "points": [{"train_wall_s": t, "return": r} for t, r in zip(times, returns)]}
+    # Seed 0 evaluates at 295 and 310 s, seed 1 at 280 and 305 s; by 600 s both last evaluated at 590 s.
+    runs = [run((295.0, 310.0, 590.0), (10.0, 20.0, 60.0)), run((280.0, 305.0, 590.0), (30.0, 50.0, 80.0))]
+    lines = [line.removeprefix("  Brax PPO's evaluations ") for line in against_ppo.at_marks(runs)]
+    assert lines[0].startswith("nearest 300 s, at 295-305 s: 30.0 [") and lines[0].endswith("10 / 50")
+    assert lines[1].startswith("by 300 s, at 280-295 s: 20.0 [") and lines[1].endswith("10 / 30")
+    assert [line.split(",")[0] for line in lines[2:]] == ["nearest 600 s", "by 600 s"]
+    # A seed whose first evaluation lies past the mark has no return by it: the line is left out, not a mean of fewer.
+    late = [run((310.0, 590.0), (20.0, 60.0)), run((280.0, 590.0), (30.0, 80.0))]
+    assert not any(" by 300 s" in line for line in against_ppo.at_marks(late))

@@ -154,16 +154,16 @@ def test_an_env_counts_against_ppos_reference_by_its_best_command_at_300_s_on_th
 def test_a_commands_pooled_runs_give_one_interval_whatever_order_the_records_come_in():
     # The table written as a run is added and the table written again from records.json alone (sorted) read
     # the same records in two orders.
-    def record(returns, started):
-        return {"env": "FishSwim", "command": "fish", "started": started, "budget": 300.0, "starts": 1,
-                "seeds": list(range(42, 47)), "final_return": returns, "returns_by_wall_clock": {},
+    def record(returns, started, budget=300):
+        return {"env": "FishSwim", "command": f"fish --budget {budget}", "started": started, "budget": 300.0,
+                "starts": 1, "seeds": list(range(42, 47)), "final_return": returns, "returns_by_wall_clock": {},
                 "seconds_to_training": 60.0, "first_return": [float(started[-1])] * 5}
-    records = [record([50.0, 60.0, 210.0, 90.0, 120.0], "2026-01-01T10:00:01"),
+    records = [record([50.0, 60.0, 210.0, 90.0, 120.0], "2026-01-01T10:00:01", budget=560),  # pooled: the budget aside
                record([100.0, 300.0, 40.0, 80.0, 150.0], "2026-01-01T10:00:02"),
                record([200.0, 20.0, 130.0, 70.0, 110.0], "2026-01-01T10:00:03")]
     rows = {tuple(suite_table.against_reference(order)) for order in (records, records[::-1], records[1:] + records[:1])}
     assert len(rows) == 1
-    assert "3: 106.0 / 134.0 / 106.0 | `fish` |" in "\n".join(rows.pop())
+    assert "3: 106.0 / 134.0 / 106.0 | `fish` |" in "\n".join(rows.pop())  # in the order they started
 
 
 def test_runs_of_one_command_given_other_budgets_or_resumed_past_the_mark_pool_as_reruns():
