@@ -350,10 +350,11 @@ def against_reference(records: list[dict]) -> list[str]:
     or more) and that share of the reference; and how many envs stand at HALF of it or more. A command run
     more than once counts once, every run's seeds pooled: a rerun cannot lift an env by luck."""
     pooled = collections.defaultdict(list)  # (env, command) -> each counted run's returns by AT_S
-    # Each command's runs pooled in the order of their first starts, whatever order the records came in: the
-    # bootstrap draws by position, so the interval is the records' own, not their file's order. Sorted before
-    # a run recorded again after a resume is counted once: its later record, the longer command, is kept.
-    ordered = sorted(records, key=lambda record: (record.get("started", ""), record["command"]))
+    # Each command's runs pooled in the order of their first starts (records older than that field first, by
+    # command), whatever order the records came in: the bootstrap draws by position, so the interval is the
+    # records' own, not their file's order. Sorted before a run recorded again after a resume is counted once:
+    # the record of its most starts is kept.
+    ordered = sorted(records, key=lambda run: (run.get("started", ""), run.get("starts", 1), run["command"]))
     records = list({first_start(record): record for record in ordered}.values())
     for record in records:
         returns = by_mark(record)

@@ -39,12 +39,19 @@ def test_the_campaign_drawn_beside_a_run_is_the_longest_on_its_gpu_model_else_th
 def test_ppo_is_read_by_a_mark_at_each_seeds_last_evaluation_before_it_and_apart_at_its_nearest():
     def run(times, returns):
         return {"budget_s": 600.0, "points": [{"train_wall_s": t, "return": r} for t, r in zip(times, returns)]}
-    # Seed 0 evaluates at 295 and 310 s, seed 1 at 280 and 305 s; by 600 s both last evaluated at 590 s.
-    runs = [run((295.0, 310.0, 590.0), (10.0, 20.0, 60.0)), run((280.0, 305.0, 590.0), (30.0, 50.0, 80.0))]
+    # Seed 0 evaluates at 150, 295 and 310 s, seed 1 at 100, 200, 300 and 305 s: by 300 s, seed 0's at 295 s
+    # and seed 1's at 300 s itself; by 600 s each's last, at 590 and 520 s.
+    runs = [run((150.0, 295.0, 310.0, 590.0), (5.0, 10.0, 20.0, 60.0)),
+            run((100.0, 200.0, 300.0, 305.0, 520.0, 620.0), (1.0, 2.0, 30.0, 50.0, 80.0, 90.0))]
     lines = [line.removeprefix("  Brax PPO's evaluations ") for line in against_ppo.at_marks(runs)]
-    assert lines[0].startswith("nearest 300 s, at 295-305 s: 30.0 [") and lines[0].endswith("10 / 50")
-    assert lines[1].startswith("by 300 s, at 280-295 s: 20.0 [") and lines[1].endswith("10 / 30")
-    assert [line.split(",")[0] for line in lines[2:]] == ["nearest 600 s", "by 600 s"]
+    assert lines[0].startswith("nearest 300 s, at 295-300 s: 20.0 [") and lines[0].endswith("10 / 30")
+    assert lines[1].startswith("by 300 s, at 295-300 s: 20.0 [") and lines[1].endswith("10 / 30")
+    assert lines[2].startswith("nearest 600 s, at 590-620 s: 75.0 [") and lines[2].endswith("60 / 90")
+    assert lines[3].startswith("by 600 s, at 520-590 s: 70.0 [") and lines[3].endswith("60 / 80")
     # A seed whose first evaluation lies past the mark has no return by it: the line is left out, not a mean of fewer.
     late = [run((310.0, 590.0), (20.0, 60.0)), run((280.0, 590.0), (30.0, 80.0))]
     assert not any(" by 300 s" in line for line in against_ppo.at_marks(late))
+    # A campaign whose seeds stopped 15 s or more short of a mark of their budget is not read at it.
+    stopped = [run((295.0, 560.0), (10.0, 60.0)), run((300.0, 590.0), (30.0, 80.0))]
+    assert [line.split(",")[0].split("evaluations ")[1] for line in against_ppo.at_marks(stopped)] == [
+        "nearest 300 s", "by 300 s"]

@@ -164,6 +164,16 @@ def test_a_commands_pooled_runs_give_one_interval_whatever_order_the_records_com
     rows = {tuple(suite_table.against_reference(order)) for order in (records, records[::-1], records[1:] + records[:1])}
     assert len(rows) == 1
     assert "3: 106.0 / 134.0 / 106.0 | `fish` |" in "\n".join(rows.pop())  # in the order they started
+    # The second run recorded again after two more starts: one run, its record of the most starts kept, in
+    # either order (its returns by 300 s differ here only to tell the two records apart).
+    again = record([0.0] * 5, "2026-01-01T10:00:02") | {
+        "starts": 3, "returns_by_wall_clock": {"300": [0.0] * 5},
+        "command": "fish --budget 300, then --resume RUN --budget 200, then --resume RUN --budget 200"}
+    earlier = records[1] | {"starts": 2, "returns_by_wall_clock": {"300": records[1]["final_return"]},
+                            "command": "fish --budget 300, then --resume RUN --budget 300"}
+    for order in ([records[0], earlier, again, records[2]], [records[0], again, earlier, records[2]]):
+        pooled = "\n".join(suite_table.against_reference(order))
+        assert "3: 106.0 / 0.0 / 106.0 | `fish` |" in pooled
 
 
 def test_runs_of_one_command_given_other_budgets_or_resumed_past_the_mark_pool_as_reruns():
