@@ -168,8 +168,10 @@ def main(argv: list[str]) -> int:
                         help="Brax PPO's campaign on ENV at the marks, alone: its longest on the GPU model named "
                              "(H100, H200), else its longest on any (its machine is printed)")
     args = parser.parse_args(argv)
+    if args.ppo and (args.runs or args.out):
+        parser.error("--ppo prints Brax PPO's campaign alone: give it without --runs and --out")
     if args.ppo:
-        env, runs = args.ppo[0], campaign(*args.ppo)
+        env, runs = args.ppo[0], campaign(args.ppo[0], args.ppo[1].upper())  # the model as machines name it
         if not runs:
             print(f"{env}: no Brax PPO campaign on record")
             return 0
