@@ -75,12 +75,12 @@ def _mean_interval(values) -> str:
 
 
 def at_marks(runs: list[dict]) -> list[str]:
-    """Brax PPO's ``runs`` at each mark of the wall clock every seed reached (its last evaluation within
-    MARK_WITHIN_S of the mark or past it, as a run of ours is read): each seed's evaluation nearest the mark,
-    and each seed's last at or before it, with their times."""
-    reached = min(run["points"][-1]["train_wall_s"] for run in runs) + suite_table.MARK_WITHIN_S
+    """Brax PPO's ``runs`` at each mark of their budget that every seed reached (``suite_table.marks_reached``
+    of its last evaluation, as a run of ours is read): each seed's evaluation nearest the mark, and each
+    seed's last at or before it, with their times."""
+    reached = min(run["points"][-1]["train_wall_s"] for run in runs)
     lines = []
-    for mark in (mark for mark in suite_table.WALL_CLOCK_MARKS if mark <= min(runs[0]["budget_s"], reached)):
+    for mark in (mark for mark in suite_table.marks_reached(reached) if mark <= runs[0]["budget_s"]):
         before = [[point for point in run["points"] if point["train_wall_s"] <= mark] for run in runs]
         for how, points in (("nearest", suite_table.nearest_points(runs, mark)),  # however far: times printed
                             ("by", [max(seed, key=lambda point: point["train_wall_s"]) for seed in before if seed])):

@@ -83,6 +83,12 @@ WALL_CLOCK_MARKS = (300, 600, 900)
 MARK_WITHIN_S = 15  # how near a mark a run or Brax PPO's evaluation counts as at it
 
 
+def marks_reached(reached_s: float) -> list[int]:
+    """The marks a run (ours or Brax PPO's) that trained until ``reached_s`` s of its clock is read at: those it
+    reached within MARK_WITHIN_S. Past them its last evaluation would stand for a time it never trained."""
+    return [mark for mark in WALL_CLOCK_MARKS if mark <= reached_s + MARK_WITHIN_S]
+
+
 def read_run(folder: str) -> dict:
     """What the table keeps of one run folder."""
     from stablebptt.engine.divergence import retired_in
@@ -123,11 +129,10 @@ def read_run(folder: str) -> dict:
         command = without_budget(command) + (
             f" --budget {budgets[0]:g}, then " + ", then ".join(f"--resume RUN --budget {b:g}" for b in budgets[1:])
             if all(budgets) else f" (resumed: {len(starts)} starts)")
-    # A mark the run was not budgeted to reach (its starts' budgets summed; else its wall clock), within
-    # MARK_WITHIN_S, has no return: its last evaluation would stand there for a time it never trained.
+    # Reached as budgeted (its starts' budgets summed; else its wall clock).
     reached = sum(budgets) if all(budgets) else clock[last_epoch]
     along = {str(mark): returns[max(e for e in evaluated if clock[e] <= mark)]
-             for mark in WALL_CLOCK_MARKS if mark <= reached + MARK_WITHIN_S and any(clock[e] <= mark for e in evaluated)}
+             for mark in marks_reached(reached) if any(clock[e] <= mark for e in evaluated)}
     return {"env": config["task_config"]["env"], "command": command, "started": starts[0].get("started", ""),
             "budget": train.get("budget", 0.0),
             "wall_s": clock[last_epoch], "starts": len(starts), "returns_by_wall_clock": along,
