@@ -23,11 +23,12 @@ CUTS = (0.0, 0.5, 2.0)  # none; below the resting ball's load of one body weight
 
 def _ball_at(env, height, settle_steps):
     """The ball's state with its slide at ``height`` (-0.1: the sphere touching the plane), then settled
-    for ``settle_steps`` steps with no push."""
-    state = env.reset(jax.random.PRNGKey(0))
-    state = env.step(state._replace(data=state.data.replace(qpos=jnp.array([height]))), jnp.zeros(1))
+    for ``settle_steps`` steps with no push (compiled: MJX run op by op compiles each of its operations)."""
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    state = reset(jax.random.PRNGKey(0))
+    state = step(state._replace(data=state.data.replace(qpos=jnp.array([height]))), jnp.zeros(1))
     for _ in range(settle_steps):
-        state = env.step(state, jnp.zeros(1))
+        state = step(state, jnp.zeros(1))
     return state
 
 

@@ -89,7 +89,8 @@ def test_a_models_acceleration_sensors_without_constraint_rows_are_mujocos_c_val
             def step(self, data, ctrl):
                 return mjx.step(mjx_model, data.replace(ctrl=ctrl))
 
-        mjxs_own, mjxs_forward = Arm().reset(None).sensordata, forward_module.forward  # untouched by this library
+        # MJX's own, untouched by this library (compiled: MJX run op by op compiles each of its operations).
+        mjxs_own, mjxs_forward = jax.jit(lambda: Arm().reset(None))().sensordata, forward_module.forward
         arm = with_reset_traced_once(Arm())
         data = arm.reset(jax.random.PRNGKey(0))
         with differentiable_mjx():
@@ -276,7 +277,7 @@ def test_a_playground_env_of_several_physics_steps_a_control_step_recomputes_eac
     from stablebptt.envs.derivative_model import own_substeps
     env = playground.load("ReacherEasy")  # a small model stepped in several physics steps a control step
     assert own_substeps(env) > 1
-    state = env.reset(jax.random.PRNGKey(0))
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0))  # compiled: MJX run op by op compiles each operation
 
     def gradient_program(recomputed):  # Playground's mjx_env.step calls mjx.step through MJX's package
         task = env_task(env, horizon=2, diagnose=False, physics_steps_recomputed=recomputed)
