@@ -99,25 +99,26 @@ def test_the_state_carried_steps_are_the_whole_datas_loop(scene):
                 data = mjx.step(model, data)
             return data
 
+        # The data the steps reach, and the derivative of its sensors and velocities in the starting velocities
+        # (forward mode: MJX's own solver loop has no reverse mode outside differentiable_mjx), in one program.
+        def reached(steps):
+            def outputs(qvel):
+                end = steps(data.replace(qvel=qvel))
+                return jnp.concatenate([end.sensordata, end.qvel]), end
+            derivative, end = jax.jit(jax.jacfwd(outputs, has_aux=True))(data.qvel)
+            return end, derivative
+
         # 3 steps: a scan of two, the second reading the state the first carried, then the last step.
-        carried = jax.jit(lambda data: state_carried.steps(model, data, 3))(data)
-        looped = jax.jit(lambda data: whole(data, 3))(data)
-        for (path, expected), found in zip(jax.tree_util.tree_flatten_with_path(looped)[0], jax.tree.leaves(carried)):
-            np.testing.assert_allclose(found, expected, rtol=1e-10, atol=1e-12, err_msg=jax.tree_util.keystr(path))
+        carried, found = reached(lambda data: state_carried.steps(model, data, 3))
+        looped, expected = reached(lambda data: whole(data, 3))
+        for (path, value), reached_value in zip(jax.tree_util.tree_flatten_with_path(looped)[0],
+                                                jax.tree.leaves(carried)):
+            np.testing.assert_allclose(reached_value, value, rtol=1e-10, atol=1e-12, err_msg=jax.tree_util.keystr(path))
         assert float(carried.time - data.time) == pytest.approx(3 * float(model.opt.timestep))
         assert np.any(np.asarray(carried._impl.efc_force) > 0)  # the ball pressed on the floor: the solver's forces
         assert state_carried.steps(model, data, 0) is data
         one = jax.jit(lambda data: state_carried.steps(model, data, 1))(data)
         assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b, equal_nan=True)),
                                          one, jax.jit(lambda data: mjx.step(model, data))(data)))
-
-        # The derivative of the sensors and velocities after the steps in the velocities (forward mode: MJX's own
-        # solver loop has no reverse mode outside differentiable_mjx).
-        def reached(qvel, steps):
-            end = steps(data.replace(qvel=qvel))
-            return jnp.concatenate([end.sensordata, end.qvel])
-        expected = jax.jit(jax.jacfwd(lambda qvel: reached(qvel, lambda data: whole(data, 3))))(data.qvel)
-        found = jax.jit(jax.jacfwd(lambda qvel: reached(qvel, lambda data: state_carried.steps(model, data, 3))))(
-            data.qvel)
     assert np.all(np.isfinite(expected)) and np.abs(expected).max() > 1e-3
     np.testing.assert_allclose(found, expected, rtol=1e-9, atol=1e-10)
