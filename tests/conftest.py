@@ -89,7 +89,8 @@ def float64():
 def jitted_anew(function):
     """``jax.jit`` of a new function object calling ``function``: jit reuses the trace of a function object
     it has traced before, so a function traced outside ``differentiable_mjx`` would keep MJX's own derivative
-    and values inside it."""
+    and values inside it. The tests run MJX through it rather than eagerly, where it would compile each of its
+    operations on its own."""
     return jax.jit(lambda *args: function(*args))
 
 

@@ -14,7 +14,7 @@ from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import EnvError
 from stablebptt.errors import InputError
 
-from conftest import refused_in_one_line
+from conftest import jitted_anew, refused_in_one_line
 from envs_for_tests import Ball, Cart, MjxDataBall
 
 WEIGHT = 9.81  # envs_for_tests.BALL: one body of 1 kg under MuJoCo's default gravity
@@ -23,8 +23,8 @@ CUTS = (0.0, 0.5, 2.0)  # none; below the resting ball's load of one body weight
 
 def _ball_at(env, height, settle_steps):
     """The ball's state with its slide at ``height`` (-0.1: the sphere touching the plane), then settled
-    for ``settle_steps`` steps with no push (compiled: MJX run op by op compiles each of its operations)."""
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    for ``settle_steps`` steps with no push."""
+    reset, step = jitted_anew(env.reset), jitted_anew(env.step)
     state = reset(jax.random.PRNGKey(0))
     state = step(state._replace(data=state.data.replace(qpos=jnp.array([height]))), jnp.zeros(1))
     for _ in range(settle_steps):

@@ -12,7 +12,7 @@ import stablebptt as sb
 from stablebptt.envs.adapter import env_task
 from stablebptt.envs.protocol import EnvError
 
-from conftest import train_in_process
+from conftest import jitted_anew, train_in_process
 from envs_for_tests import Ball, Cart, MjxDataBall
 
 SMOOTHING = sb.ContactSmoothing(margin=0.05, softness=2.0)
@@ -75,7 +75,7 @@ def test_the_contacts_geometry_held_keeps_values_and_distances_derivative_and_ho
     held = env_task(env, horizon=4, diagnose=False, contact_geometry_held=True, physics_steps_recomputed=recomputed)
     assert "the contacts' points and frames held in the derivative" in held.summary
     assert "points and frames held" not in exact.summary
-    state = jax.jit(env.reset)(jax.random.PRNGKey(0))  # compiled: MJX run op by op compiles each operation
+    state = jitted_anew(env.reset)(jax.random.PRNGKey(0))
     state = state._replace(data=state.data.replace(qpos=jnp.array([-0.103])))  # the ball 3 mm in the plane
     action = jnp.array([0.1])
 

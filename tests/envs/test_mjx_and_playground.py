@@ -14,7 +14,7 @@ from stablebptt.physics.constraint_derivatives import differentiable_mjx
 from stablebptt.physics.mjx_internals import forward as forward_module
 from stablebptt.physics.mjx_internals import mjx
 
-from conftest import float64, needs_playground, refused_in_one_line
+from conftest import float64, jitted_anew, needs_playground, refused_in_one_line
 
 
 LIMIT_AND_CONTACT = """
@@ -89,8 +89,8 @@ def test_a_models_acceleration_sensors_without_constraint_rows_are_mujocos_c_val
             def step(self, data, ctrl):
                 return mjx.step(mjx_model, data.replace(ctrl=ctrl))
 
-        # MJX's own, untouched by this library (compiled: MJX run op by op compiles each of its operations).
-        mjxs_own, mjxs_forward = jax.jit(lambda: Arm().reset(None))().sensordata, forward_module.forward
+        # MJX's own, untouched by this library
+        mjxs_own, mjxs_forward = jitted_anew(Arm().reset)(None).sensordata, forward_module.forward
         arm = with_reset_traced_once(Arm())
         data = arm.reset(jax.random.PRNGKey(0))
         with differentiable_mjx():
@@ -277,7 +277,7 @@ def test_a_playground_env_of_several_physics_steps_a_control_step_recomputes_eac
     from stablebptt.envs.derivative_model import own_substeps
     env = playground.load("ReacherEasy")  # a small model stepped in several physics steps a control step
     assert own_substeps(env) > 1
-    state = jax.jit(env.reset)(jax.random.PRNGKey(0))  # compiled: MJX run op by op compiles each operation
+    state = jitted_anew(env.reset)(jax.random.PRNGKey(0))
 
     def gradient_program(recomputed):  # Playground's mjx_env.step calls mjx.step through MJX's package
         task = env_task(env, horizon=2, diagnose=False, physics_steps_recomputed=recomputed)

@@ -266,8 +266,7 @@ def test_the_subtree_velocities_keep_mjxs_values_and_its_derivative_in_every_inp
     rng = np.random.default_rng(7)
     with float64():
         mjx_model = mjx.put_model(model, impl="jax")
-        # Compiled: MJX run op by op compiles each of its operations.
-        placed = jax.jit(lambda data: forward.fwd_velocity(mjx_model, forward.fwd_position(mjx_model, data)))(
+        placed = jitted_anew(lambda data: forward.fwd_velocity(mjx_model, forward.fwd_position(mjx_model, data)))(
             start.replace(qvel=jnp.asarray(rng.standard_normal(model.nv))))
         # Every input moved on its own, the centres of mass apart from the bodies: the derivative as a function
         # of what MJX's scans read, not only along states where those agree.
