@@ -152,7 +152,8 @@ class Dynamics:
     def __init__(self, step: Callable, policy: Callable, loss: Callable, horizon: int, **settings):
         # The engine settings Dynamics once carried: named, so a caller learns where they went.
         own = [item.name for item in fields(self)]
-        unknown = [name for name in settings if name not in {item.name for item in fields(Plan)}]
+        plan_settings = {item.name for item in fields(Plan)}
+        unknown = [name for name in settings if name not in plan_settings]
         if unknown:  # the first in the caller's order, as keywords_named names one
             named = functools.partial(config_field, type(self))
             refuse_keyword(unknown[0], own, named, f"no field {named(unknown[0])}")
